@@ -1,0 +1,1 @@
+"""Agents for the SineTrack latent-force world: particle filter, scenario MPC, baselines."""
