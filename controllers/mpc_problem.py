@@ -56,10 +56,16 @@ class ScenarioProblem:
     def __post_init__(self) -> None:
         def check(name: str, ok: bool, allowed: str) -> None:
             if not ok:
-                raise ValueError(f"ScenarioProblem.{name}={getattr(self, name)!r}: must be {allowed}")
+                raise ValueError(
+                    f"ScenarioProblem.{name}={getattr(self, name)!r}: must be {allowed}"
+                )
 
         check("horizon", isinstance(self.horizon, int) and self.horizon >= 1, "an int >= 1")
-        check("n_scenarios", isinstance(self.n_scenarios, int) and self.n_scenarios >= 1, "an int >= 1")
+        check(
+            "n_scenarios",
+            isinstance(self.n_scenarios, int) and self.n_scenarios >= 1,
+            "an int >= 1",
+        )
         check("dt", np.isfinite(self.dt) and self.dt > 0, "finite and > 0")
         check("vehicle_length", np.isfinite(self.vehicle_length) and self.vehicle_length > 0, "> 0")
         for name, n in (("Q", 4), ("R", 2), ("Qf", 4), ("x_goal", 4)):

@@ -1,0 +1,354 @@
+"""Typed, validated configuration of the SineTrack world.
+
+One frozen dataclass per component, defaults in one place (the dataclass), YAML as
+plain data read with ``yaml.safe_load``. Unknown keys, wrong types, non-finite values
+and out-of-range values are errors that name the key and the allowed range.
+
+A config file has a top-level ``env:`` section (this module) and an ``agents:``
+section (read by :mod:`controllers.config`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+import yaml
+
+from lfm_env.track import SineTrack
+
+T = TypeVar("T")
+
+
+class ConfigError(ValueError):
+    """A configuration value is unknown, of the wrong type or out of range."""
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def load_yaml(path: str | os.PathLike) -> dict:
+    """Read a YAML file with the safe loader; the top level must be a mapping."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file {str(path)!r} does not exist")
+    try:
+        with path.open() as fh:
+            data = yaml.safe_load(fh)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config file {str(path)!r} is not valid YAML: {exc}") from exc
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file {str(path)!r}: top level must be a mapping of sections")
+    return data
+
+
+def read_section(source: Any, section: str) -> dict | None:
+    """The ``section`` mapping of a config given as a path, a dict or ``None``.
+
+    A dict that holds top-level sections (``env``, ``agents``) gives the named one;
+    any other dict is taken as the section itself.
+    """
+    if source is None:
+        return None
+    if isinstance(source, (str, os.PathLike)):
+        source = load_yaml(source)
+    if not isinstance(source, dict):
+        raise ConfigError(
+            f"config must be a path, a dict or a dataclass, got {type(source).__name__}"
+        )
+    top = {"env", "agents"}
+    unknown_top = set(source) - top
+    if set(source) & top:
+        if unknown_top:
+            raise ConfigError(
+                f"unknown top-level config section(s) {sorted(unknown_top)}; allowed: {sorted(top)}"
+            )
+        sec = source.get(section)
+        if sec is None:
+            return {}
+        if not isinstance(sec, dict):
+            raise ConfigError(f"config section {section!r} must be a mapping")
+        return sec
+    return source
+
+
+def _convert(value: Any, tp: Any, key: str) -> Any:
+    """Convert a plain YAML value to the annotated type ``tp``, or raise naming ``key``."""
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _convert(value, inner[0], key)
+    if dataclasses.is_dataclass(tp):
+        if isinstance(value, tp):
+            return value
+        if not isinstance(value, dict):
+            raise ConfigError(f"{key}: expected a mapping, got {value!r}")
+        return from_dict(tp, value, prefix=key)
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key}={value!r}: expected true or false")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+            raise ConfigError(f"{key}={value!r}: expected an integer")
+        return int(value)
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+            hint = " (write floats with a dot, e.g. 1.0e-3)" if isinstance(value, str) else ""
+            raise ConfigError(f"{key}={value!r}: expected a number{hint}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise ConfigError(f"{key}={value!r}: must be finite")
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{key}={value!r}: expected a string")
+        return value
+    if origin is tuple:
+        if isinstance(value, np.ndarray):
+            value = value.tolist()
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{key}={value!r}: expected a list")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(v, args[0], f"{key}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(f"{key}={list(value)!r}: expected a list of {len(args)} values")
+        return tuple(
+            _convert(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=True))
+        )
+    raise TypeError(f"unsupported config type {tp!r} for {key}")  # a bug, not user input
+
+
+def from_dict(cls: type[T], data: dict | None, prefix: str = "") -> T:
+    """Build the frozen dataclass ``cls`` from a plain mapping, validating every key.
+
+    Args:
+        cls: the dataclass to build.
+        data: mapping of field names to plain values; missing fields keep their defaults.
+        prefix: dotted path of the section, used in error messages (e.g. ``"env"``).
+
+    Raises:
+        ConfigError: for unknown keys, wrong types, non-finite or out-of-range values.
+    """
+    data = {} if data is None else data
+    if not isinstance(data, dict):
+        raise ConfigError(f"{prefix or cls.__name__}: expected a mapping, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        where = f"{prefix}." if prefix else ""
+        raise ConfigError(
+            f"unknown config key(s) {[where + str(k) for k in unknown]}; "
+            f"allowed keys: {sorted(names)}"
+        )
+    kwargs = {}
+    for name, value in data.items():
+        key = f"{prefix}.{name}" if prefix else name
+        kwargs[name] = _convert(value, hints[name], key)
+    try:
+        return cls(**kwargs)
+    except ConfigError as exc:
+        if prefix and not str(exc).startswith(prefix):
+            raise ConfigError(f"{prefix}.{exc}") from None
+        raise
+
+
+def to_dict(obj: Any) -> dict:
+    """Plain (YAML-ready) mapping of a config dataclass, tuples as lists."""
+
+    def plain(v: Any) -> Any:
+        if dataclasses.is_dataclass(v):
+            return {f.name: plain(getattr(v, f.name)) for f in dataclasses.fields(v) if f.init}
+        if isinstance(v, tuple):
+            return [plain(x) for x in v]
+        return v
+
+    return plain(obj)
+
+
+class _Checker:
+    """Collects range checks of one dataclass and raises with the field's name."""
+
+    def __init__(self, obj: Any) -> None:
+        self.obj = obj
+
+    def __call__(self, name: str, ok: bool, allowed: str) -> None:
+        if not ok:
+            raise ConfigError(f"{name}={getattr(self.obj, name)!r}: must be {allowed}")
+
+    def positive(self, *names: str) -> None:
+        for n in names:
+            self(n, getattr(self.obj, n) > 0, "> 0")
+
+    def non_negative(self, *names: str) -> None:
+        for n in names:
+            v = getattr(self.obj, n)
+            ok = all(x >= 0 for x in v) if isinstance(v, tuple) else v >= 0
+            self(n, ok, ">= 0" if not isinstance(v, tuple) else "all >= 0")
+
+
+# --------------------------------------------------------------------------- sections
+
+MATERN_NUS = (0.5, 1.5, 2.5, 3.5)
+DISCRETIZATIONS = ("exact", "euler_maruyama")
+STARTS = ("stationary", "zero")
+
+
+@dataclass(frozen=True)
+class DisturbanceConfig:
+    """The hidden latent force: a Matern GP in time, in state-space form."""
+
+    kernel: str = "matern"  # only "matern" for now
+    nu: float = 2.5  # smoothness, a half-integer in MATERN_NUS
+    variance: float = 4.0  # sigma^2 [(m/s^2)^2]
+    lengthscale: float = 4.0  # [s]
+    discretization: str = "exact"  # "exact" (expm) or "euler_maruyama" (the published code)
+    start: str = "stationary"  # "stationary" (z0 ~ N(0, Pinf)) or "zero" (the published code)
+
+    def __post_init__(self) -> None:
+        c = _Checker(self)
+        c("kernel", self.kernel == "matern", "'matern'")
+        c("nu", self.nu in MATERN_NUS, f"one of {list(MATERN_NUS)}")
+        c.positive("variance", "lengthscale")
+        c("discretization", self.discretization in DISCRETIZATIONS, f"one of {DISCRETIZATIONS}")
+        c("start", self.start in STARTS, f"one of {STARTS}")
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """The SineTrack world: vehicle, track, noise, disturbance, goal and episode limits.
+
+    Vectors over the state ``[p_x, p_y, v, psi]`` give the heading in **degrees** for
+    readability; the env converts to radians.
+    """
+
+    dt: float = 0.2  # [s] sampling time (one Euler step per sample)
+    vehicle_length: float = 0.5  # [m] l of the bicycle
+    track_amplitude: float = 3.0  # [m] of the centre line y = A sin(omega x)
+    track_pulsation: float = 0.2  # [rad/m] omega of the centre line
+    track_half_width: float = 1.0  # [m] allowed |p_y - centre_y(p_x)|
+    x_min: float = -1.0  # [m] lower bound on p_x
+    x_max: float = 70.0  # [m] upper bound on p_x
+    speed_min: float = 0.0  # [m/s] speed constraint (recorded, not enforced)
+    speed_max: float = 8.0  # [m/s]
+    accel_max: float = 5.0  # [m/s^2] action bound |a|
+    steer_max_deg: float = 25.0  # [deg] action bound |delta|
+    initial_state: tuple[float, float, float, float] = (0.0, 0.0, 1.0, 45.0)  # [m, m, m/s, deg]
+    goal: tuple[float, float] = (62.83, 0.0)  # [m] goal position
+    goal_radius: float = 1.0  # [m] success when the path comes this close to the goal
+    goal_state: tuple[float, float, float, float] = (62.83, 0.0, 4.0, 0.0)  # [m, m, m/s, deg]
+    Q: tuple[float, float, float, float] = (2.0, 2.0, 1.0, 0.0)  # reward's state weights
+    R: tuple[float, float] = (0.5, 10.0)  # reward's input weights on [a, delta (rad)]
+    measurement_noise_std: tuple[float, float, float, float] = (
+        0.15,
+        0.15,
+        0.15,
+        0.5,
+    )  # [m, m, m/s, deg]
+    process_noise_diffusion: tuple[float, float, float, float] = (
+        0.01,
+        0.01,
+        0.01,
+        0.5,
+    )  # per sqrt(s) [m, m, m/s, deg]
+    max_steps: int = 150  # truncation after this many steps (30 s at dt = 0.2 s)
+    safety_margin: float = 10.0  # [m] failure when the car is this far outside the track box
+    disturbance: DisturbanceConfig = field(default_factory=DisturbanceConfig)
+
+    def __post_init__(self) -> None:
+        c = _Checker(self)
+        c.positive("dt", "vehicle_length", "track_half_width", "accel_max", "goal_radius")
+        c.positive("max_steps", "safety_margin")
+        c.non_negative("track_amplitude", "track_pulsation", "Q", "R")
+        c.non_negative("measurement_noise_std", "process_noise_diffusion")
+        c("x_max", self.x_max > self.x_min, f"> x_min={self.x_min}")
+        c("speed_max", self.speed_max > self.speed_min, f"> speed_min={self.speed_min}")
+        c("steer_max_deg", 0 < self.steer_max_deg < 90, "in (0, 90) deg")
+        c("dt", self.dt <= 10.0, "<= 10 s")
+        track = self.track
+        gx, gy = self.goal
+        c("goal", self.x_min <= gx <= self.x_max, f"inside x bounds [{self.x_min}, {self.x_max}]")
+        c(
+            "goal",
+            float(track.track_excess(gx, gy)) == 0.0,
+            f"on the track (|y - centre_y(x)| <= {self.track_half_width} m)",
+        )
+        x0, y0 = self.initial_state[:2]
+        c(
+            "initial_state",
+            self.x_min <= x0 <= self.x_max and float(track.track_excess(x0, y0)) == 0.0,
+            "a position inside the track and the x bounds",
+        )
+
+    @property
+    def track(self) -> SineTrack:
+        """The track geometry as a :class:`~lfm_env.track.SineTrack`."""
+        return SineTrack(
+            amplitude=self.track_amplitude,
+            pulsation=self.track_pulsation,
+            half_width=self.track_half_width,
+            x_min=self.x_min,
+            x_max=self.x_max,
+        )
+
+    @property
+    def steer_max(self) -> float:
+        """Steering bound [rad]."""
+        return math.radians(self.steer_max_deg)
+
+    @staticmethod
+    def _state_rad(v: tuple[float, ...]) -> np.ndarray:
+        out = np.array(v, dtype=float)
+        out[3] = math.radians(out[3])
+        return out
+
+    @property
+    def initial_state_rad(self) -> np.ndarray:
+        """Start state ``[m, m, m/s, rad]``."""
+        return self._state_rad(self.initial_state)
+
+    @property
+    def goal_state_rad(self) -> np.ndarray:
+        """Goal state of the cost ``[m, m, m/s, rad]``."""
+        return self._state_rad(self.goal_state)
+
+    @property
+    def measurement_std_rad(self) -> np.ndarray:
+        """Measurement noise std ``[m, m, m/s, rad]``."""
+        return self._state_rad(self.measurement_noise_std)
+
+    @property
+    def process_noise_std_rad(self) -> np.ndarray:
+        """Per-step process noise std on the physical states ``[m, m, m/s, rad]``."""
+        return self._state_rad(self.process_noise_diffusion) * math.sqrt(self.dt)
+
+    def replace(self, **changes: Any) -> EnvConfig:
+        """A copy with some fields changed (validated like any config)."""
+        return from_dict(EnvConfig, {**to_dict(self), **to_dict_fields(changes)}, prefix="env")
+
+
+def to_dict_fields(changes: dict) -> dict:
+    """Plain values of a partial mapping of config fields (dataclasses become dicts)."""
+    return {k: (to_dict(v) if dataclasses.is_dataclass(v) else v) for k, v in changes.items()}
+
+
+def load_env_config(config: Any = None) -> EnvConfig:
+    """An :class:`EnvConfig` from a path, a dict (whole file or the ``env`` section),
+    an ``EnvConfig``, or ``None`` for the defaults (the paper's case study)."""
+    if isinstance(config, EnvConfig):
+        return config
+    section = read_section(config, "env")
+    return from_dict(EnvConfig, section, prefix="env")

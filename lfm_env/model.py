@@ -1,0 +1,128 @@
+"""The augmented latent-force model: bicycle state stacked with the GP's latent state.
+
+``xbar = [p_x, p_y, v, psi, z_1 .. z_p]``; the latent force ``w = H z`` is added to
+the acceleration. One step (paper eq. DiscAugSys, with the GP part discretised
+exactly by default):
+
+    x_{k+1} = x_k + f(x_k, u_k, H z_k) dt + e_k,    e_k ~ N(0, diag(process_std^2))
+    z_{k+1} = A z_k + eta_k,                        eta_k ~ N(0, Q)
+
+The simulator, the particle filter and the MPC agents all build on this class, so
+there is one model of the world. Agents get it from the *known* structure and
+hyperparameters in the config, never from the env's hidden state.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lfm_env.config import EnvConfig
+from lfm_env.gp import StateSpaceKernel, matern
+from lfm_env.vehicle import euler_step
+
+
+def psd_factor(cov: np.ndarray) -> np.ndarray:
+    """A matrix ``S`` with ``S S^T = cov`` for a symmetric PSD ``cov`` (rank-deficient ok)."""
+    vals, vecs = np.linalg.eigh(0.5 * (cov + cov.T))
+    return vecs * np.sqrt(np.clip(vals, 0.0, None))
+
+
+@dataclass(frozen=True, eq=False)
+class LatentForceModel:
+    """Discrete-time augmented model of the case study, built from an :class:`EnvConfig`."""
+
+    config: EnvConfig
+    kernel: StateSpaceKernel = field(init=False)
+    A: np.ndarray = field(init=False)  # (p, p) latent transition
+    Q: np.ndarray = field(init=False)  # (p, p) latent process noise covariance
+    Q_factor: np.ndarray = field(init=False)  # (p, p) with Q_factor Q_factor^T = Q
+    H: np.ndarray = field(init=False)  # (p,) latent force read-out, w = H z
+    process_std: np.ndarray = field(init=False)  # (4,) per-step std on [p_x, p_y, v, psi]
+
+    def __post_init__(self) -> None:
+        d = self.config.disturbance
+        kernel = matern(d.nu, d.variance, d.lengthscale)
+        A, Q = kernel.discretize(self.config.dt, method=d.discretization)
+        object.__setattr__(self, "kernel", kernel)
+        object.__setattr__(self, "A", np.asarray(A, dtype=float))
+        object.__setattr__(self, "Q", np.asarray(Q, dtype=float))
+        object.__setattr__(self, "Q_factor", psd_factor(np.asarray(Q, dtype=float)))
+        object.__setattr__(self, "H", np.asarray(kernel.H, dtype=float).reshape(-1))
+        object.__setattr__(self, "process_std", self.config.process_noise_std_rad)
+
+    @property
+    def latent_dim(self) -> int:
+        """Dimension ``p`` of the latent state ``z``."""
+        return int(self.A.shape[0])
+
+    @property
+    def state_dim(self) -> int:
+        """Dimension ``4 + p`` of the augmented state."""
+        return 4 + self.latent_dim
+
+    @property
+    def dt(self) -> float:
+        """Sampling time [s]."""
+        return self.config.dt
+
+    def latent_force(self, z: np.ndarray) -> np.ndarray:
+        """``w = H z`` [m/s^2] for latent states of shape ``(..., p)``."""
+        return np.asarray(z) @ self.H
+
+    def stationary_latent_covariance(self) -> np.ndarray:
+        """Stationary covariance of the latent state (of the chosen discretisation)."""
+        if self.config.disturbance.discretization == "exact":
+            return np.asarray(self.kernel.Pinf, dtype=float)
+        import scipy.linalg
+
+        return scipy.linalg.solve_discrete_lyapunov(self.A, self.Q)
+
+    def physical_step(self, x: np.ndarray, u: np.ndarray, w: np.ndarray | float) -> np.ndarray:
+        """Noise-free Euler step of the bicycle with latent force ``w`` (shapes ``(..., 4)``)."""
+        return euler_step(x, u, self.config.dt, w, self.config.vehicle_length)
+
+    def transition(
+        self, particles: np.ndarray, u: np.ndarray, rng: np.random.Generator
+    ) -> np.ndarray:
+        """Propagate augmented states ``(n, 4 + p)`` one step, with process noise.
+
+        This is the bootstrap particle filter's proposal: all particles at once.
+        """
+        x, z = particles[:, :4], particles[:, 4:]
+        n = particles.shape[0]
+        out = np.empty_like(particles)
+        out[:, :4] = self.physical_step(x, u, z @ self.H)
+        out[:, :4] += rng.standard_normal((n, 4)) * self.process_std
+        out[:, 4:] = z @ self.A.T + rng.standard_normal((n, self.latent_dim)) @ self.Q_factor.T
+        return out
+
+    def mean_latent_forecast(self, z: np.ndarray, horizon: int) -> np.ndarray:
+        """Mean forecast of the latent force ``(..., horizon)`` from latent states ``(..., p)``.
+
+        Element ``k`` is ``H A^k z``, the force acting during step ``k`` (``k = 0`` uses ``z``).
+        """
+        z = np.asarray(z, dtype=float)
+        out = np.empty(z.shape[:-1] + (horizon,))
+        zk = z
+        for k in range(horizon):
+            out[..., k] = zk @ self.H
+            zk = zk @ self.A.T
+        return out
+
+    def sample_latent_forecasts(
+        self, z0: np.ndarray, horizon: int, rng: np.random.Generator
+    ) -> np.ndarray:
+        """Sampled latent-force sequences ``(Ns, horizon)`` from latent states ``z0`` ``(Ns, p)``.
+
+        The scenario draws of the paper: each row is one draw of the latent process noise
+        over the horizon, started from its own ``z0`` row. Element ``k`` acts during step ``k``.
+        """
+        z = np.array(z0, dtype=float, copy=True)
+        ns = z.shape[0]
+        out = np.empty((ns, horizon))
+        for k in range(horizon):
+            out[:, k] = z @ self.H
+            z = z @ self.A.T + rng.standard_normal((ns, self.latent_dim)) @ self.Q_factor.T
+        return out

@@ -1,0 +1,114 @@
+"""Rendering of the SineTrack world with highway-env's road graphics and viewer.
+
+The env builds a highway-env ``Road`` holding one ``SineLane`` with the track's
+geometry and a ``Vehicle`` placed at the car's true pose, and draws them with
+highway-env's ``EnvViewer``. Nothing here feeds back into the dynamics.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lfm_env.config import EnvConfig
+from lfm_env.track import SineTrack
+
+
+class TrackScene:
+    """A highway-env road with the sine lane and the car, drawn by ``EnvViewer``."""
+
+    def __init__(
+        self,
+        track: SineTrack,
+        config: EnvConfig,
+        screen_size: tuple[int, int] = (600, 300),
+        scaling: float = 25.0,
+        follow: bool = True,
+        offscreen: bool = True,
+    ) -> None:
+        from highway_env.road.road import Road, RoadNetwork
+        from highway_env.vehicle.kinematics import Vehicle
+
+        class _Car(Vehicle):
+            LENGTH = config.vehicle_length  # [m] drawn at the model's true size
+            WIDTH = 0.5 * config.vehicle_length
+
+        network = RoadNetwork()
+        network.add_lane("start", "goal", track.make_lane())
+        self.road = Road(network=network, np_random=np.random.default_rng(0), record_history=True)
+        self.vehicle = _Car(self.road, position=[0.0, 0.0], heading=0.0, speed=0.0)
+        self.road.vehicles.append(self.vehicle)
+        self.track = track
+        self.follow = follow
+        width, height = screen_size
+        if not follow:
+            # Fit the whole track: the scale is set by the longer extent.
+            span_x = track.x_max - track.x_min + 4.0
+            span_y = 2.0 * (track.amplitude + track.half_width) + 4.0
+            scaling = min(width / span_x, height / span_y)
+        # EnvViewer reads its settings from an env-like object's ``config`` dict.
+        self.config = {
+            "offscreen_rendering": offscreen,
+            "screen_width": width,
+            "screen_height": height,
+            "scaling": scaling,
+            "centering_position": [0.5, 0.5],
+            "render_agent": True,
+            "real_time_rendering": False,
+            "simulation_frequency": max(1, round(1.0 / config.dt)),
+            "show_trajectories": False,
+        }
+        self.observation_type = None
+        self.action_type = None
+        self._viewer = None
+
+    def update(self, state: np.ndarray) -> None:
+        """Place the drawn car at the true pose ``[p_x, p_y, v, psi]``."""
+        self.vehicle.position = np.array(state[:2], dtype=float)
+        self.vehicle.heading = float(state[3])
+        self.vehicle.speed = float(state[2])
+
+    def _window_centre(self) -> np.ndarray:
+        if self.follow:
+            return self.vehicle.position
+        return np.array([0.5 * (self.track.x_min + self.track.x_max), 0.0])
+
+    def draw(self, goal: np.ndarray, goal_radius: float) -> np.ndarray:
+        """Draw the scene; returns an ``(H, W, 3)`` uint8 RGB frame with +y up."""
+        import pygame
+        from highway_env.envs.common.graphics import EnvViewer
+        from highway_env.road.graphics import LaneGraphics
+
+        if self._viewer is None:
+            self._viewer = EnvViewer(self, config=self.config)
+            # highway-env disables drawing under SDL_VIDEODRIVER=dummy, but its offscreen
+            # surfaces draw fine without a display; keep it on so frames are never blank.
+            self._viewer.enabled = True
+        viewer = self._viewer
+        viewer.observer_vehicle = None
+        viewer.window_position = self._window_centre  # type: ignore[method-assign]
+        # highway-env draws lane lines as chords 4.33 m apart, too coarse for a 31 m
+        # wavelength; draw them every 0.25 m for this call only.
+        saved = LaneGraphics.STRIPE_SPACING, LaneGraphics.STRIPE_LENGTH
+        LaneGraphics.STRIPE_SPACING = LaneGraphics.STRIPE_LENGTH = 0.25
+        try:
+            viewer.display()
+        finally:
+            LaneGraphics.STRIPE_SPACING, LaneGraphics.STRIPE_LENGTH = saved
+        surface = viewer.sim_surface
+        pygame.draw.circle(
+            surface,
+            (40, 170, 60),
+            surface.vec2pix(goal),
+            max(2, surface.pix(goal_radius)),
+            width=2,
+        )
+        if not viewer.offscreen:
+            viewer.screen.blit(surface, (0, 0))
+            pygame.display.flip()
+        # pygame's screen y axis points down; flip so +y is up, as in the plots.
+        return np.ascontiguousarray(viewer.get_image()[::-1])
+
+    def close(self) -> None:
+        if self._viewer is not None:
+            self._viewer.close()
+            self._viewer = None
