@@ -1,0 +1,9 @@
+#!/usr/bin/env bash
+# Set up .venv and run the main job: the evaluation of the agents on the default (paper)
+# config over a few seeds, writing results/paper/episodes.csv and results/paper/report.md.
+# Extra arguments go to lfm-evaluate (e.g. --seeds 0:20 --jobs 2).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup_env.sh dist
+.venv/bin/lfm-evaluate --config configs/paper.yaml --agents nominal,pf,scenario,oracle \
+  --seeds 0:4 --jobs 2 --out results/paper "$@"

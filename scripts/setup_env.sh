@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Create (or reuse) the project's virtualenv in .venv and install the package with extras.
+# Usage: bash scripts/setup_env.sh [EXTRAS]   (default extras: test)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+extras="${1:-test}"
+python="${PYTHON:-python3}"
+if [ ! -x .venv/bin/python ]; then
+  "$python" -m venv .venv
+fi
+stamp=".venv/.installed-${extras//,/-}"
+# Reinstall only when the project's dependencies changed since the last install.
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+  .venv/bin/python -m pip install --quiet --upgrade pip
+  .venv/bin/python -m pip install --quiet -e ".[${extras}]"
+  touch "$stamp"
+fi

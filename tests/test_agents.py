@@ -1,0 +1,160 @@
+"""Agents through the standard step API: episodes, determinism, faults, configuration."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import lfm_env  # noqa: F401  (registers the env)
+from controllers.agents import AGENTS, make_agent
+from controllers.config import AgentConfig, load_agent_config
+from controllers.mpc import campi_garatti_scenarios
+from lfm_env.config import ConfigError
+
+QUICK = "configs/quick.yaml"
+
+
+def run(agent_name: str, config, seed: int = 0, max_steps: int | None = None):
+    env = gym.make("lfm_env/SineTrack-v0", config=config)
+    agent = make_agent(agent_name, config, env=env if agent_name == "oracle" else None)
+    obs, info = env.reset(seed=seed)
+    agent.reset(seed=100 + seed)
+    actions, infos, est = [], [info], []
+    for _ in range(max_steps or 10_000):
+        a = agent.act(obs)
+        actions.append(a)
+        est.append(agent.last_info)
+        obs, _, term, trunc, info = env.step(a)
+        infos.append(info)
+        if term or trunc:
+            break
+    return np.array(actions), infos, est
+
+
+@pytest.mark.parametrize("name", sorted(AGENTS))
+def test_each_agent_reaches_the_goal_on_the_quick_config(name):
+    actions, infos, est = run(name, QUICK, seed=0)
+    assert infos[-1]["is_success"], f"{name} did not reach the goal"
+    assert not infos[-1]["failure"]
+    # Inputs respect the bounds exactly.
+    assert np.all(np.abs(actions[:, 0]) <= 5.0 + 1e-12)
+    assert np.all(np.abs(actions[:, 1]) <= np.deg2rad(25.0) + 1e-12)
+    for rec in est:
+        assert rec["solve_time"] >= 0.0
+        assert {"status", "iterations", "slack", "estimate", "estimate_std"} <= set(rec)
+
+
+def test_filter_agents_track_the_hidden_force():
+    cfg = {"env": {"max_steps": 40}, "agents": {"n_particles": 3000, "n_scenarios": 5}}
+    _, infos, est = run("pf", cfg, seed=3)
+    w_true = np.array([i["disturbance"] for i in infos[1:]])
+    w_hat = np.array([r["latent_force"] for r in est])
+    # Skip the first second while the filter learns; the force's std is 2 m/s^2.
+    err = w_hat[5:] - w_true[5:]
+    assert np.sqrt(np.mean(err**2)) < 1.2
+    band = np.array([r["latent_force_std"] for r in est])[5:]
+    assert np.mean(np.abs(err) <= 2 * band + 1e-9) > 0.6
+
+
+def test_same_seeds_give_identical_actions():
+    a1, _, _ = run("scenario", QUICK, seed=1, max_steps=8)
+    a2, _, _ = run("scenario", QUICK, seed=1, max_steps=8)
+    np.testing.assert_array_equal(a1, a2)
+
+
+def test_agent_seed_does_not_change_the_disturbance():
+    env_a = gym.make("lfm_env/SineTrack-v0", config=QUICK)
+    env_b = gym.make("lfm_env/SineTrack-v0", config=QUICK)
+    _, ia = env_a.reset(seed=5)
+    _, ib = env_b.reset(seed=5)
+    assert ia["disturbance"] == ib["disturbance"]
+
+
+def test_solver_failure_falls_back_to_the_previous_plan_then_brakes():
+    # One IPOPT iteration cannot converge: every solve reports failure, a real fault.
+    cfg = {"agents": {"max_iter": 1, "solver": "ipopt", "n_scenarios": 3, "n_particles": 200}}
+    agent = make_agent("nominal", cfg)
+    agent.reset(seed=0)
+    obs = np.array([0.0, 0.0, 1.0, np.pi / 4])
+    u = agent.act(obs)
+    assert not agent.last_info["success"]
+    assert agent.last_info["fallback"] == "brake"
+    np.testing.assert_allclose(u, [-5.0, 0.0])
+
+
+def test_previous_plan_is_used_after_a_good_solve():
+    good = make_agent("nominal", {"agents": {"solver": "ipopt"}})
+    good.reset(seed=0)
+    obs = np.array([0.0, 0.0, 1.0, np.pi / 4])
+    good.act(obs)
+    plan = good.last_info["plan"]
+    # Now make the same solver fail by starving it of iterations.
+    bad = make_agent("nominal", {"agents": {"solver": "ipopt", "max_iter": 1}})
+    bad.reset(seed=0)
+    bad._plan = plan.copy()  # as if the previous step had solved
+    u = bad.act(obs + 0.1)
+    assert bad.last_info["fallback"] == "previous_plan"
+    np.testing.assert_allclose(u, plan[1])
+
+
+@pytest.mark.parametrize(
+    "obs", [[np.nan, 0, 1, 0], [0, 0, np.inf, 0], [0, 0, 1], [[0, 0, 1, 0]]], ids=str
+)
+def test_bad_observations_are_rejected(obs):
+    agent = make_agent("nominal", QUICK)
+    agent.reset(seed=0)
+    with pytest.raises(ValueError, match="obs"):
+        agent.act(obs)
+
+
+def test_factory_errors():
+    with pytest.raises(ValueError, match="unknown agent 'mpc'"):
+        make_agent("mpc")
+    with pytest.raises(ValueError, match="oracle"):
+        make_agent("oracle", QUICK)
+    env = gym.make("lfm_env/SineTrack-v0")
+    with pytest.raises(ValueError, match="only the oracle"):
+        make_agent("scenario", QUICK, env=env)
+
+
+@pytest.mark.parametrize(
+    "section, key",
+    [
+        ({"horizon": 0}, "horizon"),
+        ({"n_scenarios": 0}, "n_scenarios"),
+        ({"n_particles": -5}, "n_particles"),
+        ({"solver": "cplex"}, "solver"),
+        ({"resampling": "magic"}, "resampling"),
+        ({"ess_threshold": 1.5}, "ess_threshold"),
+        ({"violation_level": 1.2, "n_scenarios": None, "confidence": 0.1}, "violation_level"),
+        ({"n_scenarios": None}, "n_scenarios"),
+        ({"Q": [1, 1, 1]}, "Q"),
+        ({"R": [1.0, -1.0]}, "R"),
+        ({"horizon": 2.5}, "horizon"),
+        ({"typo_key": 1}, "typo_key"),
+    ],
+)
+def test_bad_agent_configs_name_the_key(section, key):
+    with pytest.raises(ConfigError, match=key):
+        load_agent_config({"agents": section})
+
+
+def test_scenario_count_from_the_campi_garatti_bound():
+    cfg = {"agents": {"n_scenarios": None, "violation_level": 0.2, "confidence": 0.01}}
+    agent = make_agent("scenario", {**cfg, "agents": {**cfg["agents"], "n_particles": 100}})
+    expected = campi_garatti_scenarios(0.2, 0.01, 2 * AgentConfig().horizon)
+    assert agent.problem.n_scenarios == expected
+    assert load_agent_config(cfg).scenario_count() == expected
+
+
+def test_scenarios_can_start_from_particles():
+    cfg = {
+        "env": {"max_steps": 4},
+        "agents": {"scenario_initial_states": "particles", "n_scenarios": 6, "n_particles": 500},
+    }
+    actions, infos, est = run("scenario", cfg, seed=2)
+    assert len(actions) == 4
+    # Each scenario starts from its own particle: the predicted starts differ.
+    starts = est[-1]["predicted"][:, 0, :]
+    assert np.unique(starts[:, 0]).size > 1
