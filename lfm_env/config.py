@@ -66,8 +66,8 @@ def read_section(source: Any, section: str) -> dict | None:
             f"config must be a path, a dict or a dataclass, got {type(source).__name__}"
         )
     top = {"env", "agents"}
-    unknown_top = set(source) - top
-    if set(source) & top:
+    unknown_top = {str(k) for k in source} - top
+    if {str(k) for k in source} & top:
         if unknown_top:
             raise ConfigError(
                 f"unknown top-level config section(s) {sorted(unknown_top)}; allowed: {sorted(top)}"
@@ -108,7 +108,10 @@ def _convert(value: Any, tp: Any, key: str) -> Any:
         if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
             hint = " (write floats with a dot, e.g. 1.0e-3)" if isinstance(value, str) else ""
             raise ConfigError(f"{key}={value!r}: expected a number{hint}")
-        value = float(value)
+        try:
+            value = float(value)
+        except OverflowError:
+            raise ConfigError(f"{key}={value!r}: too large for a float") from None
         if not math.isfinite(value):
             raise ConfigError(f"{key}={value!r}: must be finite")
         return value
@@ -147,7 +150,7 @@ def from_dict(cls: type[T], data: dict | None, prefix: str = "") -> T:
         raise ConfigError(f"{prefix or cls.__name__}: expected a mapping, got {data!r}")
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls) if f.init}
-    unknown = sorted(set(data) - names)
+    unknown = sorted((str(k) for k in data if k not in names), key=str)
     if unknown:
         where = f"{prefix}." if prefix else ""
         raise ConfigError(
