@@ -121,6 +121,7 @@ class MPCAgent:
             fallback=fallback,
             plan=sol.u.copy(),
             predicted=None if sol.predicted is None else sol.predicted[:, :, :].copy(),
+            x0=np.asarray(x0, dtype=float).copy(),
             W=np.asarray(W).copy(),
         )
         self.last_info = info
