@@ -1,0 +1,858 @@
+"""Evaluation of agents over env seeds, saved episode by episode so no result is lost.
+
+The shape follows stable-baselines3's ``evaluate_policy``: one library function,
+:func:`evaluate`, runs every (agent, seed) episode and returns one row of metrics per
+episode; command lines (:mod:`controllers.cli`) only parse arguments and call it.
+
+Paired design: for a given env seed every agent faces the same hidden disturbance and
+the same measurement and process noise (the env draws them from its own seed), while
+each agent's own randomness (particle filter, scenario draws) comes from a seed derived
+from the env seed and the agent's name (:func:`agent_seed`). Differences between agents
+on one seed are therefore due to the agents alone.
+
+Results folder (``out``)::
+
+    out/config.yaml                         the resolved config (env and agents sections)
+    out/episodes/<agent>__seed<seed>.npz    the trajectory (np.savez_compressed)
+    out/episodes/<agent>__seed<seed>.json   the row, plus agent_seed and traceback
+    out/episodes.csv                        every json row, sorted by (agent, seed)
+
+Every file is written atomically (a temporary file in the same folder, then
+``os.replace``), the npz before the json: a json marks a finished episode, so a killed
+run loses at most the episodes in flight, and rerunning the same call resumes it. An
+episode that raises is saved as a row whose ``error`` holds the exception (its json also
+holds the traceback, its npz the steps done before the error); such rows are kept in the
+table but, with ``retry_failed=True`` (the default), re-run by the next call. A folder
+holds the results of one config only: :func:`evaluate` refuses to resume into a folder
+whose ``config.yaml`` differs. Two calls must not write into the same folder at once.
+
+Runs are serial (``jobs=1``), on local processes (``jobs > 1``) or on a Dask cluster
+(``scheduler=`` an existing one, or ``dask_workers=`` a local one on loopback). Every
+worker writes its own episode files, so the folder must be visible to all workers (any
+single machine; a shared file system for a multi-machine cluster, whose workers must also
+have this package installed). Serial, parallel and distributed runs give identical rows
+apart from the timing columns :data:`TIMING_COLUMNS`.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import math
+import os
+import re
+import secrets
+import time
+import traceback
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import yaml
+
+import lfm_env  # noqa: F401  (registers lfm_env/SineTrack-v0, also in spawned workers)
+from controllers.agents import AGENTS, make_agent
+from controllers.config import load_agent_config
+from lfm_env.config import load_env_config, load_yaml, to_dict
+
+ENV_ID = "lfm_env/SineTrack-v0"
+
+#: Columns of a row, in table order (names fixed by the evaluation issue).
+ROW_COLUMNS: tuple[str, ...] = (
+    "agent",  # agent name
+    "seed",  # env seed
+    "success",  # reached the goal
+    "steps",  # steps taken
+    "time_to_goal",  # [s], NaN without success
+    "cost",  # sum of the true stage cost (= -reward) over the episode
+    "track_violation_steps",  # steps ending outside the track band
+    "max_track_excess",  # [m] largest distance outside the track band
+    "speed_violation_steps",  # steps ending outside [speed_min, speed_max]
+    "max_speed_excess",  # [m/s]
+    "max_x_excess",  # [m] largest distance outside [x_min, x_max]
+    "failure",  # left the safety box (episode ended early)
+    "latent_rmse",  # [m/s^2] RMSE of the latent-force estimate; NaN without a filter
+    "latent_coverage",  # fraction of steps with the true force in the 2-sigma band
+    "solve_time_median",  # [s]
+    "solve_time_p95",  # [s]
+    "solve_time_max",  # [s]
+    "solver_failures",  # steps whose solve did not succeed
+    "fallback_steps",  # steps that applied a fallback action (previous plan or brake)
+    "slack_total",  # sum of the per-step constraint slack
+    "wall_time",  # [s] whole episode, including building the agent
+    "error",  # '' if the episode ran, else "ExceptionType: message"
+)
+
+#: Columns that measure time and so differ between otherwise identical runs.
+TIMING_COLUMNS: tuple[str, ...] = (
+    "solve_time_median",
+    "solve_time_p95",
+    "solve_time_max",
+    "wall_time",
+)
+
+_STR_COLUMNS = ("agent", "error")
+_INT_COLUMNS = (
+    "seed",
+    "steps",
+    "track_violation_steps",
+    "speed_violation_steps",
+    "solver_failures",
+    "fallback_steps",
+)
+_BOOL_COLUMNS = ("success", "failure")
+_METRIC_COLUMNS = tuple(c for c in ROW_COLUMNS if c not in ("agent", "seed", "wall_time", "error"))
+
+_EPISODES = "episodes"
+_TABLE = "episodes.csv"
+_CONFIG = "config.yaml"
+_TABLE_REFRESH = 10.0  # [s] least time between rebuilds of episodes.csv during a run
+
+
+class ResultsFolderError(ValueError):
+    """The results folder cannot be used (e.g. it holds results of another config)."""
+
+
+# --------------------------------------------------------------------------- small helpers
+
+
+def agent_seed(seed: int, agent_name: str) -> int:
+    """The seed of an agent's own randomness in the episode with env seed ``seed``.
+
+    Derived from the env seed and a stable hash of the agent's name (``hash()`` of a str
+    changes between processes), so it is the same in every worker and independent of the
+    env's streams and of the other agents'.
+    """
+    name_key = int.from_bytes(hashlib.sha256(agent_name.encode()).digest()[:8], "little")
+    state = np.random.SeedSequence([int(seed), name_key]).generate_state(1, dtype=np.uint64)
+    return int(state[0])
+
+
+def resolve_config(config: Any = None) -> dict:
+    """The full config as plain data: ``{"env": {...}, "agents": {...}}``, validated.
+
+    Args:
+        config: a YAML path, a dict (whole file), or ``None`` for the built-in defaults
+            (the paper's values). Missing keys take their defaults.
+
+    Raises:
+        ConfigError: (a ``ValueError``) for unknown keys or out-of-range values.
+    """
+    return {
+        "env": to_dict(load_env_config(config)),
+        "agents": to_dict(load_agent_config(config)),
+    }
+
+
+def parse_seeds(text: str) -> list[int]:
+    """Seeds from text: ``"0:20"`` (end exclusive), ``"3"``, ``"1,5,9"``, ``"0:10,20:25"``.
+
+    Returns:
+        The seeds in the order given, duplicates removed.
+
+    Raises:
+        ValueError: naming ``text`` for empty or reversed ranges, negative numbers or
+            anything else that is not a list of non-negative integers and ranges.
+    """
+    if not isinstance(text, str) or not text.strip():
+        raise ValueError(f"seeds {text!r}: expected e.g. '0:20', '3', '1,5,9' or '0:10,20:25'")
+    seeds: list[int] = []
+    for part in text.split(","):
+        part = part.strip()
+        m = re.fullmatch(r"(-?\d+)(?:\s*:\s*(-?\d+))?", part)
+        if m is None:
+            raise ValueError(
+                f"seeds {text!r}: {part!r} is not a seed or a range start:end "
+                "(e.g. '0:20', '3', '1,5,9')"
+            )
+        start = int(m.group(1))
+        stop = start + 1 if m.group(2) is None else int(m.group(2))
+        if start < 0 or stop < 0:
+            raise ValueError(f"seeds {text!r}: seeds must be >= 0")
+        if stop <= start:
+            raise ValueError(
+                f"seeds {text!r}: range {part!r} is empty or reversed (the end is exclusive)"
+            )
+        seeds.extend(range(start, stop))
+    return list(dict.fromkeys(seeds))
+
+
+def _check_agents(agents: str | Iterable[str]) -> list[str]:
+    names = agents.split(",") if isinstance(agents, str) else list(agents)
+    names = [str(n).strip() for n in names]
+    if not names or any(not n for n in names):
+        raise ValueError(f"agents {agents!r}: give at least one agent name; choose from {_known()}")
+    unknown = [n for n in names if n not in AGENTS]
+    if unknown:
+        raise ValueError(f"unknown agent(s) {unknown}; choose from {_known()}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"agents {names}: each agent may appear only once")
+    return names
+
+
+def _known() -> list[str]:
+    return sorted(AGENTS)
+
+
+def _check_seeds(seeds: int | Iterable[int]) -> list[int]:
+    if isinstance(seeds, str):
+        return parse_seeds(seeds)
+    values = [seeds] if isinstance(seeds, (int, np.integer)) else list(seeds)
+    if not values:
+        raise ValueError("seeds: the list is empty; give at least one seed >= 0")
+    out = []
+    for s in values:
+        if isinstance(s, (bool, np.bool_)) or not isinstance(s, (int, np.integer)) or s < 0:
+            raise ValueError(f"seeds: {s!r} is not an integer >= 0")
+        out.append(int(s))
+    if len(set(out)) != len(out):
+        raise ValueError(f"seeds: {out} holds duplicates")
+    return out
+
+
+def _one_line(exc: BaseException) -> str:
+    """``"Type: message"`` on one line, so the error fits a CSV cell and a log line."""
+    msg = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__
+
+
+# --------------------------------------------------------------------------- one episode
+
+
+class _EpisodeRecorder:
+    """Collects one episode step by step; a step is appended whole, so a partial record
+    (after an exception) is still consistent."""
+
+    def __init__(self, horizon: int) -> None:
+        self.horizon = horizon
+        self.lists: dict[str, list] = {
+            k: []
+            for k in (
+                "true_state",
+                "obs",
+                "time",
+                "action",
+                "disturbance",
+                "reward",
+                "estimate",
+                "estimate_std",
+                "latent_force_est",
+                "latent_force_std",
+                "predicted",
+                "solve_time",
+                "slack",
+                "solver_success",
+                "fallback",
+                "track_excess",
+                "speed_excess",
+                "x_excess",
+            )
+        }
+        self.has_filter = False
+        self.final_info: dict[str, Any] = {}
+
+    def start(self, obs: np.ndarray, info: dict[str, Any]) -> None:
+        self.lists["true_state"].append(np.asarray(info["true_state"], dtype=float))
+        self.lists["obs"].append(np.asarray(obs, dtype=float))
+        self.lists["time"].append(float(info["time"]))
+
+    def step(
+        self, agent_info: dict[str, Any], obs: np.ndarray, reward: float, info: dict[str, Any]
+    ) -> None:
+        nan_pred = np.full((self.horizon + 1, 4), np.nan)
+        predicted = agent_info.get("predicted")
+        self.has_filter = self.has_filter or "latent_force" in agent_info
+        values = {
+            "true_state": np.asarray(info["true_state"], dtype=float),
+            "obs": np.asarray(obs, dtype=float),
+            "time": float(info["time"]),
+            "action": np.asarray(info["applied_action"], dtype=float),
+            # w acting during this step: the quantity the agent estimated before it.
+            "disturbance": float(info["disturbance"]),
+            "reward": float(reward),
+            "estimate": np.asarray(agent_info["estimate"], dtype=float),
+            "estimate_std": np.asarray(agent_info["estimate_std"], dtype=float),
+            "latent_force_est": float(agent_info.get("latent_force", np.nan)),
+            "latent_force_std": float(agent_info.get("latent_force_std", np.nan)),
+            "predicted": nan_pred if predicted is None else np.asarray(predicted)[0],
+            "solve_time": float(agent_info.get("solve_time", np.nan)),
+            "slack": float(agent_info.get("slack", np.nan)),
+            "solver_success": bool(agent_info.get("success", False)),
+            "fallback": str(agent_info.get("fallback", "")),
+            "track_excess": float(info["track_excess"]),
+            "speed_excess": float(info["speed_excess"]),
+            "x_excess": float(info["x_excess"]),
+        }
+        for k, v in values.items():
+            self.lists[k].append(v)
+        self.final_info = info
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The trajectory; ``T`` steps give ``(T+1, ...)`` states and ``(T, ...)`` the rest."""
+        lst = self.lists
+        T = len(lst["reward"])
+        d = len(lst["estimate"][0]) if T else 4
+
+        def stack(key: str, shape: tuple[int, ...], dtype: Any = float) -> np.ndarray:
+            if lst[key]:
+                return np.asarray(lst[key], dtype=dtype)
+            return np.zeros(shape, dtype=dtype)
+
+        return {
+            "true_state": stack("true_state", (0, 4)),
+            "obs": stack("obs", (0, 4)),
+            "time": stack("time", (0,)),
+            "action": stack("action", (0, 2)),
+            "disturbance": stack("disturbance", (0,)),
+            "reward": stack("reward", (0,)),
+            "estimate": stack("estimate", (0, d)),
+            "estimate_std": stack("estimate_std", (0, d)),
+            "latent_force_est": stack("latent_force_est", (0,)),
+            "latent_force_std": stack("latent_force_std", (0,)),
+            "predicted": stack("predicted", (0, self.horizon + 1, 4)),
+            "solve_time": stack("solve_time", (0,)),
+            "slack": stack("slack", (0,)),
+            "solver_success": stack("solver_success", (0,), bool),
+            "fallback": stack("fallback", (0,), str),
+            "track_excess": stack("track_excess", (0,)),
+            "speed_excess": stack("speed_excess", (0,)),
+            "x_excess": stack("x_excess", (0,)),
+        }
+
+
+def _simulate(agent_name: str, config: dict, seed: int, rec: _EpisodeRecorder) -> None:
+    """Run one episode into ``rec``; exceptions propagate with ``rec`` holding the steps done."""
+    env = gym.make(ENV_ID, config=config)
+    try:
+        obs, info = env.reset(seed=seed)
+        agent = make_agent(agent_name, config, env=env if agent_name == "oracle" else None)
+        agent.reset(seed=agent_seed(seed, agent_name))
+        rec.start(obs, info)
+        terminated = truncated = False
+        while not (terminated or truncated):
+            # The agent's estimate made with obs k is compared with the w of step k.
+            action = agent.act(obs)
+            agent_info = agent.last_info
+            obs, reward, terminated, truncated, info = env.step(action)
+            rec.step(agent_info, obs, reward, info)
+    finally:
+        env.close()
+
+
+def _episode_metrics(rec: _EpisodeRecorder, arrays: dict[str, np.ndarray]) -> dict[str, Any]:
+    """The metric columns of a finished episode."""
+    T = len(arrays["reward"])
+    info = rec.final_info
+    success = bool(info.get("is_success", False))
+    solve = arrays["solve_time"]
+    track, speed = arrays["track_excess"], arrays["speed_excess"]
+    if rec.has_filter and T:
+        err = arrays["latent_force_est"] - arrays["disturbance"]
+        latent_rmse = float(np.sqrt(np.mean(err**2)))
+        latent_coverage = float(np.mean(np.abs(err) <= 2.0 * arrays["latent_force_std"]))
+    else:
+        latent_rmse = latent_coverage = math.nan
+
+    def stat(fn: Callable[[np.ndarray], Any], x: np.ndarray) -> float:
+        return float(fn(x)) if len(x) else math.nan
+
+    return {
+        "success": success,
+        "steps": int(T),
+        "time_to_goal": float(info["time"]) if success else math.nan,
+        "cost": float(-np.sum(arrays["reward"])),
+        "track_violation_steps": int(np.sum(track > 0.0)),
+        "max_track_excess": stat(np.max, track),
+        "speed_violation_steps": int(np.sum(speed > 0.0)),
+        "max_speed_excess": stat(np.max, speed),
+        "max_x_excess": stat(np.max, arrays["x_excess"]),
+        "failure": bool(info.get("failure", False)),
+        "latent_rmse": latent_rmse,
+        "latent_coverage": latent_coverage,
+        "solve_time_median": stat(np.median, solve),
+        "solve_time_p95": stat(lambda x: np.percentile(x, 95), solve),
+        "solve_time_max": stat(np.max, solve),
+        "solver_failures": int(np.sum(~arrays["solver_success"])),
+        "fallback_steps": int(np.sum(arrays["fallback"] != "")),
+        "slack_total": float(np.sum(arrays["slack"])),
+    }
+
+
+def _error_row(agent_name: str, seed: int, error: str, wall_time: float) -> dict[str, Any]:
+    row: dict[str, Any] = {"agent": agent_name, "seed": int(seed)}
+    row.update({c: math.nan for c in _METRIC_COLUMNS})
+    row.update(wall_time=float(wall_time), error=error)
+    return {c: row[c] for c in ROW_COLUMNS}
+
+
+def run_episode(
+    agent_name: str, config: Any, seed: int, record: bool = True
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Run one closed-loop episode of ``agent_name`` on the env with seed ``seed``.
+
+    The env is ``gym.make("lfm_env/SineTrack-v0", config=config)`` reset with ``seed``;
+    the agent's own randomness is seeded with :func:`agent_seed` (paired design). The
+    oracle (an upper bound that reads the hidden truth) is given the env.
+
+    Args:
+        agent_name: ``"nominal"``, ``"pf"``, ``"scenario"`` or ``"oracle"``.
+        config: a YAML path, a dict (whole file) or ``None`` (paper defaults).
+        seed: env seed, an integer >= 0.
+        record: return the trajectory; ``False`` gives an empty dict.
+
+    Returns:
+        ``(row, trajectory)``. ``row`` maps :data:`ROW_COLUMNS` to values. With ``T``
+        steps the trajectory holds ``true_state (T+1, 4)``, ``obs (T+1, 4)`` (noisy
+        measurement of ``true_state``), ``time (T+1,)`` [s], ``action (T, 2)`` (applied),
+        ``disturbance (T,)`` (w [m/s^2] acting during step k), ``reward (T,)``,
+        ``estimate (T, d)`` and ``estimate_std (T, d)`` (the agent's state estimate from
+        ``obs[k]``; ``d`` = 4, or 4 + latent states for filter agents),
+        ``latent_force_est (T,)`` and ``latent_force_std (T,)`` (its estimate of
+        ``disturbance[k]``; NaN without a filter), ``predicted (T, N+1, 4)`` (first
+        scenario's predicted states), ``solve_time (T,)`` [s], ``slack (T,)``,
+        ``solver_success (T,)``, ``fallback (T,)`` ('' or the fallback used), and
+        ``track_excess``, ``speed_excess``, ``x_excess (T,)`` of the state after step k.
+
+    Raises:
+        ValueError: unknown agent name or negative seed; any error of the episode itself
+            propagates (:func:`evaluate` records it instead).
+    """
+    (agent_name,) = _check_agents([agent_name])
+    (seed,) = _check_seeds([seed])
+    cfg = resolve_config(config)
+    t0 = time.perf_counter()
+    rec = _EpisodeRecorder(cfg["agents"]["horizon"])
+    _simulate(agent_name, cfg, seed, rec)
+    arrays = rec.arrays()
+    row = {"agent": agent_name, "seed": seed, **_episode_metrics(rec, arrays)}
+    row.update(wall_time=time.perf_counter() - t0, error="")
+    return {c: row[c] for c in ROW_COLUMNS}, (arrays if record else {})
+
+
+# --------------------------------------------------------------------------- storage
+
+
+def episode_stem(agent_name: str, seed: int) -> str:
+    """File name (without suffix) of an episode: ``<agent>__seed<seed>``."""
+    return f"{agent_name}__seed{int(seed)}"
+
+
+def _atomic_write(path: Path, write: Callable[[io.BufferedWriter], None]) -> None:
+    """Write ``path`` through a temporary file in its folder, then ``os.replace`` it.
+
+    Readers see the old file or the complete new one, never a torn one, even if the
+    process is killed mid-write (only a ``.<name>.*.tmp`` file may be left behind).
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
+    # os.open with mode 0o666 honours the umask (mkstemp would make the file private).
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            write(fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _json_value(v: Any) -> Any:
+    """Strict JSON: NaN becomes null, NumPy scalars become Python ones."""
+    if isinstance(v, (np.generic,)):
+        v = v.item()
+    if isinstance(v, float) and not math.isfinite(v):
+        return None if math.isnan(v) else v
+    return v
+
+
+def save_episode(
+    out: str | os.PathLike,
+    row: dict[str, Any],
+    trajectory: dict[str, np.ndarray] | None,
+    traceback_text: str = "",
+) -> Path:
+    """Save an episode as ``episodes/<agent>__seed<seed>.npz`` then ``.json``, atomically.
+
+    Args:
+        out: the results folder.
+        row: the episode's row (:data:`ROW_COLUMNS`).
+        trajectory: arrays for the npz; ``None`` writes the json only.
+        traceback_text: the traceback of a failed episode, kept in the json.
+
+    Returns:
+        The json's path (its presence marks the episode finished).
+    """
+    folder = Path(out) / _EPISODES
+    stem = episode_stem(row["agent"], row["seed"])
+    if trajectory is not None:
+        _atomic_write(folder / f"{stem}.npz", lambda fh: np.savez_compressed(fh, **trajectory))
+    record = {c: _json_value(row[c]) for c in ROW_COLUMNS}
+    record["agent_seed"] = agent_seed(row["seed"], row["agent"])
+    record["traceback"] = traceback_text
+    text = json.dumps(record, indent=1, allow_nan=False) + "\n"
+    json_path = folder / f"{stem}.json"
+    _atomic_write(json_path, lambda fh: fh.write(text.encode()))
+    return json_path
+
+
+def _normalise_row(record: dict[str, Any]) -> dict[str, Any]:
+    """A row with NaN for missing numbers and Python types per column."""
+    row: dict[str, Any] = {}
+    for c in ROW_COLUMNS:
+        v = record.get(c)
+        if c in _STR_COLUMNS:
+            row[c] = "" if v is None else str(v)
+        elif v is None or (isinstance(v, float) and math.isnan(v)):
+            row[c] = math.nan
+        elif c in _BOOL_COLUMNS:
+            row[c] = bool(v)
+        elif c in _INT_COLUMNS:
+            row[c] = int(v)
+        else:
+            row[c] = float(v)
+    return row
+
+
+def _read_row(path: Path) -> dict[str, Any] | None:
+    """The row of an episode json, or ``None`` if it is missing or unreadable."""
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(record, dict) or "agent" not in record or "seed" not in record:
+        return None
+    return _normalise_row(record)
+
+
+def load_results(out: str | os.PathLike) -> list[dict[str, Any]]:
+    """Every saved row of a results folder, sorted by (agent, seed).
+
+    Reads the episode json files (exact values; ``episodes.csv`` holds the same rows as
+    text). Metrics of failed episodes are NaN; filter on ``row["error"] == ""``.
+    """
+    folder = Path(out) / _EPISODES
+    rows = [r for p in sorted(folder.glob("*.json")) if (r := _read_row(p)) is not None]
+    return sorted(rows, key=lambda r: (r["agent"], r["seed"]))
+
+
+def load_trajectory(out: str | os.PathLike, agent_name: str, seed: int) -> dict[str, np.ndarray]:
+    """The saved trajectory of one episode (see :func:`run_episode` for its arrays)."""
+    path = Path(out) / _EPISODES / f"{episode_stem(agent_name, seed)}.npz"
+    with np.load(path, allow_pickle=False) as data:
+        return {k: data[k] for k in data.files}
+
+
+def _csv_value(v: Any) -> str:
+    if isinstance(v, float):
+        return repr(v)  # shortest exact text; NaN as "nan"
+    return str(v)
+
+
+def write_table(out: str | os.PathLike) -> Path:
+    """Rebuild ``out/episodes.csv`` from every episode json (sorted by agent, seed)."""
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(ROW_COLUMNS)
+    for row in load_results(out):
+        writer.writerow([_csv_value(row[c]) for c in ROW_COLUMNS])
+    path = Path(out) / _TABLE
+    _atomic_write(path, lambda fh: fh.write(buf.getvalue().encode()))
+    return path
+
+
+def _remove_stale_temp_files(out: Path) -> None:
+    """Delete temporary files a killed run may have left (only our ``.name.*.tmp``)."""
+    for folder in (out, out / _EPISODES):
+        for tmp in folder.glob(".*.tmp"):
+            tmp.unlink(missing_ok=True)
+
+
+def _config_differences(a: dict, b: dict, prefix: str = "") -> list[str]:
+    diffs = []
+    for key in sorted(set(a) | set(b)):
+        name = f"{prefix}{key}"
+        va, vb = a.get(key), b.get(key)
+        if isinstance(va, dict) and isinstance(vb, dict):
+            diffs += _config_differences(va, vb, f"{name}.")
+        elif va != vb:
+            diffs.append(f"{name}: {va!r} in the folder, {vb!r} now")
+    return diffs
+
+
+def _check_folder(out: Path, config: dict) -> None:
+    """Refuse a folder whose ``config.yaml`` differs from ``config`` (reads only)."""
+    path = out / _CONFIG
+    if out.exists() and not out.is_dir():
+        raise ResultsFolderError(f"results folder {str(out)!r} is a file")
+    if path.exists():
+        try:
+            saved = resolve_config(load_yaml(path))
+        except ValueError as exc:
+            raise ResultsFolderError(f"results folder {str(out)!r}: bad {_CONFIG}: {exc}") from exc
+        diffs = _config_differences(saved, config)
+        if diffs:
+            shown = "; ".join(diffs[:5]) + ("; ..." if len(diffs) > 5 else "")
+            raise ResultsFolderError(
+                f"results folder {str(out)!r} holds results of a different config ({shown}); "
+                "choose another output folder or delete this one"
+            )
+
+
+def _prepare_folder(out: Path, config: dict) -> None:
+    """Create the folder and its ``config.yaml``; remove temp files of a killed run."""
+    path = out / _CONFIG
+    out.mkdir(parents=True, exist_ok=True)
+    (out / _EPISODES).mkdir(exist_ok=True)
+    _remove_stale_temp_files(out)
+    if not path.exists():
+        text = (
+            f"# Resolved config of the episodes in this folder (env id {ENV_ID}).\n"
+            + yaml.safe_dump(config, sort_keys=False)
+        )
+        _atomic_write(path, lambda fh: fh.write(text.encode()))
+
+
+# --------------------------------------------------------------------------- evaluate
+
+
+def _episode_task(
+    agent_name: str, config: dict, seed: int, out: str | None, record: bool
+) -> dict[str, Any]:
+    """Run and save one episode; never raises for an error of the episode itself.
+
+    Top-level (picklable by reference) so process pools and Dask workers can run it.
+    """
+    t0 = time.perf_counter()
+    rec = _EpisodeRecorder(config["agents"]["horizon"])
+    tb = ""
+    try:
+        _simulate(agent_name, config, seed, rec)
+        arrays = rec.arrays()
+        row = {"agent": agent_name, "seed": seed, **_episode_metrics(rec, arrays)}
+        row.update(wall_time=time.perf_counter() - t0, error="")
+        row = {c: row[c] for c in ROW_COLUMNS}
+    except Exception as exc:  # one bad episode must not stop the others
+        tb = traceback.format_exc()
+        row = _error_row(agent_name, seed, _one_line(exc), time.perf_counter() - t0)
+        try:
+            arrays = rec.arrays()  # the steps done before the error, for debugging
+        except Exception:
+            arrays = {}
+    if out is not None:
+        save_episode(out, row, arrays if record else None, tb)
+    return row
+
+
+def _finished_row(out: Path, agent_name: str, seed: int, record: bool) -> dict | None:
+    """The saved row of a finished episode, or ``None`` if it must (re-)run."""
+    stem = out / _EPISODES / episode_stem(agent_name, seed)
+    row = _read_row(stem.with_suffix(".json"))
+    if row is None or (record and not stem.with_suffix(".npz").exists()):
+        return None
+    return row
+
+
+def _connect_dask(scheduler: str | None, dask_workers: int | None, stack: Any):
+    """A ``distributed.Client`` on an existing scheduler or on a new loopback cluster."""
+    try:
+        import distributed
+    except ImportError as exc:
+        raise ImportError(
+            "Dask runs need the 'distributed' package: pip install 'lfm-scenario-mpc[dist]'"
+        ) from exc
+    import logging
+
+    if scheduler is not None:
+        try:
+            client = distributed.Client(scheduler, timeout="5s")
+        except Exception as exc:  # OSError or TimeoutError, depending on the failure
+            raise ConnectionError(
+                f"cannot reach the Dask scheduler at {scheduler!r} within 5 s ({_one_line(exc)})"
+            ) from exc
+        return stack.enter_context(client)
+    cluster = stack.enter_context(
+        distributed.LocalCluster(
+            n_workers=dask_workers,
+            threads_per_worker=1,  # CasADi and the episode loop are single-threaded
+            processes=True,
+            host="127.0.0.1",  # loopback only: nothing is exposed to the network
+            dashboard_address=None,
+            silence_logs=logging.ERROR,
+        )
+    )
+    return stack.enter_context(distributed.Client(cluster))
+
+
+def evaluate(
+    agents: Sequence[str] | str,
+    seeds: Iterable[int] | str,
+    config: Any = None,
+    out: str | os.PathLike | None = None,
+    jobs: int = 1,
+    scheduler: str | None = None,
+    dask_workers: int | None = None,
+    progress: bool = True,
+    record: bool = True,
+    retry_failed: bool = True,
+) -> list[dict[str, Any]]:
+    """Run every (agent, env seed) episode and return one row of metrics per episode.
+
+    Args:
+        agents: agent names (``"nominal"``, ``"pf"``, ``"scenario"``, ``"oracle"``; the
+            oracle is an upper bound that reads the hidden truth), or one comma list.
+        seeds: env seeds (integers >= 0), or a text for :func:`parse_seeds`.
+        config: a YAML path, a dict (whole file) or ``None`` (paper defaults).
+        out: results folder (see the module docstring); ``None`` keeps nothing on disk.
+            Episodes already saved there are not re-run.
+        jobs: local worker processes (``spawn`` context, safe with CasADi); 1 is serial.
+            A script that uses ``jobs > 1`` needs the ``if __name__ == "__main__":``
+            guard, as with any spawned process.
+        scheduler: address of an existing Dask scheduler (``"tcp://host:8786"``).
+        dask_workers: start a local Dask cluster of this many single-threaded worker
+            processes on 127.0.0.1 for this call.
+        progress: show a tqdm progress bar over episodes.
+        record: save each episode's trajectory (npz) next to its row.
+        retry_failed: re-run saved episodes whose ``error`` is not empty.
+
+    Returns:
+        The rows (:data:`ROW_COLUMNS`) of the requested episodes, sorted by (agent,
+        seed), including those loaded from ``out``. Trajectories are not kept in memory;
+        read them with :func:`load_trajectory`, all rows with :func:`load_results`.
+
+    Raises:
+        ValueError: unknown agents, empty or negative seeds, a bad config, conflicting
+            run modes or a results folder of another config, before any episode runs.
+        ConnectionError: the Dask scheduler cannot be reached.
+    """
+    names = _check_agents(agents)
+    seed_list = _check_seeds(seeds)
+    cfg = resolve_config(config)
+    modes = sum([jobs != 1, scheduler is not None, dask_workers is not None])
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ValueError(f"jobs={jobs!r}: must be an integer >= 1")
+    if dask_workers is not None and (not isinstance(dask_workers, int) or dask_workers < 1):
+        raise ValueError(f"dask_workers={dask_workers!r}: must be an integer >= 1")
+    if modes > 1:
+        raise ValueError("choose one of jobs > 1, scheduler and dask_workers")
+
+    out_path = None if out is None else Path(out).resolve()
+    if out_path is not None:
+        _check_folder(out_path, cfg)
+
+    # Seed-major order: an interrupted run leaves complete pairs of agents per seed.
+    pairs = [(a, s) for s in seed_list for a in names]
+    rows: dict[tuple[str, int], dict[str, Any]] = {}
+    if out_path is not None:
+        for a, s in pairs:
+            row = _finished_row(out_path, a, s, record)
+            if row is not None and (row["error"] == "" or not retry_failed):
+                rows[(a, s)] = row
+    todo = [p for p in pairs if p not in rows]
+    out_str = None if out_path is None else str(out_path)
+
+    from contextlib import ExitStack
+
+    from tqdm.auto import tqdm
+
+    with ExitStack() as stack:
+        # Connect before the first episode: an unreachable scheduler fails fast.
+        client = None
+        if todo and (scheduler is not None or dask_workers is not None):
+            client = _connect_dask(scheduler, dask_workers, stack)
+        if out_path is not None:
+            _prepare_folder(out_path, cfg)
+        bar = stack.enter_context(
+            tqdm(total=len(pairs), initial=len(rows), disable=not progress, unit="episode")
+        )
+        last_table = time.monotonic()
+        n_errors = 0
+
+        def done(pair: tuple[str, int], row: dict[str, Any]) -> None:
+            nonlocal last_table, n_errors
+            rows[pair] = row
+            n_errors += row["error"] != ""
+            bar.update(1)
+            if n_errors:
+                bar.set_postfix(errors=n_errors)
+            if out_path is not None and time.monotonic() - last_table > _TABLE_REFRESH:
+                write_table(out_path)
+                last_table = time.monotonic()
+
+        def lost(pair: tuple[str, int], exc: BaseException) -> dict[str, Any]:
+            # The worker died (or the task was lost): record it so the rerun retries it,
+            # unless the episode was saved before the loss.
+            if out_path is not None:
+                saved = _finished_row(out_path, pair[0], pair[1], record)
+                if saved is not None and saved["error"] == "":
+                    return saved
+            row = _error_row(pair[0], pair[1], _one_line(exc), math.nan)
+            if out_path is not None:
+                save_episode(out_path, row, None, "".join(traceback.format_exception(exc)))
+            return row
+
+        if client is not None:
+            import distributed
+
+            futures = {
+                client.submit(
+                    _episode_task, a, cfg, s, out_str, record, pure=False, key=f"episode-{a}-{s}"
+                ): (a, s)
+                for a, s in todo
+            }
+            for fut in distributed.as_completed(futures):
+                try:
+                    row = fut.result()
+                except Exception as exc:
+                    row = lost(futures[fut], exc)
+                done(futures[fut], row)
+        elif jobs > 1 and len(todo) > 1:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            pool = ProcessPoolExecutor(
+                max_workers=min(jobs, len(todo)),
+                mp_context=multiprocessing.get_context("spawn"),  # no forked CasADi state
+            )
+            try:
+                futs = {
+                    pool.submit(_episode_task, a, cfg, s, out_str, record): (a, s) for a, s in todo
+                }
+                for fut in as_completed(futs):
+                    try:
+                        row = fut.result()
+                    except Exception as exc:
+                        row = lost(futs[fut], exc)
+                    done(futs[fut], row)
+            finally:
+                pool.shutdown(wait=True, cancel_futures=True)
+        else:
+            for a, s in todo:
+                done((a, s), _episode_task(a, cfg, s, out_str, record))
+
+    if out_path is not None:
+        write_table(out_path)
+    return sorted((rows[p] for p in pairs), key=lambda r: (r["agent"], r["seed"]))
+
+
+__all__ = [
+    "ENV_ID",
+    "ROW_COLUMNS",
+    "TIMING_COLUMNS",
+    "ResultsFolderError",
+    "agent_seed",
+    "evaluate",
+    "episode_stem",
+    "load_results",
+    "load_trajectory",
+    "parse_seeds",
+    "resolve_config",
+    "run_episode",
+    "save_episode",
+    "write_table",
+]

@@ -1,0 +1,468 @@
+"""Tests of the evaluation library (``controllers.evaluation``) and its command line."""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import subprocess
+import sys
+import time
+import types
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import yaml
+
+from controllers import evaluation
+from controllers.cli import evaluate_main
+from controllers.evaluation import (
+    ROW_COLUMNS,
+    TIMING_COLUMNS,
+    ResultsFolderError,
+    agent_seed,
+    evaluate,
+    load_results,
+    load_trajectory,
+    parse_seeds,
+    run_episode,
+)
+
+REPO = Path(__file__).resolve().parent.parent
+# The quick world with short episodes and small agents: about 0.3 s per episode.
+TINY = {
+    "env": {"max_steps": 15},
+    "agents": {"horizon": 5, "n_scenarios": 5, "n_particles": 300},
+}
+TIMING_ARRAYS = ("solve_time",)
+
+
+def comparable(rows: list[dict]) -> list[dict]:
+    """Rows without timing columns, NaN replaced so that equal rows compare equal."""
+    return [
+        {
+            k: ("NaN" if isinstance(v, float) and math.isnan(v) else v)
+            for k, v in r.items()
+            if k not in TIMING_COLUMNS
+        }
+        for r in rows
+    ]
+
+
+def assert_same_trajectory(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for k in a:
+        if k not in TIMING_ARRAYS:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def write_tiny_yaml(tmp_path: Path, max_steps: int = 15) -> Path:
+    cfg = {"env": {**TINY["env"], "max_steps": max_steps}, "agents": TINY["agents"]}
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def episode_files(out: Path, suffix: str) -> list[Path]:
+    return sorted((out / "episodes").glob(f"*.{suffix}"))
+
+
+# ----------------------------------------------------------------------------- seeds
+
+
+@pytest.mark.parametrize(
+    "text, seeds",
+    [
+        ("0:20", list(range(20))),
+        ("3", [3]),
+        ("1,5,9", [1, 5, 9]),
+        ("0:10,20:25", [*range(10), *range(20, 25)]),
+        (" 2 : 4 , 7 ", [2, 3, 7]),
+        ("1,1,0:2", [1, 0]),
+    ],
+)
+def test_parse_seeds(text, seeds):
+    assert parse_seeds(text) == seeds
+
+
+@pytest.mark.parametrize("text", ["5:2", "3:3", "-1", "0:-3", "a", "", "1,,2", "1.5", "0:5:1"])
+def test_parse_seeds_rejects_bad_text_naming_it(text):
+    with pytest.raises(ValueError) as exc:
+        parse_seeds(text)
+    assert repr(text) in str(exc.value)
+
+
+def test_agent_seed_is_stable_and_distinct():
+    # A fixed value: the derivation must not depend on the process (hash randomisation).
+    assert agent_seed(0, "pf") == 11201204833369463469
+    seeds = {agent_seed(s, a) for s in range(3) for a in ("nominal", "pf", "scenario", "oracle")}
+    assert len(seeds) == 12
+
+
+# ----------------------------------------------------------------------------- one episode
+
+
+def test_run_episode_row_trajectory_and_time_alignment():
+    row, traj = run_episode("pf", TINY, seed=3)
+    assert tuple(row) == ROW_COLUMNS
+    assert row["agent"] == "pf" and row["seed"] == 3 and row["error"] == ""
+    assert isinstance(row["success"], bool) and isinstance(row["failure"], bool)
+    for c in ("steps", "track_violation_steps", "speed_violation_steps", "solver_failures"):
+        assert isinstance(row[c], int)
+    for c in ("cost", "max_track_excess", "latent_rmse", "latent_coverage", "wall_time"):
+        assert isinstance(row[c], float)
+
+    T = row["steps"]
+    assert 1 <= T <= TINY["env"]["max_steps"]
+    shapes = {
+        "true_state": (T + 1, 4),
+        "obs": (T + 1, 4),
+        "action": (T, 2),
+        "disturbance": (T,),
+        "estimate": (T, 7),
+        "estimate_std": (T, 7),
+        "latent_force_est": (T,),
+        "latent_force_std": (T,),
+        "predicted": (T, TINY["agents"]["horizon"] + 1, 4),
+        "solve_time": (T,),
+        "slack": (T,),
+        "solver_success": (T,),
+        "reward": (T,),
+    }
+    for k, shape in shapes.items():
+        assert traj[k].shape == shape, k
+    assert traj["solver_success"].dtype == bool
+
+    # The row's metrics are those of the trajectory.
+    assert row["cost"] == pytest.approx(-traj["reward"].sum())
+    err = traj["latent_force_est"] - traj["disturbance"]
+    assert row["latent_rmse"] == pytest.approx(np.sqrt(np.mean(err**2)))
+    assert row["slack_total"] == pytest.approx(traj["slack"].sum())
+
+    # Alignment with the env: obs[0] measures true_state[0], and disturbance[0] is the
+    # force that the env announces at reset as acting in the first step.
+    env = gym.make("lfm_env/SineTrack-v0", config=TINY)
+    obs0, info0 = env.reset(seed=3)
+    np.testing.assert_array_equal(traj["obs"][0], obs0)
+    np.testing.assert_array_equal(traj["true_state"][0], info0["true_state"])
+    assert traj["disturbance"][0] == info0["disturbance"]
+    # ...and the first action was computed from obs[0] alone: replaying it reproduces step 1.
+    _, _, _, _, info1 = env.step(traj["action"][0])
+    np.testing.assert_array_equal(traj["true_state"][1], info1["true_state"])
+    env.close()
+
+
+def test_paired_design_and_determinism():
+    nominal, traj_n = run_episode("nominal", TINY, seed=5)
+    pf, traj_pf = run_episode("pf", TINY, seed=5)
+    # Same env seed: the hidden force does not depend on the agent.
+    n = min(nominal["steps"], pf["steps"])
+    np.testing.assert_array_equal(traj_n["disturbance"][:n], traj_pf["disturbance"][:n])
+    np.testing.assert_array_equal(traj_n["obs"][0], traj_pf["obs"][0])
+    # Filter metrics exist only for filter agents.
+    assert math.isnan(nominal["latent_rmse"]) and math.isnan(nominal["latent_coverage"])
+    assert np.isnan(traj_n["latent_force_est"]).all()
+    assert 0.0 <= pf["latent_coverage"] <= 1.0
+
+    again, traj_again = run_episode("pf", TINY, seed=5)
+    assert comparable([again]) == comparable([pf])
+    assert_same_trajectory(traj_again, traj_pf)
+
+    _, traj_other = run_episode("nominal", TINY, seed=6)
+    assert traj_other["disturbance"][0] != traj_n["disturbance"][0]
+
+
+def test_run_episode_rejects_unknown_agent_and_negative_seed():
+    with pytest.raises(ValueError, match="unknown agent"):
+        run_episode("random", TINY, 0)
+    with pytest.raises(ValueError, match="-1"):
+        run_episode("nominal", TINY, -1)
+
+
+# ----------------------------------------------------------------------------- evaluate
+
+
+def test_serial_processes_and_dask_give_identical_tables(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    agents, seeds = ["nominal", "pf", "scenario", "oracle"], [0, 1]
+    serial = evaluate(agents, seeds, TINY, out=tmp_path / "serial", progress=False)
+    procs = evaluate(agents, seeds, TINY, out=tmp_path / "procs", jobs=2, progress=False)
+    with distributed.LocalCluster(
+        n_workers=2,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address=None,
+    ) as cluster:
+        address = cluster.scheduler_address
+        dask = evaluate(
+            agents, seeds, TINY, out=tmp_path / "dask", scheduler=address, progress=False
+        )
+
+    assert all(r["error"] == "" for r in serial), [r["error"] for r in serial if r["error"]]
+    assert [(r["agent"], r["seed"]) for r in serial] == sorted(
+        (a, s) for a in agents for s in seeds
+    )
+    assert comparable(procs) == comparable(serial)
+    assert comparable(dask) == comparable(serial)
+    # What was saved is what was returned, and the trajectories agree too.
+    for name in ("serial", "procs", "dask"):
+        assert comparable(load_results(tmp_path / name)) == comparable(serial)
+    for a in agents:
+        ref = load_trajectory(tmp_path / "serial", a, 1)
+        assert_same_trajectory(load_trajectory(tmp_path / "procs", a, 1), ref)
+        assert_same_trajectory(load_trajectory(tmp_path / "dask", a, 1), ref)
+
+
+def test_dask_workers_start_a_local_cluster(tmp_path):
+    pytest.importorskip("distributed")
+    serial = evaluate(["oracle"], [4], TINY, progress=False)
+    dask = evaluate(["oracle"], [4], TINY, out=tmp_path, dask_workers=1, progress=False)
+    assert comparable(dask) == comparable(serial)
+
+
+def test_csv_holds_every_row_sorted(tmp_path):
+    import csv
+
+    rows = evaluate(["pf", "nominal"], [2, 0], TINY, out=tmp_path, progress=False)
+    with (tmp_path / "episodes.csv").open() as fh:
+        table = list(csv.DictReader(fh))
+    assert list(table[0]) == list(ROW_COLUMNS)
+    assert [(r["agent"], int(r["seed"])) for r in table] == [(r["agent"], r["seed"]) for r in rows]
+    assert [(r["agent"], r["seed"]) for r in rows] == [
+        ("nominal", 0),
+        ("nominal", 2),
+        ("pf", 0),
+        ("pf", 2),
+    ]
+    # Floats are written exactly; NaN as "nan".
+    assert float(table[0]["cost"]) == rows[0]["cost"]
+    assert table[0]["latent_rmse"] == "nan"
+    saved = yaml.safe_load((tmp_path / "config.yaml").read_text())
+    assert saved["env"]["max_steps"] == 15 and saved["agents"]["n_particles"] == 300
+    for path in episode_files(tmp_path, "json"):
+        json.loads(path.read_text())  # strict JSON: NaN is written as null
+
+
+def test_rerun_skips_finished_episodes_and_redoes_lost_ones(tmp_path, monkeypatch):
+    first = evaluate(["nominal"], range(3), TINY, out=tmp_path, progress=False)
+    (tmp_path / "episodes" / "nominal__seed1.json").unlink()  # an episode that was lost
+    (tmp_path / "episodes" / ".nominal__seed1.npz.123.abcd.tmp").write_bytes(b"torn")
+
+    calls = []
+    task = evaluation._episode_task
+
+    def counting(agent_name, config, seed, out, record):
+        calls.append((agent_name, seed))
+        return task(agent_name, config, seed, out, record)
+
+    monkeypatch.setattr(evaluation, "_episode_task", counting)
+    second = evaluate(["nominal"], range(3), TINY, out=tmp_path, progress=False)
+    assert calls == [("nominal", 1)]
+    assert comparable(second) == comparable(first)
+    assert not list(tmp_path.rglob("*.tmp"))
+
+    calls.clear()
+    assert comparable(evaluate(["nominal"], [2], TINY, out=tmp_path, progress=False)) == (
+        comparable(first[2:])
+    )
+    assert calls == []
+
+
+def test_other_config_in_same_folder_is_refused(tmp_path, monkeypatch):
+    evaluate(["nominal"], [0], TINY, out=tmp_path, progress=False)
+    other = {"env": {"max_steps": 16}, "agents": TINY["agents"]}
+    monkeypatch.setattr(evaluation, "_episode_task", None)  # nothing may run
+    with pytest.raises(ResultsFolderError, match=r"env\.max_steps"):
+        evaluate(["nominal"], [1], other, out=tmp_path, progress=False)
+
+
+def test_failing_episode_is_recorded_and_retried(tmp_path, monkeypatch):
+    real_make_agent = evaluation.make_agent
+
+    def make_flaky_agent(name, config=None, env=None):
+        agent = real_make_agent(name, config, env=env)
+        if name == "pf":
+            act, n = agent.act, []
+
+            def act_then_fail(obs):
+                n.append(1)
+                if len(n) == 3:
+                    raise RuntimeError("solver exploded\non step 3")
+                return act(obs)
+
+            agent.act = act_then_fail
+        return agent
+
+    monkeypatch.setattr(evaluation, "make_agent", make_flaky_agent)
+    rows = evaluate(["nominal", "pf"], [0, 1], TINY, out=tmp_path, progress=False)
+    by_agent = {a: [r for r in rows if r["agent"] == a] for a in ("nominal", "pf")}
+    assert all(r["error"] == "" for r in by_agent["nominal"])
+    for r in by_agent["pf"]:
+        assert r["error"] == "RuntimeError: solver exploded on step 3"
+        assert math.isnan(r["cost"]) and math.isnan(r["steps"]) and math.isnan(r["success"])
+    record = json.loads((tmp_path / "episodes" / "pf__seed0.json").read_text())
+    assert "act_then_fail" in record["traceback"] and record["cost"] is None
+    partial = load_trajectory(tmp_path, "pf", 0)
+    assert partial["action"].shape == (2, 2) and partial["true_state"].shape == (3, 4)
+    assert len(load_results(tmp_path)) == 4
+
+    # Without retries the failure stays; by default a rerun retries it.
+    kept = evaluate(["pf"], [0], TINY, out=tmp_path, progress=False, retry_failed=False)
+    assert kept[0]["error"].startswith("RuntimeError")
+    monkeypatch.setattr(evaluation, "make_agent", real_make_agent)
+    retried = evaluate(["nominal", "pf"], [0, 1], TINY, out=tmp_path, progress=False)
+    assert all(r["error"] == "" for r in retried)
+    assert comparable([r for r in retried if r["agent"] == "nominal"]) == comparable(
+        by_agent["nominal"]
+    )
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"agents": ["nominal", "bogus"]}, "bogus"),
+        ({"agents": []}, "at least one agent"),
+        ({"seeds": []}, "empty"),
+        ({"seeds": [0, -2]}, "-2"),
+        ({"seeds": "4:1"}, "4:1"),
+        ({"jobs": 0}, "jobs"),
+        ({"jobs": 2, "dask_workers": 2}, "choose one"),
+    ],
+)
+def test_evaluate_rejects_bad_input_before_any_work(tmp_path, monkeypatch, kwargs, match):
+    monkeypatch.setattr(evaluation, "_episode_task", None)  # nothing may run
+    args = {"agents": ["nominal"], "seeds": [0], **kwargs}
+    with pytest.raises(ValueError, match=match):
+        evaluate(config=TINY, out=tmp_path / "out", progress=False, **args)
+    assert not (tmp_path / "out").exists()
+
+
+# ----------------------------------------------------------------------------- interruption
+
+
+def test_killed_run_resumes_to_a_complete_table(tmp_path):
+    config = write_tiny_yaml(tmp_path, max_steps=30)
+    out = tmp_path / "out"
+    cmd = [
+        sys.executable,
+        str(REPO / "scripts" / "evaluate.py"),
+        *("--config", str(config), "--agents", "nominal,pf", "--seeds", "0:6"),
+        *("--jobs", "1", "--out", str(out), "--no-report", "--quiet"),
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while not episode_files(out, "json"):
+            assert proc.poll() is None, "the run ended before its first episode was saved"
+            assert time.monotonic() < deadline, "no episode saved within 120 s"
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert 1 <= len(episode_files(out, "json")) < 12, "the kill came too late to test resuming"
+
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert str(out / "episodes.csv") in done.stdout
+
+    import csv
+
+    with (out / "episodes.csv").open() as fh:
+        table = [(r["agent"], int(r["seed"]), r["error"]) for r in csv.DictReader(fh)]
+    expected = [(a, s, "") for a in ("nominal", "pf") for s in range(6)]
+    assert table == expected  # every (agent, seed) exactly once, none failed
+    assert not list(out.rglob("*.tmp"))
+    assert len(episode_files(out, "json")) == len(episode_files(out, "npz")) == 12
+    for a, s, _ in expected:
+        row = json.loads((out / "episodes" / f"{a}__seed{s}.json").read_text())
+        traj = load_trajectory(out, a, s)
+        assert traj["action"].shape == (row["steps"], 2)
+
+
+# ----------------------------------------------------------------------------- command line
+
+
+def run_cli(argv, capsys):
+    with pytest.raises(SystemExit) as exc:
+        evaluate_main(argv)
+    captured = capsys.readouterr()
+    return exc.value.code, captured.out + captured.err
+
+
+def test_cli_help(capsys):
+    code, text = run_cli(["--help"], capsys)
+    assert code == 0
+    for word in ("--seeds", "--dask-workers", "examples:", "end exclusive", "[s]", "oracle"):
+        assert word in text
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--agents", "nominal,robot"], "robot"),
+        (["--seeds", "9:3"], "9:3"),
+        (["--seeds", "x"], "'x'"),
+        (["--jobs", "0"], "--jobs"),
+        (["--config", "no/such.yaml"], "no/such.yaml"),
+        (["--scheduler", "tcp://127.0.0.1:1", "--dask-workers", "2"], "exclude"),
+    ],
+)
+def test_cli_bad_arguments_exit_2(tmp_path, capsys, argv, message):
+    code, text = run_cli([*argv, "--out", str(tmp_path / "out")], capsys)
+    assert code == 2
+    assert message in text.strip().splitlines()[-1]
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_unreachable_scheduler_exits_2_naming_it(tmp_path, capsys):
+    config = write_tiny_yaml(tmp_path)
+    argv = ["--config", str(config), "--scheduler", "tcp://127.0.0.1:1", "--out", str(tmp_path)]
+    code, text = run_cli(argv, capsys)
+    assert code == 2
+    assert "tcp://127.0.0.1:1" in text.strip().splitlines()[-1]
+
+
+def test_cli_runs_and_calls_the_report(tmp_path, capsys, monkeypatch):
+    config = write_tiny_yaml(tmp_path)
+    out = tmp_path / "res"
+    reported = []
+    fake = types.ModuleType("controllers.report")
+    fake.write_report = lambda d: reported.append(Path(d)) or Path(d) / "report.md"
+    monkeypatch.setitem(sys.modules, "controllers.report", fake)
+    argv = ["--config", str(config), "--agents", "nominal", "--seeds", "0,1", "--out", str(out)]
+    assert evaluate_main([*argv, "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert str(out / "episodes.csv") in text and str(out / "report.md") in text
+    assert reported == [out]
+    assert [(r["agent"], r["seed"]) for r in load_results(out)] == [("nominal", 0), ("nominal", 1)]
+
+    # Without the report module the run still succeeds, saying why there is no report.
+    monkeypatch.setitem(sys.modules, "controllers.report", None)
+    assert evaluate_main(argv) == 0
+    assert "report: skipped" in capsys.readouterr().out
+
+
+def test_cli_default_out_is_named_after_the_config(tmp_path, capsys, monkeypatch):
+    config = write_tiny_yaml(tmp_path)
+    monkeypatch.chdir(tmp_path)
+    argv = ["--config", str(config), "--agents", "nominal", "--seeds", "0"]
+    assert evaluate_main([*argv, "--quiet", "--no-report"]) == 0
+    assert (tmp_path / "results" / "tiny" / "episodes.csv").is_file()
+
+
+# ----------------------------------------------------------------------------- slow
+
+
+@pytest.mark.slow
+def test_quick_config_sweep_with_local_dask_cluster(tmp_path):
+    """All agents over 10 seeds of the quick config on a local Dask cluster."""
+    config = REPO / "configs" / "quick.yaml"
+    agents = ["nominal", "pf", "scenario", "oracle"]
+    rows = evaluate(agents, range(10), config, out=tmp_path, dask_workers=2, progress=False)
+    assert len(rows) == 40
+    assert all(r["error"] == "" for r in rows), [r["error"] for r in rows if r["error"]]
+    assert comparable(load_results(tmp_path)) == comparable(rows)
