@@ -1,0 +1,923 @@
+"""Fast default solver of the scenario MPC problem: a condensed exact-Hessian SQP.
+
+:class:`FastScenarioSolver` minimises exactly :func:`controllers.mpc_problem.objective`
+(the scenario-averaged quadratic cost plus the exact L1 penalty on the ``6 N`` shared
+slacks) over the shared inputs ``u`` ``(N, 2)``, like the IPOPT reference
+(:class:`controllers.mpc.IpoptScenarioSolver`), but exploits the structure of the problem:
+
+* **Condensing.** The latent forces ``W`` do not depend on ``u``, so every scenario's
+  states are explicit functions of the ``2 N`` inputs. Rollouts, forward sensitivities
+  ``dx_k / du`` and adjoints are vectorised over scenarios in NumPy (a Python loop over
+  the ``N`` steps only).
+* **Exact Hessian.** The Hessian of the Lagrangian with respect to ``u`` is assembled from
+  the forward sensitivities and one adjoint sweep (second-order adjoint of the Euler
+  recursion), including the curvature of the dynamics and of the track constraints
+  weighted by the QP multipliers. Eigenvalues below a small floor are raised to it, so the
+  QP is strictly convex; near a regular solution the SQP converges quadratically.
+* **Exact speed constraints.** The speed is linear in ``u``:
+  ``v_k^(i) = v_0^(i) + dt sum_{j<k} (a_j + W[i, j])``, so at every step only the fastest
+  and the slowest scenario matter, whatever ``u`` is: ``2 N`` exact linear rows.
+* **Screened position rows with check-and-add.** The track and ``p_x`` rows of the QP
+  are limited to the few scenarios closest to the current maximum of each
+  ``(kind, step)``. After each QP solve the linearisation of *every* scenario row is
+  checked at the QP step; violated rows are added and the QP re-solved. Adding
+  constraints that the optimum already satisfies does not change a QP's solution, so the
+  accepted step is exactly the step of the full (unscreened) QP.
+* **Exact penalty inside the QP.** Each ``(kind, step)`` has one slack variable with cost
+  ``slack_penalty``, shared by all its rows, as in the NLP. The QP is dense and small
+  (``8 N`` variables); its rows sit in fixed slots (one per speed bound and step, a few per
+  position kind and step, sorted by value) so that qpOASES' hot start from the previous
+  QP's active set is meaningful. It is called through a CasADi ``FunctionBuffer``, which
+  avoids the per-call conversion of NumPy arrays (hundreds of microseconds otherwise).
+* **Globalisation.** Backtracking Armijo line search on the exact-penalty merit function
+  (the objective of :mod:`controllers.mpc_problem`, evaluated on all scenarios), with a
+  second-order correction against the Maratos effect.
+
+The result is a KKT point of the full scenario problem: the same local optimum that IPOPT
+finds from the same start, up to solver tolerances. The problem is not convex; from
+different starts both may end in different local optima.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from controllers import mpc_problem
+from controllers.mpc_problem import MPCSolution, ScenarioProblem
+
+N_KINDS = 6  # constraint kinds per step: track upper/lower, x lower/upper, speed lower/upper
+N_POSITION_KINDS = 4  # the first four kinds depend on the position only
+QP_SOLVERS = ("qpoases",)
+# Sign of d g / d(track-upper or p_x) of the position kinds: track lower is -(track upper),
+# x lower is -p_x, x upper is +p_x.
+_POSITION_SIGN = np.array([1.0, -1.0, -1.0, 1.0])
+
+
+@dataclass(frozen=True)
+class FastSolverOptions:
+    """Settings of :class:`FastScenarioSolver`; the defaults suit the paper's problem."""
+
+    max_iter: int = 50  # SQP iterations
+    tol: float = 1e-10  # relative predicted merit decrease that counts as converged
+    step_tol: float = 1e-8  # [m/s^2, rad] input step that counts as converged
+    final_step_tol: float = 1e-6  # [m/s^2, rad] accepted full step after which we stop
+    screen_margin: float = 0.5  # [m] rows within this of activity enter the QP at once
+    screen_rows: int = 4  # QP row slots per (position kind, step); grows when needed
+    add_tol: float = 1e-9  # [m] linearised violation of a missing row that adds it
+    max_qp_rounds: int = 20  # check-and-add rounds per SQP iteration
+    armijo: float = 1e-4  # sufficient-decrease fraction of the predicted decrease
+    backtrack: float = 0.5  # step shrink factor of the line search
+    min_step: float = 1e-8  # smallest line-search step before giving up
+    hessian_floor: float = 1e-3  # smallest Hessian eigenvalue [per (m/s^2)^2 or rad^2]
+    slack_regularisation: float = 1e-8  # quadratic weight on the QP slacks (strict convexity)
+    second_order_correction: bool = True  # against the Maratos effect
+    qp_solver: str = "qpoases"  # one of QP_SOLVERS
+
+    def __post_init__(self) -> None:
+        def check(name: str, ok: bool, allowed: str) -> None:
+            if not ok:
+                raise ValueError(
+                    f"FastSolverOptions.{name}={getattr(self, name)!r}: must be {allowed}"
+                )
+
+        for name in ("max_iter", "screen_rows", "max_qp_rounds"):
+            value = getattr(self, name)
+            check(name, isinstance(value, int) and value >= 1, "an int >= 1")
+        for name in (
+            "tol",
+            "step_tol",
+            "final_step_tol",
+            "screen_margin",
+            "add_tol",
+            "min_step",
+            "hessian_floor",
+            "slack_regularisation",
+        ):
+            value = getattr(self, name)
+            ok = isinstance(value, (int, float)) and math.isfinite(value) and value > 0
+            check(name, ok, "finite and > 0")
+        check("armijo", 0 < self.armijo < 0.5, "in (0, 0.5)")
+        check("backtrack", 0 < self.backtrack < 1, "in (0, 1)")
+        check("qp_solver", self.qp_solver in QP_SOLVERS, f"one of {QP_SOLVERS}")
+
+
+@dataclass
+class _Linearisation:
+    """Rollout, sensitivities and constraint values at one iterate (internal layout).
+
+    States are stored per component, ``(N+1, Ns)``; sensitivities with respect to the
+    flattened inputs ``[a_0, delta_0, a_1, ...]`` are ``(N+1, Ns, 2N)``, except the speed's,
+    which is the same for every scenario, ``(N+1, 2N)``.
+    """
+
+    px: np.ndarray
+    py: np.ndarray
+    v: np.ndarray
+    psi: np.ndarray
+    cos_th: np.ndarray  # (N, Ns) cos(psi_k + alpha_k)
+    sin_th: np.ndarray  # (N, Ns)
+    s_px: np.ndarray
+    s_py: np.ndarray
+    s_v: np.ndarray
+    s_psi: np.ndarray
+    g_pos: np.ndarray  # (4, N, Ns) position constraint values of steps 1..N [m]
+    g_speed: np.ndarray  # (2, N) speed-lower/upper values of the extreme scenarios [m/s]
+    j_track: np.ndarray  # (N, Ns, 2N) Jacobian of the track-upper constraint
+    grad: np.ndarray  # (2N,) gradient of the cost
+
+
+@dataclass
+class _QPStep:
+    """Solution of one SQP subproblem."""
+
+    d: np.ndarray  # (2N,) input step [m/s^2, rad]
+    slack_sum: float  # sum of the QP's slacks
+    pos: np.ndarray  # (r, 3) position rows (kind, step, scenario) in the QP
+    lam: np.ndarray  # (r,) their multipliers
+    qp: _SlotQP  # the QP object (for a second-order correction)
+    row: np.ndarray  # (r,) their row slots in it
+    s_pos: np.ndarray  # (4, N) slack of each position (kind, step) group
+    s_speed: np.ndarray  # (2N,) slack of each speed row, ordered (step, lower/upper)
+    lam_speed: np.ndarray  # (2N,) multipliers of the speed rows
+
+
+class _SlotQP:
+    """The SQP's QP ``min 1/2 z'Hz + g'z  s.t.  A z <= uba, lbx <= z <= ubx`` in fixed slots.
+
+    ``z = [d (2N), s_speed (2N), s_pos (P)]``: the input step, one slack per (step, speed
+    bound), and ``P`` slack slots for the position (kind, step) groups that have rows.
+    Rows ``[J_r, -e_slack] z <= -g_r``: first one per (step, speed bound), then ``K``
+    row slots per position slack slot, filled by decreasing value. Unused slots are zero
+    rows with ``uba = +inf`` (their slack stays at zero). Only the Jacobian part of ``A``
+    changes between calls, so qpOASES can hot-start from the previous active set. The
+    CasADi conic is evaluated through a ``FunctionBuffer`` on persistent NumPy arrays.
+    """
+
+    def __init__(
+        self,
+        horizon: int,
+        groups: int,
+        slots: int,
+        solver: str,
+        slack_penalty: float,
+        slack_reg: float,
+    ) -> None:
+        n = horizon
+        self.horizon, self.groups, self.slots = n, groups, slots
+        self.n_u, self.n_speed = 2 * n, 2 * n
+        self.n_var = 4 * n + groups
+        self.capacity = self.n_speed + groups * slots
+        nv, cap, nu = self.n_var, self.capacity, self.n_u
+        opts: dict[str, Any] = {"error_on_fail": False}
+        if solver == "qpoases":
+            opts["printLevel"] = "none"
+        with _silenced_stdout():  # qpOASES prints a banner whenever a memory is created
+            self._conic = ca.conic(
+                "fast_sqp_qp",
+                solver,
+                {"h": ca.Sparsity.dense(nv, nv), "a": ca.Sparsity.dense(cap, nv)},
+                opts,
+            )
+            self._buffer, self._evaluate = self._conic.buffer()
+        # Dense inputs are column-major nonzeros; H is symmetric, A is viewed transposed.
+        self._h = np.zeros(nv * nv)
+        self.H = self._h.reshape(nv, nv)
+        self.H[np.arange(nu, nv), np.arange(nu, nv)] = slack_reg
+        self._a = np.zeros(cap * nv)
+        self.A = self._a.reshape(nv, cap).T
+        self.A[np.arange(self.n_speed), nu + np.arange(self.n_speed)] = -1.0
+        for q in range(groups):
+            first = self.n_speed + q * slots
+            self.A[first : first + slots, nu + self.n_speed + q] = -1.0
+        self.g = np.zeros(nv)
+        self.g[nu:] = slack_penalty
+        self.lba = np.full(cap, -np.inf)
+        self.uba = np.full(cap, np.inf)
+        self.lbx = np.zeros(nv)
+        self.ubx = np.full(nv, np.inf)
+        self.x = np.zeros(nv)
+        self.lam_a = np.zeros(cap)
+        outputs = {"x": self.x, "cost": np.zeros(1), "lam_a": self.lam_a, "lam_x": np.zeros(nv)}
+        inputs = {
+            "h": self._h,
+            "g": self.g,
+            "a": self._a,
+            "lba": self.lba,
+            "uba": self.uba,
+            "lbx": self.lbx,
+            "ubx": self.ubx,
+        }
+        self._keep = []  # the buffer holds raw pointers: keep every array alive
+        for i, name in enumerate(self._conic.name_in()):
+            arr = inputs.get(name)
+            if arr is None:
+                arr = np.zeros(self._conic.nnz_in(i))
+            self._keep.append(arr)
+            self._buffer.set_arg(i, memoryview(arr))
+        for i, name in enumerate(self._conic.name_out()):
+            arr = outputs.get(name, np.zeros(self._conic.nnz_out(i)))
+            self._keep.append(arr)
+            self._buffer.set_res(i, memoryview(arr))
+
+    @staticmethod
+    def layout(pos: np.ndarray, values: np.ndarray, horizon: int) -> tuple[np.ndarray, ...]:
+        """Group slot and rank of each position row ``(kind, step, scenario)``.
+
+        Returns ``(groups, slot_group, rank)``: the sorted group ids ``kind * N + step`` in
+        use, the slack slot of each row and its rank by decreasing value in its group.
+        """
+        group = pos[:, 0] * horizon + pos[:, 1]
+        groups, slot_group = np.unique(group, return_inverse=True)
+        order = np.lexsort((-values, group))
+        g_sorted = group[order]
+        rank = np.empty(group.size, dtype=int)
+        rank[order] = np.arange(g_sorted.size) - np.searchsorted(g_sorted, g_sorted, side="left")
+        return groups, slot_group, rank
+
+    def set_problem(
+        self,
+        H: np.ndarray,
+        grad: np.ndarray,
+        lower: np.ndarray,
+        upper: np.ndarray,
+        a_speed: np.ndarray,
+        g_speed: np.ndarray,
+    ) -> None:
+        """Hessian, gradient, step bounds and the speed rows (all ``2 N`` of them)."""
+        nu, ns = self.n_u, self.n_speed
+        self.H[:nu, :nu] = H
+        self.g[:nu] = grad
+        self.lbx[:nu] = lower
+        self.ubx[:nu] = upper
+        self.A[:ns, :nu] = a_speed
+        self.uba[:ns] = -g_speed
+
+    def set_position_rows(self, row: np.ndarray, a_pos: np.ndarray, g_pos: np.ndarray) -> None:
+        """Fill the given row slots; every other position slot becomes an inactive zero row."""
+        nu, ns = self.n_u, self.n_speed
+        self.A[ns:, :nu] = 0.0
+        self.uba[ns:] = np.inf
+        self.A[row, :nu] = a_pos
+        self.uba[row] = -g_pos
+
+    def set_position_bounds(self, row: np.ndarray, g_pos: np.ndarray) -> None:
+        """Change only the constant terms of the given rows (second-order correction)."""
+        self.uba[row] = -g_pos
+
+    def solve(self) -> tuple[np.ndarray, np.ndarray, bool]:
+        """Solve from the previous active set: ``(z, row multipliers >= 0, success)``."""
+        self._evaluate()
+        ok = self._buffer.ret() == 0 and bool(np.all(np.isfinite(self.x)))
+        return self.x.copy(), np.maximum(self.lam_a, 0.0), ok
+
+
+@contextlib.contextmanager
+def _silenced_stdout() -> Iterator[None]:
+    """Send the process' C-level stdout to /dev/null (for chatty native libraries)."""
+    sys.stdout.flush()
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # no real stdout (e.g. some notebooks)
+        yield
+        return
+    saved = os.dup(fd)
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), fd)
+            yield
+    finally:
+        os.dup2(saved, fd)
+        os.close(saved)
+
+
+class FastScenarioSolver:
+    """Condensed exact-Hessian SQP solver of a :class:`ScenarioProblem`.
+
+    Same interface and result semantics as :class:`controllers.mpc.IpoptScenarioSolver`:
+    build once, call :meth:`solve` at every step; the previous solution shifted by one
+    step is the default initial guess.
+
+    Args:
+        problem: the problem data (horizon, scenario count, weights, bounds, track).
+        **options: fields of :class:`FastSolverOptions` (e.g. ``max_iter=30``).
+
+    Raises:
+        ValueError: on an unknown or out-of-range option.
+    """
+
+    def __init__(self, problem: ScenarioProblem, **options: Any) -> None:
+        unknown = set(options) - set(FastSolverOptions.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"unknown FastScenarioSolver options: {sorted(unknown)}")
+        self.problem = problem
+        self.options = FastSolverOptions(**options)
+        n = problem.horizon
+        self._n_u = 2 * n
+        self._lower = np.tile(problem.input_lower, n)
+        self._upper = np.tile(problem.input_upper, n)
+        self._q = np.asarray(problem.Q, dtype=float)
+        self._r = np.tile(np.asarray(problem.R, dtype=float), n)
+        self._goal = np.asarray(problem.x_goal, dtype=float)
+        # Weight of each state component at steps 1..N (the x_0 term is a constant).
+        qf = np.asarray(problem.Qf, dtype=float)
+        self._w_state = np.vstack([np.tile(self._q, (n - 1, 1)), qf[None]])  # (N, 4)
+        self._qps: dict[int, _SlotQP] = {}
+        self._prev_u: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ public API
+
+    def reset(self) -> None:
+        """Forget the warm start: the next solve starts from zero inputs."""
+        self._prev_u = None
+
+    def solve(
+        self, x0: np.ndarray, W: np.ndarray, u_guess: np.ndarray | None = None
+    ) -> MPCSolution:
+        """Solve the scenario problem for initial state(s) ``x0`` and latent forces ``W``.
+
+        Args:
+            x0: initial state ``[p_x, p_y, v, psi]`` [m, m, m/s, rad], shape ``(4,)`` or
+                ``(Ns, 4)``.
+            W: latent force [m/s^2] of each scenario and step, shape ``(Ns, N)``.
+            u_guess: initial input sequence ``(N, 2)`` [m/s^2, rad]; by default the
+                previous solution shifted by one step (zeros on the first solve).
+
+        Returns:
+            The solution: ``u`` inside the input bounds, ``objective`` and ``slack`` of
+            :mod:`controllers.mpc_problem` evaluated on it, ``solve_time`` the wall time of
+            the whole call. A solve that does not converge does not raise: it returns the
+            best iterate with ``success=False``.
+
+        Raises:
+            ValueError: on wrongly shaped or non-finite ``x0``, ``W`` or ``u_guess``.
+        """
+        t_start = time.perf_counter()
+        problem, n = self.problem, self.problem.horizon
+        x0, W = problem.check_data(x0, W)
+        if u_guess is not None:
+            u_guess = np.asarray(u_guess, dtype=float)
+            if u_guess.shape != (n, 2) or not np.all(np.isfinite(u_guess)):
+                raise ValueError(
+                    f"u_guess has shape {u_guess.shape} or non-finite entries; "
+                    f"expected finite (horizon, 2) = {(n, 2)}"
+                )
+            u0 = u_guess.ravel()
+        elif self._prev_u is not None:
+            u0 = np.concatenate([self._prev_u[1:], self._prev_u[-1:]]).ravel()
+        else:
+            u0 = np.zeros(2 * n)
+        u0 = np.clip(u0, self._lower, self._upper)
+
+        u, status, success, iterations, extra = self._sqp(np.ascontiguousarray(x0), W, u0)
+
+        u = np.clip(u.reshape(n, 2), problem.input_lower, problem.input_upper)
+        predicted = mpc_problem.rollout(problem, x0, W, u)
+        slack = float(np.sum(mpc_problem.minimal_slack(problem, predicted)))
+        objective = mpc_problem.objective(problem, x0, W, u)
+        self._prev_u = u.copy()
+        return MPCSolution(
+            u=u,
+            objective=objective,
+            slack=slack,
+            status=status,
+            success=success,
+            solve_time=time.perf_counter() - t_start,
+            iterations=iterations,
+            predicted=predicted,
+            extra=extra,
+        )
+
+    # ------------------------------------------------------------------ model pieces
+
+    def _steering_terms(self, u: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Slip ``alpha(delta)``, yaw gain ``c(delta) = sin(alpha) / (l/2)`` and derivatives.
+
+        All ``(N,)``; ``alpha = atan(0.5 tan(delta))`` is smooth for ``|delta| < pi/2``.
+        """
+        delta = u[1::2]
+        t = np.tan(delta)
+        den = 1.0 + 0.25 * t * t
+        alpha = np.arctan(0.5 * t)
+        alpha_p = 0.5 * (1.0 + t * t) / den
+        alpha_pp = 0.75 * t * (1.0 + t * t) / (den * den)
+        gain = 2.0 / self.problem.vehicle_length
+        sa, ca_ = np.sin(alpha), np.cos(alpha)
+        c = gain * sa
+        c_p = gain * ca_ * alpha_p
+        c_pp = gain * (ca_ * alpha_pp - sa * alpha_p * alpha_p)
+        return alpha, alpha_p, alpha_pp, c, c_p, c_pp
+
+    def _rollout(
+        self, x0: np.ndarray, W: np.ndarray, u: np.ndarray, alpha: np.ndarray, c: np.ndarray
+    ) -> tuple[np.ndarray, ...]:
+        """Euler rollout of all scenarios, per component ``(N+1, Ns)``, and ``cos/sin(theta)``.
+
+        Same arithmetic as :func:`lfm_env.vehicle.euler_step`.
+        """
+        n, ns, dt = self.problem.horizon, x0.shape[0], self.problem.dt
+        px = np.empty((n + 1, ns))
+        py = np.empty((n + 1, ns))
+        psi = np.empty((n + 1, ns))
+        cos_th = np.empty((n, ns))
+        sin_th = np.empty((n, ns))
+        px[0], py[0], psi[0] = x0[:, 0], x0[:, 1], x0[:, 3]
+        # The speed does not depend on the heading: one cumulative sum for all steps.
+        v = np.empty((n + 1, ns))
+        v[0] = x0[:, 2]
+        np.cumsum(dt * (u[0::2][:, None] + W.T), axis=0, out=v[1:])
+        v[1:] += v[0]
+        for k in range(n):
+            th = psi[k] + alpha[k]
+            np.cos(th, out=cos_th[k])
+            np.sin(th, out=sin_th[k])
+            dtv = dt * v[k]
+            px[k + 1] = px[k] + dtv * cos_th[k]
+            py[k + 1] = py[k] + dtv * sin_th[k]
+            psi[k + 1] = psi[k] + dtv * c[k]
+        return px, py, v, psi, cos_th, sin_th
+
+    def _position_constraints(self, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+        """Track upper/lower and x lower/upper values ``(4, N, Ns)`` of steps ``1..N`` [m]."""
+        track = self.problem.track
+        g = np.empty((N_POSITION_KINDS,) + px[1:].shape)
+        np.subtract(py[1:], track.amplitude * np.sin(track.pulsation * px[1:] + track.phase), g[0])
+        np.negative(g[0], out=g[1])
+        g[0] -= track.half_width
+        g[1] -= track.half_width
+        np.subtract(track.x_min, px[1:], out=g[2])
+        np.subtract(px[1:], track.x_max, out=g[3])
+        return g
+
+    def _speed_extremes(self, v: np.ndarray) -> np.ndarray:
+        """Speed-lower and speed-upper constraint values ``(2, N)`` of the extreme scenarios."""
+        p = self.problem
+        return np.stack([p.speed_min - v[1:].min(axis=1), v[1:].max(axis=1) - p.speed_max])
+
+    def _cost(
+        self,
+        x0: np.ndarray,
+        px: np.ndarray,
+        py: np.ndarray,
+        v: np.ndarray,
+        psi: np.ndarray,
+        u: np.ndarray,
+    ) -> float:
+        """Scenario-averaged quadratic cost, including the constant ``x_0`` stage term."""
+        g, w, q = self._goal, self._w_state, self._q
+        e0 = x0 - g
+        total = float(np.mean(e0 * e0 @ q))
+        for m, comp in enumerate((px, py, v, psi)):
+            if w[:, m].any():
+                e = comp[1:] - g[m]
+                total += float(w[:, m] @ np.einsum("ki,ki->k", e, e)) / x0.shape[0]
+        return total + float(self._r @ (u * u))
+
+    def _merit(
+        self, x0: np.ndarray, W: np.ndarray, u: np.ndarray
+    ) -> tuple[float, float, np.ndarray]:
+        """Exact-penalty merit (= ``mpc_problem.objective``), slack sum, position values."""
+        alpha, _, _, c, _, _ = self._steering_terms(u)
+        px, py, v, psi, _, _ = self._rollout(x0, W, u, alpha, c)
+        g_pos = self._position_constraints(px, py)
+        slack = float(
+            np.maximum(g_pos.max(axis=2), 0.0).sum()
+            + np.maximum(self._speed_extremes(v), 0.0).sum()
+        )
+        merit = self._cost(x0, px, py, v, psi, u) + self.problem.slack_penalty * slack
+        if not math.isfinite(merit):
+            merit = math.inf
+        return merit, slack, g_pos
+
+    def _linearise(self, x0: np.ndarray, W: np.ndarray, u: np.ndarray) -> _Linearisation:
+        """Rollout, forward sensitivities, cost gradient and constraint values at ``u``."""
+        p = self.problem
+        n, ns, nu, dt = p.horizon, x0.shape[0], self._n_u, p.dt
+        alpha, alpha_p, _, c, c_p, _ = self._steering_terms(u)
+        px, py, v, psi, cos_th, sin_th = self._rollout(x0, W, u, alpha, c)
+
+        # --- forward sensitivities d x_k / d u (chain rule through the Euler steps) ---
+        # Inputs of step k only act from step k + 1 on, so only the first 2k + 2 columns
+        # of the step-(k+1) sensitivities can be non-zero.
+        s_px = np.zeros((n + 1, ns, nu))
+        s_py = np.zeros((n + 1, ns, nu))
+        s_psi = np.zeros((n + 1, ns, nu))
+        s_v = np.zeros((n + 1, nu))
+        for k in range(n):
+            m = 2 * k + 2
+            dtv = dt * v[k]
+            heading = s_psi[k, :, :m].copy()  # d(psi_k + alpha_k)
+            heading[:, m - 1] = alpha_p[k]
+            s_px[k + 1, :, :m] = s_px[k, :, :m] - (dtv * sin_th[k])[:, None] * heading
+            s_px[k + 1, :, :m] += (dt * cos_th[k])[:, None] * s_v[k, :m]
+            s_py[k + 1, :, :m] = s_py[k, :, :m] + (dtv * cos_th[k])[:, None] * heading
+            s_py[k + 1, :, :m] += (dt * sin_th[k])[:, None] * s_v[k, :m]
+            s_v[k + 1] = s_v[k]
+            s_v[k + 1, m - 2] = dt
+            s_psi[k + 1, :, :m] = s_psi[k, :, :m] + (dt * c[k]) * s_v[k, :m]
+            s_psi[k + 1, :, m - 1] = dtv * c_p[k]
+
+        # --- cost gradient ---
+        wq = (2.0 / ns) * self._w_state  # (N, 4): d(cost)/d(x_k) = wq * (x_k - x_g)
+        g = self._goal
+        grad = 2.0 * self._r * u
+        grad += s_px[1:].reshape(-1, nu).T @ (wq[:, 0:1] * (px[1:] - g[0])).ravel()
+        grad += s_py[1:].reshape(-1, nu).T @ (wq[:, 1:2] * (py[1:] - g[1])).ravel()
+        grad += s_psi[1:].reshape(-1, nu).T @ (wq[:, 3:4] * (psi[1:] - g[3])).ravel()
+        grad += s_v[1:].T @ (wq[:, 2] * (v[1:] - g[2]).sum(axis=1))
+
+        track = p.track
+        slope = track.amplitude * track.pulsation * np.cos(track.pulsation * px[1:] + track.phase)
+        j_track = s_py[1:] - slope[:, :, None] * s_px[1:]
+        return _Linearisation(
+            px=px,
+            py=py,
+            v=v,
+            psi=psi,
+            cos_th=cos_th,
+            sin_th=sin_th,
+            s_px=s_px,
+            s_py=s_py,
+            s_v=s_v,
+            s_psi=s_psi,
+            g_pos=self._position_constraints(px, py),
+            g_speed=self._speed_extremes(v),
+            j_track=j_track,
+            grad=grad,
+        )
+
+    def _hessian(self, lin: _Linearisation, u: np.ndarray, mu: np.ndarray) -> np.ndarray:
+        """Exact Hessian of the Lagrangian w.r.t. ``u`` ``(2N, 2N)``.
+
+        ``mu`` ``(4, N, Ns)`` are the multipliers of the position rows (zero for rows that
+        are not in the QP). The speed rows are linear in ``u`` and add no curvature.
+        Second-order adjoint: ``H = 2R + sum_k S_k' (d2 l_k) S_k + sum_k Z_k' M_k Z_k``
+        with ``M_k`` the Hessian of ``lambda_{k+1}' F(x_k, u_k)`` in ``(v_k, psi_k, delta_k)``.
+        """
+        p = self.problem
+        n, nu, dt = p.horizon, self._n_u, p.dt
+        ns = lin.px.shape[1]
+        _, alpha_p, alpha_pp, _, c_p, c_pp = self._steering_terms(u)
+        track = p.track
+        amp, om = track.amplitude, track.pulsation
+        arg = om * lin.px[1:] + track.phase
+        mu_track = mu[0] - mu[1]  # track-upper minus track-lower multipliers, (N, Ns)
+        wq = (2.0 / ns) * self._w_state
+        g = self._goal
+
+        # --- adjoint sweep: lambda_k = d l_k / d x_k + A_k' lambda_{k+1} ---
+        # Speed adjoints never reach the position/heading adjoints nor the curvature, so
+        # only (p_x, p_y, psi) are propagated.
+        gpx = wq[:, 0:1] * (lin.px[1:] - g[0]) - mu_track * amp * om * np.cos(arg) - mu[2] + mu[3]
+        gpy = wq[:, 1:2] * (lin.py[1:] - g[1]) + mu_track
+        gpsi = wq[:, 3:4] * (lin.psi[1:] - g[3])
+        # lambda_x and lambda_y are sums of the later gradients (p_x, p_y enter linearly).
+        lam_x = np.cumsum(gpx[::-1], axis=0)[::-1]  # lam_x[k] = lambda_{k+1}
+        lam_y = np.cumsum(gpy[::-1], axis=0)[::-1]
+        proj = lam_x * lin.cos_th + lam_y * lin.sin_th  # lambda_{k+1} along theta_k, (N, Ns)
+        proj_p = lam_y * lin.cos_th - lam_x * lin.sin_th  # its derivative in theta
+        dtv = dt * lin.v[:n]
+        lam_psi = np.empty((n, ns))
+        lam_psi[n - 1] = gpsi[n - 1]
+        for k in range(n - 1, 0, -1):
+            lam_psi[k - 1] = gpsi[k - 1] + lam_psi[k] + dtv[k] * proj_p[k]
+        m_vp = dt * proj_p
+        m_vd = dt * (proj_p * alpha_p[:, None] + lam_psi * c_p[:, None])
+        m_pp = -dtv * proj
+        m_pd = m_pp * alpha_p[:, None]
+        m_dd = dtv * (
+            proj_p * alpha_pp[:, None]
+            - proj * (alpha_p * alpha_p)[:, None]
+            + lam_psi * c_pp[:, None]
+        )
+
+        # --- Gauss-Newton part plus state curvature of the constraints and the heading ---
+        H = np.diag(2.0 * self._r)
+        w_px = wq[:, 0:1] + mu_track * amp * om * om * np.sin(arg)
+        s = lin.s_px[1:].reshape(-1, nu)
+        H += s.T @ (w_px.reshape(-1, 1) * s)
+        s = lin.s_py[1:].reshape(-1, nu)
+        H += s.T @ (np.repeat(wq[:, 1], ns)[:, None] * s)
+        w_psi = np.repeat(wq[:, 3:4], ns, axis=1)
+        w_psi[: n - 1] += m_pp[1:]  # S_0 = 0, so m_pp[0] never contributes
+        s = lin.s_psi[1:].reshape(-1, nu)
+        H += s.T @ (w_psi.reshape(-1, 1) * s)
+        H += lin.s_v[1:].T @ ((2.0 * self._w_state[:, 2:3]) * lin.s_v[1:])
+
+        # --- cross terms of the dynamics curvature ---
+        a_vp = np.einsum("kin,ki->kn", lin.s_psi[:n], m_vp)  # (N, 2N)
+        cross = lin.s_v[:n].T @ a_vp
+        cross_d = np.einsum("kin,ki->kn", lin.s_psi[:n], m_pd)
+        cross_d += m_vd.sum(axis=1)[:, None] * lin.s_v[:n]
+        H += cross + cross.T
+        H[:, 1::2] += cross_d.T
+        H[1::2, :] += cross_d
+        idx = np.arange(1, nu, 2)
+        H[idx, idx] += m_dd.sum(axis=1)
+        return H
+
+    def _convexify(
+        self,
+        H: np.ndarray,
+        lin: _Linearisation,
+        active_pos: np.ndarray,
+        active_speed: np.ndarray,
+        active_bounds: np.ndarray,
+    ) -> tuple[np.ndarray, float, np.ndarray]:
+        """A positive definite QP Hessian that leaves the Newton step unchanged if it can.
+
+        The Lagrangian's Hessian is often indefinite although it is positive definite on
+        the null space of the active constraints (second-order sufficiency). Adding
+        ``sigma J_A' J_A`` for the constraints ``A`` predicted active (hard-active rows and
+        input bounds of the previous QP) then makes it positive definite without changing
+        the QP's solution on that active set: only its multipliers shift, by
+        ``sigma J_A d``. If that is not enough, eigenvalues below ``hessian_floor`` are
+        raised to it (clipping rather than mirroring keeps directions of negative
+        curvature cheap for the QP; the line search decides how far to go).
+
+        Returns:
+            ``(H_qp, sigma, J_pos)`` with ``J_pos`` the Jacobian rows of ``active_pos``
+            (``sigma = 0`` when no augmentation was used).
+        """
+        floor = self.options.hessian_floor
+        w, V = np.linalg.eigh(H)
+        j_pos = np.empty((0, self._n_u))
+        if w[0] >= floor:
+            return H, 0.0, j_pos
+        rows = []
+        if active_pos.shape[0]:
+            j_pos = self._position_rows(lin, active_pos)[0]
+            rows.append(j_pos)
+        if active_speed.size:
+            rows.append(lin.s_v[1:][active_speed // 2])
+        if active_bounds.size:
+            rows.append(np.eye(self._n_u)[active_bounds])
+        if rows:
+            J = np.vstack(rows)
+            G = J.T @ J
+            sigma = float(np.max(np.abs(w))) / max(float(np.max(np.diag(G))), 1e-12)
+            for _ in range(4):
+                H_aug = H + sigma * G
+                w_aug, V_aug = np.linalg.eigh(H_aug)
+                if w_aug[0] >= floor:
+                    return H_aug, sigma, j_pos
+                sigma *= 10.0
+        return (V * np.maximum(w, floor)) @ V.T, 0.0, j_pos
+
+    # ------------------------------------------------------------------ QP subproblem
+
+    def _qp(self, groups: int, slots: int) -> _SlotQP:
+        """The cached QP with room for ``groups`` position groups of ``slots`` rows each.
+
+        Sizes are rounded up to powers of two, so a few QP objects serve every solve and
+        each keeps its own hot-start information.
+        """
+        n = self.problem.horizon
+        groups = min(max(4, 1 << (groups - 1).bit_length()), N_POSITION_KINDS * n)
+        base = self.options.screen_rows
+        while base < slots:
+            base *= 2
+        key = (groups, base)
+        qp = self._qps.get(key)
+        if qp is None:
+            p, opt = self.problem, self.options
+            qp = _SlotQP(n, groups, base, opt.qp_solver, p.slack_penalty, opt.slack_regularisation)
+            self._qps[key] = qp
+        return qp
+
+    def _screen(self, g_pos: np.ndarray) -> np.ndarray:
+        """Initial position rows ``(r, 3)`` of ``(kind, step index, scenario)``.
+
+        Per (kind, step) the ``screen_rows`` largest values that lie within
+        ``screen_margin`` of activity.
+        """
+        opt = self.options
+        n_groups = g_pos.shape[0] * g_pos.shape[1]
+        G = g_pos.reshape(n_groups, -1)
+        ns = G.shape[1]
+        keep = min(opt.screen_rows, ns)
+        if keep < ns:
+            top = np.argpartition(G, ns - keep, axis=1)[:, ns - keep :]
+        else:
+            top = np.broadcast_to(np.arange(ns), (n_groups, ns))
+        values = np.take_along_axis(G, top, axis=1)
+        group, col = np.nonzero(values >= -opt.screen_margin)
+        n = g_pos.shape[1]
+        return np.column_stack([group // n, group % n, top[group, col]])
+
+    def _position_rows(self, lin: _Linearisation, pos: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Jacobian rows ``(r, 2N)`` and values ``(r,)`` of position rows ``(kind, step, i)``."""
+        kind, step, scen = pos[:, 0], pos[:, 1], pos[:, 2]
+        jac = np.where((kind < 2)[:, None], lin.j_track[step, scen], lin.s_px[step + 1, scen])
+        return _POSITION_SIGN[kind, None] * jac, lin.g_pos[kind, step, scen]
+
+    def _missing_rows(
+        self, lin: _Linearisation, d: np.ndarray, s_pos: np.ndarray, pos: np.ndarray
+    ) -> np.ndarray:
+        """Position rows of the full QP violated at the step ``(d, s_pos)``: worst per group."""
+        n = self.problem.horizon
+        lin_px = lin.s_px[1:] @ d  # (N, Ns)
+        lin_tr = lin.j_track @ d
+        viol = lin.g_pos + np.stack([lin_tr, -lin_tr, -lin_px, lin_px])
+        viol -= s_pos[:, :, None]
+        viol[pos[:, 0], pos[:, 1], pos[:, 2]] = -np.inf
+        flat = viol.reshape(N_POSITION_KINDS * n, -1)
+        worst = np.argmax(flat, axis=1)
+        bad = np.nonzero(flat[np.arange(flat.shape[0]), worst] > self.options.add_tol)[0]
+        return np.column_stack([bad // n, bad % n, worst[bad]])
+
+    def _solve_qp(
+        self, lin: _Linearisation, H: np.ndarray, u: np.ndarray, pos: np.ndarray, stats: dict
+    ) -> _QPStep | None:
+        """Step of the full QP by check-and-add over the position rows; None on failure."""
+        n, nu = self.problem.horizon, self._n_u
+        a_speed = np.empty((2 * n, nu))
+        a_speed[0::2] = -lin.s_v[1:]
+        a_speed[1::2] = lin.s_v[1:]
+        g_speed = lin.g_speed.T.ravel()
+        for _ in range(self.options.max_qp_rounds):
+            a_pos, g_pos = self._position_rows(lin, pos)
+            groups, slot_group, rank = _SlotQP.layout(pos, g_pos, n)
+            qp = self._qp(max(groups.size, 1), int(rank.max(initial=0)) + 1)
+            row = qp.n_speed + slot_group * qp.slots + rank
+            qp.set_problem(H, lin.grad, self._lower - u, self._upper - u, a_speed, g_speed)
+            qp.set_position_rows(row, a_pos, g_pos)
+            z, lam_all, ok = qp.solve()
+            stats["qp_solves"] += 1
+            if not ok:
+                return None
+            s_pos = np.zeros((N_POSITION_KINDS, n))
+            s_pos.reshape(-1)[groups] = z[nu + 2 * n : nu + 2 * n + groups.size]
+            missing = self._missing_rows(lin, z[:nu], s_pos, pos)
+            if missing.shape[0] == 0:
+                break
+            pos = np.concatenate([pos, missing])
+        stats["qp_rows"] = max(stats["qp_rows"], pos.shape[0])
+        return _QPStep(
+            d=z[:nu],
+            slack_sum=float(z[nu:].sum()),
+            pos=pos,
+            lam=lam_all[row],
+            qp=qp,
+            row=row,
+            s_pos=s_pos,
+            s_speed=z[nu : nu + 2 * n],
+            lam_speed=lam_all[: 2 * n],
+        )
+
+    def _newton_step(
+        self,
+        lin: _Linearisation,
+        H: np.ndarray,
+        u: np.ndarray,
+        active_pos: np.ndarray,
+        active_speed: np.ndarray,
+        stats: dict,
+    ) -> tuple[_QPStep | None, np.ndarray]:
+        """QP step with a convexified Hessian, and the position-row multipliers ``(4, N, Ns)``.
+
+        A constraint predicted active whose row the QP leaves slack (or whose multiplier
+        turns negative) would have bent the step through the augmentation: it is dropped
+        and the QP re-solved.
+        """
+        n = self.problem.horizon
+        mu = np.zeros((N_POSITION_KINDS, n, lin.px.shape[1]))
+        bounds = np.nonzero((u <= self._lower + 1e-12) | (u >= self._upper - 1e-12))[0]
+        screened = self._screen(lin.g_pos)
+        for attempt in range(4):
+            if attempt == 3:  # give up predicting: plain eigenvalue clipping
+                active_pos, active_speed, bounds = active_pos[:0], active_speed[:0], bounds[:0]
+            H_qp, sigma, j_pos = self._convexify(H, lin, active_pos, active_speed, bounds)
+            step = self._solve_qp(lin, H_qp, u, screened, stats)
+            if step is None:
+                return None, mu
+            mu[:] = 0.0
+            mu[step.pos[:, 0], step.pos[:, 1], step.pos[:, 2]] = step.lam
+            if sigma == 0.0:
+                return step, mu
+            d, tol = step.d, 1e-8
+            idx = (active_pos[:, 0], active_pos[:, 1], active_pos[:, 2])
+            lin_d = j_pos @ d
+            lam = mu[idx] + sigma * lin_d  # multipliers of the un-augmented QP
+            keep_pos = (lam >= -tol) & (
+                lin.g_pos[idx] + lin_d - step.s_pos[active_pos[:, 0], active_pos[:, 1]] >= -tol
+            )
+            mu[idx] = np.maximum(lam, 0.0)
+            k, b = active_speed // 2, active_speed % 2
+            v_d = np.where(b == 1, 1.0, -1.0) * (lin.s_v[k + 1] @ d)
+            keep_speed = (step.lam_speed[active_speed] + sigma * v_d >= -tol) & (
+                lin.g_speed[b, k] + v_d - step.s_speed[active_speed] >= -tol
+            )
+            u_new = u[bounds] + d[bounds]
+            keep_bounds = (u_new <= self._lower[bounds] + 1e-10) | (
+                u_new >= self._upper[bounds] - 1e-10
+            )
+            if keep_pos.all() and keep_speed.all() and keep_bounds.all():
+                return step, mu
+            active_pos = active_pos[keep_pos]
+            active_speed = active_speed[keep_speed]
+            bounds = bounds[keep_bounds]
+        return step, mu
+
+    # ------------------------------------------------------------------ SQP
+
+    def _sqp(
+        self, x0: np.ndarray, W: np.ndarray, u0: np.ndarray
+    ) -> tuple[np.ndarray, str, bool, int, dict[str, Any]]:
+        """SQP iterations from ``u0``: ``(u, status, success, iterations, extra)``."""
+        p, opt = self.problem, self.options
+        n, nu, rho = p.horizon, self._n_u, p.slack_penalty
+        ns = x0.shape[0]
+        mu = np.zeros((N_POSITION_KINDS, n, ns))
+        active_pos = np.empty((0, 3), dtype=int)
+        active_speed = np.empty(0, dtype=int)
+        u = u0.copy()
+        stats: dict[str, Any] = {"qp_solves": 0, "qp_rows": 0, "soc_steps": 0, "merit_evals": 0}
+        with np.errstate(all="ignore"):
+            merit, slack, _ = self._merit(x0, W, u)
+        if not math.isfinite(merit):
+            return u, "Invalid_Initial_Point", False, 0, stats
+        status, success, iterations = "Maximum_Iterations_Exceeded", False, 0
+        while iterations < opt.max_iter:
+            iterations += 1
+            with np.errstate(all="ignore"):
+                lin = self._linearise(x0, W, u)
+                H = self._hessian(lin, u, mu)
+            if not (np.all(np.isfinite(H)) and np.all(np.isfinite(lin.grad))):
+                status = "Invalid_Derivatives"
+                break
+            qp_step, mu = self._newton_step(lin, H, u, active_pos, active_speed, stats)
+            if qp_step is None:
+                status = "QP_Failed"
+                break
+            d, pos = qp_step.d, qp_step.pos
+            # Hard-active constraints of this QP: the prediction for the next convexification.
+            hard = (mu[pos[:, 0], pos[:, 1], pos[:, 2]] > 1e-9) & (
+                qp_step.s_pos[pos[:, 0], pos[:, 1]] <= 1e-9
+            )
+            active_pos = pos[hard]
+            active_speed = np.nonzero((qp_step.lam_speed > 1e-9) & (qp_step.s_speed <= 1e-9))[0]
+            # Upper bound of the merit's directional derivative along d (< 0 unless d = 0).
+            D = float(lin.grad @ d) + rho * (qp_step.slack_sum - slack)
+            small_decrease = -D <= opt.tol * (1.0 + abs(merit))
+            if small_decrease and np.max(np.abs(d)) <= opt.step_tol:
+                status, success = "Solve_Succeeded", True
+                break
+
+            # --- line search on the exact-penalty merit, with second-order correction ---
+            t = 1.0
+            accepted = False
+            while t >= opt.min_step:
+                u_try = np.clip(u + t * d, self._lower, self._upper)
+                with np.errstate(all="ignore"):
+                    m_try, s_try, g_try = self._merit(x0, W, u_try)
+                stats["merit_evals"] += 1
+                if m_try <= merit + opt.armijo * t * D:
+                    accepted = True
+                    break
+                if t == 1.0 and opt.second_order_correction and s_try > slack:
+                    # The constraints' curvature made the full step infeasible: shift the
+                    # rows by their second-order error and re-solve (Maratos effect).
+                    a_pos, _ = self._position_rows(lin, pos)
+                    qp_step.qp.set_position_bounds(
+                        qp_step.row, g_try[pos[:, 0], pos[:, 1], pos[:, 2]] - a_pos @ d
+                    )
+                    z_soc, _, ok_soc = qp_step.qp.solve()
+                    stats["qp_solves"] += 1
+                    if ok_soc:
+                        u_soc = np.clip(u + z_soc[:nu], self._lower, self._upper)
+                        with np.errstate(all="ignore"):
+                            m_soc, s_soc, _ = self._merit(x0, W, u_soc)
+                        stats["merit_evals"] += 1
+                        if m_soc <= merit + opt.armijo * D:
+                            stats["soc_steps"] += 1
+                            u_try, m_try, s_try = u_soc, m_soc, s_soc
+                            accepted = True
+                            break
+                t *= opt.backtrack
+            if not accepted:
+                # No decrease along a descent direction: converged up to rounding if the
+                # predicted decrease is negligible, else a genuine failure.
+                if -D <= 1e3 * opt.tol * (1.0 + abs(merit)):
+                    status, success = "Solve_Succeeded", True
+                else:
+                    status = "Line_Search_Failed"
+                break
+            step = float(np.max(np.abs(u_try - u)))
+            u, merit, slack = u_try, m_try, s_try
+            # A tiny full step in the quadratic-convergence regime leaves an error of its
+            # square: no need for one more linearisation to confirm.
+            if t == 1.0 and step <= opt.final_step_tol and small_decrease:
+                status, success = "Solve_Succeeded", True
+                break
+        stats["merit"] = merit
+        return u, status, success, iterations, stats
