@@ -213,3 +213,212 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
                 return 1
             print(f"report: {where if where is not None else out}")
     return 1 if n_errors else 0
+
+
+# --------------------------------------------------------------------------- lfm-report
+
+_REPORT_EPILOG = """\
+files written (DIR is the results folder):
+  DIR/report.md, DIR/report.html   the same report (HTML shows the PNGs beside it)
+  DIR/figures/*.png                paper figures of one episode, across-seed plots
+  DIR/figures/episode.gif          the episode replayed from its saved true states
+
+Reads DIR/episodes.csv, DIR/episodes/*.npz and DIR/config.yaml; runs no episode.
+Exit code 0 on success, 2 when DIR is missing, empty or the seed has no trajectory.
+
+examples:
+  lfm-report results/paper
+  lfm-report results/quick --seed 3 --no-gif
+"""
+
+
+def _report_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="lfm-report",
+        description=(
+            "Write report.md and report.html for a results folder of lfm-evaluate: per-agent\n"
+            "means with 95% bootstrap intervals, paired differences against the scenario\n"
+            "agent, the paper's four figures for one episode, across-seed plots, a GIF of\n"
+            "the episode and a 'paper vs measured' table. The oracle agent is an upper bound\n"
+            "(it reads the hidden truth) and is labelled so."
+        ),
+        epilog=_REPORT_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("results_dir", metavar="DIR", help="results folder of lfm-evaluate")
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        metavar="S",
+        help=(
+            "env seed of the episode figures and GIF (default: the smallest seed with a "
+            "saved trajectory of the scenario agent)"
+        ),
+    )
+    parser.add_argument("--no-gif", action="store_true", help="do not write figures/episode.gif")
+    return parser
+
+
+def report_main(argv: Sequence[str] | None = None) -> int:
+    """``lfm-report``: write the report of a results folder (see ``--help``).
+
+    Returns:
+        The exit code: 0 when the report was written.
+    """
+    from controllers.report import write_report
+
+    parser = _report_parser()
+    args = parser.parse_args(argv)
+    try:
+        path = write_report(args.results_dir, figure_seed=args.seed, gif=not args.no_gif)
+    except (FileNotFoundError, ValueError) as exc:
+        parser.error(" ".join(str(exc).split()))
+    print(f"report: {path} and {path.with_suffix('.html')}")
+    return 0
+
+
+# --------------------------------------------------------------------------- lfm-render
+
+_RENDER_EPILOG = """\
+Runs ONE episode (the same one lfm-evaluate runs for this agent, config and seed: the
+agent's own seed is derived the same way) and draws every step with the env's
+highway-env renderer (render_mode="rgb_array", no display needed). A .gif gets one
+frame per step plus the start (1/dt frames per second); a .png gets one frame.
+To look at a saved episode without re-running it, use lfm-report (figures/episode.gif).
+
+examples:
+  lfm-render --agent scenario --seed 0 --out scenario.gif
+  lfm-render --config configs/quick.yaml --agent pf --seed 3 --steps 40 --out pf.png
+"""
+
+
+def _render_parser() -> argparse.ArgumentParser:
+    from controllers.agents import AGENT_LABELS
+
+    agents_help = "; ".join(f"{k} = {v}" for k, v in AGENT_LABELS.items())
+    parser = argparse.ArgumentParser(
+        prog="lfm-render",
+        description="Run one episode of an agent on the SineTrack world and render it.",
+        epilog=_RENDER_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "--config",
+        metavar="YAML",
+        default=None,
+        help=(
+            f"config file with env and agents sections (default: {_REPO_CONFIGS / 'paper.yaml'}"
+            " if present, else the built-in paper defaults)"
+        ),
+    )
+    parser.add_argument(
+        "--agent", default="scenario", help=f"agent (default: scenario). {agents_help}"
+    )
+    parser.add_argument("--seed", type=int, default=0, metavar="S", help="env seed (default: 0)")
+    parser.add_argument(
+        "--out", required=True, metavar="FILE", help="output file, .gif (animation) or .png"
+    )
+    parser.add_argument(
+        "--steps",
+        type=_positive_int,
+        default=None,
+        metavar="N",
+        help="stop after N steps (default: run until the episode ends)",
+    )
+    parser.add_argument(
+        "--frame",
+        choices=("last", "first"),
+        default="last",
+        help="which frame a .png gets (default: last)",
+    )
+    parser.add_argument(
+        "--size",
+        default="480x240",
+        metavar="WxH",
+        help="frame size in pixels (default: 480x240)",
+    )
+    return parser
+
+
+def _render_episode(
+    config: object, agent_name: str, seed: int, max_steps: int | None, size: tuple[int, int]
+) -> tuple[list, float]:
+    """Frames ``(H, W, 3)`` of one episode rendered step by step, and ``dt`` [s]."""
+    import gymnasium as gym
+
+    import lfm_env  # noqa: F401  (registers the env id)
+    from controllers.agents import make_agent
+    from controllers.evaluation import ENV_ID, agent_seed, resolve_config
+    from controllers.plots import annotate_frame
+
+    cfg = resolve_config(config)
+    env = gym.make(ENV_ID, config=cfg, render_mode="rgb_array", screen_size=size, scaling=20.0)
+    try:
+        agent = make_agent(agent_name, cfg, env=env if agent_name == "oracle" else None)
+        dt = env.unwrapped.config.dt
+        obs, info = env.reset(seed=seed)
+        agent.reset(seed=agent_seed(seed, agent_name))
+        frames, k = [], 0
+
+        def grab(state) -> None:
+            text = f"{agent_name} | seed {seed} | t = {k * dt:.1f} s | v = {state[2]:.1f} m/s"
+            frames.append(annotate_frame(env.render(), text))
+
+        grab(info["true_state"])
+        done = False
+        while not done and (max_steps is None or k < max_steps):
+            obs, _, terminated, truncated, info = env.step(agent.act(obs))
+            k += 1
+            done = terminated or truncated
+            grab(info["true_state"])
+    finally:
+        env.close()
+    return frames, dt
+
+
+def render_main(argv: Sequence[str] | None = None) -> int:
+    """``lfm-render``: run one episode and write it as a GIF or PNG (see ``--help``).
+
+    Returns:
+        The exit code: 0 when the file was written.
+    """
+    from controllers.agents import AGENTS
+    from controllers.plots import write_gif
+
+    parser = _render_parser()
+    args = parser.parse_args(argv)
+    out = Path(args.out)
+    if out.suffix.lower() not in (".gif", ".png"):
+        parser.error(f"--out {args.out}: must end in .gif or .png")
+    if args.agent not in AGENTS:
+        parser.error(f"--agent {args.agent}: choose one of {', '.join(AGENTS)}")
+    if args.seed < 0:
+        parser.error(f"--seed {args.seed}: must be >= 0")
+    try:
+        width, height = (int(v) for v in args.size.lower().split("x"))
+        if width < 16 or height < 16:
+            raise ValueError
+    except ValueError:
+        parser.error(f"--size {args.size}: expected WxH in pixels, each >= 16, e.g. 480x240")
+    if args.config is None:
+        default = _REPO_CONFIGS / "paper.yaml"
+        config = default if default.is_file() else None
+    else:
+        config = Path(args.config)
+        if not config.is_file():
+            parser.error(f"--config {args.config}: no such file")
+
+    try:
+        frames, dt = _render_episode(config, args.agent, args.seed, args.steps, (width, height))
+    except ValueError as exc:  # a bad config: the loaders name the key
+        parser.error(" ".join(str(exc).split()))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.suffix.lower() == ".gif":
+        write_gif(frames, out, fps=1.0 / dt)
+    else:
+        import imageio.v3 as iio
+
+        iio.imwrite(out, frames[-1] if args.frame == "last" else frames[0])
+    print(f"{out}: {len(frames)} frame(s), {len(frames) - 1} step(s) of {args.agent}")
+    return 0

@@ -1,0 +1,827 @@
+"""A report of saved evaluation results: tables with bootstrap CIs, paired differences,
+the paper's figures, across-seed plots, an episode GIF and "paper vs measured".
+
+Reads a results folder written by the evaluation (it never re-runs an episode):
+
+* ``DIR/episodes.csv``: one row per (agent, seed) with the episode metrics;
+* ``DIR/episodes/<agent>__seed<seed>.npz``: the arrays of that episode;
+* ``DIR/config.yaml``: the config of the run (``env`` and ``agents`` sections).
+
+:func:`write_report` writes ``report.md`` and ``report.html`` (the same content) into the
+folder and the figures into ``DIR/figures/``.
+"""
+
+from __future__ import annotations
+
+import csv
+import html
+import math
+import re
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from controllers import plots
+from lfm_env.config import EnvConfig, load_env_config, load_yaml
+
+REFERENCE_AGENT = "scenario"
+KNOWN_AGENT_ORDER = ("nominal", "pf", "scenario", "oracle")
+
+# Short labels for tables and axes; the oracle is an upper bound everywhere it appears.
+AGENT_SHORT_LABELS = {
+    "nominal": "nominal MPC",
+    "pf": "PF + CE MPC",
+    "scenario": "scenario MPC (paper)",
+    "oracle": "oracle (upper bound)",
+}
+
+PAPER_SPEED_EXCESS = 0.35  # [m/s] largest speed excess over the bound reported in the paper
+BOOTSTRAP_RESAMPLES = 2000
+BOOTSTRAP_SEED = 0
+
+
+@dataclass(frozen=True)
+class Metric:
+    """One column of ``episodes.csv`` as it appears in the report."""
+
+    column: str
+    label: str
+    unit: str = ""
+    lower_is_better: bool = True
+    fewer: str = ""  # plain-language comparative, e.g. "fewer track violation steps"
+
+    @property
+    def title(self) -> str:
+        """Label with its unit in brackets."""
+        return f"{self.label} [{self.unit}]" if self.unit else self.label
+
+
+SUMMARY_METRICS = (
+    Metric("success", "success rate", lower_is_better=False),
+    Metric("failure", "failure rate (left the safety box)"),
+    Metric("time_to_goal", "time to goal (successful episodes)", "s"),
+    Metric("cost", "cost (sum of stage costs)"),
+    Metric("track_violation_steps", "track violation steps", "steps"),
+    Metric("max_track_excess", "max track excess", "m"),
+    Metric("speed_violation_steps", "speed violation steps", "steps"),
+    Metric("max_speed_excess", "max speed excess", "m/s"),
+    Metric("latent_rmse", "latent-force RMSE", "m/s^2"),
+    Metric("latent_coverage", "latent-force 2-sigma coverage", lower_is_better=False),
+    Metric("solve_time_median", "solve time, episode median", "s"),
+    Metric("solve_time_p95", "solve time, episode p95", "s"),
+    Metric("solver_failures", "solver failures", "steps"),
+    Metric("fallback_steps", "fallback steps", "steps"),
+)
+
+PAIRED_METRICS = (
+    Metric("cost", "cost", fewer="a lower cost"),
+    Metric("max_speed_excess", "max speed excess", "m/s", fewer="a smaller max speed excess"),
+    Metric(
+        "speed_violation_steps",
+        "speed violation steps",
+        "steps",
+        fewer="fewer speed violation steps",
+    ),
+    Metric(
+        "track_violation_steps",
+        "track violation steps",
+        "steps",
+        fewer="fewer track violation steps",
+    ),
+    Metric("time_to_goal", "time to goal", "s", fewer="a shorter time to goal"),
+)
+
+_TEXT_COLUMNS = ("agent", "error")
+_FALSY = ("", "0", "0.0", "false", "no", "none", "nan")
+
+
+# --------------------------------------------------------------------------- loading
+
+
+@dataclass
+class Results:
+    """The saved results of one evaluation run."""
+
+    directory: Path
+    rows: list[dict[str, Any]]  # one per episode; numbers as float, agent/error as str
+    config: EnvConfig
+    agent_settings: dict = field(default_factory=dict)  # the ``agents`` section, plain
+
+    @property
+    def agents(self) -> list[str]:
+        """Agent names, the known ones in their usual order, then the rest sorted."""
+        names = {r["agent"] for r in self.rows}
+        known = [a for a in KNOWN_AGENT_ORDER if a in names]
+        return known + sorted(names - set(known))
+
+    def rows_of(self, agent: str, include_errors: bool = False) -> list[dict[str, Any]]:
+        """Rows of ``agent`` sorted by seed; episodes with errors only if asked."""
+        rows = [r for r in self.rows if r["agent"] == agent and (include_errors or not r["error"])]
+        return sorted(rows, key=lambda r: r["seed"])
+
+    @property
+    def error_rows(self) -> list[dict[str, Any]]:
+        """Episodes that ended with an error, sorted by agent and seed."""
+        return sorted((r for r in self.rows if r["error"]), key=lambda r: (r["agent"], r["seed"]))
+
+    def trajectory_path(self, agent: str, seed: int) -> Path:
+        """Where the arrays of one episode are saved."""
+        return self.directory / "episodes" / f"{agent}__seed{seed}.npz"
+
+
+def agent_label(name: str, wrap: bool = False) -> str:
+    """Short display label of an agent (the oracle is marked as an upper bound).
+
+    ``wrap`` puts a parenthesised remark on its own line, for axis tick labels.
+    """
+    label = AGENT_SHORT_LABELS.get(name, name)
+    return label.replace(" (", "\n(") if wrap else label
+
+
+def _long_label(name: str) -> str:
+    from controllers.agents import AGENT_LABELS
+
+    return AGENT_LABELS.get(name, name)
+
+
+def _parse_value(column: str, text: str | None) -> Any:
+    """A CSV cell as float (booleans as 0/1, empty or "nan" as NaN); text columns as str."""
+    text = "" if text is None else text.strip()
+    if column in _TEXT_COLUMNS:
+        return "" if text.lower() in ("nan", "none") else text
+    if column == "seed":
+        return int(float(text))
+    low = text.lower()
+    if low in ("true", "yes"):
+        return 1.0
+    if low in ("false", "no"):
+        return 0.0
+    if low in ("", "nan", "none"):
+        return math.nan
+    try:
+        return float(text)
+    except ValueError:
+        # A free-text outcome (e.g. a failure reason) counts as "happened".
+        return 0.0 if low in _FALSY else 1.0
+
+
+def read_episodes_csv(path: str | Path) -> list[dict[str, Any]]:
+    """The rows of an ``episodes.csv``, parsed (see :func:`_parse_value`).
+
+    Raises:
+        FileNotFoundError: if the file does not exist.
+        ValueError: if it has no ``agent``/``seed`` columns or no rows.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no episodes table at {path}")
+    with path.open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        missing = {"agent", "seed"} - set(reader.fieldnames or ())
+        if missing:
+            raise ValueError(f"{path}: missing column(s) {sorted(missing)}")
+        rows = []
+        for line in reader:
+            row = {k: _parse_value(k, v) for k, v in line.items() if k is not None}
+            row.setdefault("error", "")
+            rows.append(row)
+    if not rows:
+        raise ValueError(f"{path} holds no episodes")
+    return rows
+
+
+def load_results(results_dir: str | Path) -> Results:
+    """Load ``episodes.csv`` and ``config.yaml`` of a results folder.
+
+    Raises:
+        FileNotFoundError: if the folder, its ``episodes.csv`` or its ``config.yaml`` is
+            missing (the message names the path).
+        ValueError: if the table holds no episodes.
+    """
+    directory = Path(results_dir)
+    if not directory.is_dir():
+        raise FileNotFoundError(f"results folder {directory} does not exist")
+    rows = read_episodes_csv(directory / "episodes.csv")
+    config_path = directory / "config.yaml"
+    if not config_path.is_file():
+        raise FileNotFoundError(f"no config.yaml in {directory} (needed for dt and the track)")
+    config = load_env_config(config_path)
+    agents_section = load_yaml(config_path).get("agents") or {}
+    return Results(directory, rows, config, dict(agents_section))
+
+
+def load_trajectory(results: Results, agent: str, seed: int) -> dict[str, np.ndarray] | None:
+    """The saved arrays of one episode, or ``None`` if none were saved."""
+    path = results.trajectory_path(agent, seed)
+    if not path.is_file():
+        return None
+    with np.load(path, allow_pickle=False) as data:
+        return {k: data[k] for k in data.files}
+
+
+# --------------------------------------------------------------------------- statistics
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """A mean with its percentile-bootstrap confidence interval."""
+
+    mean: float
+    low: float
+    high: float
+    n: int  # number of finite values used
+
+
+def bootstrap_ci(
+    values: Iterable[float],
+    n_resamples: int = BOOTSTRAP_RESAMPLES,
+    level: float = 0.95,
+    seed: int = BOOTSTRAP_SEED,
+) -> Estimate:
+    """Mean and percentile-bootstrap CI of the finite values (NaNs are left out).
+
+    The resampling generator is seeded, so the same values give the same interval.
+
+    Args:
+        values: the sample (e.g. one metric over seeds).
+        n_resamples: bootstrap resamples.
+        level: confidence level of the interval.
+        seed: seed of the resampling generator.
+
+    Returns:
+        The mean and interval; all NaN for an empty sample, a zero-width interval for one
+        value.
+    """
+    x = np.asarray(list(values), dtype=float)
+    x = x[np.isfinite(x)]
+    n = len(x)
+    if n == 0:
+        return Estimate(math.nan, math.nan, math.nan, 0)
+    mean = float(x.mean())
+    if n == 1:
+        return Estimate(mean, mean, mean, 1)
+    rng = np.random.default_rng(seed)
+    means = x[rng.integers(0, n, size=(n_resamples, n))].mean(axis=1)
+    alpha = 0.5 * (1.0 - level)
+    low, high = np.quantile(means, [alpha, 1.0 - alpha])
+    # Rounding in the resampled means can put the bound a hair past the mean.
+    return Estimate(mean, float(min(low, mean)), float(max(high, mean)), n)
+
+
+def summarize(results: Results, metrics: Sequence[Metric] = SUMMARY_METRICS) -> dict:
+    """Per agent and metric, the mean and bootstrap CI over error-free episodes.
+
+    Returns:
+        ``{agent: {column: Estimate}}``; a column missing from the table gives NaNs.
+    """
+    out = {}
+    for agent in results.agents:
+        rows = results.rows_of(agent)
+        out[agent] = {
+            m.column: bootstrap_ci([r.get(m.column, math.nan) for r in rows]) for m in metrics
+        }
+    return out
+
+
+@dataclass(frozen=True)
+class PairedDifference:
+    """``agent - reference`` of one metric over the seeds both have (error-free)."""
+
+    metric: str
+    agent: str
+    reference: str
+    seeds: tuple[int, ...]
+    differences: tuple[float, ...]
+    estimate: Estimate
+    agent_lower: int  # seeds where the agent's value is lower than the reference's
+    reference_lower: int
+    ties: int
+
+
+def paired_differences(
+    results: Results, metric: str, agent: str, reference: str = REFERENCE_AGENT
+) -> PairedDifference:
+    """Differences ``agent - reference`` of ``metric`` on matching seeds only.
+
+    A seed counts when both agents have an error-free episode on it and both values are
+    finite (e.g. time to goal only where both reached the goal).
+    """
+    ref = {r["seed"]: r.get(metric, math.nan) for r in results.rows_of(reference)}
+    seeds, diffs = [], []
+    for r in results.rows_of(agent):
+        s = r["seed"]
+        a, b = r.get(metric, math.nan), ref.get(s, math.nan)
+        if s in ref and np.isfinite(a) and np.isfinite(b):
+            seeds.append(s)
+            diffs.append(float(a - b))
+    d = np.asarray(diffs)
+    return PairedDifference(
+        metric=metric,
+        agent=agent,
+        reference=reference,
+        seeds=tuple(seeds),
+        differences=tuple(diffs),
+        estimate=bootstrap_ci(d),
+        agent_lower=int(np.sum(d < 0)),
+        reference_lower=int(np.sum(d > 0)),
+        ties=int(np.sum(d == 0)),
+    )
+
+
+def _seeds(n: int) -> str:
+    return f"{n} seed" if n == 1 else f"{n} seeds"
+
+
+def _quantiles(values: Iterable[float], qs: Sequence[float]) -> list[float]:
+    x = np.asarray(list(values), dtype=float)
+    x = x[np.isfinite(x)]
+    if len(x) == 0:
+        return [math.nan] * len(qs)
+    return [float(v) for v in np.quantile(x, qs)]
+
+
+# --------------------------------------------------------------------------- document
+
+
+def fmt(value: float, digits: int = 3) -> str:
+    """A number for a table: ``digits`` significant digits, thousands separated, "n/a"."""
+    if value is None or not np.isfinite(value):
+        return "n/a"
+    if abs(value) >= 10**digits:
+        return f"{value:,.0f}"
+    return f"{value:.{digits}g}"
+
+
+def fmt_estimate(e: Estimate, n_total: int | None = None) -> str:
+    """``mean [low, high]``, with ``(n=k)`` when fewer values than episodes were usable."""
+    if e.n == 0:
+        return "n/a"
+    text = f"{fmt(e.mean)} [{fmt(e.low)}, {fmt(e.high)}]"
+    if n_total is not None and e.n < n_total:
+        text += f" (n={e.n})"
+    return text
+
+
+class Document:
+    """A small document model rendered to both Markdown and HTML, so they match."""
+
+    def __init__(self) -> None:
+        self.blocks: list[tuple] = []
+
+    def heading(self, text: str, level: int = 2) -> None:
+        self.blocks.append(("heading", level, text))
+
+    def paragraph(self, text: str) -> None:
+        self.blocks.append(("paragraph", text))
+
+    def bullets(self, items: Sequence[str]) -> None:
+        self.blocks.append(("bullets", list(items)))
+
+    def table(self, header: Sequence[str], rows: Sequence[Sequence[str]]) -> None:
+        self.blocks.append(("table", list(header), [list(r) for r in rows]))
+
+    def image(self, relpath: str, caption: str) -> None:
+        self.blocks.append(("image", relpath, caption))
+
+    # ---- Markdown
+
+    def markdown(self) -> str:
+        out = []
+        for block in self.blocks:
+            kind = block[0]
+            if kind == "heading":
+                out.append("#" * block[1] + " " + block[2])
+            elif kind == "paragraph":
+                out.append(block[1])
+            elif kind == "bullets":
+                out.append("\n".join(f"- {item}" for item in block[1]))
+            elif kind == "table":
+                header, rows = block[1], block[2]
+                lines = ["| " + " | ".join(_md_cell(h) for h in header) + " |"]
+                lines.append("|" + "|".join("---" for _ in header) + "|")
+                lines += ["| " + " | ".join(_md_cell(c) for c in row) + " |" for row in rows]
+                out.append("\n".join(lines))
+            elif kind == "image":
+                out.append(f"![{block[2]}]({block[1]})\n\n*{block[2]}*")
+        return "\n\n".join(out) + "\n"
+
+    # ---- HTML
+
+    def html(self, title: str) -> str:
+        body = []
+        for block in self.blocks:
+            kind = block[0]
+            if kind == "heading":
+                body.append(f"<h{block[1]}>{_inline_html(block[2])}</h{block[1]}>")
+            elif kind == "paragraph":
+                body.append(f"<p>{_inline_html(block[1])}</p>")
+            elif kind == "bullets":
+                items = "".join(f"<li>{_inline_html(i)}</li>" for i in block[1])
+                body.append(f"<ul>{items}</ul>")
+            elif kind == "table":
+                head = "".join(f"<th>{_inline_html(h)}</th>" for h in block[1])
+                rows = "".join(
+                    "<tr>" + "".join(f"<td>{_inline_html(c)}</td>" for c in row) + "</tr>"
+                    for row in block[2]
+                )
+                body.append(f"<table><thead><tr>{head}</tr></thead><tbody>{rows}</tbody></table>")
+            elif kind == "image":
+                src, cap = html.escape(block[1], quote=True), _inline_html(block[2])
+                body.append(
+                    f'<figure><img src="{src}" alt="{html.escape(block[2], quote=True)}">'
+                    f"<figcaption>{cap}</figcaption></figure>"
+                )
+        return _HTML_TEMPLATE.format(title=html.escape(title), body="\n".join(body))
+
+
+_HTML_TEMPLATE = """<!DOCTYPE html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<title>{title}</title>
+<style>
+body {{ font-family: system-ui, sans-serif; max-width: 1150px; margin: 2em auto;
+       padding: 0 1em; color: #222; line-height: 1.45; }}
+table {{ border-collapse: collapse; margin: 1em 0; font-size: 0.9em; }}
+th, td {{ border: 1px solid #ccc; padding: 0.3em 0.6em; text-align: left;
+         vertical-align: top; }}
+th {{ background: #f2f2f2; }}
+tbody tr:nth-child(even) {{ background: #fafafa; }}
+code {{ background: #f4f4f4; padding: 0 0.2em; }}
+figure {{ margin: 1.2em 0; }}
+img {{ max-width: 100%; border: 1px solid #ddd; }}
+figcaption {{ font-style: italic; font-size: 0.9em; color: #555; }}
+</style>
+</head>
+<body>
+{body}
+</body>
+</html>
+"""
+
+
+def _md_cell(text: str) -> str:
+    return str(text).replace("|", "\\|").replace("\n", " ")
+
+
+def _inline_html(text: str) -> str:
+    """Escape text and turn Markdown's ``code`` and **bold** spans into HTML."""
+    escaped = html.escape(str(text))
+    escaped = re.sub(r"`([^`]+)`", r"<code>\1</code>", escaped)
+    return re.sub(r"\*\*([^*]+)\*\*", r"<strong>\1</strong>", escaped)
+
+
+# --------------------------------------------------------------------------- sections
+
+
+def _settings_text(results: Results) -> str:
+    cfg = results.config
+    parts = [f"dt = {cfg.dt:g} s", f"max_steps = {cfg.max_steps}"]
+    for key in ("horizon", "n_scenarios", "n_particles", "solver"):
+        if key in results.agent_settings:
+            parts.append(f"{key} = {results.agent_settings[key]}")
+    return ", ".join(parts)
+
+
+def _summary_section(doc: Document, results: Results, stats: dict) -> None:
+    agents = results.agents
+    doc.heading("Results per agent")
+    doc.paragraph(
+        f"Mean over episodes with a 95% percentile-bootstrap interval "
+        f"({BOOTSTRAP_RESAMPLES} resamples, fixed seed {BOOTSTRAP_SEED}), in brackets. "
+        "Episodes that ended with an error are counted in the last row and listed below, "
+        "but left out of the statistics; `(n=k)` marks a metric defined on fewer episodes "
+        "(e.g. time to goal only where the goal was reached). The oracle reads the hidden "
+        "true state and future disturbance: it is an upper bound, not a controller one "
+        "could build."
+    )
+    header = ["metric"] + [agent_label(a) for a in agents]
+    rows = []
+    n_ok = {a: len(results.rows_of(a)) for a in agents}
+    for m in SUMMARY_METRICS:
+        rows.append([m.title] + [fmt_estimate(stats[a][m.column], n_ok[a]) for a in agents])
+    rows.append(["episodes (error-free)"] + [str(n_ok[a]) for a in agents])
+    rows.append(
+        ["episodes with errors"]
+        + [str(len(results.rows_of(a, include_errors=True)) - n_ok[a]) for a in agents]
+    )
+    doc.table(header, rows)
+
+
+def _errors_section(doc: Document, results: Results) -> None:
+    doc.heading("Episodes with errors")
+    errors = results.error_rows
+    if not errors:
+        doc.paragraph("None: every episode ran to its end.")
+        return
+    doc.paragraph(
+        f"{len(errors)} episode(s) ended with an error; they are left out of the statistics."
+    )
+    doc.table(
+        ["agent", "seed", "error"],
+        [[agent_label(r["agent"]), str(r["seed"]), r["error"][:300]] for r in errors],
+    )
+
+
+def _paired_section(doc: Document, results: Results) -> list[PairedDifference]:
+    doc.heading(f"Paired differences against {agent_label(REFERENCE_AGENT)}")
+    others = [a for a in results.agents if a != REFERENCE_AGENT]
+    if REFERENCE_AGENT not in results.agents or not others:
+        doc.paragraph(
+            f"Not available: the results need the `{REFERENCE_AGENT}` agent and at least one "
+            "other agent."
+        )
+        return []
+    doc.paragraph(
+        f"Difference `agent - {REFERENCE_AGENT}` on the same env seeds (same disturbance and "
+        "noise), mean with a 95% bootstrap interval over seeds. Negative: the agent's value "
+        f"is lower than {REFERENCE_AGENT}'s. Only seeds where both episodes are error-free "
+        "and the metric is defined count."
+    )
+    header = ["agent"] + [m.title for m in PAIRED_METRICS]
+    rows, diffs, reading = [], [], []
+    for agent in others:
+        row = [agent_label(agent)]
+        for m in PAIRED_METRICS:
+            d = paired_differences(results, m.column, agent)
+            diffs.append(d)
+            n = len(d.seeds)
+            row.append(fmt_estimate(d.estimate) + (f" ({_seeds(n)})" if n else ""))
+        rows.append(row)
+    doc.table(header, rows)
+    for agent in others:
+        for m in PAIRED_METRICS:
+            d = next(x for x in diffs if x.agent == agent and x.metric == m.column)
+            n = len(d.seeds)
+            if n == 0:
+                reading.append(f"{m.label}: no common seeds of {REFERENCE_AGENT} and {agent}.")
+                continue
+            reading.append(
+                f"{REFERENCE_AGENT} has {m.fewer} than {agent_label(agent)} in "
+                f"{d.reference_lower} of {_seeds(n)} (the opposite in {d.agent_lower}, "
+                f"equal in {d.ties})."
+            )
+    doc.paragraph("In plain words:")
+    doc.bullets(reading)
+    return diffs
+
+
+def _paper_vs_measured_section(doc: Document, results: Results, solve_times: np.ndarray) -> None:
+    doc.heading("Paper vs measured")
+    agent = REFERENCE_AGENT
+    rows = results.rows_of(agent)
+    if not rows:
+        doc.paragraph(f"Not available: no error-free episodes of the `{agent}` agent.")
+        return
+    n = len(rows)
+    dt = results.config.dt
+    track_steps = np.array([r.get("track_violation_steps", math.nan) for r in rows])
+    zero_track = int(np.sum(track_steps == 0))
+    speed = np.array([r.get("max_speed_excess", math.nan) for r in rows])
+    med, p05, p95 = _quantiles(speed, (0.5, 0.05, 0.95))
+    within = int(np.sum(speed <= PAPER_SPEED_EXCESS))
+    if len(solve_times):
+        st_med, st_p95 = np.quantile(solve_times, [0.5, 0.95])
+        over = float(np.mean(solve_times > dt))
+        st_source = f"{len(solve_times)} solves pooled over {n} episodes"
+    else:  # no saved arrays: fall back to the per-episode statistics of the table
+        st_med = _quantiles([r.get("solve_time_median") for r in rows], (0.5,))[0]
+        st_p95 = _quantiles([r.get("solve_time_p95") for r in rows], (0.5,))[0]
+        over = math.nan
+        st_source = f"median over {n} episodes of the per-episode median / p95"
+    doc.paragraph(
+        f"The paper reports one run (MATLAB, fmincon, 150 scenarios, 7000 particles); here "
+        f"{n} seeds of `{agent}` with {_settings_text(results)}."
+    )
+    doc.table(
+        ["quantity", "paper (one run)", f"measured ({n} episodes)"],
+        [
+            [
+                "track (position) constraints",
+                "met at every step",
+                f"zero track violations in {zero_track} of {n} episodes "
+                f"({100.0 * zero_track / n:.0f}%)",
+            ],
+            [
+                "largest speed excess over the bounds [m/s]",
+                f"{PAPER_SPEED_EXCESS:g}",
+                f"median {fmt(med)}, 90% range [{fmt(p05)}, {fmt(p95)}]; "
+                f"<= {PAPER_SPEED_EXCESS:g} in {within} of {n} episodes",
+            ],
+            [
+                f"solve time per step vs sampling time {dt:g} s",
+                "much slower than the sampling time",
+                f"median {fmt(st_med)} s, p95 {fmt(st_p95)} s "
+                f"({fmt(st_med / dt)}x / {fmt(st_p95 / dt)}x the sampling time"
+                + (
+                    f"; {100.0 * over:.0f}% of solves slower than {dt:g} s"
+                    if np.isfinite(over)
+                    else ""
+                )
+                + f"; {st_source})",
+            ],
+        ],
+    )
+
+
+# --------------------------------------------------------------------------- figures
+
+
+def _default_figure_seed(results: Results, agent: str) -> int | None:
+    for row in results.rows_of(agent, include_errors=True):
+        if results.trajectory_path(agent, row["seed"]).is_file():
+            return int(row["seed"])
+    return None
+
+
+def _metric_values(results: Results, column: str) -> dict[str, np.ndarray]:
+    return {
+        agent_label(a, wrap=True): np.array([r.get(column, math.nan) for r in results.rows_of(a)])
+        for a in results.agents
+    }
+
+
+def _figures_section(doc: Document, results: Results, figure_seed: int | None, gif: bool) -> None:
+    fig_dir = results.directory / "figures"
+    fig_dir.mkdir(exist_ok=True)
+    cfg = results.config
+    agents = results.agents
+    main_agent = REFERENCE_AGENT if REFERENCE_AGENT in agents else agents[0]
+
+    doc.heading("Across seeds")
+    dists = {
+        "max track excess [m]": _metric_values(results, "max_track_excess"),
+        "track violation steps": _metric_values(results, "track_violation_steps"),
+        "max speed excess [m/s]": _metric_values(results, "max_speed_excess"),
+        "speed violation steps": _metric_values(results, "speed_violation_steps"),
+        "cost (log scale)": _metric_values(results, "cost"),
+        "time to goal [s] (successes)": _metric_values(results, "time_to_goal"),
+    }
+    fig = plots.metric_distributions_figure(dists, agents, log_scale=["cost (log scale)"])
+    plots.save_figure(fig, fig_dir / "metrics_by_agent.png")
+    doc.image(
+        "figures/metrics_by_agent.png",
+        "Per-episode metrics by agent: box (quartiles, median) and one point per seed.",
+    )
+    fig = plots.solve_time_figure(
+        _metric_values(results, "solve_time_median"),
+        _metric_values(results, "solve_time_p95"),
+        agents,
+        cfg.dt,
+    )
+    plots.save_figure(fig, fig_dir / "solve_time.png")
+    doc.image(
+        "figures/solve_time.png",
+        f"Solve time per MPC step (log scale) against the sampling time {cfg.dt:g} s.",
+    )
+
+    doc.heading("One episode, as in the paper's figures")
+    if figure_seed is None:
+        figure_seed = _default_figure_seed(results, main_agent)
+    if figure_seed is None:
+        doc.paragraph(f"No saved trajectory of `{main_agent}`: no episode figures.")
+        return
+    traj = load_trajectory(results, main_agent, figure_seed)
+    if traj is None:
+        raise ValueError(
+            f"no saved trajectory of agent {main_agent!r} for seed {figure_seed}: "
+            f"{results.trajectory_path(main_agent, figure_seed)} does not exist"
+        )
+    # Every agent on the same seed, the main one first, each in its own colour.
+    same_seed = {main_agent: traj}
+    for a in agents:
+        if a != main_agent:
+            t = load_trajectory(results, a, figure_seed)
+            if t is not None:
+                same_seed[a] = t
+    label = agent_label(main_agent)
+    doc.paragraph(
+        f"Env seed {figure_seed}, agent {label} (the default is the smallest seed with a "
+        f"saved `{main_agent}` trajectory). Time in seconds, dt = {cfg.dt:g} s."
+    )
+    captions = {
+        "trajectory": "Trajectory on the track: true path (green dashed), estimate (red) with "
+        "2-sigma ellipses, track bounds (black dashed), goal disc.",
+        "latent_force": "Latent force: true (dashed) and estimated with its 2-sigma band.",
+        "acceleration": "Acceleration input against the disturbance w and -w: a on -w would "
+        "cancel the force exactly.",
+        "speed": "Speed: true (dashed) and estimated with its 2-sigma band; bounds dashed.",
+    }
+    for name, fig in plots.episode_figures(traj, cfg, label).items():
+        rel = f"figures/seed{figure_seed}_{main_agent}_{name}.png"
+        plots.save_figure(fig, results.directory / rel)
+        doc.image(rel, captions[name])
+
+    if len(same_seed) > 1:
+        doc.paragraph("All agents on the same seed (same disturbance and noise):")
+        fig = plots.paths_figure(
+            cfg.track,
+            {
+                agent_label(a): (t["true_state"], plots.agent_colour(a))
+                for a, t in same_seed.items()
+            },
+            goal=cfg.goal,
+            goal_radius=cfg.goal_radius,
+            title=f"True paths of all agents, seed {figure_seed}",
+        )
+        rel = f"figures/seed{figure_seed}_agents_trajectory.png"
+        plots.save_figure(fig, results.directory / rel)
+        doc.image(rel, "True paths of all agents on the same seed (x: end of the episode).")
+        fig = plots.speeds_figure(
+            cfg.dt,
+            {
+                agent_label(a): (t["true_state"][:, 2], plots.agent_colour(a))
+                for a, t in same_seed.items()
+            },
+            speed_min=cfg.speed_min,
+            speed_max=cfg.speed_max,
+            title=f"True speeds of all agents, seed {figure_seed}",
+        )
+        rel = f"figures/seed{figure_seed}_agents_speed.png"
+        plots.save_figure(fig, results.directory / rel)
+        doc.image(rel, "True speeds of all agents on the same seed.")
+
+    if gif:
+        frames = plots.replay_frames(traj["true_state"], cfg, caption=label)
+        rel = "figures/episode.gif"
+        plots.write_gif(frames, results.directory / rel, fps=1.0 / cfg.dt)
+        doc.image(
+            rel,
+            f"The episode replayed from its saved true states ({len(frames)} frames, "
+            f"{1.0 / cfg.dt:g} frames/s), drawn by the env's renderer.",
+        )
+
+
+def _pooled_solve_times(results: Results, agent: str) -> np.ndarray:
+    """All per-step solve times [s] of an agent's saved episodes (empty if any is missing)."""
+    chunks = []
+    for row in results.rows_of(agent):
+        traj = load_trajectory(results, agent, row["seed"])
+        if traj is None or "solve_time" not in traj:
+            return np.zeros(0)
+        chunks.append(np.asarray(traj["solve_time"], dtype=float))
+    st = np.concatenate(chunks) if chunks else np.zeros(0)
+    return st[np.isfinite(st)]
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def write_report(results_dir: str | Path, figure_seed: int | None = None, gif: bool = True) -> Path:
+    """Write ``report.md`` and ``report.html`` (same content) for a results folder.
+
+    Args:
+        results_dir: folder with ``episodes.csv``, ``episodes/`` and ``config.yaml``.
+        figure_seed: env seed of the episode figures and GIF; by default the smallest seed
+            with a saved trajectory of the scenario agent.
+        gif: also write ``figures/episode.gif`` (a replay of the saved true states).
+
+    Returns:
+        Path of ``report.md``; ``report.html`` and ``figures/`` are beside it.
+
+    Raises:
+        FileNotFoundError: if the folder, ``episodes.csv`` or ``config.yaml`` is missing.
+        ValueError: if there are no episodes, or ``figure_seed`` has no saved trajectory.
+    """
+    results = load_results(results_dir)
+    stats = summarize(results)
+    doc = Document()
+    title = f"Evaluation report: {results.directory.name}"
+    doc.heading(title, 1)
+    n_eps = len(results.rows)
+    seeds = sorted({r["seed"] for r in results.rows})
+    doc.paragraph(
+        f"{n_eps} episodes of {len(results.agents)} agents on {len(seeds)} env seeds "
+        f"({seeds[0]}..{seeds[-1]}); {_settings_text(results)}. On one env seed every agent "
+        "faces the same hidden disturbance and noise. Agents:"
+    )
+    doc.bullets([f"`{a}`: {_long_label(a)}" for a in results.agents])
+    _summary_section(doc, results, stats)
+    _errors_section(doc, results)
+    _paired_section(doc, results)
+    _paper_vs_measured_section(doc, results, _pooled_solve_times(results, REFERENCE_AGENT))
+    _figures_section(doc, results, figure_seed, gif)
+
+    md_path = results.directory / "report.md"
+    md_path.write_text(doc.markdown())
+    (results.directory / "report.html").write_text(doc.html(title))
+    return md_path
+
+
+__all__ = [
+    "AGENT_SHORT_LABELS",
+    "Estimate",
+    "PairedDifference",
+    "Results",
+    "agent_label",
+    "bootstrap_ci",
+    "load_results",
+    "load_trajectory",
+    "paired_differences",
+    "read_episodes_csv",
+    "summarize",
+    "write_report",
+]

@@ -1,0 +1,313 @@
+"""Tests of the report (``controllers.report``), its figures and the lfm-report/render CLIs."""
+
+from __future__ import annotations
+
+import csv
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import yaml
+
+from controllers import plots
+from controllers.cli import render_main, report_main
+from controllers.evaluation import evaluate
+from controllers.report import (
+    Results,
+    bootstrap_ci,
+    load_results,
+    load_trajectory,
+    paired_differences,
+    write_report,
+)
+from lfm_env.config import load_env_config
+
+REPO = Path(__file__).resolve().parent.parent
+TINY = {"env": {"max_steps": 20}, "agents": {"n_particles": 300, "n_scenarios": 5, "horizon": 5}}
+AGENTS = ["nominal", "pf", "scenario", "oracle"]
+SEEDS = [0, 1, 2]
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def is_road(frame: np.ndarray) -> np.ndarray:
+    """Pixels of the white lane lines drawn by highway-env."""
+    return np.all(frame[..., :3] >= 240, axis=-1)
+
+
+def is_car(frame: np.ndarray) -> np.ndarray:
+    """Pixels of the yellow car (highway-env's default vehicle colour (255, 255, 0))."""
+    r, g, b = (frame[..., i].astype(int) for i in range(3))
+    return (r >= 200) & (g >= 200) & (b <= 80)
+
+
+@pytest.fixture(scope="session")
+def results_dir(tmp_path_factory) -> Path:
+    """A small results folder written by the evaluation: 4 agents x 3 seeds x 20 steps."""
+    out = tmp_path_factory.mktemp("results") / "tiny"
+    evaluate(AGENTS, SEEDS, config=TINY, out=out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="session")
+def report_path(results_dir) -> Path:
+    return write_report(results_dir)
+
+
+@pytest.fixture
+def results_copy(results_dir, tmp_path) -> Path:
+    """A private copy of the results folder that a test may alter."""
+    dst = tmp_path / "copy"
+    shutil.copytree(results_dir, dst, ignore=shutil.ignore_patterns("figures", "report.*"))
+    return dst
+
+
+def referenced_files(text: str, html: bool) -> list[str]:
+    pattern = r'src="([^"]+)"' if html else r"!\[[^\]]*\]\(([^)]+)\)"
+    return re.findall(pattern, text)
+
+
+# --------------------------------------------------------------------------- the report
+
+
+def test_report_has_agent_table_and_existing_figures(report_path):
+    md = report_path.read_text()
+    html_path = report_path.with_suffix(".html")
+    html = html_path.read_text()
+    assert report_path.name == "report.md" and html_path.is_file()
+    for text in (md, html):
+        assert "Results per agent" in text
+        assert "oracle (upper bound)" in text
+        for label in ("nominal MPC", "PF + CE MPC", "scenario MPC (paper)"):
+            assert label in text
+        for row in ("success rate", "max speed excess", "latent-force RMSE", "episodes"):
+            assert row in text
+        assert "Paper vs measured" in text and "Paired differences" in text
+    assert "| metric | nominal MPC |" in md
+    assert "<table>" in html and "<th>metric</th>" in html
+    md_refs, html_refs = referenced_files(md, html=False), referenced_files(html, html=True)
+    assert md_refs == html_refs, "Markdown and HTML must show the same figures"
+    pngs = [r for r in md_refs if r.endswith(".png")]
+    assert len(pngs) >= 8  # four paper figures, two overlays, two across-seed plots
+    for ref in md_refs:
+        path = report_path.parent / ref
+        assert path.is_file() and path.stat().st_size > 1000, ref
+        assert path.parent.name == "figures"
+    for ref in pngs:
+        assert (report_path.parent / ref).read_bytes()[:8] == PNG_MAGIC, ref
+    assert "figures/episode.gif" in md_refs
+
+
+def test_report_figures_are_not_blank(report_path):
+    for name in ("seed0_scenario_trajectory.png", "metrics_by_agent.png", "solve_time.png"):
+        image = iio.imread(report_path.parent / "figures" / name)
+        assert image.ndim == 3 and image.shape[0] > 200 and image.shape[1] > 400
+        assert image[..., :3].std() > 10, name
+
+
+def test_report_default_figure_seed_is_smallest_scenario_seed(report_path):
+    figures = report_path.parent / "figures"
+    assert (figures / "seed0_scenario_latent_force.png").is_file()
+    assert not list(figures.glob("seed1_*"))
+
+
+def test_gif_replays_every_saved_state(results_dir, report_path):
+    results = load_results(results_dir)
+    row = next(r for r in results.rows if r["agent"] == "scenario" and r["seed"] == 0)
+    traj = load_trajectory(results, "scenario", 0)
+    assert len(traj["true_state"]) == int(row["steps"]) + 1
+    frames = iio.imread(report_path.parent / "figures" / "episode.gif", index=None)
+    assert frames.shape[0] == int(row["steps"]) + 1
+    assert frames.shape[1:3] == (240, 480)
+    for frame in frames[:: max(1, len(frames) // 5)]:
+        assert frame[..., :3].std() > 10
+        assert is_road(frame).sum() > 200
+        assert is_car(frame).sum() > 10
+    meta = iio.immeta(report_path.parent / "figures" / "episode.gif")
+    assert meta["duration"] == pytest.approx(1000.0 * load_env_config(TINY).dt)
+
+
+def test_errors_are_listed_not_dropped(results_copy):
+    table = results_copy / "episodes.csv"
+    with table.open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    bad = dict(rows[0], agent="pf", seed="7", success="False", error="RuntimeError: boom")
+    with table.open("a", newline="") as fh:
+        csv.DictWriter(fh, list(rows[0])).writerow(bad)
+    md = write_report(results_copy, gif=False).read_text()
+    section = md.split("## Episodes with errors")[1].split("##")[0]
+    assert "RuntimeError: boom" in section and "| PF + CE MPC | 7 |" in section
+    errors_row = next(line for line in md.splitlines() if line.startswith("| episodes with errors"))
+    assert errors_row == "| episodes with errors | 0 | 1 | 0 | 0 |"
+    assert not (results_copy / "figures" / "episode.gif").exists()
+
+
+def test_figure_seed_option(results_copy):
+    write_report(results_copy, figure_seed=2, gif=False)
+    assert (results_copy / "figures" / "seed2_scenario_speed.png").is_file()
+    with pytest.raises(ValueError, match="seed 9"):
+        write_report(results_copy, figure_seed=9, gif=False)
+
+
+def test_missing_or_empty_results_give_clear_errors(tmp_path, results_dir):
+    missing = tmp_path / "nowhere"
+    with pytest.raises(FileNotFoundError, match=re.escape(str(missing))):
+        write_report(missing)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(FileNotFoundError, match="episodes.csv"):
+        write_report(empty)
+    header_only = tmp_path / "header_only"
+    header_only.mkdir()
+    first_line = (results_dir / "episodes.csv").read_text().splitlines()[0]
+    (header_only / "episodes.csv").write_text(first_line + "\n")
+    with pytest.raises(ValueError, match="no episodes"):
+        write_report(header_only)
+
+
+# --------------------------------------------------------------------------- statistics
+
+
+def test_bootstrap_ci_contains_mean_and_is_deterministic():
+    values = np.random.default_rng(1).gamma(2.0, 1.5, size=25)
+    est = bootstrap_ci(values)
+    assert est.low <= est.mean <= est.high
+    assert est.mean == pytest.approx(values.mean())
+    assert est.n == 25 and est.high > est.low
+    assert bootstrap_ci(values) == est  # same seed, same interval
+    assert bootstrap_ci(list(values) + [np.nan]) == est  # NaN is left out
+    wider = bootstrap_ci(values, level=0.99)
+    assert wider.low <= est.low and wider.high >= est.high
+    one = bootstrap_ci([3.0])
+    assert (one.mean, one.low, one.high, one.n) == (3.0, 3.0, 3.0, 1)
+    assert np.isnan(bootstrap_ci([np.nan]).mean) and bootstrap_ci([]).n == 0
+
+
+def _row(agent: str, seed: int, cost: float, error: str = "") -> dict:
+    return {"agent": agent, "seed": seed, "cost": cost, "time_to_goal": np.nan, "error": error}
+
+
+def test_paired_differences_use_matching_seeds_only():
+    rows = [
+        _row("scenario", 0, 10.0),
+        _row("scenario", 1, 20.0),
+        _row("scenario", 2, 30.0),
+        _row("scenario", 3, 40.0, error="RuntimeError: x"),  # errors never pair
+        _row("pf", 1, 25.0),
+        _row("pf", 2, 29.0),
+        _row("pf", 3, 50.0),
+        _row("pf", 4, 70.0),  # no scenario episode on seed 4
+        _row("pf", 5, np.nan),
+    ]
+    results = Results(Path("."), rows, load_env_config(None))
+    d = paired_differences(results, "cost", "pf")
+    assert d.seeds == (1, 2)
+    assert d.differences == (5.0, -1.0)
+    assert d.estimate.mean == pytest.approx(2.0) and d.estimate.n == 2
+    assert (d.agent_lower, d.reference_lower, d.ties) == (1, 1, 0)
+    none = paired_differences(results, "time_to_goal", "pf")
+    assert none.seeds == () and np.isnan(none.estimate.mean)
+
+
+# --------------------------------------------------------------------------- plots
+
+
+def test_episode_figures_of_an_agent_without_filter(results_dir, tmp_path):
+    results = load_results(results_dir)
+    traj = load_trajectory(results, "nominal", 1)
+    assert np.all(np.isnan(traj["latent_force_est"]))
+    figs = plots.episode_figures(traj, results.config, "nominal MPC")
+    assert set(figs) == {"trajectory", "latent_force", "acceleration", "speed"}
+    for name, fig in figs.items():
+        path = plots.save_figure(fig, tmp_path / f"{name}.png")
+        assert path.read_bytes()[:8] == PNG_MAGIC
+
+
+# --------------------------------------------------------------------------- command lines
+
+
+@pytest.mark.parametrize("main", [report_main, render_main])
+def test_cli_help(main, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    text = capsys.readouterr().out
+    assert "usage:" in text and "examples:" in text
+    if main is report_main:
+        assert "--no-gif" in text and "--seed" in text
+    else:
+        assert all(opt in text for opt in ("--config", "--agent", "--seed", "--out", "--steps"))
+
+
+@pytest.mark.parametrize("script", ["report.py", "render.py"])
+def test_scripts_help(script):
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "scripts" / script), "--help"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "usage:" in proc.stdout
+
+
+def test_report_main_writes_report(results_copy, capsys):
+    assert report_main([str(results_copy), "--seed", "1", "--no-gif"]) == 0
+    assert (results_copy / "report.html").is_file()
+    assert (results_copy / "figures" / "seed1_scenario_trajectory.png").is_file()
+    assert not (results_copy / "figures" / "episode.gif").exists()
+    assert "report:" in capsys.readouterr().out
+
+
+def test_report_main_missing_folder_exits_2(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        report_main([str(tmp_path / "nowhere")])
+    assert exc.value.code == 2
+    assert "nowhere" in capsys.readouterr().err
+
+
+@pytest.fixture
+def tiny_config(tmp_path) -> Path:
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(TINY))
+    return path
+
+
+def test_render_png_shows_road_and_car(tiny_config, tmp_path):
+    out = tmp_path / "x.png"
+    argv = ["--config", str(tiny_config), "--agent", "scenario", "--seed", "0"]
+    assert render_main([*argv, "--out", str(out), "--steps", "3"]) == 0
+    assert out.read_bytes()[:8] == PNG_MAGIC
+    frame = iio.imread(out)
+    assert frame.shape[:2] == (240, 480)
+    assert is_road(frame).sum() > 200
+    assert is_car(frame).sum() > 10
+
+
+def test_render_gif_is_the_evaluated_episode(tiny_config, tmp_path, results_dir):
+    out = tmp_path / "sub" / "x.gif"
+    argv = ["--config", str(tiny_config), "--agent", "pf", "--seed", "1", "--steps", "4"]
+    assert render_main([*argv, "--out", str(out)]) == 0
+    frames = iio.imread(out, index=None)
+    assert frames.shape[0] == 5
+    assert all(is_car(f).sum() > 10 for f in frames)
+    # Same config, agent and seed as the evaluation: the same states, so the same pixels
+    # as a replay of the saved trajectory (below the caption strip, whose text differs).
+    results = load_results(results_dir)
+    saved = load_trajectory(results, "pf", 1)["true_state"][:5]
+    replay = plots.replay_frames(saved, results.config)
+    for a, b in zip(frames, replay, strict=True):
+        np.testing.assert_array_equal(a[20:, :, :3], b[20:, :, :3])
+
+
+def test_render_rejects_bad_arguments(tiny_config, tmp_path, capsys):
+    base = ["--config", str(tiny_config), "--steps", "1"]
+    for extra in (["--out", str(tmp_path / "x.jpg")], ["--agent", "nope", "--out", "x.gif"]):
+        with pytest.raises(SystemExit) as exc:
+            render_main(base + extra)
+        assert exc.value.code == 2
+    assert "--agent nope" in capsys.readouterr().err
