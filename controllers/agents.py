@@ -32,6 +32,10 @@ from controllers.particle_filter import ParticleFilter, gaussian_log_likelihood
 from lfm_env.config import EnvConfig
 from lfm_env.model import LatentForceModel, psd_factor
 
+# chi^2 quantile with 4 degrees of freedom at 1 - 1e-6: a measurement this far from
+# every particle means the filter has diverged.
+_DIVERGENCE_NIS = 33.4
+
 
 def make_problem(env_config: EnvConfig, cfg: AgentConfig, n_scenarios: int) -> ScenarioProblem:
     """The scenario MPC problem from the known model (env section) and agent settings."""
@@ -170,10 +174,12 @@ class _FilteringAgent(MPCAgent):
         self._log_lik = gaussian_log_likelihood(self._meas_std, [0, 1, 2, 3])
         self._latent_cov_factor = psd_factor(self.model.stationary_latent_covariance())
         self.pf: ParticleFilter | None = None
+        self.n_filter_resets = 0
 
     def reset(self, seed: int | None = None) -> None:
         super().reset(seed)
         self.pf = None
+        self.n_filter_resets = 0
 
     def _prior(self, y: np.ndarray) -> np.ndarray:
         """Physical states around the first measurement, latent states stationary."""
@@ -196,6 +202,13 @@ class _FilteringAgent(MPCAgent):
         else:
             rec = self.pf.step(self._u_prev, y)
             degenerate = bool(rec.degenerate)
+        # Divergence check: if even the closest particle explains y worse than a
+        # 1e-6 tail event, the cloud has lost the car (sample impoverishment can pin it
+        # far from the truth); restart from the prior around y and say so.
+        diverged = degenerate or self._closest_nis(y) > _DIVERGENCE_NIS
+        if diverged:
+            self.pf.reset(self._prior(y))
+            self.n_filter_resets += 1
         mean, std = self.pf.mean, self.pf.std
         cov = self.pf.covariance
         H = self.model.H
@@ -208,7 +221,14 @@ class _FilteringAgent(MPCAgent):
             "latent_force": w_mean,
             "latent_force_std": w_std,
             "filter_degenerate": degenerate,
+            "filter_reset": diverged,
+            "filter_resets": self.n_filter_resets,
         }
+
+    def _closest_nis(self, y: np.ndarray) -> float:
+        """Smallest normalised innovation ``sum(((x_i - y) / std)^2)`` over particles."""
+        r = (self.pf.particles[:, :4] - y) / self._meas_std
+        return float(np.min(np.einsum("ij,ij->i", r, r)))
 
 
 class CertaintyEquivalentMPCAgent(_FilteringAgent):

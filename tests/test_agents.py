@@ -158,3 +158,17 @@ def test_scenarios_can_start_from_particles():
     # Each scenario starts from its own particle: the predicted starts differ.
     starts = est[-1]["predicted"][:, 0, :]
     assert np.unique(starts[:, 0]).size > 1
+
+
+def test_a_diverged_filter_restarts_around_the_measurement():
+    agent = make_agent("pf", {"agents": {"n_particles": 500, "n_scenarios": 3}})
+    agent.reset(seed=0)
+    obs = np.array([0.0, 0.0, 1.0, np.pi / 4])
+    agent.act(obs)
+    assert not agent.last_info["filter_reset"]
+    # A speed 3 m/s (20 measurement std) away from every particle: the cloud is lost.
+    jump = obs + np.array([0.0, 0.0, 3.0, 0.0])
+    agent.act(jump)
+    assert agent.last_info["filter_reset"]
+    assert agent.last_info["filter_resets"] == 1
+    assert agent.last_info["estimate"][2] == pytest.approx(jump[2], abs=0.1)
