@@ -12,8 +12,10 @@ slacks) over the shared inputs ``u`` ``(N, 2)``, like the IPOPT reference
 * **Exact Hessian.** The Hessian of the Lagrangian with respect to ``u`` is assembled from
   the forward sensitivities and one adjoint sweep (second-order adjoint of the Euler
   recursion), including the curvature of the dynamics and of the track constraints
-  weighted by the QP multipliers. Eigenvalues below a small floor are raised to it, so the
-  QP is strictly convex; near a regular solution the SQP converges quadratically.
+  weighted by the QP multipliers. When it is indefinite, ``sigma J_A' J_A`` of the
+  constraints predicted active is added (which leaves the QP step on that active set
+  unchanged), and only if that fails are small eigenvalues raised to a floor. Near a
+  regular solution the SQP therefore converges quadratically.
 * **Exact speed constraints.** The speed is linear in ``u``:
   ``v_k^(i) = v_0^(i) + dt sum_{j<k} (a_j + W[i, j])``, so at every step only the fastest
   and the slowest scenario matter, whatever ``u`` is: ``2 N`` exact linear rows.
@@ -25,17 +27,23 @@ slacks) over the shared inputs ``u`` ``(N, 2)``, like the IPOPT reference
   accepted step is exactly the step of the full (unscreened) QP.
 * **Exact penalty inside the QP.** Each ``(kind, step)`` has one slack variable with cost
   ``slack_penalty``, shared by all its rows, as in the NLP. The QP is dense and small
-  (``8 N`` variables); its rows sit in fixed slots (one per speed bound and step, a few per
-  position kind and step, sorted by value) so that qpOASES' hot start from the previous
-  QP's active set is meaningful. It is called through a CasADi ``FunctionBuffer``, which
-  avoids the per-call conversion of NumPy arrays (hundreds of microseconds otherwise).
+  (``2 N`` input steps, ``2 N`` speed slacks and one slack per position group in use);
+  its rows sit in fixed slots (one per speed bound and step, a few per position group,
+  sorted by value) so that qpOASES' hot start from the previous QP's active set is
+  meaningful. It is called through a CasADi ``FunctionBuffer``, which avoids the per-call
+  conversion of NumPy arrays (hundreds of microseconds otherwise).
 * **Globalisation.** Backtracking Armijo line search on the exact-penalty merit function
   (the objective of :mod:`controllers.mpc_problem`, evaluated on all scenarios), with a
-  second-order correction against the Maratos effect.
+  second-order correction against the Maratos effect. It stops when the next Newton step
+  is predicted below ``final_step_tol`` (from the last step and its contraction), so a
+  warm re-solve of a solved problem takes one iteration.
 
 The result is a KKT point of the full scenario problem: the same local optimum that IPOPT
 finds from the same start, up to solver tolerances. The problem is not convex; from
-different starts both may end in different local optima.
+different starts both may end in different local optima. Problems dominated by the
+penalty (scenarios spread so widely that the track band cannot hold them: several
+position slacks positive at once) are degenerate: there convergence is only linear and
+may take tens of iterations (IPOPT needs many too).
 """
 
 from __future__ import annotations
@@ -52,7 +60,6 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from controllers import mpc_problem
 from controllers.mpc_problem import MPCSolution, ScenarioProblem
 
 N_KINDS = 6  # constraint kinds per step: track upper/lower, x lower/upper, speed lower/upper
@@ -68,9 +75,9 @@ class FastSolverOptions:
     """Settings of :class:`FastScenarioSolver`; the defaults suit the paper's problem."""
 
     max_iter: int = 50  # SQP iterations
-    tol: float = 1e-10  # relative predicted merit decrease that counts as converged
+    tol: float = 1e-10  # relative predicted decrease below which a failed line search is OK
     step_tol: float = 1e-8  # [m/s^2, rad] input step that counts as converged
-    final_step_tol: float = 1e-6  # [m/s^2, rad] accepted full step after which we stop
+    final_step_tol: float = 1e-6  # [m/s^2, rad] predicted next step that counts as converged
     screen_margin: float = 0.5  # [m] rows within this of activity enter the QP at once
     screen_rows: int = 4  # QP row slots per (position kind, step); grows when needed
     add_tol: float = 1e-9  # [m] linearised violation of a missing row that adds it
@@ -81,6 +88,8 @@ class FastSolverOptions:
     hessian_floor: float = 1e-3  # smallest Hessian eigenvalue [per (m/s^2)^2 or rad^2]
     slack_regularisation: float = 1e-8  # quadratic weight on the QP slacks (strict convexity)
     second_order_correction: bool = True  # against the Maratos effect
+    damping_init: float = 1.0  # first Levenberg-Marquardt damping after heavy backtracking
+    damping_threshold: float = 0.1  # line-search step below which the damping grows
     qp_solver: str = "qpoases"  # one of QP_SOLVERS
 
     def __post_init__(self) -> None:
@@ -102,37 +111,43 @@ class FastSolverOptions:
             "min_step",
             "hessian_floor",
             "slack_regularisation",
+            "damping_init",
         ):
             value = getattr(self, name)
             ok = isinstance(value, (int, float)) and math.isfinite(value) and value > 0
             check(name, ok, "finite and > 0")
         check("armijo", 0 < self.armijo < 0.5, "in (0, 0.5)")
         check("backtrack", 0 < self.backtrack < 1, "in (0, 1)")
+        check("damping_threshold", 0 < self.damping_threshold <= 1, "in (0, 1]")
         check("qp_solver", self.qp_solver in QP_SOLVERS, f"one of {QP_SOLVERS}")
 
 
 @dataclass
-class _Linearisation:
-    """Rollout, sensitivities and constraint values at one iterate (internal layout).
+class _Rollout:
+    """States, constraint values and merit of all scenarios under one input sequence.
 
-    States are stored per component, ``(N+1, Ns)``; sensitivities with respect to the
-    flattened inputs ``[a_0, delta_0, a_1, ...]`` are ``(N+1, Ns, 2N)``, except the speed's,
-    which is the same for every scenario, ``(N+1, 2N)``.
+    States are stored per component, ``X[m]`` ``(N+1, Ns)`` for ``m`` in
+    ``(p_x, p_y, v, psi)``.
     """
 
-    px: np.ndarray
-    py: np.ndarray
-    v: np.ndarray
-    psi: np.ndarray
+    u: np.ndarray  # (2N,) flattened inputs [a_0, delta_0, a_1, ...]
+    X: np.ndarray  # (4, N+1, Ns)
     cos_th: np.ndarray  # (N, Ns) cos(psi_k + alpha_k)
     sin_th: np.ndarray  # (N, Ns)
-    s_px: np.ndarray
-    s_py: np.ndarray
-    s_v: np.ndarray
-    s_psi: np.ndarray
     g_pos: np.ndarray  # (4, N, Ns) position constraint values of steps 1..N [m]
     g_speed: np.ndarray  # (2, N) speed-lower/upper values of the extreme scenarios [m/s]
-    j_track: np.ndarray  # (N, Ns, 2N) Jacobian of the track-upper constraint
+    slack: float  # sum of the minimal slacks
+    merit: float  # exact-penalty objective (inf if not finite)
+
+
+@dataclass
+class _Linearisation:
+    """First-order information at a rollout, w.r.t. the flattened inputs ``u`` ``(2N,)``."""
+
+    ro: _Rollout
+    S: np.ndarray  # (3, N, Ns, 2N) d(p_x, p_y, psi)_k / du at steps 1..N
+    s_v: np.ndarray  # (N+1, 2N) d v_k / du, the same for every scenario
+    slope: np.ndarray  # (N, Ns) track centre-line slope at p_x of steps 1..N
     grad: np.ndarray  # (2N,) gradient of the cost
 
 
@@ -331,7 +346,12 @@ class FastScenarioSolver:
         # Weight of each state component at steps 1..N (the x_0 term is a constant).
         qf = np.asarray(problem.Qf, dtype=float)
         self._w_state = np.vstack([np.tile(self._q, (n - 1, 1)), qf[None]])  # (N, 4)
-        self._qps: dict[int, _SlotQP] = {}
+        # d v_k / d u: the accelerations of the earlier steps times dt, for every scenario.
+        steps = np.arange(n + 1)
+        self._strictly_later = (steps[:, None] > np.arange(n)[None, :]).astype(float)  # (N+1, N)
+        self._s_v = np.zeros((n + 1, 2 * n))
+        self._s_v[:, 0::2] = problem.dt * self._strictly_later
+        self._qps: dict[tuple[int, int], _SlotQP] = {}
         self._prev_u: np.ndarray | None = None
 
     # ------------------------------------------------------------------ public API
@@ -353,10 +373,14 @@ class FastScenarioSolver:
                 previous solution shifted by one step (zeros on the first solve).
 
         Returns:
-            The solution: ``u`` inside the input bounds, ``objective`` and ``slack`` of
-            :mod:`controllers.mpc_problem` evaluated on it, ``solve_time`` the wall time of
-            the whole call. A solve that does not converge does not raise: it returns the
-            best iterate with ``success=False``.
+            The solution: ``u`` inside the input bounds; ``objective``, ``slack`` and
+            ``predicted`` those of :mod:`controllers.mpc_problem` (``objective``,
+            ``minimal_slack`` summed, ``rollout``) for ``u``, computed by the solver's own
+            vectorised rollout (equal up to rounding); ``solve_time`` the wall time of the
+            whole call; ``extra`` counts QP solves, QP rows, merit evaluations and
+            second-order corrections. A solve that does not converge does not raise: it
+            returns the best iterate (the merit decreases monotonically) with
+            ``success=False``.
 
         Raises:
             ValueError: on wrongly shaped or non-finite ``x0``, ``W`` or ``u_guess``.
@@ -378,22 +402,22 @@ class FastScenarioSolver:
             u0 = np.zeros(2 * n)
         u0 = np.clip(u0, self._lower, self._upper)
 
-        u, status, success, iterations, extra = self._sqp(np.ascontiguousarray(x0), W, u0)
+        ro, status, success, iterations, extra = self._sqp(np.ascontiguousarray(x0), W, u0)
 
-        u = np.clip(u.reshape(n, 2), problem.input_lower, problem.input_upper)
-        predicted = mpc_problem.rollout(problem, x0, W, u)
-        slack = float(np.sum(mpc_problem.minimal_slack(problem, predicted)))
-        objective = mpc_problem.objective(problem, x0, W, u)
+        # The iterates stay inside the input bounds (clipped steps), and the rollout of the
+        # last one gives the prediction, slack and objective (those of mpc_problem, up to
+        # rounding).
+        u = ro.u.reshape(n, 2).copy()
         self._prev_u = u.copy()
         return MPCSolution(
             u=u,
-            objective=objective,
-            slack=slack,
+            objective=ro.merit,
+            slack=ro.slack,
             status=status,
             success=success,
             solve_time=time.perf_counter() - t_start,
             iterations=iterations,
-            predicted=predicted,
+            predicted=np.ascontiguousarray(ro.X.transpose(2, 1, 0)),
             extra=extra,
         )
 
@@ -417,145 +441,106 @@ class FastScenarioSolver:
         c_pp = gain * (ca_ * alpha_pp - sa * alpha_p * alpha_p)
         return alpha, alpha_p, alpha_pp, c, c_p, c_pp
 
-    def _rollout(
-        self, x0: np.ndarray, W: np.ndarray, u: np.ndarray, alpha: np.ndarray, c: np.ndarray
-    ) -> tuple[np.ndarray, ...]:
-        """Euler rollout of all scenarios, per component ``(N+1, Ns)``, and ``cos/sin(theta)``.
+    def _evaluate(self, x0: np.ndarray, W: np.ndarray, u: np.ndarray, cost0: float) -> _Rollout:
+        """Rollout of all scenarios and the exact-penalty merit (= ``mpc_problem.objective``).
 
-        Same arithmetic as :func:`lfm_env.vehicle.euler_step`.
+        ``cost0`` is the constant stage cost of ``x_0``. The Euler steps are those of
+        :func:`lfm_env.vehicle.euler_step` (the same up to rounding).
         """
-        n, ns, dt = self.problem.horizon, x0.shape[0], self.problem.dt
-        px = np.empty((n + 1, ns))
-        py = np.empty((n + 1, ns))
-        psi = np.empty((n + 1, ns))
+        p = self.problem
+        n, ns, dt = p.horizon, x0.shape[0], p.dt
+        alpha, _, _, c, _, _ = self._steering_terms(u)
+        X = np.empty((4, n + 1, ns))
+        px, py, v, psi = X
         cos_th = np.empty((n, ns))
         sin_th = np.empty((n, ns))
-        px[0], py[0], psi[0] = x0[:, 0], x0[:, 1], x0[:, 3]
+        X[:, 0] = x0.T
         # The speed does not depend on the heading: one cumulative sum for all steps.
-        v = np.empty((n + 1, ns))
-        v[0] = x0[:, 2]
-        np.cumsum(dt * (u[0::2][:, None] + W.T), axis=0, out=v[1:])
+        np.cumsum(dt * (u[0::2, None] + W.T), axis=0, out=v[1:])
         v[1:] += v[0]
+        dtv = dt * v[:n]
         for k in range(n):
             th = psi[k] + alpha[k]
             np.cos(th, out=cos_th[k])
             np.sin(th, out=sin_th[k])
-            dtv = dt * v[k]
-            px[k + 1] = px[k] + dtv * cos_th[k]
-            py[k + 1] = py[k] + dtv * sin_th[k]
-            psi[k + 1] = psi[k] + dtv * c[k]
-        return px, py, v, psi, cos_th, sin_th
+            np.multiply(dtv[k], cos_th[k], out=px[k + 1])
+            px[k + 1] += px[k]
+            np.multiply(dtv[k], sin_th[k], out=py[k + 1])
+            py[k + 1] += py[k]
+            np.multiply(dtv[k], c[k], out=psi[k + 1])
+            psi[k + 1] += psi[k]
 
-    def _position_constraints(self, px: np.ndarray, py: np.ndarray) -> np.ndarray:
-        """Track upper/lower and x lower/upper values ``(4, N, Ns)`` of steps ``1..N`` [m]."""
-        track = self.problem.track
-        g = np.empty((N_POSITION_KINDS,) + px[1:].shape)
-        np.subtract(py[1:], track.amplitude * np.sin(track.pulsation * px[1:] + track.phase), g[0])
-        np.negative(g[0], out=g[1])
-        g[0] -= track.half_width
-        g[1] -= track.half_width
-        np.subtract(track.x_min, px[1:], out=g[2])
-        np.subtract(px[1:], track.x_max, out=g[3])
-        return g
-
-    def _speed_extremes(self, v: np.ndarray) -> np.ndarray:
-        """Speed-lower and speed-upper constraint values ``(2, N)`` of the extreme scenarios."""
-        p = self.problem
-        return np.stack([p.speed_min - v[1:].min(axis=1), v[1:].max(axis=1) - p.speed_max])
-
-    def _cost(
-        self,
-        x0: np.ndarray,
-        px: np.ndarray,
-        py: np.ndarray,
-        v: np.ndarray,
-        psi: np.ndarray,
-        u: np.ndarray,
-    ) -> float:
-        """Scenario-averaged quadratic cost, including the constant ``x_0`` stage term."""
-        g, w, q = self._goal, self._w_state, self._q
-        e0 = x0 - g
-        total = float(np.mean(e0 * e0 @ q))
-        for m, comp in enumerate((px, py, v, psi)):
-            if w[:, m].any():
-                e = comp[1:] - g[m]
-                total += float(w[:, m] @ np.einsum("ki,ki->k", e, e)) / x0.shape[0]
-        return total + float(self._r @ (u * u))
-
-    def _merit(
-        self, x0: np.ndarray, W: np.ndarray, u: np.ndarray
-    ) -> tuple[float, float, np.ndarray]:
-        """Exact-penalty merit (= ``mpc_problem.objective``), slack sum, position values."""
-        alpha, _, _, c, _, _ = self._steering_terms(u)
-        px, py, v, psi, _, _ = self._rollout(x0, W, u, alpha, c)
-        g_pos = self._position_constraints(px, py)
-        slack = float(
-            np.maximum(g_pos.max(axis=2), 0.0).sum()
-            + np.maximum(self._speed_extremes(v), 0.0).sum()
+        track = p.track
+        g_pos = np.empty((N_POSITION_KINDS, n, ns))
+        np.subtract(
+            py[1:], track.amplitude * np.sin(track.pulsation * px[1:] + track.phase), g_pos[0]
         )
-        merit = self._cost(x0, px, py, v, psi, u) + self.problem.slack_penalty * slack
-        if not math.isfinite(merit):
-            merit = math.inf
-        return merit, slack, g_pos
+        np.negative(g_pos[0], out=g_pos[1])
+        g_pos[:2] -= track.half_width
+        np.subtract(track.x_min, px[1:], out=g_pos[2])
+        np.subtract(px[1:], track.x_max, out=g_pos[3])
+        g_speed = np.stack([p.speed_min - v[1:].min(axis=1), v[1:].max(axis=1) - p.speed_max])
+        slack = float(np.maximum(g_pos.max(axis=2), 0.0).sum() + np.maximum(g_speed, 0.0).sum())
 
-    def _linearise(self, x0: np.ndarray, W: np.ndarray, u: np.ndarray) -> _Linearisation:
-        """Rollout, forward sensitivities, cost gradient and constraint values at ``u``."""
+        e = X[:, 1:] - self._goal[:, None, None]
+        cost = cost0 + float(np.einsum("mk,mki,mki->", self._w_state.T, e, e)) / ns
+        cost += float(self._r @ (u * u))
+        merit = cost + p.slack_penalty * slack
+        return _Rollout(
+            u=u,
+            X=X,
+            cos_th=cos_th,
+            sin_th=sin_th,
+            g_pos=g_pos,
+            g_speed=g_speed,
+            slack=slack,
+            merit=merit if math.isfinite(merit) else math.inf,
+        )
+
+    def _linearise(self, ro: _Rollout) -> _Linearisation:
+        """Forward sensitivities, cost gradient and track slope at a rollout."""
         p = self.problem
-        n, ns, nu, dt = p.horizon, x0.shape[0], self._n_u, p.dt
-        alpha, alpha_p, _, c, c_p, _ = self._steering_terms(u)
-        px, py, v, psi, cos_th, sin_th = self._rollout(x0, W, u, alpha, c)
+        n, nu, dt = p.horizon, self._n_u, p.dt
+        ns = ro.X.shape[2]
+        px, py, v, psi = ro.X
+        _, alpha_p, _, c, c_p, _ = self._steering_terms(ro.u)
+        s_v = self._s_v
 
-        # --- forward sensitivities d x_k / d u (chain rule through the Euler steps) ---
-        # Inputs of step k only act from step k + 1 on, so only the first 2k + 2 columns
-        # of the step-(k+1) sensitivities can be non-zero.
-        s_px = np.zeros((n + 1, ns, nu))
-        s_py = np.zeros((n + 1, ns, nu))
-        s_psi = np.zeros((n + 1, ns, nu))
-        s_v = np.zeros((n + 1, nu))
-        for k in range(n):
-            m = 2 * k + 2
-            dtv = dt * v[k]
-            heading = s_psi[k, :, :m].copy()  # d(psi_k + alpha_k)
-            heading[:, m - 1] = alpha_p[k]
-            s_px[k + 1, :, :m] = s_px[k, :, :m] - (dtv * sin_th[k])[:, None] * heading
-            s_px[k + 1, :, :m] += (dt * cos_th[k])[:, None] * s_v[k, :m]
-            s_py[k + 1, :, :m] = s_py[k, :, :m] + (dtv * cos_th[k])[:, None] * heading
-            s_py[k + 1, :, :m] += (dt * sin_th[k])[:, None] * s_v[k, :m]
-            s_v[k + 1] = s_v[k]
-            s_v[k + 1, m - 2] = dt
-            s_psi[k + 1, :, :m] = s_psi[k, :, :m] + (dt * c[k]) * s_v[k, :m]
-            s_psi[k + 1, :, m - 1] = dtv * c_p[k]
+        # --- forward sensitivities d x_k / d u, vectorised over steps and scenarios ---
+        S = np.empty((3, n, ns, nu))
+        # Heading: psi_k = psi_0 + sum_{j<k} dt v_j c(delta_j). Its acceleration columns are
+        # the same for every scenario; its steering column j is dt v_j c'(delta_j) (j < k).
+        psi_a = np.cumsum((dt * c)[:, None] * s_v[:n, 0::2], axis=0)  # steps 1..N
+        S[2, :, :, 0::2] = psi_a[:, None, :]
+        S[2, :, :, 1::2] = self._strictly_later[1:, None, :] * ((dt * c_p)[:, None] * v[:n]).T
+        # theta_k = psi_k + alpha(delta_k) for k = 0..N-1; psi_0 is fixed.
+        heading = np.empty((n, ns, nu))
+        heading[0] = 0.0
+        heading[1:] = S[2, : n - 1]
+        heading[np.arange(n), :, 2 * np.arange(n) + 1] = alpha_p[:, None]
+        # p_x and p_y add dt v_k (cos, sin)(theta_k) per step: increments, then a running sum.
+        dtv = dt * v[:n]
+        np.multiply((-dtv * ro.sin_th)[:, :, None], heading, out=S[0])
+        S[0] += (dt * ro.cos_th)[:, :, None] * s_v[:n, None, :]
+        np.multiply((dtv * ro.cos_th)[:, :, None], heading, out=S[1])
+        S[1] += (dt * ro.sin_th)[:, :, None] * s_v[:n, None, :]
+        for k in range(1, n):
+            S[:2, k] += S[:2, k - 1]
 
-        # --- cost gradient ---
-        wq = (2.0 / ns) * self._w_state  # (N, 4): d(cost)/d(x_k) = wq * (x_k - x_g)
+        # --- cost gradient: d cost / d x_k = (2 / Ns) W_k (x_k - x_g) ---
+        wq = (2.0 / ns) * self._w_state
         g = self._goal
-        grad = 2.0 * self._r * u
-        grad += s_px[1:].reshape(-1, nu).T @ (wq[:, 0:1] * (px[1:] - g[0])).ravel()
-        grad += s_py[1:].reshape(-1, nu).T @ (wq[:, 1:2] * (py[1:] - g[1])).ravel()
-        grad += s_psi[1:].reshape(-1, nu).T @ (wq[:, 3:4] * (psi[1:] - g[3])).ravel()
+        residual = np.empty((3, n, ns))
+        for row, m in enumerate((0, 1, 3)):
+            np.multiply(wq[:, m : m + 1], ro.X[m, 1:] - g[m], out=residual[row])
+        grad = 2.0 * self._r * ro.u + S.reshape(-1, nu).T @ residual.ravel()
         grad += s_v[1:].T @ (wq[:, 2] * (v[1:] - g[2]).sum(axis=1))
 
         track = p.track
         slope = track.amplitude * track.pulsation * np.cos(track.pulsation * px[1:] + track.phase)
-        j_track = s_py[1:] - slope[:, :, None] * s_px[1:]
-        return _Linearisation(
-            px=px,
-            py=py,
-            v=v,
-            psi=psi,
-            cos_th=cos_th,
-            sin_th=sin_th,
-            s_px=s_px,
-            s_py=s_py,
-            s_v=s_v,
-            s_psi=s_psi,
-            g_pos=self._position_constraints(px, py),
-            g_speed=self._speed_extremes(v),
-            j_track=j_track,
-            grad=grad,
-        )
+        return _Linearisation(ro=ro, S=S, s_v=s_v, slope=slope, grad=grad)
 
-    def _hessian(self, lin: _Linearisation, u: np.ndarray, mu: np.ndarray) -> np.ndarray:
+    def _hessian(self, lin: _Linearisation, mu: np.ndarray) -> np.ndarray:
         """Exact Hessian of the Lagrangian w.r.t. ``u`` ``(2N, 2N)``.
 
         ``mu`` ``(4, N, Ns)`` are the multipliers of the position rows (zero for rows that
@@ -565,64 +550,69 @@ class FastScenarioSolver:
         """
         p = self.problem
         n, nu, dt = p.horizon, self._n_u, p.dt
-        ns = lin.px.shape[1]
-        _, alpha_p, alpha_pp, _, c_p, c_pp = self._steering_terms(u)
-        track = p.track
-        amp, om = track.amplitude, track.pulsation
-        arg = om * lin.px[1:] + track.phase
-        mu_track = mu[0] - mu[1]  # track-upper minus track-lower multipliers, (N, Ns)
+        px, py, v, psi = lin.ro.X
+        cos_th, sin_th = lin.ro.cos_th, lin.ro.sin_th
+        ns = px.shape[1]
+        _, alpha_p, alpha_pp, _, c_p, c_pp = self._steering_terms(lin.ro.u)
         wq = (2.0 / ns) * self._w_state
         g = self._goal
 
         # --- adjoint sweep: lambda_k = d l_k / d x_k + A_k' lambda_{k+1} ---
-        # Speed adjoints never reach the position/heading adjoints nor the curvature, so
-        # only (p_x, p_y, psi) are propagated.
-        gpx = wq[:, 0:1] * (lin.px[1:] - g[0]) - mu_track * amp * om * np.cos(arg) - mu[2] + mu[3]
-        gpy = wq[:, 1:2] * (lin.py[1:] - g[1]) + mu_track
-        gpsi = wq[:, 3:4] * (lin.psi[1:] - g[3])
-        # lambda_x and lambda_y are sums of the later gradients (p_x, p_y enter linearly).
+        # l_k is the stage cost plus the multiplier-weighted position constraints. Speed
+        # adjoints never reach the position/heading adjoints nor the curvature, so only
+        # (p_x, p_y, psi) are propagated.
+        gpx = wq[:, 0:1] * (px[1:] - g[0])
+        gpy = wq[:, 1:2] * (py[1:] - g[1])
+        gpsi = wq[:, 3:4] * (psi[1:] - g[3])
+        weight = np.empty((3, n, ns))  # curvature of l_k in (p_x, p_y, psi)
+        weight[0] = wq[:, 0:1]
+        weight[1] = wq[:, 1:2]
+        weight[2] = wq[:, 3:4]
+        if mu.any():
+            track = p.track
+            amp, om = track.amplitude, track.pulsation
+            arg = om * px[1:] + track.phase
+            mu_track = mu[0] - mu[1]  # track-upper minus track-lower multipliers
+            gpx += mu[3] - mu[2] - (amp * om) * mu_track * np.cos(arg)
+            gpy += mu_track
+            weight[0] += (amp * om * om) * mu_track * np.sin(arg)
+        # p_x and p_y enter linearly: their adjoints are sums of the later gradients.
         lam_x = np.cumsum(gpx[::-1], axis=0)[::-1]  # lam_x[k] = lambda_{k+1}
         lam_y = np.cumsum(gpy[::-1], axis=0)[::-1]
-        proj = lam_x * lin.cos_th + lam_y * lin.sin_th  # lambda_{k+1} along theta_k, (N, Ns)
-        proj_p = lam_y * lin.cos_th - lam_x * lin.sin_th  # its derivative in theta
-        dtv = dt * lin.v[:n]
+        proj = lam_x * cos_th + lam_y * sin_th  # lambda_{k+1} along theta_k, (N, Ns)
+        proj_p = lam_y * cos_th - lam_x * sin_th  # its derivative in theta
+        dtv = dt * v[:n]
         lam_psi = np.empty((n, ns))
         lam_psi[n - 1] = gpsi[n - 1]
         for k in range(n - 1, 0, -1):
             lam_psi[k - 1] = gpsi[k - 1] + lam_psi[k] + dtv[k] * proj_p[k]
-        m_vp = dt * proj_p
-        m_vd = dt * (proj_p * alpha_p[:, None] + lam_psi * c_p[:, None])
+        # Hessian M_k of lambda_{k+1}' F(x_k, u_k) in (v_k, psi_k, delta_k), per scenario:
+        # M_vp = dt P', M_vd = dt (P' a' + l_psi c'), M_pp = -dt v P, M_pd = M_pp a',
+        # M_dd = dt v (P' a'' - P a'^2 + l_psi c''), with P, P' = proj, proj_p.
         m_pp = -dtv * proj
-        m_pd = m_pp * alpha_p[:, None]
-        m_dd = dtv * (
-            proj_p * alpha_pp[:, None]
-            - proj * (alpha_p * alpha_p)[:, None]
-            + lam_psi * c_pp[:, None]
-        )
+        sums = np.stack([proj_p.sum(axis=1), lam_psi.sum(axis=1)])
+        v_sums = np.einsum("ki,ski->sk", dtv, np.stack([proj_p, proj, lam_psi]))
+        m_vd_sum = dt * (alpha_p * sums[0] + c_p * sums[1])
+        m_dd_sum = alpha_pp * v_sums[0] - alpha_p * alpha_p * v_sums[1] + c_pp * v_sums[2]
 
-        # --- Gauss-Newton part plus state curvature of the constraints and the heading ---
-        H = np.diag(2.0 * self._r)
-        w_px = wq[:, 0:1] + mu_track * amp * om * om * np.sin(arg)
-        s = lin.s_px[1:].reshape(-1, nu)
-        H += s.T @ (w_px.reshape(-1, 1) * s)
-        s = lin.s_py[1:].reshape(-1, nu)
-        H += s.T @ (np.repeat(wq[:, 1], ns)[:, None] * s)
-        w_psi = np.repeat(wq[:, 3:4], ns, axis=1)
-        w_psi[: n - 1] += m_pp[1:]  # S_0 = 0, so m_pp[0] never contributes
-        s = lin.s_psi[1:].reshape(-1, nu)
-        H += s.T @ (w_psi.reshape(-1, 1) * s)
+        # --- Gauss-Newton part plus the state curvature of l_k and of the heading ---
+        weight[2, : n - 1] += m_pp[1:]  # S_0 = 0, so m_pp[0] never contributes
+        S = lin.S.reshape(-1, nu)
+        H = S.T @ (weight.reshape(-1, 1) * S)
+        H[np.diag_indices(nu)] += 2.0 * self._r
         H += lin.s_v[1:].T @ ((2.0 * self._w_state[:, 2:3]) * lin.s_v[1:])
 
-        # --- cross terms of the dynamics curvature ---
-        a_vp = np.einsum("kin,ki->kn", lin.s_psi[:n], m_vp)  # (N, 2N)
-        cross = lin.s_v[:n].T @ a_vp
-        cross_d = np.einsum("kin,ki->kn", lin.s_psi[:n], m_pd)
-        cross_d += m_vd.sum(axis=1)[:, None] * lin.s_v[:n]
+        # --- cross terms of the dynamics curvature (psi_0 is fixed: step 0 has none) ---
+        s_psi = lin.S[2, : n - 1]  # d psi_k / du, k = 1..N-1
+        cross_vp, cross_pp = np.einsum("kin,ski->skn", s_psi, np.stack([proj_p[1:], m_pp[1:]]))
+        cross = lin.s_v[1:n].T @ (dt * cross_vp)
+        cross_d = m_vd_sum[:, None] * lin.s_v[:n]
+        cross_d[1:] += alpha_p[1:, None] * cross_pp
         H += cross + cross.T
         H[:, 1::2] += cross_d.T
         H[1::2, :] += cross_d
         idx = np.arange(1, nu, 2)
-        H[idx, idx] += m_dd.sum(axis=1)
+        H[idx, idx] += m_dd_sum
         return H
 
     def _convexify(
@@ -694,46 +684,72 @@ class FastScenarioSolver:
             self._qps[key] = qp
         return qp
 
-    def _screen(self, g_pos: np.ndarray) -> np.ndarray:
+    def _screen(self, ro: _Rollout) -> np.ndarray:
         """Initial position rows ``(r, 3)`` of ``(kind, step index, scenario)``.
 
-        Per (kind, step) the ``screen_rows`` largest values that lie within
-        ``screen_margin`` of activity.
+        In every (kind, step) group whose largest value lies within ``screen_margin`` of
+        activity: the ``screen_rows`` largest values within that margin, and the scenarios
+        that are extreme in the group's value and in progress ``p_x``. Scenarios differ
+        mostly in how far they get along similar paths, so a step that turns the vehicle
+        can make the other end of that family the worst one.
         """
         opt = self.options
-        n_groups = g_pos.shape[0] * g_pos.shape[1]
-        G = g_pos.reshape(n_groups, -1)
+        n = ro.g_pos.shape[1]
+        G = ro.g_pos.reshape(N_POSITION_KINDS * n, -1)
         ns = G.shape[1]
         keep = min(opt.screen_rows, ns)
-        if keep < ns:
-            top = np.argpartition(G, ns - keep, axis=1)[:, ns - keep :]
-        else:
-            top = np.broadcast_to(np.arange(ns), (n_groups, ns))
-        values = np.take_along_axis(G, top, axis=1)
-        group, col = np.nonzero(values >= -opt.screen_margin)
-        n = g_pos.shape[1]
-        return np.column_stack([group // n, group % n, top[group, col]])
+        top = np.argpartition(G, ns - keep, axis=1)[:, ns - keep :]
+        near = np.take_along_axis(G, top, axis=1) >= -opt.screen_margin
+        active = near.any(axis=1)
+        px = ro.X[0, 1:]
+        step = np.arange(N_POSITION_KINDS * n) % n
+        extremes = np.column_stack(
+            [G.argmin(axis=1), px.argmax(axis=1)[step], px.argmin(axis=1)[step]]
+        )
+        group_top, col = np.nonzero(near)
+        group_ext = np.repeat(np.nonzero(active)[0], extremes.shape[1])
+        flat = np.unique(
+            np.concatenate(
+                [group_top * ns + top[group_top, col], group_ext * ns + extremes[active].ravel()]
+            )
+        )
+        group, scen = np.divmod(flat, ns)
+        return np.column_stack([group // n, group % n, scen])
 
     def _position_rows(self, lin: _Linearisation, pos: np.ndarray) -> tuple[np.ndarray, ...]:
         """Jacobian rows ``(r, 2N)`` and values ``(r,)`` of position rows ``(kind, step, i)``."""
         kind, step, scen = pos[:, 0], pos[:, 1], pos[:, 2]
-        jac = np.where((kind < 2)[:, None], lin.j_track[step, scen], lin.s_px[step + 1, scen])
-        return _POSITION_SIGN[kind, None] * jac, lin.g_pos[kind, step, scen]
+        d_px = lin.S[0, step, scen]
+        d_track = lin.S[1, step, scen] - lin.slope[step, scen, None] * d_px
+        jac = np.where((kind < 2)[:, None], d_track, d_px)
+        return _POSITION_SIGN[kind, None] * jac, lin.ro.g_pos[kind, step, scen]
 
     def _missing_rows(
         self, lin: _Linearisation, d: np.ndarray, s_pos: np.ndarray, pos: np.ndarray
     ) -> np.ndarray:
-        """Position rows of the full QP violated at the step ``(d, s_pos)``: worst per group."""
+        """Position rows of the full QP violated at the step ``(d, s_pos)``.
+
+        Up to ``screen_rows`` of the worst per (kind, step) group, so that rows that are
+        close together enter in one round.
+        """
         n = self.problem.horizon
-        lin_px = lin.s_px[1:] @ d  # (N, Ns)
-        lin_tr = lin.j_track @ d
-        viol = lin.g_pos + np.stack([lin_tr, -lin_tr, -lin_px, lin_px])
+        lin_px = lin.S[0] @ d  # (N, Ns)
+        lin_tr = lin.S[1] @ d - lin.slope * lin_px
+        viol = lin.ro.g_pos + np.stack([lin_tr, -lin_tr, -lin_px, lin_px])
         viol -= s_pos[:, :, None]
         viol[pos[:, 0], pos[:, 1], pos[:, 2]] = -np.inf
         flat = viol.reshape(N_POSITION_KINDS * n, -1)
-        worst = np.argmax(flat, axis=1)
-        bad = np.nonzero(flat[np.arange(flat.shape[0]), worst] > self.options.add_tol)[0]
-        return np.column_stack([bad // n, bad % n, worst[bad]])
+        bad = np.nonzero(flat.max(axis=1) > self.options.add_tol)[0]
+        if bad.size == 0:
+            return np.empty((0, 3), dtype=int)
+        flat = flat[bad]
+        ns = flat.shape[1]
+        keep = min(self.options.screen_rows, ns)
+        worst = np.argpartition(flat, ns - keep, axis=1)[:, ns - keep :]
+        sub, col = np.nonzero(np.take_along_axis(flat, worst, axis=1) > self.options.add_tol)
+        group = bad[sub]
+        worst = worst[sub, col]
+        return np.column_stack([group // n, group % n, worst])
 
     def _solve_qp(
         self, lin: _Linearisation, H: np.ndarray, u: np.ndarray, pos: np.ndarray, stats: dict
@@ -743,7 +759,7 @@ class FastScenarioSolver:
         a_speed = np.empty((2 * n, nu))
         a_speed[0::2] = -lin.s_v[1:]
         a_speed[1::2] = lin.s_v[1:]
-        g_speed = lin.g_speed.T.ravel()
+        g_speed = lin.ro.g_speed.T.ravel()
         for _ in range(self.options.max_qp_rounds):
             a_pos, g_pos = self._position_rows(lin, pos)
             groups, slot_group, rank = _SlotQP.layout(pos, g_pos, n)
@@ -781,22 +797,25 @@ class FastScenarioSolver:
         u: np.ndarray,
         active_pos: np.ndarray,
         active_speed: np.ndarray,
+        damping: float,
         stats: dict,
     ) -> tuple[_QPStep | None, np.ndarray]:
         """QP step with a convexified Hessian, and the position-row multipliers ``(4, N, Ns)``.
 
         A constraint predicted active whose row the QP leaves slack (or whose multiplier
         turns negative) would have bent the step through the augmentation: it is dropped
-        and the QP re-solved.
+        and the QP re-solved. ``damping`` (Levenberg-Marquardt) is added to the Hessian.
         """
         n = self.problem.horizon
-        mu = np.zeros((N_POSITION_KINDS, n, lin.px.shape[1]))
+        mu = np.zeros((N_POSITION_KINDS, n, lin.ro.X.shape[2]))
         bounds = np.nonzero((u <= self._lower + 1e-12) | (u >= self._upper - 1e-12))[0]
-        screened = self._screen(lin.g_pos)
+        screened = self._screen(lin.ro)
         for attempt in range(4):
             if attempt == 3:  # give up predicting: plain eigenvalue clipping
                 active_pos, active_speed, bounds = active_pos[:0], active_speed[:0], bounds[:0]
             H_qp, sigma, j_pos = self._convexify(H, lin, active_pos, active_speed, bounds)
+            if damping > 0.0:
+                H_qp = H_qp + damping * np.eye(self._n_u)
             step = self._solve_qp(lin, H_qp, u, screened, stats)
             if step is None:
                 return None, mu
@@ -809,13 +828,13 @@ class FastScenarioSolver:
             lin_d = j_pos @ d
             lam = mu[idx] + sigma * lin_d  # multipliers of the un-augmented QP
             keep_pos = (lam >= -tol) & (
-                lin.g_pos[idx] + lin_d - step.s_pos[active_pos[:, 0], active_pos[:, 1]] >= -tol
+                lin.ro.g_pos[idx] + lin_d - step.s_pos[active_pos[:, 0], active_pos[:, 1]] >= -tol
             )
             mu[idx] = np.maximum(lam, 0.0)
             k, b = active_speed // 2, active_speed % 2
             v_d = np.where(b == 1, 1.0, -1.0) * (lin.s_v[k + 1] @ d)
             keep_speed = (step.lam_speed[active_speed] + sigma * v_d >= -tol) & (
-                lin.g_speed[b, k] + v_d - step.s_speed[active_speed] >= -tol
+                lin.ro.g_speed[b, k] + v_d - step.s_speed[active_speed] >= -tol
             )
             u_new = u[bounds] + d[bounds]
             keep_bounds = (u_new <= self._lower[bounds] + 1e-10) | (
@@ -832,30 +851,34 @@ class FastScenarioSolver:
 
     def _sqp(
         self, x0: np.ndarray, W: np.ndarray, u0: np.ndarray
-    ) -> tuple[np.ndarray, str, bool, int, dict[str, Any]]:
-        """SQP iterations from ``u0``: ``(u, status, success, iterations, extra)``."""
+    ) -> tuple[_Rollout, str, bool, int, dict[str, Any]]:
+        """SQP iterations from ``u0``: ``(final rollout, status, success, iterations, extra)``."""
         p, opt = self.problem, self.options
         n, nu, rho = p.horizon, self._n_u, p.slack_penalty
         ns = x0.shape[0]
         mu = np.zeros((N_POSITION_KINDS, n, ns))
         active_pos = np.empty((0, 3), dtype=int)
         active_speed = np.empty(0, dtype=int)
-        u = u0.copy()
-        stats: dict[str, Any] = {"qp_solves": 0, "qp_rows": 0, "soc_steps": 0, "merit_evals": 0}
+        stats: dict[str, Any] = {"qp_solves": 0, "qp_rows": 0, "soc_steps": 0, "merit_evals": 1}
+        e0 = x0 - self._goal
+        cost0 = float(np.mean(e0 * e0 @ self._q))
         with np.errstate(all="ignore"):
-            merit, slack, _ = self._merit(x0, W, u)
-        if not math.isfinite(merit):
-            return u, "Invalid_Initial_Point", False, 0, stats
+            ro = self._evaluate(x0, W, u0, cost0)
+        if not math.isfinite(ro.merit):
+            return ro, "Invalid_Initial_Point", False, 0, stats
         status, success, iterations = "Maximum_Iterations_Exceeded", False, 0
+        prev_step = math.inf  # size of the last accepted full step
+        damping = 0.0  # Levenberg-Marquardt term: grows while the quadratic model is poor
         while iterations < opt.max_iter:
             iterations += 1
+            u = ro.u
             with np.errstate(all="ignore"):
-                lin = self._linearise(x0, W, u)
-                H = self._hessian(lin, u, mu)
+                lin = self._linearise(ro)
+                H = self._hessian(lin, mu)
             if not (np.all(np.isfinite(H)) and np.all(np.isfinite(lin.grad))):
                 status = "Invalid_Derivatives"
                 break
-            qp_step, mu = self._newton_step(lin, H, u, active_pos, active_speed, stats)
+            qp_step, mu = self._newton_step(lin, H, u, active_pos, active_speed, damping, stats)
             if qp_step is None:
                 status = "QP_Failed"
                 break
@@ -866,58 +889,66 @@ class FastScenarioSolver:
             )
             active_pos = pos[hard]
             active_speed = np.nonzero((qp_step.lam_speed > 1e-9) & (qp_step.s_speed <= 1e-9))[0]
-            # Upper bound of the merit's directional derivative along d (< 0 unless d = 0).
-            D = float(lin.grad @ d) + rho * (qp_step.slack_sum - slack)
-            small_decrease = -D <= opt.tol * (1.0 + abs(merit))
-            if small_decrease and np.max(np.abs(d)) <= opt.step_tol:
+            if np.max(np.abs(d)) <= opt.step_tol:
                 status, success = "Solve_Succeeded", True
                 break
+            # Upper bound of the merit's directional derivative along d (< 0 unless d = 0).
+            D = float(lin.grad @ d) + rho * (qp_step.slack_sum - ro.slack)
 
             # --- line search on the exact-penalty merit, with second-order correction ---
             t = 1.0
-            accepted = False
+            accepted = None
             while t >= opt.min_step:
-                u_try = np.clip(u + t * d, self._lower, self._upper)
                 with np.errstate(all="ignore"):
-                    m_try, s_try, g_try = self._merit(x0, W, u_try)
+                    trial = self._evaluate(
+                        x0, W, np.clip(u + t * d, self._lower, self._upper), cost0
+                    )
                 stats["merit_evals"] += 1
-                if m_try <= merit + opt.armijo * t * D:
-                    accepted = True
+                if trial.merit <= ro.merit + opt.armijo * t * D:
+                    accepted = trial
                     break
-                if t == 1.0 and opt.second_order_correction and s_try > slack:
+                if t == 1.0 and opt.second_order_correction and trial.slack > ro.slack:
                     # The constraints' curvature made the full step infeasible: shift the
                     # rows by their second-order error and re-solve (Maratos effect).
                     a_pos, _ = self._position_rows(lin, pos)
-                    qp_step.qp.set_position_bounds(
-                        qp_step.row, g_try[pos[:, 0], pos[:, 1], pos[:, 2]] - a_pos @ d
-                    )
+                    g_try = trial.g_pos[pos[:, 0], pos[:, 1], pos[:, 2]]
+                    qp_step.qp.set_position_bounds(qp_step.row, g_try - a_pos @ d)
                     z_soc, _, ok_soc = qp_step.qp.solve()
                     stats["qp_solves"] += 1
                     if ok_soc:
                         u_soc = np.clip(u + z_soc[:nu], self._lower, self._upper)
                         with np.errstate(all="ignore"):
-                            m_soc, s_soc, _ = self._merit(x0, W, u_soc)
+                            soc = self._evaluate(x0, W, u_soc, cost0)
                         stats["merit_evals"] += 1
-                        if m_soc <= merit + opt.armijo * D:
+                        if soc.merit <= ro.merit + opt.armijo * D:
                             stats["soc_steps"] += 1
-                            u_try, m_try, s_try = u_soc, m_soc, s_soc
-                            accepted = True
+                            accepted = soc
                             break
                 t *= opt.backtrack
-            if not accepted:
+            if accepted is None:
                 # No decrease along a descent direction: converged up to rounding if the
                 # predicted decrease is negligible, else a genuine failure.
-                if -D <= 1e3 * opt.tol * (1.0 + abs(merit)):
+                if -D <= 1e3 * opt.tol * (1.0 + abs(ro.merit)):
                     status, success = "Solve_Succeeded", True
                 else:
                     status = "Line_Search_Failed"
                 break
-            step = float(np.max(np.abs(u_try - u)))
-            u, merit, slack = u_try, m_try, s_try
-            # A tiny full step in the quadratic-convergence regime leaves an error of its
-            # square: no need for one more linearisation to confirm.
-            if t == 1.0 and step <= opt.final_step_tol and small_decrease:
+            step = float(np.max(np.abs(accepted.u - u)))
+            slack_change = abs(accepted.slack - ro.slack)
+            ro = accepted
+            # Heavy backtracking means the quadratic model is poor this far out (negative
+            # curvature, strongly curved constraints): damp the next steps, like a trust
+            # region; full steps undo it, so the local convergence stays quadratic.
+            if t < opt.damping_threshold:
+                damping = max(10.0 * damping, opt.damping_init)
+            elif t == 1.0:
+                damping = 0.1 * damping if damping > 1e-3 * opt.damping_init else 0.0
+            ratio = step / prev_step if math.isfinite(prev_step) else 1.0
+            predicted_next = step * min(ratio, 1.0) if t == 1.0 else math.inf
+            prev_step = step if t == 1.0 else math.inf
+            if predicted_next <= opt.final_step_tol and (
+                ro.slack <= opt.add_tol or slack_change <= opt.add_tol * (1.0 + ro.slack)
+            ):
                 status, success = "Solve_Succeeded", True
                 break
-        stats["merit"] = merit
-        return u, status, success, iterations, stats
+        return ro, status, success, iterations, stats
