@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 
+from lfm_env import gp
 from lfm_env.gp import (
     FitInfo,
     Matern,
@@ -116,6 +117,52 @@ def test_repeated_and_regular_times():
     assert log_marginal_likelihood(k, t1, [0.7], 0.3) == pytest.approx(
         -0.5 * (math.log(2 * math.pi * 4.3) + 0.49 / 4.3), rel=1e-14
     )
+
+
+def test_regular_grid_matches_dense():
+    # np.arange grids: step lengths equal up to rounding share one discretisation, and the
+    # filter switches to its steady-state gain once the covariance has converged.
+    k = matern(2.5, 4.0, 4.0)
+    rng = np.random.default_rng(9)
+    t = 0.2 * np.arange(400) + 0.1
+    assert np.unique(np.diff(t)).size > 1  # several binary values of "0.2"
+    y = rng.standard_normal(t.size) * 2.0
+    K = k.covariance(t[:, None] - t[None, :])
+    assert log_marginal_likelihood(k, t, y, 0.1) == pytest.approx(
+        dense_log_likelihood(K, y, 0.1), rel=1e-10
+    )
+
+
+@pytest.mark.parametrize(
+    "kernel",
+    [
+        matern(2.5, 4.0, 4.0),
+        squared_exponential(1.0, 2.0, 4),
+        matern(0.5, 1.0, 1.0) + matern(1.5, 1, 2),
+    ],
+    ids=["m52", "se4", "sum"],
+)
+def test_steady_state_shortcut_matches_the_full_filter(kernel, monkeypatch):
+    rng = np.random.default_rng(4)
+    # two regular runs with different steps, a repeated time and an irregular tail
+    t = np.concatenate(
+        [
+            0.2 * np.arange(300),
+            60.0 + 0.5 * np.arange(150),
+            [134.5],
+            135.0 + np.cumsum(rng.uniform(0.1, 1.0, 30)),
+        ]
+    )
+    y = rng.standard_normal(t.size)
+    fast = log_marginal_likelihood(kernel, t, y, 0.1)
+    fast_ll, fast_grad = log_marginal_likelihood_and_grad(kernel, t, y, 0.1)
+    monkeypatch.setattr(gp, "_STEADY_STATE_RTOL", -1.0)  # never converged: full recursion
+    slow = log_marginal_likelihood(kernel, t, y, 0.1)
+    slow_ll, slow_grad = log_marginal_likelihood_and_grad(kernel, t, y, 0.1)
+    assert fast == pytest.approx(slow, rel=1e-11)
+    assert fast_ll == pytest.approx(slow_ll, rel=1e-11)
+    for name, g in slow_grad.items():
+        assert fast_grad[name] == pytest.approx(g, rel=1e-8, abs=1e-8), name
 
 
 def test_periodic_without_noise_reports_a_degenerate_innovation():
@@ -313,3 +360,22 @@ def test_fit_nothing_to_fit_and_errors():
         fit(matern(0.5, 1.0, 1.0), t, y, noise_variance=0.0)
     with pytest.raises(ValueError, match="sorted"):
         fit(matern(0.5, 1.0, 1.0), t[::-1], y)
+
+
+def test_fit_stays_inside_the_valid_region():
+    # The data want a lengthscale (0.4) that 3 harmonics cannot represent within the
+    # default 1e-2 truncation error; the optimiser must stop at that wall, not crash.
+    rng = np.random.default_rng(3)
+    truth = periodic(1.0, 0.4, 2.0, harmonics=12)
+    y = truth.sample_path(119, 0.1, rng) @ truth.H[0] + 0.05 * rng.standard_normal(120)
+    fitted = fit(periodic(1.0, 1.5, 2.0, harmonics=3), 0.1 * np.arange(120), y, 0.0025)
+    assert fitted.harmonics == 3
+    assert 0.5 * fitted.max_truncation_error < fitted.truncation_error <= 1e-2
+    assert fitted.period == pytest.approx(2.0, rel=1e-3)
+
+
+def test_fit_warns_when_not_converged(matern_data):
+    t, y = matern_data[0][:200], matern_data[1][:200]
+    with pytest.warns(RuntimeWarning, match="did not converge"):
+        fitted = fit(matern(2.5, 1.0, 1.0), t, y, max_iter=1)
+    assert not fitted.fit_info.success and fitted.fit_info.n_iterations == 1
