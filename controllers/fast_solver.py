@@ -360,6 +360,13 @@ class FastScenarioSolver:
         """Forget the warm start: the next solve starts from zero inputs."""
         self._prev_u = None
 
+    def __getstate__(self) -> dict[str, Any]:
+        # The QP objects hold raw buffers of a CasADi function: rebuild them after
+        # unpickling (e.g. in a worker process) instead of pickling them.
+        state = self.__dict__.copy()
+        state["_qps"] = {}
+        return state
+
     def solve(
         self, x0: np.ndarray, W: np.ndarray, u_guess: np.ndarray | None = None
     ) -> MPCSolution:

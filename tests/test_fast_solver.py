@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import pickle
 
 import casadi as ca
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 from controllers import mpc_problem
 from controllers._solver_timing import (
     closed_loop_problems,
+    default_benchmark,
     format_timing_table,
     latent_force_scenarios,
     objective_agreement,
@@ -250,6 +252,20 @@ def test_shifted_warm_start_is_the_default() -> None:
     assert cold.objective == pytest.approx(warm.objective, rel=RTOL)
 
 
+def test_pickle_round_trip_keeps_warm_start_and_result() -> None:
+    problem = ScenarioProblem(n_scenarios=30)
+    x0, W = STARTS["mid_track"], draw_W(13, 30)
+    solver = FastScenarioSolver(problem, max_iter=40)
+    solver.solve(x0, W)  # builds the QP objects and a warm start
+    clone = pickle.loads(pickle.dumps(solver))
+    assert clone.options == solver.options
+    a, b = solver.solve(x0, W), clone.solve(x0, W)  # same shifted warm start
+    assert a.success and b.success
+    # Only qpOASES' hot-start history differs: same solution up to QP round-off.
+    np.testing.assert_allclose(a.u, b.u, atol=1e-7)
+    assert a.objective == pytest.approx(b.objective, rel=1e-10)
+
+
 def test_screening_gives_the_unscreened_solution() -> None:
     """Check-and-add makes the screened QP rows exact: same result as all rows at once."""
     problem = ScenarioProblem(n_scenarios=30)
@@ -370,3 +386,12 @@ def test_short_closed_loop_and_timing_harness() -> None:
     assert summary["p95_ms"] >= summary["median_ms"] > 0
     table = format_timing_table(results, baseline="fast")
     assert "fast again" in table and "median ms" in table
+
+
+def test_default_benchmark_without_ipopt() -> None:
+    results = default_benchmark(n_scenarios=(10,), recipe="shift", include_ipopt=False)
+    fast = results[10]["fast SQP"]
+    assert list(results[10]) == ["fast SQP"]
+    assert len(fast.times) == 40 and np.all(np.isfinite(fast.objective))
+    with pytest.raises(ValueError):
+        default_benchmark(n_scenarios=(10,), recipe="nope", include_ipopt=False)
