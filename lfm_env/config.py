@@ -31,6 +31,27 @@ class ConfigError(ValueError):
     """A configuration value is unknown, of the wrong type or out of range."""
 
 
+def _show(value: Any, limit: int = 80) -> str:
+    """``repr(value)`` for an error message, cut to ``limit`` characters; never raises.
+
+    An integer beyond ``sys.get_int_max_str_digits()`` has no repr (ValueError), and a
+    megabyte-long string would drown the message.
+    """
+    try:
+        text = repr(value)
+    except ValueError:
+        if isinstance(value, int):
+            return f"<an integer of about {round(value.bit_length() * math.log10(2))} digits>"
+        return f"<a {type(value).__name__}>"
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _key(key: Any) -> str:
+    """A mapping key as text for an error message, shortened like :func:`_show`."""
+    text = key if isinstance(key, str) else _show(key)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
 # --------------------------------------------------------------------------- loading
 
 
@@ -66,8 +87,8 @@ def read_section(source: Any, section: str) -> dict | None:
             f"config must be a path, a dict or a dataclass, got {type(source).__name__}"
         )
     top = {"env", "agents"}
-    unknown_top = {str(k) for k in source} - top
-    if {str(k) for k in source} & top:
+    unknown_top = {_key(k) for k in source} - top
+    if {_key(k) for k in source} & top:
         if unknown_top:
             raise ConfigError(
                 f"unknown top-level config section(s) {sorted(unknown_top)}; allowed: {sorted(top)}"
@@ -94,40 +115,40 @@ def _convert(value: Any, tp: Any, key: str) -> Any:
         if isinstance(value, tp):
             return value
         if not isinstance(value, dict):
-            raise ConfigError(f"{key}: expected a mapping, got {value!r}")
+            raise ConfigError(f"{key}: expected a mapping, got {_show(value)}")
         return from_dict(tp, value, prefix=key)
     if tp is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{key}={value!r}: expected true or false")
+            raise ConfigError(f"{key}={_show(value)}: expected true or false")
         return value
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-            raise ConfigError(f"{key}={value!r}: expected an integer")
+            raise ConfigError(f"{key}={_show(value)}: expected an integer")
         return int(value)
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
             hint = " (write floats with a dot, e.g. 1.0e-3)" if isinstance(value, str) else ""
-            raise ConfigError(f"{key}={value!r}: expected a number{hint}")
+            raise ConfigError(f"{key}={_show(value)}: expected a number{hint}")
         try:
             value = float(value)
         except OverflowError:
-            raise ConfigError(f"{key}={value!r}: too large for a float") from None
+            raise ConfigError(f"{key}={_show(value)}: too large for a float") from None
         if not math.isfinite(value):
-            raise ConfigError(f"{key}={value!r}: must be finite")
+            raise ConfigError(f"{key}={_show(value)}: must be finite")
         return value
     if tp is str:
         if not isinstance(value, str):
-            raise ConfigError(f"{key}={value!r}: expected a string")
+            raise ConfigError(f"{key}={_show(value)}: expected a string")
         return value
     if origin is tuple:
         if isinstance(value, np.ndarray):
             value = value.tolist()
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{key}={value!r}: expected a list")
+            raise ConfigError(f"{key}={_show(value)}: expected a list")
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_convert(v, args[0], f"{key}[{i}]") for i, v in enumerate(value))
         if len(value) != len(args):
-            raise ConfigError(f"{key}={list(value)!r}: expected a list of {len(args)} values")
+            raise ConfigError(f"{key}={_show(list(value))}: expected a list of {len(args)} values")
         return tuple(
             _convert(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=True))
         )
@@ -147,15 +168,14 @@ def from_dict(cls: type[T], data: dict | None, prefix: str = "") -> T:
     """
     data = {} if data is None else data
     if not isinstance(data, dict):
-        raise ConfigError(f"{prefix or cls.__name__}: expected a mapping, got {data!r}")
+        raise ConfigError(f"{prefix or cls.__name__}: expected a mapping, got {_show(data)}")
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls) if f.init}
-    unknown = sorted((str(k) for k in data if k not in names), key=str)
+    unknown = sorted(_key(k) for k in data if k not in names)
     if unknown:
         where = f"{prefix}." if prefix else ""
         raise ConfigError(
-            f"unknown config key(s) {[where + str(k) for k in unknown]}; "
-            f"allowed keys: {sorted(names)}"
+            f"unknown config key(s) {[where + k for k in unknown]}; allowed keys: {sorted(names)}"
         )
     kwargs = {}
     for name, value in data.items():
@@ -190,7 +210,7 @@ class _Checker:
 
     def __call__(self, name: str, ok: bool, allowed: str) -> None:
         if not ok:
-            raise ConfigError(f"{name}={getattr(self.obj, name)!r}: must be {allowed}")
+            raise ConfigError(f"{name}={_show(getattr(self.obj, name))}: must be {allowed}")
 
     def positive(self, *names: str) -> None:
         for n in names:
