@@ -4,6 +4,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup_env.sh test
+# Tiny LAPACK calls dominate here; OpenBLAS threads spin-waiting on them slowed the suite 10x.
+export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 set +e
 .venv/bin/python -m pytest "$@"
 code=$?
