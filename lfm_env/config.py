@@ -55,15 +55,54 @@ def _key(key: Any) -> str:
 # --------------------------------------------------------------------------- loading
 
 
+def _check_unique_keys(root: yaml.Node | None) -> None:
+    """Raise a YAML error for a key written twice in one mapping.
+
+    YAML requires unique keys, but PyYAML keeps the last value silently, so a repeated
+    key (a typo's twin) would pass unnoticed. Works on the composed node graph, which
+    shares aliased nodes, so each node is visited once.
+    """
+    seen: set[int] = set()
+    todo = [] if root is None else [root]
+    while todo:
+        node = todo.pop()
+        if id(node) in seen:
+            continue
+        seen.add(id(node))
+        if isinstance(node, yaml.MappingNode):
+            keys: set[tuple[str, str]] = set()
+            for key, value in node.value:
+                if isinstance(key, yaml.ScalarNode) and key.tag != "tag:yaml.org,2002:merge":
+                    if (key.tag, key.value) in keys:
+                        raise yaml.constructor.ConstructorError(
+                            "while reading a mapping",
+                            node.start_mark,
+                            f"found the key {_key(key.value)!r} twice",
+                            key.start_mark,
+                        )
+                    keys.add((key.tag, key.value))
+                todo += [key, value]
+        elif isinstance(node, yaml.SequenceNode):
+            todo += node.value
+
+
 def load_yaml(path: str | os.PathLike) -> dict:
-    """Read a YAML file with the safe loader; the top level must be a mapping."""
+    """Read a YAML file with the safe loader; the top level must be a mapping.
+
+    A key given twice in one mapping is an error, as are bytes that are not UTF-8 or
+    UTF-16 text.
+    """
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"config file {str(path)!r} does not exist")
+        problem = "is not a file" if path.exists() else "does not exist"
+        raise ConfigError(f"config file {str(path)!r} {problem}")
     try:
-        with path.open() as fh:
+        # Binary streams: PyYAML reads the encoding from the byte order mark.
+        with path.open("rb") as fh:
+            _check_unique_keys(yaml.compose(fh, Loader=yaml.SafeLoader))
+        with path.open("rb") as fh:
             data = yaml.safe_load(fh)
-    except yaml.YAMLError as exc:
+    except (yaml.YAMLError, ValueError) as exc:  # ValueError: an int over 4300 digits
         raise ConfigError(f"config file {str(path)!r} is not valid YAML: {exc}") from exc
     if data is None:
         data = {}
