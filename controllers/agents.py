@@ -316,13 +316,13 @@ def make_agent(name: str, config: Any = None, env: Any = None) -> MPCAgent:
         env: the environment, only for the oracle (which reads the hidden truth).
     """
     from controllers.config import load_agent_config
-    from lfm_env.config import load_env_config
+    from lfm_env.config import check_latent_step, load_env_config
 
     if name not in AGENTS:
         raise ValueError(f"unknown agent {name!r}; choose one of {sorted(AGENTS)}")
     if env is not None and name != "oracle":
         raise ValueError(f"agent {name!r} must not get env= (only the oracle reads the truth)")
-    env_config = load_env_config(config)
+    env_config = check_latent_step(load_env_config(config))
     cfg = load_agent_config(config)
     if name == "oracle":
         return OracleMPCAgent(env_config, cfg, env)

@@ -57,7 +57,7 @@ import yaml
 import lfm_env  # noqa: F401  (registers lfm_env/SineTrack-v0, also in spawned workers)
 from controllers.agents import AGENTS, make_agent
 from controllers.config import load_agent_config
-from lfm_env.config import load_env_config, load_yaml, to_dict
+from lfm_env.config import check_latent_step, load_env_config, load_yaml, to_dict
 
 ENV_ID = "lfm_env/SineTrack-v0"
 
@@ -143,7 +143,7 @@ def resolve_config(config: Any = None) -> dict:
         ConfigError: (a ``ValueError``) for unknown keys or out-of-range values.
     """
     return {
-        "env": to_dict(load_env_config(config)),
+        "env": to_dict(check_latent_step(load_env_config(config))),
         "agents": to_dict(load_agent_config(config)),
     }
 

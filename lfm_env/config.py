@@ -285,6 +285,8 @@ class DisturbanceConfig:
         c("kernel", self.kernel == "matern", "'matern'")
         c("nu", self.nu in MATERN_NUS, f"one of {list(MATERN_NUS)}")
         c.positive("variance", "lengthscale")
+        # Shorter lengthscales overflow lambda^(2 nu + 1) in the state-space model.
+        c("lengthscale", self.lengthscale >= 1.0e-6, ">= 1.0e-6 s")
         c("discretization", self.discretization in DISCRETIZATIONS, f"one of {DISCRETIZATIONS}")
         c("start", self.start in STARTS, f"one of {STARTS}")
 
@@ -405,6 +407,31 @@ class EnvConfig:
 def to_dict_fields(changes: dict) -> dict:
     """Plain values of a partial mapping of config fields (dataclasses become dicts)."""
     return {k: (to_dict(v) if dataclasses.is_dataclass(v) else v) for k, v in changes.items()}
+
+
+def check_latent_step(config: EnvConfig) -> EnvConfig:
+    """Refuse a latent-force model whose Euler-Maruyama step diverges; returns ``config``.
+
+    The Euler step ``z+ = (I + F dt) z`` of a Matern model has the single eigenvalue
+    ``1 - lambda dt`` with ``lambda = sqrt(2 nu) / lengthscale``: it is stable only for
+    ``lambda dt < 2``, i.e. ``lengthscale > sqrt(2 nu) dt / 2``; beyond, the simulated
+    force grows without bound (1e19 m/s^2 within 30 s). The exact discretisation is
+    stable for every lengthscale. The env and the agents call this before simulating;
+    :func:`load_env_config` does not, so such a config can still be read.
+
+    Raises:
+        ConfigError: naming ``env.disturbance.lengthscale`` and its lower bound.
+    """
+    d = config.disturbance
+    if d.discretization == "euler_maruyama":
+        bound = math.sqrt(2.0 * d.nu) * config.dt / 2.0
+        if not d.lengthscale > bound:
+            raise ConfigError(
+                f"env.disturbance.lengthscale={_show(d.lengthscale)}: must be > sqrt(2 nu) dt / 2"
+                f" = {bound:.6g} s with discretization 'euler_maruyama' (its step diverges"
+                " otherwise); use discretization 'exact' or a smaller dt"
+            )
+    return config
 
 
 def load_env_config(config: Any = None) -> EnvConfig:

@@ -8,7 +8,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from lfm_env.config import EnvConfig, load_env_config
+from lfm_env.config import EnvConfig, check_latent_step, load_env_config
 from lfm_env.model import LatentForceModel, psd_factor
 
 _LATENT_CHUNK = 64  # latent path is drawn in chunks so previews never change the episode
@@ -99,7 +99,7 @@ class SineTrackEnv(gym.Env):
         scaling: float = 25.0,
         follow: bool = True,
     ) -> None:
-        self.config: EnvConfig = load_env_config(config)
+        self.config: EnvConfig = check_latent_step(load_env_config(config))
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
                 f"render_mode={render_mode!r}: must be None or one of "
