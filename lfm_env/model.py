@@ -92,11 +92,13 @@ class LatentForceModel:
         """
         x, z = particles[:, :4], particles[:, 4:]
         n = particles.shape[0]
-        out = np.empty_like(particles)
-        out[:, :4] = self.physical_step(x, u, z @ self.H)
-        out[:, :4] += rng.standard_normal((n, 4)) * self.process_std
-        out[:, 4:] = z @ self.A.T + rng.standard_normal((n, self.latent_dim)) @ self.Q_factor.T
-        return out
+        noise = rng.standard_normal((n, self.state_dim))  # one draw for all components
+        out = self.physical_step(x, u, z @ self.H)
+        noise[:, :4] *= self.process_std
+        out += noise[:, :4]
+        latent = z @ self.A.T
+        latent += noise[:, 4:] @ self.Q_factor.T
+        return np.concatenate([out, latent], axis=1)
 
     def mean_latent_forecast(self, z: np.ndarray, horizon: int) -> np.ndarray:
         """Mean forecast of the latent force ``(..., horizon)`` from latent states ``(..., p)``.

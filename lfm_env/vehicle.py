@@ -65,13 +65,15 @@ def bicycle_rhs(state: Any, action: Any, disturbance: Any = 0.0, length: float =
     v, psi = state[..., 2], state[..., 3]
     a, delta = action[..., 0], action[..., 1]
     alpha = slip_angle(delta)
-    parts = np.broadcast_arrays(
-        v * np.cos(psi + alpha),
-        v * np.sin(psi + alpha),
-        a + np.asarray(disturbance, dtype=float),
-        v / (length / 2.0) * np.sin(alpha),
-    )
-    return np.stack(parts, axis=-1)
+    heading = psi + alpha
+    shape = np.broadcast_shapes(v.shape, heading.shape, np.shape(a), np.shape(disturbance))
+    # Filled column by column: no stacking temporaries (this runs on 7000 particles a step).
+    out = np.empty(shape + (4,))
+    np.multiply(v, np.cos(heading), out=out[..., 0])
+    np.multiply(v, np.sin(heading), out=out[..., 1])
+    np.add(a, disturbance, out=out[..., 2])
+    np.multiply(v, np.sin(alpha) / (length / 2.0), out=out[..., 3])
+    return out
 
 
 def euler_step(
