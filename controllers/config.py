@@ -13,6 +13,8 @@ from lfm_env.config import ConfigError, _Checker, from_dict, read_section
 SOLVERS = ("fast", "ipopt", "ipopt_multiple_shooting")
 RESAMPLING = ("systematic", "stratified", "residual", "multinomial")
 SCENARIO_INITIAL_STATES = ("estimate", "particles")
+MAX_SCENARIOS = 100_000
+MAX_ITER = 2**31 - 1
 
 
 @dataclass(frozen=True)
@@ -51,10 +53,27 @@ class AgentConfig:
                 "an integer >= 1, or null with violation_level and confidence set",
             )
         else:
-            c("n_scenarios", 1 <= self.n_scenarios <= 100_000, "an integer in [1, 100000]")
+            c("n_scenarios", 1 <= self.n_scenarios <= MAX_SCENARIOS, "an integer in [1, 100000]")
         for name in ("violation_level", "confidence"):
             v = getattr(self, name)
             c(name, v is None or 0.0 < v < 1.0, "null or in (0, 1)")
+        if self.n_scenarios is None:
+            # The Campi-Garatti count must fit the same range as an explicit one; its
+            # bound decreases in Ns, so checking it at the largest count suffices.
+            from scipy import optimize, stats
+
+            def excess(eps: float) -> float:
+                return stats.binom.cdf(2 * self.horizon - 1, MAX_SCENARIOS, eps) - self.confidence
+
+            if excess(self.violation_level) > 0.0:
+                least = optimize.brentq(excess, self.violation_level, 1.0 - 1e-9)
+                least *= 1.001  # shown rounded to 4 digits: round up, so that it is admissible
+                c(
+                    "violation_level",
+                    False,
+                    f">= {least:.4g} with confidence={self.confidence} and horizon={self.horizon}"
+                    f" (the Campi-Garatti scenario count must stay <= {MAX_SCENARIOS})",
+                )
         c("n_particles", 1 <= self.n_particles <= 10_000_000, "an integer in [1, 1e7]")
         c("resampling", self.resampling in RESAMPLING, f"one of {RESAMPLING}")
         c(
@@ -65,7 +84,8 @@ class AgentConfig:
         c.non_negative("Q", "Qf", "R")
         c.positive("slack_penalty")
         c("solver", self.solver in SOLVERS, f"one of {SOLVERS}")
-        c("max_iter", self.max_iter >= 1, "an integer >= 1")
+        # IPOPT's iteration counter is a C int: larger values wrap around or are refused.
+        c("max_iter", 1 <= self.max_iter <= MAX_ITER, f"an integer in [1, {MAX_ITER}]")
         c(
             "scenario_initial_states",
             self.scenario_initial_states in SCENARIO_INITIAL_STATES,
