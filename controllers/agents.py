@@ -102,7 +102,16 @@ class MPCAgent:
 
     def act(self, obs: Any) -> np.ndarray:
         """The action ``[a m/s^2, delta rad]`` for observation ``obs`` ``[m, m, m/s, rad]``."""
-        y = np.asarray(obs, dtype=float)
+        try:
+            y = np.asarray(obs)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"obs={obs!r}: must be 4 numbers [p_x, p_y, v, psi]") from exc
+        # Text, objects and complex numbers would convert (or lose their imaginary part).
+        if y.dtype.kind not in "biuf":
+            raise ValueError(
+                f"obs={obs!r}: must be 4 real numbers [p_x, p_y, v, psi], not dtype {y.dtype}"
+            )
+        y = y.astype(float)
         if y.shape != (4,):
             raise ValueError(f"obs has shape {y.shape}: must be (4,) = [p_x, p_y, v, psi]")
         if not np.all(np.isfinite(y)):

@@ -37,8 +37,8 @@ class SineTrackEnv(gym.Env):
     ``Box([-a_max, -delta_max], [a_max, delta_max], (2,), float64)``: acceleration
     ``a`` [m/s^2] and steering angle ``delta`` [rad]; by default ``|a| <= 5``,
     ``|delta| <= 25 deg``. Out-of-range actions are clipped to the box (the applied
-    action is in ``info["applied_action"]``); non-finite actions or a wrong shape raise
-    ``ValueError``.
+    action is in ``info["applied_action"]``); non-finite actions, a wrong shape or a
+    dtype that is not real numbers (text, objects, complex) raise ``ValueError``.
 
     ## Observation Space
     The physical state plus Gaussian measurement noise; the latent force is hidden.
@@ -233,9 +233,15 @@ class SineTrackEnv(gym.Env):
 
     def _check_action(self, action: Any) -> np.ndarray:
         try:
-            u = np.asarray(action, dtype=float)
+            u = np.asarray(action)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"action={action!r}: must be 2 numbers [a, delta]") from exc
+        # Text, objects and complex numbers would convert (or lose their imaginary part).
+        if u.dtype.kind not in "biuf":
+            raise ValueError(
+                f"action={action!r}: must be 2 real numbers [a, delta], not dtype {u.dtype}"
+            )
+        u = u.astype(float)
         if u.shape != (2,):
             raise ValueError(f"action has shape {u.shape}: must be (2,) = [a m/s^2, delta rad]")
         if not np.all(np.isfinite(u)):
