@@ -29,7 +29,7 @@ from controllers import mpc_problem
 from controllers.config import AgentConfig
 from controllers.mpc_problem import MPCSolution, ScenarioProblem
 from controllers.particle_filter import ParticleFilter, gaussian_log_likelihood
-from lfm_env.config import EnvConfig
+from lfm_env.config import ConfigError, EnvConfig
 from lfm_env.model import LatentForceModel, psd_factor
 
 # chi^2 quantile with 4 degrees of freedom at 1 - 1e-6: a measurement this far from
@@ -315,6 +315,21 @@ AGENT_LABELS = {
 }
 
 
+def check_agent_config(name: str, env_config: EnvConfig) -> None:
+    """Raise ``ConfigError`` if agent ``name`` cannot run on this (valid) world.
+
+    Cheap (builds nothing), so :func:`controllers.evaluation.evaluate` calls it for
+    every agent before the first episode. The particle filter of the ``pf`` and
+    ``scenario`` agents weighs measurements by their noise, which must not be zero.
+    """
+    std = env_config.measurement_noise_std
+    if name in ("pf", "scenario") and not all(s > 0.0 for s in std):
+        raise ConfigError(
+            f"env.measurement_noise_std={list(std)}: must be all > 0 for the {name!r} agent "
+            "(its particle filter weighs each measurement by this noise)"
+        )
+
+
 def make_agent(name: str, config: Any = None, env: Any = None) -> MPCAgent:
     """Build an agent by name.
 
@@ -333,9 +348,10 @@ def make_agent(name: str, config: Any = None, env: Any = None) -> MPCAgent:
         raise ValueError(f"agent {name!r} must not get env= (only the oracle reads the truth)")
     env_config = check_latent_step(load_env_config(config))
     cfg = load_agent_config(config)
+    check_agent_config(name, env_config)
     if name == "oracle":
         return OracleMPCAgent(env_config, cfg, env)
     return AGENTS[name](env_config, cfg)
 
 
-__all__ = ["AGENTS", "AGENT_LABELS", "make_agent", "mpc_problem"]
+__all__ = ["AGENTS", "AGENT_LABELS", "check_agent_config", "make_agent", "mpc_problem"]

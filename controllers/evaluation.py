@@ -55,7 +55,7 @@ import numpy as np
 import yaml
 
 import lfm_env  # noqa: F401  (registers lfm_env/SineTrack-v0, also in spawned workers)
-from controllers.agents import AGENTS, make_agent
+from controllers.agents import AGENTS, check_agent_config, make_agent
 from controllers.config import load_agent_config
 from lfm_env.config import check_latent_step, load_env_config, load_yaml, to_dict
 
@@ -733,6 +733,9 @@ def evaluate(
     names = _check_agents(agents)
     seed_list = _check_seeds(seeds)
     cfg = resolve_config(config)
+    env_config = load_env_config(cfg)
+    for name in names:
+        check_agent_config(name, env_config)
     modes = sum([jobs != 1, scheduler is not None, dask_workers is not None])
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"jobs={jobs!r}: must be an integer >= 1")
