@@ -182,6 +182,8 @@ def parse_seeds(text: str) -> list[int]:
 
 
 def _check_agents(agents: str | Iterable[str]) -> list[str]:
+    if not isinstance(agents, (str, Iterable)):
+        raise ValueError(f"agents {agents!r}: give a list of agent names; choose from {_known()}")
     names = agents.split(",") if isinstance(agents, str) else list(agents)
     names = [str(n).strip() for n in names]
     if not names or any(not n for n in names):
@@ -201,6 +203,8 @@ def _known() -> list[str]:
 def _check_seeds(seeds: int | Iterable[int]) -> list[int]:
     if isinstance(seeds, str):
         return parse_seeds(seeds)
+    if not isinstance(seeds, (int, np.integer, Iterable)):
+        raise ValueError(f"seeds {seeds!r}: give integers >= 0, e.g. [0, 1, 2] or '0:20'")
     values = [seeds] if isinstance(seeds, (int, np.integer)) else list(seeds)
     if not values:
         raise ValueError("seeds: the list is empty; give at least one seed >= 0")
