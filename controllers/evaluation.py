@@ -653,6 +653,27 @@ def _episode_task(
     return row
 
 
+def _exit_with_parent() -> None:
+    """Process-pool initializer: end this worker as soon as the parent process ends.
+
+    Pool workers otherwise outlive a parent killed with SIGKILL (or by the OOM killer),
+    blocked forever on the task queue. A worker ended mid-write leaves only a temporary
+    file, which the next run removes.
+    """
+    import multiprocessing
+    import threading
+
+    parent = multiprocessing.parent_process()
+    if parent is None:
+        return
+
+    def watch() -> None:
+        parent.join()  # returns when the parent's end of the spawn pipe closes
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
 def _finished_row(out: Path, agent_name: str, seed: int, record: bool) -> dict | None:
     """The saved row of a finished episode, or ``None`` if it must (re-)run."""
     stem = out / _EPISODES / episode_stem(agent_name, seed)
@@ -825,6 +846,7 @@ def evaluate(
             pool = ProcessPoolExecutor(
                 max_workers=min(jobs, len(todo)),
                 mp_context=multiprocessing.get_context("spawn"),  # no forked CasADi state
+                initializer=_exit_with_parent,
             )
             try:
                 futs = {
