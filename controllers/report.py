@@ -203,7 +203,8 @@ def load_results(results_dir: str | Path) -> Results:
     """
     directory = Path(results_dir)
     if not directory.is_dir():
-        raise FileNotFoundError(f"results folder {directory} does not exist")
+        problem = "is a file, not a folder" if directory.exists() else "does not exist"
+        raise FileNotFoundError(f"results folder {directory} {problem}")
     rows = read_episodes_csv(directory / "episodes.csv")
     config_path = directory / "config.yaml"
     if not config_path.is_file():
