@@ -111,6 +111,7 @@ _EPISODES = "episodes"
 _TABLE = "episodes.csv"
 _CONFIG = "config.yaml"
 _TABLE_REFRESH = 10.0  # [s] least time between rebuilds of episodes.csv during a run
+_POOL_RESTARTS = 3  # new process pools after a worker died, before lost episodes count as errors
 
 
 class ResultsFolderError(ValueError):
@@ -842,24 +843,39 @@ def evaluate(
         elif jobs > 1 and len(todo) > 1:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor, as_completed
+            from concurrent.futures.process import BrokenProcessPool
 
-            pool = ProcessPoolExecutor(
-                max_workers=min(jobs, len(todo)),
-                mp_context=multiprocessing.get_context("spawn"),  # no forked CasADi state
-                initializer=_exit_with_parent,
-            )
-            try:
-                futs = {
-                    pool.submit(_episode_task, a, cfg, s, out_str, record): (a, s) for a, s in todo
-                }
-                for fut in as_completed(futs):
-                    try:
-                        row = fut.result()
-                    except Exception as exc:
-                        row = lost(futs[fut], exc)
-                    done(futs[fut], row)
-            finally:
-                pool.shutdown(wait=True, cancel_futures=True)
+            # A worker that dies (OOM killer, a crash in native code) breaks the whole pool
+            # and fails every unfinished episode; rerun those on a new pool, a few times.
+            pending = todo
+            for restart in range(_POOL_RESTARTS + 1):
+                broken = []
+                pool = ProcessPoolExecutor(
+                    max_workers=min(jobs, len(pending)),
+                    mp_context=multiprocessing.get_context("spawn"),  # no forked CasADi state
+                    initializer=_exit_with_parent,
+                )
+                try:
+                    futs = {
+                        pool.submit(_episode_task, a, cfg, s, out_str, record): (a, s)
+                        for a, s in pending
+                    }
+                    for fut in as_completed(futs):
+                        try:
+                            row = fut.result()
+                        except BrokenProcessPool as exc:
+                            if restart < _POOL_RESTARTS:
+                                broken.append(futs[fut])
+                                continue
+                            row = lost(futs[fut], exc)
+                        except Exception as exc:
+                            row = lost(futs[fut], exc)
+                        done(futs[fut], row)
+                finally:
+                    pool.shutdown(wait=True, cancel_futures=True)
+                if not broken:
+                    break
+                pending = sorted(broken, key=pairs.index)
         else:
             for a, s in todo:
                 done((a, s), _episode_task(a, cfg, s, out_str, record))
