@@ -1,0 +1,521 @@
+"""CasADi + IPOPT solvers of the scenario MPC problem (paper eq. MPCScen).
+
+Both formulations minimise exactly :func:`controllers.mpc_problem.objective` (the
+scenario-averaged quadratic cost plus an exact L1 penalty on ``6 N`` shared slacks) and
+differ only in how the predicted states enter the NLP:
+
+* ``"multiple_shooting"``: the textbook formulation. The states of every scenario are
+  decision variables, the Euler dynamics are equality constraints and every scenario
+  constraint is explicit. Large but very sparse; it is the reference.
+* ``"condensed"`` (default): single shooting. The only decision variables are the shared
+  inputs (``2 N``) and the slacks (``6 N``); each scenario's states are SX expressions of
+  the inputs, so the NLP has ``8 N`` variables whatever ``Ns`` is.
+
+Each solver builds its NLP once, with the initial states ``x0`` (``4 x Ns``) and the latent
+forces ``W`` (``N x Ns``) as parameters, and re-solves it at every step with a warm start.
+The module also gives :func:`campi_garatti_scenarios`, the scenario count of Campi &
+Garatti (2008).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from numbers import Integral, Real
+from typing import Any
+
+import casadi as ca
+import numpy as np
+from scipy import stats
+
+from controllers import mpc_problem
+from controllers.mpc_problem import MPCSolution, ScenarioProblem
+from lfm_env.vehicle import euler_step
+
+FORMULATIONS = ("condensed", "multiple_shooting")
+N_CONSTRAINT_KINDS = 6  # track upper, track lower, x lower, x upper, speed lower, speed upper
+
+DEFAULT_IPOPT_OPTIONS: dict[str, Any] = {
+    "print_level": 0,
+    "sb": "yes",
+    "max_iter": 200,
+    "tol": 1e-8,
+}
+
+# Previous multipliers are reused only after a solve whose total slack was below this.
+WARM_DUALS_MAX_SLACK = 1e-6  # [m or m/s]
+
+# Used with the previous multipliers: start close to the central path instead of at
+# mu = 0.1, and do not push a good iterate far into the interior.
+WARM_START_IPOPT_OPTIONS: dict[str, Any] = {
+    "warm_start_init_point": "yes",
+    "warm_start_bound_push": 1e-6,
+    "warm_start_mult_bound_push": 1e-6,
+    "mu_init": 1e-4,
+}
+
+
+@dataclass
+class _NLP:
+    """A built scenario NLP: its symbolic definition, bounds, and the layout of its vectors.
+
+    The decision vector is ``[vec(u) (2N), vec(s) (6N), states]`` where ``states`` holds
+    ``x_1..x_N`` of every scenario ordered (step, scenario, component) in the multiple-
+    shooting formulation and is empty in the condensed one. ``x_blocks`` and ``g_blocks``
+    give, for each block of the decision and constraint vectors, its size per prediction
+    step; every block is ordered step-major, which is what the warm-start shift uses.
+    """
+
+    nlp: dict[str, ca.SX]
+    lbx: np.ndarray
+    ubx: np.ndarray
+    lbg: np.ndarray
+    ubg: np.ndarray
+    x_blocks: tuple[int, ...]
+    g_blocks: tuple[int, ...]
+
+
+def _step_function(problem: ScenarioProblem) -> ca.Function:
+    """One Euler step ``x+ = f(x, u, w)`` of one scenario, from :mod:`lfm_env.vehicle`."""
+    x = ca.SX.sym("x", 4)
+    u = ca.SX.sym("u", 2)
+    w = ca.SX.sym("w")
+    x_next = euler_step(x, u, problem.dt, w, problem.vehicle_length)
+    return ca.Function("euler_step", [x, u, w], [x_next], ["x", "u", "w"], ["x_next"])
+
+
+def _constraint_function(problem: ScenarioProblem) -> ca.Function:
+    """The six state constraints ``g(x) <= 0`` of one state, as in ``constraint_values``."""
+    x = ca.SX.sym("x", 4)
+    g = ca.vertcat(problem.track.constraints(x), problem.speed_min - x[2], x[2] - problem.speed_max)
+    return ca.Function("state_constraints", [x], [g], ["x"], ["g"])
+
+
+def _weighted_error(problem: ScenarioProblem, X: ca.SX, weights: tuple[float, ...]) -> ca.SX:
+    """Sum over scenarios of ``(x - x_g)^T diag(weights) (x - x_g)`` for states ``X`` (4 x Ns)."""
+    ns = X.shape[1]
+    e = X - ca.repmat(ca.DM(problem.x_goal), 1, ns)
+    return ca.sum2(ca.mtimes(ca.DM(weights).T, e**2))
+
+
+def _build_condensed(problem: ScenarioProblem) -> _NLP:
+    """Single shooting: inputs and slacks are the only decision variables."""
+    n, ns, nk = problem.horizon, problem.n_scenarios, N_CONSTRAINT_KINDS
+    U = ca.SX.sym("u", 2, n)
+    S = ca.SX.sym("s", nk, n)
+    X0 = ca.SX.sym("x0", 4, ns)
+    W = ca.SX.sym("W", n, ns)
+
+    # --- dynamics ---
+    # map() evaluates the one-scenario step on all columns at once; the shared input
+    # column is broadcast, so the rollout costs N Python iterations, not N * Ns.
+    step = _step_function(problem).map(ns)
+    cons = _constraint_function(problem).map(ns)
+    X = X0
+    cost = _weighted_error(problem, X, problem.Q)
+    g = []
+    for k in range(n):
+        X = step(X, U[:, k], W[k, :])
+        weights = problem.Qf if k == n - 1 else problem.Q
+        cost += _weighted_error(problem, X, weights)
+
+        # --- constraints ---
+        # g_j(x_k^(i)) - s[k, j] <= 0 for every scenario i; column i of G is scenario i,
+        # so vec(G) is ordered (scenario, kind) within step k.
+        G = cons(X) - ca.repmat(S[:, k], 1, ns)
+        g.append(ca.vec(G))
+
+    # --- objective ---
+    inputs = ca.sum2(ca.mtimes(ca.DM(problem.R).T, U**2))
+    f = cost / ns + inputs + problem.slack_penalty * ca.sum1(ca.sum2(S))
+
+    nlp = {
+        "x": ca.vertcat(ca.vec(U), ca.vec(S)),
+        "p": ca.vertcat(ca.vec(X0), ca.vec(W)),
+        "f": f,
+        "g": ca.vertcat(*g),
+    }
+    lbx, ubx = _input_and_slack_bounds(problem)
+    n_g = n * ns * nk
+    return _NLP(
+        nlp=nlp,
+        lbx=lbx,
+        ubx=ubx,
+        lbg=np.full(n_g, -np.inf),
+        ubg=np.zeros(n_g),
+        x_blocks=(2, nk),
+        g_blocks=(ns * nk,),
+    )
+
+
+def _build_multiple_shooting(problem: ScenarioProblem) -> _NLP:
+    """Textbook multiple shooting: all scenario states are variables, dynamics are equalities."""
+    n, ns, nk = problem.horizon, problem.n_scenarios, N_CONSTRAINT_KINDS
+    U = ca.SX.sym("u", 2, n)
+    S = ca.SX.sym("s", nk, n)
+    # Column k * Ns + i holds x_{k+1} of scenario i.
+    X = ca.SX.sym("X", 4, n * ns)
+    X0 = ca.SX.sym("x0", 4, ns)
+    W = ca.SX.sym("W", n, ns)
+
+    step = _step_function(problem).map(ns)
+    cons = _constraint_function(problem).map(ns)
+    cost = _weighted_error(problem, X0, problem.Q)
+    g_dyn, g_ineq = [], []
+    X_prev = X0
+    for k in range(n):
+        Xk = X[:, k * ns : (k + 1) * ns]
+
+        # --- dynamics ---
+        g_dyn.append(ca.vec(Xk - step(X_prev, U[:, k], W[k, :])))
+
+        # --- constraints ---
+        g_ineq.append(ca.vec(cons(Xk) - ca.repmat(S[:, k], 1, ns)))
+
+        weights = problem.Qf if k == n - 1 else problem.Q
+        cost += _weighted_error(problem, Xk, weights)
+        X_prev = Xk
+
+    # --- objective ---
+    inputs = ca.sum2(ca.mtimes(ca.DM(problem.R).T, U**2))
+    f = cost / ns + inputs + problem.slack_penalty * ca.sum1(ca.sum2(S))
+
+    nlp = {
+        "x": ca.vertcat(ca.vec(U), ca.vec(S), ca.vec(X)),
+        "p": ca.vertcat(ca.vec(X0), ca.vec(W)),
+        "f": f,
+        "g": ca.vertcat(*g_dyn, *g_ineq),
+    }
+    lbu, ubu = _input_and_slack_bounds(problem)
+    n_x = 4 * n * ns
+    n_dyn, n_ineq = 4 * n * ns, nk * n * ns
+    return _NLP(
+        nlp=nlp,
+        lbx=np.concatenate([lbu, np.full(n_x, -np.inf)]),
+        ubx=np.concatenate([ubu, np.full(n_x, np.inf)]),
+        lbg=np.concatenate([np.zeros(n_dyn), np.full(n_ineq, -np.inf)]),
+        ubg=np.zeros(n_dyn + n_ineq),
+        x_blocks=(2, nk, 4 * ns),
+        g_blocks=(4 * ns, nk * ns),
+    )
+
+
+def _input_and_slack_bounds(problem: ScenarioProblem) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of ``[vec(u), vec(s)]``: hard input bounds, slacks in ``[0, inf)``."""
+    n = problem.horizon
+    lbx = np.concatenate([np.tile(problem.input_lower, n), np.zeros(N_CONSTRAINT_KINDS * n)])
+    ubx = np.concatenate([np.tile(problem.input_upper, n), np.full(N_CONSTRAINT_KINDS * n, np.inf)])
+    return lbx, ubx
+
+
+def _shift_blocks(v: np.ndarray, blocks: tuple[int, ...], horizon: int) -> np.ndarray:
+    """Shift every step-major block of ``v`` by one prediction step, repeating the last step."""
+    out, start = [], 0
+    for size in blocks:
+        b = v[start : start + size * horizon].reshape(horizon, size)
+        out.append(np.concatenate([b[1:], b[-1:]]).ravel())
+        start += size * horizon
+    return np.concatenate(out)
+
+
+class IpoptScenarioSolver:
+    """IPOPT solver of a :class:`ScenarioProblem`, built once and re-solved every step.
+
+    Every solve starts from a primal guess (``u_guess``, else the previous plan shifted by
+    one step) with the slacks at their minimal values for it. A primal guess alone saves
+    IPOPT little (measured at N=7, Ns=150: about 31 instead of 30 iterations), because it
+    pushes the iterate into the interior and restarts the barrier at ``mu_init = 0.1``. So
+    two IPOPT instances share the NLP: a cold one (IPOPT defaults) and a warm one
+    (``warm_start_init_point`` and a small ``mu_init``) that also receives the previous
+    multipliers, shifted like the plan: about 16 iterations instead of 30 there. The warm
+    one is used only after a successful solve that needed no slack; after solves with
+    active slacks the warm start cost iterations instead (measured: 54-63 instead of 34),
+    since the penalised constraints change their active set with every draw of ``W``.
+
+    Args:
+        problem: the problem data (horizon, scenario count, weights, bounds, track).
+        formulation: ``"condensed"`` (single shooting, default) or ``"multiple_shooting"``
+            (the textbook reference).
+        ipopt_options: IPOPT options (names without the ``ipopt.`` prefix) merged over
+            :data:`DEFAULT_IPOPT_OPTIONS` (and over :data:`WARM_START_IPOPT_OPTIONS` for
+            the warm instance).
+        warm_start_duals: pass the previous multipliers to the warm instance; with False
+            only the primal guess is warm started.
+    """
+
+    def __init__(
+        self,
+        problem: ScenarioProblem,
+        formulation: str = "condensed",
+        ipopt_options: dict[str, Any] | None = None,
+        warm_start_duals: bool = True,
+    ) -> None:
+        if formulation not in FORMULATIONS:
+            raise ValueError(f"formulation={formulation!r}: must be one of {FORMULATIONS}")
+        self.problem = problem
+        self.formulation = formulation
+        self.warm_start_duals = warm_start_duals
+        user = dict(ipopt_options or {})
+        self.ipopt_options = {**DEFAULT_IPOPT_OPTIONS, **user}
+        t0 = time.perf_counter()
+        build = _build_condensed if formulation == "condensed" else _build_multiple_shooting
+        self._nlp = build(problem)
+        self._cold = self._make_solver("cold", self.ipopt_options)
+        self._warm = None
+        if warm_start_duals:
+            warm_options = {**DEFAULT_IPOPT_OPTIONS, **WARM_START_IPOPT_OPTIONS, **user}
+            self._warm = self._make_solver("warm", warm_options)
+        self.build_time = time.perf_counter() - t0  # [s]
+        self._prev: dict[str, np.ndarray | None] | None = None
+
+    def _make_solver(self, name: str, ipopt_options: dict[str, Any]) -> ca.Function:
+        opts = {"ipopt": ipopt_options, "print_time": False, "error_on_fail": False}
+        return ca.nlpsol(f"scenario_mpc_{self.formulation}_{name}", "ipopt", self._nlp.nlp, opts)
+
+    @staticmethod
+    def _run(
+        solver: ca.Function, args: dict[str, np.ndarray], duals: dict[str, np.ndarray]
+    ) -> tuple[dict[str, ca.DM] | None, Exception | None, dict[str, Any], float]:
+        """One IPOPT call: result (None on an exception), the exception, stats, wall time [s]."""
+        error = None
+        t0 = time.perf_counter()
+        try:
+            result = solver(**args, **duals)
+        except RuntimeError as exc:  # e.g. a NaN in an evaluation CasADi refuses to pass on
+            result, error = None, exc
+        solve_time = time.perf_counter() - t0
+        return result, error, solver.stats(), solve_time
+
+    @staticmethod
+    def _iterate(result: dict[str, ca.DM] | None, z0: np.ndarray) -> np.ndarray:
+        """IPOPT's final decision vector, or the initial guess if there is no finite one."""
+        z = z0 if result is None else result["x"].full().ravel()
+        return z if np.all(np.isfinite(z)) else z0
+
+    def _objective_of(
+        self, result: dict[str, ca.DM], z0: np.ndarray, x0: np.ndarray, W: np.ndarray
+    ) -> float:
+        u = self._iterate(result, z0)[: 2 * self.problem.horizon].reshape(-1, 2)
+        u = np.clip(u, self.problem.input_lower, self.problem.input_upper)
+        return mpc_problem.objective(self.problem, x0, W, u)
+
+    def reset(self) -> None:
+        """Forget the warm start: the next solve starts cold from zero inputs."""
+        self._prev = None
+
+    def _initial_guess(
+        self, x0: np.ndarray, W: np.ndarray, u_guess: np.ndarray | None
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """Primal start ``[u, s, states]`` and the multipliers to pass (empty when cold).
+
+        The previous multipliers belong to the previous solution, so they are passed only
+        when the primal guess is that solution, shifted (the default) or not (``u_guess``
+        equal to the previous ``u``: re-solving the same or a nearby problem).
+        """
+        problem, n, nlp, prev = self.problem, self.problem.horizon, self._nlp, self._prev
+        mode = "cold"
+        shifted = None if prev is None else np.concatenate([prev["u"][1:], prev["u"][-1:]])
+        if u_guess is not None:
+            u_guess = np.asarray(u_guess, dtype=float)
+            if u_guess.shape != (n, 2) or not np.all(np.isfinite(u_guess)):
+                raise ValueError(
+                    f"u_guess has shape {u_guess.shape} or non-finite entries; "
+                    f"expected finite (horizon, 2) = {(n, 2)}"
+                )
+            u0 = u_guess
+            if prev is not None and np.array_equal(u_guess, prev["u"]):
+                mode = "same"
+            elif shifted is not None and np.array_equal(u_guess, shifted):
+                mode = "shift"
+        elif shifted is not None:
+            u0, mode = shifted, "shift"
+        else:
+            u0 = np.zeros((n, 2))
+        u0 = np.clip(u0, problem.input_lower, problem.input_upper)
+
+        duals: dict[str, np.ndarray] = {}
+        if self._warm is not None and mode != "cold" and prev["lam_x"] is not None:
+            for key, blocks in (("lam_x", nlp.x_blocks), ("lam_g", nlp.g_blocks)):
+                lam = prev[key]
+                duals[key + "0"] = _shift_blocks(lam, blocks, n) if mode == "shift" else lam
+
+        X = mpc_problem.rollout(problem, x0, W, u0)
+        parts = [u0.ravel(), mpc_problem.minimal_slack(problem, X).ravel()]
+        if self.formulation == "multiple_shooting":
+            parts.append(X[:, 1:].transpose(1, 0, 2).ravel())
+        return np.concatenate(parts), duals
+
+    def solve(
+        self, x0: np.ndarray, W: np.ndarray, u_guess: np.ndarray | None = None
+    ) -> MPCSolution:
+        """Solve the scenario problem for initial state(s) ``x0`` and latent forces ``W``.
+
+        Args:
+            x0: initial state ``[p_x, p_y, v, psi]`` [m, m, m/s, rad], shape ``(4,)`` or
+                ``(Ns, 4)``.
+            W: latent force [m/s^2] of each scenario and step, shape ``(Ns, N)``.
+            u_guess: initial input sequence ``(N, 2)`` [m/s^2, rad]; by default the
+                previous solution shifted by one step (zeros on the first solve).
+
+        Returns:
+            The solution; ``u`` is clipped into the input bounds, and ``objective`` and
+            ``slack`` are :func:`mpc_problem.objective` and the sum of
+            :func:`mpc_problem.minimal_slack` evaluated on it, so every solver is compared
+            on the same function. A failed solve does not raise: it returns IPOPT's last
+            iterate with ``success=False`` and IPOPT's status. A failed warm-started solve
+            is retried once cold (``extra["cold_retry"]``); ``solve_time`` and
+            ``iterations`` then cover both calls.
+
+        Raises:
+            ValueError: on wrongly shaped or non-finite ``x0``, ``W`` or ``u_guess``.
+        """
+        problem, n, nlp = self.problem, self.problem.horizon, self._nlp
+        x0, W = problem.check_data(x0, W)
+        z0, duals = self._initial_guess(x0, W, u_guess)
+        args = {
+            "x0": z0,
+            "p": np.concatenate([x0.ravel(), W.ravel()]),
+            "lbx": nlp.lbx,
+            "ubx": nlp.ubx,
+            "lbg": nlp.lbg,
+            "ubg": nlp.ubg,
+        }
+        result, error, stats_, solve_time = self._run(
+            self._warm if duals else self._cold, args, duals
+        )
+        iterations = _iterations(stats_, error, self.ipopt_options)
+        retried = False
+        if duals and (error is not None or not stats_.get("success", False)):
+            # A warm start that fails must not cost the step: retry cold from the same guess,
+            # and if that fails too keep whichever iterate has the lower objective.
+            warm_run = (result, error, stats_)
+            result, error, stats_, more_time = self._run(self._cold, args, {})
+            solve_time += more_time
+            iterations += _iterations(stats_, error, self.ipopt_options)
+            retried = True
+            if not (error is None and stats_.get("success", False)) and warm_run[0] is not None:
+                warm_obj = self._objective_of(warm_run[0], z0, x0, W)
+                if result is None or warm_obj < self._objective_of(result, z0, x0, W):
+                    result, error, stats_ = warm_run
+
+        z = self._iterate(result, z0)
+        u = np.clip(z[: 2 * n].reshape(n, 2), problem.input_lower, problem.input_upper)
+        predicted = mpc_problem.rollout(problem, x0, W, u)
+        slack = float(np.sum(mpc_problem.minimal_slack(problem, predicted)))
+        success = error is None and bool(stats_.get("success", False))
+        status = repr(error) if error is not None else str(stats_.get("return_status", "?"))
+
+        # Multipliers of a failed solve are no good start, and neither (measured) are those
+        # of a solve with active slacks: the penalised constraints then change their active
+        # set with each new draw of W. Keep only the inputs in both cases.
+        lam_x = lam_g = None
+        if success and slack <= WARM_DUALS_MAX_SLACK:
+            lam_x, lam_g = result["lam_x"].full().ravel(), result["lam_g"].full().ravel()
+        self._prev = {"u": u, "lam_x": lam_x, "lam_g": lam_g}
+        return MPCSolution(
+            u=u,
+            objective=mpc_problem.objective(problem, x0, W, u),
+            slack=slack,
+            status=status,
+            success=success,
+            solve_time=solve_time,
+            iterations=iterations,
+            predicted=predicted,
+            extra={
+                "formulation": self.formulation,
+                "warm_started_duals": bool(duals),
+                "cold_retry": retried,
+                "ipopt_objective": math.nan if result is None else float(result["f"]),
+                "slacks": z[2 * n : 8 * n].reshape(n, N_CONSTRAINT_KINDS).copy(),
+            },
+        )
+
+
+def _iterations(stats_: dict[str, Any], error: Exception | None, options: dict[str, Any]) -> int:
+    """IPOPT's iteration count, 0 when it stopped before iterating (``iter_count`` is garbage)."""
+    iterations = int(stats_.get("iter_count", 0))
+    if error is not None or not 0 <= iterations <= int(options["max_iter"]):
+        return 0
+    return iterations
+
+
+_SOLVER_CACHE: dict[tuple[ScenarioProblem, str], IpoptScenarioSolver] = {}
+_SOLVER_CACHE_SIZE = 8  # built solvers kept; each holds two IPOPT instances
+
+
+def solve_scenario_problem(
+    problem: ScenarioProblem,
+    x0: np.ndarray,
+    W: np.ndarray,
+    solver: str = "condensed",
+    u_guess: np.ndarray | None = None,
+) -> MPCSolution:
+    """Solve one scenario problem from a cold start (or from ``u_guess``).
+
+    Solvers are cached per ``(problem, formulation)`` so repeated calls do not rebuild the
+    NLP; the cached solver's warm start is reset, so each call is independent.
+
+    Args:
+        problem: the problem data.
+        x0: initial state(s), ``(4,)`` or ``(Ns, 4)`` [m, m, m/s, rad].
+        W: latent forces ``(Ns, N)`` [m/s^2].
+        solver: ``"condensed"`` or ``"multiple_shooting"``.
+        u_guess: optional initial inputs ``(N, 2)``.
+    """
+    key = (problem, solver)
+    if key not in _SOLVER_CACHE:
+        if len(_SOLVER_CACHE) >= _SOLVER_CACHE_SIZE:
+            _SOLVER_CACHE.clear()
+        # Each call starts cold, so the warm-start IPOPT instance would never be used.
+        _SOLVER_CACHE[key] = IpoptScenarioSolver(
+            problem, formulation=solver, warm_start_duals=False
+        )
+    ipopt = _SOLVER_CACHE[key]
+    ipopt.reset()
+    return ipopt.solve(x0, W, u_guess=u_guess)
+
+
+def _binomial_tail(n_scenarios: int, epsilon: float, n_decision: int) -> float:
+    """``sum_{i<d} C(Ns, i) eps^i (1 - eps)^(Ns - i)``, the Campi-Garatti confidence bound."""
+    return float(stats.binom.cdf(n_decision - 1, n_scenarios, epsilon))
+
+
+def campi_garatti_scenarios(epsilon: float, beta: float, n_decision: int) -> int:
+    """Smallest scenario count ``Ns`` meeting the Campi & Garatti (2008) bound.
+
+    For a convex scenario program with ``d`` decision variables, ``Ns`` scenarios give a
+    solution whose violation probability exceeds ``epsilon`` with probability at most
+    ``beta`` when ``sum_{i=0}^{d-1} C(Ns, i) eps^i (1-eps)^(Ns-i) <= beta``.
+
+    Args:
+        epsilon: admissible violation probability, in (0, 1).
+        beta: confidence parameter, in (0, 1).
+        n_decision: number ``d`` of decision variables, an integer >= 1.
+
+    Returns:
+        The smallest ``Ns`` satisfying the bound. The guarantee is for convex programs; the
+        vehicle MPC is not convex, so for it this is a heuristic (paper, Remark 2).
+
+    Raises:
+        ValueError: when an argument is out of range.
+    """
+    if isinstance(epsilon, bool) or not isinstance(epsilon, Real) or not 0.0 < epsilon < 1.0:
+        raise ValueError(f"epsilon={epsilon!r}: must be a number in (0, 1)")
+    if isinstance(beta, bool) or not isinstance(beta, Real) or not 0.0 < beta < 1.0:
+        raise ValueError(f"beta={beta!r}: must be a number in (0, 1)")
+    if isinstance(n_decision, bool) or not isinstance(n_decision, Integral) or n_decision < 1:
+        raise ValueError(f"n_decision={n_decision!r}: must be an integer >= 1")
+    d = int(n_decision)
+    # The tail equals 1 for Ns < d and decreases strictly in Ns, so bracket by doubling and
+    # then bisect: lo always fails the bound, hi always meets it.
+    lo, hi = d - 1, d
+    while _binomial_tail(hi, epsilon, d) > beta:
+        lo, hi = hi, 2 * hi
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if _binomial_tail(mid, epsilon, d) <= beta:
+            hi = mid
+        else:
+            lo = mid
+    return hi

@@ -1,0 +1,331 @@
+"""Tests of the CasADi + IPOPT scenario MPC solvers and of the Campi-Garatti scenario count."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.optimize import Bounds, minimize
+from scipy.optimize._numdiff import approx_derivative
+
+from controllers import mpc_problem as mp
+from controllers.mpc import (
+    FORMULATIONS,
+    IpoptScenarioSolver,
+    campi_garatti_scenarios,
+    solve_scenario_problem,
+)
+from controllers.mpc_problem import ScenarioProblem
+
+N = 5
+NS = 20
+START = np.array([0.0, 0.0, 1.0, np.pi / 4])  # the case study's start [m, m, m/s, rad]
+MID_TRACK = np.array([20.0, 3.0 * np.sin(4.0), 5.0, 0.0])
+
+
+def rel_diff(a: float, b: float) -> float:
+    return abs(a - b) / max(abs(a), abs(b), 1.0)
+
+
+@pytest.fixture(scope="module")
+def problem() -> ScenarioProblem:
+    return ScenarioProblem(horizon=N, n_scenarios=NS)
+
+
+@pytest.fixture(scope="module")
+def solvers(problem: ScenarioProblem) -> dict[str, IpoptScenarioSolver]:
+    # Built once for the module: building is the expensive part, re-solving is not.
+    return {f: IpoptScenarioSolver(problem, formulation=f) for f in FORMULATIONS}
+
+
+def solve_cold(solver: IpoptScenarioSolver, x0: np.ndarray, W: np.ndarray, **kw) -> mp.MPCSolution:
+    solver.reset()
+    return solver.solve(x0, W, **kw)
+
+
+def nominal_slsqp(problem: ScenarioProblem, x0: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """Inputs of the hard-constrained problem solved by SciPy's SLSQP, independent of CasADi."""
+    n = problem.horizon
+
+    def cost(z: np.ndarray) -> float:
+        u = z.reshape(n, 2)
+        X = mp.rollout(problem, x0, W, u)
+        return mp.objective(problem, x0, W, u) - problem.slack_penalty * float(
+            np.sum(mp.minimal_slack(problem, X))
+        )
+
+    def g(z: np.ndarray) -> np.ndarray:
+        return -mp.constraint_values(problem, mp.rollout(problem, x0, W, z.reshape(n, 2))).ravel()
+
+    bounds = Bounds(np.tile(problem.input_lower, n), np.tile(problem.input_upper, n))
+    result = minimize(
+        cost,
+        np.zeros(2 * n),
+        jac=lambda z: approx_derivative(cost, z, method="3-point"),
+        method="SLSQP",
+        bounds=bounds,
+        constraints=[
+            {"type": "ineq", "fun": g, "jac": lambda z: approx_derivative(g, z, method="3-point")}
+        ],
+        options={"ftol": 1e-14, "maxiter": 500},
+    )
+    return result.x.reshape(n, 2)
+
+
+# --- agreement between formulations ---
+
+
+@pytest.mark.parametrize("x0", [START, MID_TRACK], ids=["start", "mid_track"])
+def test_nominal_problem_agrees_across_formulations_and_scipy(x0: np.ndarray) -> None:
+    one = ScenarioProblem(horizon=N, n_scenarios=1)
+    W = np.zeros((1, N))
+    cond = solve_scenario_problem(one, x0, W, solver="condensed")
+    ms = solve_scenario_problem(one, x0, W, solver="multiple_shooting")
+    assert cond.success and ms.success
+    assert rel_diff(cond.objective, ms.objective) < 1e-6
+    np.testing.assert_allclose(cond.u, ms.u, atol=1e-4)
+
+    # Identical zero-disturbance scenarios average to the same nominal problem.
+    many = ScenarioProblem(horizon=N, n_scenarios=4)
+    rep = solve_scenario_problem(many, x0, np.zeros((4, N)))
+    assert rel_diff(cond.objective, rep.objective) < 1e-6
+    np.testing.assert_allclose(cond.u, rep.u, atol=1e-4)
+
+    u_ref = nominal_slsqp(one, x0, W)
+    assert mp.constraint_violation(one, mp.rollout(one, x0, W, u_ref)) < 1e-6
+    assert rel_diff(cond.objective, mp.objective(one, x0, W, u_ref)) < 1e-6
+    np.testing.assert_allclose(cond.u, u_ref, atol=1e-4)
+
+
+@pytest.mark.parametrize("x0", [START, MID_TRACK], ids=["start", "mid_track"])
+def test_condensed_matches_multiple_shooting_on_random_scenarios(
+    solvers: dict[str, IpoptScenarioSolver], x0: np.ndarray
+) -> None:
+    W = np.random.default_rng(3).normal(0.0, 2.0, size=(NS, N))
+    cond = solve_cold(solvers["condensed"], x0, W)
+    ms = solve_cold(solvers["multiple_shooting"], x0, W)
+    assert cond.success and ms.success, (cond.status, ms.status)
+    assert rel_diff(cond.objective, ms.objective) < 1e-5
+    np.testing.assert_allclose(cond.u, ms.u, atol=1e-3)
+
+
+# --- the returned solution ---
+
+
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_returned_objective_and_input_bounds(
+    problem: ScenarioProblem, solvers: dict[str, IpoptScenarioSolver], formulation: str
+) -> None:
+    rng = np.random.default_rng(4)
+    W = rng.normal(0.0, 2.0, size=(NS, N))
+    sol = solve_cold(solvers[formulation], START, W)
+    assert sol.success
+    assert sol.u.shape == (N, 2)
+    assert sol.objective == mp.objective(problem, START, W, sol.u)
+    assert rel_diff(sol.objective, sol.extra["ipopt_objective"]) < 1e-6
+    assert np.all(sol.u >= problem.input_lower) and np.all(sol.u <= problem.input_upper)
+    np.testing.assert_allclose(sol.predicted, mp.rollout(problem, START, W, sol.u))
+    assert sol.iterations > 0 and sol.solve_time > 0.0
+
+
+def test_per_scenario_initial_states_match_shared_initial_state(
+    problem: ScenarioProblem, solvers: dict[str, IpoptScenarioSolver]
+) -> None:
+    W = np.random.default_rng(5).normal(0.0, 1.0, size=(NS, N))
+    shared = solve_cold(solvers["condensed"], MID_TRACK, W)
+    per_scenario = solve_cold(solvers["condensed"], np.tile(MID_TRACK, (NS, 1)), W)
+    np.testing.assert_allclose(per_scenario.u, shared.u, atol=1e-9)
+
+    # Different initial states per scenario (the paper's remark) are honoured.
+    x0s = np.tile(MID_TRACK, (NS, 1))
+    x0s[:, 1] += np.random.default_rng(6).normal(0.0, 0.2, size=NS)
+    spread = solve_cold(solvers["condensed"], x0s, W)
+    assert spread.success
+    np.testing.assert_allclose(spread.predicted[:, 0], x0s)
+    assert spread.objective == mp.objective(problem, x0s, W, spread.u)
+
+
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_feasible_problem_needs_no_slack(
+    problem: ScenarioProblem, solvers: dict[str, IpoptScenarioSolver], formulation: str
+) -> None:
+    rng = np.random.default_rng(7)
+    for x0 in (START, MID_TRACK):
+        W = rng.normal(0.0, 0.5, size=(NS, N))
+        sol = solve_cold(solvers[formulation], x0, W)
+        assert sol.success
+        assert sol.slack < 1e-6
+        assert mp.constraint_violation(problem, sol.predicted) < 1e-6
+
+
+def fast_off_track_start(problem: ScenarioProblem) -> np.ndarray:
+    """0.5 m from the upper edge at 7 m/s heading straight out of the track."""
+    px = 10.0
+    py = problem.track.centre_y(px) + problem.track.half_width - 0.5
+    slope = problem.track.amplitude * problem.track.pulsation * np.cos(problem.track.pulsation * px)
+    return np.array([px, py, 7.0, np.arctan(slope) + np.pi / 2])
+
+
+@pytest.mark.parametrize("case", ["overspeed", "off_track"])
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_infeasible_problem_minimises_exact_penalty(
+    problem: ScenarioProblem,
+    solvers: dict[str, IpoptScenarioSolver],
+    formulation: str,
+    case: str,
+) -> None:
+    if case == "overspeed":
+        # The latent force beats the strongest braking: the speed must exceed 8 m/s.
+        x0 = MID_TRACK.copy()
+        x0[2] = 7.9
+        W = np.full((NS, N), 6.0)
+    else:
+        # Even full steering cannot keep the first step inside the band.
+        x0 = fast_off_track_start(problem)
+        W = np.random.default_rng(8).normal(0.0, 0.5, size=(NS, N))
+    sol = solve_cold(solvers[formulation], x0, W)
+    assert sol.success, sol.status
+    assert sol.slack > 1e-3
+
+    rng = np.random.default_rng(9)
+    for scale in (1e-3, 1e-2, 1e-1):
+        for _ in range(4):
+            u = np.clip(
+                sol.u + scale * rng.standard_normal(sol.u.shape),
+                problem.input_lower,
+                problem.input_upper,
+            )
+            assert mp.objective(problem, x0, W, u) >= sol.objective * (1.0 - 1e-9)
+
+
+# --- warm start, reset, failures ---
+
+
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_warm_start_and_reset(solvers: dict[str, IpoptScenarioSolver], formulation: str) -> None:
+    solver = solvers[formulation]
+    W = np.random.default_rng(10).normal(0.0, 1.0, size=(NS, N))
+    cold = solve_cold(solver, MID_TRACK, W)
+    assert cold.success and not cold.extra["warm_started_duals"]
+
+    again = solver.solve(MID_TRACK, W, u_guess=cold.u)
+    assert again.success and again.extra["warm_started_duals"]
+    assert again.iterations <= 5 < cold.iterations
+    assert rel_diff(again.objective, cold.objective) < 1e-8
+
+    # Default: the previous plan shifted by one step, for the next state.
+    x1 = again.predicted[0, 1]
+    nxt = solver.solve(x1, np.random.default_rng(11).normal(0.0, 1.0, size=(NS, N)))
+    assert nxt.success and nxt.extra["warm_started_duals"]
+
+    solver.reset()
+    fresh = solver.solve(MID_TRACK, W)
+    assert not fresh.extra["warm_started_duals"]
+    assert fresh.iterations == cold.iterations
+    np.testing.assert_array_equal(fresh.u, cold.u)
+
+
+def test_failed_solve_returns_iterate_without_raising(problem: ScenarioProblem) -> None:
+    solver = IpoptScenarioSolver(problem, ipopt_options={"max_iter": 2}, warm_start_duals=False)
+    W = np.random.default_rng(12).normal(0.0, 2.0, size=(NS, N))
+    sol = solver.solve(START, W)
+    assert not sol.success
+    assert sol.status == "Maximum_Iterations_Exceeded"
+    assert sol.iterations == 2
+    assert np.all(sol.u >= problem.input_lower) and np.all(sol.u <= problem.input_upper)
+    assert sol.objective == mp.objective(problem, START, W, sol.u)
+
+
+def test_failed_warm_start_is_retried_cold(problem: ScenarioProblem) -> None:
+    solver = IpoptScenarioSolver(problem)
+    # A warm instance that cannot converge stands in for a warm start gone wrong.
+    solver._warm = solver._make_solver("warm_crippled", {**solver.ipopt_options, "max_iter": 1})
+    W = np.random.default_rng(13).normal(0.0, 0.5, size=(NS, N))
+    first = solver.solve(MID_TRACK, W)
+    assert first.success and first.slack < 1e-6
+    second = solver.solve(first.predicted[0, 1], W)
+    assert second.extra["warm_started_duals"] and second.extra["cold_retry"]
+    assert second.success and second.iterations > 1
+
+
+# --- input validation ---
+
+
+def test_bad_inputs_raise(
+    solvers: dict[str, IpoptScenarioSolver], problem: ScenarioProblem
+) -> None:
+    solver = solvers["condensed"]
+    W = np.zeros((NS, N))
+    bad_nan = W.copy()
+    bad_nan[3, 2] = np.nan
+    x_nan = START.copy()
+    x_nan[2] = np.nan
+    with pytest.raises(ValueError, match="W has shape"):
+        solver.solve(START, np.zeros((NS, N + 1)))
+    with pytest.raises(ValueError, match="W has shape"):
+        solver.solve(START, np.zeros(N))
+    with pytest.raises(ValueError, match="x0 has shape"):
+        solver.solve(START[:3], W)
+    with pytest.raises(ValueError, match="x0 has shape"):
+        solver.solve(np.zeros((NS + 1, 4)), W)
+    with pytest.raises(ValueError, match="finite"):
+        solver.solve(START, bad_nan)
+    with pytest.raises(ValueError, match="finite"):
+        solver.solve(x_nan, W)
+    with pytest.raises(ValueError, match="u_guess"):
+        solver.solve(START, W, u_guess=np.zeros((N + 1, 2)))
+    with pytest.raises(ValueError, match="u_guess"):
+        solver.solve(START, W, u_guess=np.full((N, 2), np.nan))
+    with pytest.raises(ValueError, match="formulation"):
+        IpoptScenarioSolver(problem, formulation="direct_collocation")
+
+
+# --- Campi & Garatti scenario count ---
+
+
+def cg_tail(n_scenarios: int, epsilon: float, d: int) -> float:
+    return sum(
+        math.comb(n_scenarios, i) * epsilon**i * (1.0 - epsilon) ** (n_scenarios - i)
+        for i in range(d)
+    )
+
+
+@pytest.mark.parametrize(("epsilon", "beta"), [(0.05, 1e-3), (0.1, 1e-6), (0.01, 0.05), (0.3, 0.5)])
+def test_campi_garatti_single_decision_variable(epsilon: float, beta: float) -> None:
+    expected = math.ceil(math.log(beta) / math.log(1.0 - epsilon))
+    assert campi_garatti_scenarios(epsilon, beta, 1) == expected
+
+
+def test_campi_garatti_known_value() -> None:
+    assert campi_garatti_scenarios(0.05, 1e-3, 1) == 135
+
+
+@pytest.mark.parametrize(
+    ("epsilon", "beta", "d"),
+    [(0.1, 1e-6, 14), (0.05, 1e-3, 56), (0.2, 0.01, 3), (0.02, 1e-9, 20), (0.5, 0.1, 2)],
+)
+def test_campi_garatti_is_smallest_satisfying_count(epsilon: float, beta: float, d: int) -> None:
+    ns = campi_garatti_scenarios(epsilon, beta, d)
+    assert ns >= d
+    assert cg_tail(ns, epsilon, d) <= beta
+    assert cg_tail(ns - 1, epsilon, d) > beta
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"epsilon": 0.0}, "epsilon"),
+        ({"epsilon": 1.0}, "epsilon"),
+        ({"epsilon": float("nan")}, "epsilon"),
+        ({"beta": 0.0}, "beta"),
+        ({"beta": 1.5}, "beta"),
+        ({"n_decision": 0}, "n_decision"),
+        ({"n_decision": 2.5}, "n_decision"),
+        ({"n_decision": True}, "n_decision"),
+    ],
+)
+def test_campi_garatti_rejects_bad_arguments(kwargs: dict, field: str) -> None:
+    args = {"epsilon": 0.05, "beta": 1e-3, "n_decision": 3, **kwargs}
+    with pytest.raises(ValueError, match=field):
+        campi_garatti_scenarios(**args)
