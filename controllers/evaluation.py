@@ -881,6 +881,8 @@ def evaluate(
                 done((a, s), _episode_task(a, cfg, s, out_str, record))
 
     if out_path is not None:
+        # A worker killed mid-write (then rerun elsewhere) leaves its temporary file.
+        _remove_stale_temp_files(out_path)
         write_table(out_path)
     return sorted((rows[p] for p in pairs), key=lambda r: (r["agent"], r["seed"]))
 
