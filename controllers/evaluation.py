@@ -765,7 +765,9 @@ def evaluate(
     modes = sum([jobs != 1, scheduler is not None, dask_workers is not None])
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"jobs={jobs!r}: must be an integer >= 1")
-    if dask_workers is not None and (not isinstance(dask_workers, int) or dask_workers < 1):
+    if dask_workers is not None and (
+        isinstance(dask_workers, bool) or not isinstance(dask_workers, int) or dask_workers < 1
+    ):
         raise ValueError(f"dask_workers={dask_workers!r}: must be an integer >= 1")
     if modes > 1:
         raise ValueError("choose one of jobs > 1, scheduler and dask_workers")
