@@ -885,7 +885,11 @@ class FastScenarioSolver:
             if not (np.all(np.isfinite(H)) and np.all(np.isfinite(lin.grad))):
                 status = "Invalid_Derivatives"
                 break
-            qp_step, mu = self._newton_step(lin, H, u, active_pos, active_speed, damping, stats)
+            try:
+                qp_step, mu = self._newton_step(lin, H, u, active_pos, active_speed, damping, stats)
+            except np.linalg.LinAlgError:  # eigen-decomposition failed: keep the best iterate
+                status = "Numerical_Error"
+                break
             if qp_step is None:
                 status = "QP_Failed"
                 break
