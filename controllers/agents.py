@@ -82,7 +82,7 @@ class MPCAgent:
     def __init__(self, env_config: EnvConfig, cfg: AgentConfig) -> None:
         self.env_config = env_config
         self.cfg = cfg
-        self.model = LatentForceModel(env_config)
+        self.model = LatentForceModel(env_config, cfg.disturbance)
         self.problem = make_problem(env_config, cfg, self.n_scenarios)
         self.mpc = make_solver(self.problem, cfg)
         self.last_info: dict[str, Any] = {}

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from lfm_env.config import ConfigError, _Checker, from_dict, read_section
+from lfm_env.config import ConfigError, DisturbanceConfig, _Checker, from_dict, read_section
 
 SOLVERS = ("fast", "ipopt", "ipopt_multiple_shooting")
 RESAMPLING = ("systematic", "stratified", "residual", "multinomial")
@@ -38,9 +38,14 @@ class AgentConfig:
     R: tuple[float, float] = (0.5, 10.0)  # input weights on [a, delta (rad)]
     goal_state: tuple[float, float, float, float] = (62.83, 0.0, 4.0, 0.0)  # [m, m, m/s, deg]
     slack_penalty: float = 1.0e4  # exact L1 penalty per unit of state-constraint slack
-    solver: str = "fast"  # one of SOLVERS: fast (default), ipopt (condensed), ipopt_multiple_shooting
+    solver: str = (
+        "fast"  # one of SOLVERS: fast (default), ipopt (condensed), ipopt_multiple_shooting
+    )
     max_iter: int = 100  # solver iteration limit per step
     scenario_initial_states: str = "estimate"  # "estimate" (paper) or "particles" (its remark)
+    # The agents' belief about the latent force. null: the env section's, known a priori
+    # (the paper); set it to learned hyperparameters (see lfm-calibrate).
+    disturbance: DisturbanceConfig | None = None
 
     def __post_init__(self) -> None:
         c = _Checker(self)

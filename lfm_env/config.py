@@ -266,29 +266,58 @@ class _Checker:
 
 MATERN_NUS = (0.5, 1.5, 2.5, 3.5)
 DISCRETIZATIONS = ("exact", "euler_maruyama")
+KERNELS = ("matern", "squared_exponential", "periodic")
 STARTS = ("stationary", "zero")
 
 
 @dataclass(frozen=True)
 class DisturbanceConfig:
-    """The hidden latent force: a Matern GP in time, in state-space form."""
+    """The latent force: a stationary GP in time, in state-space form.
 
-    kernel: str = "matern"  # only "matern" for now
-    nu: float = 2.5  # smoothness, a half-integer in MATERN_NUS
+    ``kernel`` picks the covariance: ``matern`` (exact in state space; the paper's),
+    ``squared_exponential`` (Taylor approximation of order ``order``) or ``periodic``
+    (``sigma^2 exp(-2 sin^2(pi tau / period) / lengthscale^2)``, cosine series with
+    ``harmonics`` terms; its lengthscale is dimensionless).
+    """
+
+    kernel: str = "matern"  # one of KERNELS
+    nu: float = 2.5  # Matern smoothness, a half-integer in MATERN_NUS
     variance: float = 4.0  # sigma^2 [(m/s^2)^2]
-    lengthscale: float = 4.0  # [s]
+    lengthscale: float = 4.0  # [s] (dimensionless for the periodic kernel)
+    order: int = 6  # Taylor order of the squared-exponential approximation, 1..12
+    period: float = 10.0  # [s] of the periodic kernel
+    harmonics: int = 6  # cosine-series terms of the periodic kernel
     discretization: str = "exact"  # "exact" (expm) or "euler_maruyama" (the published code)
     start: str = "stationary"  # "stationary" (z0 ~ N(0, Pinf)) or "zero" (the published code)
 
     def __post_init__(self) -> None:
         c = _Checker(self)
-        c("kernel", self.kernel == "matern", "'matern'")
+        c("kernel", self.kernel in KERNELS, f"one of {KERNELS}")
         c("nu", self.nu in MATERN_NUS, f"one of {list(MATERN_NUS)}")
-        c.positive("variance", "lengthscale")
+        c.positive("variance", "lengthscale", "period")
         # Shorter lengthscales overflow lambda^(2 nu + 1) in the state-space model.
         c("lengthscale", self.lengthscale >= 1.0e-6, ">= 1.0e-6 s")
+        c("order", 1 <= self.order <= 12, "an integer in [1, 12]")
+        c("harmonics", 1 <= self.harmonics <= 100, "an integer in [1, 100]")
         c("discretization", self.discretization in DISCRETIZATIONS, f"one of {DISCRETIZATIONS}")
         c("start", self.start in STARTS, f"one of {STARTS}")
+        if self.kernel != "matern":
+            try:  # the approximations know their own limits (e.g. too few harmonics)
+                self.make_kernel()
+            except ValueError as exc:
+                raise ConfigError(f"kernel={self.kernel!r}: {exc}") from None
+
+    def make_kernel(self):
+        """The state-space kernel (:mod:`lfm_env.gp`) these settings describe."""
+        from lfm_env import gp
+
+        if self.kernel == "squared_exponential":
+            return gp.squared_exponential(self.variance, self.lengthscale, order=self.order)
+        if self.kernel == "periodic":
+            return gp.periodic(
+                self.variance, self.lengthscale, self.period, harmonics=self.harmonics
+            )
+        return gp.matern(self.nu, self.variance, self.lengthscale)
 
 
 @dataclass(frozen=True)
@@ -423,13 +452,22 @@ def check_latent_step(config: EnvConfig) -> EnvConfig:
         ConfigError: naming ``env.disturbance.lengthscale`` and its lower bound.
     """
     d = config.disturbance
-    if d.discretization == "euler_maruyama":
+    if d.discretization == "euler_maruyama" and d.kernel == "matern":
         bound = math.sqrt(2.0 * d.nu) * config.dt / 2.0
         if not d.lengthscale > bound:
             raise ConfigError(
                 f"env.disturbance.lengthscale={_show(d.lengthscale)}: must be > sqrt(2 nu) dt / 2"
                 f" = {bound:.6g} s with discretization 'euler_maruyama' (its step diverges"
                 " otherwise); use discretization 'exact' or a smaller dt"
+            )
+    elif d.discretization == "euler_maruyama":
+        F = np.asarray(d.make_kernel().F)
+        radius = float(np.max(np.abs(np.linalg.eigvals(np.eye(len(F)) + F * config.dt))))
+        if radius >= 1.0:
+            raise ConfigError(
+                f"env.disturbance.discretization='euler_maruyama': its step diverges for the "
+                f"{d.kernel} kernel at dt={config.dt} (spectral radius {radius:.4g} >= 1); "
+                "use discretization 'exact'"
             )
     return config
 

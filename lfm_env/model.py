@@ -18,9 +18,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lfm_env.config import EnvConfig
-from lfm_env.gp import StateSpaceKernel, matern
+from lfm_env.config import DisturbanceConfig, EnvConfig
+from lfm_env.gp import StateSpaceKernel
 from lfm_env.vehicle import euler_step
+
+
+def make_kernel(disturbance: DisturbanceConfig) -> StateSpaceKernel:
+    """The state-space kernel of a ``disturbance`` config section."""
+    return disturbance.make_kernel()
 
 
 def psd_factor(cov: np.ndarray) -> np.ndarray:
@@ -34,6 +39,7 @@ class LatentForceModel:
     """Discrete-time augmented model of the case study, built from an :class:`EnvConfig`."""
 
     config: EnvConfig
+    disturbance: DisturbanceConfig | None = None  # the GP to model; None: config.disturbance
     kernel: StateSpaceKernel = field(init=False)
     A: np.ndarray = field(init=False)  # (p, p) latent transition
     Q: np.ndarray = field(init=False)  # (p, p) latent process noise covariance
@@ -42,8 +48,8 @@ class LatentForceModel:
     process_std: np.ndarray = field(init=False)  # (4,) per-step std on [p_x, p_y, v, psi]
 
     def __post_init__(self) -> None:
-        d = self.config.disturbance
-        kernel = matern(d.nu, d.variance, d.lengthscale)
+        d = self.disturbance or self.config.disturbance
+        kernel = make_kernel(d)
         A, Q = kernel.discretize(self.config.dt, method=d.discretization)
         object.__setattr__(self, "kernel", kernel)
         object.__setattr__(self, "A", np.asarray(A, dtype=float))
@@ -73,7 +79,7 @@ class LatentForceModel:
 
     def stationary_latent_covariance(self) -> np.ndarray:
         """Stationary covariance of the latent state (of the chosen discretisation)."""
-        if self.config.disturbance.discretization == "exact":
+        if (self.disturbance or self.config.disturbance).discretization == "exact":
             return np.asarray(self.kernel.Pinf, dtype=float)
         import scipy.linalg
 
