@@ -38,9 +38,7 @@ class AgentConfig:
     R: tuple[float, float] = (0.5, 10.0)  # input weights on [a, delta (rad)]
     goal_state: tuple[float, float, float, float] = (62.83, 0.0, 4.0, 0.0)  # [m, m, m/s, deg]
     slack_penalty: float = 1.0e4  # exact L1 penalty per unit of state-constraint slack
-    solver: str = (
-        "fast"  # one of SOLVERS: fast (default), ipopt (condensed), ipopt_multiple_shooting
-    )
+    solver: str = "fast"  # fast (condensed SQP), ipopt (condensed), ipopt_multiple_shooting
     max_iter: int = 100  # solver iteration limit per step
     scenario_initial_states: str = "estimate"  # "estimate" (paper) or "particles" (its remark)
     # The agents' belief about the latent force. null: the env section's, known a priori
