@@ -487,6 +487,30 @@ def _settings_text(results: Results) -> str:
     return ", ".join(parts)
 
 
+def _model_section(doc: Document, results: Results) -> None:
+    """The hidden force's kernel beside the agents' belief (learned or given)."""
+    true = results.config.disturbance
+    belief = results.agent_settings.get("disturbance")
+    doc.heading("Latent force: hidden truth and the agents' model")
+    fields = ("kernel", "nu", "variance", "lengthscale", "discretization")
+    if not belief:
+        doc.paragraph(
+            f"The agents know the hidden force's hyperparameters a priori, as in the paper: "
+            f"{true.kernel} kernel, variance {true.variance:g} (m/s^2)^2, lengthscale "
+            f"{true.lengthscale:g} s."
+        )
+        return
+    doc.paragraph(
+        "The agents model the force with their own hyperparameters (`agents.disturbance`, "
+        "e.g. learned by `lfm-calibrate`), not the env's hidden ones:"
+    )
+    rows = []
+    for f in fields:
+        b = belief.get(f, "")
+        rows.append([f, str(getattr(true, f)), fmt(b) if isinstance(b, float) else str(b)])
+    doc.table(["hyperparameter", "hidden truth (env)", "agents' model"], rows)
+
+
 def _summary_section(doc: Document, results: Results, stats: dict) -> None:
     agents = results.agents
     doc.heading("Results per agent")
@@ -800,6 +824,7 @@ def write_report(results_dir: str | Path, figure_seed: int | None = None, gif: b
         "faces the same hidden disturbance and noise. Agents:"
     )
     doc.bullets([f"`{a}`: {_long_label(a)}" for a in results.agents])
+    _model_section(doc, results)
     _summary_section(doc, results, stats)
     _errors_section(doc, results)
     _paired_section(doc, results)

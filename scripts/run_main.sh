@@ -8,4 +8,4 @@ bash scripts/setup_env.sh dist
 # One BLAS thread per process: episodes run in parallel processes instead.
 export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 .venv/bin/lfm-evaluate --config configs/paper.yaml --agents nominal,pf,scenario,oracle \
-  --seeds 0:4 --jobs 2 --out results/paper "$@"
+  --seeds 0:50 --jobs 2 --out results/paper "$@"
