@@ -352,7 +352,7 @@ def _render_episode(
     from controllers.evaluation import ENV_ID, agent_seed, resolve_config
     from controllers.plots import annotate_frame
 
-    cfg = resolve_config(config)
+    cfg = resolve_config(config, [agent_name])
     env = gym.make(ENV_ID, config=cfg, render_mode="rgb_array", screen_size=size, scaling=20.0)
     try:
         agent = make_agent(agent_name, cfg, env=env if agent_name == "oracle" else None)

@@ -133,20 +133,21 @@ def agent_seed(seed: int, agent_name: str) -> int:
     return int(state[0])
 
 
-def resolve_config(config: Any = None) -> dict:
+def resolve_config(config: Any = None, agent_names: Iterable[str] = ()) -> dict:
     """The full config as plain data: ``{"env": {...}, "agents": {...}}``, validated.
 
     Args:
         config: a YAML path, a dict (whole file), or ``None`` for the built-in defaults
             (the paper's values). Missing keys take their defaults.
+        agent_names: agents that will run on it; what each needs is checked too.
 
     Raises:
         ConfigError: (a ``ValueError``) for unknown keys or out-of-range values.
     """
-    return {
-        "env": to_dict(check_latent_step(load_env_config(config))),
-        "agents": to_dict(load_agent_config(config)),
-    }
+    env_config = check_latent_step(load_env_config(config))
+    for name in agent_names:
+        check_agent_config(name, env_config)
+    return {"env": to_dict(env_config), "agents": to_dict(load_agent_config(config))}
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -428,7 +429,7 @@ def run_episode(
     """
     (agent_name,) = _check_agents([agent_name])
     (seed,) = _check_seeds([seed])
-    cfg = resolve_config(config)
+    cfg = resolve_config(config, [agent_name])
     t0 = time.perf_counter()
     rec = _EpisodeRecorder(cfg["agents"]["horizon"])
     _simulate(agent_name, cfg, seed, rec)
@@ -758,10 +759,7 @@ def evaluate(
     """
     names = _check_agents(agents)
     seed_list = _check_seeds(seeds)
-    cfg = resolve_config(config)
-    env_config = load_env_config(cfg)
-    for name in names:
-        check_agent_config(name, env_config)
+    cfg = resolve_config(config, names)
     modes = sum([jobs != 1, scheduler is not None, dask_workers is not None])
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"jobs={jobs!r}: must be an integer >= 1")
