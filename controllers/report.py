@@ -655,6 +655,21 @@ def _paper_vs_measured_section(doc: Document, results: Results, solve_times: np.
 # --------------------------------------------------------------------------- figures
 
 
+def _main_agent(results: Results) -> str:
+    """The agent of the episode figures: the paper's, else the first one."""
+    return REFERENCE_AGENT if REFERENCE_AGENT in results.agents else results.agents[0]
+
+
+def _check_figure_seed(results: Results, figure_seed: int | None) -> None:
+    """Raise ``ValueError`` if ``figure_seed`` has no saved trajectory to draw."""
+    agent = _main_agent(results)
+    path = results.trajectory_path(agent, figure_seed)
+    if figure_seed is not None and not path.is_file():
+        raise ValueError(
+            f"no saved trajectory of agent {agent!r} for seed {figure_seed}: {path} does not exist"
+        )
+
+
 def _default_figure_seed(results: Results, agent: str) -> int | None:
     for row in results.rows_of(agent, include_errors=True):
         if results.trajectory_path(agent, row["seed"]).is_file():
@@ -674,7 +689,7 @@ def _figures_section(doc: Document, results: Results, figure_seed: int | None, g
     fig_dir.mkdir(exist_ok=True)
     cfg = results.config
     agents = results.agents
-    main_agent = REFERENCE_AGENT if REFERENCE_AGENT in agents else agents[0]
+    main_agent = _main_agent(results)
 
     doc.heading("Across seeds")
     dists = {
@@ -812,6 +827,7 @@ def write_report(results_dir: str | Path, figure_seed: int | None = None, gif: b
         ValueError: if there are no episodes, or ``figure_seed`` has no saved trajectory.
     """
     results = load_results(results_dir)
+    _check_figure_seed(results, figure_seed)  # before writing any file
     stats = summarize(results)
     doc = Document()
     title = f"Evaluation report: {results.directory.name}"
