@@ -29,7 +29,7 @@ from controllers import mpc_problem
 from controllers.config import AgentConfig
 from controllers.mpc_problem import MPCSolution, ScenarioProblem
 from controllers.particle_filter import ParticleFilter, gaussian_log_likelihood
-from lfm_env.config import ConfigError, EnvConfig
+from lfm_env.config import ConfigError, EnvConfig, check_latent_step
 from lfm_env.model import LatentForceModel, psd_factor
 
 # chi^2 quantile with 4 degrees of freedom at 1 - 1e-6: a measurement this far from
@@ -315,13 +315,16 @@ AGENT_LABELS = {
 }
 
 
-def check_agent_config(name: str, env_config: EnvConfig) -> None:
+def check_agent_config(name: str, env_config: EnvConfig, cfg: AgentConfig | None = None) -> None:
     """Raise ``ConfigError`` if agent ``name`` cannot run on this (valid) world.
 
     Cheap (builds nothing), so :func:`controllers.evaluation.evaluate` calls it for
     every agent before the first episode. The particle filter of the ``pf`` and
-    ``scenario`` agents weighs measurements by their noise, which must not be zero.
+    ``scenario`` agents weighs measurements by their noise, which must not be zero, and
+    the agents' own model of the force (``cfg.disturbance``) must have a stable step.
     """
+    if cfg is not None and cfg.disturbance is not None:
+        check_latent_step(env_config, cfg.disturbance, where="agents.disturbance")
     std = env_config.measurement_noise_std
     if name in ("pf", "scenario") and not all(s > 0.0 for s in std):
         raise ConfigError(
@@ -340,7 +343,7 @@ def make_agent(name: str, config: Any = None, env: Any = None) -> MPCAgent:
         env: the environment, only for the oracle (which reads the hidden truth).
     """
     from controllers.config import load_agent_config
-    from lfm_env.config import check_latent_step, load_env_config
+    from lfm_env.config import load_env_config
 
     if name not in AGENTS:
         raise ValueError(f"unknown agent {name!r}; choose one of {sorted(AGENTS)}")
@@ -348,7 +351,7 @@ def make_agent(name: str, config: Any = None, env: Any = None) -> MPCAgent:
         raise ValueError(f"agent {name!r} must not get env= (only the oracle reads the truth)")
     env_config = check_latent_step(load_env_config(config))
     cfg = load_agent_config(config)
-    check_agent_config(name, env_config)
+    check_agent_config(name, env_config, cfg)
     if name == "oracle":
         return OracleMPCAgent(env_config, cfg, env)
     return AGENTS[name](env_config, cfg)

@@ -145,9 +145,10 @@ def resolve_config(config: Any = None, agent_names: Iterable[str] = ()) -> dict:
         ConfigError: (a ``ValueError``) for unknown keys or out-of-range values.
     """
     env_config = check_latent_step(load_env_config(config))
+    agent_config = load_agent_config(config)
     for name in agent_names:
-        check_agent_config(name, env_config)
-    return {"env": to_dict(env_config), "agents": to_dict(load_agent_config(config))}
+        check_agent_config(name, env_config, agent_config)
+    return {"env": to_dict(env_config), "agents": to_dict(agent_config)}
 
 
 def parse_seeds(text: str) -> list[int]:

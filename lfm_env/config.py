@@ -438,7 +438,11 @@ def to_dict_fields(changes: dict) -> dict:
     return {k: (to_dict(v) if dataclasses.is_dataclass(v) else v) for k, v in changes.items()}
 
 
-def check_latent_step(config: EnvConfig) -> EnvConfig:
+def check_latent_step(
+    config: EnvConfig,
+    disturbance: DisturbanceConfig | None = None,
+    where: str = "env.disturbance",
+) -> EnvConfig:
     """Refuse a latent-force model whose Euler-Maruyama step diverges; returns ``config``.
 
     The Euler step ``z+ = (I + F dt) z`` of a Matern model has the single eigenvalue
@@ -448,15 +452,20 @@ def check_latent_step(config: EnvConfig) -> EnvConfig:
     stable for every lengthscale. The env and the agents call this before simulating;
     :func:`load_env_config` does not, so such a config can still be read.
 
+    Args:
+        config: the world; its ``dt`` and, by default, its disturbance.
+        disturbance: another model of the force at the same ``dt`` (the agents' belief).
+        where: the config section of that model, for the message.
+
     Raises:
-        ConfigError: naming ``env.disturbance.lengthscale`` and its lower bound.
+        ConfigError: naming ``<where>.lengthscale`` and its lower bound.
     """
-    d = config.disturbance
+    d = config.disturbance if disturbance is None else disturbance
     if d.discretization == "euler_maruyama" and d.kernel == "matern":
         bound = math.sqrt(2.0 * d.nu) * config.dt / 2.0
         if not d.lengthscale > bound:
             raise ConfigError(
-                f"env.disturbance.lengthscale={_show(d.lengthscale)}: must be > sqrt(2 nu) dt / 2"
+                f"{where}.lengthscale={_show(d.lengthscale)}: must be > sqrt(2 nu) dt / 2"
                 f" = {bound:.6g} s with discretization 'euler_maruyama' (its step diverges"
                 " otherwise); use discretization 'exact' or a smaller dt"
             )
@@ -465,7 +474,7 @@ def check_latent_step(config: EnvConfig) -> EnvConfig:
         radius = float(np.max(np.abs(np.linalg.eigvals(np.eye(len(F)) + F * config.dt))))
         if radius >= 1.0:
             raise ConfigError(
-                f"env.disturbance.discretization='euler_maruyama': its step diverges for the "
+                f"{where}.discretization='euler_maruyama': its step diverges for the "
                 f"{d.kernel} kernel at dt={config.dt} (spectral radius {radius:.4g} >= 1); "
                 "use discretization 'exact'"
             )
