@@ -60,12 +60,19 @@ class ScenarioProblem:
                     f"ScenarioProblem.{name}={getattr(self, name)!r}: must be {allowed}"
                 )
 
-        check("horizon", isinstance(self.horizon, int) and self.horizon >= 1, "an int >= 1")
-        check(
-            "n_scenarios",
-            isinstance(self.n_scenarios, int) and self.n_scenarios >= 1,
-            "an int >= 1",
-        )
+        def is_int(v: object) -> bool:
+            return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+        def is_number(v: object) -> bool:
+            return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+
+        for name in (
+            "dt", "vehicle_length", "speed_min", "speed_max", "accel_max", "steer_max",
+            "slack_penalty",
+        ):  # fmt: skip
+            check(name, is_number(getattr(self, name)), "a real number")
+        check("horizon", is_int(self.horizon) and self.horizon >= 1, "an int >= 1")
+        check("n_scenarios", is_int(self.n_scenarios) and self.n_scenarios >= 1, "an int >= 1")
         check("dt", np.isfinite(self.dt) and self.dt > 0, "finite and > 0")
         check("vehicle_length", np.isfinite(self.vehicle_length) and self.vehicle_length > 0, "> 0")
         for name, n in (("Q", 4), ("R", 2), ("Qf", 4), ("x_goal", 4)):
@@ -90,8 +97,8 @@ class ScenarioProblem:
 
     def check_data(self, x0: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Validate and broadcast ``x0`` to ``(Ns, 4)`` and ``W`` to ``(Ns, N)``."""
-        x0 = np.asarray(x0, dtype=float)
-        W = np.asarray(W, dtype=float)
+        x0 = _as_float_array(x0, "x0")
+        W = _as_float_array(W, "W")
         ns, n = self.n_scenarios, self.horizon
         if W.shape != (ns, n):
             raise ValueError(f"W has shape {W.shape}; expected (n_scenarios, horizon) = {(ns, n)}")
@@ -102,6 +109,14 @@ class ScenarioProblem:
         if not (np.all(np.isfinite(x0)) and np.all(np.isfinite(W))):
             raise ValueError("x0 and W must be finite (no NaN or inf)")
         return x0, W
+
+
+def _as_float_array(value: object, name: str) -> np.ndarray:
+    """``value`` as a float array, or a ValueError naming ``name`` (text, objects, complex)."""
+    arr = np.asarray(value)
+    if arr.dtype.kind not in "biuf":
+        raise ValueError(f"{name} must be an array of finite real numbers, got dtype {arr.dtype}")
+    return arr.astype(float, copy=False)
 
 
 @dataclass
