@@ -2,8 +2,8 @@
 survived, a killed run loses nothing, and nothing is loaded unsafely.
 
 The bad inputs are tables; :data:`BAD_INPUT_IDS` lists every case, so ``len(BAD_INPUT_IDS)``
-is the number of bad inputs tried. A case marked ``xfail`` is a bad input that does NOT get
-the documented error (in code outside this change); the rest do.
+is the number of bad inputs tried. A case marked ``xfail`` would be a bad input that does NOT
+get the documented error (none is, at present); the rest do.
 """
 
 from __future__ import annotations
@@ -694,7 +694,6 @@ def test_bad_run_episode_arguments_are_refused(args, expect, no_work):
 
 # ================================================================ scenario problem and solvers
 
-NOT_MINE = "mpc_problem.py is outside this change; reported"
 BAD_PROBLEMS = [
     ("horizon-zero", {"horizon": 0}, "horizon"),
     ("horizon-negative", {"horizon": -3}, "horizon"),
