@@ -31,6 +31,7 @@ from controllers.mpc_problem import MPCSolution, ScenarioProblem
 from controllers.particle_filter import ParticleFilter, gaussian_log_likelihood
 from lfm_env.config import ConfigError, EnvConfig, check_latent_step
 from lfm_env.model import LatentForceModel, psd_factor
+from lfm_env.validation import real_vector
 
 # chi^2 quantile with 4 degrees of freedom at 1 - 1e-6: a measurement this far from
 # every particle means the filter has diverged.
@@ -102,20 +103,7 @@ class MPCAgent:
 
     def act(self, obs: Any) -> np.ndarray:
         """The action ``[a m/s^2, delta rad]`` for observation ``obs`` ``[m, m, m/s, rad]``."""
-        try:
-            y = np.asarray(obs)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"obs={obs!r}: must be 4 numbers [p_x, p_y, v, psi]") from exc
-        # Text, objects and complex numbers would convert (or lose their imaginary part).
-        if y.dtype.kind not in "biuf":
-            raise ValueError(
-                f"obs={obs!r}: must be 4 real numbers [p_x, p_y, v, psi], not dtype {y.dtype}"
-            )
-        y = y.astype(float)
-        if y.shape != (4,):
-            raise ValueError(f"obs has shape {y.shape}: must be (4,) = [p_x, p_y, v, psi]")
-        if not np.all(np.isfinite(y)):
-            raise ValueError(f"obs={y.tolist()}: must be finite (no NaN or inf)")
+        y = real_vector(obs, 4, "obs", "[p_x m, p_y m, v m/s, psi rad]")
         t0 = time.perf_counter()
         info = self._estimate(y)
         t_est = time.perf_counter() - t0

@@ -10,6 +10,7 @@ from gymnasium import spaces
 
 from lfm_env.config import EnvConfig, check_latent_step, load_env_config
 from lfm_env.model import LatentForceModel, psd_factor
+from lfm_env.validation import real_vector
 
 _LATENT_CHUNK = 64  # latent path is drawn in chunks so previews never change the episode
 
@@ -232,20 +233,7 @@ class SineTrackEnv(gym.Env):
         return self._observe(), reward, terminated, truncated, info
 
     def _check_action(self, action: Any) -> np.ndarray:
-        try:
-            u = np.asarray(action)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"action={action!r}: must be 2 numbers [a, delta]") from exc
-        # Text, objects and complex numbers would convert (or lose their imaginary part).
-        if u.dtype.kind not in "biuf":
-            raise ValueError(
-                f"action={action!r}: must be 2 real numbers [a, delta], not dtype {u.dtype}"
-            )
-        u = u.astype(float)
-        if u.shape != (2,):
-            raise ValueError(f"action has shape {u.shape}: must be (2,) = [a m/s^2, delta rad]")
-        if not np.all(np.isfinite(u)):
-            raise ValueError(f"action={u.tolist()}: must be finite (no NaN or inf)")
+        u = real_vector(action, 2, "action", "[a m/s^2, delta rad]")
         return np.clip(u, self.action_space.low, self.action_space.high)
 
     @staticmethod
