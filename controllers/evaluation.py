@@ -82,6 +82,7 @@ ROW_COLUMNS: tuple[str, ...] = (
     "solve_time_max",  # [s]
     "solver_failures",  # steps whose solve did not succeed
     "fallback_steps",  # steps that applied a fallback action (previous plan or brake)
+    "filter_resets",  # particle-filter restarts after divergence (filter agents)
     "slack_total",  # sum of the per-step constraint slack
     "wall_time",  # [s] whole episode, including building the agent
     "error",  # '' if the episode ran, else "ExceptionType: message"
@@ -103,6 +104,7 @@ _INT_COLUMNS = (
     "speed_violation_steps",
     "solver_failures",
     "fallback_steps",
+    "filter_resets",
 )
 _BOOL_COLUMNS = ("success", "failure")
 _METRIC_COLUMNS = tuple(c for c in ROW_COLUMNS if c not in ("agent", "seed", "wall_time", "error"))
@@ -254,6 +256,7 @@ class _EpisodeRecorder:
                 "slack",
                 "solver_success",
                 "fallback",
+                "filter_reset",
                 "track_excess",
                 "speed_excess",
                 "x_excess",
@@ -290,6 +293,7 @@ class _EpisodeRecorder:
             "slack": float(agent_info.get("slack", np.nan)),
             "solver_success": bool(agent_info.get("success", False)),
             "fallback": str(agent_info.get("fallback", "")),
+            "filter_reset": bool(agent_info.get("filter_reset", False)),
             "track_excess": float(info["track_excess"]),
             "speed_excess": float(info["speed_excess"]),
             "x_excess": float(info["x_excess"]),
@@ -325,6 +329,7 @@ class _EpisodeRecorder:
             "slack": stack("slack", (0,)),
             "solver_success": stack("solver_success", (0,), bool),
             "fallback": stack("fallback", (0,), str),
+            "filter_reset": stack("filter_reset", (0,), bool),
             "track_excess": stack("track_excess", (0,)),
             "speed_excess": stack("speed_excess", (0,)),
             "x_excess": stack("x_excess", (0,)),
@@ -385,6 +390,7 @@ def _episode_metrics(rec: _EpisodeRecorder, arrays: dict[str, np.ndarray]) -> di
         "solve_time_max": stat(np.max, solve),
         "solver_failures": int(np.sum(~arrays["solver_success"])),
         "fallback_steps": int(np.sum(arrays["fallback"] != "")),
+        "filter_resets": int(np.sum(arrays["filter_reset"])) if rec.has_filter else 0,
         "slack_total": float(np.sum(arrays["slack"])),
     }
 

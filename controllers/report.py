@@ -74,6 +74,7 @@ SUMMARY_METRICS = (
     Metric("solve_time_p95", "solve time, episode p95", "s"),
     Metric("solver_failures", "solver failures", "steps"),
     Metric("fallback_steps", "fallback steps", "steps"),
+    Metric("filter_resets", "particle-filter restarts", "per episode"),
 )
 
 PAIRED_METRICS = (
