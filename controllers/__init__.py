@@ -1,1 +1,15 @@
 """Agents for the SineTrack latent-force world: particle filter, scenario MPC, baselines."""
+
+from controllers.agents import AGENT_LABELS, AGENTS, make_agent
+from controllers.mpc_problem import MPCSolution, ScenarioProblem
+from controllers.particle_filter import ParticleFilter, gaussian_log_likelihood
+
+__all__ = [
+    "AGENTS",
+    "AGENT_LABELS",
+    "MPCSolution",
+    "ParticleFilter",
+    "ScenarioProblem",
+    "gaussian_log_likelihood",
+    "make_agent",
+]
