@@ -20,6 +20,7 @@ same env seed gives every agent the same disturbance and noise.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Any
 
@@ -262,6 +263,19 @@ class ScenarioMPCAgent(_FilteringAgent):
         return x0, W
 
 
+class ParticleScenarioMPCAgent(ScenarioMPCAgent):
+    """Scenario MPC whose scenarios also start from the filter's particles (paper's remark).
+
+    Each scenario's initial physical and latent state is a particle drawn by weight, so
+    the plan also respects the estimate's uncertainty, not only the future noise.
+    """
+
+    name = "scenario_particles"
+
+    def __init__(self, env_config: EnvConfig, cfg: AgentConfig) -> None:
+        super().__init__(env_config, dataclasses.replace(cfg, scenario_initial_states="particles"))
+
+
 class OracleMPCAgent(MPCAgent):
     """UPPER BOUND, not a realisable controller: reads the true state and future force.
 
@@ -292,6 +306,7 @@ AGENTS = {
     "nominal": NominalMPCAgent,
     "pf": CertaintyEquivalentMPCAgent,
     "scenario": ScenarioMPCAgent,
+    "scenario_particles": ParticleScenarioMPCAgent,
     "oracle": OracleMPCAgent,
 }
 
@@ -299,6 +314,7 @@ AGENT_LABELS = {
     "nominal": "nominal MPC (w = 0)",
     "pf": "PF + certainty-equivalent MPC",
     "scenario": "PF + scenario MPC (paper)",
+    "scenario_particles": "PF + scenario MPC, scenarios start from particles (paper's remark)",
     "oracle": "oracle MPC (upper bound, reads hidden truth)",
 }
 
@@ -325,7 +341,8 @@ def make_agent(name: str, config: Any = None, env: Any = None) -> MPCAgent:
     """Build an agent by name.
 
     Args:
-        name: one of ``"nominal"``, ``"pf"``, ``"scenario"``, ``"oracle"``.
+        name: one of ``"nominal"``, ``"pf"``, ``"scenario"``, ``"scenario_particles"``,
+            ``"oracle"``.
         config: a YAML path, a dict (whole file), or ``None`` for the paper's values; the
             ``env`` section is the agents' known model, the ``agents`` section their settings.
         env: the environment, only for the oracle (which reads the hidden truth).

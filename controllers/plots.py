@@ -29,6 +29,7 @@ AGENT_COLOURS = {
     "nominal": "tab:gray",
     "pf": "tab:orange",
     "scenario": "tab:blue",
+    "scenario_particles": "tab:green",
     "oracle": "tab:purple",
 }
 _FALLBACK_COLOURS = ("tab:brown", "tab:pink", "tab:olive", "tab:cyan")

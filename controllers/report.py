@@ -28,13 +28,14 @@ from controllers import plots
 from lfm_env.config import EnvConfig, load_env_config, load_yaml
 
 REFERENCE_AGENT = "scenario"
-KNOWN_AGENT_ORDER = ("nominal", "pf", "scenario", "oracle")
+KNOWN_AGENT_ORDER = ("nominal", "pf", "scenario", "scenario_particles", "oracle")
 
 # Short labels for tables and axes; the oracle is an upper bound everywhere it appears.
 AGENT_SHORT_LABELS = {
     "nominal": "nominal MPC",
     "pf": "PF + CE MPC",
     "scenario": "scenario MPC (paper)",
+    "scenario_particles": "scenario MPC, particle starts",
     "oracle": "oracle (upper bound)",
 }
 
