@@ -133,11 +133,13 @@ def _evaluate_parser() -> argparse.ArgumentParser:
 
 def _print_summary(rows: list[dict]) -> None:
     """One line per agent: episodes, successes, failures, errors."""
-    for agent in dict.fromkeys(r["agent"] for r in rows):
+    agents = list(dict.fromkeys(r["agent"] for r in rows))
+    width = max((len(a) for a in agents), default=0)
+    for agent in agents:
         mine = [r for r in rows if r["agent"] == agent]
         ok = [r for r in mine if r["error"] == ""]
         print(
-            f"  {agent:>9}: {len(mine)} episodes, {sum(r['success'] for r in ok)} reached the "
+            f"  {agent:>{width}}: {len(mine)} episodes, {sum(r['success'] for r in ok)} reached the "
             f"goal, {sum(r['failure'] for r in ok)} left the safety box, "
             f"{len(mine) - len(ok)} raised an error"
         )

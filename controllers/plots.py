@@ -467,7 +467,7 @@ def distribution_axes(
                 transform=ax.get_xaxis_transform(),
                 color="0.5",
             )
-    ax.set_xticks(positions, labels, fontsize=8)
+    ax.set_xticks(positions, labels, fontsize=8 if len(labels) <= 4 else 6.5)
     ax.set_xlim(0.4, len(labels) + 0.6)
     if log:
         ax.set_yscale("log")

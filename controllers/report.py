@@ -140,7 +140,7 @@ def agent_label(name: str, wrap: bool = False) -> str:
     ``wrap`` puts a parenthesised remark on its own line, for axis tick labels.
     """
     label = AGENT_SHORT_LABELS.get(name, name)
-    return label.replace(" (", "\n(") if wrap else label
+    return label.replace(" (", "\n(").replace(", ", ",\n") if wrap else label
 
 
 def _long_label(name: str) -> str:
