@@ -139,8 +139,9 @@ def _print_summary(rows: list[dict]) -> None:
         mine = [r for r in rows if r["agent"] == agent]
         ok = [r for r in mine if r["error"] == ""]
         print(
-            f"  {agent:>{width}}: {len(mine)} episodes, {sum(r['success'] for r in ok)} reached the "
-            f"goal, {sum(r['failure'] for r in ok)} left the safety box, "
+            f"  {agent:>{width}}: {len(mine)} episodes, "
+            f"{sum(r['success'] for r in ok)} reached the goal, "
+            f"{sum(r['failure'] for r in ok)} left the safety box, "
             f"{len(mine) - len(ok)} raised an error"
         )
 
