@@ -151,18 +151,13 @@ def fit_disturbance(
     if not records:
         raise ValueError("records: need at least one calibration episode")
     base = initial or dataclasses.replace(env_config.disturbance, variance=1.0, lengthscale=1.0)
-    from lfm_env.model import make_kernel
-
     dt = env_config.dt
     meas_std = float(env_config.measurement_std_rad[2])
     proc_std = float(env_config.process_noise_std_rad[2])
 
     def kernel_of(theta: np.ndarray) -> StateSpaceKernel:
-        return make_kernel(
-            dataclasses.replace(
-                base, variance=float(np.exp(theta[0])), lengthscale=float(np.exp(theta[1]))
-            )
-        )
+        variance, lengthscale = (float(v) for v in np.exp(theta))
+        return dataclasses.replace(base, variance=variance, lengthscale=lengthscale).make_kernel()
 
     def negative_ll(theta: np.ndarray) -> float:
         try:

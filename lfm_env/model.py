@@ -23,11 +23,6 @@ from lfm_env.gp import StateSpaceKernel
 from lfm_env.vehicle import euler_step
 
 
-def make_kernel(disturbance: DisturbanceConfig) -> StateSpaceKernel:
-    """The state-space kernel of a ``disturbance`` config section."""
-    return disturbance.make_kernel()
-
-
 def psd_factor(cov: np.ndarray) -> np.ndarray:
     """A matrix ``S`` with ``S S^T = cov`` for a symmetric PSD ``cov`` (rank-deficient ok)."""
     vals, vecs = np.linalg.eigh(0.5 * (cov + cov.T))
@@ -49,7 +44,7 @@ class LatentForceModel:
 
     def __post_init__(self) -> None:
         d = self.disturbance or self.config.disturbance
-        kernel = make_kernel(d)
+        kernel = d.make_kernel()
         A, Q = kernel.discretize(self.config.dt, method=d.discretization)
         object.__setattr__(self, "kernel", kernel)
         object.__setattr__(self, "A", np.asarray(A, dtype=float))
