@@ -55,11 +55,36 @@ def _positive_int(text: str) -> int:
     return value
 
 
+_DEFAULT_CONFIG = _REPO_CONFIGS / "paper.yaml"
+
+
+def _add_config_argument(parser: argparse.ArgumentParser) -> None:
+    """The ``--config`` option shared by the commands that run episodes."""
+    parser.add_argument(
+        "--config",
+        metavar="YAML",
+        default=None,
+        help=(
+            f"config file with env and agents sections (default: {_DEFAULT_CONFIG} if "
+            "present, else the built-in paper defaults)"
+        ),
+    )
+
+
+def _config_path(parser: argparse.ArgumentParser, given: str | None) -> Path | None:
+    """The config file to use, or ``None`` for the built-in defaults; exits 2 if missing."""
+    if given is None:
+        return _DEFAULT_CONFIG if _DEFAULT_CONFIG.is_file() else None
+    path = Path(given)
+    if not path.is_file():
+        parser.error(f"--config {given}: no such file")
+    return path
+
+
 def _evaluate_parser() -> argparse.ArgumentParser:
     from controllers.agents import AGENT_LABELS
 
     agents_help = "; ".join(f"{k} = {v}" for k, v in AGENT_LABELS.items())
-    default_config = _REPO_CONFIGS / "paper.yaml"
     parser = argparse.ArgumentParser(
         prog="lfm-evaluate",
         description=(
@@ -70,15 +95,7 @@ def _evaluate_parser() -> argparse.ArgumentParser:
         epilog=_EVALUATE_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument(
-        "--config",
-        metavar="YAML",
-        default=None,
-        help=(
-            "config file with env and agents sections (default: "
-            f"{default_config} if present, else the built-in paper defaults)"
-        ),
-    )
+    _add_config_argument(parser)
     parser.add_argument(
         "--agents",
         default="nominal,pf,scenario",
@@ -157,13 +174,7 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
     parser = _evaluate_parser()
     args = parser.parse_args(argv)
 
-    if args.config is None:
-        default = _REPO_CONFIGS / "paper.yaml"
-        config_path = default if default.is_file() else None
-    else:
-        config_path = Path(args.config)
-        if not config_path.is_file():
-            parser.error(f"--config {args.config}: no such file")
+    config_path = _config_path(parser, args.config)
     try:
         seeds = parse_seeds(args.seeds)
     except ValueError as exc:
@@ -306,15 +317,7 @@ def _render_parser() -> argparse.ArgumentParser:
         epilog=_RENDER_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument(
-        "--config",
-        metavar="YAML",
-        default=None,
-        help=(
-            f"config file with env and agents sections (default: {_REPO_CONFIGS / 'paper.yaml'}"
-            " if present, else the built-in paper defaults)"
-        ),
-    )
+    _add_config_argument(parser)
     parser.add_argument(
         "--agent", default="scenario", help=f"agent (default: scenario). {agents_help}"
     )
@@ -404,13 +407,7 @@ def render_main(argv: Sequence[str] | None = None) -> int:
             raise ValueError
     except ValueError:
         parser.error(f"--size {args.size}: expected WxH in pixels, each >= 16, e.g. 480x240")
-    if args.config is None:
-        default = _REPO_CONFIGS / "paper.yaml"
-        config = default if default.is_file() else None
-    else:
-        config = Path(args.config)
-        if not config.is_file():
-            parser.error(f"--config {args.config}: no such file")
+    config = _config_path(parser, args.config)
 
     try:
         frames, dt = _render_episode(config, args.agent, args.seed, args.steps, (width, height))
