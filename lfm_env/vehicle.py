@@ -35,7 +35,9 @@ def slip_angle(delta: Any) -> Any:
     return np.arctan(0.5 * np.tan(delta))
 
 
-def bicycle_rhs(state: Any, action: Any, disturbance: Any = 0.0, length: float = 0.5) -> Any:
+def bicycle_rhs(
+    state: Any, action: Any, disturbance: Any = 0.0, length: float = 0.5, axis: int = -1
+) -> Any:
     """Continuous-time right-hand side ``dx/dt`` of the kinematic bicycle.
 
     Args:
@@ -44,8 +46,12 @@ def bicycle_rhs(state: Any, action: Any, disturbance: Any = 0.0, length: float =
         action: ``[a, delta]`` in ``[m/s^2, rad]``; shape ``(..., 2)`` (broadcast
             against ``state``) or a ``(2, 1)`` CasADi vector.
         disturbance: latent force ``w`` [m/s^2] added to the acceleration; a
-            scalar, an array broadcastable to ``state.shape[:-1]``, or a CasADi scalar.
+            scalar, an array broadcastable to the state without its component axis, or a
+            CasADi scalar.
         length: vehicle length ``l`` [m]; the rear axle sits at ``l/2``.
+        axis: NumPy only: the axis of ``state``, ``action`` and the result that holds the
+            components. ``0`` takes component-major data such as ``(4, n)`` particles,
+            whose rows are contiguous and so several times faster to work on.
 
     Returns:
         ``[dp_x, dp_y, dv, dpsi]`` with the same layout as ``state``.
@@ -60,28 +66,39 @@ def bicycle_rhs(state: Any, action: Any, disturbance: Any = 0.0, length: float =
             a + disturbance,
             v / (length / 2.0) * ca.sin(alpha),
         )
-    state = np.asarray(state, dtype=float)
-    action = np.asarray(action, dtype=float)
-    v, psi = state[..., 2], state[..., 3]
-    a, delta = action[..., 0], action[..., 1]
+    state = np.moveaxis(np.asarray(state, dtype=float), axis, 0)
+    action = np.moveaxis(np.asarray(action, dtype=float), axis, 0)
+    v, psi = state[2], state[3]
+    a, delta = action[0], action[1]
     alpha = slip_angle(delta)
     heading = psi + alpha
     shape = np.broadcast_shapes(v.shape, heading.shape, np.shape(a), np.shape(disturbance))
-    # Filled column by column: no stacking temporaries (this runs on 7000 particles a step).
-    out = np.empty(shape + (4,))
-    np.multiply(v, np.cos(heading), out=out[..., 0])
-    np.multiply(v, np.sin(heading), out=out[..., 1])
-    np.add(a, disturbance, out=out[..., 2])
-    np.multiply(v, np.sin(alpha) / (length / 2.0), out=out[..., 3])
-    return out
+    # Filled component by component: no stacking temporaries (this runs on 7000 particles
+    # a step).
+    out = np.empty((4,) + shape)
+    np.multiply(v, np.cos(heading), out=out[0, ...])
+    np.multiply(v, np.sin(heading), out=out[1, ...])
+    np.add(a, disturbance, out=out[2, ...])
+    np.multiply(v, np.sin(alpha) / (length / 2.0), out=out[3, ...])
+    return np.moveaxis(out, 0, axis)
 
 
 def euler_step(
-    state: Any, action: Any, dt: float, disturbance: Any = 0.0, length: float = 0.5
+    state: Any,
+    action: Any,
+    dt: float,
+    disturbance: Any = 0.0,
+    length: float = 0.5,
+    axis: int = -1,
 ) -> Any:
     """One explicit Euler step ``x + dt * f(x, u, w)`` of the bicycle (no noise).
 
-    Same conventions as :func:`bicycle_rhs`; ``dt`` in [s]. This is the step the
-    environment, the particle filter and the MPC predictions share.
+    Same conventions as :func:`bicycle_rhs` (``axis`` included); ``dt`` in [s]. This is the
+    step the environment, the particle filter and the MPC predictions share.
     """
-    return state + dt * bicycle_rhs(state, action, disturbance, length)
+    if is_symbolic(state) or is_symbolic(action) or is_symbolic(disturbance):
+        return state + dt * bicycle_rhs(state, action, disturbance, length)
+    rhs = bicycle_rhs(state, action, disturbance, length, axis)
+    rhs *= dt
+    rhs += state
+    return rhs

@@ -96,6 +96,24 @@ def test_batched_step_equals_row_by_row():
         np.testing.assert_array_equal(shared[i], euler_step(states[i], actions[0], DT, 0.0, LENGTH))
 
 
+def test_component_major_layout_equals_row_major_bit_for_bit():
+    rng = np.random.default_rng(1)
+    n = 40
+    states, actions = random_states(rng, n), random_actions(rng, n)
+    w = rng.normal(0.0, 2.0, size=n)
+    rows = euler_step(states, actions, DT, w, LENGTH)
+    cols = euler_step(states.T.copy(), actions.T.copy(), DT, w, LENGTH, axis=0)
+    assert cols.shape == (4, n)
+    np.testing.assert_array_equal(cols.T, rows)
+    # A single action (2,) is shared by every column, as in the particle filter.
+    shared = euler_step(states.T.copy(), actions[0], DT, w, LENGTH, axis=0)
+    np.testing.assert_array_equal(shared.T, euler_step(states, actions[0], DT, w, LENGTH))
+    np.testing.assert_array_equal(
+        bicycle_rhs(states.T.copy(), actions.T.copy(), w, LENGTH, axis=0).T,
+        bicycle_rhs(states, actions, w, LENGTH),
+    )
+
+
 def test_casadi_equals_numpy():
     x = ca.SX.sym("x", 4)
     u = ca.SX.sym("u", 2)
