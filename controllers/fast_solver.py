@@ -38,9 +38,15 @@ slacks) over the shared inputs ``u`` ``(N, 2)``, like the IPOPT reference
   is predicted below ``final_step_tol`` (from the last step and its contraction), so a
   warm re-solve of a solved problem takes one iteration.
 
-The result is a KKT point of the full scenario problem: the same local optimum that IPOPT
-finds from the same start, up to solver tolerances. The problem is not convex; from
-different starts both may end in different local optima. Problems dominated by the
+* **Extra starts.** The problem is not convex (left or right loops near the goal,
+  bang-bang steering when the band cannot hold the scenarios). When the plan steers hard,
+  the SQP also starts from the mirrored plan (and, with slack, from straight wheels), gives
+  each extra start a few iterations to beat the best plan, and keeps the best.
+
+The result is a KKT point of the full scenario problem: started from a local optimum that
+IPOPT found, it stays there up to solver tolerances. From other starts the two may end in
+different local optima; the extra starts make the fast solver's the lower one on most
+problems where they differ (see ``lfm-benchmark``). Problems dominated by the
 penalty (scenarios spread so widely that the track band cannot hold them: several
 position slacks positive at once) are degenerate: there convergence is only linear and
 may take tens of iterations (IPOPT needs many too).
@@ -65,6 +71,7 @@ from controllers.mpc_problem import MPCSolution, ScenarioProblem
 N_KINDS = 6  # constraint kinds per step: track upper/lower, x lower/upper, speed lower/upper
 N_POSITION_KINDS = 4  # the first four kinds depend on the position only
 QP_SOLVERS = ("qpoases",)
+RESTARTS = ("mirror", "straight")
 # Sign of d g / d(track-upper or p_x) of the position kinds: track lower is -(track upper),
 # x lower is -p_x, x upper is +p_x.
 _POSITION_SIGN = np.array([1.0, -1.0, -1.0, 1.0])
@@ -74,7 +81,7 @@ _POSITION_SIGN = np.array([1.0, -1.0, -1.0, 1.0])
 class FastSolverOptions:
     """Settings of :class:`FastScenarioSolver`; the defaults suit the paper's problem."""
 
-    max_iter: int = 50  # SQP iterations
+    max_iter: int = 50  # SQP iterations per start
     tol: float = 1e-10  # relative predicted decrease below which a failed line search is OK
     step_tol: float = 1e-8  # [m/s^2, rad] input step that counts as converged
     final_step_tol: float = 1e-6  # [m/s^2, rad] predicted next step that counts as converged
@@ -91,6 +98,11 @@ class FastSolverOptions:
     damping_init: float = 1.0  # first Levenberg-Marquardt damping after heavy backtracking
     damping_threshold: float = 0.1  # line-search step below which the damping grows
     qp_solver: str = "qpoases"  # one of QP_SOLVERS
+    # Extra starts against local optima (see FastScenarioSolver.solve): any of RESTARTS.
+    restarts: tuple[str, ...] = ("mirror", "straight")
+    restart_threshold: float = 0.35  # fraction of the steering bound that calls for them
+    restart_probe: int = 3  # SQP iterations an extra start gets to beat the best plan
+    restart_margin: float = 0.0  # relative merit margin the probe may still lie above it
 
     def __post_init__(self) -> None:
         def check(name: str, ok: bool, allowed: str) -> None:
@@ -99,7 +111,7 @@ class FastSolverOptions:
                     f"FastSolverOptions.{name}={getattr(self, name)!r}: must be {allowed}"
                 )
 
-        for name in ("max_iter", "screen_rows", "max_qp_rounds"):
+        for name in ("max_iter", "screen_rows", "max_qp_rounds", "restart_probe"):
             value = getattr(self, name)
             check(name, isinstance(value, int) and value >= 1, "an int >= 1")
         for name in (
@@ -120,6 +132,16 @@ class FastSolverOptions:
         check("backtrack", 0 < self.backtrack < 1, "in (0, 1)")
         check("damping_threshold", 0 < self.damping_threshold <= 1, "in (0, 1]")
         check("qp_solver", self.qp_solver in QP_SOLVERS, f"one of {QP_SOLVERS}")
+        if isinstance(self.restarts, list):
+            object.__setattr__(self, "restarts", tuple(self.restarts))
+        ok = isinstance(self.restarts, tuple) and all(r in RESTARTS for r in self.restarts)
+        check("restarts", ok, f"a tuple of names from {RESTARTS}")
+        margin = self.restart_margin
+        ok = isinstance(margin, (int, float)) and math.isfinite(margin) and margin >= 0
+        check("restart_margin", ok, "finite and >= 0")
+        value = self.restart_threshold
+        ok = isinstance(value, (int, float)) and 0 < value <= 1
+        check("restart_threshold", ok, "in (0, 1]")
 
 
 @dataclass
@@ -385,9 +407,21 @@ class FastScenarioSolver:
             ``minimal_slack`` summed, ``rollout``) for ``u``, computed by the solver's own
             vectorised rollout (equal up to rounding); ``solve_time`` the wall time of the
             whole call; ``extra`` counts QP solves, QP rows, merit evaluations and
-            second-order corrections. A solve that does not converge does not raise: it
+            second-order corrections, and ``extra["restarts"]`` maps each extra start
+            tried to ``"kept"`` or the status it ended with; ``iterations`` counts the
+            iterations of every start. A solve that does not converge does not raise: it
             returns the best iterate (the merit decreases monotonically) with
             ``success=False``.
+
+        Extra starts: the problem is not convex. Near the goal the plan turns a loop
+        (the goal speed is not zero), and left and right loops are separate local optima;
+        when a disturbance beyond the actuator limits pushes the car off the band, the
+        steering becomes bang-bang with many local optima. So when the first plan steers
+        beyond ``restart_threshold`` of the steering bound, the SQP also starts from that
+        plan with its steering negated (``"mirror"``) and, if the plan needs slack, with
+        the wheels straight (``"straight"``). Each extra start is abandoned unless it beats
+        the best plan so far within ``restart_probe`` iterations; the plan with the lowest
+        objective is returned (a failed start never replaces a successful one).
 
         Raises:
             ValueError: on wrongly shaped or non-finite ``x0``, ``W`` or ``u_guess``.
@@ -409,7 +443,24 @@ class FastScenarioSolver:
             u0 = np.zeros(2 * n)
         u0 = np.clip(u0, self._lower, self._upper)
 
-        ro, status, success, iterations, extra = self._sqp(np.ascontiguousarray(x0), W, u0)
+        x0 = np.ascontiguousarray(x0)
+        ro, status, success, iterations, extra = self._sqp(x0, W, u0)
+        extra["restarts"] = {}
+        for name in self._restart_names(ro):
+            # The problem is not convex: try another start, give it ``restart_probe``
+            # iterations to beat the best plan so far, and keep the better plan.
+            u_alt = self._restart_guess(name, ro.u)
+            bar = ro.merit + self.options.restart_margin * abs(ro.merit)
+            ro2, status2, success2, iterations2, extra2 = self._sqp(x0, W, u_alt, bar)
+            iterations += iterations2
+            for key in ("qp_solves", "soc_steps", "merit_evals"):
+                extra[key] += extra2[key]
+            extra["qp_rows"] = max(extra["qp_rows"], extra2["qp_rows"])
+            better = ro2.merit < ro.merit - 1e-12 * (1.0 + abs(ro.merit))
+            keep = better and (success2 or not success)
+            extra["restarts"][name] = "kept" if keep else status2.lower()
+            if keep:
+                ro, status, success = ro2, status2, success2
 
         # The iterates stay inside the input bounds (clipped steps), and the rollout of the
         # last one gives the prediction, slack and objective (those of mpc_problem, up to
@@ -427,6 +478,29 @@ class FastScenarioSolver:
             predicted=np.ascontiguousarray(ro.X.transpose(2, 1, 0)),
             extra=extra,
         )
+
+    def _restart_names(self, ro: _Rollout) -> list[str]:
+        """The extra starts worth trying after a first plan ``ro`` (see :meth:`solve`)."""
+        opt = self.options
+        delta = ro.u[1::2]
+        frac = opt.restart_threshold - 1e-6
+        lower, upper = frac * self._lower[1::2], frac * self._upper[1::2]
+        hard = bool(np.any((delta <= lower) | (delta >= upper)))
+        names = []
+        if "mirror" in opt.restarts and hard:
+            names.append("mirror")
+        if "straight" in opt.restarts and hard and ro.slack > opt.add_tol:
+            names.append("straight")
+        return names
+
+    def _restart_guess(self, name: str, u: np.ndarray) -> np.ndarray:
+        """Initial guess of the extra start ``name`` from the plan ``u`` ``(2N,)``."""
+        guess = u.copy()
+        if name == "mirror":  # the same manoeuvre, turning the other way
+            guess[1::2] *= -1.0
+        else:  # "straight": the same accelerations, wheels straight
+            guess[1::2] = 0.0
+        return np.clip(guess, self._lower, self._upper)
 
     # ------------------------------------------------------------------ model pieces
 
@@ -857,9 +931,17 @@ class FastScenarioSolver:
     # ------------------------------------------------------------------ SQP
 
     def _sqp(
-        self, x0: np.ndarray, W: np.ndarray, u0: np.ndarray
+        self,
+        x0: np.ndarray,
+        W: np.ndarray,
+        u0: np.ndarray,
+        abandon_above: float = math.inf,
     ) -> tuple[_Rollout, str, bool, int, dict[str, Any]]:
-        """SQP iterations from ``u0``: ``(final rollout, status, success, iterations, extra)``."""
+        """SQP iterations from ``u0``: ``(final rollout, status, success, iterations, extra)``.
+
+        ``abandon_above``: stop with status ``"Abandoned"`` once ``restart_probe``
+        iterations have not brought the merit below this value.
+        """
         p, opt = self.problem, self.options
         n, nu, rho = p.horizon, self._n_u, p.slack_penalty
         ns = x0.shape[0]
@@ -957,6 +1039,9 @@ class FastScenarioSolver:
             ratio = step / prev_step if math.isfinite(prev_step) else 1.0
             predicted_next = step * min(ratio, 1.0) if t == 1.0 else math.inf
             prev_step = step if t == 1.0 else math.inf
+            if iterations >= opt.restart_probe and ro.merit > abandon_above:
+                status = "Abandoned"
+                break
             if predicted_next <= opt.final_step_tol and (
                 ro.slack <= opt.add_tol or slack_change <= opt.add_tol * (1.0 + ro.slack)
             ):

@@ -281,7 +281,7 @@ def test_iteration_limit_returns_best_iterate_without_raising() -> None:
     problem = ScenarioProblem(n_scenarios=30)
     x0, W = STARTS["start"], draw_W(10, 30)
     start_objective = mpc_problem.objective(problem, x0, W, np.zeros((7, 2)))
-    sol = FastScenarioSolver(problem, max_iter=1).solve(x0, W)
+    sol = FastScenarioSolver(problem, max_iter=1, restarts=()).solve(x0, W)
     assert not sol.success
     assert sol.status == "Maximum_Iterations_Exceeded"
     assert sol.iterations == 1
