@@ -101,7 +101,8 @@ class FastSolverOptions:
     # Extra starts against local optima (see FastScenarioSolver.solve): any of RESTARTS.
     restarts: tuple[str, ...] = ("mirror", "straight")
     restart_threshold: float = 0.35  # fraction of the steering bound that calls for them
-    restart_probe: int = 3  # SQP iterations an extra start gets to beat the best plan
+    restart_probe: int = 1  # SQP iterations an extra start runs before it may be given up
+    restart_optimism: float = 2.0  # multiple of the model's predicted decrease it may still get
     restart_margin: float = 0.0  # relative merit margin the probe may still lie above it
 
     def __post_init__(self) -> None:
@@ -124,6 +125,7 @@ class FastSolverOptions:
             "hessian_floor",
             "slack_regularisation",
             "damping_init",
+            "restart_optimism",
         ):
             value = getattr(self, name)
             ok = isinstance(value, (int, float)) and math.isfinite(value) and value > 0
@@ -419,9 +421,11 @@ class FastScenarioSolver:
         steering becomes bang-bang with many local optima. So when the first plan steers
         beyond ``restart_threshold`` of the steering bound, the SQP also starts from that
         plan with its steering negated (``"mirror"``) and, if the plan needs slack, with
-        the wheels straight (``"straight"``). Each extra start is abandoned unless it beats
-        the best plan so far within ``restart_probe`` iterations; the plan with the lowest
-        objective is returned (a failed start never replaces a successful one).
+        the wheels straight (``"straight"``). After ``restart_probe`` iterations an extra
+        start is abandoned as soon as its merit plus ``restart_optimism`` times the
+        decrease its local model predicts still lies above the best plan so far; the plan
+        with the lowest objective is returned (a failed start never replaces a successful
+        one).
 
         Raises:
             ValueError: on wrongly shaped or non-finite ``x0``, ``W`` or ``u_guess``.
@@ -447,8 +451,8 @@ class FastScenarioSolver:
         ro, status, success, iterations, extra = self._sqp(x0, W, u0)
         extra["restarts"] = {}
         for name in self._restart_names(ro):
-            # The problem is not convex: try another start, give it ``restart_probe``
-            # iterations to beat the best plan so far, and keep the better plan.
+            # The problem is not convex: try another start, abandon it once it cannot
+            # plausibly beat the best plan so far, and keep the better plan.
             u_alt = self._restart_guess(name, ro.u)
             bar = ro.merit + self.options.restart_margin * abs(ro.merit)
             ro2, status2, success2, iterations2, extra2 = self._sqp(x0, W, u_alt, bar)
@@ -939,8 +943,9 @@ class FastScenarioSolver:
     ) -> tuple[_Rollout, str, bool, int, dict[str, Any]]:
         """SQP iterations from ``u0``: ``(final rollout, status, success, iterations, extra)``.
 
-        ``abandon_above``: stop with status ``"Abandoned"`` once ``restart_probe``
-        iterations have not brought the merit below this value.
+        ``abandon_above``: after ``restart_probe`` iterations, stop with status
+        ``"Abandoned"`` when the merit plus ``restart_optimism`` times the directional
+        derivative along the QP step (the local model's promise) is above this value.
         """
         p, opt = self.problem, self.options
         n, nu, rho = p.horizon, self._n_u, p.slack_penalty
@@ -987,6 +992,14 @@ class FastScenarioSolver:
                 break
             # Upper bound of the merit's directional derivative along d (< 0 unless d = 0).
             D = float(lin.grad @ d) + rho * (qp_step.slack_sum - ro.slack)
+            if (
+                iterations >= opt.restart_probe
+                and ro.merit + opt.restart_optimism * D > abandon_above
+            ):
+                # Even a multiple of the decrease the local model promises leaves this
+                # start above the plan to beat: give it up.
+                status = "Abandoned"
+                break
 
             # --- line search on the exact-penalty merit, with second-order correction ---
             t = 1.0
@@ -1039,9 +1052,6 @@ class FastScenarioSolver:
             ratio = step / prev_step if math.isfinite(prev_step) else 1.0
             predicted_next = step * min(ratio, 1.0) if t == 1.0 else math.inf
             prev_step = step if t == 1.0 else math.inf
-            if iterations >= opt.restart_probe and ro.merit > abandon_above:
-                status = "Abandoned"
-                break
             if predicted_next <= opt.final_step_tol and (
                 ro.slack <= opt.add_tol or slack_change <= opt.add_tol * (1.0 + ro.slack)
             ):

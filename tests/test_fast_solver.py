@@ -357,7 +357,20 @@ def test_bad_input_raises_value_error(x0, W, u_guess) -> None:
 
 
 @pytest.mark.parametrize(
-    "options", [{"max_iter": 0}, {"tol": -1.0}, {"armijo": 0.7}, {"qp_solver": "nope"}, {"foo": 1}]
+    "options",
+    [
+        {"max_iter": 0},
+        {"tol": -1.0},
+        {"armijo": 0.7},
+        {"qp_solver": "nope"},
+        {"foo": 1},
+        {"restarts": ("mirror", "random")},
+        {"restarts": "mirror"},
+        {"restart_threshold": 0.0},
+        {"restart_optimism": -1.0},
+        {"restart_margin": float("nan")},
+        {"restart_probe": 0},
+    ],
 )
 def test_bad_options_raise_value_error(options: dict) -> None:
     with pytest.raises(ValueError):

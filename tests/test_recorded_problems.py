@@ -87,19 +87,21 @@ def test_fast_plan_is_a_local_optimum_of_the_full_problem(i, problem) -> None:
     assert fast.success, fast.status
     J = mpc_problem.objective(problem, x0, W, fast.u)
     assert fast.objective == pytest.approx(J, rel=1e-9)
-    rng = np.random.default_rng(i)
-    n_u = fast.u.size
-    directions = np.concatenate(
-        [np.eye(n_u), -np.eye(n_u), rng.standard_normal((40, n_u)) / np.sqrt(n_u)]
-    )
-    lower = np.broadcast_to(problem.input_lower, fast.u.shape)
-    upper = np.broadcast_to(problem.input_upper, fast.u.shape)
-    worst = np.inf
-    for radius in (1e-5, 1e-3):
-        for d in directions:
-            u = np.clip(fast.u + radius * d.reshape(fast.u.shape), lower, upper)
-            worst = min(worst, mpc_problem.objective(problem, x0, W, u) - J)
+    worst = mpc_problem.largest_local_descent(problem, x0, W, fast.u, seed=i)
     assert worst >= -1e-9 * abs(J), worst
     slack, violation = _slack_and_violation(problem, x0, W, fast.u)
     if slack <= VIOLATION_TOL:
         assert violation <= VIOLATION_TOL
+
+
+def test_extra_starts_only_ever_lower_the_objective(problem) -> None:
+    kept = 0
+    for i in range(len(IDS)):
+        x0, W, guess = DATA["x0"][i], DATA["W"][i], DATA["u_guess"][i]
+        plain = FastScenarioSolver(problem, restarts=()).solve(x0, W, u_guess=guess)
+        best = FastScenarioSolver(problem).solve(x0, W, u_guess=guess)
+        assert best.objective <= plain.objective * (1 + 1e-12), IDS[i]
+        if "kept" in best.extra["restarts"].values():
+            kept += best.objective < plain.objective * (1 - 1e-3)
+    # On this set the extra starts matter: some problem ends clearly lower with them.
+    assert kept >= 1
