@@ -104,6 +104,7 @@ class FastSolverOptions:
     restart_probe: int = 1  # SQP iterations an extra start runs before it may be given up
     restart_optimism: float = 2.0  # multiple of the model's predicted decrease it may still get
     restart_margin: float = 0.0  # relative merit margin the probe may still lie above it
+    restart_same_tol: float = 1e-3  # [m/s^2, rad] an extra start this close to the best: same
 
     def __post_init__(self) -> None:
         def check(name: str, ok: bool, allowed: str) -> None:
@@ -126,6 +127,7 @@ class FastSolverOptions:
             "slack_regularisation",
             "damping_init",
             "restart_optimism",
+            "restart_same_tol",
         ):
             value = getattr(self, name)
             ok = isinstance(value, (int, float)) and math.isfinite(value) and value > 0
@@ -425,7 +427,8 @@ class FastScenarioSolver:
         start is abandoned as soon as its merit plus ``restart_optimism`` times the
         decrease its local model predicts still lies above the best plan so far; the plan
         with the lowest objective is returned (a failed start never replaces a successful
-        one).
+        one); an extra start that comes within ``restart_same_tol`` of the best plan is
+        stopped too (it is heading for the same optimum).
 
         Raises:
             ValueError: on wrongly shaped or non-finite ``x0``, ``W`` or ``u_guess``.
@@ -455,7 +458,7 @@ class FastScenarioSolver:
             # plausibly beat the best plan so far, and keep the better plan.
             u_alt = self._restart_guess(name, ro.u)
             bar = ro.merit + self.options.restart_margin * abs(ro.merit)
-            ro2, status2, success2, iterations2, extra2 = self._sqp(x0, W, u_alt, bar)
+            ro2, status2, success2, iterations2, extra2 = self._sqp(x0, W, u_alt, bar, ro.u)
             iterations += iterations2
             for key in ("qp_solves", "soc_steps", "merit_evals"):
                 extra[key] += extra2[key]
@@ -940,12 +943,15 @@ class FastScenarioSolver:
         W: np.ndarray,
         u0: np.ndarray,
         abandon_above: float = math.inf,
+        rival: np.ndarray | None = None,
     ) -> tuple[_Rollout, str, bool, int, dict[str, Any]]:
         """SQP iterations from ``u0``: ``(final rollout, status, success, iterations, extra)``.
 
         ``abandon_above``: after ``restart_probe`` iterations, stop with status
         ``"Abandoned"`` when the merit plus ``restart_optimism`` times the directional
         derivative along the QP step (the local model's promise) is above this value.
+        ``rival``: the best plan so far ``(2N,)``; stop with status ``"Duplicate"`` when an
+        iterate comes within ``restart_same_tol`` of it (the same local optimum again).
         """
         p, opt = self.problem, self.options
         n, nu, rho = p.horizon, self._n_u, p.slack_penalty
@@ -1042,6 +1048,9 @@ class FastScenarioSolver:
             step = float(np.max(np.abs(accepted.u - u)))
             slack_change = abs(accepted.slack - ro.slack)
             ro = accepted
+            if rival is not None and np.max(np.abs(ro.u - rival)) <= opt.restart_same_tol:
+                status = "Duplicate"
+                break
             # Heavy backtracking means the quadratic model is poor this far out (negative
             # curvature, strongly curved constraints): damp the next steps, like a trust
             # region; full steps undo it, so the local convergence stays quadratic.
