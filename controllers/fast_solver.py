@@ -785,20 +785,24 @@ class FastScenarioSolver:
         n = ro.g_pos.shape[1]
         G = ro.g_pos.reshape(N_POSITION_KINDS * n, -1)
         ns = G.shape[1]
+        # Only groups whose largest value is within the margin contribute: select them
+        # first (usually a few of the 4 N), then rank within those alone.
+        active = np.nonzero(G.max(axis=1) >= -opt.screen_margin)[0]
+        if active.size == 0:
+            return np.empty((0, 3), dtype=int)
+        Ga = G[active]
         keep = min(opt.screen_rows, ns)
-        top = np.argpartition(G, ns - keep, axis=1)[:, ns - keep :]
-        near = np.take_along_axis(G, top, axis=1) >= -opt.screen_margin
-        active = near.any(axis=1)
+        top = np.argpartition(Ga, ns - keep, axis=1)[:, ns - keep :]
+        near = np.take_along_axis(Ga, top, axis=1) >= -opt.screen_margin
         px = ro.X[0, 1:]
-        step = np.arange(N_POSITION_KINDS * n) % n
+        step = active % n
         extremes = np.column_stack(
-            [G.argmin(axis=1), px.argmax(axis=1)[step], px.argmin(axis=1)[step]]
+            [Ga.argmin(axis=1), px.argmax(axis=1)[step], px.argmin(axis=1)[step]]
         )
-        group_top, col = np.nonzero(near)
-        group_ext = np.repeat(np.nonzero(active)[0], extremes.shape[1])
+        sub, col = np.nonzero(near)
         flat = np.unique(
             np.concatenate(
-                [group_top * ns + top[group_top, col], group_ext * ns + extremes[active].ravel()]
+                [active[sub] * ns + top[sub, col], np.repeat(active, 3) * ns + extremes.ravel()]
             )
         )
         group, scen = np.divmod(flat, ns)
