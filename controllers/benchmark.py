@@ -765,6 +765,18 @@ def time_solvers(
     if reference is not None:
         _restart_check(built, problem, problems, records, reference, summary)
         _certify_lower_plans(problem, problems, records, reference, summary)
+    alone = {}
+    if "fast" in built and len(built) > 1:
+        # The same closed loop again with the fast solver alone, as a controller runs it:
+        # side by side, every fast solve follows an IPOPT or csnlp solve that has evicted
+        # its data from the caches. Both timings are reported.
+        solo = _run_interleaved(
+            {"fast": built["fast"]}, problem, problems, warmup, progress, "fast alone"
+        )["fast"]
+        alone = _timing_summary(solo)
+        alone["same_plans"] = all(
+            a["u"] == b["u"] for a, b in zip(solo, records["fast"], strict=True)
+        )
     return {
         "problem": {"horizon": problem.horizon, "n_scenarios": problem.n_scenarios},
         "n_problems": len(problems),
@@ -774,6 +786,7 @@ def time_solvers(
         "records": records,
         "summary": summary,
         "speedup": _speedups(summary, records),
+        "fast_alone": alone,
     }
 
 
@@ -1062,22 +1075,35 @@ def evaluate_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
     def get(d: dict | None, key: str) -> float | None:
         return None if d is None else d.get(key)
 
+    # Latency targets: the fast solver alone in the closed loop (as a controller runs
+    # it) when that pass ran, else side by side; the note gives the other figure.
+    alone = closed.get("fast_alone") or None
+    timing = alone or fast
+    which = "alone" if alone else "side by side"
+
+    def latency_note(key: str) -> str:
+        if not fast:
+            return fast_note
+        if alone:
+            return f"fast alone; side by side with IPOPT/csnlp: {_fmt(fast.get(key))} ms"
+        return "side by side"
+
     targets = [
         _target(
-            f"fast median solve <= 10 ms ({where}, closed loop)",
-            get(fast, "solve_ms_median"),
+            f"fast median solve <= 10 ms ({where}, closed loop, {which})",
+            get(timing, "solve_ms_median"),
             10.0,
             "<=",
             "ms",
-            fast_note,
+            latency_note("solve_ms_median"),
         ),
         _target(
-            f"fast p95 solve <= 25 ms ({where})",
-            get(fast, "solve_ms_p95"),
+            f"fast p95 solve <= 25 ms ({where}, {which})",
+            get(timing, "solve_ms_p95"),
             25.0,
             "<=",
             "ms",
-            fast_note,
+            latency_note("solve_ms_p95"),
         ),
     ]
     for name, need, op in (("textbook", 20.0, ">="), ("csnlp", 1.0, ">")):
@@ -1200,10 +1226,23 @@ def format_report(results: dict[str, Any]) -> str:
                 f"{_fmt(s.get('max_violation_no_slack'), '.1e'):>10}"
                 f"{('-' if name == 'fast' else _fmt(ratio)):>8}"
             )
+        alone = closed.get("fast_alone")
+        if alone:
+            iters = (
+                f"{_fmt(alone['iterations_median'], '.0f')}/{_fmt(alone['iterations_max'], '.0f')}"
+            )
+            lines.append(
+                f"{'fast (alone)':<16}{'':>7}{_fmt(alone['solve_ms_median']):>9}"
+                f"{_fmt(alone['solve_ms_p95']):>9}{_fmt(alone['solve_ms_max']):>9}"
+                f"{_fmt(alone['wall_ms_median']):>10}{iters:>8}"
+                f"{alone['n_success']:>4}/{alone['n_problems']:<3}"
+                f"  same plans as side by side: {alone['same_plans']}"
+            )
         lines.append(
             "gap: relative objective gap to the reference where both succeed; viol@0: largest "
             f"scenario violation where the reference needs no slack (<= {NO_SLACK_TOL:g}); "
-            "x fast: median solve time / fast's."
+            "x fast: median solve time / fast's; fast (alone): the same closed loop again "
+            "without the other solvers in between."
         )
         for name, s in closed["summary"].items():
             if s.get("n_worse") or s.get("n_better"):

@@ -104,7 +104,7 @@ class FastSolverOptions:
     restart_probe: int = 1  # SQP iterations an extra start runs before it may be given up
     restart_optimism: float = 2.0  # multiple of the model's predicted decrease it may still get
     restart_margin: float = 0.0  # relative merit margin the probe may still lie above it
-    restart_same_tol: float = 1e-3  # [m/s^2, rad] an extra start this close to the best: same
+    restart_same_tol: float = 0.05  # [m/s^2, rad] an extra start this close to the best: same
 
     def __post_init__(self) -> None:
         def check(name: str, ok: bool, allowed: str) -> None:
