@@ -774,8 +774,15 @@ def time_solvers(
             {"fast": built["fast"]}, problem, problems, warmup, progress, "fast alone"
         )["fast"]
         alone = _timing_summary(solo)
-        alone["same_plans"] = all(
-            a["u"] == b["u"] for a, b in zip(solo, records["fast"], strict=True)
+        # qpOASES hot-starts from each QP object's last active set, so plans agree to
+        # solver tolerance rather than bit for bit.
+        alone["plan_difference_max"] = max(
+            (
+                float(np.max(np.abs(np.subtract(a["u"], b["u"]))))
+                for a, b in zip(solo, records["fast"], strict=True)
+                if a["u"] is not None and b["u"] is not None
+            ),
+            default=math.nan,
         )
     return {
         "problem": {"horizon": problem.horizon, "n_scenarios": problem.n_scenarios},
@@ -1236,7 +1243,8 @@ def format_report(results: dict[str, Any]) -> str:
                 f"{_fmt(alone['solve_ms_p95']):>9}{_fmt(alone['solve_ms_max']):>9}"
                 f"{_fmt(alone['wall_ms_median']):>10}{iters:>8}"
                 f"{alone['n_success']:>4}/{alone['n_problems']:<3}"
-                f"  same plans as side by side: {alone['same_plans']}"
+                f"  plans differ from side by side by <= "
+                f"{_fmt(alone['plan_difference_max'], '.1e')}"
             )
         lines.append(
             "gap: relative objective gap to the reference where both succeed; viol@0: largest "
