@@ -58,6 +58,11 @@ def test_quick_run_writes_complete_json(quick_run: tuple[dict, str]) -> None:
             assert _finite(summary["rel_gap_abs_max"])
             assert summary["rel_gap_abs_max"] >= summary["rel_gap_abs_median"] >= 0
     assert closed["summary"]["ipopt_condensed"]["rel_gap_abs_max"] == 0.0
+    # Times are of warm-started solves; each closed loop's first (cold) solve is apart.
+    n_loops = len({p["seed"] for p in closed["problems"]})
+    for name in closed["summary"]:
+        assert closed["summary"][name]["n_cold"] == n_loops
+        assert _finite(closed["summary"][name]["cold_solve_ms_max"])
     # The fast solver's closed loop again, alone: same problems, the same plans.
     alone = closed["fast_alone"]
     assert alone["n_problems"] == closed["n_problems"]

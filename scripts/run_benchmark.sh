@@ -1,0 +1,10 @@
+#!/usr/bin/env bash
+# Set up .venv (with the bench extra: csnlp) and run the solver / filter / episode benchmark,
+# printing its report and writing results/benchmark.json. About 10 minutes on 2 cores.
+# Extra arguments go to lfm-benchmark (e.g. --quick, --seeds 3:6, --out other.json).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup_env.sh test,bench
+# One BLAS thread: the solvers' matrices are small, and a second thread only adds noise.
+export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
+.venv/bin/lfm-benchmark "$@"
