@@ -118,6 +118,7 @@ class MPCAgent:
             status=sol.status,
             success=bool(sol.success),
             iterations=int(sol.iterations),
+            solver_extra=dict(sol.extra or {}),
             slack=float(sol.slack),
             objective=float(sol.objective),
             fallback=fallback,
