@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Set up .venv (with the bench extra: csnlp) and run the solver / filter / episode benchmark,
-# printing its report and writing results/benchmark.json. About 10 minutes on 2 cores.
+# printing its report and writing results/benchmark.json. About 5 minutes on 2 cores.
 # Extra arguments go to lfm-benchmark (e.g. --quick, --seeds 3:6, --out other.json).
 set -euo pipefail
 cd "$(dirname "$0")/.."
