@@ -565,7 +565,7 @@ def _restart_check(
     vanishes, the solver converges to the reference's point when started there (a different
     local optimum before, not an inaccurate one). Runs after the timed loop; adds
     ``restart_from_reference`` to the records concerned and ``n_restarted``,
-    ``restart_rel_gap_abs_max`` to ``summary``.
+    ``restart_rel_gap_abs_max`` and the signed ``restart_rel_gap_max`` to ``summary``.
     """
     for name, solver in solvers.items():
         if name == reference:
