@@ -1208,6 +1208,16 @@ def _fmt(x: Any, spec: str = ".1f") -> str:
     return format(x, spec)
 
 
+def _timing_columns(s: dict[str, Any]) -> str:
+    """Median, p95, max, wall median [ms], iterations and successes of a timing summary."""
+    iters = f"{_fmt(s['iterations_median'], '.0f')}/{_fmt(s['iterations_max'], '.0f')}"
+    return (
+        f"{_fmt(s['solve_ms_median']):>9}{_fmt(s['solve_ms_p95']):>9}"
+        f"{_fmt(s['solve_ms_max']):>9}{_fmt(s['wall_ms_median']):>10}{iters:>8}"
+        f"{s['n_success']:>4}/{s['n_problems']:<3}"
+    )
+
+
 def format_report(results: dict[str, Any]) -> str:
     """The printed report: closed-loop table, sweep, particle filter, episode, targets."""
     lines = []
@@ -1233,12 +1243,8 @@ def format_report(results: dict[str, Any]) -> str:
                 continue
             s = closed["summary"][name]
             ratio = closed["speedup"].get(name, {}).get("median_ratio")
-            iters = f"{_fmt(s['iterations_median'], '.0f')}/{_fmt(s['iterations_max'], '.0f')}"
             lines.append(
-                f"{name:<16}{_fmt(s['build_time_s'], '.2f'):>7}{_fmt(s['solve_ms_median']):>9}"
-                f"{_fmt(s['solve_ms_p95']):>9}{_fmt(s['solve_ms_max']):>9}"
-                f"{_fmt(s['wall_ms_median']):>10}{iters:>8}"
-                f"{s['n_success']:>4}/{s['n_problems']:<3}"
+                f"{name:<16}{_fmt(s['build_time_s'], '.2f'):>7}{_timing_columns(s)}"
                 f"{_fmt(s.get('rel_gap_abs_median'), '.1e'):>11}"
                 f"{_fmt(s.get('rel_gap_abs_max'), '.1e'):>11}"
                 f"{_fmt(s.get('max_violation_no_slack'), '.1e'):>10}"
@@ -1246,14 +1252,8 @@ def format_report(results: dict[str, Any]) -> str:
             )
         alone = closed.get("fast_alone")
         if alone:
-            iters = (
-                f"{_fmt(alone['iterations_median'], '.0f')}/{_fmt(alone['iterations_max'], '.0f')}"
-            )
             lines.append(
-                f"{'fast (alone)':<16}{'':>7}{_fmt(alone['solve_ms_median']):>9}"
-                f"{_fmt(alone['solve_ms_p95']):>9}{_fmt(alone['solve_ms_max']):>9}"
-                f"{_fmt(alone['wall_ms_median']):>10}{iters:>8}"
-                f"{alone['n_success']:>4}/{alone['n_problems']:<3}"
+                f"{'fast (alone)':<16}{'':>7}{_timing_columns(alone)}"
                 f"  plans differ from side by side by <= "
                 f"{_fmt(alone['plan_difference_max'], '.1e')}"
             )

@@ -40,8 +40,9 @@ slacks) over the shared inputs ``u`` ``(N, 2)``, like the IPOPT reference
 
 * **Extra starts.** The problem is not convex (left or right loops near the goal,
   bang-bang steering when the band cannot hold the scenarios). When the plan steers hard,
-  the SQP also starts from the mirrored plan (and, with slack, from straight wheels), gives
-  each extra start a few iterations to beat the best plan, and keeps the best.
+  the SQP also starts from the mirrored plan (and, with slack, from straight wheels), drops
+  an extra start once its local model cannot beat the best plan or it heads for that same
+  plan, and keeps the best.
 
 The result is a KKT point of the full scenario problem: started from a local optimum that
 IPOPT found, it stays there up to solver tolerances. From other starts the two may end in
@@ -103,7 +104,7 @@ class FastSolverOptions:
     restart_threshold: float = 0.35  # fraction of the steering bound that calls for them
     restart_probe: int = 1  # SQP iterations an extra start runs before it may be given up
     restart_optimism: float = 2.0  # multiple of the model's predicted decrease it may still get
-    restart_margin: float = 0.0  # relative merit margin the probe may still lie above it
+    restart_margin: float = 0.0  # relative margin added to the merit an extra start must beat
     restart_same_tol: float = 0.05  # [m/s^2, rad] an extra start this close to the best: same
 
     def __post_init__(self) -> None:

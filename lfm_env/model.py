@@ -86,9 +86,15 @@ class LatentForceModel:
 
         return scipy.linalg.solve_discrete_lyapunov(self.A, self.Q)
 
-    def physical_step(self, x: np.ndarray, u: np.ndarray, w: np.ndarray | float) -> np.ndarray:
-        """Noise-free Euler step of the bicycle with latent force ``w`` (shapes ``(..., 4)``)."""
-        return euler_step(x, u, self.config.dt, w, self.config.vehicle_length)
+    def physical_step(
+        self, x: np.ndarray, u: np.ndarray, w: np.ndarray | float, axis: int = -1
+    ) -> np.ndarray:
+        """Noise-free Euler step of the bicycle with latent force ``w``.
+
+        ``x`` holds ``[p_x, p_y, v, psi]`` along ``axis`` (shape ``(..., 4)`` by default,
+        ``(4, n)`` with ``axis=0``); see :func:`lfm_env.vehicle.euler_step`.
+        """
+        return euler_step(x, u, self.config.dt, w, self.config.vehicle_length, axis)
 
     def transition(
         self, particles: np.ndarray, u: np.ndarray, rng: np.random.Generator
@@ -106,14 +112,11 @@ class LatentForceModel:
         # halves the generator's cost, the largest part of a 7000-particle step.
         noise = rng.standard_normal((d, n), dtype=np.float32)
         out = np.empty((d, n))
-        out[:4] = euler_step(
-            X[:4], u, self.config.dt, self.H @ z, self.config.vehicle_length, axis=0
-        )
+        out[:4] = self.physical_step(X[:4], u, self.H @ z, axis=0)
         out[:4] += noise[:4] * self._process_std_col
         np.matmul(self.A, z, out=out[4:])
         out[4:] += self._q_factor32 @ noise[4:]
         return np.ascontiguousarray(out.T)
-        return out
 
     def mean_latent_forecast(self, z: np.ndarray, horizon: int) -> np.ndarray:
         """Mean forecast of the latent force ``(..., horizon)`` from latent states ``(..., p)``.

@@ -96,9 +96,4 @@ def euler_step(
     Same conventions as :func:`bicycle_rhs` (``axis`` included); ``dt`` in [s]. This is the
     step the environment, the particle filter and the MPC predictions share.
     """
-    if is_symbolic(state) or is_symbolic(action) or is_symbolic(disturbance):
-        return state + dt * bicycle_rhs(state, action, disturbance, length)
-    rhs = bicycle_rhs(state, action, disturbance, length, axis)
-    rhs *= dt
-    rhs += state
-    return rhs
+    return state + dt * bicycle_rhs(state, action, disturbance, length, axis)
