@@ -1400,29 +1400,21 @@ def _load() -> list[float] | None:
 def parse_seeds(text: str) -> list[int]:
     """Seeds from ``"0:3"`` (end exclusive), ``"5"`` or ``"1,4,7"`` (ranges may be mixed in).
 
+    The syntax of :func:`controllers.evaluation.parse_seeds`, with the error worded for
+    this command line.
+
     Raises:
         ValueError: naming ``text`` when it is not a list of non-negative integers and
             non-empty ranges.
     """
-    seeds: list[int] = []
+    from controllers.evaluation import parse_seeds as parse
+
     try:
-        for part in text.split(","):
-            part = part.strip()
-            if ":" in part:
-                lo, hi = (int(x) for x in part.split(":"))
-                if lo < 0 or hi <= lo:
-                    raise ValueError
-                seeds.extend(range(lo, hi))
-            else:
-                value = int(part)
-                if value < 0:
-                    raise ValueError
-                seeds.append(value)
+        return parse(text)
     except ValueError:
         raise ValueError(
             f"seeds={text!r}: expected non-negative integers and ranges like '0:3' or '1,4,7'"
         ) from None
-    return list(dict.fromkeys(seeds))
 
 
 def _positive_int(text: str) -> int:
