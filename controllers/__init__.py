@@ -1,8 +1,8 @@
 """Agents for the SineTrack latent-force world: particle filter, scenario MPC, baselines."""
 
 from controllers.agents import AGENT_LABELS, AGENTS, make_agent
-from controllers.mpc_problem import MPCSolution, ScenarioProblem
-from controllers.particle_filter import ParticleFilter, gaussian_log_likelihood
+from controllers.estimators.particle_filter import ParticleFilter, gaussian_log_likelihood
+from controllers.problem import MPCSolution, ScenarioProblem
 
 __all__ = [
     "AGENTS",

@@ -26,10 +26,10 @@ from typing import Any
 
 import numpy as np
 
-from controllers import mpc_problem
+from controllers import problem as mpc_problem
 from controllers.config import AgentConfig
-from controllers.mpc_problem import MPCSolution, ScenarioProblem
-from controllers.particle_filter import ParticleFilter, gaussian_log_likelihood
+from controllers.estimators.particle_filter import ParticleFilter, gaussian_log_likelihood
+from controllers.problem import MPCSolution, ScenarioProblem
 from lfm_env.config import ConfigError, EnvConfig, check_latent_step
 from lfm_env.model import LatentForceModel, psd_factor
 from lfm_env.validation import real_vector
@@ -62,10 +62,10 @@ def make_problem(env_config: EnvConfig, cfg: AgentConfig, n_scenarios: int) -> S
 def make_solver(problem: ScenarioProblem, cfg: AgentConfig):
     """The scenario solver named by ``cfg.solver``, built once."""
     if cfg.solver == "fast":
-        from controllers.fast_solver import FastScenarioSolver
+        from controllers.solvers.fast import FastScenarioSolver
 
         return FastScenarioSolver(problem, max_iter=cfg.max_iter)
-    from controllers.mpc import IpoptScenarioSolver
+    from controllers.solvers.ipopt import IpoptScenarioSolver
 
     formulation = "multiple_shooting" if cfg.solver == "ipopt_multiple_shooting" else "condensed"
     return IpoptScenarioSolver(problem, formulation, ipopt_options={"max_iter": cfg.max_iter})
@@ -323,7 +323,7 @@ AGENT_LABELS = {
 def check_agent_config(name: str, env_config: EnvConfig, cfg: AgentConfig | None = None) -> None:
     """Raise ``ConfigError`` if agent ``name`` cannot run on this (valid) world.
 
-    Cheap (builds nothing), so :func:`controllers.evaluation.evaluate` calls it for
+    Cheap (builds nothing), so :func:`experiments.evaluation.evaluate` calls it for
     every agent before the first episode. The particle filter of the ``pf`` and
     ``scenario`` agents weighs measurements by their noise, which must not be zero, and
     the agents' own model of the force (``cfg.disturbance``) must have a stable step.

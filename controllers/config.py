@@ -106,7 +106,7 @@ class AgentConfig:
         """``n_scenarios``, or the Campi-Garatti count for ``2 N`` decision variables."""
         if self.n_scenarios is not None:
             return self.n_scenarios
-        from controllers.mpc import campi_garatti_scenarios
+        from controllers.solvers.ipopt import campi_garatti_scenarios
 
         return campi_garatti_scenarios(self.violation_level, self.confidence, 2 * self.horizon)
 

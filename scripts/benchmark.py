@@ -1,10 +1,10 @@
 """Solver, particle-filter and episode benchmark: ``python scripts/benchmark.py --help``.
 
-A thin command line over :func:`controllers.benchmark.main` (also installed as
+A thin command line over :func:`experiments.benchmark.main` (also installed as
 ``lfm-benchmark``).
 """
 
-from controllers.benchmark import main
+from experiments.benchmark import main
 
 if __name__ == "__main__":
     raise SystemExit(main())

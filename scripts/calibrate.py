@@ -1,6 +1,6 @@
 """Learn the latent force's hyperparameters from calibration episodes (lfm-calibrate)."""
 
-from controllers.calibration import main
+from experiments.calibration import main
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -3,7 +3,7 @@
 The same command is installed as ``lfm-evaluate``.
 """
 
-from controllers.cli import evaluate_main
+from experiments.cli import evaluate_main
 
 if __name__ == "__main__":
     raise SystemExit(evaluate_main())

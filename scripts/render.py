@@ -3,7 +3,7 @@
 The same command is installed as ``lfm-render``.
 """
 
-from controllers.cli import render_main
+from experiments.cli import render_main
 
 if __name__ == "__main__":
     raise SystemExit(render_main())

@@ -3,7 +3,7 @@
 The same command is installed as ``lfm-report``.
 """
 
-from controllers.cli import report_main
+from experiments.cli import report_main
 
 if __name__ == "__main__":
     raise SystemExit(report_main())

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from controllers import benchmark
-from controllers.fast_solver import FastScenarioSolver
-from controllers.mpc_problem import minimal_slack, rollout
+from controllers.problem import minimal_slack, rollout
+from controllers.solvers.fast import FastScenarioSolver
+from experiments import benchmark
 
 SEEDS = range(6)
 OUT = Path(__file__).with_name("recorded_problems.npz")

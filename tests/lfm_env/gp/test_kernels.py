@@ -16,7 +16,7 @@ import scipy.special
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from lfm_env.gp import (
+from lfm_env.gp.kernels import (
     SE_MAX_ORDER,
     Matern,
     Periodic,

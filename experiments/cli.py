@@ -1,7 +1,7 @@
 """Command lines of the project: thin layers that parse arguments and call library functions.
 
 Each command is a ``<name>_main(argv=None) -> int`` function registered as a console
-script in ``pyproject.toml`` (``lfm-evaluate = "controllers.cli:evaluate_main"``) and
+script in ``pyproject.toml`` (``lfm-evaluate = "experiments.cli:evaluate_main"``) and
 wrapped by a one-line script in ``scripts/``. Bad arguments exit with code 2 and a
 one-line message (``argparse``'s ``parser.error``).
 """
@@ -140,7 +140,7 @@ def _evaluate_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--no-report",
         action="store_true",
-        help="do not write the report after the run (default: controllers.report.write_report)",
+        help="do not write the report after the run (default: experiments.report.write_report)",
     )
     parser.add_argument(
         "--quiet", action="store_true", help="no progress bar and no per-agent summary"
@@ -169,7 +169,7 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
     Returns:
         The exit code: 0 if every episode ran, 1 if some raised an error.
     """
-    from controllers.evaluation import evaluate, parse_seeds
+    from experiments.evaluation import evaluate, parse_seeds
 
     parser = _evaluate_parser()
     args = parser.parse_args(argv)
@@ -216,9 +216,9 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
 
     if not args.no_report:
         try:
-            from controllers.report import write_report
+            from experiments.report import write_report
         except ImportError as exc:
-            print(f"report: skipped, controllers.report is not available ({exc})")
+            print(f"report: skipped, experiments.report is not available ({exc})")
         else:
             try:
                 where = write_report(out)
@@ -280,7 +280,7 @@ def report_main(argv: Sequence[str] | None = None) -> int:
     Returns:
         The exit code: 0 when the report was written.
     """
-    from controllers.report import write_report
+    from experiments.report import write_report
 
     parser = _report_parser()
     args = parser.parse_args(argv)
@@ -355,8 +355,8 @@ def _render_episode(
 
     import lfm_env  # noqa: F401  (registers the env id)
     from controllers.agents import make_agent
-    from controllers.evaluation import ENV_ID, agent_seed, resolve_config
-    from controllers.plots import annotate_frame
+    from experiments.evaluation import ENV_ID, agent_seed, resolve_config
+    from experiments.plots import annotate_frame
 
     cfg = resolve_config(config, [agent_name])
     env = gym.make(ENV_ID, config=cfg, render_mode="rgb_array", screen_size=size, scaling=20.0)
@@ -390,7 +390,7 @@ def render_main(argv: Sequence[str] | None = None) -> int:
         The exit code: 0 when the file was written.
     """
     from controllers.agents import AGENTS
-    from controllers.plots import write_gif
+    from experiments.plots import write_gif
 
     parser = _render_parser()
     args = parser.parse_args(argv)

@@ -32,11 +32,15 @@ from hypothesis import strategies as st
 
 import lfm_env  # noqa: F401  (registers the env id)
 from controllers import agents as agents_module
-from controllers import evaluation, report
 from controllers.agents import AGENTS, make_agent
-from controllers.cli import evaluate_main, render_main, report_main
 from controllers.config import AgentConfig, load_agent_config
-from controllers.evaluation import (
+from controllers.estimators.particle_filter import ParticleFilter, gaussian_log_likelihood
+from controllers.problem import ScenarioProblem
+from controllers.solvers.fast import FastScenarioSolver
+from controllers.solvers.ipopt import IpoptScenarioSolver
+from experiments import evaluation, report
+from experiments.cli import evaluate_main, render_main, report_main
+from experiments.evaluation import (
     ENV_ID,
     TIMING_COLUMNS,
     ResultsFolderError,
@@ -46,14 +50,10 @@ from controllers.evaluation import (
     resolve_config,
     run_episode,
 )
-from controllers.fast_solver import FastScenarioSolver
-from controllers.mpc import IpoptScenarioSolver
-from controllers.mpc_problem import ScenarioProblem
-from controllers.particle_filter import ParticleFilter, gaussian_log_likelihood
 from lfm_env.config import ConfigError, DisturbanceConfig, EnvConfig, load_env_config, load_yaml
 from lfm_env.model import LatentForceModel, psd_factor
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 TINY_AGENTS = {"horizon": 5, "n_scenarios": 5, "n_particles": 300}
 TINY = {"env": {"max_steps": 15}, "agents": TINY_AGENTS}
 NAN, INF = math.nan, math.inf
@@ -1286,7 +1286,9 @@ def test_yaml_python_tags_are_refused_and_never_run(tag, reader, tmp_path, no_wo
     assert not marker.exists()
 
 
-LIBRARY_FILES = sorted([*(REPO / "lfm_env").glob("*.py"), *(REPO / "controllers").glob("*.py")])
+LIBRARY_FILES = sorted(
+    p for pkg in ("lfm_env", "controllers", "experiments") for p in (REPO / pkg).rglob("*.py")
+)
 
 
 def dotted(node: ast.AST) -> str:

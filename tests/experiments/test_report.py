@@ -1,4 +1,4 @@
-"""Tests of the report (``controllers.report``), its figures and the lfm-report/render CLIs."""
+"""Tests of the report (``experiments.report``), its figures and the lfm-report/render CLIs."""
 
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 import yaml
 
-from controllers import plots
-from controllers.cli import render_main, report_main
-from controllers.evaluation import evaluate
-from controllers.report import (
+from experiments import plots
+from experiments.cli import render_main, report_main
+from experiments.evaluation import evaluate
+from experiments.report import (
     Results,
     bootstrap_ci,
     load_results,
@@ -27,7 +27,7 @@ from controllers.report import (
 )
 from lfm_env.config import load_env_config
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 TINY = {"env": {"max_steps": 20}, "agents": {"n_particles": 300, "n_scenarios": 5, "horizon": 5}}
 AGENTS = ["nominal", "pf", "scenario", "oracle"]
 SEEDS = [0, 1, 2]

@@ -6,7 +6,7 @@ The benchmark answers the solver issue's questions with measurements, never with
   agent and records the ``(x0, W)`` it met at every step. :func:`time_solvers` then has
   every solver solve these problems in closed-loop order, each warm-started from its own
   previous solution, and compares solve times, iterations, objectives (all evaluated with
-  :func:`controllers.mpc_problem.objective`, the same exact-penalty function for every
+  :func:`controllers.problem.objective`, the same exact-penalty function for every
   solver) and constraint violations.
 * **Scenario-count sweep.** :func:`sweep_scenarios` times the fast solver (and IPOPT on the
   condensed NLP for small ``Ns``) on closed-loop-like problems with ``Ns`` scenarios drawn
@@ -19,10 +19,10 @@ PASS/FAIL line per target of the issue and writes the figures as JSON.
 
 The solvers compared (:data:`SOLVERS`):
 
-* ``fast``: :class:`controllers.fast_solver.FastScenarioSolver` (imported lazily; reported as
+* ``fast``: :class:`controllers.solvers.fast.FastScenarioSolver` (imported lazily; reported as
   unavailable if it cannot be imported or built).
-* ``ipopt_condensed``: :class:`controllers.mpc.IpoptScenarioSolver`, single shooting.
-* ``textbook``: :class:`controllers.mpc.IpoptScenarioSolver`, multiple shooting, exact
+* ``ipopt_condensed``: :class:`controllers.solvers.ipopt.IpoptScenarioSolver`, single shooting.
+* ``textbook``: :class:`controllers.solvers.ipopt.IpoptScenarioSolver`, multiple shooting, exact
   Hessian: the reference.
 * ``csnlp``: :class:`CsnlpScenarioSolver`, the same NLP built with csnlp's
   ``ScenarioBasedMpc`` (optional ``bench`` extra).
@@ -49,10 +49,10 @@ from typing import Any, NamedTuple
 import numpy as np
 from tqdm.auto import tqdm
 
-from controllers import mpc_problem
+from controllers import problem as mpc_problem
 from controllers.config import load_agent_config
-from controllers.mpc import DEFAULT_IPOPT_OPTIONS, N_CONSTRAINT_KINDS, IpoptScenarioSolver
-from controllers.mpc_problem import MPCSolution, ScenarioProblem
+from controllers.problem import MPCSolution, ScenarioProblem
+from controllers.solvers.ipopt import DEFAULT_IPOPT_OPTIONS, N_CONSTRAINT_KINDS, IpoptScenarioSolver
 from lfm_env.config import load_env_config, to_dict
 from lfm_env.vehicle import euler_step
 
@@ -152,9 +152,9 @@ def problem_from_config(
 
 
 def fast_solver_status() -> tuple[bool, str]:
-    """Whether :mod:`controllers.fast_solver` imports, and why not if it does not."""
+    """Whether :mod:`controllers.solvers.fast` imports, and why not if it does not."""
     try:
-        from controllers.fast_solver import FastScenarioSolver  # noqa: F401
+        from controllers.solvers.fast import FastScenarioSolver  # noqa: F401
     except Exception as exc:  # any failure of a module still being written
         return False, f"import failed: {type(exc).__name__}: {exc}"
     return True, ""
@@ -180,11 +180,11 @@ class CsnlpScenarioSolver:
     (``shooting="multi"``: all scenario states are variables, as in csnlp's default), one
     shared input sequence, the latent forces ``W`` as per-scenario disturbance parameters
     ``w__i``. csnlp's own soft constraints would give every scenario its own slack, so the
-    ``6 N`` slacks shared by all scenarios (the convention of :mod:`controllers.mpc_problem`)
+    ``6 N`` slacks shared by all scenarios (the convention of :mod:`controllers.problem`)
     are one extra NLP variable ``s`` that every scenario's constraint ``g(x_k^(i)) <= s[:, k]``
     refers to. The objective is csnlp's scenario average of the single-scenario cost plus
     the input cost and the exact L1 slack penalty, i.e. exactly
-    :func:`controllers.mpc_problem.objective`.
+    :func:`controllers.problem.objective`.
 
     csnlp shares one initial state among scenarios, so ``x0`` must be ``(4,)`` (or
     ``(Ns, 4)`` with equal rows).
@@ -192,7 +192,8 @@ class CsnlpScenarioSolver:
     Args:
         problem: the problem data.
         shooting: csnlp's ``"multi"`` (default) or ``"single"`` shooting.
-        ipopt_options: IPOPT options merged over :data:`controllers.mpc.DEFAULT_IPOPT_OPTIONS`
+        ipopt_options: IPOPT options merged over
+            :data:`controllers.solvers.ipopt.DEFAULT_IPOPT_OPTIONS`
             (the textbook solver's).
 
     Raises:
@@ -369,7 +370,7 @@ def build_solver(name: str, problem: ScenarioProblem) -> tuple[Any | None, float
     t0 = time.perf_counter()
     try:
         if name == "fast":
-            from controllers.fast_solver import FastScenarioSolver
+            from controllers.solvers.fast import FastScenarioSolver
 
             solver = FastScenarioSolver(problem)
         elif name == "ipopt_condensed":
@@ -605,7 +606,7 @@ def _certify_lower_plans(
     """Probe the plans that end lower than the reference for local optimality.
 
     Where a solver's objective is below the reference's by more than :data:`GAP_TOL`, its
-    plan is checked with :func:`controllers.mpc_problem.largest_local_descent` (the full
+    plan is checked with :func:`controllers.problem.largest_local_descent` (the full
     objective around the plan, independent of any solver): a certified plan is a lower
     local optimum of the same problem, not an artefact. Adds ``local_descent`` to the
     records concerned and ``n_better_certified`` to ``summary``.
@@ -728,7 +729,7 @@ def time_solvers(
 
     Every solver solves the problems in the given order; before each new seed every solver
     is reset. Problems are interleaved: for each problem, all solvers run one after another
-    (in a rotating order). Objectives are :func:`controllers.mpc_problem.objective` of the
+    (in a rotating order). Objectives are :func:`controllers.problem.objective` of the
     returned inputs, so they compare across formulations. After the timed loop, problems
     whose objective differs from the reference's by more than :data:`GAP_TOL` are re-solved
     from the reference's solution (untimed) to tell a different local optimum from an
@@ -917,7 +918,7 @@ def time_particle_filter(
         ``{"n_steps", "results": [{"n_particles", "step_ms_median", "step_ms_p95",
         "step_ms_max", "update_ms_median", "update_ms_p95", "predict_ms_median"}]}``.
     """
-    from controllers.particle_filter import ParticleFilter, gaussian_log_likelihood
+    from controllers.estimators.particle_filter import ParticleFilter, gaussian_log_likelihood
     from lfm_env.model import LatentForceModel, psd_factor
 
     config = _config_path(config)
@@ -1400,14 +1401,14 @@ def _load() -> list[float] | None:
 def parse_seeds(text: str) -> list[int]:
     """Seeds from ``"0:3"`` (end exclusive), ``"5"`` or ``"1,4,7"`` (ranges may be mixed in).
 
-    The syntax of :func:`controllers.evaluation.parse_seeds`, with the error worded for
+    The syntax of :func:`experiments.evaluation.parse_seeds`, with the error worded for
     this command line.
 
     Raises:
         ValueError: naming ``text`` when it is not a list of non-negative integers and
             non-empty ranges.
     """
-    from controllers.evaluation import parse_seeds as parse
+    from experiments.evaluation import parse_seeds as parse
 
     try:
         return parse(text)

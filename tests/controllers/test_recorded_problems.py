@@ -19,11 +19,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controllers import benchmark, mpc_problem
-from controllers.fast_solver import FastScenarioSolver
-from controllers.mpc import IpoptScenarioSolver
+from controllers import problem as mpc_problem
+from controllers.solvers.fast import FastScenarioSolver
+from controllers.solvers.ipopt import IpoptScenarioSolver
+from experiments import benchmark
 
-DATA = dict(np.load(Path(__file__).parent / "data" / "recorded_problems.npz"))
+DATA = dict(np.load(Path(__file__).resolve().parents[1] / "data" / "recorded_problems.npz"))
 IDS = [f"seed{s}-step{k}" for s, k in zip(DATA["seed"], DATA["step"], strict=True)]
 RTOL = 1e-4  # objective agreement (the benchmark's target)
 VIOLATION_TOL = 1e-6  # [m or m/s] where the solution needs no slack

@@ -1,6 +1,6 @@
 """CasADi + IPOPT solvers of the scenario MPC problem (paper eq. MPCScen).
 
-Both formulations minimise exactly :func:`controllers.mpc_problem.objective` (the
+Both formulations minimise exactly :func:`controllers.problem.objective` (the
 scenario-averaged quadratic cost plus an exact L1 penalty on ``6 N`` shared slacks) and
 differ only in how the predicted states enter the NLP:
 
@@ -29,8 +29,8 @@ import casadi as ca
 import numpy as np
 from scipy import stats
 
-from controllers import mpc_problem
-from controllers.mpc_problem import MPCSolution, ScenarioProblem
+from controllers import problem as mpc_problem
+from controllers.problem import MPCSolution, ScenarioProblem
 from lfm_env.vehicle import euler_step
 
 FORMULATIONS = ("condensed", "multiple_shooting")

@@ -9,7 +9,7 @@ import pytest
 import lfm_env  # noqa: F401  (registers the env)
 from controllers.agents import AGENTS, make_agent
 from controllers.config import AgentConfig, load_agent_config
-from controllers.mpc import campi_garatti_scenarios
+from controllers.solvers.ipopt import campi_garatti_scenarios
 from lfm_env.config import ConfigError
 
 QUICK = "configs/quick.yaml"

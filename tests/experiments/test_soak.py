@@ -33,13 +33,13 @@ import pytest
 import yaml
 
 from controllers.agents import MPCAgent
-from controllers.evaluation import TIMING_COLUMNS, evaluate, resolve_config, run_episode
-from controllers.fast_solver import FastScenarioSolver
-from controllers.mpc import IpoptScenarioSolver
-from controllers.particle_filter import ParticleFilter
+from controllers.estimators.particle_filter import ParticleFilter
+from controllers.solvers.fast import FastScenarioSolver
+from controllers.solvers.ipopt import IpoptScenarioSolver
+from experiments.evaluation import TIMING_COLUMNS, evaluate, resolve_config, run_episode
 from lfm_env.env import SineTrackEnv
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 AGENT_CYCLE = ("nominal", "pf", "scenario", "oracle")
 SOAK_EPISODES = 300
 WARM_UP = 30  # episodes before the memory baseline: imports, caches and allocator pools

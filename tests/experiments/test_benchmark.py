@@ -12,8 +12,8 @@ import math
 import numpy as np
 import pytest
 
-from controllers import benchmark
-from controllers.mpc import IpoptScenarioSolver
+from controllers.solvers.ipopt import IpoptScenarioSolver
+from experiments import benchmark
 from lfm_env.config import load_env_config
 from lfm_env.model import LatentForceModel
 

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controllers.resampling import RESAMPLERS
+from controllers.estimators.resampling import RESAMPLERS
 
 Transition = Callable[[np.ndarray, object, np.random.Generator], np.ndarray]
 LogLikelihood = Callable[[object, np.ndarray], np.ndarray]
@@ -129,7 +129,7 @@ class ParticleFilter:
         initial_particles: prior samples, shape ``(n, d)``, finite; copied.
         rng: the filter's only source of randomness (resampling, and passed on to
             ``transition``).
-        resampling: one of :data:`controllers.resampling.RESAMPLERS`' keys.
+        resampling: one of :data:`controllers.estimators.resampling.RESAMPLERS`' keys.
         ess_threshold: ``None`` resamples after every update (the paper's filter); a
             float in ``(0, 1]`` resamples only when ``ESS < ess_threshold * n``.
 

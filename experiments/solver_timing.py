@@ -18,7 +18,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from controllers.mpc_problem import MPCSolution, ScenarioProblem
+from controllers.problem import MPCSolution, ScenarioProblem
 from lfm_env.vehicle import euler_step
 
 Problem = tuple[np.ndarray, np.ndarray]  # (x0 (4,) or (Ns, 4), W (Ns, N))
@@ -238,13 +238,13 @@ def default_benchmark(
     For each scenario count the sequences come from the fast solver's closed loop
     (:func:`closed_loop_problems` with the settings of ``RECIPES[recipe]``, one sequence
     per seed); every solver is then timed on the same sequences. IPOPT (which needs
-    :mod:`controllers.mpc`) is timed only if ``include_ipopt`` and for at most
+    :mod:`controllers.solvers.ipopt`) is timed only if ``include_ipopt`` and for at most
     ``ipopt_max_scenarios`` scenarios (about 1-2 s per solve at 150).
 
     Raises:
         ValueError: on an unknown recipe.
     """
-    from controllers.fast_solver import FastScenarioSolver
+    from controllers.solvers.fast import FastScenarioSolver
 
     if recipe not in RECIPES:
         raise ValueError(f"recipe={recipe!r}: must be one of {sorted(RECIPES)}")
@@ -261,7 +261,7 @@ def default_benchmark(
             "fast SQP": lambda problem=problem: FastScenarioSolver(problem)
         }
         if include_ipopt and ns <= ipopt_max_scenarios:
-            from controllers.mpc import IpoptScenarioSolver
+            from controllers.solvers.ipopt import IpoptScenarioSolver
 
             solvers["IPOPT condensed"] = lambda problem=problem: IpoptScenarioSolver(
                 problem, formulation="condensed"

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers import plots
+from experiments import plots
 from lfm_env.config import EnvConfig, load_env_config, load_yaml
 
 REFERENCE_AGENT = "scenario"

@@ -1,4 +1,4 @@
-"""Tests of the evaluation library (``controllers.evaluation``) and its command line."""
+"""Tests of the evaluation library (``experiments.evaluation``) and its command line."""
 
 from __future__ import annotations
 
@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 import yaml
 
-from controllers import evaluation
-from controllers.cli import evaluate_main
-from controllers.evaluation import (
+from experiments import evaluation
+from experiments.cli import evaluate_main
+from experiments.evaluation import (
     ROW_COLUMNS,
     TIMING_COLUMNS,
     ResultsFolderError,
@@ -30,7 +30,7 @@ from controllers.evaluation import (
     run_episode,
 )
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 # The quick world with short episodes and small agents: about 0.3 s per episode.
 TINY = {
     "env": {"max_steps": 15},
@@ -430,9 +430,9 @@ def test_cli_runs_and_calls_the_report(tmp_path, capsys, monkeypatch):
     config = write_tiny_yaml(tmp_path)
     out = tmp_path / "res"
     reported = []
-    fake = types.ModuleType("controllers.report")
+    fake = types.ModuleType("experiments.report")
     fake.write_report = lambda d: reported.append(Path(d)) or Path(d) / "report.md"
-    monkeypatch.setitem(sys.modules, "controllers.report", fake)
+    monkeypatch.setitem(sys.modules, "experiments.report", fake)
     argv = ["--config", str(config), "--agents", "nominal", "--seeds", "0,1", "--out", str(out)]
     assert evaluate_main([*argv, "--quiet"]) == 0
     text = capsys.readouterr().out
@@ -441,7 +441,7 @@ def test_cli_runs_and_calls_the_report(tmp_path, capsys, monkeypatch):
     assert [(r["agent"], r["seed"]) for r in load_results(out)] == [("nominal", 0), ("nominal", 1)]
 
     # Without the report module the run still succeeds, saying why there is no report.
-    monkeypatch.setitem(sys.modules, "controllers.report", None)
+    monkeypatch.setitem(sys.modules, "experiments.report", None)
     assert evaluate_main(argv) == 0
     assert "report: skipped" in capsys.readouterr().out
 

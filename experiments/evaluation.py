@@ -2,7 +2,7 @@
 
 The shape follows stable-baselines3's ``evaluate_policy``: one library function,
 :func:`evaluate`, runs every (agent, seed) episode and returns one row of metrics per
-episode; command lines (:mod:`controllers.cli`) only parse arguments and call it.
+episode; command lines (:mod:`experiments.cli`) only parse arguments and call it.
 
 Paired design: for a given env seed every agent faces the same hidden disturbance and
 the same measurement and process noise (the env draws them from its own seed), while

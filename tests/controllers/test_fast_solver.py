@@ -9,8 +9,10 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from controllers import mpc_problem
-from controllers._solver_timing import (
+from controllers import problem as mpc_problem
+from controllers.problem import MPCSolution, ScenarioProblem
+from controllers.solvers.fast import FastScenarioSolver
+from experiments.solver_timing import (
     closed_loop_problems,
     default_benchmark,
     format_timing_table,
@@ -18,8 +20,6 @@ from controllers._solver_timing import (
     objective_agreement,
     time_solvers,
 )
-from controllers.fast_solver import FastScenarioSolver
-from controllers.mpc_problem import MPCSolution, ScenarioProblem
 from lfm_env.vehicle import euler_step
 
 RTOL = 1e-4  # objective agreement with the reference
@@ -39,7 +39,7 @@ class _CondensedIpopt:
     """Independent reference: condensed single-shooting NLP in (u, s) solved by IPOPT.
 
     Built from :func:`lfm_env.vehicle.euler_step` and the track's CasADi constraints, with
-    the ``6 N`` shared slacks and the exact L1 penalty of :mod:`controllers.mpc_problem`.
+    the ``6 N`` shared slacks and the exact L1 penalty of :mod:`controllers.problem`.
     """
 
     def __init__(self, problem: ScenarioProblem) -> None:
@@ -106,7 +106,7 @@ def reference_solver(problem: ScenarioProblem):
     """IPOPT reference: the multiple-shooting IpoptScenarioSolver when the repository has
     it, else the condensed NLP above (same problem, same exact penalty)."""
     try:
-        from controllers.mpc import IpoptScenarioSolver
+        from controllers.solvers.ipopt import IpoptScenarioSolver
     except ImportError:
         return _CondensedIpopt(problem)
     return IpoptScenarioSolver(problem, formulation="multiple_shooting")

@@ -248,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import sys
 
-    from controllers.evaluation import parse_seeds
+    from experiments.evaluation import parse_seeds
 
     parser = argparse.ArgumentParser(
         prog="lfm-calibrate",

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from controllers.agents import make_agent
-from controllers.calibration import (
+from experiments.calibration import (
     SpeedRecord,
     fit_disturbance,
     main,

@@ -1,9 +1,9 @@
 """Fast default solver of the scenario MPC problem: a condensed exact-Hessian SQP.
 
-:class:`FastScenarioSolver` minimises exactly :func:`controllers.mpc_problem.objective`
+:class:`FastScenarioSolver` minimises exactly :func:`controllers.problem.objective`
 (the scenario-averaged quadratic cost plus the exact L1 penalty on the ``6 N`` shared
 slacks) over the shared inputs ``u`` ``(N, 2)``, like the IPOPT reference
-(:class:`controllers.mpc.IpoptScenarioSolver`), but exploits the structure of the problem:
+(:class:`controllers.solvers.ipopt.IpoptScenarioSolver`), but exploits the structure of the problem:
 
 * **Condensing.** The latent forces ``W`` do not depend on ``u``, so every scenario's
   states are explicit functions of the ``2 N`` inputs. Rollouts, forward sensitivities
@@ -33,7 +33,7 @@ slacks) over the shared inputs ``u`` ``(N, 2)``, like the IPOPT reference
   meaningful. It is called through a CasADi ``FunctionBuffer``, which avoids the per-call
   conversion of NumPy arrays (hundreds of microseconds otherwise).
 * **Globalisation.** Backtracking Armijo line search on the exact-penalty merit function
-  (the objective of :mod:`controllers.mpc_problem`, evaluated on all scenarios), with a
+  (the objective of :mod:`controllers.problem`, evaluated on all scenarios), with a
   second-order correction against the Maratos effect. It stops when the next Newton step
   is predicted below ``final_step_tol`` (from the last step and its contraction), so a
   warm re-solve of a solved problem takes one iteration.
@@ -67,7 +67,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from controllers.mpc_problem import MPCSolution, ScenarioProblem
+from controllers.problem import MPCSolution, ScenarioProblem
 
 N_KINDS = 6  # constraint kinds per step: track upper/lower, x lower/upper, speed lower/upper
 N_POSITION_KINDS = 4  # the first four kinds depend on the position only
@@ -345,7 +345,7 @@ def _silenced_stdout() -> Iterator[None]:
 class FastScenarioSolver:
     """Condensed exact-Hessian SQP solver of a :class:`ScenarioProblem`.
 
-    Same interface and result semantics as :class:`controllers.mpc.IpoptScenarioSolver`:
+    Same interface and result semantics as :class:`controllers.solvers.ipopt.IpoptScenarioSolver`:
     build once, call :meth:`solve` at every step; the previous solution shifted by one
     step is the default initial guess.
 
@@ -408,7 +408,7 @@ class FastScenarioSolver:
 
         Returns:
             The solution: ``u`` inside the input bounds; ``objective``, ``slack`` and
-            ``predicted`` those of :mod:`controllers.mpc_problem` (``objective``,
+            ``predicted`` those of :mod:`controllers.problem` (``objective``,
             ``minimal_slack`` summed, ``rollout``) for ``u``, computed by the solver's own
             vectorised rollout (equal up to rounding); ``solve_time`` the wall time of the
             whole call; ``extra`` counts QP solves, QP rows, merit evaluations and

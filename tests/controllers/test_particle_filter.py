@@ -8,8 +8,12 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from controllers.particle_filter import ParticleFilter, UpdateInfo, gaussian_log_likelihood
-from controllers.resampling import (
+from controllers.estimators.particle_filter import (
+    ParticleFilter,
+    UpdateInfo,
+    gaussian_log_likelihood,
+)
+from controllers.estimators.resampling import (
     RESAMPLERS,
     effective_sample_size,
     multinomial,

@@ -9,14 +9,14 @@ import pytest
 from scipy.optimize import Bounds, minimize
 from scipy.optimize._numdiff import approx_derivative
 
-from controllers import mpc_problem as mp
-from controllers.mpc import (
+from controllers import problem as mp
+from controllers.problem import ScenarioProblem
+from controllers.solvers.ipopt import (
     FORMULATIONS,
     IpoptScenarioSolver,
     campi_garatti_scenarios,
     solve_scenario_problem,
 )
-from controllers.mpc_problem import ScenarioProblem
 
 N = 5
 NS = 20
