@@ -1,4 +1,4 @@
-"""Agents for the SineTrack latent-force world: particle filter, scenario MPC, baselines."""
+"""Control: estimators, the scenario problem, its solvers (one registry) and the agents."""
 
 from controllers.agents import AGENT_LABELS, AGENTS, make_agent
 from controllers.estimators.particle_filter import ParticleFilter, gaussian_log_likelihood

@@ -1,16 +1,23 @@
-"""MPC agents for the SineTrack world, all with the same face.
+"""MPC agents over any latent-force model, all with the same face.
 
-Every agent has ``reset(seed=None)``, ``act(obs) -> action`` and ``last_info`` (a
-dict: solve time [s], solver status, iterations, slack, state estimate and its
-standard deviation, latent-force estimate, the plan and the predicted trajectories).
+Every agent has ``reset(seed=None)``, ``act(obs) -> action`` and ``last_info`` (a dict:
+solve time [s], solver status, iterations, slack, state estimate and its standard
+deviation, latent-force estimate, the plan and the predicted trajectories). An agent is
+built from a :class:`~lfm_env.model.LatentForceModel` (its belief about the world: the
+system, the latent force's kernel, the noise), a :class:`~lfm_env.system.QuadraticCost`,
+its :class:`~controllers.config.AgentConfig` and the std of the measurement noise of the
+full-state observation ``y = x + e``; every dimension is read from the model.
 
-* :class:`NominalMPCAgent`: the observation taken as the state, no latent force in its
-  model (``w = 0``), one deterministic prediction.
+* :class:`NominalMPCAgent` (``"nominal"``): the observation taken as the state, no latent
+  force in its model (``w = 0``), one deterministic prediction.
 * :class:`CertaintyEquivalentMPCAgent` (``"pf"``): particle-filter estimate; predicts the
   latent force by its mean ``H A^k z``; one noise-free scenario.
 * :class:`ScenarioMPCAgent` (``"scenario"``): particle filter plus the scenario MPC of the
-  paper: ``Ns`` draws of the latent process noise over the horizon, one shared input
-  sequence.
+  paper: ``Ns`` draws of the latent process noise over the horizon, all from the
+  estimate's mean, one shared input sequence.
+* :class:`ParticleScenarioMPCAgent` (``"scenario_particles"``): the same, with each
+  scenario starting from a particle (the paper's remark): the plan also carries the
+  estimate's uncertainty.
 * :class:`OracleMPCAgent` (``"oracle"``): an upper bound, NOT a controller one can build:
   it reads the true state and the true future disturbance from the env.
 
@@ -20,55 +27,25 @@ same env seed gives every agent the same disturbance and noise.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
-from controllers import problem as mpc_problem
-from controllers.config import AgentConfig
+from controllers.config import AgentConfig, ExperimentConfig, load_config
 from controllers.estimators.particle_filter import ParticleFilter, gaussian_log_likelihood
 from controllers.problem import MPCSolution, ScenarioProblem
-from lfm_env.config import ConfigError, EnvConfig, check_latent_step
+from controllers.solvers import make_solver
+from lfm_env.config import ConfigError
 from lfm_env.model import LatentForceModel, psd_factor
+from lfm_env.system import QuadraticCost
 from lfm_env.validation import real_vector
 
-# chi^2 quantile with 4 degrees of freedom at 1 - 1e-6: a measurement this far from
-# every particle means the filter has diverged.
-_DIVERGENCE_NIS = 33.4
-
-
-def make_problem(env_config: EnvConfig, cfg: AgentConfig, n_scenarios: int) -> ScenarioProblem:
-    """The scenario MPC problem from the known model (env section) and agent settings."""
-    return ScenarioProblem(
-        horizon=cfg.horizon,
-        n_scenarios=n_scenarios,
-        dt=env_config.dt,
-        vehicle_length=env_config.vehicle_length,
-        Q=cfg.Q,
-        R=cfg.R,
-        Qf=cfg.Qf,
-        x_goal=tuple(cfg.goal_state_rad.tolist()),
-        track=env_config.track,
-        speed_min=env_config.speed_min,
-        speed_max=env_config.speed_max,
-        accel_max=env_config.accel_max,
-        steer_max=env_config.steer_max,
-        slack_penalty=cfg.slack_penalty,
-    )
-
-
-def make_solver(problem: ScenarioProblem, cfg: AgentConfig):
-    """The scenario solver named by ``cfg.solver``, built once."""
-    if cfg.solver == "fast":
-        from controllers.solvers.fast import FastScenarioSolver
-
-        return FastScenarioSolver(problem, max_iter=cfg.max_iter)
-    from controllers.solvers.ipopt import IpoptScenarioSolver
-
-    formulation = "multiple_shooting" if cfg.solver == "ipopt_multiple_shooting" else "condensed"
-    return IpoptScenarioSolver(problem, formulation, ipopt_options={"max_iter": cfg.max_iter})
+# Tail probability of the filter's divergence test: a measurement whose normalised
+# innovation to the closest particle exceeds the chi^2 (nx degrees of freedom) quantile
+# at 1 - 1e-6 means the filter has lost the state.
+DIVERGENCE_TAIL = 1.0e-6
 
 
 class MPCAgent:
@@ -76,17 +53,44 @@ class MPCAgent:
 
     Subclasses implement :meth:`_estimate` (the state estimate from the observation) and
     :meth:`_scenarios` (``x0`` and ``W`` for the solver).
+
+    Args:
+        model: the agent's latent-force model of the world.
+        cost: the control objective (stage, terminal and input weights, goal state).
+        settings: horizon, scenario count, particle count, solver, ... (paper values by
+            default).
+        measurement_std: std of the noise of each observed state, in the states' units
+            ``(nx,)``; used by the filtering agents' likelihood and prior.
     """
 
     name = "mpc"
-    n_scenarios = 1
+    uses_scenarios = False  # True: Ns scenarios from settings; False: one scenario
 
-    def __init__(self, env_config: EnvConfig, cfg: AgentConfig) -> None:
-        self.env_config = env_config
-        self.cfg = cfg
-        self.model = LatentForceModel(env_config, cfg.disturbance)
-        self.problem = make_problem(env_config, cfg, self.n_scenarios)
-        self.mpc = make_solver(self.problem, cfg)
+    def __init__(
+        self,
+        model: LatentForceModel,
+        cost: QuadraticCost,
+        settings: AgentConfig | None = None,
+        measurement_std: Any = None,
+    ) -> None:
+        self.model = model
+        self.system = model.system
+        self.cost = cost
+        self.settings = AgentConfig() if settings is None else settings
+        nx = self.system.nx
+        std = np.zeros(nx) if measurement_std is None else measurement_std
+        self.measurement_std = real_vector(
+            std, nx, "measurement_std", f"one per state {list(self.system.state_names)}"
+        )
+        n_scenarios = self.settings.scenario_count(self.system.nu) if self.uses_scenarios else 1
+        self.problem = ScenarioProblem(
+            model,
+            cost,
+            horizon=self.settings.horizon,
+            n_scenarios=n_scenarios,
+            slack_penalty=self.settings.slack_penalty,
+        )
+        self.mpc = make_solver(self.problem, self.settings.solver, max_iter=self.settings.max_iter)
         self.last_info: dict[str, Any] = {}
         self.rng = np.random.default_rng()
         self._u_prev: np.ndarray | None = None
@@ -103,8 +107,8 @@ class MPCAgent:
         self.last_info = {}
 
     def act(self, obs: Any) -> np.ndarray:
-        """The action ``[a m/s^2, delta rad]`` for observation ``obs`` ``[m, m, m/s, rad]``."""
-        y = real_vector(obs, 4, "obs", "[p_x m, p_y m, v m/s, psi rad]")
+        """The action ``(nu,)`` in the inputs' units for an observation ``(nx,)`` of the state."""
+        y = real_vector(obs, self.system.nx, "obs", f"{list(self.system.state_names)}")
         t0 = time.perf_counter()
         info = self._estimate(y)
         t_est = time.perf_counter() - t0
@@ -123,7 +127,7 @@ class MPCAgent:
             objective=float(sol.objective),
             fallback=fallback,
             plan=sol.u.copy(),
-            predicted=None if sol.predicted is None else sol.predicted[:, :, :].copy(),
+            predicted=None if sol.predicted is None else sol.predicted.copy(),
             x0=np.asarray(x0, dtype=float).copy(),
             W=np.asarray(W).copy(),
         )
@@ -133,16 +137,20 @@ class MPCAgent:
     # ------------------------------------------------------------------ internals
 
     def _choose_action(self, sol: MPCSolution) -> tuple[np.ndarray, str]:
-        """First input of a good plan; otherwise the previous plan shifted, or braking."""
-        lo, hi = self.problem.input_lower, self.problem.input_upper
+        """First input of a good plan; otherwise the previous plan shifted, or the system's
+        fallback input (the bicycle brakes)."""
         if sol.success and np.all(np.isfinite(sol.u)):
-            self._plan = np.clip(sol.u, lo, hi)
+            self._plan = self.system.clip_input(sol.u)
             return self._plan[0].copy(), ""
         if self._plan is not None and len(self._plan) > 1:
             self._plan = self._plan[1:]
             return self._plan[0].copy(), "previous_plan"
         self._plan = None
-        return np.array([-self.problem.accel_max, 0.0]), "brake"
+        return np.array(self.system.fallback_input, dtype=float), "fallback"
+
+    def _no_force(self) -> np.ndarray:
+        """``W = 0`` for one scenario ``(1, N, nw)``."""
+        return np.zeros((1, self.problem.horizon, self.system.nw))
 
     def _estimate(self, y: np.ndarray) -> dict[str, Any]:
         raise NotImplementedError
@@ -158,19 +166,28 @@ class NominalMPCAgent(MPCAgent):
 
     def _estimate(self, y: np.ndarray) -> dict[str, Any]:
         self._x = y
-        return {"estimate": y.copy(), "estimate_std": np.zeros(4)}
+        return {"estimate": y.copy(), "estimate_std": np.zeros(self.system.nx)}
 
     def _scenarios(self) -> tuple[np.ndarray, np.ndarray]:
-        return self._x, np.zeros((1, self.problem.horizon))
+        return self._x, self._no_force()
 
 
 class _FilteringAgent(MPCAgent):
-    """An agent that estimates physical and latent states with a bootstrap particle filter."""
+    """An agent that estimates physical and latent states with a bootstrap particle filter.
 
-    def __init__(self, env_config: EnvConfig, cfg: AgentConfig) -> None:
-        super().__init__(env_config, cfg)
-        self._meas_std = env_config.measurement_std_rad
-        self._log_lik = gaussian_log_likelihood(self._meas_std, [0, 1, 2, 3])
+    Built like :class:`MPCAgent`; ``measurement_std`` must be all > 0.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        nx = self.system.nx
+        if not np.all(self.measurement_std > 0.0):
+            raise ValueError(
+                f"measurement_std={self.measurement_std.tolist()}: must be all > 0 for the "
+                f"{self.name!r} agent (its particle filter weighs each measurement by this noise)"
+            )
+        self._log_lik = gaussian_log_likelihood(self.measurement_std, np.arange(nx))
+        self._divergence_nis = float(stats.chi2.isf(DIVERGENCE_TAIL, nx))
         self._latent_cov_factor = psd_factor(self.model.stationary_latent_covariance())
         self.pf: ParticleFilter | None = None
         self.n_filter_resets = 0
@@ -182,8 +199,8 @@ class _FilteringAgent(MPCAgent):
 
     def _prior(self, y: np.ndarray) -> np.ndarray:
         """Physical states around the first measurement, latent states stationary."""
-        n, p = self.cfg.n_particles, self.model.latent_dim
-        x = y + self.rng.standard_normal((n, 4)) * self._meas_std
+        n, nx, p = self.settings.n_particles, self.system.nx, self.model.latent_dim
+        x = y + self.rng.standard_normal((n, nx)) * self.measurement_std
         z = self.rng.standard_normal((n, p)) @ self._latent_cov_factor.T
         return np.concatenate([x, z], axis=1)
 
@@ -194,31 +211,30 @@ class _FilteringAgent(MPCAgent):
                 self._log_lik,
                 self._prior(y),
                 self.rng,
-                resampling=self.cfg.resampling,
-                ess_threshold=self.cfg.ess_threshold,
+                resampling=self.settings.resampling,
+                ess_threshold=self.settings.ess_threshold,
             )
             degenerate = False
         else:
             rec = self.pf.step(self._u_prev, y)
             degenerate = bool(rec.degenerate)
         # Divergence check: if even the closest particle explains y worse than a
-        # 1e-6 tail event, the cloud has lost the car (sample impoverishment can pin it
+        # 1e-6 tail event, the cloud has lost the state (sample impoverishment can pin it
         # far from the truth); restart from the prior around y and say so.
-        diverged = degenerate or self._closest_nis(y) > _DIVERGENCE_NIS
+        diverged = degenerate or self._closest_nis(y) > self._divergence_nis
         if diverged:
             self.pf.reset(self._prior(y))
             self.n_filter_resets += 1
+        nx = self.system.nx
         mean, std = self.pf.mean, self.pf.std
         cov = self.pf.covariance
-        H = self.model.H
-        w_mean = float(mean[4:] @ H)
-        w_std = float(np.sqrt(max(H @ cov[4:, 4:] @ H, 0.0)))
+        H = self.model.H  # (nw, p)
         self._mean = mean
         return {
             "estimate": mean.copy(),
             "estimate_std": std.copy(),
-            "latent_force": w_mean,
-            "latent_force_std": w_std,
+            "latent_force": H @ mean[nx:],
+            "latent_force_std": np.sqrt(np.maximum(np.diag(H @ cov[nx:, nx:] @ H.T), 0.0)),
             "filter_degenerate": degenerate,
             "filter_reset": diverged,
             "filter_resets": self.n_filter_resets,
@@ -226,7 +242,7 @@ class _FilteringAgent(MPCAgent):
 
     def _closest_nis(self, y: np.ndarray) -> float:
         """Smallest normalised innovation ``sum(((x_i - y) / std)^2)`` over particles."""
-        r = (self.pf.particles[:, :4] - y) / self._meas_std
+        r = (self.pf.particles[:, : self.system.nx] - y) / self.measurement_std
         return float(np.min(np.einsum("ij,ij->i", r, r)))
 
 
@@ -236,30 +252,31 @@ class CertaintyEquivalentMPCAgent(_FilteringAgent):
     name = "pf"
 
     def _scenarios(self) -> tuple[np.ndarray, np.ndarray]:
-        x0 = self._mean[:4]
-        W = self.model.mean_latent_forecast(self._mean[4:], self.problem.horizon)
-        return x0, W.reshape(1, -1)
+        nx = self.system.nx
+        W = self.model.mean_latent_forecast(self._mean[nx:], self.problem.horizon)
+        return self._mean[:nx], W[None]
 
 
 class ScenarioMPCAgent(_FilteringAgent):
-    """The paper's method: PF estimate plus scenario MPC over sampled latent-force paths."""
+    """The paper's method: PF estimate plus scenario MPC over sampled latent-force paths.
+
+    With ``settings.scenario_initial_states == "particles"`` every scenario starts from a
+    particle drawn by weight (the paper's remark); by default all start from the mean.
+    """
 
     name = "scenario"
-
-    def __init__(self, env_config: EnvConfig, cfg: AgentConfig) -> None:
-        self.n_scenarios = cfg.scenario_count()
-        super().__init__(env_config, cfg)
+    uses_scenarios = True
+    initial_states: str | None = None  # None: settings.scenario_initial_states
 
     def _scenarios(self) -> tuple[np.ndarray, np.ndarray]:
-        ns = self.problem.n_scenarios
-        if self.cfg.scenario_initial_states == "particles":
-            # The paper's remark: initial states drawn from the filter's distribution.
+        ns, nx = self.problem.n_scenarios, self.system.nx
+        if (self.initial_states or self.settings.scenario_initial_states) == "particles":
             idx = self.rng.choice(self.pf.n_particles, size=ns, p=self.pf.weights)
             start = self.pf.particles[idx]
-            x0, z0 = start[:, :4], start[:, 4:]
+            x0, z0 = start[:, :nx], start[:, nx:]
         else:
-            x0 = self._mean[:4]
-            z0 = np.broadcast_to(self._mean[4:], (ns, self.model.latent_dim))
+            x0 = self._mean[:nx]
+            z0 = np.broadcast_to(self._mean[nx:], (ns, self.model.latent_dim))
         W = self.model.sample_latent_forecasts(z0, self.problem.horizon, self.rng)
         return x0, W
 
@@ -272,9 +289,7 @@ class ParticleScenarioMPCAgent(ScenarioMPCAgent):
     """
 
     name = "scenario_particles"
-
-    def __init__(self, env_config: EnvConfig, cfg: AgentConfig) -> None:
-        super().__init__(env_config, dataclasses.replace(cfg, scenario_initial_states="particles"))
+    initial_states = "particles"
 
 
 class OracleMPCAgent(MPCAgent):
@@ -287,17 +302,24 @@ class OracleMPCAgent(MPCAgent):
 
     name = "oracle"
 
-    def __init__(self, env_config: EnvConfig, cfg: AgentConfig, env: Any) -> None:
+    def __init__(
+        self,
+        model: LatentForceModel,
+        cost: QuadraticCost,
+        settings: AgentConfig | None = None,
+        measurement_std: Any = None,
+        env: Any = None,
+    ) -> None:
         if env is None:
             raise ValueError("the oracle agent needs env=... (it reads the hidden truth)")
-        super().__init__(env_config, cfg)
+        super().__init__(model, cost, settings, measurement_std)
         self.env = env
 
     def _estimate(self, y: np.ndarray) -> dict[str, Any]:
         truth = self.env.unwrapped
-        self._x = truth.true_state
-        self._W = truth.preview_disturbance(self.problem.horizon).reshape(1, -1)
-        return {"estimate": self._x.copy(), "estimate_std": np.zeros(4)}
+        self._x = np.asarray(truth.true_state, dtype=float)
+        self._W = np.asarray(truth.preview_disturbance(self.problem.horizon), dtype=float)[None]
+        return {"estimate": self._x.copy(), "estimate_std": np.zeros(self.system.nx)}
 
     def _scenarios(self) -> tuple[np.ndarray, np.ndarray]:
         return self._x, self._W
@@ -319,48 +341,62 @@ AGENT_LABELS = {
     "oracle": "oracle MPC (upper bound, reads hidden truth)",
 }
 
+FILTERING_AGENTS = tuple(k for k, v in AGENTS.items() if issubclass(v, _FilteringAgent))
 
-def check_agent_config(name: str, env_config: EnvConfig, cfg: AgentConfig | None = None) -> None:
-    """Raise ``ConfigError`` if agent ``name`` cannot run on this (valid) world.
 
-    Cheap (builds nothing), so :func:`experiments.evaluation.evaluate` calls it for
-    every agent before the first episode. The particle filter of the ``pf`` and
-    ``scenario`` agents weighs measurements by their noise, which must not be zero, and
-    the agents' own model of the force (``cfg.disturbance``) must have a stable step.
+def check_agent_config(name: str, config: Any = None) -> ExperimentConfig:
+    """Raise ``ConfigError`` if agent ``name`` cannot run on this config; returns it resolved.
+
+    Cheap (builds no solver), so :func:`experiments.evaluation.evaluate` calls it for every
+    agent before the first episode. The particle filter of the filtering agents weighs
+    measurements by their noise, which must not be zero.
     """
-    if cfg is not None and cfg.disturbance is not None:
-        check_latent_step(env_config, cfg.disturbance, where="agents.disturbance")
-    std = env_config.measurement_noise_std
-    if name in ("pf", "scenario") and not all(s > 0.0 for s in std):
+    if name not in AGENTS:
+        raise ValueError(f"unknown agent {name!r}; choose one of {sorted(AGENTS)}")
+    config = load_config(config)
+    std = config.env.measurement_noise_std
+    if name in FILTERING_AGENTS and not all(s > 0.0 for s in std):
         raise ConfigError(
             f"env.measurement_noise_std={list(std)}: must be all > 0 for the {name!r} agent "
             "(its particle filter weighs each measurement by this noise)"
         )
+    return config
 
 
 def make_agent(name: str, config: Any = None, env: Any = None) -> MPCAgent:
-    """Build an agent by name.
+    """Build an agent by name from a config.
 
     Args:
-        name: one of ``"nominal"``, ``"pf"``, ``"scenario"``, ``"scenario_particles"``,
-            ``"oracle"``.
-        config: a YAML path, a dict (whole file), or ``None`` for the paper's values; the
-            ``env`` section is the agents' known model, the ``agents`` section their settings.
+        name: one of :data:`AGENTS` (``"nominal"``, ``"pf"``, ``"scenario"``,
+            ``"scenario_particles"``, ``"oracle"``).
+        config: an :class:`~controllers.config.ExperimentConfig`, a YAML path, a dict
+            (whole file), or ``None`` for the paper's values; the ``env`` section is the
+            agents' known model, the ``agents`` section their settings.
         env: the environment, only for the oracle (which reads the hidden truth).
-    """
-    from controllers.config import load_agent_config
-    from lfm_env.config import load_env_config
 
+    To use an agent on another system, build it directly:
+    ``ScenarioMPCAgent(model, cost, AgentConfig(...), measurement_std=...)``.
+    """
     if name not in AGENTS:
         raise ValueError(f"unknown agent {name!r}; choose one of {sorted(AGENTS)}")
     if env is not None and name != "oracle":
         raise ValueError(f"agent {name!r} must not get env= (only the oracle reads the truth)")
-    env_config = check_latent_step(load_env_config(config))
-    cfg = load_agent_config(config)
-    check_agent_config(name, env_config, cfg)
+    config = check_agent_config(name, config)
+    args = (config.make_model(), config.make_cost(), config.agents, config.measurement_std)
     if name == "oracle":
-        return OracleMPCAgent(env_config, cfg, env)
-    return AGENTS[name](env_config, cfg)
+        return OracleMPCAgent(*args, env=env)
+    return AGENTS[name](*args)
 
 
-__all__ = ["AGENTS", "AGENT_LABELS", "check_agent_config", "make_agent", "mpc_problem"]
+__all__ = [
+    "AGENTS",
+    "AGENT_LABELS",
+    "CertaintyEquivalentMPCAgent",
+    "MPCAgent",
+    "NominalMPCAgent",
+    "OracleMPCAgent",
+    "ParticleScenarioMPCAgent",
+    "ScenarioMPCAgent",
+    "check_agent_config",
+    "make_agent",
+]

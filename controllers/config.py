@@ -1,16 +1,32 @@
-"""Typed, validated configuration of the agents (the ``agents:`` section of a config file)."""
+"""Typed, validated configuration of the agents and of a whole experiment.
+
+:class:`AgentConfig` is the ``agents:`` section of a config file; :class:`ExperimentConfig`
+joins it to the ``env:`` section and builds, once, what the agents need: their model of the
+world (:meth:`ExperimentConfig.make_model`), their cost (:meth:`~ExperimentConfig.make_cost`)
+and the scenario problem (:meth:`~ExperimentConfig.make_problem`).
+"""
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
+import os
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from lfm_env.config import ConfigError, DisturbanceConfig, _Checker, from_dict, read_section
+from controllers.solvers import SOLVERS
+from lfm_env.config import (
+    ConfigError,
+    DisturbanceConfig,
+    EnvConfig,
+    _Checker,
+    check_latent_step,
+    from_dict,
+    load_env_config,
+    load_yaml,
+    read_section,
+)
 
-SOLVERS = ("fast", "ipopt", "ipopt_multiple_shooting")
 RESAMPLING = ("systematic", "stratified", "residual", "multinomial")
 SCENARIO_INITIAL_STATES = ("estimate", "particles")
 MAX_SCENARIOS = 100_000
@@ -23,7 +39,10 @@ class AgentConfig:
 
     The agents' *model* of the world (dynamics, bounds, GP hyperparameters, noise levels)
     is the ``env`` section: it is the known structure the paper gives the controller.
-    Vectors over the state give the heading in degrees, as in the ``env`` section.
+    Vectors over the state (``Q``, ``Qf``, ``goal_state``) have one entry per state of the
+    system and are given in the config's units (the sine track's heading in degrees, as
+    in the ``env`` section); ``R`` has one entry per input. Their lengths are checked
+    against the system when the cost is built (:meth:`ExperimentConfig.make_cost`).
     """
 
     horizon: int = 7  # N, prediction steps
@@ -33,12 +52,12 @@ class AgentConfig:
     n_particles: int = 7000  # particle filter size
     resampling: str = "systematic"  # one of RESAMPLING
     ess_threshold: float | None = None  # null: resample every step (paper); else in (0, 1]
-    Q: tuple[float, float, float, float] = (2.0, 2.0, 1.0, 0.0)  # stage weights on x - x_g
-    Qf: tuple[float, float, float, float] = (2.0, 2.0, 1.0, 0.0)  # terminal weights
-    R: tuple[float, float] = (0.5, 10.0)  # input weights on [a, delta (rad)]
-    goal_state: tuple[float, float, float, float] = (62.83, 0.0, 4.0, 0.0)  # [m, m, m/s, deg]
+    Q: tuple[float, ...] = (2.0, 2.0, 1.0, 0.0)  # stage weights on x - x_g (diagonal)
+    Qf: tuple[float, ...] = (2.0, 2.0, 1.0, 0.0)  # terminal weights (diagonal)
+    R: tuple[float, ...] = (0.5, 10.0)  # input weights (diagonal), e.g. on [a, delta (rad)]
+    goal_state: tuple[float, ...] = (62.83, 0.0, 4.0, 0.0)  # e.g. [m, m, m/s, deg]
     slack_penalty: float = 1.0e4  # exact L1 penalty per unit of state-constraint slack
-    solver: str = "fast"  # fast (condensed SQP), ipopt (condensed), ipopt_multiple_shooting
+    solver: str = "fast"  # one of controllers.solvers.SOLVERS
     max_iter: int = 100  # solver iteration limit per step
     scenario_initial_states: str = "estimate"  # "estimate" (paper) or "particles" (its remark)
     # The agents' belief about the latent force. null: the env section's, known a priori
@@ -60,23 +79,6 @@ class AgentConfig:
         for name in ("violation_level", "confidence"):
             v = getattr(self, name)
             c(name, v is None or 0.0 < v < 1.0, "null or in (0, 1)")
-        if self.n_scenarios is None:
-            # The Campi-Garatti count must fit the same range as an explicit one; its
-            # bound decreases in Ns, so checking it at the largest count suffices.
-            from scipy import optimize, stats
-
-            def excess(eps: float) -> float:
-                return stats.binom.cdf(2 * self.horizon - 1, MAX_SCENARIOS, eps) - self.confidence
-
-            if excess(self.violation_level) > 0.0:
-                least = optimize.brentq(excess, self.violation_level, 1.0 - 1e-9)
-                least *= 1.001  # shown rounded to 4 digits: round up, so that it is admissible
-                c(
-                    "violation_level",
-                    False,
-                    f">= {least:.4g} with confidence={self.confidence} and horizon={self.horizon}"
-                    f" (the Campi-Garatti scenario count must stay <= {MAX_SCENARIOS})",
-                )
         c("n_particles", 1 <= self.n_particles <= 10_000_000, "an integer in [1, 1e7]")
         c("resampling", self.resampling in RESAMPLING, f"one of {RESAMPLING}")
         c(
@@ -95,20 +97,130 @@ class AgentConfig:
             f"one of {SCENARIO_INITIAL_STATES}",
         )
 
-    @property
-    def goal_state_rad(self) -> np.ndarray:
-        """Goal state of the cost ``[m, m, m/s, rad]``."""
-        g = np.array(self.goal_state, dtype=float)
-        g[3] = math.radians(g[3])
-        return g
+    def check_scenario_count(self, n_inputs: int) -> None:
+        """Raise ``ConfigError`` if the Campi-Garatti count of a system with ``n_inputs``
+        inputs (``nu N`` decision variables) exceeds :data:`MAX_SCENARIOS`."""
+        if self.n_scenarios is not None:
+            return
+        # The bound decreases in Ns, so checking it at the largest count suffices.
+        from scipy import optimize, stats
 
-    def scenario_count(self) -> int:
-        """``n_scenarios``, or the Campi-Garatti count for ``2 N`` decision variables."""
+        d = n_inputs * self.horizon
+
+        def excess(eps: float) -> float:
+            return stats.binom.cdf(d - 1, MAX_SCENARIOS, eps) - self.confidence
+
+        if excess(self.violation_level) > 0.0:
+            least = optimize.brentq(excess, self.violation_level, 1.0 - 1e-9)
+            least *= 1.001  # shown rounded to 4 digits: round up, so that it is admissible
+            raise ConfigError(
+                f"agents.violation_level={self.violation_level!r}: must be >= {least:.4g} with "
+                f"confidence={self.confidence} and horizon={self.horizon} for {n_inputs} inputs"
+                f" (the Campi-Garatti scenario count must stay <= {MAX_SCENARIOS})"
+            )
+
+    def scenario_count(self, n_inputs: int) -> int:
+        """``n_scenarios``, or the Campi-Garatti count for ``n_inputs N`` decision variables."""
         if self.n_scenarios is not None:
             return self.n_scenarios
         from controllers.solvers.ipopt import campi_garatti_scenarios
 
-        return campi_garatti_scenarios(self.violation_level, self.confidence, 2 * self.horizon)
+        return campi_garatti_scenarios(
+            self.violation_level, self.confidence, n_inputs * self.horizon
+        )
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    """A whole config (``env`` and ``agents`` sections), resolved and validated once.
+
+    The builders below are what every agent, solver benchmark and worker process uses, so
+    a config file is read and checked in one place; the object pickles, so workers get it
+    instead of a path or a dict to parse again.
+    """
+
+    env: EnvConfig = field(default_factory=EnvConfig)
+    agents: AgentConfig = field(default_factory=AgentConfig)
+
+    def __post_init__(self) -> None:
+        check_latent_step(self.env)
+        if self.agents.disturbance is not None:
+            check_latent_step(self.env, self.agents.disturbance, where="agents.disturbance")
+        self.make_cost()  # vector lengths against the system, with the field's name
+        self.agents.check_scenario_count(self.make_system().nu)
+
+    def make_system(self):
+        """The controlled system (:class:`~lfm_env.system.ControlSystem`) of the env section."""
+        return self.env.make_system()
+
+    def make_model(self):
+        """The agents' model: the env's system with the agents' belief about the force.
+
+        ``agents.disturbance`` when set (e.g. learned by ``lfm-calibrate``), otherwise the
+        env's own disturbance, known a priori as in the paper.
+        """
+        return self.env.make_model(self.agents.disturbance)
+
+    def make_cost(self):
+        """The agents' :class:`~lfm_env.system.QuadraticCost` (``Q``, ``R``, ``Qf``, goal)."""
+        from lfm_env.system import QuadraticCost
+
+        system = self.make_system()
+        a = self.agents
+        for name, n, what in (
+            ("Q", system.nx, "states"),
+            ("Qf", system.nx, "states"),
+            ("goal_state", system.nx, "states"),
+            ("R", system.nu, "inputs"),
+        ):
+            value = getattr(a, name)
+            if len(value) != n:
+                names = system.state_names if what == "states" else system.input_names
+                raise ConfigError(
+                    f"agents.{name}={list(value)}: must have {n} values, one per {what[:-1]} "
+                    f"of the {system.name} system {list(names)}"
+                )
+        return QuadraticCost(Q=a.Q, R=a.R, Qf=a.Qf, x_goal=self.env.state_from_config(a.goal_state))
+
+    @property
+    def measurement_std(self) -> np.ndarray:
+        """Std of the full-state measurement noise, in SI units (the filter's likelihood)."""
+        return self.env.measurement_std_rad
+
+    def scenario_count(self) -> int:
+        """The scenario count ``Ns`` of the scenario agents (explicit or Campi-Garatti)."""
+        return self.agents.scenario_count(self.make_system().nu)
+
+    def make_problem(self, n_scenarios: int | None = None, horizon: int | None = None):
+        """The scenario problem of the agents' model and cost.
+
+        Args:
+            n_scenarios: ``Ns``; ``None`` for :meth:`scenario_count`.
+            horizon: ``N``; ``None`` for ``agents.horizon``.
+        """
+        from controllers.problem import ScenarioProblem
+
+        return ScenarioProblem(
+            self.make_model(),
+            self.make_cost(),
+            horizon=self.agents.horizon if horizon is None else int(horizon),
+            n_scenarios=self.scenario_count() if n_scenarios is None else int(n_scenarios),
+            slack_penalty=self.agents.slack_penalty,
+        )
+
+
+def load_config(config: Any = None) -> ExperimentConfig:
+    """An :class:`ExperimentConfig` from a YAML path, a dict with ``env``/``agents``
+    sections, an ``ExperimentConfig``, or ``None`` (the paper's values).
+
+    Raises:
+        ConfigError: naming the first bad field (``env.dt``, ``agents.Q``, ...).
+    """
+    if isinstance(config, ExperimentConfig):
+        return config
+    if isinstance(config, (str, os.PathLike)):
+        config = load_yaml(config)  # read once, both sections from it
+    return ExperimentConfig(env=load_env_config(config), agents=load_agent_config(config))
 
 
 def load_agent_config(config: Any = None) -> AgentConfig:
@@ -122,4 +234,11 @@ def load_agent_config(config: Any = None) -> AgentConfig:
     return from_dict(AgentConfig, section, prefix="agents")
 
 
-__all__ = ["AgentConfig", "ConfigError", "load_agent_config", "SOLVERS"]
+__all__ = [
+    "AgentConfig",
+    "ConfigError",
+    "ExperimentConfig",
+    "load_agent_config",
+    "load_config",
+    "SOLVERS",
+]

@@ -1,27 +1,26 @@
-"""Definition of the scenario MPC problem (paper eq. MPCScen), independent of any solver.
+"""The scenario MPC problem (paper eq. MPCScen) of any latent-force model, independent of solvers.
 
-Every solver in this package (the textbook IPOPT formulation and the fast default)
-solves the same :class:`ScenarioProblem` and returns an :class:`MPCSolution`; the
-NumPy functions here (:func:`rollout`, :func:`objective`, :func:`constraint_violation`)
-are the reference both are checked against.
+Every solver (:mod:`controllers.solvers`) solves the same :class:`ScenarioProblem` and returns
+an :class:`MPCSolution`; the NumPy methods here (:meth:`ScenarioProblem.rollout`,
+:meth:`~ScenarioProblem.objective`, :meth:`~ScenarioProblem.constraint_values`) are the
+reference all of them are checked against.
 
-Conventions (shared by every solver):
+Conventions (shared by every solver), with the dimensions of the model's system:
 
-* ``x0``: initial physical state ``[p_x, p_y, v, psi]`` [m, m, m/s, rad], shape ``(4,)``
-  (same for all scenarios) or ``(Ns, 4)`` (one per scenario).
-* ``W``: latent force [m/s^2] of each scenario along the horizon, shape ``(Ns, N)``;
-  ``W[i, k]`` acts during step ``k``: ``v_{k+1} = v_k + (a_k + W[i, k]) dt``.
-* ``u``: the shared input sequence, shape ``(N, 2)``, rows ``[a_k, delta_k]``.
+* ``x0``: initial physical state, shape ``(nx,)`` (same for all scenarios) or ``(Ns, nx)``.
+* ``W``: latent force of each scenario along the horizon, ``(Ns, N, nw)``, or ``(Ns, N)``
+  when the force has one component; ``W[i, k]`` acts during step ``k``:
+  ``x_{k+1} = x_k + dt f(x_k, u_k, W[i, k])``.
+* ``u``: the shared input sequence, ``(N, nu)``.
 * Objective: the *average* over scenarios of
-  ``sum_{k<N} (x_k - x_g)^T Q (x_k - x_g) + u_k^T R u_k + (x_N - x_g)^T Qf (x_N - x_g)``
+  ``sum_{k<N} (x_k - x_g)' Q (x_k - x_g) + u_k' R u_k + (x_N - x_g)' Qf (x_N - x_g)``
   plus ``slack_penalty * sum(s)`` (an exact L1 penalty).
-* State constraints (track band, speed bounds, x bounds) apply to ``x_1 ... x_N`` of
-  every scenario; input bounds are hard. They are softened by one slack
-  ``s[k, j] >= 0`` per step ``k = 1..N`` and constraint kind ``j`` (the six kinds of
-  :func:`constraint_values`), shared by all scenarios: ``g_j(x_k^(i)) <= s[k, j]``
-  for every ``i``. So there are ``6 N`` slacks whatever ``Ns`` is, and at the optimum
-  ``s[k, j] = max(0, max_i g_j(x_k^(i)))``: :func:`objective` evaluates exactly this
-  exact-penalty function of ``u``, which every solver must minimise.
+* State constraints ``g_j`` of the system apply to ``x_1 ... x_N`` of every scenario; input
+  bounds are hard. They are softened by one slack ``s[k, j] >= 0`` per step ``k = 1..N``
+  and constraint ``j``, shared by all scenarios: ``g_j(x_k^(i)) <= s[k, j]`` for every
+  ``i``. So there are ``ng N`` slacks whatever ``Ns`` is, and at the optimum
+  ``s[k, j] = max(0, max_i g_j(x_k^(i)))``: :meth:`ScenarioProblem.objective` evaluates
+  exactly this exact-penalty function of ``u``, which every solver must minimise.
 """
 
 from __future__ import annotations
@@ -30,28 +29,28 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lfm_env.track import SineTrack
-from lfm_env.vehicle import euler_step
+from lfm_env.model import LatentForceModel
+from lfm_env.system import QuadraticCost
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ScenarioProblem:
-    """Data of a scenario MPC problem; everything that does not change between steps."""
+    """Data of a scenario MPC problem; everything that does not change between steps.
 
-    horizon: int = 7  # N, prediction steps
-    n_scenarios: int = 150  # Ns
-    dt: float = 0.2  # [s] sampling time
-    vehicle_length: float = 0.5  # [m]
-    Q: tuple[float, ...] = (2.0, 2.0, 1.0, 0.0)  # stage weight diagonal on [p_x, p_y, v, psi]
-    R: tuple[float, ...] = (0.5, 10.0)  # input weight diagonal on [a, delta]
-    Qf: tuple[float, ...] = (2.0, 2.0, 1.0, 0.0)  # terminal weight diagonal
-    x_goal: tuple[float, ...] = (62.83, 0.0, 4.0, 0.0)  # [m, m, m/s, rad]
-    track: SineTrack = field(default_factory=SineTrack)
-    speed_min: float = 0.0  # [m/s]
-    speed_max: float = 8.0  # [m/s]
-    accel_max: float = 5.0  # [m/s^2], |a| <= accel_max
-    steer_max: float = float(np.deg2rad(25.0))  # [rad], |delta| <= steer_max
-    slack_penalty: float = 1.0e4  # per metre (or m/s) of total constraint slack
+    Args:
+        model: the latent-force model (its system gives dynamics, bounds and constraints,
+            its ``dt`` the step).
+        cost: the quadratic cost on the goal.
+        horizon: ``N``, prediction steps.
+        n_scenarios: ``Ns``.
+        slack_penalty: exact L1 penalty per unit of total constraint slack.
+    """
+
+    model: LatentForceModel
+    cost: QuadraticCost
+    horizon: int = 7
+    n_scenarios: int = 150
+    slack_penalty: float = 1.0e4
 
     def __post_init__(self) -> None:
         def check(name: str, ok: bool, allowed: str) -> None:
@@ -66,49 +65,125 @@ class ScenarioProblem:
         def is_number(v: object) -> bool:
             return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
 
-        for name in (
-            "dt", "vehicle_length", "speed_min", "speed_max", "accel_max", "steer_max",
-            "slack_penalty",
-        ):  # fmt: skip
-            check(name, is_number(getattr(self, name)), "a real number")
+        check("model", isinstance(self.model, LatentForceModel), "a LatentForceModel")
+        check("cost", isinstance(self.cost, QuadraticCost), "a QuadraticCost")
+        self.cost.check_system(self.model.system)
         check("horizon", is_int(self.horizon) and self.horizon >= 1, "an int >= 1")
         check("n_scenarios", is_int(self.n_scenarios) and self.n_scenarios >= 1, "an int >= 1")
-        check("dt", np.isfinite(self.dt) and self.dt > 0, "finite and > 0")
-        check("vehicle_length", np.isfinite(self.vehicle_length) and self.vehicle_length > 0, "> 0")
-        for name, n in (("Q", 4), ("R", 2), ("Qf", 4), ("x_goal", 4)):
-            v = np.asarray(getattr(self, name), dtype=float)
-            check(name, v.shape == (n,) and bool(np.all(np.isfinite(v))), f"{n} finite numbers")
-        for name in ("Q", "R", "Qf"):
-            check(name, bool(np.all(np.asarray(getattr(self, name)) >= 0)), "non-negative")
-        check("speed_max", self.speed_max > self.speed_min, f"> speed_min={self.speed_min}")
-        check("accel_max", np.isfinite(self.accel_max) and self.accel_max > 0, "finite and > 0")
-        check("steer_max", 0 < self.steer_max < np.pi / 2, "in (0, pi/2) rad")
+        check("slack_penalty", is_number(self.slack_penalty), "a real number")
         check("slack_penalty", np.isfinite(self.slack_penalty) and self.slack_penalty > 0, "> 0")
+
+    # ------------------------------------------------------------------ dimensions
+
+    @property
+    def system(self):
+        """The controlled system (:class:`~lfm_env.system.ControlSystem`)."""
+        return self.model.system
+
+    @property
+    def dt(self) -> float:
+        """Sampling time [s]."""
+        return self.model.dt
+
+    @property
+    def nx(self) -> int:
+        return self.model.system.nx
+
+    @property
+    def nu(self) -> int:
+        return self.model.system.nu
+
+    @property
+    def nw(self) -> int:
+        return self.model.system.nw
+
+    @property
+    def ng(self) -> int:
+        return self.model.system.ng
 
     @property
     def input_lower(self) -> np.ndarray:
-        """Lower input bounds ``[-a_max, -delta_max]``."""
-        return np.array([-self.accel_max, -self.steer_max])
+        """Lower input bounds ``(nu,)``."""
+        return self.model.system.input_lower
 
     @property
     def input_upper(self) -> np.ndarray:
-        """Upper input bounds ``[a_max, delta_max]``."""
-        return np.array([self.accel_max, self.steer_max])
+        """Upper input bounds ``(nu,)``."""
+        return self.model.system.input_upper
+
+    # ------------------------------------------------------------------ data
 
     def check_data(self, x0: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Validate and broadcast ``x0`` to ``(Ns, 4)`` and ``W`` to ``(Ns, N)``."""
+        """Validate and broadcast ``x0`` to ``(Ns, nx)`` and ``W`` to ``(Ns, N, nw)``."""
         x0 = _as_float_array(x0, "x0")
         W = _as_float_array(W, "W")
-        ns, n = self.n_scenarios, self.horizon
-        if W.shape != (ns, n):
-            raise ValueError(f"W has shape {W.shape}; expected (n_scenarios, horizon) = {(ns, n)}")
-        if x0.shape == (4,):
-            x0 = np.broadcast_to(x0, (ns, 4))
-        if x0.shape != (ns, 4):
-            raise ValueError(f"x0 has shape {x0.shape}; expected (4,) or {(ns, 4)}")
+        ns, n, nx, nw = self.n_scenarios, self.horizon, self.nx, self.nw
+        if nw == 1 and W.shape == (ns, n):
+            W = W[:, :, None]
+        if W.shape != (ns, n, nw):
+            expected = f"(n_scenarios, horizon, nw) = {(ns, n, nw)}"
+            if nw == 1:
+                expected += f" or {(ns, n)}"
+            raise ValueError(f"W has shape {W.shape}; expected {expected}")
+        if x0.shape == (nx,):
+            x0 = np.broadcast_to(x0, (ns, nx))
+        if x0.shape != (ns, nx):
+            raise ValueError(f"x0 has shape {x0.shape}; expected ({nx},) or {(ns, nx)}")
         if not (np.all(np.isfinite(x0)) and np.all(np.isfinite(W))):
             raise ValueError("x0 and W must be finite (no NaN or inf)")
         return x0, W
+
+    def check_inputs(self, u: np.ndarray, name: str = "u") -> np.ndarray:
+        """``u`` as a finite ``(N, nu)`` float array, or a ValueError naming ``name``."""
+        u = _as_float_array(u, name)
+        shape = (self.horizon, self.nu)
+        if u.size == self.horizon * self.nu and u.ndim == 1:
+            u = u.reshape(shape)
+        if u.shape != shape or not np.all(np.isfinite(u)):
+            raise ValueError(
+                f"{name} has shape {u.shape} or non-finite entries; "
+                f"expected finite (horizon, nu) = {shape}"
+            )
+        return u
+
+    # ------------------------------------------------------------------ reference functions
+
+    def rollout(self, x0: np.ndarray, W: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Predicted states ``(Ns, N+1, nx)`` of every scenario under inputs ``u`` ``(N, nu)``."""
+        x0, W = self.check_data(x0, W)
+        u = np.asarray(u, dtype=float).reshape(self.horizon, self.nu)
+        X = np.empty((self.n_scenarios, self.horizon + 1, self.nx))
+        X[:, 0] = x0
+        for k in range(self.horizon):
+            X[:, k + 1] = self.model.physical_step(X[:, k], u[k], W[:, k])
+        return X
+
+    def constraint_values(self, X: np.ndarray) -> np.ndarray:
+        """Constraint values ``g <= 0`` ``(Ns, N, ng)`` of predicted states ``X``, steps 1..N."""
+        return np.asarray(self.system.constraint_values(X[:, 1:]))
+
+    def constraint_violation(self, X: np.ndarray) -> float:
+        """Largest state-constraint violation over all scenarios and steps (0 if none)."""
+        g = self.constraint_values(X)
+        return float(max(np.max(g, initial=0.0), 0.0))
+
+    def minimal_slack(self, X: np.ndarray) -> np.ndarray:
+        """The smallest feasible slacks ``s[k, j] = max(0, max_i g_j(x_k^(i)))``, ``(N, ng)``."""
+        return np.maximum(np.max(self.constraint_values(X), axis=0, initial=-np.inf), 0.0)
+
+    def objective(self, x0: np.ndarray, W: np.ndarray, u: np.ndarray) -> float:
+        """Exact-penalty objective of inputs ``u``: the reference every solver minimises.
+
+        Scenario-averaged quadratic cost plus ``slack_penalty * sum(minimal_slack)``.
+        """
+        X = self.rollout(x0, W, u)
+        slack = float(np.sum(self.minimal_slack(X)))
+        u = np.asarray(u, dtype=float).reshape(self.horizon, self.nu)
+        cost = self.cost
+        stage = np.sum(cost.state_cost(X[:, :-1]), axis=1)
+        terminal = cost.terminal_cost(X[:, -1])
+        inputs = float(np.sum(cost.input_cost(u)))
+        return float(np.mean(stage + terminal) + inputs + self.slack_penalty * slack)
 
 
 def _as_float_array(value: object, name: str) -> np.ndarray:
@@ -123,64 +198,41 @@ def _as_float_array(value: object, name: str) -> np.ndarray:
 class MPCSolution:
     """What a solve returns."""
 
-    u: np.ndarray  # (N, 2) optimal shared input sequence [m/s^2, rad]
+    u: np.ndarray  # (N, nu) optimal shared input sequence, in the inputs' units
     objective: float  # scenario-averaged cost plus slack penalty
-    slack: float  # sum of the slacks s[k, j] [m or m/s]; 0 when the hard problem is feasible
+    slack: float  # sum of the slacks s[k, j]; 0 when the hard problem is feasible
     status: str  # solver's return status, e.g. "Solve_Succeeded"
     success: bool  # True when the solver reports convergence
     solve_time: float  # [s] wall time of the solve
     iterations: int  # solver iterations
-    predicted: np.ndarray | None = None  # (Ns, N+1, 4) predicted states under u
+    predicted: np.ndarray | None = None  # (Ns, N+1, nx) predicted states under u
     extra: dict = field(default_factory=dict)  # solver-specific statistics
 
 
+# Module-level forms of the reference functions (``problem.rollout(x0, W, u)`` and so on).
 def rollout(problem: ScenarioProblem, x0: np.ndarray, W: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Predicted states ``(Ns, N+1, 4)`` of every scenario under inputs ``u`` ``(N, 2)``."""
-    x0, W = problem.check_data(x0, W)
-    u = np.asarray(u, dtype=float).reshape(problem.horizon, 2)
-    X = np.empty((problem.n_scenarios, problem.horizon + 1, 4))
-    X[:, 0] = x0
-    for k in range(problem.horizon):
-        X[:, k + 1] = euler_step(X[:, k], u[k], problem.dt, W[:, k], problem.vehicle_length)
-    return X
+    """:meth:`ScenarioProblem.rollout`."""
+    return problem.rollout(x0, W, u)
 
 
 def constraint_values(problem: ScenarioProblem, X: np.ndarray) -> np.ndarray:
-    """State constraint values ``g <= 0`` of predicted states ``X`` ``(Ns, N+1, 4)``.
-
-    Returns ``(Ns, N, 6)``: track upper, track lower, x lower, x upper, speed lower,
-    speed upper, for steps ``1..N``.
-    """
-    Xk = X[:, 1:]
-    g_track = problem.track.constraints(Xk)
-    v = Xk[..., 2]
-    g_speed = np.stack([problem.speed_min - v, v - problem.speed_max], axis=-1)
-    return np.concatenate([g_track, g_speed], axis=-1)
+    """:meth:`ScenarioProblem.constraint_values`."""
+    return problem.constraint_values(X)
 
 
 def constraint_violation(problem: ScenarioProblem, X: np.ndarray) -> float:
-    """Largest state-constraint violation [m or m/s] over all scenarios and steps (0 if none)."""
-    return float(max(np.max(constraint_values(problem, X)), 0.0))
+    """:meth:`ScenarioProblem.constraint_violation`."""
+    return problem.constraint_violation(X)
 
 
 def minimal_slack(problem: ScenarioProblem, X: np.ndarray) -> np.ndarray:
-    """The smallest feasible slacks ``s[k, j] = max(0, max_i g_j(x_k^(i)))``, shape ``(N, 6)``."""
-    return np.maximum(np.max(constraint_values(problem, X), axis=0), 0.0)
+    """:meth:`ScenarioProblem.minimal_slack`."""
+    return problem.minimal_slack(X)
 
 
 def objective(problem: ScenarioProblem, x0: np.ndarray, W: np.ndarray, u: np.ndarray) -> float:
-    """Exact-penalty objective of inputs ``u``: the reference every solver minimises.
-
-    Scenario-averaged quadratic cost plus ``slack_penalty * sum(minimal_slack)``.
-    """
-    X = rollout(problem, x0, W, u)
-    slack = float(np.sum(minimal_slack(problem, X)))
-    u = np.asarray(u, dtype=float).reshape(problem.horizon, 2)
-    e = X - np.asarray(problem.x_goal)
-    stage = np.einsum("snj,j,snj->s", e[:, :-1], np.asarray(problem.Q), e[:, :-1])
-    terminal = np.einsum("sj,j,sj->s", e[:, -1], np.asarray(problem.Qf), e[:, -1])
-    inputs = float(np.einsum("nj,j,nj->", u, np.asarray(problem.R), u))
-    return float(np.mean(stage + terminal) + inputs + problem.slack_penalty * slack)
+    """:meth:`ScenarioProblem.objective`."""
+    return problem.objective(x0, W, u)
 
 
 def largest_local_descent(
@@ -196,7 +248,7 @@ def largest_local_descent(
 
     A solver-independent check of local optimality: ``u`` is moved along every input
     coordinate in both directions and along ``n_random`` random directions (unit norm),
-    by each radius in ``radii`` [m/s^2 and rad alike], clipped to the input bounds, and
+    by each radius in ``radii`` (in the inputs' units), clipped to the input bounds, and
     the full objective (every scenario, every constraint, the exact slack penalty) is
     evaluated there. A local minimiser gives a change ``>= 0`` up to rounding (about
     ``1e-12 |objective|``); a point that is not one almost always shows a clear descent.

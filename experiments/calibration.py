@@ -116,10 +116,12 @@ def record_calibration_episodes(
 
     import lfm_env  # noqa: F401  (registers the env)
     from controllers.agents import make_agent
+    from controllers.config import load_config
 
+    config = load_config(config)  # read and checked once for all episodes
     records = []
     for seed in seeds:
-        env = gym.make("lfm_env/SineTrack-v0", config=config)
+        env = gym.make("lfm_env/SineTrack-v0", config=config.env)
         ctrl = make_agent(agent, config)
         obs, info = env.reset(seed=int(seed))
         ctrl.reset(seed=int(seed) + 7919)

@@ -359,7 +359,7 @@ def _render_episode(
     from experiments.plots import annotate_frame
 
     cfg = resolve_config(config, [agent_name])
-    env = gym.make(ENV_ID, config=cfg, render_mode="rgb_array", screen_size=size, scaling=20.0)
+    env = gym.make(ENV_ID, config=cfg.env, render_mode="rgb_array", screen_size=size, scaling=20.0)
     try:
         agent = make_agent(agent_name, cfg, env=env if agent_name == "oracle" else None)
         dt = env.unwrapped.config.dt

@@ -56,8 +56,8 @@ import yaml
 
 import lfm_env  # noqa: F401  (registers lfm_env/SineTrack-v0, also in spawned workers)
 from controllers.agents import AGENTS, check_agent_config, make_agent
-from controllers.config import load_agent_config
-from lfm_env.config import check_latent_step, load_env_config, load_yaml, to_dict
+from controllers.config import ExperimentConfig, load_config
+from lfm_env.config import load_yaml, to_dict
 
 ENV_ID = "lfm_env/SineTrack-v0"
 
@@ -135,22 +135,22 @@ def agent_seed(seed: int, agent_name: str) -> int:
     return int(state[0])
 
 
-def resolve_config(config: Any = None, agent_names: Iterable[str] = ()) -> dict:
-    """The full config as plain data: ``{"env": {...}, "agents": {...}}``, validated.
+def resolve_config(config: Any = None, agent_names: Iterable[str] = ()) -> ExperimentConfig:
+    """The full config, read and validated once: workers get this object, not a path.
 
     Args:
-        config: a YAML path, a dict (whole file), or ``None`` for the built-in defaults
-            (the paper's values). Missing keys take their defaults.
+        config: a YAML path, a dict (whole file), an
+            :class:`~controllers.config.ExperimentConfig`, or ``None`` for the built-in
+            defaults (the paper's values). Missing keys take their defaults.
         agent_names: agents that will run on it; what each needs is checked too.
 
     Raises:
         ConfigError: (a ``ValueError``) for unknown keys or out-of-range values.
     """
-    env_config = check_latent_step(load_env_config(config))
-    agent_config = load_agent_config(config)
+    resolved = load_config(config)
     for name in agent_names:
-        check_agent_config(name, env_config, agent_config)
-    return {"env": to_dict(env_config), "agents": to_dict(agent_config)}
+        check_agent_config(name, resolved)
+    return resolved
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -236,8 +236,10 @@ class _EpisodeRecorder:
     """Collects one episode step by step; a step is appended whole, so a partial record
     (after an exception) is still consistent."""
 
-    def __init__(self, horizon: int) -> None:
-        self.horizon = horizon
+    def __init__(self, config: ExperimentConfig) -> None:
+        system = config.make_system()
+        self.horizon = config.agents.horizon
+        self.nx, self.nu, self.nw = system.nx, system.nu, system.nw
         self.lists: dict[str, list] = {
             k: []
             for k in (
@@ -273,7 +275,8 @@ class _EpisodeRecorder:
     def step(
         self, agent_info: dict[str, Any], obs: np.ndarray, reward: float, info: dict[str, Any]
     ) -> None:
-        nan_pred = np.full((self.horizon + 1, 4), np.nan)
+        nan_pred = np.full((self.horizon + 1, self.nx), np.nan)
+        no_force = np.full(self.nw, np.nan)
         predicted = agent_info.get("predicted")
         self.has_filter = self.has_filter or "latent_force" in agent_info
         values = {
@@ -282,12 +285,12 @@ class _EpisodeRecorder:
             "time": float(info["time"]),
             "action": np.asarray(info["applied_action"], dtype=float),
             # w acting during this step: the quantity the agent estimated before it.
-            "disturbance": float(info["disturbance"]),
+            "disturbance": self._force(info["disturbance"]),
             "reward": float(reward),
             "estimate": np.asarray(agent_info["estimate"], dtype=float),
             "estimate_std": np.asarray(agent_info["estimate_std"], dtype=float),
-            "latent_force_est": float(agent_info.get("latent_force", np.nan)),
-            "latent_force_std": float(agent_info.get("latent_force_std", np.nan)),
+            "latent_force_est": self._force(agent_info.get("latent_force", no_force)),
+            "latent_force_std": self._force(agent_info.get("latent_force_std", no_force)),
             "predicted": nan_pred if predicted is None else np.asarray(predicted)[0],
             "solve_time": float(agent_info.get("solve_time", np.nan)),
             "slack": float(agent_info.get("slack", np.nan)),
@@ -302,11 +305,17 @@ class _EpisodeRecorder:
             self.lists[k].append(v)
         self.final_info = info
 
+    def _force(self, w: Any) -> float | np.ndarray:
+        """A latent force as a float (one component) or an ``(nw,)`` array."""
+        w = np.asarray(w, dtype=float).reshape(self.nw)
+        return float(w[0]) if self.nw == 1 else w
+
     def arrays(self) -> dict[str, np.ndarray]:
         """The trajectory; ``T`` steps give ``(T+1, ...)`` states and ``(T, ...)`` the rest."""
         lst = self.lists
         T = len(lst["reward"])
-        d = len(lst["estimate"][0]) if T else 4
+        d = len(lst["estimate"][0]) if T else self.nx
+        force = (0,) if self.nw == 1 else (0, self.nw)
 
         def stack(key: str, shape: tuple[int, ...], dtype: Any = float) -> np.ndarray:
             if lst[key]:
@@ -314,17 +323,17 @@ class _EpisodeRecorder:
             return np.zeros(shape, dtype=dtype)
 
         return {
-            "true_state": stack("true_state", (0, 4)),
-            "obs": stack("obs", (0, 4)),
+            "true_state": stack("true_state", (0, self.nx)),
+            "obs": stack("obs", (0, self.nx)),
             "time": stack("time", (0,)),
-            "action": stack("action", (0, 2)),
-            "disturbance": stack("disturbance", (0,)),
+            "action": stack("action", (0, self.nu)),
+            "disturbance": stack("disturbance", force),
             "reward": stack("reward", (0,)),
             "estimate": stack("estimate", (0, d)),
             "estimate_std": stack("estimate_std", (0, d)),
-            "latent_force_est": stack("latent_force_est", (0,)),
-            "latent_force_std": stack("latent_force_std", (0,)),
-            "predicted": stack("predicted", (0, self.horizon + 1, 4)),
+            "latent_force_est": stack("latent_force_est", force),
+            "latent_force_std": stack("latent_force_std", force),
+            "predicted": stack("predicted", (0, self.horizon + 1, self.nx)),
             "solve_time": stack("solve_time", (0,)),
             "slack": stack("slack", (0,)),
             "solver_success": stack("solver_success", (0,), bool),
@@ -336,9 +345,9 @@ class _EpisodeRecorder:
         }
 
 
-def _simulate(agent_name: str, config: dict, seed: int, rec: _EpisodeRecorder) -> None:
+def _simulate(agent_name: str, config: ExperimentConfig, seed: int, rec: _EpisodeRecorder) -> None:
     """Run one episode into ``rec``; exceptions propagate with ``rec`` holding the steps done."""
-    env = gym.make(ENV_ID, config=config)
+    env = gym.make(ENV_ID, config=config.env)
     try:
         obs, info = env.reset(seed=seed)
         agent = make_agent(agent_name, config, env=env if agent_name == "oracle" else None)
@@ -438,7 +447,7 @@ def run_episode(
     (seed,) = _check_seeds([seed])
     cfg = resolve_config(config, [agent_name])
     t0 = time.perf_counter()
-    rec = _EpisodeRecorder(cfg["agents"]["horizon"])
+    rec = _EpisodeRecorder(cfg)
     _simulate(agent_name, cfg, seed, rec)
     arrays = rec.arrays()
     row = {"agent": agent_name, "seed": seed, **_episode_metrics(rec, arrays)}
@@ -598,7 +607,7 @@ def _config_differences(a: dict, b: dict, prefix: str = "") -> list[str]:
     return diffs
 
 
-def _check_folder(out: Path, config: dict) -> None:
+def _check_folder(out: Path, config: ExperimentConfig) -> None:
     """Refuse a folder whose ``config.yaml`` differs from ``config`` (reads only)."""
     path = out / _CONFIG
     if out.exists() and not out.is_dir():
@@ -608,7 +617,7 @@ def _check_folder(out: Path, config: dict) -> None:
             saved = resolve_config(load_yaml(path))
         except ValueError as exc:
             raise ResultsFolderError(f"results folder {str(out)!r}: bad {_CONFIG}: {exc}") from exc
-        diffs = _config_differences(saved, config)
+        diffs = _config_differences(to_dict(saved), to_dict(config))
         if diffs:
             shown = "; ".join(diffs[:5]) + ("; ..." if len(diffs) > 5 else "")
             raise ResultsFolderError(
@@ -617,7 +626,7 @@ def _check_folder(out: Path, config: dict) -> None:
             )
 
 
-def _prepare_folder(out: Path, config: dict) -> None:
+def _prepare_folder(out: Path, config: ExperimentConfig) -> None:
     """Create the folder and its ``config.yaml``; remove temp files of a killed run."""
     path = out / _CONFIG
     out.mkdir(parents=True, exist_ok=True)
@@ -626,7 +635,7 @@ def _prepare_folder(out: Path, config: dict) -> None:
     if not path.exists():
         text = (
             f"# Resolved config of the episodes in this folder (env id {ENV_ID}).\n"
-            + yaml.safe_dump(config, sort_keys=False)
+            + yaml.safe_dump(to_dict(config), sort_keys=False)
         )
         _atomic_write(path, lambda fh: fh.write(text.encode()))
 
@@ -635,14 +644,15 @@ def _prepare_folder(out: Path, config: dict) -> None:
 
 
 def _episode_task(
-    agent_name: str, config: dict, seed: int, out: str | None, record: bool
+    agent_name: str, config: ExperimentConfig, seed: int, out: str | None, record: bool
 ) -> dict[str, Any]:
     """Run and save one episode; never raises for an error of the episode itself.
 
-    Top-level (picklable by reference) so process pools and Dask workers can run it.
+    Top-level (picklable by reference) so process pools and Dask workers can run it; the
+    resolved config travels with the task, so workers parse nothing.
     """
     t0 = time.perf_counter()
-    rec = _EpisodeRecorder(config["agents"]["horizon"])
+    rec = _EpisodeRecorder(config)
     tb = ""
     try:
         _simulate(agent_name, config, seed, rec)

@@ -21,7 +21,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Ellipse
 
 from lfm_env.config import EnvConfig
-from lfm_env.track import SineTrack
+from lfm_env.systems.sine_track import SineTrack
 
 # Colours follow the paper's captions where it names them (true path green dashed,
 # estimate red); the agents get a fixed colour each so plots can be compared.

@@ -1,9 +1,14 @@
-"""Timing harness of the scenario MPC solvers on closed-loop-like problem sequences.
+"""Timing harness of the scenario MPC solvers on synthetic closed-loop problem sequences.
 
-A benchmark script imports :func:`closed_loop_problems` to make sequences of warm-started
-problems (``x0``, ``W``) and :func:`time_solvers` to time several solvers on exactly the
-same sequences, side by side; :func:`format_timing_table` prints the result and
-:func:`default_benchmark` does all of it for the two problem recipes of :data:`RECIPES`.
+Where :mod:`experiments.benchmark` records the problems of real agent episodes, this
+harness makes closed loops of its own, fast to set up and with a chosen scenario spread:
+:func:`closed_loop_problems` makes sequences of warm-started problems (``x0``, ``W``)
+driven by a random-walk latent force (:func:`latent_force_scenarios`), :func:`time_solvers`
+times several solvers on exactly the same sequences, :func:`format_timing_table` prints the
+result and :func:`default_benchmark` does all of it for the recipes of :data:`RECIPES`.
+Solvers are built through the registry (:func:`controllers.solvers.make_solver`); the
+problem comes from the config, and nothing here knows the system.
+
 Timing uses ``time.perf_counter`` around each ``solve`` call (so every solver is charged
 for its own pre- and post-processing), on the same machine in one run. On a shared
 machine the wall times include the waits for the CPU: compare medians of one run.
@@ -19,9 +24,10 @@ from typing import Any, Protocol
 import numpy as np
 
 from controllers.problem import MPCSolution, ScenarioProblem
-from lfm_env.vehicle import euler_step
+from controllers.solvers import make_solver
+from experiments.bench_problems import DEFAULT_CONFIG, experiment_config
 
-Problem = tuple[np.ndarray, np.ndarray]  # (x0 (4,) or (Ns, 4), W (Ns, N))
+Problem = tuple[np.ndarray, np.ndarray]  # (x0 (nx,) or (Ns, nx), W (Ns, N, nw) or (Ns, N))
 
 
 class ScenarioSolver(Protocol):
@@ -41,75 +47,96 @@ def latent_force_scenarios(
     mean: float | np.ndarray = 0.0,
     spread: float = 2.0,
     walk_std: float = 0.3,
+    n_forces: int | None = None,
 ) -> np.ndarray:
-    """Latent-force scenarios ``W`` ``(Ns, N)`` [m/s^2]: a random start plus a random walk.
+    """Latent-force scenarios ``W``: a random start plus a random walk, in the force's units.
 
     Args:
         rng: random generator.
         n_scenarios: ``Ns``.
         horizon: ``N``.
-        mean: centre of the first value [m/s^2] (scalar or ``(Ns,)``).
-        spread: standard deviation of the first value around ``mean`` [m/s^2]; 2 is the
-            prior of the case study (``sigma^2 = 4``), a particle filter's posterior is
-            narrower.
-        walk_std: standard deviation of each later increment [m/s^2 per step].
+        mean: centre of the first value (scalar, ``(Ns,)``, or ``(Ns, nw)`` with
+            ``n_forces``).
+        spread: standard deviation of the first value around ``mean``; 2 m/s^2 is the
+            stationary std of the sine track's force (``sigma^2 = 4``), a particle
+            filter's posterior is narrower.
+        walk_std: standard deviation of each later increment (per step).
+        n_forces: ``nw``; ``None`` for one component without its axis.
+
+    Returns:
+        ``(Ns, N)``, or ``(Ns, N, n_forces)`` when ``n_forces`` is given.
     """
-    w0 = np.asarray(mean, dtype=float) + spread * rng.standard_normal(n_scenarios)
-    steps = walk_std * rng.standard_normal((n_scenarios, horizon - 1))
-    return np.column_stack([w0, w0[:, None] + np.cumsum(steps, axis=1)])
+    nw = 1 if n_forces is None else int(n_forces)
+    mean = np.asarray(mean, dtype=float)
+    if n_forces is None:
+        mean = mean[..., None]
+    w0 = mean + spread * rng.standard_normal((n_scenarios, nw))
+    steps = walk_std * rng.standard_normal((n_scenarios, horizon - 1, nw))
+    W = np.concatenate([w0[:, None], w0[:, None] + np.cumsum(steps, axis=1)], axis=1)
+    return W[:, :, 0] if n_forces is None else W
+
+
+def force_std(problem: ScenarioProblem) -> np.ndarray:
+    """Stationary standard deviation of each force component ``(nw,)`` of the problem's model."""
+    model = problem.model
+    cov = model.H @ model.stationary_latent_covariance() @ model.H.T
+    return np.sqrt(np.maximum(np.diag(cov), 0.0))
 
 
 def closed_loop_problems(
     problem: ScenarioProblem,
     controller: ScenarioSolver,
+    x_start: Sequence[float],
     n_steps: int = 40,
     seed: int = 0,
-    x_start: Sequence[float] = (0.0, 0.0, 1.0, np.pi / 4),
     spread: float = 2.0,
     walk_std: float = 0.3,
     redraw: bool = False,
 ) -> list[Problem]:
     """The problems ``(x0, W)`` met by ``controller`` in a short simulated closed loop.
 
-    The plant is the nominal Euler bicycle driven by ``u[0]`` and by the latent force of
-    scenario 0. Two ways to move the scenarios on:
+    The plant is the model's noise-free step
+    (:meth:`~lfm_env.model.LatentForceModel.physical_step`) driven by ``u[0]`` and by a
+    latent force. Two ways to move the scenarios on:
 
-    * ``redraw=False``: shift ``W`` by one step and continue each scenario's random walk
-      (the scenarios persist, so their spread grows along the run);
-    * ``redraw=True``: like a particle filter, redraw the scenarios every step around the
-      current true latent force (which itself follows a random walk) with ``spread``.
+    * ``redraw=False``: the plant feels scenario 0; ``W`` is shifted by one step and each
+      scenario's random walk continues (the scenarios persist, so their spread grows);
+    * ``redraw=True``: like a particle filter, the scenarios are redrawn every step around
+      the current true force (which itself follows a random walk) with ``spread``.
 
     Args:
-        problem: the problem data (``Ns``, ``N``, ``dt``).
+        problem: the problem data (model, ``Ns``, ``N``).
         controller: the solver that closes the loop (warm-started as usual).
+        x_start: initial state ``(nx,)``, in the states' units.
         n_steps: number of problems.
         seed: seed of the scenario draws.
-        x_start: initial state ``[p_x, p_y, v, psi]`` [m, m, m/s, rad].
-        spread: scenario spread of the latent force [m/s^2] (see
-            :func:`latent_force_scenarios`).
-        walk_std: random-walk increment of the latent force [m/s^2 per step].
+        spread: scenario spread of the latent force (see :func:`latent_force_scenarios`).
+        walk_std: random-walk increment of the latent force per step.
         redraw: the scenario update rule above.
 
     Returns:
-        ``n_steps`` problems in closed-loop order.
+        ``n_steps`` problems in closed-loop order, ``W`` ``(Ns, N, nw)``.
     """
     rng = np.random.default_rng(seed)
-    ns, n = problem.n_scenarios, problem.horizon
+    ns, n, nw = problem.n_scenarios, problem.horizon, problem.nw
     x = np.asarray(x_start, dtype=float)
-    w_true = spread * rng.standard_normal()
-    W = latent_force_scenarios(rng, ns, n, w_true, spread, walk_std)
+    if x.shape != (problem.nx,):
+        raise ValueError(f"x_start has shape {x.shape}; expected ({problem.nx},)")
+    w_true = spread * rng.standard_normal(nw)
+    W = latent_force_scenarios(rng, ns, n, w_true, spread, walk_std, n_forces=nw)
     controller.reset()
     problems: list[Problem] = []
     for _ in range(n_steps):
         problems.append((x.copy(), W.copy()))
         sol = controller.solve(x, W)
-        w_applied = W[0, 0] if not redraw else w_true
-        x = euler_step(x, sol.u[0], problem.dt, w_applied, problem.vehicle_length)
+        w_applied = w_true if redraw else W[0, 0]
+        x = problem.model.physical_step(x, sol.u[0], w_applied)
         if redraw:
-            w_true += walk_std * rng.standard_normal()
-            W = latent_force_scenarios(rng, ns, n, w_true, spread, walk_std)
+            w_true = w_true + walk_std * rng.standard_normal(nw)
+            W = latent_force_scenarios(rng, ns, n, w_true, spread, walk_std, n_forces=nw)
         else:
-            W = np.column_stack([W[:, 1:], W[:, -1] + walk_std * rng.standard_normal(ns)])
+            last = W[:, -1] + walk_std * rng.standard_normal((ns, nw))
+            W = np.concatenate([W[:, 1:], last[:, None]], axis=1)
     return problems
 
 
@@ -142,7 +169,7 @@ def time_solvers(
     sequences: Sequence[Sequence[Problem]],
     warmup: int = 1,
 ) -> dict[str, SolverTiming]:
-    """Time every solver on the same warm-started problem sequences.
+    """Time every solver on the same warm-started problem sequences, one solver after another.
 
     Each solver is built once by its factory (build time is not charged), reset at the
     start of each sequence, and then solves the problems in order with its own warm start
@@ -215,59 +242,73 @@ def format_timing_table(results: dict[str, SolverTiming], baseline: str | None =
     return "\n".join(lines)
 
 
+# Spreads and walks as fractions of the force's stationary std (the sine track's: 2 m/s^2).
 RECIPES: dict[str, dict[str, Any]] = {
-    # The case study's prior for every scenario (w0 ~ N(0, 4)), scenarios shifted along
-    # the run: their spread grows, the problems soon need slack on the speed and the track
-    # and are degenerate (penalty-dominated).
-    "shift": {"spread": 2.0, "redraw": False, "n_steps": 40},
-    # Scenarios redrawn every step around the true latent force with a particle-filter-like
-    # spread: the vehicle drives the track to the goal.
-    "redraw": {"spread": 0.5, "redraw": True, "n_steps": 60},
+    # The stationary prior for every scenario, scenarios shifted along the run: their spread
+    # grows, the problems soon need slack and are degenerate (penalty-dominated).
+    "shift": {"spread": 1.0, "walk_std": 0.15, "redraw": False, "n_steps": 40},
+    # Scenarios redrawn every step around the true force with a particle-filter-like
+    # spread: on the sine track the vehicle drives to the goal.
+    "redraw": {"spread": 0.25, "walk_std": 0.15, "redraw": True, "n_steps": 60},
 }
+TIMED_SOLVERS = ("fast", "fast_bicycle", "ipopt", "ipopt_multiple_shooting")
+IPOPT_SOLVERS = ("ipopt", "ipopt_multiple_shooting", "csnlp")  # about 1 s per solve at Ns=150
 
 
 def default_benchmark(
     n_scenarios: Sequence[int] = (150,),
     recipe: str = "redraw",
     seeds: Sequence[int] = (0,),
-    include_ipopt: bool = True,
+    solvers: Sequence[str] = TIMED_SOLVERS,
     ipopt_max_scenarios: int = 150,
+    config: Any = DEFAULT_CONFIG,
+    x_start: Sequence[float] | None = None,
 ) -> dict[int, dict[str, SolverTiming]]:
-    """Fast solver versus IPOPT (condensed, multiple shooting) on closed-loop sequences.
+    """Solvers of the registry timed on the fast solver's closed-loop sequences.
 
-    For each scenario count the sequences come from the fast solver's closed loop
-    (:func:`closed_loop_problems` with the settings of ``RECIPES[recipe]``, one sequence
-    per seed); every solver is then timed on the same sequences. IPOPT (which needs
-    :mod:`controllers.solvers.ipopt`) is timed only if ``include_ipopt`` and for at most
-    ``ipopt_max_scenarios`` scenarios (about 1-2 s per solve at 150).
+    For each scenario count the sequences come from the ``"fast"`` solver's closed loop
+    (:func:`closed_loop_problems` with the settings of ``RECIPES[recipe]``, scaled by the
+    force's stationary std, one sequence per seed); every solver of ``solvers`` is then
+    timed on the same sequences, the IPOPT-based ones (:data:`IPOPT_SOLVERS`) only up to
+    ``ipopt_max_scenarios`` scenarios.
+
+    Args:
+        n_scenarios: scenario counts.
+        recipe: a key of :data:`RECIPES`.
+        seeds: one sequence per seed.
+        solvers: registry names.
+        ipopt_max_scenarios: largest ``Ns`` at which IPOPT-based solvers run.
+        config: a YAML path, a dict (whole file), an ExperimentConfig or ``None``.
+        x_start: initial state ``(nx,)``; by default the env's (its reset with seed 0).
 
     Raises:
         ValueError: on an unknown recipe.
     """
-    from controllers.solvers.fast import FastScenarioSolver
-
     if recipe not in RECIPES:
         raise ValueError(f"recipe={recipe!r}: must be one of {sorted(RECIPES)}")
     settings = dict(RECIPES[recipe])
     n_steps = settings.pop("n_steps")
+    cfg = experiment_config(config)
+    if x_start is None:
+        from experiments.bench_problems import env_start
+
+        x_start, _ = env_start(cfg, seed=0)
     out: dict[int, dict[str, SolverTiming]] = {}
     for ns in n_scenarios:
-        problem = ScenarioProblem(n_scenarios=ns)
+        problem = cfg.make_problem(n_scenarios=int(ns))
+        scale = float(np.max(force_std(problem)))
+        loop = {**settings, "spread": settings["spread"] * scale}
+        loop["walk_std"] = settings["walk_std"] * scale
         sequences = [
-            closed_loop_problems(problem, FastScenarioSolver(problem), n_steps, seed=s, **settings)
+            closed_loop_problems(
+                problem, make_solver(problem, "fast"), x_start, n_steps, seed=s, **loop
+            )
             for s in seeds
         ]
-        solvers: dict[str, Callable[[], ScenarioSolver]] = {
-            "fast SQP": lambda problem=problem: FastScenarioSolver(problem)
+        factories: dict[str, Callable[[], ScenarioSolver]] = {
+            name: (lambda problem=problem, name=name: make_solver(problem, name))
+            for name in solvers
+            if name not in IPOPT_SOLVERS or ns <= ipopt_max_scenarios
         }
-        if include_ipopt and ns <= ipopt_max_scenarios:
-            from controllers.solvers.ipopt import IpoptScenarioSolver
-
-            solvers["IPOPT condensed"] = lambda problem=problem: IpoptScenarioSolver(
-                problem, formulation="condensed"
-            )
-            solvers["IPOPT multiple shooting"] = lambda problem=problem: IpoptScenarioSolver(
-                problem, formulation="multiple_shooting"
-            )
-        out[ns] = time_solvers(solvers, sequences)
+        out[ns] = time_solvers(factories, sequences)
     return out

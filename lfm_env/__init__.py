@@ -1,10 +1,11 @@
-"""The world of the case study: state-space GP, bicycle, track, and the SineTrack env."""
+"""The world: state-space GP kernels, the generic system and latent-force model, each case
+study's system, and the Gymnasium envs (``lfm_env/SineTrack-v0``)."""
 
 from gymnasium.envs.registration import register
 
 register(
     id="lfm_env/SineTrack-v0",
-    entry_point="lfm_env.env:SineTrackEnv",
+    entry_point="lfm_env.envs.sine_track:SineTrackEnv",
     max_episode_steps=None,  # the env truncates itself after config.max_steps
 )
 

@@ -22,7 +22,7 @@ from typing import Any, TypeVar
 import numpy as np
 import yaml
 
-from lfm_env.track import SineTrack
+from lfm_env.systems.sine_track import SineTrack
 
 T = TypeVar("T")
 
@@ -388,7 +388,7 @@ class EnvConfig:
 
     @property
     def track(self) -> SineTrack:
-        """The track geometry as a :class:`~lfm_env.track.SineTrack`."""
+        """The track geometry as a :class:`~lfm_env.systems.sine_track.SineTrack`."""
         return SineTrack(
             amplitude=self.track_amplitude,
             pulsation=self.track_pulsation,
@@ -427,6 +427,47 @@ class EnvConfig:
     def process_noise_std_rad(self) -> np.ndarray:
         """Per-step process noise std on the physical states ``[m, m, m/s, rad]``."""
         return self._state_rad(self.process_noise_diffusion) * math.sqrt(self.dt)
+
+    def state_from_config(self, values: Any) -> np.ndarray:
+        """A state vector given in config units (heading in degrees) in SI units [rad]."""
+        return self._state_rad(tuple(values))
+
+    def make_system(self):
+        """The bicycle on this track (:func:`lfm_env.systems.sine_track.sine_track_system`)."""
+        from lfm_env.systems.sine_track import sine_track_system
+
+        return sine_track_system(
+            track=self.track,
+            vehicle_length=self.vehicle_length,
+            speed_min=self.speed_min,
+            speed_max=self.speed_max,
+            accel_max=self.accel_max,
+            steer_max=self.steer_max,
+        )
+
+    def make_model(self, disturbance: DisturbanceConfig | None = None, system: Any = None):
+        """The latent-force model of this world, or of another belief about its force.
+
+        Args:
+            disturbance: the GP to model; ``None`` for this config's (the hidden truth's).
+            system: the system to stack it on; ``None`` builds :meth:`make_system`.
+        """
+        from lfm_env.model import LatentForceModel
+
+        d = self.disturbance if disturbance is None else disturbance
+        return LatentForceModel(
+            self.make_system() if system is None else system,
+            kernel=d.make_kernel(),
+            dt=self.dt,
+            process_noise_std=self.process_noise_std_rad,
+            discretization=d.discretization,
+        )
+
+    def make_cost(self):
+        """The reward's cost: ``Q``, ``R`` on the goal state (no separate terminal weight)."""
+        from lfm_env.system import QuadraticCost
+
+        return QuadraticCost(Q=self.Q, R=self.R, x_goal=self.goal_state_rad)
 
     def replace(self, **changes: Any) -> EnvConfig:
         """A copy with some fields changed (validated like any config)."""

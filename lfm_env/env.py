@@ -1,175 +1,256 @@
-"""The SineTrack Gymnasium environment: a bicycle on a sine track under a hidden GP force."""
+"""A generic Gymnasium environment over any latent-force model.
+
+:class:`LatentForceEnv` simulates a :class:`~lfm_env.system.ControlSystem` pushed by a
+hidden Gaussian-process force (a :class:`~lfm_env.model.LatentForceModel`, the truth) and
+rewards a :class:`~lfm_env.system.QuadraticCost`. It holds the state, the randomness and
+the Gymnasium protocol only: the physics, the constraints and the cost come from the
+model and the cost objects. A case study subclasses it to say when an episode succeeds or
+fails and how to draw the scene (:class:`lfm_env.envs.sine_track.SineTrackEnv`).
+"""
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Callable
+from typing import Any, Protocol
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from lfm_env.config import EnvConfig, check_latent_step, load_env_config
 from lfm_env.model import LatentForceModel, psd_factor
+from lfm_env.system import QuadraticCost, split_unit
 from lfm_env.validation import real_vector
 
+LATENT_STARTS = ("stationary", "zero")
 _LATENT_CHUNK = 64  # latent path is drawn in chunks so previews never change the episode
 
 
-def segment_point_distance(p0: np.ndarray, p1: np.ndarray, q: np.ndarray) -> float:
-    """Distance [m] from point ``q`` to the segment ``p0 -> p1`` (all shape ``(2,)``)."""
-    d = p1 - p0
-    dd = float(d @ d)
-    t = 0.0 if dd == 0.0 else float(np.clip((q - p0) @ d / dd, 0.0, 1.0))
-    return float(np.linalg.norm(p0 + t * d - q))
+class Scene(Protocol):
+    """What :meth:`LatentForceEnv.render` draws with (made by the env's scene factory)."""
+
+    def update(self, state: np.ndarray) -> None:
+        """Place the drawing at the true physical state ``(nx,)``."""
+
+    def draw(self) -> np.ndarray:
+        """Draw; returns an ``(H, W, 3)`` uint8 RGB frame."""
+
+    def close(self) -> None:
+        """Release windows and surfaces."""
 
 
-class SineTrackEnv(gym.Env):
-    """A kinematic-bicycle car on a sinusoidal track, pushed by a hidden Matern latent force.
+def _labelled(labels: tuple[str, ...]) -> str:
+    """``"[a m/s^2, delta rad]"`` from labels ``("a [m/s^2]", "delta [rad]")``."""
+    parts = [" ".join(p for p in split_unit(label) if p) for label in labels]
+    return "[" + ", ".join(parts) + "]"
+
+
+def _vector(value: Any, n: int, name: str, labels: tuple[str, ...] = ()) -> np.ndarray:
+    """``value`` as a finite float vector ``(n,)``, or a ``ValueError`` naming ``name``."""
+    layout = f" {_labelled(labels)}" if labels else ""
+    try:
+        v = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}={value!r}: must be {n} finite numbers{layout}") from None
+    if v.shape != (n,) or not np.all(np.isfinite(v)):
+        raise ValueError(f"{name}={value!r}: must be {n} finite numbers{layout}")
+    return v.copy()
+
+
+class LatentForceEnv(gym.Env):
+    """A controlled system pushed by a hidden latent force, observed with noise.
 
     ## Description
-    The case study of "Model Predictive Control of Nonlinear Latent Force Models: A
-    Scenario-Based Approach" (ICRA 2021). A car with kinematic-bicycle dynamics must drive
-    along the track ``|p_y - 3 sin(0.2 p_x)| <= 1 m`` from ``[0, 0]`` to the goal
-    ``[62.83, 0]``. An unmeasured disturbance ``w(t)``, a Gaussian process with a Matern
-    5/2 covariance (``sigma^2 = 4``, lengthscale 4 s), acts on the acceleration:
-    ``dv/dt = a + w``. The GP is simulated exactly through its state-space form.
+    The true physical state ``x`` (``nx`` states) moves by one Euler step of the system's
+    right-hand side per sample, ``x+ = x + dt f(x, u, w) + e`` with process noise ``e ~
+    N(0, diag(model.process_std^2))`` (:meth:`LatentForceModel.physical_step`). The latent
+    force ``w = H z`` (``nw`` components) is a Gaussian process in time, simulated in
+    state-space form, ``z+ = A z + eta``; it is hidden from the agent. The path of ``z`` is
+    drawn in chunks from a generator of its own, so reading it ahead
+    (:meth:`preview_disturbance`, for an oracle) never changes the episode.
 
     ## Action Space
-    ``Box([-a_max, -delta_max], [a_max, delta_max], (2,), float64)``: acceleration
-    ``a`` [m/s^2] and steering angle ``delta`` [rad]; by default ``|a| <= 5``,
-    ``|delta| <= 25 deg``. Out-of-range actions are clipped to the box (the applied
-    action is in ``info["applied_action"]``); non-finite actions, a wrong shape or a
-    dtype that is not real numbers (text, objects, complex) raise ``ValueError``.
+    ``Box(system.input_lower, system.input_upper, (nu,), float64)`` in the inputs' units.
+    Out-of-range actions are clipped to the box (the applied action is in
+    ``info["applied_action"]``); non-finite actions, a wrong shape or a dtype that is not
+    real numbers (text, objects, complex) raise ``ValueError``.
 
     ## Observation Space
-    The physical state plus Gaussian measurement noise; the latent force is hidden.
-
-    | Num | Observation | Unit | Noise std (default) |
-    |-----|-------------|------|---------------------|
-    | 0   | ``p_x`` position | m | 0.15 |
-    | 1   | ``p_y`` position | m | 0.15 |
-    | 2   | ``v`` speed | m/s | 0.15 |
-    | 3   | ``psi`` heading | rad | 0.5 deg |
-
-    ``Box(-max_float, max_float, (4,), float64)``.
+    The physical state plus Gaussian measurement noise of std ``measurement_std``, in the
+    states' units (``system.state_names``); the latent force is hidden.
+    ``Box(-max_float, max_float, (nx,), float64)``.
 
     ## Rewards
-    Minus the paper's stage cost on the true state before the step and the applied
-    action: ``-[(x - x_g)^T Q (x - x_g) + u^T R u]`` with ``Q = diag(2, 2, 1, 0)``,
-    ``R = diag(0.5, 10)``, ``x_g = [62.83, 0, 4 m/s, 0]``.
+    Minus the stage cost on the true state before the step and the applied action:
+    ``-[(x - x_g)^T Q (x - x_g) + u^T R u]`` (:meth:`QuadraticCost.stage_cost`).
 
     ## Starting State
-    True state ``[0, 0, 1 m/s, 45 deg]``; the latent state is drawn from the GP's
-    stationary distribution (or zero, ``disturbance.start: zero``). The first
+    The true state ``initial_state``; the latent state drawn from the GP's stationary
+    distribution (``latent_start="stationary"``) or zero (``"zero"``). The first
     observation is the noisy start state.
 
     ## Episode End
-    * ``terminated`` with ``info["is_success"] = True`` when the segment travelled in
-      the step passes within ``goal_radius`` (1 m) of the goal, so a fast car cannot
-      jump over the goal disc.
-    * ``terminated`` with failure when the car leaves the safety box: farther than
-      ``safety_margin`` (10 m) outside the track band or the x bounds.
-    * ``truncated`` after ``max_steps`` (150 steps, 30 s).
-    Constraint violations (track, speed, x bounds) are recorded in ``info``, not enforced.
+    * ``terminated`` with ``info["is_success"]`` when :meth:`_is_success` holds for the
+      step just taken (never, unless a subclass says so);
+    * ``terminated`` with ``info["failure"]`` when :meth:`_is_failure` holds for the new
+      state (by default: a state that is not finite);
+    * ``truncated`` after ``max_steps`` steps.
+    State constraints are recorded in ``info``, not enforced.
 
     ## Info
-    ``true_state`` (4,), ``disturbance`` (``w`` [m/s^2] acting during the step just
-    taken; at reset, the one that will act next), ``latent_state`` (z), ``track_excess``
-    [m], ``speed_excess`` [m/s], ``x_excess`` [m] (each 0 inside the bounds),
-    ``is_success``, ``failure``, ``applied_action``, ``time`` [s].
+    ``true_state`` (nx,), ``disturbance`` (the force ``w`` acting during the step just
+    taken, at reset the one that acts next; a float when ``nw == 1``, else ``(nw,)``),
+    ``latent_state`` (z), ``<group>_excess`` for each of ``system.constraint_groups`` (the
+    largest excess ``max(g, 0)`` in the group, in its unit), ``constraint_excess`` (ng,) in
+    ``system.constraint_names`` order, ``is_success``, ``failure``, ``applied_action``,
+    ``time`` [s].
 
     ## Arguments
-    ``gym.make("lfm_env/SineTrack-v0", config=None, render_mode=None,
-    screen_size=(600, 300), scaling=25.0, follow=True)``: ``config`` is a YAML path, a
-    dict (whole file or its ``env`` section) or an :class:`~lfm_env.config.EnvConfig`;
-    ``scaling`` is pixels per metre; ``follow`` centres the view on the car (else the
-    whole track is shown). ``reset(options=...)`` accepts ``initial_state``
-    (``[m, m, m/s, rad]``) and ``latent_state`` overrides.
+    ``LatentForceEnv(model, cost, initial_state, measurement_std, max_steps=200,
+    latent_start="stationary", render_mode=None, scene_factory=None)``: ``model`` is the
+    truth (its ``system`` the physics), ``cost`` the reward's cost, ``initial_state``
+    ``(nx,)`` and ``measurement_std`` ``(nx,)`` in the states' units. ``scene_factory(env)``
+    returns a :class:`Scene` for rendering (or a subclass overrides :meth:`_make_scene`).
+    ``reset(options=...)`` accepts ``initial_state`` ``(nx,)`` and ``latent_state``
+    ``(p,)`` overrides.
 
-    ## Version History
-    * v0: initial version.
+    ## Subclassing
+    Override :meth:`_is_success` (the task's goal), :meth:`_is_failure` (e.g. a safety box)
+    and :meth:`_make_scene` (the drawing).
     """
 
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 5}
+    #: The case study's settings (e.g. an :class:`~lfm_env.config.EnvConfig`); ``None`` here.
+    config: Any = None
 
     def __init__(
         self,
-        config: Any = None,
+        model: LatentForceModel,
+        cost: QuadraticCost,
+        initial_state: Any,
+        measurement_std: Any,
+        max_steps: int = 200,
+        latent_start: str = "stationary",
         render_mode: str | None = None,
-        screen_size: tuple[int, int] = (600, 300),
-        scaling: float = 25.0,
-        follow: bool = True,
+        scene_factory: Callable[[LatentForceEnv], Scene] | None = None,
     ) -> None:
-        self.config: EnvConfig = check_latent_step(load_env_config(config))
+        if not isinstance(model, LatentForceModel):
+            raise ValueError(f"model must be a LatentForceModel, got {type(model).__name__}")
+        if not isinstance(cost, QuadraticCost):
+            raise ValueError(f"cost must be a QuadraticCost, got {type(cost).__name__}")
+        system = model.system
+        cost.check_system(system)
+        names = system.state_names
+        self.model = model
+        self.system = system
+        self.cost = cost
+        self.initial_state = _vector(initial_state, system.nx, "initial_state", names)
+        std = _vector(measurement_std, system.nx, "measurement_std", names)
+        if np.any(std < 0.0):
+            raise ValueError(f"measurement_std={std.tolist()}: must be >= 0")
+        self.measurement_std = std
+        if (
+            not isinstance(max_steps, (int, np.integer))
+            or isinstance(max_steps, bool)
+            or max_steps < 1
+        ):
+            raise ValueError(f"max_steps={max_steps!r}: must be an integer >= 1")
+        self.max_steps = int(max_steps)
+        if latent_start not in LATENT_STARTS:
+            raise ValueError(f"latent_start={latent_start!r}: must be one of {LATENT_STARTS}")
+        self.latent_start = latent_start
+        draws = (
+            scene_factory is not None or type(self)._make_scene is not LatentForceEnv._make_scene
+        )
+        if render_mode is not None and not draws:
+            raise ValueError(
+                f"render_mode={render_mode!r}: this env has no scene to draw; pass "
+                "scene_factory or override _make_scene"
+            )
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
                 f"render_mode={render_mode!r}: must be None or one of "
                 f"{self.metadata['render_modes']}"
             )
         self.render_mode = render_mode
-        self.screen_size = (int(screen_size[0]), int(screen_size[1]))
-        self.scaling = float(scaling)
-        self.follow = bool(follow)
-        self.model = LatentForceModel(self.config)
-        self.track = self.config.track
-        self.metadata = {**self.metadata, "render_fps": max(1, round(1.0 / self.config.dt))}
+        self._scene_factory = scene_factory
+        self.metadata = {
+            **self.metadata,
+            "render_modes": list(self.metadata["render_modes"]) if draws else [],
+            "render_fps": max(1, round(1.0 / model.dt)),
+        }
 
-        high = np.array([self.config.accel_max, self.config.steer_max])
-        self.action_space = spaces.Box(-high, high, shape=(2,), dtype=np.float64)
+        self.action_space = spaces.Box(
+            system.input_lower.copy(),
+            system.input_upper.copy(),
+            shape=(system.nu,),
+            dtype=np.float64,
+        )
         # Finite (but never binding) bounds: Gaussian noise has unbounded support.
         big = np.finfo(np.float64).max
-        self.observation_space = spaces.Box(-big, big, shape=(4,), dtype=np.float64)
+        self.observation_space = spaces.Box(-big, big, shape=(system.nx,), dtype=np.float64)
 
-        self._Q = np.asarray(self.config.Q, dtype=float)
-        self._R = np.asarray(self.config.R, dtype=float)
-        self._x_goal = self.config.goal_state_rad
-        self._goal = np.asarray(self.config.goal, dtype=float)
-        self._meas_std = self.config.measurement_std_rad
-
-        self._state = np.zeros(4)
-        self._latent: np.ndarray = np.zeros((0, self.model.latent_dim))
+        self._action_layout = _labelled(system.input_names)
+        self._state = np.zeros(system.nx)
+        self._latent: np.ndarray = np.zeros((0, model.latent_dim))
         self._latent_rng: np.random.Generator | None = None
         self._noise_rng: np.random.Generator | None = None
         self._steps = 0
-        self._viewer = None
-        self._scene = None
+        self._scene: Scene | None = None
 
-    # ------------------------------------------------------------------ truth helpers
+    # ------------------------------------------------------------------ hidden truth
 
     @property
     def true_state(self) -> np.ndarray:
-        """The hidden true physical state ``[m, m, m/s, rad]`` (a copy; for the oracle)."""
+        """The hidden true physical state ``(nx,)`` (a copy; for the oracle and metrics)."""
         return self._state.copy()
 
     @property
     def true_latent_state(self) -> np.ndarray:
-        """The hidden latent state ``z`` acting in the next step (a copy)."""
+        """The hidden latent state ``z`` ``(p,)`` acting in the next step (a copy)."""
         return self._latent_at(self._steps).copy()
 
     def preview_disturbance(self, n_steps: int) -> np.ndarray:
-        """The true latent force of the next ``n_steps`` steps ``[m/s^2]`` (oracle only).
+        """The true latent force of the next ``n_steps`` steps ``(n_steps, nw)`` (oracle only).
 
-        Element ``k`` acts during step ``k`` from now. Reading it never changes the episode:
-        the latent path is drawn from its own generator in fixed chunks.
+        Row ``k`` acts during step ``k`` from now, in the force's units. Reading it never
+        changes the episode: the latent path is drawn from its own generator in fixed chunks.
         """
         if n_steps < 0:
             raise ValueError(f"n_steps={n_steps}: must be >= 0")
-        return np.array([self._latent_at(self._steps + k) @ self.model.H for k in range(n_steps)])
+        out = np.empty((n_steps, self.model.nw))
+        for k in range(n_steps):
+            out[k] = self.model.latent_force(self._latent_at(self._steps + k))
+        return out
 
     def _latent_at(self, k: int) -> np.ndarray:
         if self._latent_rng is None:
             raise gym.error.ResetNeeded("call reset() before using the environment")
+        m = self.model
         while k >= len(self._latent):
-            m = self.model
-            start = self._latent[-1]
             eta = self._latent_rng.standard_normal((_LATENT_CHUNK, m.latent_dim)) @ m.Q_factor.T
             chunk = np.empty((_LATENT_CHUNK, m.latent_dim))
-            z = start
+            z = self._latent[-1]
             for i in range(_LATENT_CHUNK):
                 z = m.A @ z + eta[i]
                 chunk[i] = z
             self._latent = np.concatenate([self._latent, chunk])
         return self._latent[k]
+
+    # ------------------------------------------------------------------ task hooks
+
+    def _is_success(self, state: np.ndarray, next_state: np.ndarray) -> bool:
+        """Whether the step from ``state`` to ``next_state`` reached the task's goal."""
+        return False
+
+    def _is_failure(self, state: np.ndarray) -> bool:
+        """Whether ``state`` ends the episode as a failure (by default: not finite)."""
+        return not bool(np.all(np.isfinite(state)))
+
+    def _make_scene(self) -> Scene:
+        """The drawing used by :meth:`render` (made on the first call)."""
+        if self._scene_factory is None:
+            raise NotImplementedError(f"{type(self).__name__} has no scene to draw")
+        return self._scene_factory(self)
 
     # ------------------------------------------------------------------ Gymnasium API
 
@@ -189,43 +270,47 @@ class SineTrackEnv(gym.Env):
         self._noise_rng = np.random.default_rng(int(noise_seed))
 
         m = self.model
+        p = m.latent_dim
         if "latent_state" in options:
-            z0 = self._vector_option(options["latent_state"], m.latent_dim, "latent_state")
-        elif self.config.disturbance.start == "stationary":
-            z0 = psd_factor(m.stationary_latent_covariance()) @ self._latent_rng.standard_normal(
-                m.latent_dim
-            )
+            z0 = _vector(options["latent_state"], p, "reset option latent_state")
+        elif self.latent_start == "stationary":
+            z0 = psd_factor(m.stationary_latent_covariance()) @ self._latent_rng.standard_normal(p)
         else:
-            z0 = np.zeros(m.latent_dim)
+            z0 = np.zeros(p)
         self._latent = z0.reshape(1, -1).copy()
         if "initial_state" in options:
-            self._state = self._vector_option(options["initial_state"], 4, "initial_state")
+            self._state = _vector(
+                options["initial_state"],
+                self.system.nx,
+                "reset option initial_state",
+                self.system.state_names,
+            )
         else:
-            self._state = self.config.initial_state_rad.copy()
+            self._state = self.initial_state.copy()
         self._steps = 0
         self._sync_scene()
         if self.render_mode == "human":
             self.render()
-        return self._observe(), self._info(success=False, failure=False, action=np.zeros(2))
+        info = self._info(success=False, failure=False, action=np.zeros(self.system.nu))
+        return self._observe(), info
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self._noise_rng is None:
             raise gym.error.ResetNeeded("call reset() before step()")
         u = self._check_action(action)
         x = self._state
-        w = float(self._latent_at(self._steps) @ self.model.H)
-        e = x - self._x_goal
-        reward = -float(e @ (self._Q * e) + u @ (self._R * u))
+        w = self.model.latent_force(self._latent_at(self._steps))
+        reward = -float(self.cost.stage_cost(x, u))
 
         x_next = self.model.physical_step(x, u, w)
-        x_next = x_next + self._noise_rng.standard_normal(4) * self.model.process_std
+        x_next = x_next + self._noise_rng.standard_normal(self.system.nx) * self.model.process_std
         self._state = x_next
         self._steps += 1
 
-        success = segment_point_distance(x[:2], x_next[:2], self._goal) <= self.config.goal_radius
-        failure = (not success) and self._outside_safety_box(x_next)
+        success = bool(self._is_success(x, x_next))
+        failure = (not success) and bool(self._is_failure(x_next))
         terminated = bool(success or failure)
-        truncated = bool(not terminated and self._steps >= self.config.max_steps)
+        truncated = bool(not terminated and self._steps >= self.max_steps)
         self._sync_scene()
         if self.render_mode == "human":
             self.render()
@@ -233,44 +318,36 @@ class SineTrackEnv(gym.Env):
         return self._observe(), reward, terminated, truncated, info
 
     def _check_action(self, action: Any) -> np.ndarray:
-        u = real_vector(action, 2, "action", "[a m/s^2, delta rad]")
+        u = real_vector(action, self.system.nu, "action", self._action_layout)
         return np.clip(u, self.action_space.low, self.action_space.high)
 
-    @staticmethod
-    def _vector_option(value: Any, n: int, name: str) -> np.ndarray:
-        v = np.asarray(value, dtype=float)
-        if v.shape != (n,) or not np.all(np.isfinite(v)):
-            raise ValueError(f"reset option {name}={value!r}: must be {n} finite numbers")
-        return v.copy()
-
-    def _outside_safety_box(self, x: np.ndarray) -> bool:
-        margin = self.config.safety_margin
-        far_off_track = float(self.track.track_excess(x[0], x[1])) > margin
-        far_off_x = float(self.track.x_excess(x[0])) > margin
-        return bool(far_off_track or far_off_x or not np.all(np.isfinite(x)))
-
     def _observe(self) -> np.ndarray:
-        noise = self._noise_rng.standard_normal(4) * self._meas_std
+        noise = self._noise_rng.standard_normal(self.system.nx) * self.measurement_std
         return (self._state + noise).astype(np.float64)
 
-    def _info(self, success: bool, failure: bool, action: np.ndarray, w: float | None = None):
+    def _info(
+        self, success: bool, failure: bool, action: np.ndarray, w: np.ndarray | None = None
+    ) -> dict[str, Any]:
         x = self._state
         z = self._latent_at(self._steps)
         if w is None:  # at reset: the force that acts in the first step
-            w = float(z @ self.model.H)
-        speed_excess = max(self.config.speed_min - x[2], x[2] - self.config.speed_max, 0.0)
-        return {
+            w = self.model.latent_force(z)
+        excess = self.system.constraint_excess(x)
+        info: dict[str, Any] = {
             "true_state": x.copy(),
-            "disturbance": float(w),
+            "disturbance": float(w[0]) if self.model.nw == 1 else np.array(w, dtype=float),
             "latent_state": z.copy(),
-            "track_excess": float(self.track.track_excess(x[0], x[1])),
-            "speed_excess": float(speed_excess),
-            "x_excess": float(self.track.x_excess(x[0])),
-            "is_success": bool(success),
-            "failure": bool(failure),
-            "applied_action": np.asarray(action, dtype=float).copy(),
-            "time": self._steps * self.config.dt,
         }
+        for group, idx in self.system.constraint_groups.items():
+            info[f"{group}_excess"] = float(np.max(excess[list(idx)]))
+        info.update(
+            constraint_excess=excess,
+            is_success=bool(success),
+            failure=bool(failure),
+            applied_action=np.asarray(action, dtype=float).copy(),
+            time=self._steps * self.model.dt,
+        )
+        return info
 
     # ------------------------------------------------------------------ rendering
 
@@ -279,9 +356,9 @@ class SineTrackEnv(gym.Env):
             self._scene.update(self._state)
 
     def render(self) -> np.ndarray | None:
-        """Draw the road and the car at its true pose with highway-env's viewer.
+        """Draw the true state with the env's scene.
 
-        ``rgb_array`` returns an ``(H, W, 3)`` uint8 frame and works without a display.
+        ``rgb_array`` returns an ``(H, W, 3)`` uint8 frame; ``human`` shows it in a window.
         """
         if self.render_mode is None:
             gym.logger.warn(
@@ -289,22 +366,16 @@ class SineTrackEnv(gym.Env):
                 "'human' to gym.make"
             )
             return None
-        from lfm_env.rendering import TrackScene
-
         if self._scene is None:
-            self._scene = TrackScene(
-                self.track,
-                self.config,
-                screen_size=self.screen_size,
-                scaling=self.scaling,
-                follow=self.follow,
-                offscreen=self.render_mode == "rgb_array",
-            )
+            self._scene = self._make_scene()
             self._scene.update(self._state)
-        frame = self._scene.draw(goal=self._goal, goal_radius=self.config.goal_radius)
+        frame = self._scene.draw()
         return frame if self.render_mode == "rgb_array" else None
 
     def close(self) -> None:
         if self._scene is not None:
             self._scene.close()
             self._scene = None
+
+
+__all__ = ["LATENT_STARTS", "LatentForceEnv", "Scene"]

@@ -1,26 +1,35 @@
-"""The augmented latent-force model: bicycle state stacked with the GP's latent state.
+"""The latent-force model: any :class:`ControlSystem` stacked with a state-space GP.
 
-``xbar = [p_x, p_y, v, psi, z_1 .. z_p]``; the latent force ``w = H z`` is added to
-the acceleration. One step (paper eq. DiscAugSys, with the GP part discretised
-exactly by default):
+The augmented state is ``xbar = [x, z]`` with the system's physical state ``x`` (``nx``)
+and the GP's latent state ``z`` (``p``); the latent force ``w = H z`` (``nw`` components)
+enters the system's right-hand side. One step (paper eq. DiscAugSys; the GP part is
+discretised exactly by default, or by Euler-Maruyama as in the published code)::
 
-    x_{k+1} = x_k + f(x_k, u_k, H z_k) dt + e_k,    e_k ~ N(0, diag(process_std^2))
+    x_{k+1} = x_k + f(x_k, u_k, H z_k) dt + e_k,    e_k ~ N(0, diag(process_noise_std^2))
     z_{k+1} = A z_k + eta_k,                        eta_k ~ N(0, Q)
 
-The simulator, the particle filter and the MPC agents all build on this class, so
-there is one model of the world. Agents get it from the *known* structure and
-hyperparameters in the config, never from the env's hidden state.
+The simulator, the particle filter and the MPC agents all build on this class, so there
+is one model of the world. Agents build theirs from the *known* structure and
+hyperparameters, never from the env's hidden state.
+
+A force with several components takes one kernel per component (independent GPs, stacked
+block-diagonally): ``LatentForceModel(system, kernel=[k_x, k_y], ...)`` for a system with
+two ``force_names``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+import scipy.linalg
 
-from lfm_env.config import DisturbanceConfig, EnvConfig
 from lfm_env.gp import StateSpaceKernel
-from lfm_env.vehicle import euler_step
+from lfm_env.system import ControlSystem
+
+DISCRETIZATIONS = ("exact", "euler_maruyama")
 
 
 def psd_factor(cov: np.ndarray) -> np.ndarray:
@@ -29,35 +38,91 @@ def psd_factor(cov: np.ndarray) -> np.ndarray:
     return vecs * np.sqrt(np.clip(vals, 0.0, None))
 
 
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, dtype=float)
+    a.flags.writeable = False
+    return a
+
+
 @dataclass(frozen=True, eq=False)
 class LatentForceModel:
-    """Discrete-time augmented model of the case study, built from an :class:`EnvConfig`."""
+    """Discrete-time augmented model of a system and its latent force.
 
-    config: EnvConfig
-    disturbance: DisturbanceConfig | None = None  # the GP to model; None: config.disturbance
-    kernel: StateSpaceKernel = field(init=False)
+    Args:
+        system: the physics (:class:`~lfm_env.system.ControlSystem`).
+        kernel: the GP of the force: one :class:`~lfm_env.gp.StateSpaceKernel` per force
+            component (a single kernel for a one-component force).
+        dt: sampling time [s]; one Euler step of the physics per sample.
+        process_noise_std: per-step std of the physical process noise ``(nx,)``, in the
+            states' units; ``None`` for none.
+        discretization: ``"exact"`` (matrix exponential) or ``"euler_maruyama"`` for the GP.
+    """
+
+    system: ControlSystem
+    kernel: Any
+    dt: float
+    process_noise_std: Any = None
+    discretization: str = "exact"
+    kernels: tuple[StateSpaceKernel, ...] = field(init=False)
     A: np.ndarray = field(init=False)  # (p, p) latent transition
     Q: np.ndarray = field(init=False)  # (p, p) latent process noise covariance
     Q_factor: np.ndarray = field(init=False)  # (p, p) with Q_factor Q_factor^T = Q
-    H: np.ndarray = field(init=False)  # (p,) latent force read-out, w = H z
-    process_std: np.ndarray = field(init=False)  # (4,) per-step std on [p_x, p_y, v, psi]
+    H: np.ndarray = field(init=False)  # (nw, p) read-out, w = H z
+    process_std: np.ndarray = field(init=False)  # (nx,) per-step std of the physical noise
     # Single-precision copies the particle transition scales its float32 noise with.
-    _process_std_col: np.ndarray = field(init=False, repr=False)  # (4, 1)
-    _q_factor32: np.ndarray = field(init=False, repr=False)  # (p, p)
+    _process_std_col: np.ndarray = field(init=False, repr=False)
+    _q_factor32: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        d = self.disturbance or self.config.disturbance
-        kernel = d.make_kernel()
-        A, Q = kernel.discretize(self.config.dt, method=d.discretization)
-        object.__setattr__(self, "kernel", kernel)
-        object.__setattr__(self, "A", np.asarray(A, dtype=float))
-        object.__setattr__(self, "Q", np.asarray(Q, dtype=float))
-        object.__setattr__(self, "Q_factor", psd_factor(np.asarray(Q, dtype=float)))
-        object.__setattr__(self, "H", np.asarray(kernel.H, dtype=float).reshape(-1))
-        object.__setattr__(self, "process_std", self.config.process_noise_std_rad)
-        std_col = np.asarray(self.process_std, dtype=np.float32).reshape(4, 1)
-        object.__setattr__(self, "_process_std_col", std_col)
+        system = self.system
+        if not isinstance(system, ControlSystem):
+            raise ValueError(f"LatentForceModel.system must be a ControlSystem, got {system!r}")
+        kernels = self.kernel if isinstance(self.kernel, Sequence) else (self.kernel,)
+        kernels = tuple(kernels)
+        if not all(isinstance(k, StateSpaceKernel) for k in kernels):
+            raise ValueError("LatentForceModel.kernel: expected lfm_env.gp kernels")
+        if len(kernels) != system.nw:
+            raise ValueError(
+                f"LatentForceModel.kernel: {len(kernels)} kernel(s) for a system with "
+                f"{system.nw} force component(s) {system.force_names}; give one per component"
+            )
+        if not (isinstance(self.dt, (int, float)) and np.isfinite(self.dt) and self.dt > 0):
+            raise ValueError(f"LatentForceModel.dt={self.dt!r}: must be finite and > 0 s")
+        if self.discretization not in DISCRETIZATIONS:
+            raise ValueError(
+                f"LatentForceModel.discretization={self.discretization!r}: one of {DISCRETIZATIONS}"
+            )
+        blocks = [k.discretize(self.dt, method=self.discretization) for k in kernels]
+        A = scipy.linalg.block_diag(*[np.asarray(a, dtype=float) for a, _ in blocks])
+        Q = scipy.linalg.block_diag(*[np.asarray(q, dtype=float) for _, q in blocks])
+        H = scipy.linalg.block_diag(*[np.asarray(k.H, dtype=float).reshape(1, -1) for k in kernels])
+        std = np.zeros(system.nx) if self.process_noise_std is None else self.process_noise_std
+        std = np.asarray(std, dtype=float).reshape(-1)
+        if std.shape != (system.nx,) or not np.all(np.isfinite(std)) or np.any(std < 0):
+            raise ValueError(
+                f"LatentForceModel.process_noise_std={self.process_noise_std!r}: must be "
+                f"{system.nx} finite numbers >= 0 (one per state {system.state_labels})"
+            )
+        object.__setattr__(self, "kernels", kernels)
+        object.__setattr__(self, "A", _frozen(A))
+        object.__setattr__(self, "Q", _frozen(Q))
+        object.__setattr__(self, "Q_factor", _frozen(psd_factor(Q)))
+        object.__setattr__(self, "H", _frozen(H))
+        object.__setattr__(self, "process_std", _frozen(std))
+        object.__setattr__(self, "_process_std_col", std.astype(np.float32).reshape(-1, 1))
         object.__setattr__(self, "_q_factor32", self.Q_factor.astype(np.float32))
+
+    # ------------------------------------------------------------------ dimensions
+
+    @property
+    def nx(self) -> int:
+        """Number of physical states."""
+        return self.system.nx
+
+    @property
+    def nw(self) -> int:
+        """Number of latent-force components."""
+        return self.system.nw
 
     @property
     def latent_dim(self) -> int:
@@ -66,83 +131,87 @@ class LatentForceModel:
 
     @property
     def state_dim(self) -> int:
-        """Dimension ``4 + p`` of the augmented state."""
-        return 4 + self.latent_dim
+        """Dimension ``nx + p`` of the augmented state."""
+        return self.nx + self.latent_dim
 
-    @property
-    def dt(self) -> float:
-        """Sampling time [s]."""
-        return self.config.dt
+    # ------------------------------------------------------------------ latent force
 
     def latent_force(self, z: np.ndarray) -> np.ndarray:
-        """``w = H z`` [m/s^2] for latent states of shape ``(..., p)``."""
-        return np.asarray(z) @ self.H
+        """``w = H z`` ``(..., nw)`` for latent states ``(..., p)``, in the force's units."""
+        z = np.asarray(z)
+        if self.nw == 1:  # a dot product per state: the same rounding as a 1-D read-out
+            return (z @ self.H[0])[..., None]
+        return z @ self.H.T
 
     def stationary_latent_covariance(self) -> np.ndarray:
         """Stationary covariance of the latent state (of the chosen discretisation)."""
-        if (self.disturbance or self.config.disturbance).discretization == "exact":
-            return np.asarray(self.kernel.Pinf, dtype=float)
-        import scipy.linalg
-
+        if self.discretization == "exact":
+            return scipy.linalg.block_diag(*[np.asarray(k.Pinf, dtype=float) for k in self.kernels])
         return scipy.linalg.solve_discrete_lyapunov(self.A, self.Q)
 
-    def physical_step(
-        self, x: np.ndarray, u: np.ndarray, w: np.ndarray | float, axis: int = -1
-    ) -> np.ndarray:
-        """Noise-free Euler step of the bicycle with latent force ``w``.
-
-        ``x`` holds ``[p_x, p_y, v, psi]`` along ``axis`` (shape ``(..., 4)`` by default,
-        ``(4, n)`` with ``axis=0``); see :func:`lfm_env.vehicle.euler_step`.
-        """
-        return euler_step(x, u, self.config.dt, w, self.config.vehicle_length, axis)
-
-    def transition(
-        self, particles: np.ndarray, u: np.ndarray, rng: np.random.Generator
-    ) -> np.ndarray:
-        """Propagate augmented states ``(n, 4 + p)`` one step, with process noise.
-
-        This is the bootstrap particle filter's proposal: all particles at once.
-        """
-        n, d = particles.shape
-        # Component-major (d, n) working copy: contiguous rows make the elementwise model
-        # several times faster than strided columns of the row-major particle array.
-        X = np.ascontiguousarray(particles.T)
-        z = X[4:]
-        # One draw for all components; single precision is ample for noise samples and
-        # halves the generator's cost, the largest part of a 7000-particle step.
-        noise = rng.standard_normal((d, n), dtype=np.float32)
-        out = np.empty((d, n))
-        out[:4] = self.physical_step(X[:4], u, self.H @ z, axis=0)
-        out[:4] += noise[:4] * self._process_std_col
-        np.matmul(self.A, z, out=out[4:])
-        out[4:] += self._q_factor32 @ noise[4:]
-        return np.ascontiguousarray(out.T)
-
     def mean_latent_forecast(self, z: np.ndarray, horizon: int) -> np.ndarray:
-        """Mean forecast of the latent force ``(..., horizon)`` from latent states ``(..., p)``.
+        """Mean forecast of the force ``(..., horizon, nw)`` from latent states ``(..., p)``.
 
         Element ``k`` is ``H A^k z``, the force acting during step ``k`` (``k = 0`` uses ``z``).
         """
         z = np.asarray(z, dtype=float)
-        out = np.empty(z.shape[:-1] + (horizon,))
+        out = np.empty(z.shape[:-1] + (horizon, self.nw))
         zk = z
         for k in range(horizon):
-            out[..., k] = zk @ self.H
+            out[..., k, :] = self.latent_force(zk)
             zk = zk @ self.A.T
         return out
 
     def sample_latent_forecasts(
         self, z0: np.ndarray, horizon: int, rng: np.random.Generator
     ) -> np.ndarray:
-        """Sampled latent-force sequences ``(Ns, horizon)`` from latent states ``z0`` ``(Ns, p)``.
+        """Sampled forces ``(Ns, horizon, nw)`` from latent states ``z0`` ``(Ns, p)``.
 
         The scenario draws of the paper: each row is one draw of the latent process noise
-        over the horizon, started from its own ``z0`` row. Element ``k`` acts during step ``k``.
+        over the horizon, started from its own ``z0`` row. Element ``k`` acts during step
+        ``k``.
         """
         z = np.array(z0, dtype=float, copy=True)
         ns = z.shape[0]
-        out = np.empty((ns, horizon))
+        out = np.empty((ns, horizon, self.nw))
         for k in range(horizon):
-            out[:, k] = z @ self.H
+            out[:, k, :] = self.latent_force(z)
             z = z @ self.A.T + rng.standard_normal((ns, self.latent_dim)) @ self.Q_factor.T
         return out
+
+    # ------------------------------------------------------------------ physics
+
+    def physical_step(self, x: np.ndarray, u: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """Noise-free Euler step ``x + dt f(x, u, w)`` of physical states ``(..., nx)``."""
+        return self.system.euler_step(x, u, w, self.dt)
+
+    def transition(
+        self, particles: np.ndarray, u: np.ndarray, rng: np.random.Generator
+    ) -> np.ndarray:
+        """Propagate augmented states ``(n, nx + p)`` one step, with process noise.
+
+        This is the bootstrap particle filter's proposal: all particles at once.
+        """
+        n, d = particles.shape
+        nx = self.nx
+        # Component-major (d, n) working copy: contiguous rows make the elementwise model
+        # several times faster than strided columns of the row-major particle array.
+        X = np.ascontiguousarray(particles.T)
+        z = X[nx:]
+        # One draw for all components; single precision is ample for noise samples and
+        # halves the generator's cost, the largest part of a 7000-particle step.
+        noise = rng.standard_normal((d, n), dtype=np.float32)
+        out = np.empty((d, n))
+        # The system's functions take components on the last axis: transposed views of
+        # the component-major rows (its stack() returns a view of a component-major buffer).
+        w = self.latent_force(z.T)
+        dx = self.system.rhs(X[:nx].T, u, w).T
+        np.multiply(dx, self.dt, out=out[:nx])
+        out[:nx] += X[:nx]
+        out[:nx] += noise[:nx] * self._process_std_col
+        np.matmul(self.A, z, out=out[nx:])
+        out[nx:] += self._q_factor32 @ noise[nx:]
+        return np.ascontiguousarray(out.T)
+
+
+__all__ = ["DISCRETIZATIONS", "LatentForceModel", "psd_factor"]

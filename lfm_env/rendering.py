@@ -1,8 +1,10 @@
 """Rendering of the SineTrack world with highway-env's road graphics and viewer.
 
-The env builds a highway-env ``Road`` holding one ``SineLane`` with the track's
-geometry and a ``Vehicle`` placed at the car's true pose, and draws them with
-highway-env's ``EnvViewer``. Nothing here feeds back into the dynamics.
+:class:`TrackScene` is the scene of :class:`lfm_env.envs.sine_track.SineTrackEnv` (see
+:class:`lfm_env.env.Scene`) and of the experiment layer's videos. It builds a highway-env
+``Road`` holding one ``SineLane`` with the track's geometry and a ``Vehicle`` placed at the
+car's true pose, and draws them with highway-env's ``EnvViewer``. Nothing here feeds back
+into the dynamics.
 """
 
 from __future__ import annotations
@@ -10,11 +12,22 @@ from __future__ import annotations
 import numpy as np
 
 from lfm_env.config import EnvConfig
-from lfm_env.track import SineTrack
+from lfm_env.systems.sine_track import SineTrack
 
 
 class TrackScene:
-    """A highway-env road with the sine lane and the car, drawn by ``EnvViewer``."""
+    """A highway-env road with the sine lane and the car, drawn by ``EnvViewer``.
+
+    Args:
+        track: the track geometry.
+        config: the world (the car's drawn length is ``config.vehicle_length`` [m]).
+        screen_size: ``(width, height)`` [px].
+        scaling: pixels per metre when following the car.
+        follow: centre the view on the car; else fit the whole track.
+        offscreen: draw without a window (``rgb_array``).
+        goal: goal position ``(2,)`` [m] drawn as a circle by :meth:`draw`; ``None`` for none.
+        goal_radius: radius [m] of that circle.
+    """
 
     def __init__(
         self,
@@ -24,6 +37,8 @@ class TrackScene:
         scaling: float = 25.0,
         follow: bool = True,
         offscreen: bool = True,
+        goal: np.ndarray | None = None,
+        goal_radius: float = 1.0,
     ) -> None:
         from highway_env.road.road import Road, RoadNetwork
         from highway_env.vehicle.kinematics import Vehicle
@@ -39,6 +54,8 @@ class TrackScene:
         self.road.vehicles.append(self.vehicle)
         self.track = track
         self.follow = follow
+        self.goal = None if goal is None else np.asarray(goal, dtype=float)
+        self.goal_radius = float(goal_radius)
         width, height = screen_size
         if not follow:
             # Fit the whole track: the scale is set by the longer extent.
@@ -72,8 +89,16 @@ class TrackScene:
             return self.vehicle.position
         return np.array([0.5 * (self.track.x_min + self.track.x_max), 0.0])
 
-    def draw(self, goal: np.ndarray, goal_radius: float) -> np.ndarray:
-        """Draw the scene; returns an ``(H, W, 3)`` uint8 RGB frame with +y up."""
+    def draw(self, goal: np.ndarray | None = None, goal_radius: float | None = None) -> np.ndarray:
+        """Draw the scene; returns an ``(H, W, 3)`` uint8 RGB frame with +y up.
+
+        Args:
+            goal: goal position ``(2,)`` [m] drawn as a circle; the constructor's by default
+                (none when neither is given).
+            goal_radius: its radius [m]; the constructor's by default.
+        """
+        goal = self.goal if goal is None else np.asarray(goal, dtype=float)
+        goal_radius = self.goal_radius if goal_radius is None else float(goal_radius)
         import pygame
         from highway_env.envs.common.graphics import EnvViewer
         from highway_env.road.graphics import LaneGraphics
@@ -95,13 +120,14 @@ class TrackScene:
         finally:
             LaneGraphics.STRIPE_SPACING, LaneGraphics.STRIPE_LENGTH = saved
         surface = viewer.sim_surface
-        pygame.draw.circle(
-            surface,
-            (40, 170, 60),
-            surface.vec2pix(goal),
-            max(2, surface.pix(goal_radius)),
-            width=2,
-        )
+        if goal is not None:
+            pygame.draw.circle(
+                surface,
+                (40, 170, 60),
+                surface.vec2pix(goal),
+                max(2, surface.pix(goal_radius)),
+                width=2,
+            )
         if not viewer.offscreen:
             viewer.screen.blit(surface, (0, 0))
             pygame.display.flip()

@@ -1,20 +1,24 @@
-"""CasADi + IPOPT solvers of the scenario MPC problem (paper eq. MPCScen).
+"""CasADi + IPOPT solvers of the scenario MPC problem (paper eq. MPCScen), for any system.
 
-Both formulations minimise exactly :func:`controllers.problem.objective` (the
-scenario-averaged quadratic cost plus an exact L1 penalty on ``6 N`` shared slacks) and
-differ only in how the predicted states enter the NLP:
+Both formulations minimise exactly :meth:`controllers.problem.ScenarioProblem.objective`
+(the scenario-averaged quadratic cost plus an exact L1 penalty on ``ng N`` shared slacks)
+and differ only in how the predicted states enter the NLP:
 
 * ``"multiple_shooting"``: the textbook formulation. The states of every scenario are
   decision variables, the Euler dynamics are equality constraints and every scenario
   constraint is explicit. Large but very sparse; it is the reference.
 * ``"condensed"`` (default): single shooting. The only decision variables are the shared
-  inputs (``2 N``) and the slacks (``6 N``); each scenario's states are SX expressions of
-  the inputs, so the NLP has ``8 N`` variables whatever ``Ns`` is.
+  inputs (``nu N``) and the slacks (``ng N``); each scenario's states are SX expressions
+  of the inputs, so the NLP has ``(nu + ng) N`` variables whatever ``Ns`` is.
 
-Each solver builds its NLP once, with the initial states ``x0`` (``4 x Ns``) and the latent
-forces ``W`` (``N x Ns``) as parameters, and re-solves it at every step with a warm start.
-The module also gives :func:`campi_garatti_scenarios`, the scenario count of Campi &
-Garatti (2008).
+The NLPs are built from the problem's model alone: the Euler step
+(:meth:`ControlSystem.casadi_step`), the state constraints
+(:meth:`ControlSystem.casadi_constraints`, possibly none) and the cost
+(:class:`~lfm_env.system.QuadraticCost`, any PSD weights), with the dimensions
+``nx, nu, nw, ng`` of the system. Each solver builds its NLP once, with the initial states
+``x0`` (``Ns x nx``) and the latent forces ``W`` (``Ns x N x nw``) as parameters, and
+re-solves it at every step with a warm start. The module also gives
+:func:`campi_garatti_scenarios`, the scenario count of Campi & Garatti (2008).
 """
 
 from __future__ import annotations
@@ -29,12 +33,9 @@ import casadi as ca
 import numpy as np
 from scipy import stats
 
-from controllers import problem as mpc_problem
 from controllers.problem import MPCSolution, ScenarioProblem
-from lfm_env.vehicle import euler_step
 
 FORMULATIONS = ("condensed", "multiple_shooting")
-N_CONSTRAINT_KINDS = 6  # track upper, track lower, x lower, x upper, speed lower, speed upper
 
 DEFAULT_IPOPT_OPTIONS: dict[str, Any] = {
     "print_level": 0,
@@ -44,7 +45,7 @@ DEFAULT_IPOPT_OPTIONS: dict[str, Any] = {
 }
 
 # Previous multipliers are reused only after a solve whose total slack was below this.
-WARM_DUALS_MAX_SLACK = 1e-6  # [m or m/s]
+WARM_DUALS_MAX_SLACK = 1e-6  # [constraint units]
 
 # Used with the previous multipliers: start close to the central path instead of at
 # mu = 0.1, and do not push a good iterate far into the interior.
@@ -60,11 +61,14 @@ WARM_START_IPOPT_OPTIONS: dict[str, Any] = {
 class _NLP:
     """A built scenario NLP: its symbolic definition, bounds, and the layout of its vectors.
 
-    The decision vector is ``[vec(u) (2N), vec(s) (6N), states]`` where ``states`` holds
-    ``x_1..x_N`` of every scenario ordered (step, scenario, component) in the multiple-
-    shooting formulation and is empty in the condensed one. ``x_blocks`` and ``g_blocks``
-    give, for each block of the decision and constraint vectors, its size per prediction
-    step; every block is ordered step-major, which is what the warm-start shift uses.
+    The decision vector is ``[vec(u) (nu N), vec(s) (ng N), states]`` where ``states``
+    holds ``x_1..x_N`` of every scenario ordered (step, scenario, component) in the
+    multiple-shooting formulation and is empty in the condensed one. The parameter vector
+    is ``[x0.ravel() (Ns nx), W.ravel() (Ns N nw)]`` with ``x0`` ``(Ns, nx)`` and ``W``
+    ``(Ns, N, nw)`` as :meth:`ScenarioProblem.check_data` returns them. ``x_blocks`` and
+    ``g_blocks`` give, for each block of the decision and constraint vectors, its size per
+    prediction step; every block is ordered step-major, which is what the warm-start
+    shift uses.
     """
 
     nlp: dict[str, ca.SX]
@@ -76,136 +80,149 @@ class _NLP:
     g_blocks: tuple[int, ...]
 
 
-def _step_function(problem: ScenarioProblem) -> ca.Function:
-    """One Euler step ``x+ = f(x, u, w)`` of one scenario, from :mod:`lfm_env.vehicle`."""
-    x = ca.SX.sym("x", 4)
-    u = ca.SX.sym("u", 2)
-    w = ca.SX.sym("w")
-    x_next = euler_step(x, u, problem.dt, w, problem.vehicle_length)
-    return ca.Function("euler_step", [x, u, w], [x_next], ["x", "u", "w"], ["x_next"])
+@dataclass
+class _Symbols:
+    """The symbols and per-scenario functions both formulations are written with."""
+
+    U: ca.SX  # (nu, N) shared inputs
+    S: ca.SX  # (ng, N) shared slacks (0 rows without state constraints)
+    X0: ca.SX  # (nx, Ns) initial states, column i for scenario i
+    W: ca.SX  # (nw N, Ns) latent forces; rows k nw .. (k+1) nw - 1 act during step k
+    step: ca.Function  # (nx, Ns), (nu, 1), (nw, Ns) -> (nx, Ns): one Euler step
+    constraints: ca.Function | None  # (nx, Ns) -> (ng, Ns); None when ng == 0
+    state_cost: ca.Function  # (nx, Ns) -> (1, Ns)
+    terminal_cost: ca.Function  # (nx, Ns) -> (1, Ns)
+
+    def forces(self, k: int) -> ca.SX:
+        """The forces ``(nw, Ns)`` of every scenario acting during step ``k``."""
+        nw = self.W.shape[0] // self.U.shape[1]
+        return self.W[k * nw : (k + 1) * nw, :]
+
+    def scenario_constraints(self, X: ca.SX, k: int) -> ca.SX:
+        """``g_j(x_k^(i)) - s[k, j]`` for states ``X`` ``(nx, Ns)`` of step ``k`` (1-based).
+
+        Column ``i`` is scenario ``i``, so ``vec`` orders the rows (scenario, constraint).
+        """
+        return self.constraints(X) - ca.repmat(self.S[:, k - 1], 1, X.shape[1])
 
 
-def _constraint_function(problem: ScenarioProblem) -> ca.Function:
-    """The six state constraints ``g(x) <= 0`` of one state, as in ``constraint_values``."""
-    x = ca.SX.sym("x", 4)
-    g = ca.vertcat(problem.track.constraints(x), problem.speed_min - x[2], x[2] - problem.speed_max)
-    return ca.Function("state_constraints", [x], [g], ["x"], ["g"])
+def _symbols(problem: ScenarioProblem) -> _Symbols:
+    """Symbols of both formulations and the per-scenario functions mapped over ``Ns``.
+
+    ``Function.map`` evaluates the one-scenario step, constraints and costs on all columns
+    at once (the shared input column is broadcast), so building the NLP costs ``N`` Python
+    iterations, not ``N Ns``.
+    """
+    system, cost = problem.system, problem.cost
+    n, ns = problem.horizon, problem.n_scenarios
+    nx, nu, nw, ng = problem.nx, problem.nu, problem.nw, problem.ng
+    x = ca.SX.sym("x", nx)
+    return _Symbols(
+        U=ca.SX.sym("u", nu, n),
+        S=ca.SX.sym("s", ng, n) if ng else ca.SX(0, n),
+        X0=ca.SX.sym("x0", nx, ns),
+        W=ca.SX.sym("W", nw * n, ns),
+        step=system.casadi_step(problem.dt).map(ns),
+        constraints=system.casadi_constraints().map(ns) if ng else None,
+        state_cost=ca.Function("state_cost", [x], [cost.state_cost(x)]).map(ns),
+        terminal_cost=ca.Function("terminal_cost", [x], [cost.terminal_cost(x)]).map(ns),
+    )
 
 
-def _weighted_error(problem: ScenarioProblem, X: ca.SX, weights: tuple[float, ...]) -> ca.SX:
-    """Sum over scenarios of ``(x - x_g)^T diag(weights) (x - x_g)`` for states ``X`` (4 x Ns)."""
-    ns = X.shape[1]
-    e = X - ca.repmat(ca.DM(problem.x_goal), 1, ns)
-    return ca.sum2(ca.mtimes(ca.DM(weights).T, e**2))
+def _objective(problem: ScenarioProblem, sym: _Symbols, state_costs: ca.SX) -> ca.SX:
+    """Scenario average of ``state_costs`` ``(1, Ns)``, plus input cost and slack penalty."""
+    inputs = sum(problem.cost.input_cost(sym.U[:, k]) for k in range(problem.horizon))
+    f = ca.sum2(state_costs) / problem.n_scenarios + inputs
+    if problem.ng:
+        f += problem.slack_penalty * ca.sum1(ca.sum2(sym.S))
+    return f
 
 
 def _build_condensed(problem: ScenarioProblem) -> _NLP:
     """Single shooting: inputs and slacks are the only decision variables."""
-    n, ns, nk = problem.horizon, problem.n_scenarios, N_CONSTRAINT_KINDS
-    U = ca.SX.sym("u", 2, n)
-    S = ca.SX.sym("s", nk, n)
-    X0 = ca.SX.sym("x0", 4, ns)
-    W = ca.SX.sym("W", n, ns)
+    n, ns, nu, ng = problem.horizon, problem.n_scenarios, problem.nu, problem.ng
+    sym = _symbols(problem)
 
     # --- dynamics ---
-    # map() evaluates the one-scenario step on all columns at once; the shared input
-    # column is broadcast, so the rollout costs N Python iterations, not N * Ns.
-    step = _step_function(problem).map(ns)
-    cons = _constraint_function(problem).map(ns)
-    X = X0
-    cost = _weighted_error(problem, X, problem.Q)
+    X = sym.X0
+    costs = sym.state_cost(X)
     g = []
     for k in range(n):
-        X = step(X, U[:, k], W[k, :])
-        weights = problem.Qf if k == n - 1 else problem.Q
-        cost += _weighted_error(problem, X, weights)
+        X = sym.step(X, sym.U[:, k], sym.forces(k))
+        costs += (sym.terminal_cost if k == n - 1 else sym.state_cost)(X)
 
         # --- constraints ---
-        # g_j(x_k^(i)) - s[k, j] <= 0 for every scenario i; column i of G is scenario i,
-        # so vec(G) is ordered (scenario, kind) within step k.
-        G = cons(X) - ca.repmat(S[:, k], 1, ns)
-        g.append(ca.vec(G))
-
-    # --- objective ---
-    inputs = ca.sum2(ca.mtimes(ca.DM(problem.R).T, U**2))
-    f = cost / ns + inputs + problem.slack_penalty * ca.sum1(ca.sum2(S))
+        # g_j(x_k^(i)) - s[k, j] <= 0 for every scenario i.
+        if ng:
+            g.append(ca.vec(sym.scenario_constraints(X, k + 1)))
 
     nlp = {
-        "x": ca.vertcat(ca.vec(U), ca.vec(S)),
-        "p": ca.vertcat(ca.vec(X0), ca.vec(W)),
-        "f": f,
-        "g": ca.vertcat(*g),
+        "x": ca.vertcat(ca.vec(sym.U), ca.vec(sym.S)),
+        "p": ca.vertcat(ca.vec(sym.X0), ca.vec(sym.W)),
+        "f": _objective(problem, sym, costs),
+        "g": ca.vertcat(*g) if g else ca.SX(0, 1),
     }
     lbx, ubx = _input_and_slack_bounds(problem)
-    n_g = n * ns * nk
+    n_g = n * ns * ng
     return _NLP(
         nlp=nlp,
         lbx=lbx,
         ubx=ubx,
         lbg=np.full(n_g, -np.inf),
         ubg=np.zeros(n_g),
-        x_blocks=(2, nk),
-        g_blocks=(ns * nk,),
+        x_blocks=(nu, ng),
+        g_blocks=(ns * ng,),
     )
 
 
 def _build_multiple_shooting(problem: ScenarioProblem) -> _NLP:
     """Textbook multiple shooting: all scenario states are variables, dynamics are equalities."""
-    n, ns, nk = problem.horizon, problem.n_scenarios, N_CONSTRAINT_KINDS
-    U = ca.SX.sym("u", 2, n)
-    S = ca.SX.sym("s", nk, n)
+    n, ns, nx, nu, ng = problem.horizon, problem.n_scenarios, problem.nx, problem.nu, problem.ng
+    sym = _symbols(problem)
     # Column k * Ns + i holds x_{k+1} of scenario i.
-    X = ca.SX.sym("X", 4, n * ns)
-    X0 = ca.SX.sym("x0", 4, ns)
-    W = ca.SX.sym("W", n, ns)
+    X = ca.SX.sym("X", nx, n * ns)
 
-    step = _step_function(problem).map(ns)
-    cons = _constraint_function(problem).map(ns)
-    cost = _weighted_error(problem, X0, problem.Q)
+    costs = sym.state_cost(sym.X0)
     g_dyn, g_ineq = [], []
-    X_prev = X0
+    X_prev = sym.X0
     for k in range(n):
         Xk = X[:, k * ns : (k + 1) * ns]
 
         # --- dynamics ---
-        g_dyn.append(ca.vec(Xk - step(X_prev, U[:, k], W[k, :])))
+        g_dyn.append(ca.vec(Xk - sym.step(X_prev, sym.U[:, k], sym.forces(k))))
 
         # --- constraints ---
-        g_ineq.append(ca.vec(cons(Xk) - ca.repmat(S[:, k], 1, ns)))
+        if ng:
+            g_ineq.append(ca.vec(sym.scenario_constraints(Xk, k + 1)))
 
-        weights = problem.Qf if k == n - 1 else problem.Q
-        cost += _weighted_error(problem, Xk, weights)
+        costs += (sym.terminal_cost if k == n - 1 else sym.state_cost)(Xk)
         X_prev = Xk
 
-    # --- objective ---
-    inputs = ca.sum2(ca.mtimes(ca.DM(problem.R).T, U**2))
-    f = cost / ns + inputs + problem.slack_penalty * ca.sum1(ca.sum2(S))
-
     nlp = {
-        "x": ca.vertcat(ca.vec(U), ca.vec(S), ca.vec(X)),
-        "p": ca.vertcat(ca.vec(X0), ca.vec(W)),
-        "f": f,
+        "x": ca.vertcat(ca.vec(sym.U), ca.vec(sym.S), ca.vec(X)),
+        "p": ca.vertcat(ca.vec(sym.X0), ca.vec(sym.W)),
+        "f": _objective(problem, sym, costs),
         "g": ca.vertcat(*g_dyn, *g_ineq),
     }
     lbu, ubu = _input_and_slack_bounds(problem)
-    n_x = 4 * n * ns
-    n_dyn, n_ineq = 4 * n * ns, nk * n * ns
+    n_x = nx * n * ns
+    n_dyn, n_ineq = nx * n * ns, ng * n * ns
     return _NLP(
         nlp=nlp,
         lbx=np.concatenate([lbu, np.full(n_x, -np.inf)]),
         ubx=np.concatenate([ubu, np.full(n_x, np.inf)]),
         lbg=np.concatenate([np.zeros(n_dyn), np.full(n_ineq, -np.inf)]),
         ubg=np.zeros(n_dyn + n_ineq),
-        x_blocks=(2, nk, 4 * ns),
-        g_blocks=(4 * ns, nk * ns),
+        x_blocks=(nu, ng, nx * ns),
+        g_blocks=(nx * ns, ng * ns),
     )
 
 
 def _input_and_slack_bounds(problem: ScenarioProblem) -> tuple[np.ndarray, np.ndarray]:
     """Bounds of ``[vec(u), vec(s)]``: hard input bounds, slacks in ``[0, inf)``."""
-    n = problem.horizon
-    lbx = np.concatenate([np.tile(problem.input_lower, n), np.zeros(N_CONSTRAINT_KINDS * n)])
-    ubx = np.concatenate([np.tile(problem.input_upper, n), np.full(N_CONSTRAINT_KINDS * n, np.inf)])
+    n, ng = problem.horizon, problem.ng
+    lbx = np.concatenate([np.tile(problem.input_lower, n), np.zeros(ng * n)])
+    ubx = np.concatenate([np.tile(problem.input_upper, n), np.full(ng * n, np.inf)])
     return lbx, ubx
 
 
@@ -234,7 +251,7 @@ class IpoptScenarioSolver:
     since the penalised constraints change their active set with every draw of ``W``.
 
     Args:
-        problem: the problem data (horizon, scenario count, weights, bounds, track).
+        problem: the scenario problem (model, cost, horizon, scenario count, penalty).
         formulation: ``"condensed"`` (single shooting, default) or ``"multiple_shooting"``
             (the textbook reference).
         ipopt_options: IPOPT options (names without the ``ipopt.`` prefix) merged over
@@ -296,12 +313,12 @@ class IpoptScenarioSolver:
     def _objective_of(
         self, result: dict[str, ca.DM], z0: np.ndarray, x0: np.ndarray, W: np.ndarray
     ) -> float:
-        u = self._iterate(result, z0)[: 2 * self.problem.horizon].reshape(-1, 2)
-        u = np.clip(u, self.problem.input_lower, self.problem.input_upper)
-        return mpc_problem.objective(self.problem, x0, W, u)
+        problem = self.problem
+        u = self._iterate(result, z0)[: problem.nu * problem.horizon].reshape(-1, problem.nu)
+        return problem.objective(x0, W, problem.system.clip_input(u))
 
     def reset(self) -> None:
-        """Forget the warm start: the next solve starts cold from zero inputs."""
+        """Forget the warm start: the next solve starts cold from zero inputs (clipped)."""
         self._prev = None
 
     def _initial_guess(
@@ -317,13 +334,7 @@ class IpoptScenarioSolver:
         mode = "cold"
         shifted = None if prev is None else np.concatenate([prev["u"][1:], prev["u"][-1:]])
         if u_guess is not None:
-            u_guess = np.asarray(u_guess, dtype=float)
-            if u_guess.shape != (n, 2) or not np.all(np.isfinite(u_guess)):
-                raise ValueError(
-                    f"u_guess has shape {u_guess.shape} or non-finite entries; "
-                    f"expected finite (horizon, 2) = {(n, 2)}"
-                )
-            u0 = u_guess
+            u0 = u_guess = problem.check_inputs(u_guess, "u_guess")
             if prev is not None and np.array_equal(u_guess, prev["u"]):
                 mode = "same"
             elif shifted is not None and np.array_equal(u_guess, shifted):
@@ -331,8 +342,8 @@ class IpoptScenarioSolver:
         elif shifted is not None:
             u0, mode = shifted, "shift"
         else:
-            u0 = np.zeros((n, 2))
-        u0 = np.clip(u0, problem.input_lower, problem.input_upper)
+            u0 = np.zeros((n, problem.nu))
+        u0 = problem.system.clip_input(u0)
 
         duals: dict[str, np.ndarray] = {}
         if self._warm is not None and mode != "cold" and prev["lam_x"] is not None:
@@ -340,8 +351,8 @@ class IpoptScenarioSolver:
                 lam = prev[key]
                 duals[key + "0"] = _shift_blocks(lam, blocks, n) if mode == "shift" else lam
 
-        X = mpc_problem.rollout(problem, x0, W, u0)
-        parts = [u0.ravel(), mpc_problem.minimal_slack(problem, X).ravel()]
+        X = problem.rollout(x0, W, u0)
+        parts = [u0.ravel(), problem.minimal_slack(X).ravel()]
         if self.formulation == "multiple_shooting":
             parts.append(X[:, 1:].transpose(1, 0, 2).ravel())
         return np.concatenate(parts), duals
@@ -352,16 +363,18 @@ class IpoptScenarioSolver:
         """Solve the scenario problem for initial state(s) ``x0`` and latent forces ``W``.
 
         Args:
-            x0: initial state ``[p_x, p_y, v, psi]`` [m, m, m/s, rad], shape ``(4,)`` or
-                ``(Ns, 4)``.
-            W: latent force [m/s^2] of each scenario and step, shape ``(Ns, N)``.
-            u_guess: initial input sequence ``(N, 2)`` [m/s^2, rad]; by default the
-                previous solution shifted by one step (zeros on the first solve).
+            x0: initial state, in the states' units (``system.state_names``), shape
+                ``(nx,)`` or ``(Ns, nx)`` (one per scenario).
+            W: latent force of each scenario and step, in the force's units, shape
+                ``(Ns, N, nw)`` (or ``(Ns, N)`` when ``nw == 1``).
+            u_guess: initial input sequence ``(N, nu)`` in the inputs' units; by default
+                the previous solution shifted by one step (zero inputs, clipped into the
+                bounds, on the first solve).
 
         Returns:
             The solution; ``u`` is clipped into the input bounds, and ``objective`` and
-            ``slack`` are :func:`mpc_problem.objective` and the sum of
-            :func:`mpc_problem.minimal_slack` evaluated on it, so every solver is compared
+            ``slack`` are :meth:`ScenarioProblem.objective` and the sum of
+            :meth:`ScenarioProblem.minimal_slack` evaluated on it, so every solver is compared
             on the same function. A failed solve does not raise: it returns IPOPT's last
             iterate with ``success=False`` and IPOPT's status. A failed warm-started solve
             is retried once cold (``extra["cold_retry"]``); ``solve_time`` and
@@ -400,9 +413,10 @@ class IpoptScenarioSolver:
                     result, error, stats_ = warm_run
 
         z = self._iterate(result, z0)
-        u = np.clip(z[: 2 * n].reshape(n, 2), problem.input_lower, problem.input_upper)
-        predicted = mpc_problem.rollout(problem, x0, W, u)
-        slack = float(np.sum(mpc_problem.minimal_slack(problem, predicted)))
+        nu, ng = problem.nu, problem.ng
+        u = problem.system.clip_input(z[: nu * n].reshape(n, nu))
+        predicted = problem.rollout(x0, W, u)
+        slack = float(np.sum(problem.minimal_slack(predicted)))
         success = error is None and bool(stats_.get("success", False))
         status = repr(error) if error is not None else str(stats_.get("return_status", "?"))
 
@@ -415,7 +429,7 @@ class IpoptScenarioSolver:
         self._prev = {"u": u, "lam_x": lam_x, "lam_g": lam_g}
         return MPCSolution(
             u=u,
-            objective=mpc_problem.objective(problem, x0, W, u),
+            objective=problem.objective(x0, W, u),
             slack=slack,
             status=status,
             success=success,
@@ -427,7 +441,7 @@ class IpoptScenarioSolver:
                 "warm_started_duals": bool(duals),
                 "cold_retry": retried,
                 "ipopt_objective": math.nan if result is None else float(result["f"]),
-                "slacks": z[2 * n : 8 * n].reshape(n, N_CONSTRAINT_KINDS).copy(),
+                "slacks": z[nu * n : (nu + ng) * n].reshape(n, ng).copy(),
             },
         )
 
@@ -458,10 +472,10 @@ def solve_scenario_problem(
 
     Args:
         problem: the problem data.
-        x0: initial state(s), ``(4,)`` or ``(Ns, 4)`` [m, m, m/s, rad].
-        W: latent forces ``(Ns, N)`` [m/s^2].
+        x0: initial state(s), ``(nx,)`` or ``(Ns, nx)``, in the states' units.
+        W: latent forces ``(Ns, N, nw)`` (or ``(Ns, N)`` when ``nw == 1``).
         solver: ``"condensed"`` or ``"multiple_shooting"``.
-        u_guess: optional initial inputs ``(N, 2)``.
+        u_guess: optional initial inputs ``(N, nu)``.
     """
     key = (problem, solver)
     if key not in _SOLVER_CACHE:
@@ -495,7 +509,7 @@ def campi_garatti_scenarios(epsilon: float, beta: float, n_decision: int) -> int
 
     Returns:
         The smallest ``Ns`` satisfying the bound. The guarantee is for convex programs; the
-        vehicle MPC is not convex, so for it this is a heuristic (paper, Remark 2).
+        nonlinear MPC is in general not convex, so for it this is a heuristic (paper, Remark 2).
 
     Raises:
         ValueError: when an argument is out of range.

@@ -7,10 +7,15 @@ import numpy as np
 import pytest
 
 import lfm_env  # noqa: F401  (registers the env)
-from controllers.agents import AGENTS, make_agent
-from controllers.config import AgentConfig, load_agent_config
+from controllers.agents import AGENTS, ScenarioMPCAgent, make_agent
+from controllers.config import AgentConfig, load_config
+from controllers.solvers import SOLVERS
 from controllers.solvers.ipopt import campi_garatti_scenarios
+from lfm_env import gp
 from lfm_env.config import ConfigError
+from lfm_env.env import LatentForceEnv
+from lfm_env.model import LatentForceModel
+from lfm_env.system import ControlSystem, QuadraticCost, xp
 
 QUICK = "configs/quick.yaml"
 
@@ -49,11 +54,11 @@ def test_filter_agents_track_the_hidden_force():
     cfg = {"env": {"max_steps": 40}, "agents": {"n_particles": 3000, "n_scenarios": 5}}
     _, infos, est = run("pf", cfg, seed=3)
     w_true = np.array([i["disturbance"] for i in infos[1:]])
-    w_hat = np.array([r["latent_force"] for r in est])
+    w_hat = np.array([r["latent_force"] for r in est])[:, 0]  # (T, nw) with nw = 1
     # Skip the first second while the filter learns; the force's std is 2 m/s^2.
     err = w_hat[5:] - w_true[5:]
     assert np.sqrt(np.mean(err**2)) < 1.2
-    band = np.array([r["latent_force_std"] for r in est])[5:]
+    band = np.array([r["latent_force_std"] for r in est])[5:, 0]
     assert np.mean(np.abs(err) <= 2 * band + 1e-9) > 0.6
 
 
@@ -71,7 +76,7 @@ def test_agent_seed_does_not_change_the_disturbance():
     assert ia["disturbance"] == ib["disturbance"]
 
 
-def test_solver_failure_falls_back_to_the_previous_plan_then_brakes():
+def test_solver_failure_falls_back_to_the_previous_plan_then_to_the_systems_fallback():
     # One IPOPT iteration cannot converge: every solve reports failure, a real fault.
     cfg = {"agents": {"max_iter": 1, "solver": "ipopt", "n_scenarios": 3, "n_particles": 200}}
     agent = make_agent("nominal", cfg)
@@ -79,8 +84,8 @@ def test_solver_failure_falls_back_to_the_previous_plan_then_brakes():
     obs = np.array([0.0, 0.0, 1.0, np.pi / 4])
     u = agent.act(obs)
     assert not agent.last_info["success"]
-    assert agent.last_info["fallback"] == "brake"
-    np.testing.assert_allclose(u, [-5.0, 0.0])
+    assert agent.last_info["fallback"] == "fallback"
+    np.testing.assert_allclose(u, [-5.0, 0.0])  # the bicycle's fallback: full braking
 
 
 def test_previous_plan_is_used_after_a_good_solve():
@@ -129,7 +134,9 @@ def test_factory_errors():
         ({"ess_threshold": 1.5}, "ess_threshold"),
         ({"violation_level": 1.2, "n_scenarios": None, "confidence": 0.1}, "violation_level"),
         ({"n_scenarios": None}, "n_scenarios"),
-        ({"Q": [1, 1, 1]}, "Q"),
+        ({"Q": [1, 1, 1]}, "agents.Q"),
+        ({"goal_state": [1, 1, 1, 1, 1]}, "agents.goal_state"),
+        ({"R": [1.0]}, "agents.R"),
         ({"R": [1.0, -1.0]}, "R"),
         ({"horizon": 2.5}, "horizon"),
         ({"typo_key": 1}, "typo_key"),
@@ -137,15 +144,29 @@ def test_factory_errors():
 )
 def test_bad_agent_configs_name_the_key(section, key):
     with pytest.raises(ConfigError, match=key):
-        load_agent_config({"agents": section})
+        load_config({"agents": section})
+
+
+def test_the_config_knows_the_solver_registrys_names_only():
+    for name in SOLVERS:
+        assert load_config({"agents": {"solver": name}}).agents.solver == name
+    with pytest.raises(ConfigError, match="agents.solver='textbook'"):
+        load_config({"agents": {"solver": "textbook"}})
 
 
 def test_scenario_count_from_the_campi_garatti_bound():
     cfg = {"agents": {"n_scenarios": None, "violation_level": 0.2, "confidence": 0.01}}
     agent = make_agent("scenario", {**cfg, "agents": {**cfg["agents"], "n_particles": 100}})
+    # nu N decision variables: 2 inputs of the bicycle over the horizon.
     expected = campi_garatti_scenarios(0.2, 0.01, 2 * AgentConfig().horizon)
     assert agent.problem.n_scenarios == expected
-    assert load_agent_config(cfg).scenario_count() == expected
+    assert load_config(cfg).scenario_count() == expected
+
+
+def test_a_campi_garatti_count_beyond_the_limit_names_the_level():
+    cfg = {"agents": {"n_scenarios": None, "violation_level": 1e-5, "confidence": 1e-3}}
+    with pytest.raises(ConfigError, match="agents.violation_level=1e-05: must be >= "):
+        load_config(cfg)
 
 
 def test_scenarios_can_start_from_particles():
@@ -172,3 +193,84 @@ def test_a_diverged_filter_restarts_around_the_measurement():
     assert agent.last_info["filter_reset"]
     assert agent.last_info["filter_resets"] == 1
     assert agent.last_info["estimate"][2] == pytest.approx(jump[2], abs=0.1)
+
+
+# --------------------------------------------------------------------------- another system
+
+
+def point_mass_world() -> tuple[LatentForceModel, QuadraticCost]:
+    """A planar point mass pushed by a two-axis latent force, with a wall at p_y = 0.5 m."""
+
+    def rhs(x, u, w):
+        _, _, vx, vy = xp.unstack(x)
+        ax, ay = xp.unstack(u)
+        wx, wy = xp.unstack(w)
+        return xp.stack([vx, vy, ax + wx - 0.2 * vx, ay + wy - 0.2 * vy])
+
+    def wall(x):
+        _, py, _, _ = xp.unstack(x)
+        return xp.stack([py - 0.5])
+
+    system = ControlSystem(
+        name="point_mass",
+        state_names=("p_x [m]", "p_y [m]", "v_x [m/s]", "v_y [m/s]"),
+        input_names=("a_x [m/s^2]", "a_y [m/s^2]"),
+        rhs=rhs,
+        input_lower=[-2.0, -2.0],
+        input_upper=[2.0, 2.0],
+        constraints=wall,
+        constraint_names=("wall [m]",),
+        force_names=("w_x [m/s^2]", "w_y [m/s^2]"),
+    )
+    model = LatentForceModel(
+        system,
+        kernel=[gp.matern(1.5, 0.3, 2.0), gp.matern(2.5, 0.3, 3.0)],
+        dt=0.1,
+        process_noise_std=[1e-3, 1e-3, 1e-3, 1e-3],
+    )
+    cost = QuadraticCost(Q=[1.0, 1.0, 0.1, 0.1], R=[0.1, 0.1], x_goal=[3.0, 0.3, 0.0, 0.0])
+    return model, cost
+
+
+@pytest.mark.parametrize("name", ["nominal", "pf", "scenario", "scenario_particles"])
+def test_agents_run_on_a_system_defined_in_this_file(name):
+    model, cost = point_mass_world()
+    std = np.full(4, 0.02)
+    env = LatentForceEnv(
+        model, cost, initial_state=[0.0, 0.0, 0.0, 0.0], measurement_std=std, max_steps=40
+    )
+    settings = AgentConfig(
+        horizon=8,
+        n_scenarios=20,
+        n_particles=2000,
+        Q=(1.0,) * 4,
+        Qf=(1.0,) * 4,
+        R=(0.1, 0.1),
+        goal_state=(3.0, 0.3, 0.0, 0.0),
+    )
+    agent = AGENTS[name](model, cost, settings, measurement_std=std)
+    obs, _ = env.reset(seed=4)
+    agent.reset(seed=5)
+    for _ in range(40):
+        obs, _, term, trunc, info = env.step(agent.act(obs))
+        assert agent.last_info["status"]
+        if term or trunc:
+            break
+    assert agent.last_info["W"].shape == (agent.problem.n_scenarios, 8, 2)
+    # The controller moved the mass most of the way to the goal and kept it near the wall.
+    x = env.true_state
+    assert x[0] > 1.5, f"{name} stalled at p_x = {x[0]:.2f} m"
+    assert np.max(info["constraint_excess"]) < 0.1
+    if name != "nominal":
+        assert agent.last_info["latent_force"].shape == (2,)
+
+
+def test_a_filtering_agent_needs_measurement_noise():
+    model, cost = point_mass_world()
+    with pytest.raises(ValueError, match="measurement_std=.*must be all > 0"):
+        ScenarioMPCAgent(
+            model,
+            cost,
+            AgentConfig(Q=(1.0,) * 4, Qf=(1.0,) * 4, R=(0.1, 0.1)),
+            measurement_std=[0.1, 0.1, 0.0, 0.1],
+        )

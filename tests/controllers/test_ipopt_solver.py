@@ -4,19 +4,24 @@ from __future__ import annotations
 
 import math
 
+import casadi as ca
 import numpy as np
 import pytest
 from scipy.optimize import Bounds, minimize
 from scipy.optimize._numdiff import approx_derivative
 
 from controllers import problem as mp
+from controllers.config import load_config
 from controllers.problem import ScenarioProblem
+from controllers.solvers import make_solver
 from controllers.solvers.ipopt import (
     FORMULATIONS,
     IpoptScenarioSolver,
     campi_garatti_scenarios,
     solve_scenario_problem,
 )
+from lfm_env.system import QuadraticCost
+from lfm_env.systems.sine_track import track_of
 
 N = 5
 NS = 20
@@ -28,9 +33,14 @@ def rel_diff(a: float, b: float) -> float:
     return abs(a - b) / max(abs(a), abs(b), 1.0)
 
 
+def paper_problem(n_scenarios: int = NS, horizon: int = N) -> ScenarioProblem:
+    """The paper's scenario problem (sine-track model and the agents' cost)."""
+    return load_config().make_problem(n_scenarios=n_scenarios, horizon=horizon)
+
+
 @pytest.fixture(scope="module")
 def problem() -> ScenarioProblem:
-    return ScenarioProblem(horizon=N, n_scenarios=NS)
+    return paper_problem()
 
 
 @pytest.fixture(scope="module")
@@ -46,22 +56,22 @@ def solve_cold(solver: IpoptScenarioSolver, x0: np.ndarray, W: np.ndarray, **kw)
 
 def nominal_slsqp(problem: ScenarioProblem, x0: np.ndarray, W: np.ndarray) -> np.ndarray:
     """Inputs of the hard-constrained problem solved by SciPy's SLSQP, independent of CasADi."""
-    n = problem.horizon
+    n, nu = problem.horizon, problem.nu
 
     def cost(z: np.ndarray) -> float:
-        u = z.reshape(n, 2)
+        u = z.reshape(n, nu)
         X = mp.rollout(problem, x0, W, u)
         return mp.objective(problem, x0, W, u) - problem.slack_penalty * float(
             np.sum(mp.minimal_slack(problem, X))
         )
 
     def g(z: np.ndarray) -> np.ndarray:
-        return -mp.constraint_values(problem, mp.rollout(problem, x0, W, z.reshape(n, 2))).ravel()
+        return -mp.constraint_values(problem, mp.rollout(problem, x0, W, z.reshape(n, nu))).ravel()
 
     bounds = Bounds(np.tile(problem.input_lower, n), np.tile(problem.input_upper, n))
     result = minimize(
         cost,
-        np.zeros(2 * n),
+        np.zeros(nu * n),
         jac=lambda z: approx_derivative(cost, z, method="3-point"),
         method="SLSQP",
         bounds=bounds,
@@ -70,7 +80,7 @@ def nominal_slsqp(problem: ScenarioProblem, x0: np.ndarray, W: np.ndarray) -> np
         ],
         options={"ftol": 1e-14, "maxiter": 500},
     )
-    return result.x.reshape(n, 2)
+    return result.x.reshape(n, nu)
 
 
 # --- agreement between formulations ---
@@ -78,7 +88,7 @@ def nominal_slsqp(problem: ScenarioProblem, x0: np.ndarray, W: np.ndarray) -> np
 
 @pytest.mark.parametrize("x0", [START, MID_TRACK], ids=["start", "mid_track"])
 def test_nominal_problem_agrees_across_formulations_and_scipy(x0: np.ndarray) -> None:
-    one = ScenarioProblem(horizon=N, n_scenarios=1)
+    one = paper_problem(n_scenarios=1)
     W = np.zeros((1, N))
     cond = solve_scenario_problem(one, x0, W, solver="condensed")
     ms = solve_scenario_problem(one, x0, W, solver="multiple_shooting")
@@ -87,7 +97,7 @@ def test_nominal_problem_agrees_across_formulations_and_scipy(x0: np.ndarray) ->
     np.testing.assert_allclose(cond.u, ms.u, atol=1e-4)
 
     # Identical zero-disturbance scenarios average to the same nominal problem.
-    many = ScenarioProblem(horizon=N, n_scenarios=4)
+    many = paper_problem(n_scenarios=4)
     rep = solve_scenario_problem(many, x0, np.zeros((4, N)))
     assert rel_diff(cond.objective, rep.objective) < 1e-6
     np.testing.assert_allclose(cond.u, rep.u, atol=1e-4)
@@ -121,7 +131,7 @@ def test_returned_objective_and_input_bounds(
     W = rng.normal(0.0, 2.0, size=(NS, N))
     sol = solve_cold(solvers[formulation], START, W)
     assert sol.success
-    assert sol.u.shape == (N, 2)
+    assert sol.u.shape == (N, problem.nu)
     assert sol.objective == mp.objective(problem, START, W, sol.u)
     assert rel_diff(sol.objective, sol.extra["ipopt_objective"]) < 1e-6
     assert np.all(sol.u >= problem.input_lower) and np.all(sol.u <= problem.input_upper)
@@ -146,6 +156,123 @@ def test_per_scenario_initial_states_match_shared_initial_state(
     assert spread.objective == mp.objective(problem, x0s, W, spread.u)
 
 
+# --- the NLP is the reference problem, for any weights ---
+
+
+def nlp_values(
+    solver: IpoptScenarioSolver, x0: np.ndarray, W: np.ndarray, u: np.ndarray
+) -> tuple[float, np.ndarray]:
+    """The built NLP's objective and constraint rows at inputs ``u``, with the minimal
+    slacks and (multiple shooting) the rolled-out states: the reference point for ``u``."""
+    problem, nlp = solver.problem, solver._nlp.nlp
+    x0s, Ws = problem.check_data(x0, W)
+    X = problem.rollout(x0s, Ws, u)
+    z = [u.ravel(), problem.minimal_slack(X).ravel()]
+    if solver.formulation == "multiple_shooting":
+        z.append(X[:, 1:].transpose(1, 0, 2).ravel())
+    fg = ca.Function("fg", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]])
+    f, g = fg(np.concatenate(z), np.concatenate([x0s.ravel(), Ws.ravel()]))
+    return float(f), g.full().ravel()
+
+
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_nlp_objective_and_constraints_are_the_reference(
+    problem: ScenarioProblem, solvers: dict[str, IpoptScenarioSolver], formulation: str
+) -> None:
+    """At any inputs, the NLP's objective is ``problem.objective`` and its rows hold."""
+    solver = solvers[formulation]
+    rng = np.random.default_rng(20)
+    for x0 in (MID_TRACK, np.tile(START, (NS, 1)) + rng.normal(0.0, 0.1, (NS, 4))):
+        W = rng.normal(0.0, 3.0, size=(NS, N))
+        u = rng.uniform(problem.input_lower, problem.input_upper, size=(N, problem.nu))
+        X = mp.rollout(problem, x0, W, u)
+        assert np.sum(mp.minimal_slack(problem, X)) > 1e-3  # the penalty term is exercised
+        f, g = nlp_values(solver, x0, W, u)
+        assert f == pytest.approx(mp.objective(problem, x0, W, u), rel=1e-12)
+        n_dyn = problem.nx * N * NS if formulation == "multiple_shooting" else 0
+        assert g.size == n_dyn + problem.ng * N * NS
+        np.testing.assert_allclose(g[:n_dyn], 0.0, atol=1e-9)  # the states are the rollout
+        # Every scenario constraint holds with the minimal slacks, and some are active.
+        assert np.max(g[n_dyn:]) == pytest.approx(0.0, abs=1e-9)
+
+
+FULL_Q = np.array(
+    [
+        [2.0, 0.6, 0.3, 0.0],
+        [0.6, 2.0, -0.4, 0.1],
+        [0.3, -0.4, 1.0, 0.2],
+        [0.0, 0.1, 0.2, 0.3],
+    ]
+)
+
+
+@pytest.fixture(scope="module")
+def full_weight_problem() -> ScenarioProblem:
+    """The paper's problem with full (non-diagonal) PSD weight matrices."""
+    paper = paper_problem()
+    cost = QuadraticCost(
+        Q=FULL_Q,
+        Qf=2.0 * FULL_Q,
+        R=np.array([[0.5, 0.4], [0.4, 10.0]]),
+        x_goal=paper.cost.x_goal,
+    )
+    assert not cost.diagonal
+    return ScenarioProblem(paper.model, cost, horizon=N, n_scenarios=NS)
+
+
+def test_full_weight_matrices_give_the_reference_objective(
+    full_weight_problem: ScenarioProblem,
+) -> None:
+    problem = full_weight_problem
+    rng = np.random.default_rng(21)
+    W = rng.normal(0.0, 1.0, size=(NS, N))
+    u = rng.uniform(problem.input_lower, problem.input_upper, size=(N, problem.nu))
+    diagonal = ScenarioProblem(
+        problem.model,
+        QuadraticCost(
+            Q=np.diag(np.diag(FULL_Q)),
+            Qf=np.diag(np.diag(2.0 * FULL_Q)),
+            R=(0.5, 10.0),
+            x_goal=problem.cost.x_goal,
+        ),
+        horizon=N,
+        n_scenarios=NS,
+    )
+    # The off-diagonal weights matter, so a solver that dropped them would be caught.
+    assert (
+        rel_diff(mp.objective(problem, MID_TRACK, W, u), mp.objective(diagonal, MID_TRACK, W, u))
+        > 1e-3
+    )
+
+    sols = {}
+    for formulation in FORMULATIONS:
+        solver = make_solver(
+            problem, "ipopt" if formulation == "condensed" else "ipopt_multiple_shooting"
+        )
+        assert solver.formulation == formulation
+        f, _ = nlp_values(solver, MID_TRACK, W, u)
+        assert f == pytest.approx(mp.objective(problem, MID_TRACK, W, u), rel=1e-12)
+        sol = solver.solve(MID_TRACK, W)
+        assert sol.success, sol.status
+        assert sol.objective == mp.objective(problem, MID_TRACK, W, sol.u)
+        assert rel_diff(sol.objective, sol.extra["ipopt_objective"]) < 1e-6
+        assert mp.largest_local_descent(problem, MID_TRACK, W, sol.u) >= -1e-9 * sol.objective
+        sols[formulation] = sol
+    cond, ms = sols["condensed"], sols["multiple_shooting"]
+    assert rel_diff(cond.objective, ms.objective) < 1e-6
+    np.testing.assert_allclose(cond.u, ms.u, atol=1e-4)
+
+
+def test_force_with_explicit_component_axis_is_the_same_problem(
+    solvers: dict[str, IpoptScenarioSolver],
+) -> None:
+    W = np.random.default_rng(22).normal(0.0, 1.0, size=(NS, N))
+    flat = solve_cold(solvers["condensed"], MID_TRACK, W)
+    axis = solve_cold(solvers["condensed"], MID_TRACK, W[:, :, None])
+    np.testing.assert_array_equal(axis.u, flat.u)
+    assert axis.objective == flat.objective
+
+
 @pytest.mark.parametrize("formulation", FORMULATIONS)
 def test_feasible_problem_needs_no_slack(
     problem: ScenarioProblem, solvers: dict[str, IpoptScenarioSolver], formulation: str
@@ -161,9 +288,10 @@ def test_feasible_problem_needs_no_slack(
 
 def fast_off_track_start(problem: ScenarioProblem) -> np.ndarray:
     """0.5 m from the upper edge at 7 m/s heading straight out of the track."""
+    track = track_of(problem.system)
     px = 10.0
-    py = problem.track.centre_y(px) + problem.track.half_width - 0.5
-    slope = problem.track.amplitude * problem.track.pulsation * np.cos(problem.track.pulsation * px)
+    py = track.centre_y(px) + track.half_width - 0.5
+    slope = track.amplitude * track.pulsation * np.cos(track.pulsation * px + track.phase)
     return np.array([px, py, 7.0, np.arctan(slope) + np.pi / 2])
 
 

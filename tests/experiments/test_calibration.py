@@ -34,14 +34,16 @@ def dense_speed_log_likelihood(kernel, rec, dt, r_std, q_std):
 
 def simulate(model: LatentForceModel, n_steps: int, rng: np.random.Generator) -> SpeedRecord:
     """Speeds of the augmented model under random accelerations, measured with noise."""
-    cfg = model.config
-    z = np.linalg.cholesky(model.kernel.Pinf) @ rng.standard_normal(model.latent_dim)
+    cfg = EnvConfig()
+    z = np.linalg.cholesky(model.stationary_latent_covariance()) @ rng.standard_normal(
+        model.latent_dim
+    )
     v = 4.0
     a = rng.uniform(-2, 2, n_steps)
     meas = cfg.measurement_std_rad[2]
     speeds, ws = [v + meas * rng.standard_normal()], []
     for k in range(n_steps):
-        w = float(model.H @ z)
+        w = float((model.H @ z)[0])
         ws.append(w)
         v = v + (a[k] + w) * cfg.dt + model.process_std[2] * rng.standard_normal()
         z = model.A @ z + model.Q_factor @ rng.standard_normal(model.latent_dim)
@@ -52,7 +54,7 @@ def simulate(model: LatentForceModel, n_steps: int, rng: np.random.Generator) ->
 @pytest.mark.parametrize("nu, variance, lengthscale", [(2.5, 4.0, 4.0), (1.5, 0.7, 1.3)])
 def test_kalman_likelihood_equals_the_dense_gaussian(nu, variance, lengthscale):
     cfg = EnvConfig()
-    model = LatentForceModel(cfg)
+    model = cfg.make_model()
     rec = simulate(model, 40, np.random.default_rng(1))
     kernel = matern(nu, variance, lengthscale)
     r, q = cfg.measurement_std_rad[2], cfg.process_noise_std_rad[2]
@@ -63,7 +65,7 @@ def test_kalman_likelihood_equals_the_dense_gaussian(nu, variance, lengthscale):
 
 def test_fit_recovers_the_hyperparameters_within_their_standard_errors():
     cfg = EnvConfig()
-    model = LatentForceModel(cfg)
+    model = cfg.make_model()
     rng = np.random.default_rng(7)
     records = [simulate(model, 150, rng) for _ in range(12)]
     result = fit_disturbance(records, cfg)

@@ -37,7 +37,7 @@ from controllers.estimators.particle_filter import ParticleFilter
 from controllers.solvers.fast import FastScenarioSolver
 from controllers.solvers.ipopt import IpoptScenarioSolver
 from experiments.evaluation import TIMING_COLUMNS, evaluate, resolve_config, run_episode
-from lfm_env.env import SineTrackEnv
+from lfm_env.envs import SineTrackEnv
 
 REPO = Path(__file__).resolve().parents[2]
 AGENT_CYCLE = ("nominal", "pf", "scenario", "oracle")

@@ -6,6 +6,7 @@ import dataclasses
 import math
 import re
 
+import numpy as np
 import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings
@@ -19,6 +20,7 @@ from lfm_env.config import (
     load_env_config,
     to_dict,
 )
+from lfm_env.systems.sine_track import track_of
 
 
 def assert_names_key(exc: pytest.ExceptionInfo, key: str) -> None:
@@ -438,3 +440,55 @@ def test_from_dict_builds_a_disturbance_section_alone():
     with pytest.raises(ConfigError) as exc:
         from_dict(DisturbanceConfig, {"nu": 3.0}, prefix="env.disturbance")
     assert_names_key(exc, "env.disturbance.nu")
+
+
+# ----------------------------------------------------------------------------- built objects
+
+
+def test_make_system_model_and_cost_read_the_config():
+    cfg = load_env_config(
+        {
+            "env": {
+                "dt": 0.1,
+                "vehicle_length": 0.8,
+                "track_amplitude": 2.0,
+                "speed_min": -1.0,
+                "speed_max": 6.0,
+                "accel_max": 3.0,
+                "steer_max_deg": 30.0,
+                "Q": [1.0, 2.0, 3.0, 4.0],
+                "R": [0.25, 5.0],
+                "goal_state": [60.0, 0.0, 2.0, 90.0],
+                "disturbance": {"nu": 1.5, "discretization": "euler_maruyama"},
+            }
+        }
+    )
+    system = cfg.make_system()
+    assert track_of(system) == cfg.track
+    np.testing.assert_allclose(system.input_upper, [3.0, math.radians(30.0)])
+    # The speed bounds are the last two constraints: v_min - v, v - v_max.
+    g = system.constraint_values(np.array([10.0, 0.0, 7.0, 0.0]))
+    assert g[4:] == pytest.approx([-8.0, 1.0])
+    # The length enters the yaw rate: v sin(alpha) / (l / 2).
+    dx = system.rhs(np.array([0.0, 0.0, 2.0, 0.0]), np.array([0.0, 0.3]), np.zeros(1))
+    assert dx[3] == pytest.approx(2.0 * math.sin(math.atan(0.5 * math.tan(0.3))) / 0.4)
+
+    model = cfg.make_model()
+    assert model.dt == 0.1 and model.discretization == "euler_maruyama"
+    assert model.latent_dim == 2  # Matern 3/2
+    np.testing.assert_allclose(model.process_std, cfg.process_noise_std_rad)
+    belief = cfg.make_model(DisturbanceConfig(nu=0.5), system=system)
+    assert belief.system is system and belief.latent_dim == 1
+
+    cost = cfg.make_cost()
+    np.testing.assert_array_equal(cost.Q, np.diag([1.0, 2.0, 3.0, 4.0]))
+    np.testing.assert_array_equal(cost.Qf, cost.Q)  # the reward has no terminal weight
+    np.testing.assert_array_equal(cost.R, np.diag([0.25, 5.0]))
+    np.testing.assert_allclose(cost.x_goal, [60.0, 0.0, 2.0, math.pi / 2])
+    cost.check_system(system)
+
+
+def test_state_from_config_converts_the_heading_only():
+    cfg = EnvConfig()
+    np.testing.assert_allclose(cfg.state_from_config([1.0, 2.0, 3.0, 180.0]), [1, 2, 3, math.pi])
+    np.testing.assert_array_equal(cfg.state_from_config(cfg.initial_state), cfg.initial_state_rad)

@@ -1,12 +1,20 @@
-"""Tests of the SineTrack Gymnasium environment (``lfm_env.env``), through ``gym.make``."""
+"""Tests of the Gymnasium envs: the generic ``lfm_env.env.LatentForceEnv`` and its first
+instance ``lfm_env.envs.sine_track.SineTrackEnv`` (through ``gym.make``).
+
+The generic contract (check_env, determinism, seeding, pickling, actions, reward, info) runs
+on both the sine track and a small planar point mass with a two-component force, defined
+here.
+"""
 
 from __future__ import annotations
 
+import importlib.util
 import math
 import pickle
 import subprocess
 import sys
 import warnings
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -15,21 +23,107 @@ from gymnasium.utils.env_checker import check_env
 
 import lfm_env  # noqa: F401  (registers lfm_env/SineTrack-v0)
 from lfm_env.config import EnvConfig
+from lfm_env.env import LatentForceEnv
+from lfm_env.envs import SineTrackEnv
 from lfm_env.gp import matern
+from lfm_env.model import LatentForceModel
+from lfm_env.system import ControlSystem, QuadraticCost, xp
 
 ENV_ID = "lfm_env/SineTrack-v0"
+POINT_MASS_ID = "lfm_env_tests/PointMass-v0"
 ALLOWED_WARNING = "For Box action spaces, we recommend using a symmetric and normalized space"
 GOAL = np.array([62.83, 0.0])
+DATA = Path(__file__).resolve().parents[1] / "data"
 
 
 def make(**kwargs) -> gym.Env:
     return gym.make(ENV_ID, **kwargs)
 
 
-def action_sequence(n: int, seed: int = 123) -> np.ndarray:
-    """A fixed sequence of in-bound actions ``(n, 2)``."""
+# ----------------------------------------------------------------------------- a second system
+
+
+def point_mass_rhs(x, u, w):
+    """A planar point mass ``[p_x, p_y, v_x, v_y]`` pushed by a force on both axes."""
+    _, _, vx, vy = xp.unstack(x)
+    ax, ay = xp.unstack(u)
+    wx, wy = xp.unstack(w)
+    return xp.stack([vx, vy, ax + wx, ay + wy])
+
+
+def point_mass_constraints(x):
+    """``|p_x| <= 5 m`` and ``|v_x| <= 2 m/s``."""
+    px, _, vx, _ = xp.unstack(x)
+    return xp.stack([px - 5.0, -px - 5.0, vx - 2.0, -vx - 2.0])
+
+
+POINT_MASS = ControlSystem(
+    name="point_mass",
+    state_names=("p_x [m]", "p_y [m]", "v_x [m/s]", "v_y [m/s]"),
+    input_names=("a_x [m/s^2]", "a_y [m/s^2]"),
+    force_names=("w_x [m/s^2]", "w_y [m/s^2]"),
+    rhs=point_mass_rhs,
+    input_lower=(-1.0, -1.0),
+    input_upper=(1.0, 1.0),
+    constraints=point_mass_constraints,
+    constraint_names=("x_max [m]", "x_min [m]", "vx_max [m/s]", "vx_min [m/s]"),
+    constraint_groups={"position": (0, 1), "velocity": (2, 3)},
+)
+POINT_MASS_MODEL = LatentForceModel(
+    POINT_MASS,
+    kernel=[matern(1.5, 1.0, 2.0), matern(0.5, 0.25, 1.0)],
+    dt=0.1,
+    process_noise_std=[1e-3, 1e-3, 1e-2, 1e-2],
+)
+POINT_MASS_COST = QuadraticCost(Q=[1.0, 1.0, 0.1, 0.1], R=[0.1, 0.1], x_goal=[3.0, 0.0, 0.0, 0.0])
+
+
+class DotScene:
+    """A minimal scene: a white pixel at the point mass's position on a black 20 x 20 grid."""
+
+    def __init__(self) -> None:
+        self.position = np.zeros(2)
+        self.closed = False
+
+    def update(self, state: np.ndarray) -> None:
+        self.position = np.asarray(state[:2], dtype=float)
+
+    def draw(self) -> np.ndarray:
+        frame = np.zeros((20, 20, 3), dtype=np.uint8)
+        col, row = np.clip(np.round(self.position + 10.0).astype(int), 0, 19)
+        frame[row, col] = 255
+        return frame
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def make_point_mass(**kwargs) -> LatentForceEnv:
+    options = dict(
+        initial_state=[0.0, 0.0, 0.5, 0.0],
+        measurement_std=[0.05, 0.05, 0.1, 0.1],
+        max_steps=80,
+    )
+    return LatentForceEnv(POINT_MASS_MODEL, POINT_MASS_COST, **{**options, **kwargs})
+
+
+ENVS = {"sine_track": make, "point_mass": make_point_mass}
+
+
+@pytest.fixture(params=sorted(ENVS))
+def make_env(request):
+    """A factory of one of the envs under test (the generic contract holds for each)."""
+    return ENVS[request.param]
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def action_sequence(env: gym.Env, n: int, seed: int = 123) -> np.ndarray:
+    """A fixed sequence of in-bound actions ``(n, nu)``."""
     rng = np.random.default_rng(seed)
-    return rng.uniform([-5.0, -0.4], [5.0, 0.4], size=(n, 2))
+    space = env.action_space
+    return rng.uniform(space.low, space.high, size=(n, space.shape[0]))
 
 
 def assert_infos_equal(a: dict, b: dict) -> None:
@@ -59,10 +153,53 @@ def assert_rollouts_equal(r1: list, r2: list) -> None:
         assert_infos_equal(s1[-1], s2[-1])
 
 
+# ----------------------------------------------------------------------------- the recording
+
+
+def load_recorder():
+    """The recording script ``tests/data/make_sine_track_episodes.py`` as a module."""
+    spec = importlib.util.spec_from_file_location(
+        "make_sine_track_episodes", DATA / "make_sine_track_episodes.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_episodes_match_the_recording():
+    """Same seed, same episode as the env before the generic refactor.
+
+    On one machine the two envs agree bit for bit (checked when the refactor landed, by
+    recording both); across machines the BLAS kernels of the latent GP's small matrix
+    products round differently in the last bits (seen: 1e-16 in the first latent state,
+    5e-12 in a reward after 60 steps), so floats are compared to 1e-9 relative, flags and
+    shapes exactly.
+    """
+    recorder = load_recorder()
+    data = np.load(DATA / "sine_track_episodes.npz")
+    np.testing.assert_array_equal(data["actions"], recorder.actions())
+    for name, config, seed in recorder.EPISODES:
+        episode = recorder.record(config, seed)
+        recorded = {k.split("/", 1)[1] for k in data.files if k.startswith(f"{name}/")}
+        assert recorded == set(episode), name
+        for key, value in episode.items():
+            expected = data[f"{name}/{key}"]
+            assert np.shape(value) == expected.shape, f"{name}/{key}"
+            if expected.dtype.kind == "f":
+                np.testing.assert_allclose(
+                    value, expected, rtol=1e-9, atol=1e-12, err_msg=f"{name}/{key}"
+                )
+            else:
+                assert np.array_equal(value, expected), f"{name}/{key} differs from the recording"
+    # The recording covers failures, full-length episodes and clipped actions.
+    assert data["paper_seed0/failure"][-1] and len(data["paper_seed1/reward"]) == 60
+    assert np.any(data["paper_seed1/applied_action"] != data["actions"][:60])
+
+
 # ----------------------------------------------------------------------------- Gymnasium contract
 
 
-def test_check_env_has_only_the_action_space_recommendation():
+def test_check_env_sine_track_has_only_the_action_space_recommendation():
     env = make()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -71,6 +208,17 @@ def test_check_env_has_only_the_action_space_recommendation():
     unexpected = [m for m in messages if ALLOWED_WARNING not in m]
     assert unexpected == []
     env.close()
+
+
+def test_check_env_point_mass_without_warnings():
+    if POINT_MASS_ID not in gym.registry:  # a spec lets check_env try the other render modes
+        gym.register(POINT_MASS_ID, entry_point=make_point_mass)
+    env = gym.make(POINT_MASS_ID)
+    assert isinstance(env.unwrapped, LatentForceEnv)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env.unwrapped)
+    assert [str(w.message) for w in caught] == []
 
 
 def test_spaces_are_in_physical_units():
@@ -82,51 +230,81 @@ def test_spaces_are_in_physical_units():
     assert env.observation_space.dtype == np.float64 and env.observation_space.shape == (4,)
 
 
+def test_spaces_follow_the_system():
+    env = make_point_mass()
+    np.testing.assert_array_equal(env.action_space.low, POINT_MASS.input_lower)
+    np.testing.assert_array_equal(env.action_space.high, POINT_MASS.input_upper)
+    assert env.observation_space.shape == (POINT_MASS.nx,)
+
+
 def test_gym_make_in_a_subprocess():
     code = "import gymnasium as gym, lfm_env; e = gym.make('lfm_env/SineTrack-v0'); e.reset(seed=0)"
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
 
 
-def test_observations_are_float64_and_in_the_space():
+def test_the_generic_module_does_not_import_the_sine_track():
+    code = (
+        "import sys, lfm_env.env; "
+        "assert 'lfm_env.envs.sine_track' not in sys.modules, 'sine track imported'; "
+        "assert 'lfm_env.systems.sine_track' not in sys.modules, 'sine track system imported'"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+
+
+def test_registered_entry_point_and_attributes():
     env = make()
+    assert isinstance(env.unwrapped, SineTrackEnv)
+    assert isinstance(env.unwrapped, LatentForceEnv)
+    assert env.spec.entry_point == "lfm_env.envs.sine_track:SineTrackEnv"
+    u = env.unwrapped
+    assert u.system is u.model.system and u.system.name == "sine_track"
+    assert u.config == EnvConfig()
+    np.testing.assert_array_equal(u.cost.x_goal, EnvConfig().goal_state_rad)
+
+
+def test_observations_are_float64_and_in_the_space(make_env):
+    env = make_env()
     obs, _ = env.reset(seed=5)
     observations = [obs]
-    for u in action_sequence(40, seed=5):
+    for u in action_sequence(env, 40, seed=5):
         obs, _, terminated, truncated, _ = env.step(u)
         observations.append(obs)
         if terminated or truncated:
             break
     for obs in observations:
-        assert obs.dtype == np.float64 and obs.shape == (4,)
+        assert obs.dtype == np.float64 and obs.shape == env.observation_space.shape
         assert env.observation_space.contains(obs)
 
 
-def test_step_before_reset_raises():
-    env = make().unwrapped
+def test_step_before_reset_raises(make_env):
+    env = make_env().unwrapped
     with pytest.raises(gym.error.ResetNeeded):
-        env.step(np.zeros(2))
+        env.step(np.zeros(env.action_space.shape))
+    with pytest.raises(gym.error.ResetNeeded):
+        env.preview_disturbance(3)
 
 
 # ----------------------------------------------------------------------------- determinism
 
 
-def test_two_envs_same_seed_same_episode_bit_for_bit():
-    actions = action_sequence(60)
-    r1 = rollout(make(), 7, actions)
-    r2 = rollout(make(), 7, actions)
+def test_two_envs_same_seed_same_episode_bit_for_bit(make_env):
+    actions = action_sequence(make_env(), 60)
+    r1 = rollout(make_env(), 7, actions)
+    r2 = rollout(make_env(), 7, actions)
     assert len(r1) > 10
     assert_rollouts_equal(r1, r2)
 
 
-def test_reset_with_the_same_seed_repeats_the_episode():
-    env = make()
-    actions = action_sequence(30)
+def test_reset_with_the_same_seed_repeats_the_episode(make_env):
+    env = make_env()
+    actions = action_sequence(env, 30)
     assert_rollouts_equal(rollout(env, 11, actions), rollout(env, 11, actions))
 
 
-def test_same_seed_same_disturbance_other_seed_other_disturbance():
-    env1, env2 = make(), make()
+def test_same_seed_same_disturbance_other_seed_other_disturbance(make_env):
+    env1, env2 = make_env(), make_env()
     env1.reset(seed=3)
     env2.reset(seed=3)
     w1 = env1.unwrapped.preview_disturbance(100)
@@ -139,16 +317,47 @@ def test_same_seed_same_disturbance_other_seed_other_disturbance():
     assert not np.any(env1.unwrapped.preview_disturbance(100) == w1)
 
 
-def test_pickle_round_trip_of_a_reset_env():
-    env = make()
+def test_pickle_round_trip_of_a_reset_env(make_env):
+    env = make_env()
     env.reset(seed=9)
-    env.step([1.0, 0.1])
+    env.step(action_sequence(env, 1, seed=1)[0])
     clone = pickle.loads(pickle.dumps(env))
-    for u in action_sequence(20, seed=9):
+    for u in action_sequence(env, 20, seed=9):
         s1, s2 = env.step(u), clone.step(u)
         np.testing.assert_array_equal(s1[0], s2[0])
         assert s1[1:4] == s2[1:4]
         assert_infos_equal(s1[4], s2[4])
+
+
+def test_preview_does_not_change_the_episode_and_foretells_the_disturbance(make_env):
+    # A 140-step episode crosses the latent path's 64-step chunks.
+    actions = np.zeros((140, make_env().action_space.shape[0]))
+    long_episode = {
+        make: {"config": {"env": {"safety_margin": 1.0e6}}},  # no failure
+        make_point_mass: {"max_steps": 200},
+    }
+    kwargs = long_episode[make_env]
+    plain = rollout(make_env(**kwargs), 21, actions)
+    previewed = rollout(make_env(**kwargs), 21, actions, preview=True)
+    assert len(plain) == 141
+    assert_rollouts_equal(plain, previewed)
+
+    env = make_env(**kwargs)
+    _, info = env.reset(seed=21)
+    nw = env.unwrapped.model.nw
+    preview = env.unwrapped.preview_disturbance(140)
+    assert preview.shape == (140, nw)
+    disturbance = lambda info: np.reshape(info["disturbance"], nw)  # noqa: E731
+    np.testing.assert_array_equal(preview[0], disturbance(info))
+    seen = [disturbance(env.step(u)[4]) for u in actions]
+    np.testing.assert_array_equal(preview, seen)
+    np.testing.assert_array_equal(preview, [disturbance(s[-1]) for s in plain[1:]])
+    assert env.unwrapped.preview_disturbance(0).shape == (0, nw)
+    with pytest.raises(ValueError, match="n_steps"):
+        env.unwrapped.preview_disturbance(-1)
+
+
+# ----------------------------------------------------------------------------- reset options
 
 
 def test_reset_options_take_effect():
@@ -160,6 +369,7 @@ def test_reset_options_take_effect():
     np.testing.assert_array_equal(info["latent_state"], z0)
     assert info["disturbance"] == 1.5  # w = H z, H = [1, 0, 0]
     np.testing.assert_array_equal(env.unwrapped.true_state, x0)
+    np.testing.assert_array_equal(env.unwrapped.true_latent_state, z0)
     _, _, _, _, info = env.step([0.0, 0.0])
     assert info["disturbance"] == 1.5  # the force that acted during the first step
     # The speed moves by (a + w) dt plus a small process noise (std 0.0045 m/s).
@@ -169,41 +379,106 @@ def test_reset_options_take_effect():
     np.testing.assert_allclose(info["true_state"], [0.0, 0.0, 1.0, math.pi / 4])
 
 
+def test_reset_options_of_a_two_component_force():
+    env = make_point_mass()
+    z0 = np.array([0.7, 0.1, -0.4])  # Matern 3/2 (2 states) then Matern 1/2 (1 state)
+    _, info = env.reset(seed=0, options={"latent_state": z0})
+    np.testing.assert_array_equal(info["disturbance"], [0.7, -0.4])  # H = blockdiag([1, 0], [1])
+    _, _, _, _, info = env.step([0.0, 0.0])
+    np.testing.assert_array_equal(info["disturbance"], [0.7, -0.4])
+    # v moves by (a + w) dt, with process noise of std 0.01 m/s.
+    assert info["true_state"][2:] == pytest.approx([0.5 + 0.07, -0.04], abs=0.06)
+
+
 @pytest.mark.parametrize(
     "options, match",
     [
         ({"initial_sate": [0.0, 0.0, 1.0, 0.0]}, "unknown reset option"),
         ({"initial_state": [0.0, 0.0, 1.0]}, "initial_state"),
+        ({"initial_state": "abcd"}, "initial_state"),
         ({"latent_state": [0.0, math.nan, 0.0]}, "latent_state"),
     ],
 )
-def test_bad_reset_options_raise(options, match):
-    env = make()
+def test_bad_reset_options_raise(make_env, options, match):
+    env = make_env()
     with pytest.raises(ValueError, match=match):
         env.reset(seed=0, options=options)
 
 
+# ----------------------------------------------------------------------------- the generic env
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"initial_state": [0.0, 0.0, 0.0]}, r"initial_state=.*\[p_x m, p_y m, v_x m/s, v_y m/s\]"),
+        ({"measurement_std": [0.1, 0.1, -0.1, 0.1]}, "measurement_std"),
+        ({"measurement_std": [0.1, 0.1, math.inf, 0.1]}, "measurement_std"),
+        ({"max_steps": 0}, "max_steps"),
+        ({"max_steps": 2.5}, "max_steps"),
+        ({"latent_start": "random"}, "latent_start"),
+        ({"render_mode": "rgb_array"}, "no scene"),
+        ({"render_mode": "ansi", "scene_factory": lambda env: DotScene()}, "render_mode"),
+    ],
+)
+def test_generic_env_arguments_are_checked(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        make_point_mass(**kwargs)
+
+
+def test_cost_of_other_dimensions_is_refused():
+    cost = QuadraticCost(Q=[1.0, 1.0], R=[1.0])
+    with pytest.raises(ValueError, match="nx=2, nu=1.*point_mass"):
+        LatentForceEnv(POINT_MASS_MODEL, cost, [0.0] * 4, [0.1] * 4)
+    with pytest.raises(ValueError, match="LatentForceModel"):
+        LatentForceEnv(POINT_MASS, POINT_MASS_COST, [0.0] * 4, [0.1] * 4)
+
+
+def test_zero_latent_start_and_no_failure_unless_not_finite():
+    env = make_point_mass(latent_start="zero", max_steps=3)
+    _, info = env.reset(seed=0)
+    np.testing.assert_array_equal(info["disturbance"], [0.0, 0.0])
+    np.testing.assert_array_equal(info["latent_state"], np.zeros(3))
+    # Far outside its constraints the point mass goes on: the generic env has no safety box.
+    env.reset(seed=0, options={"initial_state": [50.0, 0.0, 30.0, 0.0]})
+    flags = [env.step([1.0, 0.0])[2:4] for _ in range(3)]
+    assert flags == [(False, False), (False, False), (False, True)]
+
+
+def test_info_names_the_constraint_groups(make_env):
+    env = make_env()
+    system = env.unwrapped.system
+    _, info = env.reset(seed=0)
+    for _ in range(5):
+        _, _, _, _, info = env.step(action_sequence(env, 1, seed=2)[0])
+    excess = system.constraint_excess(info["true_state"])
+    assert info["constraint_excess"].shape == (system.ng,)
+    np.testing.assert_array_equal(info["constraint_excess"], excess)
+    for group, idx in system.constraint_groups.items():
+        assert info[f"{group}_excess"] == np.max(excess[list(idx)])
+        assert isinstance(info[f"{group}_excess"], float)
+
+
+def test_point_mass_excesses_are_recorded():
+    env = make_point_mass()
+    _, info = env.reset(seed=0, options={"initial_state": [6.5, 0.0, -2.25, 0.0]})
+    assert info["position_excess"] == pytest.approx(1.5)
+    assert info["velocity_excess"] == pytest.approx(0.25)
+    np.testing.assert_allclose(info["constraint_excess"], [1.5, 0.0, 0.0, 0.25])
+
+
+def test_scene_factory_draws_the_true_state():
+    env = make_point_mass(render_mode="rgb_array", scene_factory=lambda env: DotScene())
+    env.reset(seed=0, options={"initial_state": [3.0, -2.0, 0.0, 0.0]})
+    frame = env.render()
+    assert frame.shape == (20, 20, 3)
+    assert [tuple(p) for p in np.argwhere(frame[..., 0] == 255)] == [(8, 13)]
+    scene = env.unwrapped._scene
+    env.close()
+    assert scene.closed and env.unwrapped._scene is None
+
+
 # ----------------------------------------------------------------------------- disturbance
-
-
-def test_preview_does_not_change_the_episode_and_foretells_the_disturbance():
-    # A huge safety box so the episode lasts long enough to cross the 64-step chunks.
-    config = {"env": {"safety_margin": 1.0e6}}
-    actions = np.zeros((140, 2))
-    plain = rollout(make(config=config), 21, actions)
-    previewed = rollout(make(config=config), 21, actions, preview=True)
-    assert len(plain) == 141
-    assert_rollouts_equal(plain, previewed)
-
-    env = make(config=config)
-    _, info = env.reset(seed=21)
-    preview = env.unwrapped.preview_disturbance(140)
-    assert preview.shape == (140,)
-    assert preview[0] == info["disturbance"]
-    seen = [env.step(u)[4]["disturbance"] for u in actions]
-    np.testing.assert_array_equal(preview, seen)
-    np.testing.assert_array_equal(preview, [s[-1]["disturbance"] for s in plain[1:]])
-    assert env.unwrapped.preview_disturbance(0).shape == (0,)
 
 
 def test_disturbance_statistics_match_the_matern_kernel():
@@ -213,7 +488,7 @@ def test_disturbance_statistics_match_the_matern_kernel():
     w = np.empty((n, lag + 1))
     for seed in range(n):
         _, info = env.reset(seed=seed)
-        w[seed] = env.unwrapped.preview_disturbance(lag + 1)
+        w[seed] = env.unwrapped.preview_disturbance(lag + 1)[:, 0]
         assert w[seed, 0] == info["disturbance"]
     kernel = matern(2.5, 4.0, 4.0)
     k0, k1 = kernel.covariance([0.0, 1.0])
@@ -302,6 +577,7 @@ def test_constraint_excesses_are_recorded():
     assert info["track_excess"] == pytest.approx(0.4)
     assert info["speed_excess"] == pytest.approx(1.0)
     assert info["x_excess"] == 0.0
+    np.testing.assert_allclose(info["constraint_excess"], [0.4, 0.0, 0.0, 0.0, 0.0, 1.0])
 
 
 # ----------------------------------------------------------------------------- actions and reward
@@ -319,24 +595,32 @@ def test_constraint_excesses_are_recorded():
         (["a", "b"], "action"),
     ],
 )
-def test_invalid_actions_raise(action, match):
-    env = make()
+def test_invalid_actions_raise(make_env, action, match):
+    env = make_env()
     env.reset(seed=0)
     with pytest.raises(ValueError, match=match):
         env.step(action)
 
 
-def test_out_of_range_actions_are_clipped():
-    env, ref = make(), make()
+def test_invalid_action_message_names_the_inputs_and_units():
+    env = make()
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"\[a m/s\^2, delta rad\]"):
+        env.step([1.0])
+
+
+def test_out_of_range_actions_are_clipped(make_env):
+    env, ref = make_env(), make_env()
     env.reset(seed=2)
     ref.reset(seed=2)
-    clipped = np.array([5.0, -math.radians(25.0)])
+    low, high = env.action_space.low, env.action_space.high
+    clipped = np.array([high[0], low[1]])
     s1 = env.step([100.0, -2.0])
     s2 = ref.step(clipped)
     np.testing.assert_allclose(s1[4]["applied_action"], clipped, rtol=1e-15)
     np.testing.assert_array_equal(s1[0], s2[0])
     assert s1[1] == s2[1]
-    in_range = np.array([1.0, 0.1])
+    in_range = 0.5 * high
     np.testing.assert_array_equal(env.step(in_range)[4]["applied_action"], in_range)
 
 
@@ -346,7 +630,7 @@ def test_reward_is_minus_the_stage_cost():
     q = np.array([2.0, 2.0, 1.0, 0.0])
     r = np.array([0.5, 10.0])
     x_goal = np.array([62.83, 0.0, 4.0, 0.0])
-    actions = np.vstack([action_sequence(10, seed=4), [[9.0, 1.0]]])  # last one is clipped
+    actions = np.vstack([action_sequence(env, 10, seed=4), [[9.0, 1.0]]])  # last one clipped
     for u in actions:
         x = info["true_state"]
         _, reward, _, _, info = env.step(u)
@@ -354,6 +638,18 @@ def test_reward_is_minus_the_stage_cost():
         cost = sum(q[i] * (x[i] - x_goal[i]) ** 2 for i in range(4))
         cost += sum(r[j] * applied[j] ** 2 for j in range(2))
         assert reward == pytest.approx(-cost, rel=1e-12)
+
+
+def test_reward_is_the_cost_objects_stage_cost(make_env):
+    env = make_env()
+    _, info = env.reset(seed=6)
+    cost = env.unwrapped.cost
+    for u in action_sequence(env, 10, seed=6):
+        x = info["true_state"]
+        _, reward, terminated, truncated, info = env.step(u)
+        assert reward == -float(cost.stage_cost(x, info["applied_action"]))
+        if terminated or truncated:
+            break
 
 
 # ----------------------------------------------------------------------------- noise
@@ -425,8 +721,8 @@ def test_render_whole_track_when_not_following():
     env.close()
 
 
-def test_render_without_render_mode_warns_and_returns_none():
-    env = make().unwrapped
+def test_render_without_render_mode_warns_and_returns_none(make_env):
+    env = make_env().unwrapped
     env.reset(seed=0)
     with pytest.warns(UserWarning, match="render_mode"):
         assert env.render() is None

@@ -1,19 +1,36 @@
-"""Tests of the kinematic bicycle (``lfm_env.vehicle``) and the track (``lfm_env.track``)."""
+"""Tests of the paper's case study as a system (``lfm_env.systems.sine_track``): the
+kinematic bicycle, the sine track and their :class:`~lfm_env.system.ControlSystem`."""
 
 from __future__ import annotations
 
 import math
+import pickle
 
 import casadi as ca
 import numpy as np
 import pytest
 from highway_env.vehicle.kinematics import Vehicle
 
-from lfm_env.track import SineTrack
-from lfm_env.vehicle import bicycle_rhs, euler_step, slip_angle
+from lfm_env.system import ControlSystem
+from lfm_env.systems.sine_track import (
+    CONSTRAINT_NAMES,
+    SineTrack,
+    bicycle_rhs,
+    sine_track_system,
+    slip_angle,
+    track_constraints,
+    track_of,
+)
 
 DT = 0.2  # [s] the paper's sampling time
 LENGTH = 0.5  # [m] the paper's car length
+SYSTEM = sine_track_system()
+
+
+def euler_step(x, u, w: float = 0.0, length: float = LENGTH) -> np.ndarray:
+    """One Euler step of the bicycle of length ``length`` [m] under a scalar force ``w``."""
+    system = SYSTEM if length == LENGTH else sine_track_system(vehicle_length=length)
+    return system.euler_step(np.asarray(x, dtype=float), u, [w], DT)
 
 
 def random_states(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -35,7 +52,7 @@ def random_actions(rng: np.random.Generator, n: int) -> np.ndarray:
 def test_straight_line_at_constant_speed():
     state = np.array([1.0, 2.0, 3.0, 0.0])
     for k in range(1, 11):
-        state = euler_step(state, [0.0, 0.0], DT)
+        state = SYSTEM.euler_step(state, [0.0, 0.0], [0.0], DT)
         assert state == pytest.approx([1.0 + 3.0 * DT * k, 2.0, 3.0, 0.0], rel=1e-12, abs=1e-12)
 
 
@@ -43,7 +60,7 @@ def test_straight_line_at_constant_speed():
 def test_zero_steering_keeps_heading_and_moves_along_it(psi):
     v = 2.5
     state = np.array([4.0, -1.0, v, psi])
-    nxt = euler_step(state, [1.5, 0.0], DT)
+    nxt = SYSTEM.euler_step(state, [1.5, 0.0], [0.0], DT)
     assert nxt[3] == psi
     assert nxt[0] == pytest.approx(4.0 + v * DT * math.cos(psi), rel=1e-12, abs=1e-12)
     assert nxt[1] == pytest.approx(-1.0 + v * DT * math.sin(psi), rel=1e-12, abs=1e-12)
@@ -54,12 +71,12 @@ def test_zero_steering_keeps_heading_and_moves_along_it(psi):
 def test_disturbance_adds_to_acceleration(a, w):
     state = np.array([0.0, 0.0, 1.0, 0.4])
     action = np.array([a, 0.2])
-    with_w = bicycle_rhs(state, action, disturbance=w)
-    without = bicycle_rhs(state, action)
+    with_w = bicycle_rhs(state, action, [w])
+    without = bicycle_rhs(state, action, [0.0])
     assert with_w[2] == pytest.approx(a + w, rel=1e-14)
     # The force acts on the speed only.
     np.testing.assert_array_equal(with_w[[0, 1, 3]], without[[0, 1, 3]])
-    assert euler_step(state, action, DT, w)[2] == pytest.approx(1.0 + (a + w) * DT, rel=1e-14)
+    assert SYSTEM.euler_step(state, action, [w], DT)[2] == pytest.approx(1.0 + (a + w) * DT)
 
 
 def test_steering_turns_with_the_slip_angle_formula():
@@ -67,7 +84,7 @@ def test_steering_turns_with_the_slip_angle_formula():
     v, psi = 3.0, 0.25
     alpha = math.atan(0.5 * math.tan(delta))
     assert slip_angle(delta) == pytest.approx(alpha, rel=1e-14)
-    rhs = bicycle_rhs([0.0, 0.0, v, psi], [0.0, delta], length=LENGTH)
+    rhs = bicycle_rhs(np.array([0.0, 0.0, v, psi]), np.array([0.0, delta]), [0.0], LENGTH)
     expected = [
         v * math.cos(psi + alpha),
         v * math.sin(psi + alpha),
@@ -85,49 +102,45 @@ def test_batched_step_equals_row_by_row():
     rng = np.random.default_rng(0)
     n = 50
     states, actions = random_states(rng, n), random_actions(rng, n)
-    w = rng.normal(0.0, 2.0, size=n)
-    batch = euler_step(states, actions, DT, w, LENGTH)
+    w = rng.normal(0.0, 2.0, size=(n, 1))
+    batch = SYSTEM.euler_step(states, actions, w, DT)
     assert batch.shape == (n, 4)
     for i in range(n):
-        np.testing.assert_array_equal(batch[i], euler_step(states[i], actions[i], DT, w[i], LENGTH))
-    # One action broadcast over all particles.
-    shared = euler_step(states, actions[0], DT, 0.0, LENGTH)
+        np.testing.assert_array_equal(batch[i], SYSTEM.euler_step(states[i], actions[i], w[i], DT))
+    # One action and one force broadcast over all particles.
+    shared = SYSTEM.euler_step(states, actions[0], [0.0], DT)
     for i in range(n):
-        np.testing.assert_array_equal(shared[i], euler_step(states[i], actions[0], DT, 0.0, LENGTH))
+        row = SYSTEM.euler_step(states[i], actions[0], [0.0], DT)
+        np.testing.assert_array_equal(shared[i], row)
 
 
-def test_component_major_layout_equals_row_major_bit_for_bit():
+def test_transposed_component_major_data_equals_row_major_bit_for_bit():
+    # The particle transition keeps its particles component-major, (4, n), and hands the
+    # system transposed views; the result must not depend on the memory layout.
     rng = np.random.default_rng(1)
     n = 40
     states, actions = random_states(rng, n), random_actions(rng, n)
-    w = rng.normal(0.0, 2.0, size=n)
-    rows = euler_step(states, actions, DT, w, LENGTH)
-    cols = euler_step(states.T.copy(), actions.T.copy(), DT, w, LENGTH, axis=0)
-    assert cols.shape == (4, n)
-    np.testing.assert_array_equal(cols.T, rows)
-    # A single action (2,) is shared by every column, as in the particle filter.
-    shared = euler_step(states.T.copy(), actions[0], DT, w, LENGTH, axis=0)
-    np.testing.assert_array_equal(shared.T, euler_step(states, actions[0], DT, w, LENGTH))
+    w = rng.normal(0.0, 2.0, size=(n, 1))
+    rows = bicycle_rhs(states, actions, w, LENGTH)
+    cols = np.ascontiguousarray(states.T)
+    np.testing.assert_array_equal(bicycle_rhs(cols.T, actions, w, LENGTH), rows)
     np.testing.assert_array_equal(
-        bicycle_rhs(states.T.copy(), actions.T.copy(), w, LENGTH, axis=0).T,
-        bicycle_rhs(states, actions, w, LENGTH),
+        bicycle_rhs(cols.T, actions[0], w, LENGTH), bicycle_rhs(states, actions[0], w, LENGTH)
     )
 
 
 def test_casadi_equals_numpy():
-    x = ca.SX.sym("x", 4)
-    u = ca.SX.sym("u", 2)
-    w = ca.SX.sym("w")
-    step = ca.Function("step", [x, u, w], [euler_step(x, u, DT, w, LENGTH)])
+    x, u, w = ca.SX.sym("x", 4), ca.SX.sym("u", 2), ca.SX.sym("w", 1)
     rhs = ca.Function("rhs", [x, u, w], [bicycle_rhs(x, u, w, LENGTH)])
+    step = SYSTEM.casadi_step(DT)
     rng = np.random.default_rng(1)
     states, actions = random_states(rng, 40), random_actions(rng, 40)
-    ws = rng.normal(0.0, 2.0, size=40)
+    ws = rng.normal(0.0, 2.0, size=(40, 1))
     for s, a, wi in zip(states, actions, ws, strict=True):
         sym_step = np.asarray(step(s, a, wi)).ravel()
         sym_rhs = np.asarray(rhs(s, a, wi)).ravel()
         np.testing.assert_allclose(
-            sym_step, euler_step(s, a, DT, wi, LENGTH), rtol=1e-13, atol=1e-13
+            sym_step, SYSTEM.euler_step(s, a, wi, DT), rtol=1e-13, atol=1e-13
         )
         np.testing.assert_allclose(sym_rhs, bicycle_rhs(s, a, wi, LENGTH), rtol=1e-13, atol=1e-13)
 
@@ -156,7 +169,7 @@ def test_euler_step_equals_highway_env_vehicle_step():
     rng = np.random.default_rng(2)
     states, actions = random_states(rng, 100), random_actions(rng, 100)
     for s, a in zip(states, actions, strict=True):
-        ours = euler_step(s, a, DT, 0.0, LENGTH)
+        ours = euler_step(s, a)
         theirs = highway_env_step(s, a, DT)
         np.testing.assert_allclose(ours, theirs, rtol=1e-12, atol=1e-12)
 
@@ -165,7 +178,7 @@ def test_highway_env_cross_check_detects_a_wrong_length():
     # Guards the cross-check itself: with another length the headings must differ.
     s = np.array([0.0, 0.0, 4.0, 0.3])
     a = np.array([0.0, math.radians(20.0)])
-    assert euler_step(s, a, DT, 0.0, 2.0 * LENGTH)[3] != pytest.approx(
+    assert euler_step(s, a, 0.0, 2.0 * LENGTH)[3] != pytest.approx(
         highway_env_step(s, a, DT)[3], rel=1e-6
     )
 
@@ -175,21 +188,25 @@ def test_highway_env_cross_check_detects_a_wrong_length():
 
 def test_track_constraints_sign_convention():
     track = SineTrack()
+
+    def g(px, py, v=1.0):
+        return track_constraints(np.array([px, py, v, 0.0]), track, 0.0, 8.0)
+
     x = 10.0
     c = track.centre_y(x)
     assert c == pytest.approx(3.0 * math.sin(0.2 * x))
-    on_centre = track.constraints([x, c, 1.0, 0.0])
-    assert on_centre == pytest.approx([-1.0, -1.0, -11.0, -60.0])
-    assert np.all(track.constraints([x, c + 0.99, 1.0, 0.0]) <= 0.0)
-    assert np.all(track.constraints([x, c - 0.99, 1.0, 0.0]) <= 0.0)
-    above = track.constraints([x, c + 1.5, 1.0, 0.0])
+    assert g(x, c) == pytest.approx([-1.0, -1.0, -11.0, -60.0, -1.0, -7.0])
+    assert np.all(g(x, c + 0.99) <= 0.0) and np.all(g(x, c - 0.99) <= 0.0)
+    above = g(x, c + 1.5)
     assert above[0] == pytest.approx(0.5) and np.all(above[1:] <= 0.0)
-    below = track.constraints([x, c - 1.5, 1.0, 0.0])
+    below = g(x, c - 1.5)
     assert below[1] == pytest.approx(0.5) and below[0] < 0.0 and np.all(below[2:] <= 0.0)
-    behind = track.constraints([-2.0, track.centre_y(-2.0), 1.0, 0.0])
+    behind = g(-2.0, track.centre_y(-2.0))
     assert behind[2] == pytest.approx(1.0) and behind[3] < 0.0
-    beyond = track.constraints([71.5, track.centre_y(71.5), 1.0, 0.0])
+    beyond = g(71.5, track.centre_y(71.5))
     assert beyond[3] == pytest.approx(1.5) and beyond[2] < 0.0
+    assert g(x, c, v=-0.5)[4] == pytest.approx(0.5)
+    assert g(x, c, v=9.0)[5] == pytest.approx(1.0)
     # The excess helpers agree: zero inside, the distance outside.
     assert track.track_excess(x, c + 0.5) == 0.0
     assert track.track_excess(x, c - 1.5) == pytest.approx(0.5)
@@ -197,13 +214,24 @@ def test_track_constraints_sign_convention():
     assert track.x_excess(30.0) == 0.0
 
 
+def test_group_excess_equals_the_track_helpers_bit_for_bit():
+    # The env reports the groups' excesses; they must equal the track's own formulas.
+    rng = np.random.default_rng(5)
+    track = track_of(SYSTEM)
+    for s in random_states(rng, 200):
+        excess = SYSTEM.group_excess(s)
+        assert excess["track"] == track.track_excess(s[0], s[1])
+        assert excess["x"] == track.x_excess(s[0])
+        assert excess["speed"] == max(0.0 - s[2], s[2] - 8.0, 0.0)
+
+
 def test_track_constraints_batched_shape():
     rng = np.random.default_rng(3)
     states = random_states(rng, 7)
-    g = SineTrack().constraints(states)
-    assert g.shape == (7, 4)
+    g = SYSTEM.constraint_values(states)
+    assert g.shape == (7, 6)
     for i in range(7):
-        np.testing.assert_array_equal(g[i], SineTrack().constraints(states[i]))
+        np.testing.assert_array_equal(g[i], SYSTEM.constraint_values(states[i]))
 
 
 @pytest.mark.parametrize(
@@ -211,11 +239,11 @@ def test_track_constraints_batched_shape():
 )
 def test_track_constraints_casadi_equals_numpy(track):
     x = ca.SX.sym("x", 4)
-    g = ca.Function("g", [x], [track.constraints(x)])
+    g = ca.Function("g", [x], [track_constraints(x, track, -1.0, 6.0)])
     rng = np.random.default_rng(4)
     for s in random_states(rng, 30):
         np.testing.assert_allclose(
-            np.asarray(g(s)).ravel(), track.constraints(s), rtol=1e-13, atol=1e-13
+            np.asarray(g(s)).ravel(), track_constraints(s, track, -1.0, 6.0), rtol=1e-13, atol=1e-13
         )
 
 
@@ -229,3 +257,70 @@ def test_make_lane_centre_line_is_the_track_centre(track):
         assert px == pytest.approx(track.x_min + s, abs=1e-9)
         assert py == pytest.approx(track.centre_y(px), abs=1e-9)
     assert lane.width == pytest.approx(2.0 * track.half_width)
+
+
+# ----------------------------------------------------------------------------- the system
+
+
+def test_the_system_has_the_papers_names_bounds_and_groups():
+    assert isinstance(SYSTEM, ControlSystem)
+    assert (SYSTEM.nx, SYSTEM.nu, SYSTEM.nw, SYSTEM.ng) == (4, 2, 1, 6)
+    assert SYSTEM.state_labels == ("p_x", "p_y", "v", "psi")
+    assert SYSTEM.constraint_names == CONSTRAINT_NAMES
+    assert SYSTEM.constraint_groups == {"track": (0, 1), "x": (2, 3), "speed": (4, 5)}
+    np.testing.assert_allclose(SYSTEM.input_upper, [5.0, math.radians(25.0)])
+    np.testing.assert_allclose(SYSTEM.input_lower, [-5.0, -math.radians(25.0)])
+    np.testing.assert_array_equal(SYSTEM.fallback_input, [-5.0, 0.0])  # full braking
+    assert SYSTEM.mirror_inputs == (1,)
+    assert track_of(SYSTEM) == SineTrack()
+
+
+def test_the_config_builds_the_same_system(paper_config, sine_track_system):
+    assert track_of(sine_track_system) == paper_config.track
+    rng = np.random.default_rng(6)
+    x, u, w = random_states(rng, 20), random_actions(rng, 20), rng.normal(size=(20, 1))
+    np.testing.assert_array_equal(
+        sine_track_system.euler_step(x, u, w, DT), SYSTEM.euler_step(x, u, w, DT)
+    )
+    np.testing.assert_array_equal(
+        sine_track_system.constraint_values(x), SYSTEM.constraint_values(x)
+    )
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"steer_max": math.pi / 2}, "steer_max"),
+        ({"steer_max": 0.0}, "steer_max"),
+        ({"vehicle_length": 0.0}, "vehicle_length"),
+        ({"accel_max": -1.0}, "input_lower"),
+    ],
+)
+def test_bad_parameters_are_refused(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        sine_track_system(**kwargs)
+
+
+def test_track_of_another_system_raises():
+    other = ControlSystem(
+        name="other",
+        state_names=("p [m]",),
+        input_names=("v [m/s]",),
+        rhs=lambda x, u, w: u,
+        input_lower=(-1.0,),
+        input_upper=(1.0,),
+    )
+    with pytest.raises(ValueError, match="not a sine-track system"):
+        track_of(other)
+
+
+def test_the_system_pickles_and_rebuilds_its_casadi_functions():
+    SYSTEM.casadi_rhs()  # fill the cache; pickling must drop it
+    clone = pickle.loads(pickle.dumps(SYSTEM))
+    s, a = np.array([1.0, 0.5, 3.0, 0.2]), np.array([0.5, 0.1])
+    np.testing.assert_array_equal(
+        clone.euler_step(s, a, [0.3], DT), SYSTEM.euler_step(s, a, [0.3], DT)
+    )
+    np.testing.assert_allclose(
+        np.asarray(clone.casadi_step(DT)(s, a, 0.3)).ravel(), SYSTEM.euler_step(s, a, [0.3], DT)
+    )

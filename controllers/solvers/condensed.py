@@ -1,0 +1,297 @@
+"""The scenario problem condensed onto the shared inputs, with derivatives from the model.
+
+The latent forces ``W`` do not depend on the inputs, so every scenario's states are
+explicit functions of the ``N nu`` shared inputs. :class:`CondensedModel` evaluates, for
+all scenarios at once:
+
+* the rollout through the model's own NumPy step (:meth:`LatentForceModel.physical_step`),
+  the constraint values ``g(x_k)`` and the exact-penalty merit (equal to
+  :meth:`ScenarioProblem.objective` up to rounding);
+* forward sensitivities ``S_k = d x_k / d u`` from the step Jacobians ``A_k, B_k``;
+* the cost gradient and the exact Hessian of the Lagrangian with respect to ``u`` by one
+  second-order adjoint sweep (``H = 2 R + sum_k S~_k' M_k S~_k`` with ``M_k`` the Hessian of
+  ``lambda_{k+1}' F + l_k + mu_k' g`` in ``(x_k, u_k)``).
+
+Every derivative comes from the system's CasADi expressions (step Jacobian, Hessian of
+``lambda' F``, constraint Jacobian and Hessian), generated once and evaluated on all
+``Ns N`` points per call by :mod:`controllers.solvers.lanes`.
+
+It also finds structure the solver exploits: constraints whose condensed Jacobian
+``d g_j(x_k) / d u`` is the same constant for every scenario, step input and force (the
+bicycle's speed bounds: ``v_k = v_0 + dt sum (a_j + w_j)``). For those only the extreme
+scenario matters at every step, whatever ``u`` is: one exact linear row per step.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from controllers.problem import ScenarioProblem
+from controllers.solvers.lanes import LaneFunction
+
+
+@dataclass
+class Rollout:
+    """States, constraint values and merit of all scenarios under one input sequence."""
+
+    u: np.ndarray  # (N nu,) flattened inputs [u_0, u_1, ...]
+    X: np.ndarray  # (N+1, nx, Ns) states, component-major per step
+    G: np.ndarray  # (ng, N, Ns) constraint values of steps 1..N
+    slack: float  # sum of the minimal slacks
+    merit: float  # exact-penalty objective (inf if not finite)
+
+
+@dataclass
+class Linearisation:
+    """First-order information at a rollout, w.r.t. the flattened inputs ``u``."""
+
+    ro: Rollout
+    A: np.ndarray  # (N, Ns, nx, nx) step Jacobians d x_{k+1} / d x_k
+    S: np.ndarray  # (N, Ns, nx, N nu) sensitivities d x_k / d u of steps 1..N
+    Jg: np.ndarray  # (N, Ns, ng, nx) constraint Jacobians at steps 1..N
+    grad: np.ndarray  # (N nu,) gradient of the cost
+
+
+def _shared_linear(problem: ScenarioProblem) -> tuple[np.ndarray, np.ndarray]:
+    """Constraints whose condensed Jacobian is one constant row per step, and those rows.
+
+    Returns ``(indices (nL,), rows (nL, N, N nu))``: ``d g_j(x_k) / d u`` does not depend
+    on the initial state, the force or ``u`` for ``j`` in ``indices``.
+    """
+    system, n, dt = problem.system, problem.horizon, problem.dt
+    nx, nu, nw, ng = problem.nx, problem.nu, problem.nw, problem.ng
+    if ng == 0:
+        return np.zeros(0, dtype=int), np.zeros((0, n, n * nu))
+    x0, w, U = ca.SX.sym("x0", nx), ca.SX.sym("w", nw, n), ca.SX.sym("u", nu * n)
+    step, cons = system.casadi_step(dt), system.casadi_constraints()
+    x, G = x0, []
+    for k in range(n):
+        x = step(x, U[k * nu : (k + 1) * nu], w[:, k])
+        G.append(cons(x))
+    G = ca.horzcat(*G)  # (ng, N)
+    data = ca.vertcat(x0, ca.vec(w), U)
+    indices, rows = [], []
+    for j in range(ng):
+        J = ca.jacobian(ca.vec(G[j, :]), U)  # (N, N nu)
+        if not ca.depends_on(J, data):
+            indices.append(j)
+            zero = ca.Function("J", [data], [J])(np.zeros(data.shape[0]))
+            rows.append(np.asarray(ca.densify(zero), dtype=float))
+    if not indices:
+        return np.zeros(0, dtype=int), np.zeros((0, n, n * nu))
+    return np.array(indices), np.stack(rows)
+
+
+class CondensedModel:
+    """Merit, sensitivities, gradient and Lagrangian Hessian of a problem over its inputs.
+
+    Args:
+        problem: the scenario problem (its model's system gives every expression).
+    """
+
+    def __init__(self, problem: ScenarioProblem) -> None:
+        self.problem = problem
+        system, cost = problem.system, problem.cost
+        n, nx, nu, nw, ng = problem.horizon, problem.nx, problem.nu, problem.nw, problem.ng
+        self.n, self.nx, self.nu, self.nw, self.ng = n, nx, nu, nw, ng
+        self.n_u = n * nu
+        self.lower = np.tile(problem.input_lower, n)
+        self.upper = np.tile(problem.input_upper, n)
+
+        # --- the generated derivative functions, evaluated on all points at once ---
+        x, u, w = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("w", nw)
+        lam, mu = ca.SX.sym("lam", nx), ca.SX.sym("mu", max(ng, 1))
+        F = system.casadi_step(problem.dt)(x, u, w)
+        z = ca.vertcat(x, u)
+        self._step_jac = LaneFunction(ca.Function("step_jac", [x, u, w], [ca.jacobian(F, z)]))
+        hess_F = ca.hessian(ca.dot(lam, F), z)[0]
+        self._step_hess = LaneFunction(ca.Function("step_hess", [x, u, w, lam], [hess_F]))
+        g = system.casadi_constraints()(x)
+        if ng:
+            self._con_jac = LaneFunction(ca.Function("con_jac", [x], [ca.jacobian(g, x)]))
+            hess_g = ca.hessian(ca.dot(mu, g), x)[0]
+            self._con_hess = LaneFunction(ca.Function("con_hess", [x, mu], [hess_g]))
+            # The states each constraint depends on (for picking extreme scenarios).
+            pattern = ca.jacobian(g, x).sparsity()
+            self.depends = np.zeros((ng, nx), dtype=bool)  # constraint j depends on state m
+            rows, cols = pattern.get_triplet()
+            self.depends[rows, cols] = True
+        else:
+            self.depends = np.zeros((0, nx), dtype=bool)
+        self.backend = self._step_jac.backend
+
+        # --- structure: constraints that are one exact linear row per step ---
+        self.shared, self.shared_rows = _shared_linear(problem)
+        self.screened = np.array([j for j in range(ng) if j not in set(self.shared)], dtype=int)
+
+        # --- cost weights ---
+        self._goal = cost.x_goal
+        self._diagonal = cost.diagonal
+        weights = np.stack([cost.Q] * (n - 1) + [cost.Qf])  # (N, nx, nx) for steps 1..N
+        self._w_state = weights
+        self._w_diag = np.stack([np.diag(m) for m in weights])  # (N, nx)
+        self._R2 = 2.0 * cost.R
+        self._r_diag = np.tile(np.diag(cost.R), n)
+
+    # ------------------------------------------------------------------ evaluation
+
+    def state_cost0(self, x0: np.ndarray) -> float:
+        """The constant stage cost of the initial states ``x0`` ``(Ns, nx)``, averaged."""
+        return float(np.mean(self.problem.cost.state_cost(x0)))
+
+    def input_cost(self, u: np.ndarray) -> float:
+        if self._diagonal:
+            return float(self._r_diag @ (u * u))
+        uk = u.reshape(self.n, self.nu)
+        return float(np.einsum("ka,ab,kb->", uk, self.problem.cost.R, uk))
+
+    def evaluate(self, x0T: np.ndarray, W: np.ndarray, u: np.ndarray, cost0: float) -> Rollout:
+        """Rollout of all scenarios and the exact-penalty merit.
+
+        Args:
+            x0T: initial states ``(nx, Ns)`` (component-major).
+            W: forces ``(N, Ns, nw)``.
+            u: flattened inputs ``(N nu,)``.
+            cost0: :meth:`state_cost0` of the initial states.
+        """
+        p, model = self.problem, self.problem.model
+        n, nu, ns = self.n, self.nu, x0T.shape[1]
+        X = np.empty((n + 1, self.nx, ns))
+        X[0] = x0T
+        uk = u.reshape(n, nu)
+        for k in range(n):
+            X[k + 1] = model.physical_step(X[k].T, uk[k], W[k]).T
+        if self.ng:
+            G = np.ascontiguousarray(
+                np.moveaxis(p.system.constraint_values(X[1:].transpose(0, 2, 1)), -1, 0)
+            )
+            slack = float(np.maximum(G.max(axis=2), 0.0).sum())
+        else:
+            G = np.zeros((0, n, ns))
+            slack = 0.0
+        e = X[1:] - self._goal[None, :, None]
+        if self._diagonal:
+            cost = float(np.einsum("km,kmi,kmi->", self._w_diag, e, e))
+        else:
+            cost = float(np.einsum("kmi,kmn,kni->", e, self._w_state, e))
+        merit = cost0 + cost / ns + self.input_cost(u) + p.slack_penalty * slack
+        merit = merit if math.isfinite(merit) else math.inf
+        return Rollout(u=u, X=X, G=G, slack=slack, merit=merit)
+
+    @staticmethod
+    def _lanes(a: np.ndarray) -> np.ndarray:
+        """``(K, m, Ns)`` per-step data as ``(m, K, Ns)`` evaluation points."""
+        return a.transpose(1, 0, 2)
+
+    def _input_lanes(self, u: np.ndarray) -> np.ndarray:
+        """The inputs ``(N nu,)`` as points ``(nu, N, 1)``: the same for every scenario."""
+        return u.reshape(self.n, self.nu).T[:, :, None]
+
+    def linearise(self, ro: Rollout, W_lanes: np.ndarray) -> Linearisation:
+        """Step Jacobians, sensitivities, constraint Jacobians and the cost gradient."""
+        n, nx, nu, n_u = self.n, self.nx, self.nu, self.n_u
+        X = ro.X
+        ns = X.shape[2]
+        (J,) = self._step_jac(self._lanes(X[:n]), self._input_lanes(ro.u), W_lanes)
+        # Dense column-major (nx, nx + nu) per point -> (N, Ns, nx, nx + nu).
+        J = J.reshape(nx + nu, nx, n, ns).transpose(2, 3, 1, 0)
+        A = np.ascontiguousarray(J[..., :nx])
+        S = np.zeros((n, ns, nx, n_u))
+        # --- forward sensitivities: S_{k+1} = A_k S_k + B_k E_k (S_0 = 0; causal columns) ---
+        S[0, :, :, :nu] = J[0, :, :, nx:]
+        for k in range(1, n):
+            cols = k * nu
+            np.matmul(A[k], S[k - 1, :, :, :cols], out=S[k, :, :, :cols])
+            S[k, :, :, cols : cols + nu] = J[k, :, :, nx:]
+        if self.ng:
+            (Jg,) = self._con_jac(self._lanes(X[1:]))
+            Jg = Jg.reshape(nx, self.ng, n, ns).transpose(2, 3, 1, 0)  # (N, Ns, ng, nx)
+        else:
+            Jg = np.zeros((n, ns, 0, nx))
+        grad = (ro.u.reshape(n, nu) @ self._R2).ravel()  # d(u' R u)/du, R symmetric
+        grad += S.reshape(-1, n_u).T @ self.state_gradient(X).ravel()
+        return Linearisation(ro=ro, A=A, S=S, Jg=Jg, grad=grad)
+
+    def state_gradient(self, X: np.ndarray) -> np.ndarray:
+        """``d cost / d x_k`` of steps 1..N, ``(N, Ns, nx)``."""
+        ns = X.shape[2]
+        e = X[1:] - self._goal[None, :, None]  # (N, nx, Ns)
+        if self._diagonal:
+            g = self._w_diag[:, :, None] * e
+        else:
+            g = np.einsum("kmn,kni->kmi", self._w_state, e)
+        return (2.0 / ns) * g.transpose(0, 2, 1)
+
+    def hessian(self, lin: Linearisation, mu: np.ndarray, W_lanes: np.ndarray) -> np.ndarray:
+        """Exact Hessian of the Lagrangian w.r.t. ``u`` ``(N nu, N nu)``.
+
+        ``mu`` ``(ng, N, Ns)`` are the multipliers of the scenario rows (zero for rows that
+        are not in the QP and for the shared linear rows, whose condensed curvature is zero).
+        """
+        n, nx, nu, n_u = self.n, self.nx, self.nu, self.n_u
+        X, S, A, Jg = lin.ro.X, lin.S, lin.A, lin.Jg
+        ns = X.shape[2]
+        # --- adjoint sweep: lambda_k = dl_k/dx_k + Jg_k' mu_k + A_k' lambda_{k+1} ---
+        lam = self.state_gradient(X)  # (N, Ns, nx): dl/dx of steps 1..N
+        has_mu = self.ng > 0 and bool(mu.any())
+        if has_mu:
+            mu_k = np.ascontiguousarray(mu.transpose(1, 2, 0))  # (N, Ns, ng)
+            lam += np.matmul(mu_k[:, :, None, :], Jg)[:, :, 0, :]
+        for k in range(n - 2, -1, -1):  # lam[k] = lambda at step k + 1
+            lam[k] += np.matmul(lam[k + 1][:, None, :], A[k + 1])[:, 0, :]
+        lam_lanes = lam.transpose(2, 0, 1)  # lambda_{k+1} for step k, (nx, N, Ns)
+        u_lanes = self._input_lanes(lin.ro.u)
+        (M,) = self._step_hess(self._lanes(X[:n]), u_lanes, W_lanes, lam_lanes)
+        nz = nx + nu
+        M = M.reshape(nz, nz, n, ns).transpose(2, 3, 1, 0)  # (N, Ns, nz, nz), step k
+        # --- state curvature at steps 1..N: cost, dynamics (steps 1..N-1), constraints ---
+        Mxx = np.empty((n, ns, nx, nx))
+        Mxx[:] = (2.0 / ns) * self._w_state[:, None]
+        Mxx[: n - 1] += M[1:, :, :nx, :nx]
+        if has_mu:
+            (Hg,) = self._con_hess(self._lanes(X[1:]), mu)
+            Mxx += Hg.reshape(nx, nx, n, ns).transpose(2, 3, 1, 0)
+        # S_k has nonzero columns for the inputs of the steps before k only (causality):
+        # each step adds to the leading block of H alone.
+        H = np.zeros((n_u, n_u))
+        for k in range(n):
+            cols = (k + 1) * nu
+            Sk = np.ascontiguousarray(S[k, :, :, :cols])
+            T = np.matmul(Mxx[k], Sk)
+            H[:cols, :cols] += Sk.reshape(-1, cols).T @ T.reshape(-1, cols)
+        # --- cross terms of the dynamics (S_0 = 0: step 0 has none) and input curvature ---
+        if n > 1:
+            Mxu = np.ascontiguousarray(M[1:, :, :nx, nx:]).reshape(n - 1, ns * nx, nu)
+            Sk = S[: n - 1].reshape(n - 1, ns * nx, n_u)
+            cross = np.matmul(Sk.transpose(0, 2, 1), Mxu)  # (N-1, N nu, nu)
+            for k in range(1, n):
+                blk = slice(k * nu, (k + 1) * nu)
+                H[:, blk] += cross[k - 1]
+                H[blk, :] += cross[k - 1].T
+        uu = M[:, :, nx:, nx:].sum(axis=1)  # (N, nu, nu)
+        for k in range(n):
+            blk = slice(k * nu, (k + 1) * nu)
+            H[blk, blk] += uu[k] + self._R2
+        return 0.5 * (H + H.T)
+
+    def rows(self, lin: Linearisation, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Jacobian rows ``(r, N nu)`` and values ``(r,)`` of scenario rows ``(j, k, i)``.
+
+        ``k`` indexes steps ``1..N`` from 0.
+        """
+        j, k, i = pos[:, 0], pos[:, 1], pos[:, 2]
+        jac = np.einsum("rm,rmn->rn", lin.Jg[k, i, j], lin.S[k, i])
+        return jac, lin.ro.G[j, k, i]
+
+    def linearised_values(self, lin: Linearisation, d: np.ndarray) -> np.ndarray:
+        """``g + (dg/du) d`` of every screened scenario row, ``(n_screened, N, Ns)``."""
+        Sd = (lin.S.reshape(-1, self.n_u) @ d).reshape(lin.S.shape[:3] + (1,))  # (N, Ns, nx, 1)
+        change = np.matmul(lin.Jg, Sd)[..., 0]  # (N, Ns, ng)
+        return lin.ro.G[self.screened] + change[:, :, self.screened].transpose(2, 0, 1)
+
+
+__all__ = ["CondensedModel", "Linearisation", "Rollout"]

@@ -1,0 +1,171 @@
+"""The dense QP of the fast SQP solvers, in fixed row slots so that hot starts mean something.
+
+Used by :mod:`controllers.solvers.fast` and :mod:`controllers.solvers.fast_bicycle`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+from collections.abc import Iterator
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+QP_SOLVERS = ("qpoases",)
+
+
+@contextlib.contextmanager
+def silenced_stdout() -> Iterator[None]:
+    """Send the process' C-level stdout to /dev/null (for chatty native libraries)."""
+    sys.stdout.flush()
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # no real stdout (e.g. some notebooks)
+        yield
+        return
+    saved = os.dup(fd)
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), fd)
+            yield
+    finally:
+        os.dup2(saved, fd)
+        os.close(saved)
+
+
+class SlotQP:
+    """The SQP's QP ``min 1/2 z'Hz + g'z  s.t.  A z <= uba, lbx <= z <= ubx`` in fixed slots.
+
+    ``z = [d (n_u), s_shared (n_shared), s_pos (P)]``: the input step, one slack per
+    shared row (a constraint whose row is the same for every scenario, one per step, e.g.
+    the bicycle's speed bounds), and ``P`` slack slots for the scenario-row groups (one
+    group per constraint and step) that have rows. Rows ``[J_r, -e_slack] z <= -g_r``:
+    first the shared rows, then ``K`` row slots per group slack slot, filled by
+    decreasing value. Unused slots are zero rows with ``uba = +inf`` (their slack stays
+    at zero). Only the Jacobian part of ``A``
+    changes between calls, so qpOASES can hot-start from the previous active set. The
+    CasADi conic is evaluated through a ``FunctionBuffer`` on persistent NumPy arrays.
+    """
+
+    def __init__(
+        self,
+        n_u: int,
+        n_shared: int,
+        groups: int,
+        slots: int,
+        solver: str,
+        slack_penalty: float,
+        slack_reg: float,
+    ) -> None:
+        self.groups, self.slots = groups, slots
+        self.n_u, self.n_speed = n_u, n_shared
+        self.n_var = n_u + n_shared + groups
+        self.capacity = self.n_speed + groups * slots
+        nv, cap, nu = self.n_var, self.capacity, self.n_u
+        opts: dict[str, Any] = {"error_on_fail": False}
+        if solver == "qpoases":
+            opts["printLevel"] = "none"
+        with silenced_stdout():  # qpOASES prints a banner whenever a memory is created
+            self._conic = ca.conic(
+                "fast_sqp_qp",
+                solver,
+                {"h": ca.Sparsity.dense(nv, nv), "a": ca.Sparsity.dense(cap, nv)},
+                opts,
+            )
+            self._buffer, self._evaluate = self._conic.buffer()
+        # Dense inputs are column-major nonzeros; H is symmetric, A is viewed transposed.
+        self._h = np.zeros(nv * nv)
+        self.H = self._h.reshape(nv, nv)
+        self.H[np.arange(nu, nv), np.arange(nu, nv)] = slack_reg
+        self._a = np.zeros(cap * nv)
+        self.A = self._a.reshape(nv, cap).T
+        self.A[np.arange(self.n_speed), nu + np.arange(self.n_speed)] = -1.0
+        for q in range(groups):
+            first = self.n_speed + q * slots
+            self.A[first : first + slots, nu + self.n_speed + q] = -1.0
+        self.g = np.zeros(nv)
+        self.g[nu:] = slack_penalty
+        self.lba = np.full(cap, -np.inf)
+        self.uba = np.full(cap, np.inf)
+        self.lbx = np.zeros(nv)
+        self.ubx = np.full(nv, np.inf)
+        self.x = np.zeros(nv)
+        self.lam_a = np.zeros(cap)
+        outputs = {"x": self.x, "cost": np.zeros(1), "lam_a": self.lam_a, "lam_x": np.zeros(nv)}
+        inputs = {
+            "h": self._h,
+            "g": self.g,
+            "a": self._a,
+            "lba": self.lba,
+            "uba": self.uba,
+            "lbx": self.lbx,
+            "ubx": self.ubx,
+        }
+        self._keep = []  # the buffer holds raw pointers: keep every array alive
+        for i, name in enumerate(self._conic.name_in()):
+            arr = inputs.get(name)
+            if arr is None:
+                arr = np.zeros(self._conic.nnz_in(i))
+            self._keep.append(arr)
+            self._buffer.set_arg(i, memoryview(arr))
+        for i, name in enumerate(self._conic.name_out()):
+            arr = outputs.get(name, np.zeros(self._conic.nnz_out(i)))
+            self._keep.append(arr)
+            self._buffer.set_res(i, memoryview(arr))
+
+    @staticmethod
+    def layout(pos: np.ndarray, values: np.ndarray, horizon: int) -> tuple[np.ndarray, ...]:
+        """Group slot and rank of each scenario row ``(kind, step, scenario)``.
+
+        Returns ``(groups, slot_group, rank)``: the sorted group ids ``kind * N + step`` in
+        use, the slack slot of each row and its rank by decreasing value in its group.
+        """
+        group = pos[:, 0] * horizon + pos[:, 1]
+        groups, slot_group = np.unique(group, return_inverse=True)
+        order = np.lexsort((-values, group))
+        g_sorted = group[order]
+        rank = np.empty(group.size, dtype=int)
+        rank[order] = np.arange(g_sorted.size) - np.searchsorted(g_sorted, g_sorted, side="left")
+        return groups, slot_group, rank
+
+    def set_problem(
+        self,
+        H: np.ndarray,
+        grad: np.ndarray,
+        lower: np.ndarray,
+        upper: np.ndarray,
+        a_speed: np.ndarray,
+        g_speed: np.ndarray,
+    ) -> None:
+        """Hessian, gradient, step bounds and the shared rows (all of them)."""
+        nu, ns = self.n_u, self.n_speed
+        self.H[:nu, :nu] = H
+        self.g[:nu] = grad
+        self.lbx[:nu] = lower
+        self.ubx[:nu] = upper
+        self.A[:ns, :nu] = a_speed
+        self.uba[:ns] = -g_speed
+
+    def set_position_rows(self, row: np.ndarray, a_pos: np.ndarray, g_pos: np.ndarray) -> None:
+        """Fill the given row slots; every other position slot becomes an inactive zero row."""
+        nu, ns = self.n_u, self.n_speed
+        self.A[ns:, :nu] = 0.0
+        self.uba[ns:] = np.inf
+        self.A[row, :nu] = a_pos
+        self.uba[row] = -g_pos
+
+    def set_position_bounds(self, row: np.ndarray, g_pos: np.ndarray) -> None:
+        """Change only the constant terms of the given rows (second-order correction)."""
+        self.uba[row] = -g_pos
+
+    def solve(self) -> tuple[np.ndarray, np.ndarray, bool]:
+        """Solve from the previous active set: ``(z, row multipliers >= 0, success)``."""
+        self._evaluate()
+        ok = self._buffer.ret() == 0 and bool(np.all(np.isfinite(self.x)))
+        return self.x.copy(), np.maximum(self.lam_a, 0.0), ok
+
+
+__all__ = ["QP_SOLVERS", "SlotQP", "silenced_stdout"]

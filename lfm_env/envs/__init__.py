@@ -1,0 +1,5 @@
+"""The case studies' Gymnasium environments, each a :class:`lfm_env.env.LatentForceEnv`."""
+
+from lfm_env.envs.sine_track import SineTrackEnv
+
+__all__ = ["SineTrackEnv"]

@@ -1,0 +1,148 @@
+"""The paper's case study as a Gymnasium env: a bicycle on a sine track under a hidden force."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from lfm_env.config import EnvConfig, check_latent_step, load_env_config
+from lfm_env.env import LatentForceEnv
+
+
+def segment_point_distance(p0: np.ndarray, p1: np.ndarray, q: np.ndarray) -> float:
+    """Distance [m] from point ``q`` to the segment ``p0 -> p1`` (all shape ``(2,)``)."""
+    d = p1 - p0
+    dd = float(d @ d)
+    t = 0.0 if dd == 0.0 else float(np.clip((q - p0) @ d / dd, 0.0, 1.0))
+    return float(np.linalg.norm(p0 + t * d - q))
+
+
+class SineTrackEnv(LatentForceEnv):
+    """A kinematic-bicycle car on a sinusoidal track, pushed by a hidden Matern latent force.
+
+    ## Description
+    The case study of "Model Predictive Control of Nonlinear Latent Force Models: A
+    Scenario-Based Approach" (ICRA 2021), the first instance of
+    :class:`~lfm_env.env.LatentForceEnv`. A car with kinematic-bicycle dynamics
+    (:func:`lfm_env.systems.sine_track.sine_track_system`) must drive along the track
+    ``|p_y - 3 sin(0.2 p_x)| <= 1 m`` from ``[0, 0]`` to the goal ``[62.83, 0]``. An
+    unmeasured disturbance ``w(t)``, a Gaussian process with a Matern 5/2 covariance
+    (``sigma^2 = 4``, lengthscale 4 s), acts on the acceleration: ``dv/dt = a + w``. The GP
+    is simulated exactly through its state-space form.
+
+    ## Action Space
+    ``Box([-a_max, -delta_max], [a_max, delta_max], (2,), float64)``: acceleration
+    ``a`` [m/s^2] and steering angle ``delta`` [rad]; by default ``|a| <= 5``,
+    ``|delta| <= 25 deg``. Out-of-range actions are clipped to the box (the applied
+    action is in ``info["applied_action"]``); non-finite actions, a wrong shape or a
+    dtype that is not real numbers (text, objects, complex) raise ``ValueError``.
+
+    ## Observation Space
+    The physical state plus Gaussian measurement noise; the latent force is hidden.
+
+    | Num | Observation | Unit | Noise std (default) |
+    |-----|-------------|------|---------------------|
+    | 0   | ``p_x`` position | m | 0.15 |
+    | 1   | ``p_y`` position | m | 0.15 |
+    | 2   | ``v`` speed | m/s | 0.15 |
+    | 3   | ``psi`` heading | rad | 0.5 deg |
+
+    ``Box(-max_float, max_float, (4,), float64)``.
+
+    ## Rewards
+    Minus the paper's stage cost on the true state before the step and the applied
+    action: ``-[(x - x_g)^T Q (x - x_g) + u^T R u]`` with ``Q = diag(2, 2, 1, 0)``,
+    ``R = diag(0.5, 10)``, ``x_g = [62.83, 0, 4 m/s, 0]`` (``EnvConfig.make_cost``).
+
+    ## Starting State
+    True state ``[0, 0, 1 m/s, 45 deg]``; the latent state is drawn from the GP's
+    stationary distribution (or zero, ``disturbance.start: zero``). The first
+    observation is the noisy start state.
+
+    ## Episode End
+    * ``terminated`` with ``info["is_success"] = True`` when the segment travelled in
+      the step passes within ``goal_radius`` (1 m) of the goal, so a fast car cannot
+      jump over the goal disc.
+    * ``terminated`` with failure when the car leaves the safety box: farther than
+      ``safety_margin`` (10 m) outside the track band or the x bounds, or a state that
+      is not finite.
+    * ``truncated`` after ``max_steps`` (150 steps, 30 s).
+    Constraint violations (track, speed, x bounds) are recorded in ``info``, not enforced.
+
+    ## Info
+    ``true_state`` (4,), ``disturbance`` (``w`` [m/s^2] acting during the step just
+    taken; at reset, the one that will act next), ``latent_state`` (z), ``track_excess``
+    [m], ``x_excess`` [m], ``speed_excess`` [m/s] (each 0 inside the bounds; the system's
+    constraint groups), ``constraint_excess`` (6,) in the order track_left, track_right,
+    x_min, x_max [m], speed_min, speed_max [m/s], ``is_success``, ``failure``,
+    ``applied_action``, ``time`` [s].
+
+    ## Arguments
+    ``gym.make("lfm_env/SineTrack-v0", config=None, render_mode=None,
+    screen_size=(600, 300), scaling=25.0, follow=True)``: ``config`` is a YAML path, a
+    dict (whole file or its ``env`` section) or an :class:`~lfm_env.config.EnvConfig`;
+    ``scaling`` is pixels per metre; ``follow`` centres the view on the car (else the
+    whole track is shown). ``reset(options=...)`` accepts ``initial_state``
+    (``[m, m, m/s, rad]``) and ``latent_state`` overrides. The env exposes ``config``,
+    ``system``, ``model`` (the truth), ``cost`` and ``track``.
+
+    ## Version History
+    * v0: initial version (rebuilt on ``LatentForceEnv`` with the same episodes, bit for
+      bit, and the added ``info["constraint_excess"]``).
+    """
+
+    def __init__(
+        self,
+        config: Any = None,
+        render_mode: str | None = None,
+        screen_size: tuple[int, int] = (600, 300),
+        scaling: float = 25.0,
+        follow: bool = True,
+    ) -> None:
+        self.config: EnvConfig = check_latent_step(load_env_config(config))
+        self.screen_size = (int(screen_size[0]), int(screen_size[1]))
+        self.scaling = float(scaling)
+        self.follow = bool(follow)
+        self.track = self.config.track
+        self._goal = np.asarray(self.config.goal, dtype=float)
+        super().__init__(
+            self.config.make_model(),
+            self.config.make_cost(),
+            initial_state=self.config.initial_state_rad,
+            measurement_std=self.config.measurement_std_rad,
+            max_steps=self.config.max_steps,
+            latent_start=self.config.disturbance.start,
+            render_mode=render_mode,
+        )
+
+    def _is_success(self, state: np.ndarray, next_state: np.ndarray) -> bool:
+        """The segment travelled in the step passes within ``goal_radius`` of the goal."""
+        distance = segment_point_distance(state[:2], next_state[:2], self._goal)
+        return distance <= self.config.goal_radius
+
+    def _is_failure(self, state: np.ndarray) -> bool:
+        """Outside the safety box: ``safety_margin`` beyond the track band or the x bounds."""
+        if not np.all(np.isfinite(state)):
+            return True
+        excess = self.system.group_excess(state)
+        margin = self.config.safety_margin
+        return bool(float(excess["track"]) > margin or float(excess["x"]) > margin)
+
+    def _make_scene(self):
+        """highway-env's road with the sine lane and the car (:class:`TrackScene`)."""
+        from lfm_env.rendering import TrackScene
+
+        return TrackScene(
+            self.track,
+            self.config,
+            screen_size=self.screen_size,
+            scaling=self.scaling,
+            follow=self.follow,
+            offscreen=self.render_mode == "rgb_array",
+            goal=self._goal,
+            goal_radius=self.config.goal_radius,
+        )
+
+
+__all__ = ["SineTrackEnv", "segment_point_distance"]

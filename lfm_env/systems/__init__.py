@@ -1,0 +1,5 @@
+"""The systems of the case studies, one module each, written with :mod:`lfm_env.system`."""
+
+from lfm_env.systems.sine_track import SineTrack, sine_track_system
+
+__all__ = ["SineTrack", "sine_track_system"]
