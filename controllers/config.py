@@ -19,12 +19,14 @@ from lfm_env.config import (
     ConfigError,
     DisturbanceConfig,
     EnvConfig,
+    WorldConfig,
     _Checker,
     check_latent_step,
     from_dict,
     load_env_config,
     load_yaml,
     read_section,
+    to_dict,
 )
 
 RESAMPLING = ("systematic", "stratified", "residual", "multinomial")
@@ -132,15 +134,26 @@ class AgentConfig:
 
 @dataclass(frozen=True)
 class ExperimentConfig:
-    """A whole config (``env`` and ``agents`` sections), resolved and validated once.
+    """A whole config (``env_id``, ``env`` and ``agents``), resolved and validated once.
 
-    The builders below are what every agent, solver benchmark and worker process uses, so
-    a config file is read and checked in one place; the object pickles, so workers get it
-    instead of a path or a dict to parse again.
+    ``env`` is the world's config (:class:`~lfm_env.config.EnvConfig` for the sine track,
+    or another world's, chosen by the file's top-level ``env_id``). The builders below are
+    what every agent, solver benchmark and worker process uses, so a config file is read
+    and checked in one place; the object pickles, so workers get it instead of a path or a
+    dict to parse again.
     """
 
-    env: EnvConfig = field(default_factory=EnvConfig)
+    env: WorldConfig = field(default_factory=EnvConfig)
     agents: AgentConfig = field(default_factory=AgentConfig)
+
+    @property
+    def env_id(self) -> str:
+        """The Gymnasium id of the world's env (``gym.make(cfg.env_id, config=cfg.env)``)."""
+        return self.env.ENV_ID
+
+    def to_dict(self) -> dict:
+        """Plain, YAML-ready data that :func:`load_config` reads back to an equal config."""
+        return {"env_id": self.env_id, **to_dict(self)}
 
     def __post_init__(self) -> None:
         check_latent_step(self.env)

@@ -355,11 +355,13 @@ def _render_episode(
 
     import lfm_env  # noqa: F401  (registers the env id)
     from controllers.agents import make_agent
-    from experiments.evaluation import ENV_ID, agent_seed, resolve_config
+    from experiments.evaluation import agent_seed, resolve_config
     from experiments.plots import annotate_frame
 
     cfg = resolve_config(config, [agent_name])
-    env = gym.make(ENV_ID, config=cfg.env, render_mode="rgb_array", screen_size=size, scaling=20.0)
+    env = gym.make(
+        cfg.env_id, config=cfg.env, render_mode="rgb_array", screen_size=size, scaling=20.0
+    )
     try:
         agent = make_agent(agent_name, cfg, env=env if agent_name == "oracle" else None)
         dt = env.unwrapped.config.dt

@@ -54,12 +54,10 @@ import gymnasium as gym
 import numpy as np
 import yaml
 
-import lfm_env  # noqa: F401  (registers lfm_env/SineTrack-v0, also in spawned workers)
+import lfm_env  # noqa: F401  (registers the envs, also in spawned workers)
 from controllers.agents import AGENTS, check_agent_config, make_agent
 from controllers.config import ExperimentConfig, load_config
-from lfm_env.config import load_yaml, to_dict
-
-ENV_ID = "lfm_env/SineTrack-v0"
+from lfm_env.config import load_yaml
 
 #: Columns of a row, in table order (names fixed by the evaluation issue).
 ROW_COLUMNS: tuple[str, ...] = (
@@ -347,7 +345,7 @@ class _EpisodeRecorder:
 
 def _simulate(agent_name: str, config: ExperimentConfig, seed: int, rec: _EpisodeRecorder) -> None:
     """Run one episode into ``rec``; exceptions propagate with ``rec`` holding the steps done."""
-    env = gym.make(ENV_ID, config=config.env)
+    env = gym.make(config.env_id, config=config.env)
     try:
         obs, info = env.reset(seed=seed)
         agent = make_agent(agent_name, config, env=env if agent_name == "oracle" else None)
@@ -617,7 +615,7 @@ def _check_folder(out: Path, config: ExperimentConfig) -> None:
             saved = resolve_config(load_yaml(path))
         except ValueError as exc:
             raise ResultsFolderError(f"results folder {str(out)!r}: bad {_CONFIG}: {exc}") from exc
-        diffs = _config_differences(to_dict(saved), to_dict(config))
+        diffs = _config_differences(saved.to_dict(), config.to_dict())
         if diffs:
             shown = "; ".join(diffs[:5]) + ("; ..." if len(diffs) > 5 else "")
             raise ResultsFolderError(
@@ -633,9 +631,8 @@ def _prepare_folder(out: Path, config: ExperimentConfig) -> None:
     (out / _EPISODES).mkdir(exist_ok=True)
     _remove_stale_temp_files(out)
     if not path.exists():
-        text = (
-            f"# Resolved config of the episodes in this folder (env id {ENV_ID}).\n"
-            + yaml.safe_dump(to_dict(config), sort_keys=False)
+        text = "# Resolved config of the episodes in this folder.\n" + yaml.safe_dump(
+            config.to_dict(), sort_keys=False
         )
         _atomic_write(path, lambda fh: fh.write(text.encode()))
 
@@ -905,7 +902,6 @@ def evaluate(
 
 
 __all__ = [
-    "ENV_ID",
     "ROW_COLUMNS",
     "TIMING_COLUMNS",
     "ResultsFolderError",

@@ -111,11 +111,14 @@ def load_yaml(path: str | os.PathLike) -> dict:
     return data
 
 
+TOP_LEVEL_KEYS = ("env_id", "env", "agents")
+
+
 def read_section(source: Any, section: str) -> dict | None:
     """The ``section`` mapping of a config given as a path, a dict or ``None``.
 
-    A dict that holds top-level sections (``env``, ``agents``) gives the named one;
-    any other dict is taken as the section itself.
+    A dict that holds top-level keys (``env_id``, ``env``, ``agents``) gives the named
+    section; any other dict is taken as the section itself.
     """
     if source is None:
         return None
@@ -125,7 +128,7 @@ def read_section(source: Any, section: str) -> dict | None:
         raise ConfigError(
             f"config must be a path, a dict or a dataclass, got {type(source).__name__}"
         )
-    top = {"env", "agents"}
+    top = set(TOP_LEVEL_KEYS)
     unknown_top = {_key(k) for k in source} - top
     if {_key(k) for k in source} & top:
         if unknown_top:
@@ -320,13 +323,91 @@ class DisturbanceConfig:
         return gp.matern(self.nu, self.variance, self.lengthscale)
 
 
+class WorldConfig:
+    """What every world's ``env`` section gives the rest of the project (a mixin).
+
+    A world config is a frozen dataclass with at least the fields ``dt`` [s],
+    ``initial_state``, ``goal_state``, ``Q``, ``R``, ``measurement_noise_std``,
+    ``process_noise_diffusion`` (vectors over the state in config units),
+    ``max_steps`` and ``disturbance``; it names its env (:attr:`ENV_ID`), the states it
+    gives in degrees (:attr:`ANGLE_STATES`, converted to radians here) and builds its
+    system (:meth:`make_system`). Everything else (the model, the cost, the SI vectors) is
+    derived here the same way for every world.
+    """
+
+    ENV_ID: str = ""  # the Gymnasium id of the world's env
+    ANGLE_STATES: tuple[int, ...] = ()  # state indices given in degrees (deg/s) in configs
+
+    def make_system(self):  # pragma: no cover - every world defines it
+        raise NotImplementedError
+
+    def state_from_config(self, values: Any) -> np.ndarray:
+        """A state vector given in config units (angles in degrees) in SI units [rad]."""
+        out = np.array(tuple(values), dtype=float)
+        for i in self.ANGLE_STATES:
+            out[i] = math.radians(out[i])
+        return out
+
+    @property
+    def initial_state_rad(self) -> np.ndarray:
+        """Start state in SI units."""
+        return self.state_from_config(self.initial_state)
+
+    @property
+    def goal_state_rad(self) -> np.ndarray:
+        """Goal state of the cost in SI units."""
+        return self.state_from_config(self.goal_state)
+
+    @property
+    def measurement_std_rad(self) -> np.ndarray:
+        """Std of the full-state measurement noise in SI units."""
+        return self.state_from_config(self.measurement_noise_std)
+
+    @property
+    def process_noise_std_rad(self) -> np.ndarray:
+        """Per-step process noise std on the physical states in SI units."""
+        return self.state_from_config(self.process_noise_diffusion) * math.sqrt(self.dt)
+
+    def make_model(self, disturbance: DisturbanceConfig | None = None, system: Any = None):
+        """The latent-force model of this world, or of another belief about its force.
+
+        Args:
+            disturbance: the GP to model; ``None`` for this config's (the hidden truth's).
+            system: the system to stack it on; ``None`` builds :meth:`make_system`.
+        """
+        from lfm_env.model import LatentForceModel
+
+        d = self.disturbance if disturbance is None else disturbance
+        return LatentForceModel(
+            self.make_system() if system is None else system,
+            kernel=d.make_kernel(),
+            dt=self.dt,
+            process_noise_std=self.process_noise_std_rad,
+            discretization=d.discretization,
+        )
+
+    def make_cost(self):
+        """The reward's cost: ``Q``, ``R`` on the goal state (no separate terminal weight)."""
+        from lfm_env.system import QuadraticCost
+
+        return QuadraticCost(Q=self.Q, R=self.R, x_goal=self.goal_state_rad)
+
+    def replace(self, **changes: Any):
+        """A copy with some fields changed (validated like any config)."""
+        cls = type(self)
+        return from_dict(cls, {**to_dict(self), **to_dict_fields(changes)}, prefix="env")
+
+
 @dataclass(frozen=True)
-class EnvConfig:
+class EnvConfig(WorldConfig):
     """The SineTrack world: vehicle, track, noise, disturbance, goal and episode limits.
 
     Vectors over the state ``[p_x, p_y, v, psi]`` give the heading in **degrees** for
     readability; the env converts to radians.
     """
+
+    ENV_ID = "lfm_env/SineTrack-v0"
+    ANGLE_STATES = (3,)
 
     dt: float = 0.2  # [s] sampling time (one Euler step per sample)
     vehicle_length: float = 0.5  # [m] l of the bicycle
@@ -402,36 +483,6 @@ class EnvConfig:
         """Steering bound [rad]."""
         return math.radians(self.steer_max_deg)
 
-    @staticmethod
-    def _state_rad(v: tuple[float, ...]) -> np.ndarray:
-        out = np.array(v, dtype=float)
-        out[3] = math.radians(out[3])
-        return out
-
-    @property
-    def initial_state_rad(self) -> np.ndarray:
-        """Start state ``[m, m, m/s, rad]``."""
-        return self._state_rad(self.initial_state)
-
-    @property
-    def goal_state_rad(self) -> np.ndarray:
-        """Goal state of the cost ``[m, m, m/s, rad]``."""
-        return self._state_rad(self.goal_state)
-
-    @property
-    def measurement_std_rad(self) -> np.ndarray:
-        """Measurement noise std ``[m, m, m/s, rad]``."""
-        return self._state_rad(self.measurement_noise_std)
-
-    @property
-    def process_noise_std_rad(self) -> np.ndarray:
-        """Per-step process noise std on the physical states ``[m, m, m/s, rad]``."""
-        return self._state_rad(self.process_noise_diffusion) * math.sqrt(self.dt)
-
-    def state_from_config(self, values: Any) -> np.ndarray:
-        """A state vector given in config units (heading in degrees) in SI units [rad]."""
-        return self._state_rad(tuple(values))
-
     def make_system(self):
         """The bicycle on this track (:func:`lfm_env.systems.sine_track.sine_track_system`)."""
         from lfm_env.systems.sine_track import sine_track_system
@@ -444,34 +495,6 @@ class EnvConfig:
             accel_max=self.accel_max,
             steer_max=self.steer_max,
         )
-
-    def make_model(self, disturbance: DisturbanceConfig | None = None, system: Any = None):
-        """The latent-force model of this world, or of another belief about its force.
-
-        Args:
-            disturbance: the GP to model; ``None`` for this config's (the hidden truth's).
-            system: the system to stack it on; ``None`` builds :meth:`make_system`.
-        """
-        from lfm_env.model import LatentForceModel
-
-        d = self.disturbance if disturbance is None else disturbance
-        return LatentForceModel(
-            self.make_system() if system is None else system,
-            kernel=d.make_kernel(),
-            dt=self.dt,
-            process_noise_std=self.process_noise_std_rad,
-            discretization=d.discretization,
-        )
-
-    def make_cost(self):
-        """The reward's cost: ``Q``, ``R`` on the goal state (no separate terminal weight)."""
-        from lfm_env.system import QuadraticCost
-
-        return QuadraticCost(Q=self.Q, R=self.R, x_goal=self.goal_state_rad)
-
-    def replace(self, **changes: Any) -> EnvConfig:
-        """A copy with some fields changed (validated like any config)."""
-        return from_dict(EnvConfig, {**to_dict(self), **to_dict_fields(changes)}, prefix="env")
 
 
 def to_dict_fields(changes: dict) -> dict:
@@ -522,10 +545,50 @@ def check_latent_step(
     return config
 
 
-def load_env_config(config: Any = None) -> EnvConfig:
-    """An :class:`EnvConfig` from a path, a dict (whole file or the ``env`` section),
-    an ``EnvConfig``, or ``None`` for the defaults (the paper's case study)."""
-    if isinstance(config, EnvConfig):
+#: The worlds, by the Gymnasium id of their env: the name of their config class here.
+WORLDS: dict[str, str] = {
+    "lfm_env/SineTrack-v0": "EnvConfig",
+}
+DEFAULT_ENV_ID = "lfm_env/SineTrack-v0"
+
+
+def world_config_class(env_id: Any) -> type:
+    """The config class of the world whose env is ``env_id`` (a key of :data:`WORLDS`)."""
+    if not isinstance(env_id, str) or env_id not in WORLDS:
+        raise ConfigError(f"env_id={_show(env_id)}: must be one of {sorted(WORLDS)}")
+    return globals()[WORLDS[env_id]]
+
+
+def read_env_id(config: Any) -> Any:
+    """The top-level ``env_id`` of a config (path or whole-file dict); ``None`` if absent."""
+    if isinstance(config, (str, os.PathLike)):
+        config = load_yaml(config)
+    if isinstance(config, dict) and {_key(k) for k in config} & set(TOP_LEVEL_KEYS):
+        read_section(config, "env")  # unknown top-level keys are an error
+        return config.get("env_id")
+    return None
+
+
+def load_env_config(config: Any = None, env_id: str | None = None) -> WorldConfig:
+    """A world config from a path, a dict (whole file or the ``env`` section), a world
+    config, or ``None`` for the defaults.
+
+    The world is the file's top-level ``env_id`` (default ``lfm_env/SineTrack-v0``, the
+    paper's case study), or ``env_id`` when given (an env reading its own config); the two
+    must agree.
+
+    Raises:
+        ConfigError: for an unknown ``env_id``, a file of another world, or a bad field.
+    """
+    if isinstance(config, WorldConfig):
+        if env_id is not None and config.ENV_ID != env_id:
+            raise ConfigError(f"a config of {config.ENV_ID!r} given to {env_id!r}")
         return config
-    section = read_section(config, "env")
-    return from_dict(EnvConfig, section, prefix="env")
+    if isinstance(config, (str, os.PathLike)):
+        config = load_yaml(config)
+    file_id = read_env_id(config)
+    if env_id is not None and file_id is not None and file_id != env_id:
+        raise ConfigError(f"env_id={_show(file_id)}: the config is for another env than {env_id!r}")
+    chosen = env_id if env_id is not None else file_id
+    cls = world_config_class(DEFAULT_ENV_ID if chosen is None else chosen)
+    return from_dict(cls, read_section(config, "env"), prefix="env")

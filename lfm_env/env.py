@@ -351,6 +351,14 @@ class LatentForceEnv(gym.Env):
 
     # ------------------------------------------------------------------ rendering
 
+    def make_scene(self) -> Scene:
+        """A new drawing of this env's world, independent of the env's own.
+
+        Replays use it to draw saved states: ``scene.update(x); frame = scene.draw()``.
+        The size and options are the env's (e.g. ``screen_size``); close it when done.
+        """
+        return self._make_scene()
+
     def _sync_scene(self) -> None:
         if self._scene is not None:
             self._scene.update(self._state)

@@ -100,7 +100,7 @@ class SineTrackEnv(LatentForceEnv):
         scaling: float = 25.0,
         follow: bool = True,
     ) -> None:
-        self.config: EnvConfig = check_latent_step(load_env_config(config))
+        self.config: EnvConfig = check_latent_step(load_env_config(config, env_id=EnvConfig.ENV_ID))
         self.screen_size = (int(screen_size[0]), int(screen_size[1]))
         self.scaling = float(scaling)
         self.follow = bool(follow)

@@ -40,7 +40,6 @@ from controllers.solvers import make_solver
 from experiments import evaluation, report
 from experiments.cli import evaluate_main, render_main, report_main
 from experiments.evaluation import (
-    ENV_ID,
     TIMING_COLUMNS,
     ResultsFolderError,
     evaluate,
@@ -50,12 +49,14 @@ from experiments.evaluation import (
     run_episode,
 )
 from lfm_env.config import (
+    DEFAULT_ENV_ID as ENV_ID,
+)
+from lfm_env.config import (
     ConfigError,
     DisturbanceConfig,
     EnvConfig,
     load_env_config,
     load_yaml,
-    to_dict,
 )
 from lfm_env.model import psd_factor
 from lfm_env.system import QuadraticCost
@@ -622,7 +623,7 @@ def command_folders(tmp_path: Path) -> dict[str, str]:
         f"env:\n  dt: !!python/object/apply:os.system ['touch {tmp_path / 'pwned'}']\n"
     )
     other = resolve_config({"env": {"max_steps": 99}, "agents": TINY_AGENTS})
-    write_yaml(tmp_path / "other" / "config.yaml", to_dict(other))
+    write_yaml(tmp_path / "other" / "config.yaml", other.to_dict())
     return {"tmp": str(tmp_path), "config": str(config)}
 
 

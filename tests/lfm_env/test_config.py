@@ -492,3 +492,38 @@ def test_state_from_config_converts_the_heading_only():
     cfg = EnvConfig()
     np.testing.assert_allclose(cfg.state_from_config([1.0, 2.0, 3.0, 180.0]), [1, 2, 3, math.pi])
     np.testing.assert_array_equal(cfg.state_from_config(cfg.initial_state), cfg.initial_state_rad)
+
+
+# --------------------------------------------------------------------------- worlds by env id
+
+
+def test_the_world_is_chosen_by_the_top_level_env_id():
+    from lfm_env.config import DEFAULT_ENV_ID, WORLDS, world_config_class
+
+    assert load_env_config({"env_id": "lfm_env/SineTrack-v0", "env": {"dt": 0.1}}).dt == 0.1
+    assert type(load_env_config({"env": {"dt": 0.1}})).ENV_ID == DEFAULT_ENV_ID
+    for env_id in WORLDS:
+        assert world_config_class(env_id).ENV_ID == env_id
+
+
+@pytest.mark.parametrize("env_id", ["lfm_env/Nope-v0", 3, ""])
+def test_an_unknown_env_id_is_refused_naming_it(env_id):
+    with pytest.raises(ConfigError, match="env_id=.*must be one of"):
+        load_env_config({"env_id": env_id, "env": {}})
+
+
+def test_an_env_refuses_the_config_of_another_world():
+    with pytest.raises(ConfigError, match="for another env than 'lfm_env/Other-v0'"):
+        load_env_config({"env_id": "lfm_env/SineTrack-v0"}, env_id="lfm_env/Other-v0")
+
+
+def test_the_resolved_experiment_config_round_trips_through_yaml(tmp_path):
+    import yaml
+
+    from controllers.config import load_config
+
+    cfg = load_config({"env": {"dt": 0.1}, "agents": {"horizon": 5}})
+    path = tmp_path / "resolved.yaml"
+    path.write_text(yaml.safe_dump(cfg.to_dict()))
+    again = load_config(path)
+    assert again == cfg and again.env_id == "lfm_env/SineTrack-v0"
