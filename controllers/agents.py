@@ -34,11 +34,11 @@ import numpy as np
 from scipy import stats
 
 from controllers.config import AgentConfig, ExperimentConfig, load_config
-from controllers.estimators.particle_filter import ParticleFilter, gaussian_log_likelihood
+from controllers.estimators.estimator import make_estimator
 from controllers.problem import MPCSolution, ScenarioProblem
 from controllers.solvers import make_solver
 from lfm_env.config import ConfigError
-from lfm_env.model import LatentForceModel, psd_factor
+from lfm_env.model import LatentForceModel
 from lfm_env.system import QuadraticCost
 from lfm_env.validation import real_vector
 
@@ -173,9 +173,11 @@ class NominalMPCAgent(MPCAgent):
 
 
 class _FilteringAgent(MPCAgent):
-    """An agent that estimates physical and latent states with a bootstrap particle filter.
+    """An agent that estimates physical and latent states with ``settings.estimator``.
 
-    Built like :class:`MPCAgent`; ``measurement_std`` must be all > 0.
+    Built like :class:`MPCAgent`; ``measurement_std`` must be all > 0. The estimator is one
+    of :data:`controllers.estimators.estimator.ESTIMATORS` (the paper's bootstrap particle
+    filter by default).
     """
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
@@ -184,66 +186,53 @@ class _FilteringAgent(MPCAgent):
         if not np.all(self.measurement_std > 0.0):
             raise ValueError(
                 f"measurement_std={self.measurement_std.tolist()}: must be all > 0 for the "
-                f"{self.name!r} agent (its particle filter weighs each measurement by this noise)"
+                f"{self.name!r} agent (its estimator weighs each measurement by this noise)"
             )
-        self._log_lik = gaussian_log_likelihood(self.measurement_std, np.arange(nx))
         self._divergence_nis = float(stats.chi2.isf(DIVERGENCE_TAIL, nx))
-        self._latent_cov_factor = psd_factor(self.model.stationary_latent_covariance())
-        self.pf: ParticleFilter | None = None
+        s = self.settings
+        self.estimator = make_estimator(
+            s.estimator,
+            self.model,
+            self.measurement_std,
+            n_particles=s.n_particles,
+            resampling=s.resampling,
+            ess_threshold=s.ess_threshold,
+        )
+        self._started = False
         self.n_filter_resets = 0
 
     def reset(self, seed: int | None = None) -> None:
         super().reset(seed)
-        self.pf = None
+        self._started = False
         self.n_filter_resets = 0
 
-    def _prior(self, y: np.ndarray) -> np.ndarray:
-        """Physical states around the first measurement, latent states stationary."""
-        n, nx, p = self.settings.n_particles, self.system.nx, self.model.latent_dim
-        x = y + self.rng.standard_normal((n, nx)) * self.measurement_std
-        z = self.rng.standard_normal((n, p)) @ self._latent_cov_factor.T
-        return np.concatenate([x, z], axis=1)
-
     def _estimate(self, y: np.ndarray) -> dict[str, Any]:
-        if self.pf is None:
-            self.pf = ParticleFilter(
-                self.model.transition,
-                self._log_lik,
-                self._prior(y),
-                self.rng,
-                resampling=self.settings.resampling,
-                ess_threshold=self.settings.ess_threshold,
-            )
-            degenerate = False
+        est = self.estimator
+        if not self._started:
+            rec = est.start(y, self.rng)
+            self._started = True
         else:
-            rec = self.pf.step(self._u_prev, y)
-            degenerate = bool(rec.degenerate)
-        # Divergence check: if even the closest particle explains y worse than a
-        # 1e-6 tail event, the cloud has lost the state (sample impoverishment can pin it
-        # far from the truth); restart from the prior around y and say so.
-        diverged = degenerate or self._closest_nis(y) > self._divergence_nis
+            rec = est.step(self._u_prev, y)
+        # Divergence check: if the measurement is a 1e-6 tail event even for the closest
+        # particle (or the UKF's innovation), the estimate has lost the state (a bootstrap
+        # filter's cloud can collapse far from the truth); restart around y and say so.
+        diverged = rec.degenerate or rec.nis > self._divergence_nis
         if diverged:
-            self.pf.reset(self._prior(y))
+            est.start(y, self.rng)
             self.n_filter_resets += 1
         nx = self.system.nx
-        mean, std = self.pf.mean, self.pf.std
-        cov = self.pf.covariance
+        mean, cov = est.mean, est.covariance
         H = self.model.H  # (nw, p)
         self._mean = mean
         return {
             "estimate": mean.copy(),
-            "estimate_std": std.copy(),
+            "estimate_std": np.sqrt(np.maximum(np.diag(cov), 0.0)),
             "latent_force": H @ mean[nx:],
             "latent_force_std": np.sqrt(np.maximum(np.diag(H @ cov[nx:, nx:] @ H.T), 0.0)),
-            "filter_degenerate": degenerate,
+            "filter_degenerate": bool(rec.degenerate),
             "filter_reset": diverged,
             "filter_resets": self.n_filter_resets,
         }
-
-    def _closest_nis(self, y: np.ndarray) -> float:
-        """Smallest normalised innovation ``sum(((x_i - y) / std)^2)`` over particles."""
-        r = (self.pf.particles[:, : self.system.nx] - y) / self.measurement_std
-        return float(np.min(np.einsum("ij,ij->i", r, r)))
 
 
 class CertaintyEquivalentMPCAgent(_FilteringAgent):
@@ -271,8 +260,7 @@ class ScenarioMPCAgent(_FilteringAgent):
     def _scenarios(self) -> tuple[np.ndarray, np.ndarray]:
         ns, nx = self.problem.n_scenarios, self.system.nx
         if (self.initial_states or self.settings.scenario_initial_states) == "particles":
-            idx = self.rng.choice(self.pf.n_particles, size=ns, p=self.pf.weights)
-            start = self.pf.particles[idx]
+            start = self.estimator.sample(ns, self.rng)
             x0, z0 = start[:, :nx], start[:, nx:]
         else:
             x0 = self._mean[:nx]

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from controllers.estimators.estimator import ESTIMATORS
 from controllers.solvers import SOLVERS
 from lfm_env.config import (
     ConfigError,
@@ -51,7 +52,8 @@ class AgentConfig:
     n_scenarios: int | None = 150  # Ns; null to derive it from violation_level/confidence
     violation_level: float | None = None  # epsilon of the Campi-Garatti bound, in (0, 1)
     confidence: float | None = None  # beta of the Campi-Garatti bound, in (0, 1)
-    n_particles: int = 7000  # particle filter size
+    estimator: str = "bootstrap"  # one of controllers.estimators.estimator.ESTIMATORS
+    n_particles: int = 7000  # particle filter size (bootstrap and rbpf)
     resampling: str = "systematic"  # one of RESAMPLING
     ess_threshold: float | None = None  # null: resample every step (paper); else in (0, 1]
     Q: tuple[float, ...] = (2.0, 2.0, 1.0, 0.0)  # stage weights on x - x_g (diagonal)
@@ -83,6 +85,7 @@ class AgentConfig:
             c(name, v is None or 0.0 < v < 1.0, "null or in (0, 1)")
         c("n_particles", 1 <= self.n_particles <= 10_000_000, "an integer in [1, 1e7]")
         c("resampling", self.resampling in RESAMPLING, f"one of {RESAMPLING}")
+        c("estimator", self.estimator in ESTIMATORS, f"one of {ESTIMATORS}")
         c(
             "ess_threshold",
             self.ess_threshold is None or 0.0 < self.ess_threshold <= 1.0,

@@ -72,6 +72,7 @@ class LatentForceModel:
     # Single-precision copies the particle transition scales its float32 noise with.
     _process_std_col: np.ndarray = field(init=False, repr=False)
     _q_factor32: np.ndarray = field(init=False, repr=False)
+    _cache: dict = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self) -> None:
         system = self.system
@@ -180,6 +181,61 @@ class LatentForceModel:
         return out
 
     # ------------------------------------------------------------------ physics
+
+    @property
+    def force_enters_affinely(self) -> bool:
+        """Whether ``f(x, u, w) = f0(x, u) + G(x, u) w`` (checked on the CasADi expression).
+
+        Then, given the physical path, the latent state is linear-Gaussian: the case of the
+        Rao-Blackwellised particle filter (:mod:`controllers.estimators.rbpf`).
+        """
+        if "affine" not in self._cache:
+            import casadi as ca
+
+            x, u, w = (
+                ca.SX.sym(n, k) for n, k in (("x", self.nx), ("u", self.system.nu), ("w", self.nw))
+            )
+            f = self.system.casadi_rhs()(x, u, w)
+            self._cache["affine"] = not ca.depends_on(ca.jacobian(f, w), w)
+        return self._cache["affine"]
+
+    @property
+    def force_gain_is_constant(self) -> bool:
+        """Whether ``G = df/dw`` depends on nothing (the force adds to fixed states).
+
+        Then every particle of the Rao-Blackwellised filter shares one latent covariance.
+        """
+        if "constant_gain" not in self._cache:
+            import casadi as ca
+
+            x, u, w = self._symbols()
+            J = ca.jacobian(self.system.casadi_rhs()(x, u, w), w)
+            constant = not (ca.depends_on(J, x) or ca.depends_on(J, u) or ca.depends_on(J, w))
+            self._cache["constant_gain"] = constant
+        return self._cache["constant_gain"]
+
+    def _symbols(self):
+        import casadi as ca
+
+        return ca.SX.sym("x", self.nx), ca.SX.sym("u", self.system.nu), ca.SX.sym("w", self.nw)
+
+    def force_gain(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """``G(x, u) = df/dw`` ``(..., nx, nw)`` of a force that enters affinely.
+
+        Exact for such a force: column ``j`` is ``f(x, u, e_j) - f(x, u, 0)``.
+
+        Raises:
+            ValueError: the force does not enter affinely (:attr:`force_enters_affinely`).
+        """
+        if not self.force_enters_affinely:
+            raise ValueError(
+                f"system {self.system.name!r}: the force does not enter f(x, u, w) affinely "
+                "(df/dw depends on w), so it has no constant gain"
+            )
+        x = np.asarray(x, dtype=float)
+        base = np.asarray(self.system.rhs(x, u, np.zeros(self.nw)))
+        cols = [np.asarray(self.system.rhs(x, u, e)) - base for e in np.eye(self.nw)]
+        return np.stack(cols, axis=-1)
 
     def physical_step(self, x: np.ndarray, u: np.ndarray, w: np.ndarray) -> np.ndarray:
         """Noise-free Euler step ``x + dt f(x, u, w)`` of physical states ``(..., nx)``."""
