@@ -113,7 +113,8 @@ class MPCAgent:
         info = self._estimate(y)
         t_est = time.perf_counter() - t0
         x0, W = self._scenarios()
-        sol = self.mpc.solve(x0, W)
+        backoff = self._backoff()
+        sol = self.mpc.solve(x0, W) if backoff is None else self.mpc.solve(x0, W, backoff=backoff)
         u, fallback = self._choose_action(sol)
         self._u_prev = u
         info.update(
@@ -130,6 +131,7 @@ class MPCAgent:
             predicted=None if sol.predicted is None else sol.predicted.copy(),
             x0=np.asarray(x0, dtype=float).copy(),
             W=np.asarray(W).copy(),
+            backoff=None if backoff is None else backoff.copy(),
         )
         self.last_info = info
         return u
@@ -147,6 +149,10 @@ class MPCAgent:
             return self._plan[0].copy(), "previous_plan"
         self._plan = None
         return np.array(self.system.fallback_input, dtype=float), "fallback"
+
+    def _backoff(self) -> np.ndarray | None:
+        """Constraint tightening ``(ng,)`` for this solve; ``None`` for none (the default)."""
+        return None
 
     def _no_force(self) -> np.ndarray:
         """``W = 0`` for one scenario ``(1, N, nw)``."""
@@ -223,7 +229,7 @@ class _FilteringAgent(MPCAgent):
         nx = self.system.nx
         mean, cov = est.mean, est.covariance
         H = self.model.H  # (nw, p)
-        self._mean = mean
+        self._mean, self._cov = mean, cov
         return {
             "estimate": mean.copy(),
             "estimate_std": np.sqrt(np.maximum(np.diag(cov), 0.0)),
@@ -233,6 +239,20 @@ class _FilteringAgent(MPCAgent):
             "filter_reset": diverged,
             "filter_resets": self.n_filter_resets,
         }
+
+    def _backoff(self) -> np.ndarray | None:
+        """``settings.backoff`` times the estimate's std along each constraint's gradient.
+
+        ``b_j = k sqrt(dg_j(x_hat)' Sigma_x dg_j(x_hat))`` with the physical block
+        ``Sigma_x`` of the estimate's covariance, the same at every step of the horizon.
+        """
+        k = self.settings.backoff
+        if k <= 0.0 or self.system.ng == 0:
+            return None
+        nx = self.system.nx
+        J = self.system.constraint_jacobian(self._mean[:nx])  # (ng, nx)
+        spread = np.einsum("ji,ik,jk->j", J, self._cov[:nx, :nx], J)
+        return k * np.sqrt(np.maximum(spread, 0.0))
 
 
 class CertaintyEquivalentMPCAgent(_FilteringAgent):

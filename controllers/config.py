@@ -64,6 +64,9 @@ class AgentConfig:
     solver: str = "fast"  # one of controllers.solvers.SOLVERS
     max_iter: int = 100  # solver iteration limit per step
     scenario_initial_states: str = "estimate"  # "estimate" (paper) or "particles" (its remark)
+    # Constraint back-off of the filtering agents: each state constraint g_j is tightened
+    # by backoff * sqrt(dg_j' Sigma_x dg_j), the estimate's std along its gradient [std].
+    backoff: float = 0.0
     # The agents' belief about the latent force. null: the env section's, known a priori
     # (the paper); set it to learned hyperparameters (see lfm-calibrate).
     disturbance: DisturbanceConfig | None = None
@@ -93,6 +96,7 @@ class AgentConfig:
         )
         c.non_negative("Q", "Qf", "R")
         c.positive("slack_penalty")
+        c("backoff", 0.0 <= self.backoff <= 10.0, "in [0, 10] standard deviations")
         c("solver", self.solver in SOLVERS, f"one of {SOLVERS}")
         # IPOPT's iteration counter is a C int: larger values wrap around or are refused.
         c("max_iter", 1 <= self.max_iter <= MAX_ITER, f"an integer in [1, {MAX_ITER}]")

@@ -21,6 +21,10 @@ Conventions (shared by every solver), with the dimensions of the model's system:
   ``i``. So there are ``ng N`` slacks whatever ``Ns`` is, and at the optimum
   ``s[k, j] = max(0, max_i g_j(x_k^(i)))``: :meth:`ScenarioProblem.objective` evaluates
   exactly this exact-penalty function of ``u``, which every solver must minimise.
+* ``backoff`` (optional, per solve): constraint tightening ``b[k, j] >= 0`` in the
+  constraints' units, ``(N, ng)`` or ``(ng,)`` for every step; the constraints become
+  ``g_j(x_k^(i)) + b[k, j] <= s[k, j]``. Agents use it to keep a margin of ``k`` times the
+  estimate's spread along each constraint (:mod:`controllers.agents`).
 """
 
 from __future__ import annotations
@@ -133,6 +137,21 @@ class ScenarioProblem:
             raise ValueError("x0 and W must be finite (no NaN or inf)")
         return x0, W
 
+    def check_backoff(self, backoff: np.ndarray | None) -> np.ndarray | None:
+        """``None``, or the back-off as a finite ``(N, ng)`` array ``>= 0`` (from ``(ng,)``)."""
+        if backoff is None:
+            return None
+        b = _as_float_array(backoff, "backoff")
+        n, ng = self.horizon, self.ng
+        if b.shape == (ng,):
+            b = np.broadcast_to(b, (n, ng))
+        if b.shape != (n, ng) or not np.all(np.isfinite(b)) or np.any(b < 0.0):
+            raise ValueError(
+                f"backoff has shape {b.shape} or entries that are negative or not finite; "
+                f"expected finite values >= 0 of shape (horizon, ng) = {(n, ng)} or ({ng},)"
+            )
+        return b
+
     def check_inputs(self, u: np.ndarray, name: str = "u") -> np.ndarray:
         """``u`` as a finite ``(N, nu)`` float array, or a ValueError naming ``name``."""
         u = _as_float_array(u, name)
@@ -158,26 +177,32 @@ class ScenarioProblem:
             X[:, k + 1] = self.model.physical_step(X[:, k], u[k], W[:, k])
         return X
 
-    def constraint_values(self, X: np.ndarray) -> np.ndarray:
-        """Constraint values ``g <= 0`` ``(Ns, N, ng)`` of predicted states ``X``, steps 1..N."""
-        return np.asarray(self.system.constraint_values(X[:, 1:]))
+    def constraint_values(self, X: np.ndarray, backoff: np.ndarray | None = None) -> np.ndarray:
+        """Constraint values ``g + b <= 0`` ``(Ns, N, ng)`` of predicted states, steps 1..N."""
+        g = np.asarray(self.system.constraint_values(X[:, 1:]))
+        b = self.check_backoff(backoff)
+        return g if b is None else g + b
 
-    def constraint_violation(self, X: np.ndarray) -> float:
+    def constraint_violation(self, X: np.ndarray, backoff: np.ndarray | None = None) -> float:
         """Largest state-constraint violation over all scenarios and steps (0 if none)."""
-        g = self.constraint_values(X)
+        g = self.constraint_values(X, backoff)
         return float(max(np.max(g, initial=0.0), 0.0))
 
-    def minimal_slack(self, X: np.ndarray) -> np.ndarray:
-        """The smallest feasible slacks ``s[k, j] = max(0, max_i g_j(x_k^(i)))``, ``(N, ng)``."""
-        return np.maximum(np.max(self.constraint_values(X), axis=0, initial=-np.inf), 0.0)
+    def minimal_slack(self, X: np.ndarray, backoff: np.ndarray | None = None) -> np.ndarray:
+        """The smallest feasible slacks ``s[k, j] = max(0, max_i g_j + b)``, ``(N, ng)``."""
+        g = self.constraint_values(X, backoff)
+        return np.maximum(np.max(g, axis=0, initial=-np.inf), 0.0)
 
-    def objective(self, x0: np.ndarray, W: np.ndarray, u: np.ndarray) -> float:
+    def objective(
+        self, x0: np.ndarray, W: np.ndarray, u: np.ndarray, backoff: np.ndarray | None = None
+    ) -> float:
         """Exact-penalty objective of inputs ``u``: the reference every solver minimises.
 
-        Scenario-averaged quadratic cost plus ``slack_penalty * sum(minimal_slack)``.
+        Scenario-averaged quadratic cost plus ``slack_penalty * sum(minimal_slack)``, with
+        the constraints tightened by ``backoff`` when given.
         """
         X = self.rollout(x0, W, u)
-        slack = float(np.sum(self.minimal_slack(X)))
+        slack = float(np.sum(self.minimal_slack(X, backoff)))
         u = np.asarray(u, dtype=float).reshape(self.horizon, self.nu)
         cost = self.cost
         stage = np.sum(cost.state_cost(X[:, :-1]), axis=1)

@@ -31,14 +31,17 @@ resuming with another config is refused. Exit code 0 when every episode ran, 1 w
 some raised (they are in the table with their error), 2 on bad arguments.
 
 Metrics (columns of episodes.csv): success, steps, time_to_goal [s], cost (sum of
-the true stage cost), track/speed violation steps and largest excess [m, m/s],
-max_x_excess [m], failure (left the safety box), latent_rmse [m/s^2] and
-latent_coverage (2-sigma band; filter agents only), solve_time_median/p95/max [s],
-solver_failures, fallback_steps, slack_total, wall_time [s], error.
+the true stage cost), then per constraint group G of the world's system
+<G>_violation_steps and max_<G>_excess [the group's unit] (sine track: track [m],
+x [m], speed [m/s]; quadrotor: corridor [m], x [m]), failure (the env ended the
+episode as a failure), latent_rmse [force unit] and latent_coverage (2-sigma band;
+filter agents only), solve_time_median/p95/max [s], solver_failures,
+fallback_steps, filter_resets, slack_total, wall_time [s], error.
 
 examples:
   lfm-evaluate                                   paper config, seeds 0:20, 3 agents
   lfm-evaluate --config configs/quick.yaml --seeds 0:5 --jobs 2
+  lfm-evaluate --config configs/quadrotor.yaml --agents nominal,scenario,oracle
   lfm-evaluate --agents scenario,oracle --seeds 0:10,20:25 --out results/sweep
   lfm-evaluate --dask-workers 2                  local Dask cluster on 127.0.0.1
   lfm-evaluate --scheduler tcp://10.0.0.5:8786   existing Dask cluster (DIR shared)
@@ -65,8 +68,8 @@ def _add_config_argument(parser: argparse.ArgumentParser) -> None:
         metavar="YAML",
         default=None,
         help=(
-            f"config file with env and agents sections (default: {_DEFAULT_CONFIG} if "
-            "present, else the built-in paper defaults)"
+            f"config file with env_id, env and agents sections; env_id picks the world "
+            f"(default: {_DEFAULT_CONFIG} if present, else the built-in paper defaults)"
         ),
     )
 
@@ -88,9 +91,10 @@ def _evaluate_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="lfm-evaluate",
         description=(
-            "Run MPC agents on the SineTrack world (lfm_env/SineTrack-v0) over env seeds and\n"
-            "save one row of metrics and one trajectory per episode. For one env seed every\n"
-            "agent faces the same hidden disturbance and noise (paired design)."
+            "Run MPC agents on the world of the config (its env_id, e.g. lfm_env/SineTrack-v0\n"
+            "for configs/paper.yaml) over env seeds and save one row of metrics and one\n"
+            "trajectory per episode. For one env seed every agent faces the same hidden\n"
+            "disturbance and noise (paired design)."
         ),
         epilog=_EVALUATE_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -234,10 +238,13 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
 _REPORT_EPILOG = """\
 files written (DIR is the results folder):
   DIR/report.md, DIR/report.html   the same report (HTML shows the PNGs beside it)
-  DIR/figures/*.png                paper figures of one episode, across-seed plots
+  DIR/figures/*.png                figures of one episode, across-seed plots
   DIR/figures/episode.gif          the episode replayed from its saved true states
 
 Reads DIR/episodes.csv, DIR/episodes/*.npz and DIR/config.yaml; runs no episode.
+The figures and the metric units come from the system of the world in config.yaml,
+so a results folder of any world (configs/paper.yaml, configs/quadrotor.yaml, ...)
+is reported the same way.
 Exit code 0 on success, 2 when DIR is missing, empty or the seed has no trajectory.
 
 examples:
@@ -251,10 +258,13 @@ def _report_parser() -> argparse.ArgumentParser:
         prog="lfm-report",
         description=(
             "Write report.md and report.html for a results folder of lfm-evaluate: per-agent\n"
-            "means with 95% bootstrap intervals, paired differences against the scenario\n"
-            "agent, the paper's four figures for one episode, across-seed plots, a GIF of\n"
-            "the episode and a 'paper vs measured' table. The oracle agent is an upper bound\n"
-            "(it reads the hidden truth) and is labelled so."
+            "means with 95% bootstrap intervals (constraint metrics per group of the world's\n"
+            "system), paired differences against the scenario agent, one episode's figures\n"
+            "drawn from the system (path in the plane of the first two states with the\n"
+            "feasible region, latent force, inputs with bounds, other states, constraint\n"
+            "excess), across-seed plots, a GIF of the episode and, for the sine track, a\n"
+            "'paper vs measured' table. The oracle agent is an upper bound (it reads the\n"
+            "hidden truth) and is labelled so."
         ),
         epilog=_REPORT_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -296,14 +306,15 @@ def report_main(argv: Sequence[str] | None = None) -> int:
 
 _RENDER_EPILOG = """\
 Runs ONE episode (the same one lfm-evaluate runs for this agent, config and seed: the
-agent's own seed is derived the same way) and draws every step with the env's
-highway-env renderer (render_mode="rgb_array", no display needed). A .gif gets one
-frame per step plus the start (1/dt frames per second); a .png gets one frame.
+agent's own seed is derived the same way) on the config's world and draws every step
+with that world's own renderer (render_mode="rgb_array", no display needed). A .gif
+gets one frame per step plus the start (1/dt frames per second); a .png gets one frame.
 To look at a saved episode without re-running it, use lfm-report (figures/episode.gif).
 
 examples:
   lfm-render --agent scenario --seed 0 --out scenario.gif
   lfm-render --config configs/quick.yaml --agent pf --seed 3 --steps 40 --out pf.png
+  lfm-render --config configs/quadrotor.yaml --agent scenario --out quadrotor.gif
 """
 
 
@@ -313,7 +324,7 @@ def _render_parser() -> argparse.ArgumentParser:
     agents_help = "; ".join(f"{k} = {v}" for k, v in AGENT_LABELS.items())
     parser = argparse.ArgumentParser(
         prog="lfm-render",
-        description="Run one episode of an agent on the SineTrack world and render it.",
+        description="Run one episode of an agent on the config's world and render it.",
         epilog=_RENDER_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -342,7 +353,7 @@ def _render_parser() -> argparse.ArgumentParser:
         "--size",
         default="480x240",
         metavar="WxH",
-        help="frame size in pixels (default: 480x240)",
+        help="frame size in pixels, for worlds whose renderer takes one (default: 480x240)",
     )
     return parser
 
@@ -351,35 +362,31 @@ def _render_episode(
     config: object, agent_name: str, seed: int, max_steps: int | None, size: tuple[int, int]
 ) -> tuple[list, float]:
     """Frames ``(H, W, 3)`` of one episode rendered step by step, and ``dt`` [s]."""
-    import gymnasium as gym
-
-    import lfm_env  # noqa: F401  (registers the env id)
     from controllers.agents import make_agent
     from experiments.evaluation import agent_seed, resolve_config
-    from experiments.plots import annotate_frame
+    from experiments.plots import annotate_frame, make_render_env
 
     cfg = resolve_config(config, [agent_name])
-    env = gym.make(
-        cfg.env_id, config=cfg.env, render_mode="rgb_array", screen_size=size, scaling=20.0
-    )
+    # The same drawing options as the report's replay (experiments.plots.replay_frames).
+    env = make_render_env(cfg, screen_size=size, scaling=20.0)
     try:
         agent = make_agent(agent_name, cfg, env=env if agent_name == "oracle" else None)
-        dt = env.unwrapped.config.dt
+        dt = env.unwrapped.model.dt
         obs, info = env.reset(seed=seed)
         agent.reset(seed=agent_seed(seed, agent_name))
         frames, k = [], 0
 
-        def grab(state) -> None:
-            text = f"{agent_name} | seed {seed} | t = {k * dt:.1f} s | v = {state[2]:.1f} m/s"
+        def grab() -> None:
+            text = f"{agent_name} | seed {seed} | t = {k * dt:.1f} s"
             frames.append(annotate_frame(env.render(), text))
 
-        grab(info["true_state"])
+        grab()
         done = False
         while not done and (max_steps is None or k < max_steps):
             obs, _, terminated, truncated, info = env.step(agent.act(obs))
             k += 1
             done = terminated or truncated
-            grab(info["true_state"])
+            grab()
     finally:
         env.close()
     return frames, dt

@@ -59,21 +59,19 @@ from controllers.agents import AGENTS, check_agent_config, make_agent
 from controllers.config import ExperimentConfig, load_config
 from lfm_env.config import load_yaml
 
-#: Columns of a row, in table order (names fixed by the evaluation issue).
-ROW_COLUMNS: tuple[str, ...] = (
+#: Columns of every row before the constraint-group columns, in table order.
+HEAD_COLUMNS: tuple[str, ...] = (
     "agent",  # agent name
     "seed",  # env seed
     "success",  # reached the goal
     "steps",  # steps taken
     "time_to_goal",  # [s], NaN without success
     "cost",  # sum of the true stage cost (= -reward) over the episode
-    "track_violation_steps",  # steps ending outside the track band
-    "max_track_excess",  # [m] largest distance outside the track band
-    "speed_violation_steps",  # steps ending outside [speed_min, speed_max]
-    "max_speed_excess",  # [m/s]
-    "max_x_excess",  # [m] largest distance outside [x_min, x_max]
-    "failure",  # left the safety box (episode ended early)
-    "latent_rmse",  # [m/s^2] RMSE of the latent-force estimate; NaN without a filter
+)
+#: Columns of every row after the constraint-group columns, in table order.
+TAIL_COLUMNS: tuple[str, ...] = (
+    "failure",  # the env ended the episode as a failure (e.g. left the safety box)
+    "latent_rmse",  # [force unit] RMSE of the latent-force estimate; NaN without a filter
     "latent_coverage",  # fraction of steps with the true force in the 2-sigma band
     "solve_time_median",  # [s]
     "solve_time_p95",  # [s]
@@ -95,17 +93,74 @@ TIMING_COLUMNS: tuple[str, ...] = (
 )
 
 _STR_COLUMNS = ("agent", "error")
-_INT_COLUMNS = (
-    "seed",
-    "steps",
-    "track_violation_steps",
-    "speed_violation_steps",
-    "solver_failures",
-    "fallback_steps",
-    "filter_resets",
-)
+_INT_COLUMNS = ("seed", "steps", "solver_failures", "fallback_steps", "filter_resets")
 _BOOL_COLUMNS = ("success", "failure")
-_METRIC_COLUMNS = tuple(c for c in ROW_COLUMNS if c not in ("agent", "seed", "wall_time", "error"))
+_FIXED_COLUMNS = HEAD_COLUMNS + TAIL_COLUMNS
+_VIOLATION_SUFFIX = "_violation_steps"  # int columns of the constraint groups
+
+
+def _group_names(system: Any) -> tuple[str, ...]:
+    """The constraint-group names of a system (or of a sequence of names), in order."""
+    groups = getattr(system, "constraint_groups", system)
+    if isinstance(groups, str) or not isinstance(groups, Iterable):
+        raise ValueError(
+            f"{groups!r}: give a ControlSystem or a sequence of constraint-group names"
+        )
+    return tuple(str(g) for g in groups)
+
+
+def group_columns(system: Any) -> tuple[str, ...]:
+    """The metric columns of a system's constraint groups, in the groups' order.
+
+    Per group ``g`` (a key of ``system.constraint_groups``): ``{g}_violation_steps``
+    (steps ending with the group's excess above 0) and ``max_{g}_excess`` (its largest
+    excess over the episode, in the group's constraint unit). For the sine track:
+    ``track_violation_steps, max_track_excess, x_violation_steps, max_x_excess,
+    speed_violation_steps, max_speed_excess``.
+
+    Args:
+        system: a :class:`~lfm_env.system.ControlSystem`, or its group names.
+    """
+    return tuple(
+        c for g in _group_names(system) for c in (f"{g}{_VIOLATION_SUFFIX}", f"max_{g}_excess")
+    )
+
+
+def row_columns(system: Any) -> tuple[str, ...]:
+    """Columns of a row of an episode on ``system``, in table order.
+
+    :data:`HEAD_COLUMNS`, then :func:`group_columns` of the system's constraint groups,
+    then :data:`TAIL_COLUMNS`.
+
+    Args:
+        system: a :class:`~lfm_env.system.ControlSystem` (e.g. ``config.make_system()``),
+            or its constraint-group names.
+    """
+    return HEAD_COLUMNS + group_columns(system) + TAIL_COLUMNS
+
+
+def _table_columns(rows: Iterable[dict[str, Any]]) -> tuple[str, ...]:
+    """The columns of saved rows: the fixed ones around the group columns they hold.
+
+    Groups come in first-seen order, each with the columns of it that some row holds
+    (``{g}_violation_steps`` before ``max_{g}_excess``); other keys follow them.
+    """
+    seen: dict[str, None] = {}
+    for row in rows:
+        seen.update((k, None) for k in row if k not in _FIXED_COLUMNS)
+    groups: dict[str, None] = {}
+    for key in seen:
+        m = re.fullmatch(rf"(.+){_VIOLATION_SUFFIX}|max_(.+)_excess", key)
+        if m is not None:
+            groups[m.group(1) or m.group(2)] = None
+    ordered = [c for c in group_columns(groups) if c in seen]
+    ordered += [c for c in seen if c not in ordered]
+    return HEAD_COLUMNS + tuple(ordered) + TAIL_COLUMNS
+
+
+def _metric_columns(columns: Sequence[str]) -> tuple[str, ...]:
+    return tuple(c for c in columns if c not in ("agent", "seed", "wall_time", "error"))
+
 
 _EPISODES = "episodes"
 _TABLE = "episodes.csv"
@@ -238,6 +293,8 @@ class _EpisodeRecorder:
         system = config.make_system()
         self.horizon = config.agents.horizon
         self.nx, self.nu, self.nw = system.nx, system.nu, system.nw
+        self.groups = tuple(system.constraint_groups)
+        self.columns = row_columns(system)
         self.lists: dict[str, list] = {
             k: []
             for k in (
@@ -257,9 +314,7 @@ class _EpisodeRecorder:
                 "solver_success",
                 "fallback",
                 "filter_reset",
-                "track_excess",
-                "speed_excess",
-                "x_excess",
+                *self._excess_keys(),
             )
         }
         self.has_filter = False
@@ -295,13 +350,16 @@ class _EpisodeRecorder:
             "solver_success": bool(agent_info.get("success", False)),
             "fallback": str(agent_info.get("fallback", "")),
             "filter_reset": bool(agent_info.get("filter_reset", False)),
-            "track_excess": float(info["track_excess"]),
-            "speed_excess": float(info["speed_excess"]),
-            "x_excess": float(info["x_excess"]),
         }
+        # The largest excess of each constraint group after the step, in its unit.
+        values.update((k, float(info[k])) for k in self._excess_keys())
         for k, v in values.items():
             self.lists[k].append(v)
         self.final_info = info
+
+    def _excess_keys(self) -> tuple[str, ...]:
+        """``info`` keys (and trajectory arrays) of the groups' excess: ``<group>_excess``."""
+        return tuple(f"{g}_excess" for g in self.groups)
 
     def _force(self, w: Any) -> float | np.ndarray:
         """A latent force as a float (one component) or an ``(nw,)`` array."""
@@ -337,9 +395,7 @@ class _EpisodeRecorder:
             "solver_success": stack("solver_success", (0,), bool),
             "fallback": stack("fallback", (0,), str),
             "filter_reset": stack("filter_reset", (0,), bool),
-            "track_excess": stack("track_excess", (0,)),
-            "speed_excess": stack("speed_excess", (0,)),
-            "x_excess": stack("x_excess", (0,)),
+            **{k: stack(k, (0,)) for k in self._excess_keys()},
         }
 
 
@@ -368,7 +424,6 @@ def _episode_metrics(rec: _EpisodeRecorder, arrays: dict[str, np.ndarray]) -> di
     info = rec.final_info
     success = bool(info.get("is_success", False))
     solve = arrays["solve_time"]
-    track, speed = arrays["track_excess"], arrays["speed_excess"]
     if rec.has_filter and T:
         err = arrays["latent_force_est"] - arrays["disturbance"]
         latent_rmse = float(np.sqrt(np.mean(err**2)))
@@ -379,16 +434,18 @@ def _episode_metrics(rec: _EpisodeRecorder, arrays: dict[str, np.ndarray]) -> di
     def stat(fn: Callable[[np.ndarray], Any], x: np.ndarray) -> float:
         return float(fn(x)) if len(x) else math.nan
 
-    return {
+    metrics: dict[str, Any] = {
         "success": success,
         "steps": int(T),
         "time_to_goal": float(info["time"]) if success else math.nan,
         "cost": float(-np.sum(arrays["reward"])),
-        "track_violation_steps": int(np.sum(track > 0.0)),
-        "max_track_excess": stat(np.max, track),
-        "speed_violation_steps": int(np.sum(speed > 0.0)),
-        "max_speed_excess": stat(np.max, speed),
-        "max_x_excess": stat(np.max, arrays["x_excess"]),
+    }
+    for g in rec.groups:
+        excess = arrays[f"{g}_excess"]
+        metrics[f"{g}{_VIOLATION_SUFFIX}"] = int(np.sum(excess > 0.0))
+        metrics[f"max_{g}_excess"] = stat(np.max, excess)
+    return {
+        **metrics,
         "failure": bool(info.get("failure", False)),
         "latent_rmse": latent_rmse,
         "latent_coverage": latent_coverage,
@@ -402,11 +459,14 @@ def _episode_metrics(rec: _EpisodeRecorder, arrays: dict[str, np.ndarray]) -> di
     }
 
 
-def _error_row(agent_name: str, seed: int, error: str, wall_time: float) -> dict[str, Any]:
+def _error_row(
+    agent_name: str, seed: int, error: str, wall_time: float, columns: Sequence[str]
+) -> dict[str, Any]:
+    """The row of an episode that raised: NaN metrics, the error text, ``columns`` order."""
     row: dict[str, Any] = {"agent": agent_name, "seed": int(seed)}
-    row.update({c: math.nan for c in _METRIC_COLUMNS})
+    row.update({c: math.nan for c in _metric_columns(columns)})
     row.update(wall_time=float(wall_time), error=error)
-    return {c: row[c] for c in ROW_COLUMNS}
+    return {c: row[c] for c in columns}
 
 
 def run_episode(
@@ -414,28 +474,34 @@ def run_episode(
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Run one closed-loop episode of ``agent_name`` on the env with seed ``seed``.
 
-    The env is ``gym.make("lfm_env/SineTrack-v0", config=config)`` reset with ``seed``;
-    the agent's own randomness is seeded with :func:`agent_seed` (paired design). The
-    oracle (an upper bound that reads the hidden truth) is given the env.
+    The env is the config's world, ``gym.make(cfg.env_id, config=cfg.env)``, reset with
+    ``seed``; the agent's own randomness is seeded with :func:`agent_seed` (paired
+    design). The oracle (an upper bound that reads the hidden truth) is given the env.
 
     Args:
-        agent_name: ``"nominal"``, ``"pf"``, ``"scenario"`` or ``"oracle"``.
-        config: a YAML path, a dict (whole file) or ``None`` (paper defaults).
+        agent_name: ``"nominal"``, ``"pf"``, ``"scenario"``, ``"oracle"``, ... (the
+            agent registry).
+        config: a YAML path, a dict (whole file), an ``ExperimentConfig`` or ``None``
+            (paper defaults).
         seed: env seed, an integer >= 0.
         record: return the trajectory; ``False`` gives an empty dict.
 
     Returns:
-        ``(row, trajectory)``. ``row`` maps :data:`ROW_COLUMNS` to values. With ``T``
-        steps the trajectory holds ``true_state (T+1, 4)``, ``obs (T+1, 4)`` (noisy
-        measurement of ``true_state``), ``time (T+1,)`` [s], ``action (T, 2)`` (applied),
-        ``disturbance (T,)`` (w [m/s^2] acting during step k), ``reward (T,)``,
-        ``estimate (T, d)`` and ``estimate_std (T, d)`` (the agent's state estimate from
-        ``obs[k]``; ``d`` = 4, or 4 + latent states for filter agents),
-        ``latent_force_est (T,)`` and ``latent_force_std (T,)`` (its estimate of
-        ``disturbance[k]``; NaN without a filter), ``predicted (T, N+1, 4)`` (first
-        scenario's predicted states), ``solve_time (T,)`` [s], ``slack (T,)``,
-        ``solver_success (T,)``, ``fallback (T,)`` ('' or the fallback used), and
-        ``track_excess``, ``speed_excess``, ``x_excess (T,)`` of the state after step k.
+        ``(row, trajectory)``. ``row`` maps :func:`row_columns` of the config's system to
+        values. With ``T`` steps, ``nx`` states, ``nu`` inputs and ``nw`` force components
+        (in the units of the system's ``state_names``, ``input_names`` and
+        ``force_names``), the trajectory holds ``true_state (T+1, nx)``, ``obs (T+1, nx)``
+        (noisy measurement of ``true_state``), ``time (T+1,)`` [s], ``action (T, nu)``
+        (applied), ``disturbance`` (the force acting during step k: ``(T,)`` when
+        ``nw == 1``, else ``(T, nw)``), ``reward (T,)``, ``estimate (T, d)`` and
+        ``estimate_std (T, d)`` (the agent's state estimate from ``obs[k]``; ``d`` = nx,
+        or nx + latent states for filter agents), ``latent_force_est`` and
+        ``latent_force_std`` (its estimate of ``disturbance[k]``, shaped like it; NaN
+        without a filter), ``predicted (T, N+1, nx)`` (first scenario's predicted
+        states), ``solve_time (T,)`` [s], ``slack (T,)``, ``solver_success (T,)``,
+        ``fallback (T,)`` ('' or the fallback used), and ``<group>_excess (T,)`` per
+        constraint group of the system (its largest excess after step k, in its unit;
+        ``track_excess``, ``x_excess``, ``speed_excess`` on the sine track).
 
     Raises:
         ValueError: unknown agent name or negative seed; any error of the episode itself
@@ -450,7 +516,7 @@ def run_episode(
     arrays = rec.arrays()
     row = {"agent": agent_name, "seed": seed, **_episode_metrics(rec, arrays)}
     row.update(wall_time=time.perf_counter() - t0, error="")
-    return {c: row[c] for c in ROW_COLUMNS}, (arrays if record else {})
+    return {c: row[c] for c in rec.columns}, (arrays if record else {})
 
 
 # --------------------------------------------------------------------------- storage
@@ -501,7 +567,7 @@ def save_episode(
 
     Args:
         out: the results folder.
-        row: the episode's row (:data:`ROW_COLUMNS`).
+        row: the episode's row (:func:`row_columns`, in that order).
         trajectory: arrays for the npz; ``None`` writes the json only.
         traceback_text: the traceback of a failed episode, kept in the json.
 
@@ -512,7 +578,7 @@ def save_episode(
     stem = episode_stem(row["agent"], row["seed"])
     if trajectory is not None:
         _atomic_write(folder / f"{stem}.npz", lambda fh: np.savez_compressed(fh, **trajectory))
-    record = {c: _json_value(row[c]) for c in ROW_COLUMNS}
+    record = {c: _json_value(v) for c, v in row.items()}
     record["agent_seed"] = agent_seed(row["seed"], row["agent"])
     record["traceback"] = traceback_text
     text = json.dumps(record, indent=1, allow_nan=False) + "\n"
@@ -521,10 +587,19 @@ def save_episode(
     return json_path
 
 
+_JSON_EXTRAS = ("agent_seed", "traceback")  # keys of an episode json that are not columns
+
+
 def _normalise_row(record: dict[str, Any]) -> dict[str, Any]:
-    """A row with NaN for missing numbers and Python types per column."""
+    """A row with NaN for missing numbers and Python types per column.
+
+    The columns are the fixed ones (missing ones NaN) around whatever constraint-group
+    columns the record holds, in its order: a folder of any system, or of an older
+    version with other groups, reads as it was written.
+    """
+    columns = _table_columns([{k: None for k in record if k not in _JSON_EXTRAS}])
     row: dict[str, Any] = {}
-    for c in ROW_COLUMNS:
+    for c in columns:
         v = record.get(c)
         if c in _STR_COLUMNS:
             row[c] = "" if v is None else str(v)
@@ -532,7 +607,7 @@ def _normalise_row(record: dict[str, Any]) -> dict[str, Any]:
             row[c] = math.nan
         elif c in _BOOL_COLUMNS:
             row[c] = bool(v)
-        elif c in _INT_COLUMNS:
+        elif c in _INT_COLUMNS or c.endswith(_VIOLATION_SUFFIX):
             row[c] = int(v)
         else:
             row[c] = float(v)
@@ -574,13 +649,35 @@ def _csv_value(v: Any) -> str:
     return str(v)
 
 
-def write_table(out: str | os.PathLike) -> Path:
-    """Rebuild ``out/episodes.csv`` from every episode json (sorted by agent, seed)."""
+def _folder_columns(out: Path) -> tuple[str, ...] | None:
+    """:func:`row_columns` of the system in the folder's ``config.yaml``; ``None`` without one."""
+    path = out / _CONFIG
+    if not path.is_file():
+        return None
+    try:
+        return row_columns(resolve_config(load_yaml(path)).make_system())
+    except ValueError:
+        return None
+
+
+def write_table(out: str | os.PathLike, columns: Sequence[str] | None = None) -> Path:
+    """Rebuild ``out/episodes.csv`` from every episode json (sorted by agent, seed).
+
+    Args:
+        out: the results folder.
+        columns: the table's columns in order; ``None`` for :func:`row_columns` of the
+            system in the folder's ``config.yaml`` (without one: the columns the saved
+            rows hold). A column a row lacks (e.g. a group added since it was saved) is
+            written as ``nan``.
+    """
+    rows = load_results(out)
+    if columns is None:
+        columns = _folder_columns(Path(out)) or _table_columns(rows)
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(ROW_COLUMNS)
-    for row in load_results(out):
-        writer.writerow([_csv_value(row[c]) for c in ROW_COLUMNS])
+    writer.writerow(columns)
+    for row in rows:
+        writer.writerow([_csv_value(row.get(c, math.nan)) for c in columns])
     path = Path(out) / _TABLE
     _atomic_write(path, lambda fh: fh.write(buf.getvalue().encode()))
     return path
@@ -656,10 +753,11 @@ def _episode_task(
         arrays = rec.arrays()
         row = {"agent": agent_name, "seed": seed, **_episode_metrics(rec, arrays)}
         row.update(wall_time=time.perf_counter() - t0, error="")
-        row = {c: row[c] for c in ROW_COLUMNS}
+        row = {c: row[c] for c in rec.columns}
     except Exception as exc:  # one bad episode must not stop the others
         tb = traceback.format_exc()
-        row = _error_row(agent_name, seed, _one_line(exc), time.perf_counter() - t0)
+        wall_time = time.perf_counter() - t0
+        row = _error_row(agent_name, seed, _one_line(exc), wall_time, rec.columns)
         try:
             arrays = rec.arrays()  # the steps done before the error, for debugging
         except Exception:
@@ -762,9 +860,10 @@ def evaluate(
         retry_failed: re-run saved episodes whose ``error`` is not empty.
 
     Returns:
-        The rows (:data:`ROW_COLUMNS`) of the requested episodes, sorted by (agent,
-        seed), including those loaded from ``out``. Trajectories are not kept in memory;
-        read them with :func:`load_trajectory`, all rows with :func:`load_results`.
+        The rows (:func:`row_columns` of the config's system) of the requested episodes,
+        sorted by (agent, seed), including those loaded from ``out``. Trajectories are not
+        kept in memory; read them with :func:`load_trajectory`, all rows with
+        :func:`load_results`.
 
     Raises:
         ValueError: unknown agents, empty or negative seeds, a bad config, conflicting
@@ -774,6 +873,7 @@ def evaluate(
     names = _check_agents(agents)
     seed_list = _check_seeds(seeds)
     cfg = resolve_config(config, names)
+    columns = row_columns(cfg.make_system())
     modes = sum([jobs != 1, scheduler is not None, dask_workers is not None])
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"jobs={jobs!r}: must be an integer >= 1")
@@ -824,7 +924,7 @@ def evaluate(
             if n_errors:
                 bar.set_postfix(errors=n_errors)
             if out_path is not None and time.monotonic() - last_table > _TABLE_REFRESH:
-                write_table(out_path)
+                write_table(out_path, columns)
                 last_table = time.monotonic()
 
         def lost(pair: tuple[str, int], exc: BaseException) -> dict[str, Any]:
@@ -834,7 +934,7 @@ def evaluate(
                 saved = _finished_row(out_path, pair[0], pair[1], record)
                 if saved is not None and saved["error"] == "":
                     return saved
-            row = _error_row(pair[0], pair[1], _one_line(exc), math.nan)
+            row = _error_row(pair[0], pair[1], _one_line(exc), math.nan, columns)
             if out_path is not None:
                 save_episode(out_path, row, None, "".join(traceback.format_exception(exc)))
             return row
@@ -897,21 +997,24 @@ def evaluate(
     if out_path is not None:
         # A worker killed mid-write (then rerun elsewhere) leaves its temporary file.
         _remove_stale_temp_files(out_path)
-        write_table(out_path)
+        write_table(out_path, columns)
     return sorted((rows[p] for p in pairs), key=lambda r: (r["agent"], r["seed"]))
 
 
 __all__ = [
-    "ROW_COLUMNS",
+    "HEAD_COLUMNS",
+    "TAIL_COLUMNS",
     "TIMING_COLUMNS",
     "ResultsFolderError",
     "agent_seed",
     "evaluate",
     "episode_stem",
+    "group_columns",
     "load_results",
     "load_trajectory",
     "parse_seeds",
     "resolve_config",
+    "row_columns",
     "run_episode",
     "save_episode",
     "write_table",

@@ -1,11 +1,17 @@
 """A report of saved evaluation results: tables with bootstrap CIs, paired differences,
-the paper's figures, across-seed plots, an episode GIF and "paper vs measured".
+one episode's figures, across-seed plots, an episode GIF and, for the paper's sine
+track, "paper vs measured".
 
 Reads a results folder written by the evaluation (it never re-runs an episode):
 
 * ``DIR/episodes.csv``: one row per (agent, seed) with the episode metrics;
 * ``DIR/episodes/<agent>__seed<seed>.npz``: the arrays of that episode;
-* ``DIR/config.yaml``: the config of the run (``env`` and ``agents`` sections).
+* ``DIR/config.yaml``: the config of the run (``env_id``, ``env`` and ``agents``).
+
+Everything world-specific comes from the config's system
+(:class:`~lfm_env.system.ControlSystem`): the constraint-group metrics and their units in
+the tables, and the figures (:mod:`experiments.plots`). Only the "paper vs measured"
+section is the sine track's own, and it is left out for other worlds.
 
 :func:`write_report` writes ``report.md`` and ``report.html`` (the same content) into the
 folder and the figures into ``DIR/figures/``.
@@ -19,13 +25,15 @@ import math
 import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from experiments import plots
-from lfm_env.config import EnvConfig, load_env_config, load_yaml
+from lfm_env.config import WorldConfig, load_env_config, load_yaml
+from lfm_env.system import ControlSystem
 
 REFERENCE_AGENT = "scenario"
 KNOWN_AGENT_ORDER = ("nominal", "pf", "scenario", "scenario_particles", "oracle")
@@ -39,6 +47,7 @@ AGENT_SHORT_LABELS = {
     "oracle": "oracle (upper bound)",
 }
 
+PAPER_ENV_ID = "lfm_env/SineTrack-v0"  # the paper's world: "paper vs measured" only there
 PAPER_SPEED_EXCESS = 0.35  # [m/s] largest speed excess over the bound reported in the paper
 BOOTSTRAP_RESAMPLES = 2000
 BOOTSTRAP_SEED = 0
@@ -60,41 +69,53 @@ class Metric:
         return f"{self.label} [{self.unit}]" if self.unit else self.label
 
 
-SUMMARY_METRICS = (
-    Metric("success", "success rate", lower_is_better=False),
-    Metric("failure", "failure rate (left the safety box)"),
-    Metric("time_to_goal", "time to goal (successful episodes)", "s"),
-    Metric("cost", "cost (sum of stage costs)"),
-    Metric("track_violation_steps", "track violation steps", "steps"),
-    Metric("max_track_excess", "max track excess", "m"),
-    Metric("speed_violation_steps", "speed violation steps", "steps"),
-    Metric("max_speed_excess", "max speed excess", "m/s"),
-    Metric("latent_rmse", "latent-force RMSE", "m/s^2"),
-    Metric("latent_coverage", "latent-force 2-sigma coverage", lower_is_better=False),
-    Metric("solve_time_median", "solve time, episode median", "s"),
-    Metric("solve_time_p95", "solve time, episode p95", "s"),
-    Metric("solver_failures", "solver failures", "steps"),
-    Metric("fallback_steps", "fallback steps", "steps"),
-    Metric("filter_resets", "particle-filter restarts", "per episode"),
-)
+def group_metrics(system: ControlSystem) -> tuple[Metric, ...]:
+    """Per constraint group ``g`` of the system: violation steps, then the largest excess.
 
-PAIRED_METRICS = (
-    Metric("cost", "cost", fewer="a lower cost"),
-    Metric("max_speed_excess", "max speed excess", "m/s", fewer="a smaller max speed excess"),
-    Metric(
-        "speed_violation_steps",
-        "speed violation steps",
-        "steps",
-        fewer="fewer speed violation steps",
-    ),
-    Metric(
-        "track_violation_steps",
-        "track violation steps",
-        "steps",
-        fewer="fewer track violation steps",
-    ),
-    Metric("time_to_goal", "time to goal", "s", fewer="a shorter time to goal"),
-)
+    The columns are the evaluation's (``{g}_violation_steps``, ``max_{g}_excess``); the
+    excess is in the unit of the group's constraints (``system.constraint_names``).
+    """
+    out = []
+    for g in system.constraint_groups:
+        unit = plots.group_unit(system, g)
+        out.append(Metric(f"{g}_violation_steps", f"{g} violation steps", "steps"))
+        out.append(Metric(f"max_{g}_excess", f"max {g} excess", unit))
+    return tuple(out)
+
+
+def summary_metrics(system: ControlSystem) -> tuple[Metric, ...]:
+    """The rows of the per-agent table for a system: its group metrics among the fixed ones."""
+    force = plots.force_unit(system)
+    return (
+        Metric("success", "success rate", lower_is_better=False),
+        Metric("failure", "failure rate (the env ended the episode as a failure)"),
+        Metric("time_to_goal", "time to goal (successful episodes)", "s"),
+        Metric("cost", "cost (sum of stage costs)"),
+        *group_metrics(system),
+        Metric("latent_rmse", "latent-force RMSE", force),
+        Metric("latent_coverage", "latent-force 2-sigma coverage", lower_is_better=False),
+        Metric("solve_time_median", "solve time, episode median", "s"),
+        Metric("solve_time_p95", "solve time, episode p95", "s"),
+        Metric("solver_failures", "solver failures", "steps"),
+        Metric("fallback_steps", "fallback steps", "steps"),
+        Metric("filter_resets", "particle-filter restarts", "per episode"),
+    )
+
+
+def paired_metrics(system: ControlSystem) -> tuple[Metric, ...]:
+    """The columns of the paired-difference table: cost, each group's metrics, time to goal."""
+    groups = []
+    for m in group_metrics(system):
+        if m.column.startswith("max_"):
+            groups.append(Metric(m.column, m.label, m.unit, fewer=f"a smaller {m.label}"))
+        else:
+            groups.append(Metric(m.column, m.label, m.unit, fewer=f"fewer {m.label}"))
+    return (
+        Metric("cost", "cost", fewer="a lower cost"),
+        *groups,
+        Metric("time_to_goal", "time to goal", "s", fewer="a shorter time to goal"),
+    )
+
 
 _TEXT_COLUMNS = ("agent", "error")
 _FALSY = ("", "0", "0.0", "false", "no", "none", "nan")
@@ -109,8 +130,13 @@ class Results:
 
     directory: Path
     rows: list[dict[str, Any]]  # one per episode; numbers as float, agent/error as str
-    config: EnvConfig
+    config: WorldConfig  # the ``env`` section, as the config of the file's world (env_id)
     agent_settings: dict = field(default_factory=dict)  # the ``agents`` section, plain
+
+    @cached_property
+    def system(self) -> ControlSystem:
+        """The world's system (labels, units, constraints, groups) of the run."""
+        return self.config.make_system()
 
     @property
     def agents(self) -> list[str]:
@@ -210,7 +236,7 @@ def load_results(results_dir: str | Path) -> Results:
     rows = read_episodes_csv(directory / "episodes.csv")
     config_path = directory / "config.yaml"
     if not config_path.is_file():
-        raise FileNotFoundError(f"no config.yaml in {directory} (needed for dt and the track)")
+        raise FileNotFoundError(f"no config.yaml in {directory} (needed for dt and the system)")
     config = load_env_config(config_path)
     agents_section = load_yaml(config_path).get("agents") or {}
     return Results(directory, rows, config, dict(agents_section))
@@ -274,12 +300,18 @@ def bootstrap_ci(
     return Estimate(mean, float(min(low, mean)), float(max(high, mean)), n)
 
 
-def summarize(results: Results, metrics: Sequence[Metric] = SUMMARY_METRICS) -> dict:
+def summarize(results: Results, metrics: Sequence[Metric] | None = None) -> dict:
     """Per agent and metric, the mean and bootstrap CI over error-free episodes.
+
+    Args:
+        results: the loaded results.
+        metrics: the metrics; ``None`` for :func:`summary_metrics` of the run's system.
 
     Returns:
         ``{agent: {column: Estimate}}``; a column missing from the table gives NaNs.
     """
+    if metrics is None:
+        metrics = summary_metrics(results.system)
     out = {}
     for agent in results.agents:
         rows = results.rows_of(agent)
@@ -496,10 +528,12 @@ def _model_section(doc: Document, results: Results) -> None:
     doc.heading("Latent force: hidden truth and the agents' model")
     fields = ("kernel", "nu", "variance", "lengthscale", "discretization")
     if not belief:
+        unit = plots.force_unit(results.system)
+        variance = f"variance {true.variance:g}" + (f" ({unit})^2" if unit else "")
+        scale = f"lengthscale {true.lengthscale:g}" + ("" if true.kernel == "periodic" else " s")
         doc.paragraph(
             f"The agents know the hidden force's hyperparameters a priori, as in the paper: "
-            f"{true.kernel} kernel, variance {true.variance:g} (m/s^2)^2, lengthscale "
-            f"{true.lengthscale:g} s."
+            f"{true.kernel} kernel, {variance}, {scale}."
         )
         return
     doc.paragraph(
@@ -528,7 +562,7 @@ def _summary_section(doc: Document, results: Results, stats: dict) -> None:
     header = ["metric"] + [agent_label(a) for a in agents]
     rows = []
     n_ok = {a: len(results.rows_of(a)) for a in agents}
-    for m in SUMMARY_METRICS:
+    for m in summary_metrics(results.system):
         rows.append([m.title] + [fmt_estimate(stats[a][m.column], n_ok[a]) for a in agents])
     rows.append(["episodes (error-free)"] + [str(n_ok[a]) for a in agents])
     rows.append(
@@ -568,11 +602,12 @@ def _paired_section(doc: Document, results: Results) -> list[PairedDifference]:
         f"is lower than {REFERENCE_AGENT}'s. Only seeds where both episodes are error-free "
         "and the metric is defined count."
     )
-    header = ["agent"] + [m.title for m in PAIRED_METRICS]
+    metrics = paired_metrics(results.system)
+    header = ["agent"] + [m.title for m in metrics]
     rows, diffs, reading = [], [], []
     for agent in others:
         row = [agent_label(agent)]
-        for m in PAIRED_METRICS:
+        for m in metrics:
             d = paired_differences(results, m.column, agent)
             diffs.append(d)
             n = len(d.seeds)
@@ -580,7 +615,7 @@ def _paired_section(doc: Document, results: Results) -> list[PairedDifference]:
         rows.append(row)
     doc.table(header, rows)
     for agent in others:
-        for m in PAIRED_METRICS:
+        for m in metrics:
             d = next(x for x in diffs if x.agent == agent and x.metric == m.column)
             n = len(d.seeds)
             if n == 0:
@@ -597,6 +632,7 @@ def _paired_section(doc: Document, results: Results) -> list[PairedDifference]:
 
 
 def _paper_vs_measured_section(doc: Document, results: Results, solve_times: np.ndarray) -> None:
+    """The paper's reported results beside the measured distribution (sine track only)."""
     doc.heading("Paper vs measured")
     agent = REFERENCE_AGENT
     rows = results.rows_of(agent)
@@ -686,22 +722,40 @@ def _metric_values(results: Results, column: str) -> dict[str, np.ndarray]:
     }
 
 
+def _goal(results: Results) -> tuple[np.ndarray, float | None]:
+    """The task's goal state (SI units) and, if the world has one, its goal radius.
+
+    A world whose success is reaching a disc (a ``goal`` position in the plane of the
+    first two states and a ``goal_radius``, as both the sine track and the quadrotor
+    have) gets that disc drawn; otherwise the cost's goal state is marked.
+    """
+    cfg = results.config
+    goal_state = np.array(cfg.goal_state_rad, dtype=float)
+    goal, radius = getattr(cfg, "goal", None), getattr(cfg, "goal_radius", None)
+    if goal is not None and np.shape(goal) == (2,) and radius is not None:
+        goal_state[:2] = goal
+        return goal_state, float(radius)
+    return goal_state, None
+
+
 def _figures_section(doc: Document, results: Results, figure_seed: int | None, gif: bool) -> None:
     fig_dir = results.directory / "figures"
     fig_dir.mkdir(exist_ok=True)
     cfg = results.config
+    system = results.system
     agents = results.agents
     main_agent = _main_agent(results)
 
     doc.heading("Across seeds")
-    dists = {
-        "max track excess [m]": _metric_values(results, "max_track_excess"),
-        "track violation steps": _metric_values(results, "track_violation_steps"),
-        "max speed excess [m/s]": _metric_values(results, "max_speed_excess"),
-        "speed violation steps": _metric_values(results, "speed_violation_steps"),
-        "cost (log scale)": _metric_values(results, "cost"),
-        "time to goal [s] (successes)": _metric_values(results, "time_to_goal"),
-    }
+    dists = {}
+    for g in system.constraint_groups:
+        unit = plots.group_unit(system, g)
+        dists[f"max {g} excess" + (f" [{unit}]" if unit else "")] = _metric_values(
+            results, f"max_{g}_excess"
+        )
+        dists[f"{g} violation steps"] = _metric_values(results, f"{g}_violation_steps")
+    dists["cost (log scale)"] = _metric_values(results, "cost")
+    dists["time to goal [s] (successes)"] = _metric_values(results, "time_to_goal")
     fig = plots.metric_distributions_figure(dists, agents, log_scale=["cost (log scale)"])
     plots.save_figure(fig, fig_dir / "metrics_by_agent.png")
     doc.image(
@@ -720,7 +774,7 @@ def _figures_section(doc: Document, results: Results, figure_seed: int | None, g
         f"Solve time per MPC step (log scale) against the sampling time {cfg.dt:g} s.",
     )
 
-    doc.heading("One episode, as in the paper's figures")
+    doc.heading("One episode")
     if figure_seed is None:
         figure_seed = _default_figure_seed(results, main_agent)
     if figure_seed is None:
@@ -740,51 +794,64 @@ def _figures_section(doc: Document, results: Results, figure_seed: int | None, g
             if t is not None:
                 same_seed[a] = t
     label = agent_label(main_agent)
+    goal_state, goal_radius = _goal(results)
+    names = system.state_labels
     doc.paragraph(
         f"Env seed {figure_seed}, agent {label} (the default is the smallest seed with a "
-        f"saved `{main_agent}` trajectory). Time in seconds, dt = {cfg.dt:g} s."
+        f"saved `{main_agent}` trajectory), on the `{system.name}` system. Time in seconds, "
+        f"dt = {cfg.dt:g} s. The figures are drawn from the system's definition: its state, "
+        "input and force names, its input bounds and its constraint functions."
+    )
+    region = (
+        "infeasible region of the constraints on these two states shaded, their bounds "
+        "dashed (evaluated with the other states at the goal state)"
     )
     captions = {
-        "trajectory": "Trajectory on the track: true path (green dashed), estimate (red) with "
-        "2-sigma ellipses, track bounds (black dashed), goal disc.",
+        "trajectory": f"Trajectory in the plane {names[0]} / {names[1]}: true path (green "
+        f"dashed), estimate (red) with 2-sigma ellipses, goal; {region}.",
         "latent_force": "Latent force: true (dashed) and estimated with its 2-sigma band.",
-        "acceleration": "Acceleration input against the disturbance w and -w: a on -w would "
-        "cancel the force exactly.",
-        "speed": "Speed: true (dashed) and estimated with its 2-sigma band; bounds dashed.",
+        "inputs": "Inputs with their bounds (dash-dotted); a force in an input's unit is "
+        "drawn beside it with its negative: an input on -w would cancel the force exactly.",
+        "states": "The other states: true (dashed) and estimated with the 2-sigma band; "
+        "bounds on a state alone dashed, their infeasible side shaded.",
+        "constraints": "Largest excess of each constraint group over time (0: inside).",
     }
-    for name, fig in plots.episode_figures(traj, cfg, label).items():
+    figures = plots.episode_figures(
+        traj, system, cfg.dt, goal_state=goal_state, goal_radius=goal_radius, label=label
+    )
+    for name, fig in figures.items():
         rel = f"figures/seed{figure_seed}_{main_agent}_{name}.png"
         plots.save_figure(fig, results.directory / rel)
-        doc.image(rel, captions[name])
+        doc.image(rel, captions.get(name, name))
 
     if len(same_seed) > 1:
         doc.paragraph("All agents on the same seed (same disturbance and noise):")
         fig = plots.paths_figure(
-            cfg.track,
+            system,
             {
                 agent_label(a): (t["true_state"], plots.agent_colour(a))
                 for a, t in same_seed.items()
             },
-            goal=cfg.goal,
-            goal_radius=cfg.goal_radius,
+            goal_state=goal_state,
+            goal_radius=goal_radius,
             title=f"True paths of all agents, seed {figure_seed}",
         )
         rel = f"figures/seed{figure_seed}_agents_trajectory.png"
         plots.save_figure(fig, results.directory / rel)
         doc.image(rel, "True paths of all agents on the same seed (x: end of the episode).")
-        fig = plots.speeds_figure(
+        fig = plots.constraint_excess_figure(
+            system,
             cfg.dt,
             {
-                agent_label(a): (t["true_state"][:, 2], plots.agent_colour(a))
+                agent_label(a): (plots.group_excess_of(t, system), plots.agent_colour(a))
                 for a, t in same_seed.items()
             },
-            speed_min=cfg.speed_min,
-            speed_max=cfg.speed_max,
-            title=f"True speeds of all agents, seed {figure_seed}",
+            title=f"Constraint excess of all agents, seed {figure_seed}",
         )
-        rel = f"figures/seed{figure_seed}_agents_speed.png"
-        plots.save_figure(fig, results.directory / rel)
-        doc.image(rel, "True speeds of all agents on the same seed.")
+        if fig is not None:
+            rel = f"figures/seed{figure_seed}_agents_constraints.png"
+            plots.save_figure(fig, results.directory / rel)
+            doc.image(rel, "Constraint-group excess of all agents on the same seed.")
 
     if gif:
         frames = plots.replay_frames(traj["true_state"], cfg, caption=label)
@@ -793,7 +860,7 @@ def _figures_section(doc: Document, results: Results, figure_seed: int | None, g
         doc.image(
             rel,
             f"The episode replayed from its saved true states ({len(frames)} frames, "
-            f"{1.0 / cfg.dt:g} frames/s), drawn by the env's renderer.",
+            f"{1.0 / cfg.dt:g} frames/s), drawn by the world's own scene.",
         )
 
 
@@ -838,7 +905,8 @@ def write_report(results_dir: str | Path, figure_seed: int | None = None, gif: b
     seeds = sorted({r["seed"] for r in results.rows})
     doc.paragraph(
         f"{n_eps} episodes of {len(results.agents)} agents on {len(seeds)} env seeds "
-        f"({seeds[0]}..{seeds[-1]}); {_settings_text(results)}. On one env seed every agent "
+        f"({seeds[0]}..{seeds[-1]}) of the world `{results.config.ENV_ID}` (system "
+        f"`{results.system.name}`); {_settings_text(results)}. On one env seed every agent "
         "faces the same hidden disturbance and noise. Agents:"
     )
     doc.bullets([f"`{a}`: {_long_label(a)}" for a in results.agents])
@@ -846,7 +914,8 @@ def write_report(results_dir: str | Path, figure_seed: int | None = None, gif: b
     _summary_section(doc, results, stats)
     _errors_section(doc, results)
     _paired_section(doc, results)
-    _paper_vs_measured_section(doc, results, _pooled_solve_times(results, REFERENCE_AGENT))
+    if results.config.ENV_ID == PAPER_ENV_ID:
+        _paper_vs_measured_section(doc, results, _pooled_solve_times(results, REFERENCE_AGENT))
     _figures_section(doc, results, figure_seed, gif)
 
     md_path = results.directory / "report.md"
@@ -857,6 +926,7 @@ def write_report(results_dir: str | Path, figure_seed: int | None = None, gif: b
 
 __all__ = [
     "AGENT_SHORT_LABELS",
+    "Metric",
     "Estimate",
     "PairedDifference",
     "Results",
@@ -864,8 +934,11 @@ __all__ = [
     "bootstrap_ci",
     "load_results",
     "load_trajectory",
+    "group_metrics",
     "paired_differences",
+    "paired_metrics",
     "read_episodes_csv",
     "summarize",
+    "summary_metrics",
     "write_report",
 ]

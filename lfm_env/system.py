@@ -350,6 +350,14 @@ class ControlSystem:
             self._cache["g"] = ca.Function("g", [x], [g], ["x"], ["g"])
         return self._cache["g"]
 
+    def constraint_jacobian(self, x: Any) -> np.ndarray:
+        """``dg/dx`` ``(ng, nx)`` at one state ``(nx,)``, from the CasADi expression."""
+        if "dg" not in self._cache:
+            xs = ca.SX.sym("x", self.nx)
+            g = self.casadi_constraints()(xs)
+            self._cache["dg"] = ca.Function("dg", [xs], [ca.jacobian(g, xs)], ["x"], ["dg"])
+        return np.asarray(self._cache["dg"](np.asarray(x, dtype=float)).full(), dtype=float)
+
     def __getstate__(self) -> dict[str, Any]:
         # CasADi functions are rebuilt on demand after unpickling (e.g. in a worker).
         state = self.__dict__.copy()

@@ -149,7 +149,14 @@ class CondensedModel:
         uk = u.reshape(self.n, self.nu)
         return float(np.einsum("ka,ab,kb->", uk, self.problem.cost.R, uk))
 
-    def evaluate(self, x0T: np.ndarray, W: np.ndarray, u: np.ndarray, cost0: float) -> Rollout:
+    def evaluate(
+        self,
+        x0T: np.ndarray,
+        W: np.ndarray,
+        u: np.ndarray,
+        cost0: float,
+        backoff: np.ndarray | None = None,
+    ) -> Rollout:
         """Rollout of all scenarios and the exact-penalty merit.
 
         Args:
@@ -157,6 +164,7 @@ class CondensedModel:
             W: forces ``(N, Ns, nw)``.
             u: flattened inputs ``(N nu,)``.
             cost0: :meth:`state_cost0` of the initial states.
+            backoff: constraint tightening ``(ng, N, 1)`` added to every scenario's values.
         """
         p, model = self.problem, self.problem.model
         n, nu, ns = self.n, self.nu, x0T.shape[1]
@@ -169,6 +177,8 @@ class CondensedModel:
             G = np.ascontiguousarray(
                 np.moveaxis(p.system.constraint_values(X[1:].transpose(0, 2, 1)), -1, 0)
             )
+            if backoff is not None:
+                G += backoff
             slack = float(np.maximum(G.max(axis=2), 0.0).sum())
         else:
             G = np.zeros((0, n, ns))

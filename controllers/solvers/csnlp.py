@@ -94,6 +94,7 @@ class CsnlpScenarioSolver:
         )
         mpc.disturbance("w", nw)
         s = mpc.nlp.variable("s", (ng, n), lb=0.0)[0] if ng else None
+        b = mpc.nlp.parameter("backoff", (ng, n)) if ng else None  # tightening, shared
 
         # --- dynamics ---
         # Serial map: SX graphs are expanded anyway, and threads would only add noise here.
@@ -104,7 +105,7 @@ class CsnlpScenarioSolver:
             g = system.casadi_constraints().map(n)(x[:, 1:])
             # The right-hand side s is not a single-scenario symbol, so csnlp's per-scenario
             # substitution leaves it shared by all scenarios.
-            mpc.constraint_from_single("g", g, "<=", s)
+            mpc.constraint_from_single("g", g + b, "<=", s)
 
         # --- objective ---
         f = sum(cost.state_cost(x[:, k]) for k in range(n)) + cost.terminal_cost(x[:, n])
@@ -126,7 +127,11 @@ class CsnlpScenarioSolver:
         self._prev_u = None
 
     def solve(
-        self, x0: np.ndarray, W: np.ndarray, u_guess: np.ndarray | None = None
+        self,
+        x0: np.ndarray,
+        W: np.ndarray,
+        u_guess: np.ndarray | None = None,
+        backoff: np.ndarray | None = None,
     ) -> MPCSolution:
         """Solve for initial state ``x0`` and latent forces ``W``, warm-started like IPOPT's.
 
@@ -138,6 +143,8 @@ class CsnlpScenarioSolver:
             x0: initial state in the states' units, ``(nx,)`` or ``(Ns, nx)`` with equal rows.
             W: latent forces ``(Ns, N, nw)`` (or ``(Ns, N)`` when ``nw == 1``).
             u_guess: initial inputs ``(N, nu)``; by default the previous solution shifted.
+            backoff: constraint tightening ``(N, ng)`` or ``(ng,)``, ``>= 0``; ``None`` for
+                none.
 
         Returns:
             The solution; ``u`` is clipped into the input bounds, and ``objective`` and
@@ -156,6 +163,7 @@ class CsnlpScenarioSolver:
                 f"give ({problem.nx},) or equal rows"
             )
         x0 = x0_all[0]
+        b = problem.check_backoff(backoff)
         if u_guess is not None:
             u0 = problem.check_inputs(u_guess, "u_guess")
         elif self._prev_u is not None:
@@ -168,7 +176,8 @@ class CsnlpScenarioSolver:
         pars: dict[str, np.ndarray] = {"x_0": x0.reshape(-1, 1)}
         vals0: dict[str, np.ndarray] = {"u": u0.T}
         if problem.ng:
-            vals0["s"] = problem.minimal_slack(X).T
+            vals0["s"] = problem.minimal_slack(X, b).T
+            pars["backoff"] = np.zeros((problem.ng, n)) if b is None else b.T
         for i in range(problem.n_scenarios):
             pars[f"w__{i}"] = W[i].T
             if self.shooting == "multi":
@@ -189,8 +198,8 @@ class CsnlpScenarioSolver:
         stats = sol.stats
         return MPCSolution(
             u=u,
-            objective=problem.objective(x0, W, u),
-            slack=float(np.sum(problem.minimal_slack(predicted))),
+            objective=problem.objective(x0, W, u, b),
+            slack=float(np.sum(problem.minimal_slack(predicted, b))),
             status=str(sol.status),
             success=bool(sol.success),
             solve_time=solve_time,

@@ -212,7 +212,11 @@ class FastScenarioSolver:
         self.model = self.model_class(self.problem)
 
     def solve(
-        self, x0: np.ndarray, W: np.ndarray, u_guess: np.ndarray | None = None
+        self,
+        x0: np.ndarray,
+        W: np.ndarray,
+        u_guess: np.ndarray | None = None,
+        backoff: np.ndarray | None = None,
     ) -> MPCSolution:
         """Solve the scenario problem for initial state(s) ``x0`` and latent forces ``W``.
 
@@ -221,6 +225,8 @@ class FastScenarioSolver:
             W: latent forces ``(Ns, N, nw)`` (or ``(Ns, N)`` for one component).
             u_guess: initial input sequence ``(N, nu)``; by default the previous solution
                 shifted by one step (zeros clipped into the bounds on the first solve).
+            backoff: constraint tightening ``(N, ng)`` or ``(ng,)``, ``>= 0``
+                (:meth:`ScenarioProblem.check_backoff`); ``None`` for none.
 
         Returns:
             The solution: ``u`` inside the input bounds; ``objective``, ``slack`` and
@@ -249,6 +255,7 @@ class FastScenarioSolver:
         t_start = time.perf_counter()
         problem, n, nu = self.problem, self.problem.horizon, self.problem.nu
         x0, W = problem.check_data(x0, W)
+        b = problem.check_backoff(backoff)
         if u_guess is not None:
             u0 = problem.check_inputs(u_guess, "u_guess").ravel()
         elif self._prev_u is not None:
@@ -262,6 +269,7 @@ class FastScenarioSolver:
             W=np.ascontiguousarray(W.transpose(1, 0, 2)),
             W_lanes=np.ascontiguousarray(W.transpose(2, 1, 0)),
             cost0=self.model.state_cost0(x0),
+            backoff=None if b is None else np.ascontiguousarray(b.T[:, :, None]),
         )
         ro, status, success, iterations, extra = self._sqp(data, u0)
         extra["restarts"] = {}
@@ -588,7 +596,7 @@ class FastScenarioSolver:
 
         def evaluate(u: np.ndarray) -> Rollout:
             with np.errstate(all="ignore"):
-                return model.evaluate(data.x0T, data.W, u, data.cost0)
+                return model.evaluate(data.x0T, data.W, u, data.cost0, data.backoff)
 
         ro = evaluate(u0)
         if not math.isfinite(ro.merit):
@@ -706,6 +714,7 @@ class _Data:
     W: np.ndarray  # (N, Ns, nw) forces per step
     W_lanes: np.ndarray  # (nw, N, Ns) forces as evaluation points
     cost0: float  # averaged stage cost of the initial states (a constant)
+    backoff: np.ndarray | None = None  # (ng, N, 1) constraint tightening, or None
 
 
 __all__ = ["RESTARTS", "FastScenarioSolver", "FastSolverOptions"]

@@ -121,7 +121,12 @@ class BicycleCondensedModel(CondensedModel):
         return alpha, alpha_p, alpha_pp, c, c_p, c_pp
 
     def evaluate(
-        self, x0T: np.ndarray, W: np.ndarray, u: np.ndarray, cost0: float
+        self,
+        x0T: np.ndarray,
+        W: np.ndarray,
+        u: np.ndarray,
+        cost0: float,
+        backoff: np.ndarray | None = None,
     ) -> _BicycleRollout:
         """Rollout of all scenarios and the exact-penalty merit, by hand.
 
@@ -162,9 +167,12 @@ class BicycleCondensedModel(CondensedModel):
         np.subtract(track.x_min, px[1:], out=g_pos[2])
         np.subtract(px[1:], track.x_max, out=g_pos[3])
         G = np.empty((6, n, ns))
-        G[:4] = g_pos
         np.subtract(p.speed_min, v[1:], out=G[4])
         np.subtract(v[1:], p.speed_max, out=G[5])
+        if backoff is not None:
+            g_pos += backoff[:4]
+            G[4:] += backoff[4:]
+        G[:4] = g_pos
         g_speed = np.stack([G[4].max(axis=1), G[5].max(axis=1)])
         slack = float(np.maximum(g_pos.max(axis=2), 0.0).sum() + np.maximum(g_speed, 0.0).sum())
 

@@ -88,6 +88,7 @@ class _Symbols:
     S: ca.SX  # (ng, N) shared slacks (0 rows without state constraints)
     X0: ca.SX  # (nx, Ns) initial states, column i for scenario i
     W: ca.SX  # (nw N, Ns) latent forces; rows k nw .. (k+1) nw - 1 act during step k
+    B: ca.SX  # (ng, N) constraint back-off (a parameter; zero when not used)
     step: ca.Function  # (nx, Ns), (nu, 1), (nw, Ns) -> (nx, Ns): one Euler step
     constraints: ca.Function | None  # (nx, Ns) -> (ng, Ns); None when ng == 0
     state_cost: ca.Function  # (nx, Ns) -> (1, Ns)
@@ -99,11 +100,13 @@ class _Symbols:
         return self.W[k * nw : (k + 1) * nw, :]
 
     def scenario_constraints(self, X: ca.SX, k: int) -> ca.SX:
-        """``g_j(x_k^(i)) - s[k, j]`` for states ``X`` ``(nx, Ns)`` of step ``k`` (1-based).
+        """``g_j(x_k^(i)) + b[k, j] - s[k, j]`` for states ``X`` ``(nx, Ns)`` of step ``k``
+        (1-based).
 
         Column ``i`` is scenario ``i``, so ``vec`` orders the rows (scenario, constraint).
         """
-        return self.constraints(X) - ca.repmat(self.S[:, k - 1], 1, X.shape[1])
+        shift = self.B[:, k - 1] - self.S[:, k - 1]
+        return self.constraints(X) + ca.repmat(shift, 1, X.shape[1])
 
 
 def _symbols(problem: ScenarioProblem) -> _Symbols:
@@ -122,6 +125,7 @@ def _symbols(problem: ScenarioProblem) -> _Symbols:
         S=ca.SX.sym("s", ng, n) if ng else ca.SX(0, n),
         X0=ca.SX.sym("x0", nx, ns),
         W=ca.SX.sym("W", nw * n, ns),
+        B=ca.SX.sym("b", ng, n) if ng else ca.SX(0, n),
         step=system.casadi_step(problem.dt).map(ns),
         constraints=system.casadi_constraints().map(ns) if ng else None,
         state_cost=ca.Function("state_cost", [x], [cost.state_cost(x)]).map(ns),
@@ -158,7 +162,7 @@ def _build_condensed(problem: ScenarioProblem) -> _NLP:
 
     nlp = {
         "x": ca.vertcat(ca.vec(sym.U), ca.vec(sym.S)),
-        "p": ca.vertcat(ca.vec(sym.X0), ca.vec(sym.W)),
+        "p": ca.vertcat(ca.vec(sym.X0), ca.vec(sym.W), ca.vec(sym.B)),
         "f": _objective(problem, sym, costs),
         "g": ca.vertcat(*g) if g else ca.SX(0, 1),
     }
@@ -200,7 +204,7 @@ def _build_multiple_shooting(problem: ScenarioProblem) -> _NLP:
 
     nlp = {
         "x": ca.vertcat(ca.vec(sym.U), ca.vec(sym.S), ca.vec(X)),
-        "p": ca.vertcat(ca.vec(sym.X0), ca.vec(sym.W)),
+        "p": ca.vertcat(ca.vec(sym.X0), ca.vec(sym.W), ca.vec(sym.B)),
         "f": _objective(problem, sym, costs),
         "g": ca.vertcat(*g_dyn, *g_ineq),
     }
@@ -311,18 +315,27 @@ class IpoptScenarioSolver:
         return z if np.all(np.isfinite(z)) else z0
 
     def _objective_of(
-        self, result: dict[str, ca.DM], z0: np.ndarray, x0: np.ndarray, W: np.ndarray
+        self,
+        result: dict[str, ca.DM],
+        z0: np.ndarray,
+        x0: np.ndarray,
+        W: np.ndarray,
+        backoff: np.ndarray | None,
     ) -> float:
         problem = self.problem
         u = self._iterate(result, z0)[: problem.nu * problem.horizon].reshape(-1, problem.nu)
-        return problem.objective(x0, W, problem.system.clip_input(u))
+        return problem.objective(x0, W, problem.system.clip_input(u), backoff)
 
     def reset(self) -> None:
         """Forget the warm start: the next solve starts cold from zero inputs (clipped)."""
         self._prev = None
 
     def _initial_guess(
-        self, x0: np.ndarray, W: np.ndarray, u_guess: np.ndarray | None
+        self,
+        x0: np.ndarray,
+        W: np.ndarray,
+        u_guess: np.ndarray | None,
+        backoff: np.ndarray | None = None,
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """Primal start ``[u, s, states]`` and the multipliers to pass (empty when cold).
 
@@ -352,13 +365,17 @@ class IpoptScenarioSolver:
                 duals[key + "0"] = _shift_blocks(lam, blocks, n) if mode == "shift" else lam
 
         X = problem.rollout(x0, W, u0)
-        parts = [u0.ravel(), problem.minimal_slack(X).ravel()]
+        parts = [u0.ravel(), problem.minimal_slack(X, backoff).ravel()]
         if self.formulation == "multiple_shooting":
             parts.append(X[:, 1:].transpose(1, 0, 2).ravel())
         return np.concatenate(parts), duals
 
     def solve(
-        self, x0: np.ndarray, W: np.ndarray, u_guess: np.ndarray | None = None
+        self,
+        x0: np.ndarray,
+        W: np.ndarray,
+        u_guess: np.ndarray | None = None,
+        backoff: np.ndarray | None = None,
     ) -> MPCSolution:
         """Solve the scenario problem for initial state(s) ``x0`` and latent forces ``W``.
 
@@ -370,6 +387,8 @@ class IpoptScenarioSolver:
             u_guess: initial input sequence ``(N, nu)`` in the inputs' units; by default
                 the previous solution shifted by one step (zero inputs, clipped into the
                 bounds, on the first solve).
+            backoff: constraint tightening ``(N, ng)`` or ``(ng,)``, ``>= 0``
+                (:meth:`ScenarioProblem.check_backoff`); ``None`` for none.
 
         Returns:
             The solution; ``u`` is clipped into the input bounds, and ``objective`` and
@@ -385,10 +404,12 @@ class IpoptScenarioSolver:
         """
         problem, n, nlp = self.problem, self.problem.horizon, self._nlp
         x0, W = problem.check_data(x0, W)
-        z0, duals = self._initial_guess(x0, W, u_guess)
+        b = problem.check_backoff(backoff)
+        b_param = np.zeros(problem.ng * n) if b is None else b.ravel()  # (k, j): vec of (ng, N)
+        z0, duals = self._initial_guess(x0, W, u_guess, b)
         args = {
             "x0": z0,
-            "p": np.concatenate([x0.ravel(), W.ravel()]),
+            "p": np.concatenate([x0.ravel(), W.ravel(), b_param]),
             "lbx": nlp.lbx,
             "ubx": nlp.ubx,
             "lbg": nlp.lbg,
@@ -408,15 +429,15 @@ class IpoptScenarioSolver:
             iterations += _iterations(stats_, error, self.ipopt_options)
             retried = True
             if not (error is None and stats_.get("success", False)) and warm_run[0] is not None:
-                warm_obj = self._objective_of(warm_run[0], z0, x0, W)
-                if result is None or warm_obj < self._objective_of(result, z0, x0, W):
+                warm_obj = self._objective_of(warm_run[0], z0, x0, W, b)
+                if result is None or warm_obj < self._objective_of(result, z0, x0, W, b):
                     result, error, stats_ = warm_run
 
         z = self._iterate(result, z0)
         nu, ng = problem.nu, problem.ng
         u = problem.system.clip_input(z[: nu * n].reshape(n, nu))
         predicted = problem.rollout(x0, W, u)
-        slack = float(np.sum(problem.minimal_slack(predicted)))
+        slack = float(np.sum(problem.minimal_slack(predicted, b)))
         success = error is None and bool(stats_.get("success", False))
         status = repr(error) if error is not None else str(stats_.get("return_status", "?"))
 
@@ -429,7 +450,7 @@ class IpoptScenarioSolver:
         self._prev = {"u": u, "lam_x": lam_x, "lam_g": lam_g}
         return MPCSolution(
             u=u,
-            objective=problem.objective(x0, W, u),
+            objective=problem.objective(x0, W, u, b),
             slack=slack,
             status=status,
             success=success,

@@ -171,7 +171,8 @@ def nlp_values(
     if solver.formulation == "multiple_shooting":
         z.append(X[:, 1:].transpose(1, 0, 2).ravel())
     fg = ca.Function("fg", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]])
-    f, g = fg(np.concatenate(z), np.concatenate([x0s.ravel(), Ws.ravel()]))
+    no_backoff = np.zeros(problem.ng * problem.horizon)
+    f, g = fg(np.concatenate(z), np.concatenate([x0s.ravel(), Ws.ravel(), no_backoff]))
     return float(f), g.full().ravel()
 
 

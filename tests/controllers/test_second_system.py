@@ -218,7 +218,8 @@ def test_ipopt_nlp_is_the_reference_at_any_inputs(problem: ScenarioProblem, solv
         if name == "ipopt_multiple_shooting":
             z.append(X[:, 1:].transpose(1, 0, 2).ravel())
         fg = ca.Function("fg", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]])
-        f, g = fg(np.concatenate(z), np.concatenate([x0.ravel(), W.ravel()]))
+        no_backoff = np.zeros(problem.ng * problem.horizon)
+        f, g = fg(np.concatenate(z), np.concatenate([x0.ravel(), W.ravel(), no_backoff]))
         g = g.full().ravel()
         assert float(f) == pytest.approx(problem.objective(x0, W, u), rel=1e-12)
         n_dyn = problem.nx * N * NS if name == "ipopt_multiple_shooting" else 0

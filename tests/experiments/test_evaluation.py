@@ -16,19 +16,28 @@ import numpy as np
 import pytest
 import yaml
 
+from controllers.config import load_config
 from experiments import evaluation
 from experiments.cli import evaluate_main
 from experiments.evaluation import (
-    ROW_COLUMNS,
+    HEAD_COLUMNS,
+    TAIL_COLUMNS,
     TIMING_COLUMNS,
     ResultsFolderError,
     agent_seed,
     evaluate,
+    group_columns,
     load_results,
     load_trajectory,
     parse_seeds,
+    row_columns,
     run_episode,
+    write_table,
 )
+from lfm_env import gp
+from lfm_env.env import LatentForceEnv
+from lfm_env.model import LatentForceModel
+from lfm_env.system import ControlSystem, QuadraticCost, xp
 
 REPO = Path(__file__).resolve().parents[2]
 # The quick world with short episodes and small agents: about 0.3 s per episode.
@@ -37,6 +46,15 @@ TINY = {
     "agents": {"horizon": 5, "n_scenarios": 5, "n_particles": 300},
 }
 TIMING_ARRAYS = ("solve_time",)
+#: The sine track's row: its constraint groups (track, x, speed) where the old table had
+#: track and speed; only ``x_violation_steps`` is new.
+SINE_TRACK_COLUMNS = (
+    *("agent", "seed", "success", "steps", "time_to_goal", "cost"),
+    *("track_violation_steps", "max_track_excess", "x_violation_steps", "max_x_excess"),
+    *("speed_violation_steps", "max_speed_excess", "failure", "latent_rmse", "latent_coverage"),
+    *("solve_time_median", "solve_time_p95", "solve_time_max", "solver_failures"),
+    *("fallback_steps", "filter_resets", "slack_total", "wall_time", "error"),
+)
 
 
 def comparable(rows: list[dict]) -> list[dict]:
@@ -104,12 +122,126 @@ def test_agent_seed_is_stable_and_distinct():
 # ----------------------------------------------------------------------------- one episode
 
 
+# ----------------------------------------------------------------------------- columns
+
+
+def test_row_columns_follow_the_systems_constraint_groups():
+    system = load_config(TINY).make_system()
+    assert row_columns(system) == SINE_TRACK_COLUMNS
+    assert row_columns(["track", "x", "speed"]) == SINE_TRACK_COLUMNS
+    assert group_columns(system) == SINE_TRACK_COLUMNS[6:12]
+    assert row_columns(corridor_system()) == (
+        *HEAD_COLUMNS,
+        *("corridor_violation_steps", "max_corridor_excess"),
+        *("speed_violation_steps", "max_speed_excess"),
+        *TAIL_COLUMNS,
+    )
+    assert row_columns(()) == HEAD_COLUMNS + TAIL_COLUMNS
+    with pytest.raises(ValueError, match="constraint-group names"):
+        row_columns("track")
+
+
+def corridor_system() -> ControlSystem:
+    """A 1-D double integrator between a floor and a ceiling [m], with speed bounds [m/s]."""
+
+    def rhs(x, u, w):
+        _, v = xp.unstack(x)
+        (a,) = xp.unstack(u)
+        (force,) = xp.unstack(w)
+        return xp.stack([v, a + force])
+
+    def constraints(x):
+        p, v = xp.unstack(x)
+        return xp.stack([-0.2 - p, p - 0.2, v - 1.0, -1.0 - v])
+
+    return ControlSystem(
+        name="corridor_1d",
+        state_names=("p [m]", "v [m/s]"),
+        input_names=("a [m/s^2]",),
+        rhs=rhs,
+        input_lower=[-1.0],
+        input_upper=[1.0],
+        constraints=constraints,
+        constraint_names=("floor [m]", "ceiling [m]", "v_max [m/s]", "v_min [m/s]"),
+        constraint_groups={"corridor": (0, 1), "speed": (2, 3)},
+    )
+
+
+def test_recorder_and_metrics_of_any_system_come_from_its_groups():
+    """An episode of a system the evaluation knows nothing about, driven through the
+    generic env: the group columns are its own and agree with the env's info."""
+    system = corridor_system()
+    model = LatentForceModel(system, gp.matern(1.5, 0.5, 1.0), dt=0.1, process_noise_std=[0, 0])
+    env = LatentForceEnv(
+        model, QuadraticCost(Q=[1, 0], R=[1]), [0.0, 0.5], [0.01, 0.01], max_steps=12
+    )
+    config = types.SimpleNamespace(
+        make_system=lambda: system, agents=types.SimpleNamespace(horizon=3)
+    )
+    rec = evaluation._EpisodeRecorder(config)
+    obs, info = env.reset(seed=0)
+    rec.start(obs, info)
+    infos, done = [], False
+    while not done:  # push up at full throttle: through the ceiling, beyond the speed bound
+        agent_info = {"estimate": obs, "estimate_std": np.zeros(2), "success": True}
+        obs, reward, terminated, truncated, info = env.step([1.0])
+        rec.step(agent_info, obs, reward, info)
+        infos.append(info)
+        done = terminated or truncated
+    arrays = rec.arrays()
+    row = evaluation._episode_metrics(rec, arrays)
+    assert list(row)[4:8] == list(row_columns(system))[6:10]
+    corridor = np.array([i["corridor_excess"] for i in infos])
+    speed = np.array([i["speed_excess"] for i in infos])
+    np.testing.assert_array_equal(arrays["corridor_excess"], corridor)
+    np.testing.assert_array_equal(arrays["speed_excess"], speed)
+    assert 0 < row["corridor_violation_steps"] == np.sum(corridor > 0) < len(infos)
+    assert 0 < row["speed_violation_steps"] == np.sum(speed > 0) < len(infos)
+    assert row["max_corridor_excess"] == corridor.max() > 0.0
+    assert row["max_speed_excess"] == speed.max()
+    assert "track_excess" not in arrays and math.isnan(row["latent_rmse"])
+    # A failed episode of this system gets the same columns, with NaN metrics.
+    failed = evaluation._error_row("nominal", 0, "boom", 1.0, row_columns(system))
+    assert tuple(failed) == row_columns(system) and math.isnan(failed["max_corridor_excess"])
+
+
+def test_rows_of_older_tables_read_with_the_groups_they_hold(tmp_path):
+    """A folder written before x_violation_steps existed reads as it was written."""
+    rows = evaluate(["nominal"], [0, 1], TINY, out=tmp_path, progress=False)
+    old = tmp_path / "episodes" / "nominal__seed0.json"
+    record = json.loads(old.read_text())
+    del record["x_violation_steps"]
+    old.write_text(json.dumps(record))
+    loaded = load_results(tmp_path)
+    assert tuple(loaded[0]) == tuple(c for c in SINE_TRACK_COLUMNS if c != "x_violation_steps")
+    assert tuple(loaded[1]) == SINE_TRACK_COLUMNS and loaded[1]["x_violation_steps"] == 0
+    assert loaded[0]["max_x_excess"] == rows[0]["max_x_excess"]
+    assert isinstance(loaded[0]["track_violation_steps"], int)
+    # The table keeps the config's column order; the missing cell is written as nan.
+    write_table(tmp_path)
+    import csv
+
+    with (tmp_path / "episodes.csv").open() as fh:
+        table = list(csv.DictReader(fh))
+    assert tuple(table[0]) == SINE_TRACK_COLUMNS
+    assert table[0]["x_violation_steps"] == "nan" and table[1]["x_violation_steps"] == "0"
+    # Without a config.yaml, the columns are those the rows hold.
+    (tmp_path / "config.yaml").unlink()
+    write_table(tmp_path)
+    with (tmp_path / "episodes.csv").open() as fh:
+        header = next(iter(csv.reader(fh)))
+    assert tuple(header) == SINE_TRACK_COLUMNS
+
+
+# ----------------------------------------------------------------------------- one episode
+
+
 def test_run_episode_row_trajectory_and_time_alignment():
     row, traj = run_episode("pf", TINY, seed=3)
-    assert tuple(row) == ROW_COLUMNS
+    assert tuple(row) == SINE_TRACK_COLUMNS
     assert row["agent"] == "pf" and row["seed"] == 3 and row["error"] == ""
     assert isinstance(row["success"], bool) and isinstance(row["failure"], bool)
-    for c in ("steps", "track_violation_steps", "speed_violation_steps", "solver_failures"):
+    for c in ("steps", "track_violation_steps", "x_violation_steps", "speed_violation_steps"):
         assert isinstance(row[c], int)
     for c in ("cost", "max_track_excess", "latent_rmse", "latent_coverage", "wall_time"):
         assert isinstance(row[c], float)
@@ -140,6 +272,10 @@ def test_run_episode_row_trajectory_and_time_alignment():
     err = traj["latent_force_est"] - traj["disturbance"]
     assert row["latent_rmse"] == pytest.approx(np.sqrt(np.mean(err**2)))
     assert row["slack_total"] == pytest.approx(traj["slack"].sum())
+    for g in ("track", "x", "speed"):
+        assert traj[f"{g}_excess"].shape == (T,)
+        assert row[f"{g}_violation_steps"] == np.sum(traj[f"{g}_excess"] > 0)
+        assert row[f"max_{g}_excess"] == traj[f"{g}_excess"].max()
 
     # Alignment with the env: obs[0] measures true_state[0], and disturbance[0] is the
     # force that the env announces at reset as acting in the first step.
@@ -229,7 +365,7 @@ def test_csv_holds_every_row_sorted(tmp_path):
     rows = evaluate(["pf", "nominal"], [2, 0], TINY, out=tmp_path, progress=False)
     with (tmp_path / "episodes.csv").open() as fh:
         table = list(csv.DictReader(fh))
-    assert list(table[0]) == list(ROW_COLUMNS)
+    assert list(table[0]) == list(SINE_TRACK_COLUMNS)
     assert [(r["agent"], int(r["seed"])) for r in table] == [(r["agent"], r["seed"]) for r in rows]
     assert [(r["agent"], r["seed"]) for r in rows] == [
         ("nominal", 0),

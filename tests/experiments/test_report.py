@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import gymnasium as gym
 import imageio.v3 as iio
 import numpy as np
 import pytest
@@ -87,12 +88,26 @@ def test_report_has_agent_table_and_existing_figures(report_path):
         for row in ("success rate", "max speed excess", "latent-force RMSE", "episodes"):
             assert row in text
         assert "Paper vs measured" in text and "Paired differences" in text
+        assert "lfm_env/SineTrack-v0" in text and "sine_track" in text
     assert "| metric | nominal MPC |" in md
+    # One row per constraint group metric of the sine track, with the group's unit.
+    groups = [line.split(" | ")[0] for line in md.splitlines() if "excess [" in line]
+    assert groups[:3] == [
+        "| max track excess [m]",
+        "| max x excess [m]",
+        "| max speed excess [m/s]",
+    ]
+    assert "| x violation steps [steps] |" in md
     assert "<table>" in html and "<th>metric</th>" in html
     md_refs, html_refs = referenced_files(md, html=False), referenced_files(html, html=True)
     assert md_refs == html_refs, "Markdown and HTML must show the same figures"
     pngs = [r for r in md_refs if r.endswith(".png")]
-    assert len(pngs) >= 8  # four paper figures, two overlays, two across-seed plots
+    # Five episode figures, two overlays of all agents, two across-seed plots.
+    names = {Path(r).name for r in pngs}
+    for name in ("trajectory", "latent_force", "inputs", "states", "constraints"):
+        assert f"seed0_scenario_{name}.png" in names
+    assert {"seed0_agents_trajectory.png", "seed0_agents_constraints.png"} <= names
+    assert {"metrics_by_agent.png", "solve_time.png"} <= names
     for ref in md_refs:
         path = report_path.parent / ref
         assert path.is_file() and path.stat().st_size > 1000, ref
@@ -103,7 +118,12 @@ def test_report_has_agent_table_and_existing_figures(report_path):
 
 
 def test_report_figures_are_not_blank(report_path):
-    for name in ("seed0_scenario_trajectory.png", "metrics_by_agent.png", "solve_time.png"):
+    for name in (
+        "seed0_scenario_trajectory.png",
+        "seed0_scenario_inputs.png",
+        "metrics_by_agent.png",
+        "solve_time.png",
+    ):
         image = iio.imread(report_path.parent / "figures" / name)
         assert image.ndim == 3 and image.shape[0] > 200 and image.shape[1] > 400
         assert image[..., :3].std() > 10, name
@@ -148,7 +168,7 @@ def test_errors_are_listed_not_dropped(results_copy):
 
 def test_figure_seed_option(results_copy):
     write_report(results_copy, figure_seed=2, gif=False)
-    assert (results_copy / "figures" / "seed2_scenario_speed.png").is_file()
+    assert (results_copy / "figures" / "seed2_scenario_states.png").is_file()
     with pytest.raises(ValueError, match="seed 9"):
         write_report(results_copy, figure_seed=9, gif=False)
 
@@ -220,11 +240,53 @@ def test_episode_figures_of_an_agent_without_filter(results_dir, tmp_path):
     results = load_results(results_dir)
     traj = load_trajectory(results, "nominal", 1)
     assert np.all(np.isnan(traj["latent_force_est"]))
-    figs = plots.episode_figures(traj, results.config, "nominal MPC")
-    assert set(figs) == {"trajectory", "latent_force", "acceleration", "speed"}
+    cfg = results.config
+    figs = plots.episode_figures(
+        traj, results.system, cfg.dt, cfg.goal_state_rad, cfg.goal_radius, "nominal MPC"
+    )
+    assert list(figs) == ["trajectory", "latent_force", "inputs", "states", "constraints"]
     for name, fig in figs.items():
         path = plots.save_figure(fig, tmp_path / f"{name}.png")
         assert path.read_bytes()[:8] == PNG_MAGIC
+
+
+def test_sine_track_figures_keep_the_papers_content(results_dir):
+    """Drawn from the system alone, the figures still show the paper's quantities."""
+    results = load_results(results_dir)
+    cfg = results.config
+    traj = load_trajectory(results, "scenario", 0)
+    figs = plots.episode_figures(traj, results.system, cfg.dt, cfg.goal_state_rad, 1.0)
+    plane = figs["trajectory"].axes[0]
+    labels = plane.get_legend_handles_labels()[1]
+    assert "bounds: track_left, track_right, x_min, x_max" in labels
+    assert plane.get_xlim()[0] < cfg.x_min and plane.get_xlim()[1] > cfg.x_max  # x bounds
+    pad = cfg.track_amplitude + cfg.track_half_width
+    assert plane.get_ylim()[0] < -pad and plane.get_ylim()[1] > pad  # the whole band
+    # The acceleration is drawn against the disturbance (same unit); the steering is not.
+    accel, steer = figs["inputs"].axes
+    assert "disturbance w" in accel.get_legend_handles_labels()[1]
+    assert "disturbance w" not in steer.get_legend_handles_labels()[1]
+    # The speed panel shows the speed bounds, found from the speed constraints alone.
+    speed = figs["states"].axes[0]
+    assert speed.get_ylabel() == "v [m/s]"
+    flat = {round(line.get_ydata()[0], 6) for line in speed.lines if len(line.get_ydata()) == 2}
+    assert {cfg.speed_min, cfg.speed_max} <= flat
+
+
+def test_report_of_a_folder_written_before_x_violation_steps(results_copy):
+    """An older table (no x_violation_steps column) is reported with what it holds."""
+    table = results_copy / "episodes.csv"
+    with table.open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    columns = [c for c in rows[0] if c != "x_violation_steps"]
+    with table.open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, columns, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+    md = write_report(results_copy, gif=False).read_text()
+    line = next(x for x in md.splitlines() if x.startswith("| x violation steps"))
+    assert line == "| x violation steps [steps] | n/a | n/a | n/a | n/a |"
+    assert "| max x excess [m] | 0 [0, 0] |" in md
 
 
 # --------------------------------------------------------------------------- command lines
@@ -311,3 +373,34 @@ def test_render_rejects_bad_arguments(tiny_config, tmp_path, capsys):
             render_main(base + extra)
         assert exc.value.code == 2
     assert "--agent nope" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- another world
+
+QUADROTOR_ID = "lfm_env/QuadrotorGust-v0"
+
+
+@pytest.mark.skipif(QUADROTOR_ID not in gym.registry, reason="no quadrotor world")
+def test_report_of_the_quadrotor_is_drawn_from_its_system(tmp_path):
+    config = yaml.safe_load((REPO / "configs" / "quadrotor.yaml").read_text())
+    config["env"]["max_steps"] = 15
+    config["agents"].update(horizon=5, n_scenarios=5, n_particles=300)
+    out = tmp_path / "quad"
+    rows = evaluate(["nominal", "oracle"], [0], config=config, out=out, progress=False)
+    assert all(r["error"] == "" for r in rows)
+    assert "corridor_violation_steps" in rows[0] and "track_violation_steps" not in rows[0]
+    md = write_report(out).read_text()
+    assert "| max corridor excess [m] |" in md and "| x violation steps [steps] |" in md
+    assert "track" not in md.lower() and "speed" not in md.lower()
+    assert "Paper vs measured" not in md  # the sine track's own section
+    results = load_results(out)
+    cfg = results.config
+    traj = load_trajectory(results, "nominal", 0)
+    figs = plots.episode_figures(traj, results.system, cfg.dt, cfg.goal_state_rad, 0.3)
+    labels = figs["trajectory"].axes[0].get_legend_handles_labels()[1]
+    assert "bounds: corridor_floor, corridor_ceiling, x_min, x_max" in labels
+    assert [ax.get_ylabel() for ax in figs["inputs"].axes] == ["T [N]", "theta_cmd [rad]"]
+    for ref in referenced_files(md, html=False):
+        assert (out / ref).is_file(), ref
+    frames = iio.imread(out / "figures" / "episode.gif", index=None)
+    assert frames.shape[0] == rows[0]["steps"] + 1 and frames[0].std() > 10
