@@ -27,6 +27,7 @@ same env seed gives every agent the same disturbance and noise.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Any
 
@@ -112,6 +113,7 @@ class MPCAgent:
         t0 = time.perf_counter()
         info = self._estimate(y)
         t_est = time.perf_counter() - t0
+        self._x_hat = np.asarray(info["estimate"][: self.system.nx], dtype=float)
         x0, W = self._scenarios()
         backoff = self._backoff()
         sol = self.mpc.solve(x0, W) if backoff is None else self.mpc.solve(x0, W, backoff=backoff)
@@ -140,7 +142,7 @@ class MPCAgent:
 
     def _choose_action(self, sol: MPCSolution) -> tuple[np.ndarray, str]:
         """First input of a good plan; otherwise the previous plan shifted, or the system's
-        fallback input (the bicycle brakes)."""
+        fallback at the state estimate (the bicycle brakes to a standstill)."""
         if sol.success and np.all(np.isfinite(sol.u)):
             self._plan = self.system.clip_input(sol.u)
             return self._plan[0].copy(), ""
@@ -148,7 +150,7 @@ class MPCAgent:
             self._plan = self._plan[1:]
             return self._plan[0].copy(), "previous_plan"
         self._plan = None
-        return np.array(self.system.fallback_input, dtype=float), "fallback"
+        return self.system.fallback(self._x_hat, self.model.dt), "fallback"
 
     def _backoff(self) -> np.ndarray | None:
         """Constraint tightening ``(ng,)`` for this solve; ``None`` for none (the default)."""
@@ -235,6 +237,7 @@ class _FilteringAgent(MPCAgent):
             "estimate_std": np.sqrt(np.maximum(np.diag(cov), 0.0)),
             "latent_force": H @ mean[nx:],
             "latent_force_std": np.sqrt(np.maximum(np.diag(H @ cov[nx:, nx:] @ H.T), 0.0)),
+            "estimator": est.name,
             "filter_degenerate": bool(rec.degenerate),
             "filter_reset": diverged,
             "filter_resets": self.n_filter_resets,
@@ -243,16 +246,37 @@ class _FilteringAgent(MPCAgent):
     def _backoff(self) -> np.ndarray | None:
         """``settings.backoff`` times the estimate's std along each constraint's gradient.
 
-        ``b_j = k sqrt(dg_j(x_hat)' Sigma_x dg_j(x_hat))`` with the physical block
-        ``Sigma_x`` of the estimate's covariance, the same at every step of the horizon.
+        ``b_j = k_j sqrt(dg_j(x_hat)' Sigma_x dg_j(x_hat))`` with the physical block
+        ``Sigma_x`` of the estimate's covariance, the same at every step of the horizon;
+        ``k_j`` is the one value of ``settings.backoff`` or that of ``g_j``'s constraint group.
         """
-        k = self.settings.backoff
-        if k <= 0.0 or self.system.ng == 0:
+        k = self._backoff_factors
+        if k is None:
             return None
         nx = self.system.nx
         J = self.system.constraint_jacobian(self._mean[:nx])  # (ng, nx)
         spread = np.einsum("ji,ik,jk->j", J, self._cov[:nx, :nx], J)
         return k * np.sqrt(np.maximum(spread, 0.0))
+
+    @property
+    def _backoff_factors(self) -> np.ndarray | None:
+        """``k_j`` per constraint ``(ng,)``, or ``None`` when no constraint is backed off."""
+        factors = tuple(self.settings.backoff)
+        system = self.system
+        if system.ng == 0 or not any(f > 0.0 for f in factors):
+            return None
+        if len(factors) == 1:
+            return np.full(system.ng, factors[0])
+        groups = system.constraint_groups
+        if len(factors) != len(groups):
+            raise ValueError(
+                f"backoff={list(factors)}: one number or {len(groups)}, one per constraint "
+                f"group {list(groups)}"
+            )
+        k = np.zeros(system.ng)
+        for f, members in zip(factors, groups.values(), strict=True):
+            k[list(members)] = f
+        return k
 
 
 class CertaintyEquivalentMPCAgent(_FilteringAgent):
@@ -300,6 +324,45 @@ class ParticleScenarioMPCAgent(ScenarioMPCAgent):
     initial_states = "particles"
 
 
+class RobustMPCAgent(ScenarioMPCAgent):
+    """The uncertainty-aware agent: ``settings.robust`` (:class:`RobustConfig`) chooses its
+    estimator, constraint back-off and forecast, the rest is the ``agents`` section's.
+
+    With ``forecast="mean"`` it plans one scenario with the force's mean forecast (as the
+    ``pf`` agent) inside constraints backed off by the estimate's spread; with
+    ``"sampled"`` it is the scenario agent with the same back-off.
+    """
+
+    name = "robust"
+
+    def __init__(
+        self,
+        model: LatentForceModel,
+        cost: QuadraticCost,
+        settings: AgentConfig | None = None,
+        measurement_std: Any = None,
+    ) -> None:
+        base = AgentConfig() if settings is None else settings
+        r = base.robust
+        n_scenarios = 1 if r.forecast == "mean" else (r.n_scenarios or base.n_scenarios)
+        merged = dataclasses.replace(
+            base,
+            estimator=r.estimator,
+            n_particles=r.n_particles,
+            backoff=r.backoff,
+            n_scenarios=n_scenarios,
+            scenario_initial_states=r.scenario_initial_states,
+        )
+        super().__init__(model, cost, merged, measurement_std)
+
+    def _scenarios(self) -> tuple[np.ndarray, np.ndarray]:
+        if self.settings.robust.forecast == "mean":
+            nx = self.system.nx
+            W = self.model.mean_latent_forecast(self._mean[nx:], self.problem.horizon)
+            return self._mean[:nx], W[None]
+        return super()._scenarios()
+
+
 class OracleMPCAgent(MPCAgent):
     """UPPER BOUND, not a realisable controller: reads the true state and future force.
 
@@ -338,6 +401,7 @@ AGENTS = {
     "pf": CertaintyEquivalentMPCAgent,
     "scenario": ScenarioMPCAgent,
     "scenario_particles": ParticleScenarioMPCAgent,
+    "robust": RobustMPCAgent,
     "oracle": OracleMPCAgent,
 }
 
@@ -346,6 +410,7 @@ AGENT_LABELS = {
     "pf": "PF + certainty-equivalent MPC",
     "scenario": "PF + scenario MPC (paper)",
     "scenario_particles": "PF + scenario MPC, scenarios start from particles (paper's remark)",
+    "robust": "robust: calibrated estimator + MPC with constraint back-off",
     "oracle": "oracle MPC (upper bound, reads hidden truth)",
 }
 
@@ -404,6 +469,7 @@ __all__ = [
     "NominalMPCAgent",
     "OracleMPCAgent",
     "ParticleScenarioMPCAgent",
+    "RobustMPCAgent",
     "ScenarioMPCAgent",
     "check_agent_config",
     "make_agent",

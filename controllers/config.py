@@ -36,6 +36,48 @@ MAX_SCENARIOS = 100_000
 MAX_ITER = 2**31 - 1
 
 
+def check_backoff(c: _Checker, backoff: tuple[float, ...]) -> None:
+    c("backoff", len(backoff) >= 1, "one number, or one per constraint group")
+    c("backoff", all(0.0 <= k <= 10.0 for k in backoff), "in [0, 10] standard deviations")
+
+
+FORECASTS = ("sampled", "mean")
+
+
+@dataclass(frozen=True)
+class RobustConfig:
+    """The ``robust`` agent: the combination that carried the estimate's uncertainty best
+    in our measurements (README "Robust agent"); the ``agents.robust`` section.
+
+    Its other settings (horizon, weights, solver, ...) are the ``agents`` section's.
+    """
+
+    estimator: str = "ukf"  # one of ESTIMATORS (the UKF needs no affine force)
+    n_particles: int = 1000  # particles of a particle-filter estimator
+    # k estimate stds per constraint group (the sine track: track, x, speed), or one for all
+    backoff: tuple[float, ...] = (2.0,)
+    forecast: str = "mean"  # "mean": the force's mean forecast, one scenario; "sampled"
+    n_scenarios: int | None = None  # with "sampled": Ns, null for agents.n_scenarios
+    scenario_initial_states: str = "estimate"  # with "sampled": "estimate" or "particles"
+
+    def __post_init__(self) -> None:
+        c = _Checker(self)
+        c("estimator", self.estimator in ESTIMATORS, f"one of {ESTIMATORS}")
+        c("n_particles", 1 <= self.n_particles <= 10_000_000, "an integer in [1, 1e7]")
+        check_backoff(c, self.backoff)
+        c("forecast", self.forecast in FORECASTS, f"one of {FORECASTS}")
+        c(
+            "n_scenarios",
+            self.n_scenarios is None or 1 <= self.n_scenarios <= MAX_SCENARIOS,
+            "null or an integer in [1, 100000]",
+        )
+        c(
+            "scenario_initial_states",
+            self.scenario_initial_states in SCENARIO_INITIAL_STATES,
+            f"one of {SCENARIO_INITIAL_STATES}",
+        )
+
+
 @dataclass(frozen=True)
 class AgentConfig:
     """Settings shared by the MPC agents (paper values by default).
@@ -65,8 +107,11 @@ class AgentConfig:
     max_iter: int = 100  # solver iteration limit per step
     scenario_initial_states: str = "estimate"  # "estimate" (paper) or "particles" (its remark)
     # Constraint back-off of the filtering agents: each state constraint g_j is tightened
-    # by backoff * sqrt(dg_j' Sigma_x dg_j), the estimate's std along its gradient [std].
-    backoff: float = 0.0
+    # by k * sqrt(dg_j' Sigma_x dg_j), k estimate stds along its gradient: one k for all,
+    # or one per constraint group of the system (the sine track: track, x, speed).
+    backoff: tuple[float, ...] = (0.0,)
+    # The robust agent's own settings (see RobustConfig).
+    robust: RobustConfig = field(default_factory=RobustConfig)
     # The agents' belief about the latent force. null: the env section's, known a priori
     # (the paper); set it to learned hyperparameters (see lfm-calibrate).
     disturbance: DisturbanceConfig | None = None
@@ -96,7 +141,7 @@ class AgentConfig:
         )
         c.non_negative("Q", "Qf", "R")
         c.positive("slack_penalty")
-        c("backoff", 0.0 <= self.backoff <= 10.0, "in [0, 10] standard deviations")
+        check_backoff(c, self.backoff)
         c("solver", self.solver in SOLVERS, f"one of {SOLVERS}")
         # IPOPT's iteration counter is a C int: larger values wrap around or are refused.
         c("max_iter", 1 <= self.max_iter <= MAX_ITER, f"an integer in [1, {MAX_ITER}]")
@@ -167,7 +212,18 @@ class ExperimentConfig:
         if self.agents.disturbance is not None:
             check_latent_step(self.env, self.agents.disturbance, where="agents.disturbance")
         self.make_cost()  # vector lengths against the system, with the field's name
-        self.agents.check_scenario_count(self.make_system().nu)
+        system = self.make_system()
+        self.agents.check_scenario_count(system.nu)
+        groups = list(system.constraint_groups)
+        for name, k in (
+            ("backoff", self.agents.backoff),
+            ("robust.backoff", self.agents.robust.backoff),
+        ):
+            if len(k) not in (1, len(groups)):
+                raise ConfigError(
+                    f"agents.{name}={list(k)}: must be one number or {len(groups)}, one per "
+                    f"constraint group {groups} of the {system.name} system"
+                )
 
     def make_system(self):
         """The controlled system (:class:`~lfm_env.system.ControlSystem`) of the env section."""

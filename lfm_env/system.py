@@ -163,11 +163,16 @@ class ControlSystem:
         force_names: one label per latent-force component entering ``f``, with its unit.
         mirror_inputs: inputs whose sign flip mirrors a manoeuvre (the bicycle's steering).
             A hint for the solvers' extra starts on non-convex problems; empty for none.
+        fallback_law: optional state feedback ``law(x, dt) -> u`` applied instead of
+            ``fallback_input`` (clipped into the bounds), e.g. braking to a standstill.
         fallback_input: the input applied when a solve fails and no plan is left (e.g.
             full braking); by default the input closest to zero inside the bounds.
         constraint_groups: names for groups of constraints that metrics report together
             (``{"track": (0, 1)}``: the excess over the track band, either side); by
             default each constraint is its own group, named by its label.
+        violation_tolerances: for each group, the excesses [group unit] beyond which a
+            violation counts in the tolerance-aware metrics (``{"track": (0.01, 0.05)}``:
+            steps more than 1 cm and 5 cm outside the band); groups not named get none.
 
     The NumPy right-hand side is batched over leading axes, so one call moves thousands
     of particles; the CasADi one is built once into :meth:`casadi_rhs` and friends.
@@ -184,7 +189,9 @@ class ControlSystem:
     force_names: tuple[str, ...] = ("w",)
     mirror_inputs: tuple[int, ...] = ()
     fallback_input: Any = None
+    fallback_law: Callable[[Any, float], Any] | None = None
     constraint_groups: Any = None
+    violation_tolerances: Any = None
     _cache: dict = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -196,6 +203,8 @@ class ControlSystem:
             raise ValueError("ControlSystem.constraint_names given without constraints")
         names = () if self.constraints is None else self.constraint_names
         object.__setattr__(self, "constraint_names", _names(names, "constraint_names"))
+        if self.fallback_law is not None and not callable(self.fallback_law):
+            raise ValueError("ControlSystem.fallback_law must be callable: law(x, dt) -> u")
         if not callable(self.rhs):
             raise ValueError("ControlSystem.rhs must be callable: f(x, u, w) -> dx/dt")
         nu = len(self.input_names)
@@ -234,6 +243,22 @@ class ControlSystem:
                 f"ControlSystem.constraint_groups={groups}: indices must be in [0, {self.ng})"
             )
         object.__setattr__(self, "constraint_groups", groups)
+        tolerances = {} if self.violation_tolerances is None else self.violation_tolerances
+        try:
+            tolerances = {str(k): tuple(float(t) for t in v) for k, v in dict(tolerances).items()}
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"ControlSystem.violation_tolerances={self.violation_tolerances!r}: must map "
+                "group names to tuples of excesses > 0"
+            ) from None
+        unknown = sorted(set(tolerances) - set(groups))
+        bad = [t for v in tolerances.values() for t in v if not (np.isfinite(t) and t > 0.0)]
+        if unknown or bad:
+            raise ValueError(
+                f"ControlSystem.violation_tolerances={tolerances}: keys must be constraint "
+                f"groups {sorted(groups)} and values finite excesses > 0"
+            )
+        object.__setattr__(self, "violation_tolerances", tolerances)
         self._check_shapes()
 
     def _check_shapes(self) -> None:
@@ -313,6 +338,14 @@ class ControlSystem:
         """Largest excess [constraint unit] within each of :attr:`constraint_groups`."""
         excess = self.constraint_excess(x)
         return {k: np.max(excess[..., list(v)], axis=-1) for k, v in self.constraint_groups.items()}
+
+    def fallback(self, x: Any, dt: float) -> np.ndarray:
+        """The input to apply when no plan is left, at (estimated) state ``x`` ``(nx,)``."""
+        if self.fallback_law is None:
+            return np.array(self.fallback_input, dtype=float)
+        u = np.asarray(self.fallback_law(np.asarray(x, dtype=float), dt), dtype=float)
+        u = u.reshape(self.nu)
+        return self.clip_input(u) if np.all(np.isfinite(u)) else np.array(self.fallback_input)
 
     def clip_input(self, u: Any) -> np.ndarray:
         """``u`` clipped into the input bounds."""

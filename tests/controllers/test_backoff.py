@@ -85,3 +85,51 @@ def test_the_agent_backs_off_k_estimate_stds_along_each_constraint_gradient():
     plain.reset(seed=0)
     plain.act(obs)
     assert plain.last_info["backoff"] is None
+
+
+def test_one_backoff_per_constraint_group():
+    cfg = {"agents": {"backoff": [3.0, 0.0, 1.0], "estimator": "ukf", "n_scenarios": 5}}
+    agent = make_agent("scenario", cfg)
+    agent.reset(seed=0)
+    obs = np.array([0.0, 0.0, 1.0, np.pi / 4])
+    agent.act(obs)
+    agent.act(obs + np.array([0.2, 0.2, 0.0, 0.0]))
+    mean, cov = agent.estimator.mean[:4], agent.estimator.covariance[:4, :4]
+    J = agent.system.constraint_jacobian(mean)
+    spread = np.sqrt(np.diag(J @ cov @ J.T))
+    # Groups of the sine track: track (track_left, track_right), x (x_min, x_max), speed.
+    k = np.array([3.0, 3.0, 0.0, 0.0, 1.0, 1.0])
+    np.testing.assert_allclose(agent.last_info["backoff"], k * spread, rtol=1e-12)
+
+
+@pytest.mark.parametrize("key", ["backoff", "robust"])
+def test_a_backoff_of_the_wrong_length_names_the_groups(key):
+    from lfm_env.config import ConfigError
+
+    section = {"backoff": [1.0, 2.0]} if key == "backoff" else {"robust": {"backoff": [1, 2]}}
+    name = "agents.backoff" if key == "backoff" else "agents.robust.backoff"
+    with pytest.raises(ConfigError, match=rf"{name}=\[1.0, 2.0\]: must be one number or 3"):
+        load_config({"agents": section})
+    assert load_config({"agents": {"backoff": 2.5}}).agents.backoff == (2.5,)
+
+
+def test_the_robust_agent_takes_its_own_estimator_backoff_and_forecast():
+    cfg = {
+        "agents": {
+            "n_scenarios": 7,
+            "robust": {"estimator": "rbpf", "n_particles": 300, "backoff": [2.0, 0.0, 1.0]},
+        }
+    }
+    agent = make_agent("robust", cfg)
+    assert agent.estimator.name == "rbpf" and agent.estimator.n_particles == 300
+    assert agent.problem.n_scenarios == 1  # forecast "mean": one scenario
+    agent.reset(seed=0)
+    obs = np.array([0.0, 0.0, 1.0, np.pi / 4])
+    agent.act(obs)
+    info = agent.last_info
+    z = info["estimate"][4:]
+    np.testing.assert_allclose(info["W"][0], agent.model.mean_latent_forecast(z, 7))
+    assert info["backoff"][2] == 0.0 and info["backoff"][0] > 0.0
+    assert info["estimator"] == "rbpf"
+    sampled = {"agents": {"n_scenarios": 7, "robust": {"forecast": "sampled"}}}
+    assert make_agent("robust", sampled).problem.n_scenarios == 7

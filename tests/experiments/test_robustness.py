@@ -925,7 +925,7 @@ def test_unknown_key_anywhere_gives_config_error_naming_it(tmp_path, where, key,
 @pytest.mark.parametrize("solver", ["ipopt", "fast"])
 def test_solver_failures_and_fallbacks_are_counted_in_the_table(solver, tmp_path):
     # One iteration cannot converge: every solve fails, and every step applies the
-    # system's fallback input (the bicycle brakes fully).
+    # system's fallback at the agent's estimate (the bicycle brakes to a standstill).
     config = {"env": {"max_steps": 6}, "agents": {**TINY_AGENTS, "max_iter": 1, "solver": solver}}
     rows = evaluate(["nominal", "pf"], [0], config, out=tmp_path, progress=False)
     with (tmp_path / "episodes.csv").open() as fh:
@@ -937,7 +937,11 @@ def test_solver_failures_and_fallbacks_are_counted_in_the_table(solver, tmp_path
         traj = load_trajectory(tmp_path, row["agent"], 0)
         assert not traj["solver_success"].any()
         assert set(traj["fallback"].tolist()) == {"fallback"}
-        np.testing.assert_array_equal(traj["action"], np.tile([-5.0, 0.0], (6, 1)))
+        # a = clip(-v_hat / dt, -5, 5) with the agent's speed estimate, wheels straight.
+        v_hat = traj["estimate"][:, 2]
+        np.testing.assert_allclose(traj["action"][:, 0], np.clip(-v_hat / 0.2, -5.0, 5.0))
+        np.testing.assert_array_equal(traj["action"][:, 1], 0.0)
+        assert traj["action"][0, 0] == -5.0  # from 1 m/s: full braking first
 
 
 @pytest.mark.parametrize("solver", ["ipopt", "fast"])

@@ -1,9 +1,10 @@
-"""Tests of the Gymnasium envs: the generic ``lfm_env.env.LatentForceEnv`` and its first
-instance ``lfm_env.envs.sine_track.SineTrackEnv`` (through ``gym.make``).
+"""Tests of the Gymnasium envs: the generic ``lfm_env.env.LatentForceEnv`` and its
+instances ``lfm_env.envs.sine_track.SineTrackEnv`` and
+``lfm_env.envs.quadrotor_gust.QuadrotorGustEnv`` (through ``gym.make``).
 
 The generic contract (check_env, determinism, seeding, pickling, actions, reward, info) runs
-on both the sine track and a small planar point mass with a two-component force, defined
-here.
+on the sine track, the quadrotor in its tunnel and a small planar point mass with a
+two-component force, defined here.
 """
 
 from __future__ import annotations
@@ -21,15 +22,17 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-import lfm_env  # noqa: F401  (registers lfm_env/SineTrack-v0)
-from lfm_env.config import EnvConfig
+import lfm_env  # noqa: F401  (registers lfm_env/SineTrack-v0 and lfm_env/QuadrotorGust-v0)
+from lfm_env.config import EnvConfig, QuadrotorGustConfig
 from lfm_env.env import LatentForceEnv
-from lfm_env.envs import SineTrackEnv
+from lfm_env.envs import QuadrotorGustEnv, SineTrackEnv
 from lfm_env.gp import matern
 from lfm_env.model import LatentForceModel
 from lfm_env.system import ControlSystem, QuadraticCost, xp
 
 ENV_ID = "lfm_env/SineTrack-v0"
+QUADROTOR_ID = "lfm_env/QuadrotorGust-v0"
+ENV_IDS = (ENV_ID, QUADROTOR_ID)
 POINT_MASS_ID = "lfm_env_tests/PointMass-v0"
 ALLOWED_WARNING = "For Box action spaces, we recommend using a symmetric and normalized space"
 GOAL = np.array([62.83, 0.0])
@@ -38,6 +41,10 @@ DATA = Path(__file__).resolve().parents[1] / "data"
 
 def make(**kwargs) -> gym.Env:
     return gym.make(ENV_ID, **kwargs)
+
+
+def make_quadrotor(**kwargs) -> gym.Env:
+    return gym.make(QUADROTOR_ID, **kwargs)
 
 
 # ----------------------------------------------------------------------------- a second system
@@ -107,7 +114,7 @@ def make_point_mass(**kwargs) -> LatentForceEnv:
     return LatentForceEnv(POINT_MASS_MODEL, POINT_MASS_COST, **{**options, **kwargs})
 
 
-ENVS = {"sine_track": make, "point_mass": make_point_mass}
+ENVS = {"sine_track": make, "quadrotor": make_quadrotor, "point_mass": make_point_mass}
 
 
 @pytest.fixture(params=sorted(ENVS))
@@ -199,8 +206,9 @@ def test_episodes_match_the_recording():
 # ----------------------------------------------------------------------------- Gymnasium contract
 
 
-def test_check_env_sine_track_has_only_the_action_space_recommendation():
-    env = make()
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_check_env_has_only_the_action_space_recommendation(env_id):
+    env = gym.make(env_id)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         check_env(env.unwrapped)
@@ -230,6 +238,15 @@ def test_spaces_are_in_physical_units():
     assert env.observation_space.dtype == np.float64 and env.observation_space.shape == (4,)
 
 
+def test_quadrotor_spaces_are_in_physical_units():
+    env = make_quadrotor()
+    space = env.action_space
+    assert space.dtype == np.float64 and space.shape == (2,)
+    np.testing.assert_allclose(space.low, [0.0, -0.4])  # [N, rad]
+    np.testing.assert_allclose(space.high, [2.0 * 0.027 * 9.81, 0.4])
+    assert env.observation_space.dtype == np.float64 and env.observation_space.shape == (6,)
+
+
 def test_spaces_follow_the_system():
     env = make_point_mass()
     np.testing.assert_array_equal(env.action_space.low, POINT_MASS.input_lower)
@@ -237,17 +254,20 @@ def test_spaces_follow_the_system():
     assert env.observation_space.shape == (POINT_MASS.nx,)
 
 
-def test_gym_make_in_a_subprocess():
-    code = "import gymnasium as gym, lfm_env; e = gym.make('lfm_env/SineTrack-v0'); e.reset(seed=0)"
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_gym_make_in_a_subprocess(env_id):
+    code = f"import gymnasium as gym, lfm_env; e = gym.make({env_id!r}); e.reset(seed=0)"
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
 
 
-def test_the_generic_module_does_not_import_the_sine_track():
+def test_the_generic_module_does_not_import_the_case_studies():
     code = (
         "import sys, lfm_env.env; "
         "assert 'lfm_env.envs.sine_track' not in sys.modules, 'sine track imported'; "
-        "assert 'lfm_env.systems.sine_track' not in sys.modules, 'sine track system imported'"
+        "assert 'lfm_env.systems.sine_track' not in sys.modules, 'sine track system imported'; "
+        "assert 'lfm_env.envs.quadrotor_gust' not in sys.modules, 'quadrotor imported'; "
+        "assert 'lfm_env.systems.quadrotor' not in sys.modules, 'quadrotor system imported'"
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
@@ -262,6 +282,31 @@ def test_registered_entry_point_and_attributes():
     assert u.system is u.model.system and u.system.name == "sine_track"
     assert u.config == EnvConfig()
     np.testing.assert_array_equal(u.cost.x_goal, EnvConfig().goal_state_rad)
+
+
+def test_registered_entry_point_and_attributes_of_the_quadrotor():
+    env = make_quadrotor()
+    assert isinstance(env.unwrapped, QuadrotorGustEnv)
+    assert env.spec.entry_point == "lfm_env.envs.quadrotor_gust:QuadrotorGustEnv"
+    u = env.unwrapped
+    assert u.system is u.model.system and u.system.name == "quadrotor_gust"
+    assert u.config == QuadrotorGustConfig()
+    assert u.corridor == QuadrotorGustConfig().corridor
+    np.testing.assert_array_equal(u.cost.x_goal, QuadrotorGustConfig().goal_state_rad)
+    np.testing.assert_array_equal(u.cost.Q, np.diag(QuadrotorGustConfig().Q))
+    assert u.metadata["render_modes"] == ["rgb_array"] and u.metadata["render_fps"] == 10
+    with pytest.raises(ValueError, match="render_mode"):  # (gym.make would wrap rgb_array)
+        QuadrotorGustEnv(render_mode="human")
+    with pytest.raises(ValueError, match="env_id"):  # another world's config
+        make_quadrotor(config={"env_id": ENV_ID, "env": {}})
+
+
+def test_the_quadrotor_reads_its_config_file():
+    path = Path(__file__).resolve().parents[2] / "configs" / "quadrotor.yaml"
+    env = make_quadrotor(config=str(path))
+    assert env.unwrapped.config == QuadrotorGustConfig()
+    changed = make_quadrotor(config={"env": {"corridor_half_height": 0.3, "max_steps": 5}})
+    assert changed.unwrapped.corridor.half_height == 0.3 and changed.unwrapped.max_steps == 5
 
 
 def test_observations_are_float64_and_in_the_space(make_env):
@@ -334,6 +379,7 @@ def test_preview_does_not_change_the_episode_and_foretells_the_disturbance(make_
     actions = np.zeros((140, make_env().action_space.shape[0]))
     long_episode = {
         make: {"config": {"env": {"safety_margin": 1.0e6}}},  # no failure
+        make_quadrotor: {"config": {"env": {"safety_margin": 1.0e6, "max_steps": 200}}},
         make_point_mass: {"max_steps": 200},
     }
     kwargs = long_episode[make_env]
@@ -377,6 +423,24 @@ def test_reset_options_take_effect():
     # Without options the paper's start state is back.
     _, info = env.reset(seed=0)
     np.testing.assert_allclose(info["true_state"], [0.0, 0.0, 1.0, math.pi / 4])
+
+
+def test_quadrotor_reset_options_take_effect():
+    env = make_quadrotor()
+    x0 = np.array([2.0, 1.2, 0.1, 0.5, -0.2, 0.0])
+    z0 = np.array([1.5, -0.3])  # Matern 3/2: [w, dw/dt]
+    _, info = env.reset(seed=0, options={"initial_state": x0, "latent_state": z0})
+    np.testing.assert_array_equal(info["true_state"], x0)
+    np.testing.assert_array_equal(info["latent_state"], z0)
+    assert info["disturbance"] == 1.5  # w = H z, H = [1, 0]
+    thrust = 0.3
+    _, _, _, _, info = env.step([thrust, 0.1])
+    assert info["disturbance"] == 1.5
+    # v_x moves by (T sin(theta) / m + w) dt, plus process noise (std 0.0063 m/s).
+    expected = 0.5 + 0.1 * (thrust * math.sin(0.1) / 0.027 + 1.5)
+    assert info["true_state"][3] == pytest.approx(expected, abs=0.03)
+    _, info = env.reset(seed=0)
+    np.testing.assert_array_equal(info["true_state"], [0.0, 1.0, 0.0, 0.0, 0.0, 0.0])
 
 
 def test_reset_options_of_a_two_component_force():
@@ -481,16 +545,22 @@ def test_scene_factory_draws_the_true_state():
 # ----------------------------------------------------------------------------- disturbance
 
 
-def test_disturbance_statistics_match_the_matern_kernel():
+@pytest.mark.parametrize(
+    "make_world, kernel, lag",
+    [
+        (make, matern(2.5, 4.0, 4.0), 5),  # lag 5 steps = 1 s at dt = 0.2 s
+        (make_quadrotor, matern(1.5, 6.25, 2.5), 10),  # lag 10 steps = 1 s at dt = 0.1 s
+    ],
+)
+def test_disturbance_statistics_match_the_matern_kernel(make_world, kernel, lag):
     """Over 500 resets the force has the kernel's variance and lag-1 s correlation."""
-    n, lag = 500, 5  # lag 5 steps = 1 s at dt = 0.2 s
-    env = make()
+    n = 500
+    env = make_world()
     w = np.empty((n, lag + 1))
     for seed in range(n):
         _, info = env.reset(seed=seed)
         w[seed] = env.unwrapped.preview_disturbance(lag + 1)[:, 0]
         assert w[seed, 0] == info["disturbance"]
-    kernel = matern(2.5, 4.0, 4.0)
     k0, k1 = kernel.covariance([0.0, 1.0])
     rho = k1 / k0
 
@@ -564,11 +634,70 @@ def test_leaving_the_safety_box_is_a_failure():
     assert terminated and info["failure"] and info["x_excess"] > 10.0
 
 
-def test_truncation_after_max_steps():
-    env = make(config={"env": {"max_steps": 3}})
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_truncation_after_max_steps(env_id):
+    env = gym.make(env_id, config={"env": {"max_steps": 3}})
     env.reset(seed=0)
-    flags = [env.step([0.0, 0.0])[2:4] for _ in range(3)]
+    rest = env.unwrapped.system.fallback_input  # braking / hovering
+    flags = [env.step(rest)[2:4] for _ in range(3)]
     assert flags == [(False, False), (False, False), (False, True)]
+
+
+QUADROTOR_GOAL = np.array([8.0, 1.0])
+HOVER = 0.027 * 9.81  # [N]
+
+
+def test_quadrotor_reaches_the_goal_without_tunnelling():
+    env = make_quadrotor()
+    # 8 m/s for 0.1 s: from 0.4 m before the goal to 0.4 m after it, both outside the disc.
+    _, info = reset_at(env, [7.6, 1.0, 0.0, 8.0, 0.0, 0.0], latent=(0.0, 0.0))
+    _, _, terminated, truncated, info = env.step([HOVER, 0.0])
+    assert np.linalg.norm(info["true_state"][:2] - QUADROTOR_GOAL) > 0.3
+    assert terminated and not truncated
+    assert info["is_success"] and not info["failure"]
+
+
+@pytest.mark.parametrize("offset, success", [(0.4, False), (-0.35, False), (0.25, True)])
+def test_quadrotor_passing_beside_the_goal(offset, success):
+    env = make_quadrotor(config={"env": {"safety_margin": 5.0}})
+    reset_at(env, [7.6, 1.0 + offset, 0.0, 8.0, 0.0, 0.0], latent=(0.0, 0.0))
+    _, _, terminated, truncated, info = env.step([HOVER, 0.0])
+    assert info["is_success"] is success
+    assert terminated is success
+    assert not truncated and not info["failure"]
+
+
+def test_quadrotor_leaving_the_safety_box_is_a_failure():
+    env = make_quadrotor()
+    corridor = QuadrotorGustConfig().corridor
+    z_top = float(corridor.ceiling_z(2.0)) + 0.9  # 0.9 m above the ceiling: inside the box
+    _, info = reset_at(env, [2.0, z_top, 0.0, 0.0, 0.0, 0.0], latent=(0.0, 0.0))
+    assert info["corridor_excess"] == pytest.approx(0.9)
+    _, _, terminated, _, info = env.step([HOVER, 0.0])
+    assert not terminated and not info["failure"]
+    reset_at(env, [2.0, z_top, 0.0, 0.0, 2.0, 0.0], latent=(0.0, 0.0))  # 0.2 m further up
+    _, _, terminated, truncated, info = env.step([HOVER, 0.0])
+    assert terminated and not truncated
+    assert info["failure"] and not info["is_success"]
+    assert info["corridor_excess"] > 1.0
+    # Beyond the x bounds too (x_min = -0.5 m).
+    reset_at(env, [-1.4, float(corridor.centre_z(-1.4)), 0.0, -2.0, 0.0, 0.0], latent=(0.0, 0.0))
+    _, _, terminated, _, info = env.step([HOVER, 0.0])
+    assert terminated and info["failure"] and info["x_excess"] > 1.0
+
+
+def test_quadrotor_constraint_excesses_are_recorded():
+    env = make_quadrotor()
+    corridor = QuadrotorGustConfig().corridor
+    _, info = reset_at(
+        env, [3.0, float(corridor.floor_z(3.0)) - 0.2, 0.0, 0.0, 0.0, 0.0], latent=(0.0, 0.0)
+    )
+    assert info["corridor_excess"] == pytest.approx(0.2)
+    assert info["x_excess"] == 0.0
+    np.testing.assert_allclose(info["constraint_excess"], [0.2, 0.0, 0.0, 0.0])
+    z_end = float(corridor.centre_z(9.25))
+    _, info = reset_at(env, [9.25, z_end, 0.0, 0.0, 0.0, 0.0], latent=(0.0, 0.0))
+    assert info["x_excess"] == pytest.approx(0.25) and info["corridor_excess"] == 0.0
 
 
 def test_constraint_excesses_are_recorded():
@@ -607,6 +736,13 @@ def test_invalid_action_message_names_the_inputs_and_units():
     env.reset(seed=0)
     with pytest.raises(ValueError, match=r"\[a m/s\^2, delta rad\]"):
         env.step([1.0])
+
+
+def test_invalid_quadrotor_action_message_names_the_inputs_and_units():
+    env = make_quadrotor()
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"\[T N, theta_cmd rad\]"):
+        env.step([0.3])
 
 
 def test_out_of_range_actions_are_clipped(make_env):
@@ -655,14 +791,21 @@ def test_reward_is_the_cost_objects_stage_cost(make_env):
 # ----------------------------------------------------------------------------- noise
 
 
-def test_measurement_noise_std_over_many_resets():
+@pytest.mark.parametrize(
+    "make_world, std",
+    [
+        (make, [0.15, 0.15, 0.15, math.radians(0.5)]),
+        (make_quadrotor, [0.02, 0.02, math.radians(1.0), 0.05, 0.05, math.radians(5.0)]),
+    ],
+)
+def test_measurement_noise_std_over_many_resets(make_world, std):
     n = 1000
-    env = make()
-    noise = np.empty((n, 4))
+    env = make_world()
+    std = np.array(std)
+    noise = np.empty((n, len(std)))
     for seed in range(n):
         obs, info = env.reset(seed=seed)
         noise[seed] = obs - info["true_state"]
-    std = np.array([0.15, 0.15, 0.15, math.radians(0.5)])
     # SE of a sample std of Gaussian data: sigma / sqrt(2 (n - 1)).
     np.testing.assert_allclose(
         noise.std(axis=0, ddof=1), std, atol=0, rtol=4.5 / math.sqrt(2 * (n - 1))
@@ -719,6 +862,65 @@ def test_render_whole_track_when_not_following():
     assert len(cols) > 0.8 * w  # lane lines across the whole width
     assert yellowish_pixels(frame)[:, : w // 10].sum() > 0  # the car at the start, on the left
     env.close()
+
+
+def bluish_pixels(frame: np.ndarray) -> np.ndarray:
+    r, g, b = (frame[..., i].astype(int) for i in range(3))
+    return (b > 150) & (r < 100) & (g < 150)
+
+
+def pixel_of(scene, x: float, z: float) -> tuple[float, float]:
+    """Row and column of the point ``(x, z)`` [m] in a frame of ``scene`` (row 0 on top)."""
+    col, y = scene.ax.transData.transform((x, z))
+    return scene.size[1] - y, col
+
+
+def test_quadrotor_frame_shows_the_tunnel_and_the_vehicle():
+    env = make_quadrotor(render_mode="rgb_array")
+    state = [3.0, 0.6, 0.3, 0.0, 0.0, 0.0]
+    reset_at(env, state, latent=(0.0, 0.0))
+    frame = env.render()
+    assert frame.shape == (300, 600, 3) and frame.dtype == np.uint8
+    assert len(np.unique(frame.reshape(-1, 3), axis=0)) > 2  # not blank or uniform
+    scene = env.unwrapped._scene
+    corridor = env.unwrapped.corridor
+    # Inside the tunnel the frame is white, from the floor to the ceiling, at every x.
+    for x in (0.0, 1.0, 5.0, 7.0):
+        row_floor, col = pixel_of(scene, x, float(corridor.floor_z(x)))
+        row_ceiling, _ = pixel_of(scene, x, float(corridor.ceiling_z(x)))
+        column = white_pixels(frame)[:, int(round(col))]
+        rows = np.nonzero(column)[0]
+        assert abs(rows.min() - row_ceiling) <= 4 and abs(rows.max() - row_floor) <= 4, x
+    # The vehicle: a blue bar centred on its position, tilted by the pitch (right end low).
+    blue = np.argwhere(bluish_pixels(frame))
+    assert len(blue) > 10
+    row, col = pixel_of(scene, 3.0, 0.6)
+    assert np.abs(blue.mean(axis=0) - [row, col]).max() < 3.0
+    # Positive pitch tilts the bar's right end down: rows grow along it by tan(0.3) per column.
+    slope = np.polyfit(blue[:, 1], blue[:, 0], 1)[0]
+    assert slope == pytest.approx(math.tan(0.3), abs=0.1)
+    # It moves with the state.
+    env.unwrapped.make_scene()  # an independent scene leaves the env's alone
+    reset_at(env, [6.0, 1.0, 0.0, 0.0, 0.0, 0.0], latent=(0.0, 0.0))
+    moved = np.argwhere(bluish_pixels(env.render())).mean(axis=0)
+    assert np.abs(moved - pixel_of(scene, 6.0, 1.0)).max() < 3.0
+    env.close()
+    assert env.unwrapped._scene is None
+
+
+def test_quadrotor_scene_replays_saved_states_and_follows_the_vehicle():
+    env = make_quadrotor(render_mode="rgb_array", screen_size=(320, 200), scaling=200.0)
+    scene = env.unwrapped.make_scene()
+    for state in ([1.0, 1.5, 0.0, 0, 0, 0], [4.5, 0.9, -0.2, 0, 0, 0]):
+        scene.update(np.array(state))
+        frame = scene.draw()
+        assert frame.shape == (200, 320, 3) and frame.dtype == np.uint8
+        blue = np.argwhere(bluish_pixels(frame))
+        assert np.abs(blue.mean(axis=0) - [100, 160]).max() < 4.0  # centred: the view follows
+        assert white_pixels(frame).sum() > 1000  # the tunnel around it
+    scene.close()
+    with pytest.raises(ValueError, match="scaling"):
+        make_quadrotor(scaling=0.0)
 
 
 def test_render_without_render_mode_warns_and_returns_none(make_env):

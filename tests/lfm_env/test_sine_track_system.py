@@ -324,3 +324,15 @@ def test_the_system_pickles_and_rebuilds_its_casadi_functions():
     np.testing.assert_allclose(
         np.asarray(clone.casadi_step(DT)(s, a, 0.3)).ravel(), SYSTEM.euler_step(s, a, [0.3], DT)
     )
+
+
+def test_the_fallback_brakes_to_a_standstill_not_backwards():
+    dt = 0.2
+    np.testing.assert_allclose(SYSTEM.fallback(np.array([0.0, 0.0, 8.0, 0.0]), dt), [-5.0, 0.0])
+    np.testing.assert_allclose(SYSTEM.fallback(np.array([0.0, 0.0, 0.5, 0.0]), dt), [-2.5, 0.0])
+    # At a negative speed it accelerates forwards (full braking would drive backwards).
+    np.testing.assert_allclose(SYSTEM.fallback(np.array([0.0, 0.0, -0.2, 0.0]), dt), [1.0, 0.0])
+    v = 3.0
+    for _ in range(5):
+        v += dt * SYSTEM.fallback(np.array([0.0, 0.0, v, 0.0]), dt)[0]
+    assert v == pytest.approx(0.0, abs=1e-12)
