@@ -33,7 +33,9 @@ some raised (they are in the table with their error), 2 on bad arguments.
 Metrics (columns of episodes.csv): success, steps, time_to_goal [s], cost (sum of
 the true stage cost), then per constraint group G of the world's system
 <G>_violation_steps and max_<G>_excess [the group's unit] (sine track: track [m],
-x [m], speed [m/s]; quadrotor: corridor [m], x [m]), failure (the env ended the
+x [m], speed [m/s]; quadrotor: corridor [m], x [m]) and <G>_violation_steps_over_<T>
+per tolerance T of the group (steps with the excess above T; sine track: track and x
+0.01, 0.05 m, speed 0.05 m/s), failure (the env ended the
 episode as a failure), latent_rmse [force unit] and latent_coverage (2-sigma band;
 filter agents only), solve_time_median/p95/max [s], solver_failures,
 fallback_steps, filter_resets, slack_total, wall_time [s], error.
@@ -240,6 +242,9 @@ files written (DIR is the results folder):
   DIR/report.md, DIR/report.html   the same report (HTML shows the PNGs beside it)
   DIR/figures/*.png                figures of one episode, across-seed plots
   DIR/figures/episode.gif          the episode replayed from its saved true states
+  DIR/figures/estimator_calibration.png   coverage and RMSE of the filtering agents
+  DIR/figures/sweep.png            the risk sweep's Pareto picture (with --sweep, or
+                                   when DIR holds a sweep.md of lfm-sweep)
 
 Reads DIR/episodes.csv, DIR/episodes/*.npz and DIR/config.yaml; runs no episode.
 The figures and the metric units come from the system of the world in config.yaml,
@@ -250,6 +255,7 @@ Exit code 0 on success, 2 when DIR is missing, empty or the seed has no trajecto
 examples:
   lfm-report results/paper
   lfm-report results/quick --seed 3 --no-gif
+  lfm-report results/paper --sweep results/sweep
 """
 
 
@@ -281,6 +287,15 @@ def _report_parser() -> argparse.ArgumentParser:
         ),
     )
     parser.add_argument("--no-gif", action="store_true", help="do not write figures/episode.gif")
+    parser.add_argument(
+        "--sweep",
+        metavar="SWEEPDIR",
+        default=None,
+        help=(
+            "include the table and Pareto figure of an lfm-sweep folder (default: DIR's own "
+            "sweep when DIR holds a sweep.md)"
+        ),
+    )
     return parser
 
 
@@ -295,11 +310,152 @@ def report_main(argv: Sequence[str] | None = None) -> int:
     parser = _report_parser()
     args = parser.parse_args(argv)
     try:
-        path = write_report(args.results_dir, figure_seed=args.seed, gif=not args.no_gif)
+        path = write_report(
+            args.results_dir, figure_seed=args.seed, gif=not args.no_gif, sweep_dir=args.sweep
+        )
     except (FileNotFoundError, ValueError) as exc:
         parser.error(" ".join(str(exc).split()))
     print(f"report: {path} and {path.with_suffix('.html')}")
     return 0
+
+
+# --------------------------------------------------------------------------- lfm-sweep
+
+_SWEEP_EPILOG = """\
+files written (DIR is --out):
+  DIR/sweep.json                  what is swept: agent, key, values, baseline, seeds
+  DIR/baseline/                   the baseline agent on the base config (lfm-evaluate folder)
+  DIR/<KEY>=<VALUE>/              the agent with KEY set to VALUE, one folder per value
+  DIR/sweep.md                    the table: per value its mean and the paired difference
+                                  to the baseline with a 95% bootstrap interval
+  DIR/sweep.png                   the Pareto picture: violation steps beyond the first
+                                  tolerance against time to goal, paired to the baseline
+
+--set takes a dotted key of the agents section and comma-separated values, read by
+the key's own type (a list key takes one value or [a,b,...]; null where allowed):
+agents.backoff, agents.n_scenarios, agents.estimator, agents.n_particles,
+agents.robust.backoff, ... Rerunning the same command resumes an interrupted sweep
+(finished episodes are kept). lfm-report RESULTS --sweep DIR puts the table and the
+figure into a report. Exit code 0 when every episode ran, 1 when some raised, 2 on
+bad arguments.
+
+examples:
+  lfm-sweep --config configs/paper.yaml --agent robust --set agents.robust.backoff=0,1,2,3 \\
+            --baseline pf --seeds 0:100 --jobs 2 --out results/sweep
+  lfm-sweep --config configs/quick.yaml --agent scenario --set agents.backoff=0,2 --seeds 0:5
+  lfm-sweep --agent robust --set agents.robust.estimator=bootstrap,rbpf,ukf --seeds 0:20
+"""
+
+
+def _sweep_parser() -> argparse.ArgumentParser:
+    from controllers.agents import AGENT_LABELS
+
+    agents_help = "; ".join(f"{k} = {v}" for k, v in AGENT_LABELS.items())
+    parser = argparse.ArgumentParser(
+        prog="lfm-sweep",
+        description=(
+            "The risk trade-off: run one agent with one setting swept over values, and a\n"
+            "baseline agent once, on the same env seeds (same hidden disturbance and noise),\n"
+            "then compare each value with the baseline: violation steps beyond each tolerance,\n"
+            "zero-violation episodes and time to goal, with paired bootstrap intervals."
+        ),
+        epilog=_SWEEP_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    _add_config_argument(parser)
+    parser.add_argument(
+        "--agent", default="robust", help=f"the agent swept (default: robust). {agents_help}"
+    )
+    parser.add_argument(
+        "--set",
+        dest="setting",
+        required=True,
+        metavar="KEY=V1,V2,...",
+        help="the swept setting, e.g. agents.robust.backoff=0,1,2,3",
+    )
+    parser.add_argument(
+        "--baseline", default="pf", help="the agent every value is compared with (default: pf)"
+    )
+    parser.add_argument(
+        "--seeds",
+        default="0:20",
+        metavar="SEEDS",
+        help="env seeds, e.g. 0:100, 3, 1,5,9 (end exclusive; default: 0:20)",
+    )
+    parser.add_argument(
+        "--jobs",
+        type=_positive_int,
+        default=1,
+        metavar="N",
+        help="local worker processes per evaluation (default: 1, serial)",
+    )
+    parser.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        default=None,
+        help="run on an existing Dask cluster, e.g. tcp://127.0.0.1:8786 (DIR must be shared)",
+    )
+    parser.add_argument(
+        "--dask-workers",
+        type=_positive_int,
+        default=None,
+        metavar="N",
+        help="start a local Dask cluster of N single-threaded workers on 127.0.0.1",
+    )
+    parser.add_argument(
+        "--out",
+        metavar="DIR",
+        default="results/sweep",
+        help="sweep folder (default: results/sweep)",
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    return parser
+
+
+def sweep_main(argv: Sequence[str] | None = None) -> int:
+    """``lfm-sweep``: sweep one agent setting against a baseline (see ``--help``).
+
+    Returns:
+        The exit code: 0 if every episode ran, 1 if some raised an error.
+    """
+    from experiments.evaluation import parse_seeds
+    from experiments.sweep import run_sweep, sweep_errors
+
+    parser = _sweep_parser()
+    args = parser.parse_args(argv)
+    config_path = _config_path(parser, args.config)
+    try:
+        seeds = parse_seeds(args.seeds)
+    except ValueError as exc:
+        parser.error(f"--seeds: {exc}")
+    if args.scheduler is not None and args.dask_workers is not None:
+        parser.error("--scheduler and --dask-workers exclude each other")
+    if args.jobs > 1 and (args.scheduler is not None or args.dask_workers is not None):
+        parser.error("--jobs runs local processes; do not combine it with Dask options")
+    out = Path(args.out)
+    try:
+        summary = run_sweep(
+            args.agent.strip(),
+            args.setting,
+            seeds,
+            config=config_path,
+            out=out,
+            baseline=args.baseline.strip(),
+            jobs=args.jobs,
+            scheduler=args.scheduler,
+            dask_workers=args.dask_workers,
+            progress=not args.quiet,
+        )
+    except (ValueError, ConnectionError) as exc:  # raised before any episode runs
+        parser.error(" ".join(str(exc).split()))
+    except KeyboardInterrupt:
+        print(f"\ninterrupted; finished episodes are in {out}; rerun to resume", file=sys.stderr)
+        return 130
+    n_errors = sweep_errors(summary)
+    print(f"sweep: {out / 'sweep.md'} and {out / 'sweep.png'} ({len(summary.values)} values)")
+    if n_errors:
+        print(f"{n_errors} episodes raised an error; rerun the same command to retry them")
+    return 1 if n_errors else 0
 
 
 # --------------------------------------------------------------------------- lfm-render

@@ -97,6 +97,7 @@ _INT_COLUMNS = ("seed", "steps", "solver_failures", "fallback_steps", "filter_re
 _BOOL_COLUMNS = ("success", "failure")
 _FIXED_COLUMNS = HEAD_COLUMNS + TAIL_COLUMNS
 _VIOLATION_SUFFIX = "_violation_steps"  # int columns of the constraint groups
+_OVER = "_over_"  # {g}_violation_steps_over_{t}: the steps beyond tolerance t
 
 
 def _group_names(system: Any) -> tuple[str, ...]:
@@ -109,28 +110,59 @@ def _group_names(system: Any) -> tuple[str, ...]:
     return tuple(str(g) for g in groups)
 
 
+def tolerance_column(group: str, tolerance: float) -> str:
+    """The column of a group's violation steps beyond ``tolerance`` [group unit].
+
+    ``{group}_violation_steps_over_{tolerance:g}``, e.g. ``track_violation_steps_over_0.01``.
+    """
+    return f"{group}{_VIOLATION_SUFFIX}{_OVER}{float(tolerance):g}"
+
+
+def tolerance_columns(system: Any) -> tuple[tuple[str, float, str], ...]:
+    """``(group, tolerance, column)`` of every tolerance-aware violation count of a system.
+
+    From ``system.violation_tolerances`` (group -> excesses [group unit]), in the order
+    of the groups and of each group's tolerances; empty for a sequence of group names.
+    """
+    tolerances = getattr(system, "violation_tolerances", None) or {}
+    return tuple(
+        (g, float(t), tolerance_column(g, t))
+        for g in _group_names(system)
+        for t in tolerances.get(g, ())
+    )
+
+
 def group_columns(system: Any) -> tuple[str, ...]:
     """The metric columns of a system's constraint groups, in the groups' order.
 
     Per group ``g`` (a key of ``system.constraint_groups``): ``{g}_violation_steps``
-    (steps ending with the group's excess above 0) and ``max_{g}_excess`` (its largest
-    excess over the episode, in the group's constraint unit). For the sine track:
-    ``track_violation_steps, max_track_excess, x_violation_steps, max_x_excess,
-    speed_violation_steps, max_speed_excess``.
+    (steps ending with the group's excess above 0), ``max_{g}_excess`` (its largest
+    excess over the episode, in the group's constraint unit), then per tolerance ``t`` of
+    ``system.violation_tolerances[g]`` ``{g}_violation_steps_over_{t:g}`` (steps ending
+    with the excess above ``t``: a millimetre over a bound is not a crash). For the sine
+    track: ``track_violation_steps, max_track_excess, track_violation_steps_over_0.01,
+    track_violation_steps_over_0.05``, the same for ``x``, then ``speed_violation_steps,
+    max_speed_excess, speed_violation_steps_over_0.05``.
 
     Args:
-        system: a :class:`~lfm_env.system.ControlSystem`, or its group names.
+        system: a :class:`~lfm_env.system.ControlSystem`, or its group names (then
+            without tolerance columns).
     """
+    over: dict[str, list[str]] = {}
+    for g, _, column in tolerance_columns(system):
+        over.setdefault(g, []).append(column)
     return tuple(
-        c for g in _group_names(system) for c in (f"{g}{_VIOLATION_SUFFIX}", f"max_{g}_excess")
+        c
+        for g in _group_names(system)
+        for c in (f"{g}{_VIOLATION_SUFFIX}", f"max_{g}_excess", *over.get(g, ()))
     )
 
 
 def row_columns(system: Any) -> tuple[str, ...]:
     """Columns of a row of an episode on ``system``, in table order.
 
-    :data:`HEAD_COLUMNS`, then :func:`group_columns` of the system's constraint groups,
-    then :data:`TAIL_COLUMNS`.
+    :data:`HEAD_COLUMNS`, then :func:`group_columns` of the system's constraint groups
+    (with their tolerance-aware counts), then :data:`TAIL_COLUMNS`.
 
     Args:
         system: a :class:`~lfm_env.system.ControlSystem` (e.g. ``config.make_system()``),
@@ -139,23 +171,71 @@ def row_columns(system: Any) -> tuple[str, ...]:
     return HEAD_COLUMNS + group_columns(system) + TAIL_COLUMNS
 
 
+_GROUP_COLUMN = re.compile(
+    rf"(?P<steps>.+){_VIOLATION_SUFFIX}|max_(?P<max>.+)_excess"
+    rf"|(?P<over>.+){_VIOLATION_SUFFIX}{_OVER}(?P<tol>[0-9.eE+-]+)"
+)
+
+
 def _table_columns(rows: Iterable[dict[str, Any]]) -> tuple[str, ...]:
     """The columns of saved rows: the fixed ones around the group columns they hold.
 
     Groups come in first-seen order, each with the columns of it that some row holds
-    (``{g}_violation_steps`` before ``max_{g}_excess``); other keys follow them.
+    (``{g}_violation_steps``, ``max_{g}_excess``, then its tolerance counts by
+    increasing tolerance); other keys follow them.
     """
     seen: dict[str, None] = {}
     for row in rows:
         seen.update((k, None) for k in row if k not in _FIXED_COLUMNS)
-    groups: dict[str, None] = {}
+    groups: dict[str, list[tuple[float, str]]] = {}
     for key in seen:
-        m = re.fullmatch(rf"(.+){_VIOLATION_SUFFIX}|max_(.+)_excess", key)
-        if m is not None:
-            groups[m.group(1) or m.group(2)] = None
-    ordered = [c for c in group_columns(groups) if c in seen]
+        m = _GROUP_COLUMN.fullmatch(key)
+        if m is None:
+            continue
+        if m.group("over") is not None:
+            try:
+                tol = float(m.group("tol"))
+            except ValueError:
+                continue
+            groups.setdefault(m.group("over"), []).append((tol, key))
+        else:
+            groups.setdefault(m.group("steps") or m.group("max"), [])
+    ordered = []
+    for g, over in groups.items():
+        raw = (f"{g}{_VIOLATION_SUFFIX}", f"max_{g}_excess")
+        ordered += [c for c in raw if c in seen] + [c for _, c in sorted(over)]
     ordered += [c for c in seen if c not in ordered]
     return HEAD_COLUMNS + tuple(ordered) + TAIL_COLUMNS
+
+
+def _is_count_column(column: str) -> bool:
+    """Integer columns of the constraint groups: raw and tolerance-aware violation steps."""
+    return column.endswith(_VIOLATION_SUFFIX) or (
+        (m := _GROUP_COLUMN.fullmatch(column)) is not None and m.group("over") is not None
+    )
+
+
+def violation_counts(trajectory: dict[str, np.ndarray], system: Any) -> dict[str, int]:
+    """The raw and tolerance-aware violation steps of a trajectory's ``<group>_excess``.
+
+    ``{g}_violation_steps`` counts the steps whose group excess is above 0 and
+    ``{g}_violation_steps_over_{t:g}`` those above ``t`` (:func:`tolerance_columns`).
+    Groups whose ``<group>_excess`` array the trajectory lacks are left out, so an older
+    saved episode gives what it can.
+
+    Args:
+        trajectory: arrays of one episode (:func:`run_episode`), ``<group>_excess (T,)``.
+        system: the episode's :class:`~lfm_env.system.ControlSystem`.
+    """
+    counts: dict[str, int] = {}
+    for g in _group_names(system):
+        if f"{g}_excess" in trajectory:
+            excess = np.asarray(trajectory[f"{g}_excess"], dtype=float)
+            counts[f"{g}{_VIOLATION_SUFFIX}"] = int(np.sum(excess > 0.0))
+    for g, t, column in tolerance_columns(system):
+        if f"{g}_excess" in trajectory:
+            counts[column] = int(np.sum(np.asarray(trajectory[f"{g}_excess"], float) > t))
+    return counts
 
 
 def _metric_columns(columns: Sequence[str]) -> tuple[str, ...]:
@@ -293,6 +373,7 @@ class _EpisodeRecorder:
         system = config.make_system()
         self.horizon = config.agents.horizon
         self.nx, self.nu, self.nw = system.nx, system.nu, system.nw
+        self.system = system
         self.groups = tuple(system.constraint_groups)
         self.columns = row_columns(system)
         self.lists: dict[str, list] = {
@@ -314,6 +395,7 @@ class _EpisodeRecorder:
                 "solver_success",
                 "fallback",
                 "filter_reset",
+                "estimator",
                 *self._excess_keys(),
             )
         }
@@ -350,6 +432,9 @@ class _EpisodeRecorder:
             "solver_success": bool(agent_info.get("success", False)),
             "fallback": str(agent_info.get("fallback", "")),
             "filter_reset": bool(agent_info.get("filter_reset", False)),
+            # The estimator's name, from agents that say which one they run (it may differ
+            # from agents.estimator: the robust agent has its own).
+            "estimator": str(agent_info.get("estimator", "")),
         }
         # The largest excess of each constraint group after the step, in its unit.
         values.update((k, float(info[k])) for k in self._excess_keys())
@@ -395,6 +480,7 @@ class _EpisodeRecorder:
             "solver_success": stack("solver_success", (0,), bool),
             "fallback": stack("fallback", (0,), str),
             "filter_reset": stack("filter_reset", (0,), bool),
+            "estimator": stack("estimator", (0,), str),
             **{k: stack(k, (0,)) for k in self._excess_keys()},
         }
 
@@ -440,10 +526,9 @@ def _episode_metrics(rec: _EpisodeRecorder, arrays: dict[str, np.ndarray]) -> di
         "time_to_goal": float(info["time"]) if success else math.nan,
         "cost": float(-np.sum(arrays["reward"])),
     }
-    for g in rec.groups:
-        excess = arrays[f"{g}_excess"]
-        metrics[f"{g}{_VIOLATION_SUFFIX}"] = int(np.sum(excess > 0.0))
-        metrics[f"max_{g}_excess"] = stat(np.max, excess)
+    counts = violation_counts(arrays, rec.system)
+    for c in group_columns(rec.system):  # in the row's order
+        metrics[c] = stat(np.max, arrays[c[4:]]) if c.startswith("max_") else counts[c]
     return {
         **metrics,
         "failure": bool(info.get("failure", False)),
@@ -499,9 +584,11 @@ def run_episode(
         ``latent_force_std`` (its estimate of ``disturbance[k]``, shaped like it; NaN
         without a filter), ``predicted (T, N+1, nx)`` (first scenario's predicted
         states), ``solve_time (T,)`` [s], ``slack (T,)``, ``solver_success (T,)``,
-        ``fallback (T,)`` ('' or the fallback used), and ``<group>_excess (T,)`` per
-        constraint group of the system (its largest excess after step k, in its unit;
-        ``track_excess``, ``x_excess``, ``speed_excess`` on the sine track).
+        ``fallback (T,)`` ('' or the fallback used), ``estimator (T,)`` (the name the
+        agent gives its estimator in ``last_info["estimator"]``, '' when it gives none),
+        and ``<group>_excess (T,)`` per constraint group of the system (its largest
+        excess after step k, in its unit; ``track_excess``, ``x_excess``, ``speed_excess``
+        on the sine track).
 
     Raises:
         ValueError: unknown agent name or negative seed; any error of the episode itself
@@ -607,7 +694,7 @@ def _normalise_row(record: dict[str, Any]) -> dict[str, Any]:
             row[c] = math.nan
         elif c in _BOOL_COLUMNS:
             row[c] = bool(v)
-        elif c in _INT_COLUMNS or c.endswith(_VIOLATION_SUFFIX):
+        elif c in _INT_COLUMNS or _is_count_column(c):
             row[c] = int(v)
         else:
             row[c] = float(v)
@@ -839,6 +926,7 @@ def evaluate(
     progress: bool = True,
     record: bool = True,
     retry_failed: bool = True,
+    progress_label: str | None = None,
 ) -> list[dict[str, Any]]:
     """Run every (agent, env seed) episode and return one row of metrics per episode.
 
@@ -858,6 +946,7 @@ def evaluate(
         progress: show a tqdm progress bar over episodes.
         record: save each episode's trajectory (npz) next to its row.
         retry_failed: re-run saved episodes whose ``error`` is not empty.
+        progress_label: text before the progress bar (e.g. the sweep's value).
 
     Returns:
         The rows (:func:`row_columns` of the config's system) of the requested episodes,
@@ -911,7 +1000,13 @@ def evaluate(
         if out_path is not None:
             _prepare_folder(out_path, cfg)
         bar = stack.enter_context(
-            tqdm(total=len(pairs), initial=len(rows), disable=not progress, unit="episode")
+            tqdm(
+                total=len(pairs),
+                initial=len(rows),
+                disable=not progress,
+                unit="episode",
+                desc=progress_label,
+            )
         )
         last_table = time.monotonic()
         n_errors = 0
@@ -1017,5 +1112,8 @@ __all__ = [
     "row_columns",
     "run_episode",
     "save_episode",
+    "tolerance_column",
+    "tolerance_columns",
+    "violation_counts",
     "write_table",
 ]

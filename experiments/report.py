@@ -8,6 +8,12 @@ Reads a results folder written by the evaluation (it never re-runs an episode):
 * ``DIR/episodes/<agent>__seed<seed>.npz``: the arrays of that episode;
 * ``DIR/config.yaml``: the config of the run (``env_id``, ``env`` and ``agents``).
 
+Besides the per-agent and paired tables (with the tolerance-aware violation counts of
+:func:`~experiments.evaluation.row_columns`), it holds the estimators' calibration (2-sigma
+coverage and RMSE per state and for the latent force, from the saved trajectories) and,
+when given a sweep folder of :mod:`experiments.sweep` (or when ``DIR`` holds one), the
+risk sweep's table and Pareto figure.
+
 Everything world-specific comes from the config's system
 (:class:`~lfm_env.system.ControlSystem`): the constraint-group metrics and their units in
 the tables, and the figures (:mod:`experiments.plots`). Only the "paper vs measured"
@@ -23,6 +29,7 @@ import csv
 import html
 import math
 import re
+import zipfile
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -32,11 +39,12 @@ from typing import Any
 import numpy as np
 
 from experiments import plots
+from experiments.evaluation import tolerance_columns, violation_counts
 from lfm_env.config import WorldConfig, load_env_config, load_yaml
-from lfm_env.system import ControlSystem
+from lfm_env.system import ControlSystem, split_unit
 
 REFERENCE_AGENT = "scenario"
-KNOWN_AGENT_ORDER = ("nominal", "pf", "scenario", "scenario_particles", "oracle")
+KNOWN_AGENT_ORDER = ("nominal", "pf", "scenario", "scenario_particles", "robust", "oracle")
 
 # Short labels for tables and axes; the oracle is an upper bound everywhere it appears.
 AGENT_SHORT_LABELS = {
@@ -44,6 +52,7 @@ AGENT_SHORT_LABELS = {
     "pf": "PF + CE MPC",
     "scenario": "scenario MPC (paper)",
     "scenario_particles": "scenario MPC, particle starts",
+    "robust": "robust MPC (back-off)",
     "oracle": "oracle (upper bound)",
 }
 
@@ -62,11 +71,20 @@ class Metric:
     unit: str = ""
     lower_is_better: bool = True
     fewer: str = ""  # plain-language comparative, e.g. "fewer track violation steps"
+    zero_count: bool = False  # the value is 1 where the column is 0, else 0 (a fraction)
 
     @property
     def title(self) -> str:
         """Label with its unit in brackets."""
         return f"{self.label} [{self.unit}]" if self.unit else self.label
+
+    def value(self, row: dict[str, Any]) -> float:
+        """The metric of one episode's row: the column, or whether it is 0; NaN if missing."""
+        v = row.get(self.column, math.nan)
+        v = math.nan if v is None else float(v)
+        if self.zero_count and not math.isnan(v):
+            return float(v == 0.0)
+        return v
 
 
 def group_metrics(system: ControlSystem) -> tuple[Metric, ...]:
@@ -83,15 +101,74 @@ def group_metrics(system: ControlSystem) -> tuple[Metric, ...]:
     return tuple(out)
 
 
+def _beyond(system: ControlSystem, group: str, tolerance: float) -> str:
+    """``"> 0.01 m"``: a tolerance with its group's unit."""
+    unit = plots.group_unit(system, group)
+    return f"> {tolerance:g} {unit}" if unit else f"> {tolerance:g}"
+
+
+def tolerance_metrics(system: ControlSystem, group: str | None = None) -> tuple[Metric, ...]:
+    """Violation steps beyond each tolerance of ``system.violation_tolerances``.
+
+    The evaluation's ``{g}_violation_steps_over_{t:g}`` columns, labelled with the
+    tolerance and its unit ("track violation steps > 0.01 m").
+
+    Args:
+        system: the world's system.
+        group: only this group's; ``None`` for every group's, in the groups' order.
+    """
+    return tuple(
+        Metric(column, f"{g} violation steps {_beyond(system, g, t)}", "steps")
+        for g, t, column in tolerance_columns(system)
+        if group is None or g == group
+    )
+
+
+def zero_violation_metrics(system: ControlSystem, group: str) -> tuple[Metric, ...]:
+    """The fraction of episodes without violation steps of ``group``: raw, then per tolerance.
+
+    Each is the mean over episodes of "this episode has 0 such steps", so its bootstrap
+    interval is that of a proportion.
+    """
+    out = [
+        Metric(
+            f"{group}_violation_steps",
+            f"{group} zero-violation episodes",
+            lower_is_better=False,
+            zero_count=True,
+        )
+    ]
+    for g, t, column in tolerance_columns(system):
+        if g == group:
+            out.append(
+                Metric(
+                    column,
+                    f"{g} zero-violation episodes ({_beyond(system, g, t)})",
+                    lower_is_better=False,
+                    zero_count=True,
+                )
+            )
+    return tuple(out)
+
+
 def summary_metrics(system: ControlSystem) -> tuple[Metric, ...]:
-    """The rows of the per-agent table for a system: its group metrics among the fixed ones."""
+    """The rows of the per-agent table for a system: its group metrics among the fixed ones.
+
+    Per constraint group: violation steps, the largest excess, the violation steps beyond
+    each of its tolerances, then the zero-violation episodes (raw and per tolerance).
+    """
     force = plots.force_unit(system)
+    groups = []
+    for g in system.constraint_groups:
+        groups += [Metric(f"{g}_violation_steps", f"{g} violation steps", "steps")]
+        groups += [Metric(f"max_{g}_excess", f"max {g} excess", plots.group_unit(system, g))]
+        groups += [*tolerance_metrics(system, g), *zero_violation_metrics(system, g)]
     return (
         Metric("success", "success rate", lower_is_better=False),
         Metric("failure", "failure rate (the env ended the episode as a failure)"),
         Metric("time_to_goal", "time to goal (successful episodes)", "s"),
         Metric("cost", "cost (sum of stage costs)"),
-        *group_metrics(system),
+        *groups,
         Metric("latent_rmse", "latent-force RMSE", force),
         Metric("latent_coverage", "latent-force 2-sigma coverage", lower_is_better=False),
         Metric("solve_time_median", "solve time, episode median", "s"),
@@ -103,11 +180,15 @@ def summary_metrics(system: ControlSystem) -> tuple[Metric, ...]:
 
 
 def paired_metrics(system: ControlSystem) -> tuple[Metric, ...]:
-    """The columns of the paired-difference table: cost, each group's metrics, time to goal."""
+    """The rows of the paired-difference table: cost, each group's metrics (with its
+    tolerance-aware violation steps), time to goal."""
     groups = []
     for m in group_metrics(system):
         if m.column.startswith("max_"):
             groups.append(Metric(m.column, m.label, m.unit, fewer=f"a smaller {m.label}"))
+            g = m.column[len("max_") : -len("_excess")]
+            for t in tolerance_metrics(system, g):
+                groups.append(Metric(t.column, t.label, t.unit, fewer=f"fewer {t.label}"))
         else:
             groups.append(Metric(m.column, m.label, m.unit, fewer=f"fewer {m.label}"))
     return (
@@ -224,6 +305,11 @@ def read_episodes_csv(path: str | Path) -> list[dict[str, Any]]:
 def load_results(results_dir: str | Path) -> Results:
     """Load ``episodes.csv`` and ``config.yaml`` of a results folder.
 
+    A table written before the tolerance-aware columns existed
+    (``{g}_violation_steps_over_{t:g}``, see :func:`~experiments.evaluation.row_columns`)
+    gets them from the saved trajectories where those exist; episodes without one keep
+    them missing (NaN), and the report leaves such metrics out.
+
     Raises:
         FileNotFoundError: if the folder, its ``episodes.csv`` or its ``config.yaml`` is
             missing (the message names the path).
@@ -239,7 +325,26 @@ def load_results(results_dir: str | Path) -> Results:
         raise FileNotFoundError(f"no config.yaml in {directory} (needed for dt and the system)")
     config = load_env_config(config_path)
     agents_section = load_yaml(config_path).get("agents") or {}
-    return Results(directory, rows, config, dict(agents_section))
+    results = Results(directory, rows, config, dict(agents_section))
+    _complete_tolerance_columns(results)
+    return results
+
+
+def _complete_tolerance_columns(results: Results) -> None:
+    """Fill missing tolerance-aware counts of error-free rows from their trajectories."""
+    columns = [c for _, _, c in tolerance_columns(results.system)]
+    for row in results.rows:
+        missing = [c for c in columns if not np.isfinite(row.get(c, math.nan))]
+        if not missing or row["error"]:
+            continue
+        try:
+            traj = load_trajectory(results, row["agent"], row["seed"])
+        except (OSError, ValueError, zipfile.BadZipFile):  # unreadable: leave them missing
+            continue
+        if traj is None:
+            continue
+        counts = violation_counts(traj, results.system)
+        row.update((c, float(counts[c])) for c in missing if c in counts)
 
 
 def load_trajectory(results: Results, agent: str, seed: int) -> dict[str, np.ndarray] | None:
@@ -308,17 +413,21 @@ def summarize(results: Results, metrics: Sequence[Metric] | None = None) -> dict
         metrics: the metrics; ``None`` for :func:`summary_metrics` of the run's system.
 
     Returns:
-        ``{agent: {column: Estimate}}``; a column missing from the table gives NaNs.
+        ``{agent: {column: Estimate}}`` (a zero-violation metric's key is
+        ``"zero:" + column``); a column missing from the table gives NaNs.
     """
     if metrics is None:
         metrics = summary_metrics(results.system)
     out = {}
     for agent in results.agents:
         rows = results.rows_of(agent)
-        out[agent] = {
-            m.column: bootstrap_ci([r.get(m.column, math.nan) for r in rows]) for m in metrics
-        }
+        out[agent] = {_key(m): bootstrap_ci([m.value(r) for r in rows]) for m in metrics}
     return out
+
+
+def _key(metric: Metric) -> str:
+    """The key of a metric in :func:`summarize`'s result: its column, ``zero:`` marked."""
+    return f"zero:{metric.column}" if metric.zero_count else metric.column
 
 
 @dataclass(frozen=True)
@@ -337,24 +446,55 @@ class PairedDifference:
 
 
 def paired_differences(
-    results: Results, metric: str, agent: str, reference: str = REFERENCE_AGENT
+    results: Results, metric: str | Metric, agent: str, reference: str = REFERENCE_AGENT
 ) -> PairedDifference:
     """Differences ``agent - reference`` of ``metric`` on matching seeds only.
 
     A seed counts when both agents have an error-free episode on it and both values are
     finite (e.g. time to goal only where both reached the goal).
+
+    Args:
+        results: the loaded results.
+        metric: a column, or a :class:`Metric` (e.g. a zero-violation fraction).
+        agent: the agent whose values come first.
+        reference: the agent subtracted.
     """
-    ref = {r["seed"]: r.get(metric, math.nan) for r in results.rows_of(reference)}
+    return paired_rows_difference(
+        results.rows_of(agent), results.rows_of(reference), metric, agent, reference
+    )
+
+
+def paired_rows_difference(
+    rows: Iterable[dict[str, Any]],
+    reference_rows: Iterable[dict[str, Any]],
+    metric: str | Metric,
+    agent: str = "",
+    reference: str = "",
+) -> PairedDifference:
+    """Differences ``row - reference row`` of ``metric`` on the seeds both lists hold.
+
+    Rows with an error are left out; a seed counts when both values are finite. This is
+    :func:`paired_differences` for rows of two different folders (the risk sweep's).
+
+    Args:
+        rows: episode rows (``seed`` and the metric's column).
+        reference_rows: the rows subtracted.
+        metric: a column, or a :class:`Metric`.
+        agent: name of ``rows``' side, recorded in the result.
+        reference: name of the reference side.
+    """
+    m = metric if isinstance(metric, Metric) else Metric(str(metric), str(metric))
+    ref = {r["seed"]: m.value(r) for r in reference_rows if not r.get("error")}
     seeds, diffs = [], []
-    for r in results.rows_of(agent):
+    for r in sorted((r for r in rows if not r.get("error")), key=lambda r: r["seed"]):
         s = r["seed"]
-        a, b = r.get(metric, math.nan), ref.get(s, math.nan)
+        a, b = m.value(r), ref.get(s, math.nan)
         if s in ref and np.isfinite(a) and np.isfinite(b):
             seeds.append(s)
             diffs.append(float(a - b))
     d = np.asarray(diffs)
     return PairedDifference(
-        metric=metric,
+        metric=m.column,
         agent=agent,
         reference=reference,
         seeds=tuple(seeds),
@@ -364,6 +504,146 @@ def paired_differences(
         reference_lower=int(np.sum(d > 0)),
         ties=int(np.sum(d == 0)),
     )
+
+
+TWO_SIGMA_COVERAGE = 0.9545  # P(|e| <= 2 sigma) of a Gaussian: a calibrated 2-sigma band
+
+
+def pooled_ratio_ci(
+    numerators: Sequence[float],
+    denominators: Sequence[float],
+    root: bool = False,
+    n_resamples: int = BOOTSTRAP_RESAMPLES,
+    level: float = 0.95,
+    seed: int = BOOTSTRAP_SEED,
+) -> Estimate:
+    """A ratio pooled over episodes, ``sum(num) / sum(den)``, with a bootstrap over episodes.
+
+    The episodes are resampled whole (a cluster bootstrap), so the interval accounts for
+    the steps of one episode being correlated.
+
+    Args:
+        numerators: per episode, e.g. the steps inside the 2-sigma band, or the sum of
+            squared errors.
+        denominators: per episode, the steps counted.
+        root: report the square root of the ratio (an RMSE from squared errors).
+        n_resamples: bootstrap resamples.
+        level: confidence level of the interval.
+        seed: seed of the resampling generator.
+
+    Returns:
+        The pooled value and interval, ``n`` the number of episodes with steps; all NaN
+        when no episode has any.
+    """
+    num = np.asarray(numerators, dtype=float)
+    den = np.asarray(denominators, dtype=float)
+    keep = den > 0
+    num, den = num[keep], den[keep]
+    n = len(den)
+    if n == 0:
+        return Estimate(math.nan, math.nan, math.nan, 0)
+    f = np.sqrt if root else (lambda x: x)
+    value = float(f(num.sum() / den.sum()))
+    if n == 1:
+        return Estimate(value, value, value, 1)
+    idx = np.random.default_rng(seed).integers(0, n, size=(n_resamples, n))
+    ratios = f(num[idx].sum(axis=1) / den[idx].sum(axis=1))
+    alpha = 0.5 * (1.0 - level)
+    low, high = np.quantile(ratios, [alpha, 1.0 - alpha])
+    return Estimate(value, float(min(low, value)), float(max(high, value)), n)
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """How well one agent's estimator knows what it does not see, over its episodes.
+
+    ``quantities`` are the system's states then its latent-force components (labels with
+    units); ``coverage[i]`` is the fraction of steps with the truth inside the estimate's
+    2-sigma band and ``rmse[i]`` the root-mean-square estimate error [the quantity's
+    unit], both pooled over steps and episodes with a bootstrap interval over episodes.
+    """
+
+    agent: str
+    estimator: str  # the estimator's name
+    estimator_source: str  # "recorded" (last_info) or "config.yaml"
+    quantities: tuple[str, ...]
+    coverage: tuple[Estimate, ...]
+    rmse: tuple[Estimate, ...]
+    episodes: int
+    steps: int
+
+
+def _estimate_errors(traj: dict[str, np.ndarray], system: ControlSystem) -> tuple:
+    """``(error, std)`` arrays ``(T, nx + nw)``: the states', then the force's.
+
+    The estimate made from ``obs[k]`` is compared with ``true_state[k]`` and the force
+    estimate with the force acting during step ``k``; errors of states in rad are
+    wrapped to ``[-pi, pi)``.
+    """
+    nx, nw = system.nx, system.nw
+    est = np.asarray(traj["estimate"], dtype=float)
+    T = len(est)
+    err_x = est[:, :nx] - np.asarray(traj["true_state"], dtype=float)[:T]
+    for i, name in enumerate(system.state_names):
+        if split_unit(name)[1] == "rad":
+            err_x[:, i] = (err_x[:, i] + math.pi) % (2.0 * math.pi) - math.pi
+    std_x = np.asarray(traj["estimate_std"], dtype=float)[:, :nx]
+    force = np.asarray(traj["latent_force_est"], dtype=float).reshape(T, nw)
+    truth = np.asarray(traj["disturbance"], dtype=float).reshape(T, nw)
+    std_w = np.asarray(traj["latent_force_std"], dtype=float).reshape(T, nw)
+    return np.hstack([err_x, force - truth]), np.hstack([std_x, std_w])
+
+
+def _estimator_name(results: Results, recorded: Iterable[str]) -> tuple[str, str]:
+    """The estimator's name: the most frequent one the agent recorded, else config.yaml's."""
+    names = [str(n) for n in recorded if str(n)]
+    if names:
+        values, counts = np.unique(names, return_counts=True)
+        return str(values[np.argmax(counts)]), "recorded"
+    # A folder written before the agents said it: the agents section's (the bootstrap
+    # filter, the only one, when the section predates agents.estimator).
+    return str(results.agent_settings.get("estimator", "bootstrap")), "config.yaml"
+
+
+def calibration(results: Results) -> list[Calibration]:
+    """The estimator calibration of every agent with a filter (saved trajectories only).
+
+    An agent counts when some error-free episode of it has a saved trajectory with a
+    finite latent-force estimate (the nominal MPC and the oracle have none).
+    """
+    system = results.system
+    labels = tuple(system.state_names) + tuple(f"latent force {w}" for w in system.force_names)
+    out = []
+    for agent in results.agents:
+        hits, squares, counts, recorded = [], [], [], []
+        for row in results.rows_of(agent):
+            traj = load_trajectory(results, agent, row["seed"])
+            if traj is None or not np.any(np.isfinite(traj.get("latent_force_est", np.nan))):
+                continue
+            err, std = _estimate_errors(traj, system)
+            ok = np.isfinite(err) & np.isfinite(std)
+            hits.append(np.sum(ok & (np.abs(np.where(ok, err, 0.0)) <= 2.0 * std), axis=0))
+            squares.append(np.sum(np.where(ok, err, 0.0) ** 2, axis=0))
+            counts.append(np.sum(ok, axis=0))
+            recorded += list(traj.get("estimator", ()))
+        if not counts:
+            continue
+        hits_a, sq_a, n_a = np.array(hits), np.array(squares), np.array(counts)
+        name, source = _estimator_name(results, recorded)
+        columns = range(len(labels))
+        out.append(
+            Calibration(
+                agent=agent,
+                estimator=name,
+                estimator_source=source,
+                quantities=labels,
+                coverage=tuple(pooled_ratio_ci(hits_a[:, i], n_a[:, i]) for i in columns),
+                rmse=tuple(pooled_ratio_ci(sq_a[:, i], n_a[:, i], root=True) for i in columns),
+                episodes=len(counts),
+                steps=int(n_a[:, -1].sum()),
+            )
+        )
+    return out
 
 
 def _seeds(n: int) -> str:
@@ -557,13 +837,15 @@ def _summary_section(doc: Document, results: Results, stats: dict) -> None:
         "but left out of the statistics; `(n=k)` marks a metric defined on fewer episodes "
         "(e.g. time to goal only where the goal was reached). The oracle reads the hidden "
         "true state and future disturbance: it is an upper bound, not a controller one "
-        "could build."
+        "could build. Violation steps `> t` count only the steps whose excess over the "
+        "group's bounds is above the tolerance t (a millimetre over a bound is not a crash); "
+        "zero-violation episodes are the fraction of episodes with no such step."
     )
     header = ["metric"] + [agent_label(a) for a in agents]
     rows = []
     n_ok = {a: len(results.rows_of(a)) for a in agents}
-    for m in summary_metrics(results.system):
-        rows.append([m.title] + [fmt_estimate(stats[a][m.column], n_ok[a]) for a in agents])
+    for m in _reported(results, summary_metrics(results.system)):
+        rows.append([m.title] + [fmt_estimate(stats[a][_key(m)], n_ok[a]) for a in agents])
     rows.append(["episodes (error-free)"] + [str(n_ok[a]) for a in agents])
     rows.append(
         ["episodes with errors"]
@@ -587,6 +869,18 @@ def _errors_section(doc: Document, results: Results) -> None:
     )
 
 
+def _reported(results: Results, metrics: Sequence[Metric]) -> list[Metric]:
+    """``metrics`` without the tolerance-aware ones that no error-free episode holds (an
+    older table whose episodes have no saved trajectory to count them from)."""
+    tolerance = {c for _, _, c in tolerance_columns(results.system)}
+    return [
+        m
+        for m in metrics
+        if m.column not in tolerance
+        or any(np.isfinite(r.get(m.column, math.nan)) for r in results.rows if not r["error"])
+    ]
+
+
 def _paired_section(doc: Document, results: Results) -> list[PairedDifference]:
     doc.heading(f"Paired differences against {agent_label(REFERENCE_AGENT)}")
     others = [a for a in results.agents if a != REFERENCE_AGENT]
@@ -602,21 +896,21 @@ def _paired_section(doc: Document, results: Results) -> list[PairedDifference]:
         f"is lower than {REFERENCE_AGENT}'s. Only seeds where both episodes are error-free "
         "and the metric is defined count."
     )
-    metrics = paired_metrics(results.system)
-    header = ["agent"] + [m.title for m in metrics]
-    rows, diffs, reading = [], [], []
-    for agent in others:
-        row = [agent_label(agent)]
-        for m in metrics:
-            d = paired_differences(results, m.column, agent)
-            diffs.append(d)
+    metrics = _reported(results, paired_metrics(results.system))
+    found = {(a, m.column): paired_differences(results, m, a) for a in others for m in metrics}
+    rows = []
+    for m in metrics:
+        cells = []
+        for agent in others:
+            d = found[(agent, m.column)]
             n = len(d.seeds)
-            row.append(fmt_estimate(d.estimate) + (f" ({_seeds(n)})" if n else ""))
-        rows.append(row)
-    doc.table(header, rows)
+            cells.append(fmt_estimate(d.estimate) + (f" ({_seeds(n)})" if n else ""))
+        rows.append([m.title, *cells])
+    doc.table(["metric"] + [agent_label(a) for a in others], rows)
+    reading = []
     for agent in others:
         for m in metrics:
-            d = next(x for x in diffs if x.agent == agent and x.metric == m.column)
+            d = found[(agent, m.column)]
             n = len(d.seeds)
             if n == 0:
                 reading.append(f"{m.label}: no common seeds of {REFERENCE_AGENT} and {agent}.")
@@ -628,7 +922,7 @@ def _paired_section(doc: Document, results: Results) -> list[PairedDifference]:
             )
     doc.paragraph("In plain words:")
     doc.bullets(reading)
-    return diffs
+    return list(found.values())
 
 
 def _paper_vs_measured_section(doc: Document, results: Results, solve_times: np.ndarray) -> None:
@@ -657,7 +951,9 @@ def _paper_vs_measured_section(doc: Document, results: Results, solve_times: np.
         st_source = f"median over {n} episodes of the per-episode median / p95"
     doc.paragraph(
         f"The paper reports one run (MATLAB, fmincon, 150 scenarios, 7000 particles); here "
-        f"{n} seeds of `{agent}` with {_settings_text(results)}."
+        f"{n} seeds of `{agent}` with {_settings_text(results)}. The tolerance-aware counts "
+        "take a step as a violation only when the excess is above the tolerance, so that "
+        "millimetre crossings, which even the oracle makes, do not hide the real ones."
     )
     doc.table(
         ["quantity", "paper (one run)", f"measured ({n} episodes)"],
@@ -666,13 +962,14 @@ def _paper_vs_measured_section(doc: Document, results: Results, solve_times: np.
                 "track (position) constraints",
                 "met at every step",
                 f"zero track violations in {zero_track} of {n} episodes "
-                f"({100.0 * zero_track / n:.0f}%)",
+                f"({100.0 * zero_track / n:.0f}%)" + _tolerance_aware_text(results, rows, "track"),
             ],
             [
                 "largest speed excess over the bounds [m/s]",
                 f"{PAPER_SPEED_EXCESS:g}",
                 f"median {fmt(med)}, 90% range [{fmt(p05)}, {fmt(p95)}]; "
-                f"<= {PAPER_SPEED_EXCESS:g} in {within} of {n} episodes",
+                f"<= {PAPER_SPEED_EXCESS:g} in {within} of {n} episodes"
+                + _tolerance_aware_text(results, rows, "speed"),
             ],
             [
                 f"solve time per step vs sampling time {dt:g} s",
@@ -688,6 +985,68 @@ def _paper_vs_measured_section(doc: Document, results: Results, solve_times: np.
             ],
         ],
     )
+
+
+def _calibration_section(doc: Document, results: Results) -> None:
+    """The estimators' 2-sigma coverage and RMSE per state and force, table and figure."""
+    doc.heading("Estimator calibration")
+    cals = calibration(results)
+    if not cals:
+        doc.paragraph("No agent with a filter has saved trajectories: nothing to calibrate.")
+        return
+    doc.paragraph(
+        "How well each filtering agent's estimator knows the state and the latent force it "
+        "does not see: the fraction of steps with the truth inside the estimate's 2-sigma "
+        f"band (a calibrated Gaussian band covers {TWO_SIGMA_COVERAGE:g}; less is "
+        "overconfident) and the root-mean-square error, both pooled over steps and "
+        f"episodes, with a 95% bootstrap interval over episodes ({BOOTSTRAP_RESAMPLES} "
+        "resamples). The estimate made from the measurement at step k is compared with the "
+        "true state at step k, the force estimate with the force acting during step k."
+    )
+    header = ["quantity"] + [f"{agent_label(c.agent)}: `{c.estimator}`" for c in cals]
+    rows = []
+    for i, q in enumerate(cals[0].quantities):
+        cells = [fmt_estimate(c.coverage[i]) for c in cals]
+        rows.append([f"2-sigma coverage, {split_unit(q)[0]}", *cells])
+    for i, q in enumerate(cals[0].quantities):
+        rows.append([f"RMSE, {q}", *(fmt_estimate(c.rmse[i]) for c in cals)])
+    rows.append(["episodes / steps"] + [f"{c.episodes} / {c.steps}" for c in cals])
+    doc.table(header, rows)
+    from_config = [agent_label(c.agent) for c in cals if c.estimator_source != "recorded"]
+    if from_config:
+        doc.paragraph(
+            "The estimator of " + ", ".join(from_config) + " is the `agents.estimator` of "
+            "config.yaml (its episodes did not record one); the others recorded theirs."
+        )
+    coverage = np.array([[[e.mean, e.low, e.high] for e in c.coverage] for c in cals])
+    rmse = np.array([[[e.mean, e.low, e.high] for e in c.rmse] for c in cals])
+    agents = {f"{agent_label(c.agent)} ({c.estimator})": plots.agent_colour(c.agent) for c in cals}
+    fig = plots.calibration_figure(cals[0].quantities, agents, coverage, rmse, TWO_SIGMA_COVERAGE)
+    rel = "figures/estimator_calibration.png"
+    plots.save_figure(fig, results.directory / rel)
+    doc.image(
+        rel,
+        "Estimator calibration side by side: 2-sigma coverage (top, dashed: a calibrated "
+        "band) and RMSE (bottom) per state and for the latent force.",
+    )
+
+
+def _tolerance_aware_text(results: Results, rows: Sequence[dict], group: str) -> str:
+    """``"; tolerance-aware: ..."``: per tolerance of ``group``, the zero-violation episodes
+    and the mean violation steps beyond it; ``""`` when the rows hold none."""
+    parts = []
+    for g, t, column in tolerance_columns(results.system):
+        steps = np.array([r.get(column, math.nan) for r in rows], dtype=float)
+        steps = steps[np.isfinite(steps)]
+        if g != group or not len(steps):
+            continue
+        zero = int(np.sum(steps == 0))
+        parts.append(
+            f"beyond {_beyond(results.system, g, t)[2:]}: zero in {zero} of {len(steps)} "
+            f"episodes ({100.0 * zero / len(steps):.0f}%), {fmt(float(steps.mean()))} "
+            "violation steps per episode"
+        )
+    return "; tolerance-aware, " + "; ".join(parts) if parts else ""
 
 
 # --------------------------------------------------------------------------- figures
@@ -876,10 +1235,45 @@ def _pooled_solve_times(results: Results, agent: str) -> np.ndarray:
     return st[np.isfinite(st)]
 
 
+def _load_sweep(directory: Path, sweep_dir: str | Path | None):
+    """The risk sweep to include: ``sweep_dir``'s, else the folder's own if it has one."""
+    from experiments import sweep
+
+    if sweep_dir is None:
+        if not (directory / sweep.SWEEP_TABLE).is_file():
+            return None
+        sweep_dir = directory
+    return sweep.load_sweep(sweep_dir)
+
+
+def _sweep_section(doc: Document, results: Results, summary: Any) -> None:
+    """The risk sweep's table and Pareto figure (see :mod:`experiments.sweep`)."""
+    from experiments import sweep
+
+    doc.heading(f"Risk trade-off: `{summary.key}` of `{summary.agent}`")
+    world = summary.system.name
+    doc.paragraph(
+        f"From the sweep folder `{summary.directory}` (`lfm-sweep`, on the `{world}` system"
+        + ("" if world == results.system.name else ", not this report's world")
+        + "). "
+        + sweep.sweep_description(summary)
+    )
+    header, rows = sweep.sweep_table(summary)
+    doc.table(header, rows)
+    rel = "figures/sweep.png"
+    plots.save_figure(sweep.sweep_figure(summary), results.directory / rel)
+    doc.image(rel, sweep.FIGURE_CAPTION)
+
+
 # --------------------------------------------------------------------------- entry point
 
 
-def write_report(results_dir: str | Path, figure_seed: int | None = None, gif: bool = True) -> Path:
+def write_report(
+    results_dir: str | Path,
+    figure_seed: int | None = None,
+    gif: bool = True,
+    sweep_dir: str | Path | None = None,
+) -> Path:
     """Write ``report.md`` and ``report.html`` (same content) for a results folder.
 
     Args:
@@ -887,6 +1281,9 @@ def write_report(results_dir: str | Path, figure_seed: int | None = None, gif: b
         figure_seed: env seed of the episode figures and GIF; by default the smallest seed
             with a saved trajectory of the scenario agent.
         gif: also write ``figures/episode.gif`` (a replay of the saved true states).
+        sweep_dir: a folder of the risk sweep (:mod:`experiments.sweep`) whose table and
+            Pareto figure the report includes; by default ``results_dir`` itself when it
+            holds a ``sweep.md``.
 
     Returns:
         Path of ``report.md``; ``report.html`` and ``figures/`` are beside it.
@@ -897,6 +1294,7 @@ def write_report(results_dir: str | Path, figure_seed: int | None = None, gif: b
     """
     results = load_results(results_dir)
     _check_figure_seed(results, figure_seed)  # before writing any file
+    sweep = _load_sweep(results.directory, sweep_dir)
     stats = summarize(results)
     doc = Document()
     title = f"Evaluation report: {results.directory.name}"
@@ -916,6 +1314,9 @@ def write_report(results_dir: str | Path, figure_seed: int | None = None, gif: b
     _paired_section(doc, results)
     if results.config.ENV_ID == PAPER_ENV_ID:
         _paper_vs_measured_section(doc, results, _pooled_solve_times(results, REFERENCE_AGENT))
+    _calibration_section(doc, results)
+    if sweep is not None:
+        _sweep_section(doc, results, sweep)
     _figures_section(doc, results, figure_seed, gif)
 
     md_path = results.directory / "report.md"
@@ -930,15 +1331,21 @@ __all__ = [
     "Estimate",
     "PairedDifference",
     "Results",
+    "Calibration",
     "agent_label",
     "bootstrap_ci",
+    "calibration",
     "load_results",
     "load_trajectory",
     "group_metrics",
     "paired_differences",
     "paired_metrics",
+    "paired_rows_difference",
+    "pooled_ratio_ci",
     "read_episodes_csv",
     "summarize",
     "summary_metrics",
+    "tolerance_metrics",
     "write_report",
+    "zero_violation_metrics",
 ]

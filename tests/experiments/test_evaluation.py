@@ -32,6 +32,9 @@ from experiments.evaluation import (
     parse_seeds,
     row_columns,
     run_episode,
+    tolerance_column,
+    tolerance_columns,
+    violation_counts,
     write_table,
 )
 from lfm_env import gp
@@ -46,15 +49,22 @@ TINY = {
     "agents": {"horizon": 5, "n_scenarios": 5, "n_particles": 300},
 }
 TIMING_ARRAYS = ("solve_time",)
-#: The sine track's row: its constraint groups (track, x, speed) where the old table had
-#: track and speed; only ``x_violation_steps`` is new.
+#: The sine track's row: its constraint groups (track, x, speed), each with its raw
+#: violation steps and largest excess, then the steps beyond each of its tolerances
+#: (1 and 5 cm for track and x, 5 cm/s for the speed).
 SINE_TRACK_COLUMNS = (
     *("agent", "seed", "success", "steps", "time_to_goal", "cost"),
-    *("track_violation_steps", "max_track_excess", "x_violation_steps", "max_x_excess"),
-    *("speed_violation_steps", "max_speed_excess", "failure", "latent_rmse", "latent_coverage"),
+    *("track_violation_steps", "max_track_excess"),
+    *("track_violation_steps_over_0.01", "track_violation_steps_over_0.05"),
+    *("x_violation_steps", "max_x_excess"),
+    *("x_violation_steps_over_0.01", "x_violation_steps_over_0.05"),
+    *("speed_violation_steps", "max_speed_excess", "speed_violation_steps_over_0.05"),
+    *("failure", "latent_rmse", "latent_coverage"),
     *("solve_time_median", "solve_time_p95", "solve_time_max", "solver_failures"),
     *("fallback_steps", "filter_resets", "slack_total", "wall_time", "error"),
 )
+#: The columns of the group names alone (no system, so no tolerances).
+RAW_GROUP_COLUMNS = tuple(c for c in SINE_TRACK_COLUMNS if "_over_" not in c)
 
 
 def comparable(rows: list[dict]) -> list[dict]:
@@ -128,14 +138,23 @@ def test_agent_seed_is_stable_and_distinct():
 def test_row_columns_follow_the_systems_constraint_groups():
     system = load_config(TINY).make_system()
     assert row_columns(system) == SINE_TRACK_COLUMNS
-    assert row_columns(["track", "x", "speed"]) == SINE_TRACK_COLUMNS
-    assert group_columns(system) == SINE_TRACK_COLUMNS[6:12]
+    assert row_columns(["track", "x", "speed"]) == RAW_GROUP_COLUMNS
+    assert group_columns(system) == SINE_TRACK_COLUMNS[6:17]
     assert row_columns(corridor_system()) == (
         *HEAD_COLUMNS,
         *("corridor_violation_steps", "max_corridor_excess"),
+        *("corridor_violation_steps_over_0.01", "corridor_violation_steps_over_0.1"),
         *("speed_violation_steps", "max_speed_excess"),
         *TAIL_COLUMNS,
     )
+    assert tolerance_columns(system) == (
+        ("track", 0.01, "track_violation_steps_over_0.01"),
+        ("track", 0.05, "track_violation_steps_over_0.05"),
+        ("x", 0.01, "x_violation_steps_over_0.01"),
+        ("x", 0.05, "x_violation_steps_over_0.05"),
+        ("speed", 0.05, "speed_violation_steps_over_0.05"),
+    )
+    assert tolerance_column("track", 0.010) == "track_violation_steps_over_0.01"
     assert row_columns(()) == HEAD_COLUMNS + TAIL_COLUMNS
     with pytest.raises(ValueError, match="constraint-group names"):
         row_columns("track")
@@ -164,6 +183,7 @@ def corridor_system() -> ControlSystem:
         constraints=constraints,
         constraint_names=("floor [m]", "ceiling [m]", "v_max [m/s]", "v_min [m/s]"),
         constraint_groups={"corridor": (0, 1), "speed": (2, 3)},
+        violation_tolerances={"corridor": (0.01, 0.1)},  # none for the speed
     )
 
 
@@ -190,12 +210,16 @@ def test_recorder_and_metrics_of_any_system_come_from_its_groups():
         done = terminated or truncated
     arrays = rec.arrays()
     row = evaluation._episode_metrics(rec, arrays)
-    assert list(row)[4:8] == list(row_columns(system))[6:10]
+    assert list(row)[4:10] == list(row_columns(system))[6:12]
     corridor = np.array([i["corridor_excess"] for i in infos])
     speed = np.array([i["speed_excess"] for i in infos])
     np.testing.assert_array_equal(arrays["corridor_excess"], corridor)
     np.testing.assert_array_equal(arrays["speed_excess"], speed)
     assert 0 < row["corridor_violation_steps"] == np.sum(corridor > 0) < len(infos)
+    # The tolerance-aware counts drop the crossings up to each tolerance, here some.
+    over = row["corridor_violation_steps_over_0.1"]
+    assert over == np.sum(corridor > 0.1) < row["corridor_violation_steps"]
+    assert row["corridor_violation_steps_over_0.01"] == np.sum(corridor > 0.01) >= over
     assert 0 < row["speed_violation_steps"] == np.sum(speed > 0) < len(infos)
     assert row["max_corridor_excess"] == corridor.max() > 0.0
     assert row["max_speed_excess"] == speed.max()
@@ -300,6 +324,7 @@ def test_paired_design_and_determinism():
     # Filter metrics exist only for filter agents.
     assert math.isnan(nominal["latent_rmse"]) and math.isnan(nominal["latent_coverage"])
     assert np.isnan(traj_n["latent_force_est"]).all()
+    assert set(traj_n["estimator"]) == {""}  # no estimator to name
     assert 0.0 <= pf["latent_coverage"] <= 1.0
 
     again, traj_again = run_episode("pf", TINY, seed=5)
@@ -602,3 +627,55 @@ def test_quick_config_sweep_with_local_dask_cluster(tmp_path):
     assert len(rows) == 40
     assert all(r["error"] == "" for r in rows), [r["error"] for r in rows if r["error"]]
     assert comparable(load_results(tmp_path)) == comparable(rows)
+
+
+# ----------------------------------------------------------------------------- tolerances
+
+
+def test_violation_counts_of_a_made_up_trajectory():
+    """Steps count beyond a tolerance only when the excess is strictly above it."""
+    system = corridor_system()
+    trajectory = {
+        "corridor_excess": np.array([0.0, 0.004, 0.01, 0.02, 0.1, 0.3, 0.0]),
+        "speed_excess": np.array([0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 0.0]),
+    }
+    assert violation_counts(trajectory, system) == {
+        "corridor_violation_steps": 5,
+        "speed_violation_steps": 1,
+        "corridor_violation_steps_over_0.01": 3,  # 0.01 itself is not beyond 0.01
+        "corridor_violation_steps_over_0.1": 1,
+    }
+    # A group the trajectory does not hold is left out, its tolerances too.
+    assert violation_counts({"speed_excess": np.zeros(3)}, system) == {"speed_violation_steps": 0}
+
+
+def test_rows_without_tolerance_columns_read_as_written(tmp_path):
+    """A folder written before the tolerance-aware columns: its rows read without them,
+    and the table writes them as nan (the report counts them from the trajectories)."""
+    import csv
+
+    evaluate(["nominal"], [0], TINY, out=tmp_path, progress=False)
+    path = tmp_path / "episodes" / "nominal__seed0.json"
+    record = json.loads(path.read_text())
+    for key in [k for k in record if "_over_" in k]:
+        del record[key]
+    path.write_text(json.dumps(record))
+    (row,) = load_results(tmp_path)
+    assert tuple(row) == RAW_GROUP_COLUMNS
+    assert isinstance(row["track_violation_steps"], int)
+    write_table(tmp_path)
+    with (tmp_path / "episodes.csv").open() as fh:
+        (cells,) = list(csv.DictReader(fh))
+    assert tuple(cells) == SINE_TRACK_COLUMNS and cells["track_violation_steps_over_0.01"] == "nan"
+
+
+def test_saved_rows_hold_tolerance_counts_as_integers_equal_to_the_trajectory(tmp_path):
+    (row,) = evaluate(["scenario"], [1], TINY, out=tmp_path, progress=False)
+    (loaded,) = load_results(tmp_path)
+    traj = load_trajectory(tmp_path, "scenario", 1)
+    for g, t, column in tolerance_columns(load_config(TINY).make_system()):
+        assert isinstance(loaded[column], int)
+        assert loaded[column] == row[column] == np.sum(traj[f"{g}_excess"] > t)
+    # The filtering agent says which estimator it ran; the trajectory keeps it per step.
+    assert traj["estimator"].shape == (row["steps"],)
+    assert set(traj["estimator"]) == {"bootstrap"}

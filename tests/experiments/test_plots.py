@@ -287,3 +287,26 @@ def test_replay_draws_saved_states_with_the_worlds_own_scene():
     assert frames[0][:12].std() > 0  # the caption strip
     with pytest.raises(ValueError, match="ENV_ID"):
         plots.replay_frames(states, object())
+
+
+# --------------------------------------------------------------------------- calibration
+
+
+def test_calibration_figure_sets_estimators_side_by_side():
+    quantities = [*SYSTEM.state_names, *(f"latent force {w}" for w in SYSTEM.force_names)]
+    rng = np.random.default_rng(0)
+    coverage = np.sort(rng.uniform(0.6, 1.0, size=(2, len(quantities), 3)), axis=-1)[..., [1, 0, 2]]
+    rmse = np.sort(rng.uniform(0.1, 1.0, size=(2, len(quantities), 3)), axis=-1)[..., [1, 0, 2]]
+    agents = {"PF (bootstrap)": "tab:orange", "robust (rbpf)": "tab:red"}
+    fig = plots.calibration_figure(quantities, agents, coverage, rmse)
+    axes = np.array(fig.axes).reshape(2, len(quantities))
+    for q, name in enumerate(quantities):
+        top, bottom = axes[:, q]
+        np.testing.assert_allclose([b.get_height() for b in top.patches], coverage[:, q, 0])
+        np.testing.assert_allclose([b.get_height() for b in bottom.patches], rmse[:, q, 0])
+        assert top.get_title() == name.split(" [")[0]
+        assert bottom.get_ylabel() == f"RMSE [{plots.unit_of(name)}]"
+        # The calibrated level is drawn in every coverage panel.
+        assert any(np.allclose(line.get_ydata(), 0.9545) for line in top.lines)
+    assert [t.get_text() for t in fig.legends[0].get_texts()] == list(agents)
+    assert rendered(fig).std() > 10

@@ -21,9 +21,12 @@ from experiments.evaluation import evaluate
 from experiments.report import (
     Results,
     bootstrap_ci,
+    calibration,
+    fmt_estimate,
     load_results,
     load_trajectory,
     paired_differences,
+    pooled_ratio_ci,
     write_report,
 )
 from lfm_env.config import load_env_config
@@ -404,3 +407,146 @@ def test_report_of_the_quadrotor_is_drawn_from_its_system(tmp_path):
         assert (out / ref).is_file(), ref
     frames = iio.imread(out / "figures" / "episode.gif", index=None)
     assert frames.shape[0] == rows[0]["steps"] + 1 and frames[0].std() > 10
+
+
+# --------------------------------------------------------------------------- tolerances
+
+
+def table_line(md: str, label: str, section: str = "## Results per agent") -> list[str]:
+    """The cells of the table row starting with ``label`` in ``section``."""
+    text = md.split(section)[1].split("\n## ")[0]
+    line = next(x for x in text.splitlines() if x.startswith(f"| {label} |"))
+    return [c.strip() for c in line.strip("|").split(" | ")][1:]
+
+
+def csv_values(results_dir: Path, agent: str, column: str) -> np.ndarray:
+    with (results_dir / "episodes.csv").open(newline="") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["agent"] == agent]
+    return np.array([float(r[column]) for r in sorted(rows, key=lambda r: int(r["seed"]))])
+
+
+def test_report_has_tolerance_rows_and_zero_violation_fractions(results_dir, report_path):
+    md = report_path.read_text()
+    steps = csv_values(results_dir, "scenario", "track_violation_steps_over_0.01")
+    assert len(steps) == 3
+    scenario = AGENTS.index("scenario")
+    row = table_line(md, "track violation steps > 0.01 m [steps]")
+    assert row[scenario] == fmt_estimate(bootstrap_ci(steps))
+    row = table_line(md, "track zero-violation episodes (> 0.01 m)")
+    assert row[scenario] == fmt_estimate(bootstrap_ci(steps == 0))
+    raw = csv_values(results_dir, "scenario", "track_violation_steps")
+    assert table_line(md, "track zero-violation episodes")[scenario] == fmt_estimate(
+        bootstrap_ci(raw == 0)
+    )
+    for label in ("x violation steps > 0.05 m [steps]", "speed violation steps > 0.05 m/s [steps]"):
+        assert len(table_line(md, label)) == len(AGENTS)
+    # The paired table has one row per metric, the tolerance counts among them.
+    results = load_results(results_dir)
+    d = paired_differences(results, "track_violation_steps_over_0.05", "pf")
+    paired = table_line(md, "track violation steps > 0.05 m [steps]", "## Paired differences")
+    others = [a for a in AGENTS if a != "scenario"]
+    assert paired[others.index("pf")] == fmt_estimate(d.estimate) + " (3 seeds)"
+    # "Paper vs measured" says which counts are tolerance-aware.
+    section = md.split("## Paper vs measured")[1].split("\n## ")[0]
+    zero = int(np.sum(steps == 0))
+    assert f"tolerance-aware, beyond 0.01 m: zero in {zero} of 3 episodes" in section
+    assert "beyond 0.05 m/s: zero in" in section
+
+
+def drop_columns(table: Path, words: str) -> None:
+    with table.open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    columns = [c for c in rows[0] if words not in c]
+    with table.open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, columns, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def test_old_folder_gets_tolerance_counts_from_its_trajectories(results_copy, results_dir):
+    """A table written before the tolerance columns: counted from the saved episodes."""
+    drop_columns(results_copy / "episodes.csv", "_over_")
+    new = load_results(results_dir)
+    old = load_results(results_copy)
+    for a, b in zip(old.rows, new.rows, strict=True):
+        for column in ("track_violation_steps_over_0.01", "speed_violation_steps_over_0.05"):
+            assert a[column] == b[column]
+    md = write_report(results_copy, gif=False).read_text()
+    label = "track violation steps > 0.01 m [steps]"
+    assert table_line(md, label) == table_line(write_report(results_dir).read_text(), label)
+
+
+def test_old_folder_without_trajectories_leaves_tolerance_rows_out(results_copy):
+    drop_columns(results_copy / "episodes.csv", "_over_")
+    for path in (results_copy / "episodes").glob("*.npz"):
+        path.unlink()
+    md = write_report(results_copy, gif=False).read_text()
+    assert "violation steps >" not in md and "zero-violation episodes (>" not in md
+    assert "| track violation steps [steps] |" in md  # the raw counts are still there
+    assert "| track zero-violation episodes |" in md
+    assert "No agent with a filter has saved trajectories" in md
+
+
+# --------------------------------------------------------------------------- calibration
+
+
+def test_pooled_ratio_ci():
+    est = pooled_ratio_ci([1.0, 2.0, 6.0], [2.0, 4.0, 6.0])
+    assert est.mean == pytest.approx(9.0 / 12.0) and est.n == 3
+    assert 0.5 <= est.low <= est.mean <= est.high <= 1.0  # between the episodes' own ratios
+    assert pooled_ratio_ci([1.0, 2.0, 6.0], [2.0, 4.0, 6.0]) == est  # seeded
+    root = pooled_ratio_ci([1.0, 2.0, 6.0], [2.0, 4.0, 6.0], root=True)
+    assert (root.mean, root.low, root.high) == pytest.approx(
+        (np.sqrt(est.mean), np.sqrt(est.low), np.sqrt(est.high))
+    )
+    assert pooled_ratio_ci([3.0, 5.0], [0.0, 5.0]).n == 1  # episodes without steps: out
+    assert np.isnan(pooled_ratio_ci([], []).mean)
+
+
+def test_calibration_pools_the_evaluations_per_episode_metrics(results_dir, report_path):
+    """The pooled latent-force coverage and RMSE agree with the rows' per-episode values
+    weighted by their steps (computed by the evaluation, another code path)."""
+    results = load_results(results_dir)
+    cals = {c.agent: c for c in calibration(results)}
+    assert list(cals) == ["pf", "scenario"]  # the nominal MPC and the oracle have no filter
+    for agent, cal in cals.items():
+        steps = csv_values(results_dir, agent, "steps")
+        coverage = csv_values(results_dir, agent, "latent_coverage")
+        rmse = csv_values(results_dir, agent, "latent_rmse")
+        assert cal.quantities[-1] == "latent force w [m/s^2]"
+        assert cal.quantities[:4] == results.system.state_names
+        assert cal.coverage[-1].mean == pytest.approx(np.sum(coverage * steps) / steps.sum())
+        assert cal.rmse[-1].mean == pytest.approx(np.sqrt(np.sum(rmse**2 * steps) / steps.sum()))
+        assert cal.steps == steps.sum() and cal.episodes == 3
+        assert (cal.estimator, cal.estimator_source) == ("bootstrap", "recorded")
+        for e in (*cal.coverage, *cal.rmse):
+            assert e.low <= e.mean <= e.high
+    md = report_path.read_text()
+    assert "| quantity | PF + CE MPC: `bootstrap` | scenario MPC (paper): `bootstrap` |" in md
+    row = table_line(md, "2-sigma coverage, latent force w", "## Estimator calibration")
+    assert row == [
+        fmt_estimate(cals["pf"].coverage[-1]),
+        fmt_estimate(cals["scenario"].coverage[-1]),
+    ]
+    assert table_line(md, "RMSE, p_x [m]", "## Estimator calibration")[0] == fmt_estimate(
+        cals["pf"].rmse[0]
+    )
+    assert (report_path.parent / "figures" / "estimator_calibration.png").is_file()
+
+
+def test_calibration_names_the_configs_estimator_when_none_was_recorded(results_copy):
+    for path in (results_copy / "episodes").glob("pf__seed*.npz"):
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files if k != "estimator"}
+        np.savez_compressed(path, **arrays)
+    config = yaml.safe_load((results_copy / "config.yaml").read_text())
+    config["agents"]["estimator"] = "ukf"  # as if the run had used it
+    (results_copy / "config.yaml").write_text(yaml.safe_dump(config))
+    cals = {c.agent: c for c in calibration(load_results(results_copy))}
+    assert (cals["pf"].estimator, cals["pf"].estimator_source) == ("ukf", "config.yaml")
+    assert (cals["scenario"].estimator, cals["scenario"].estimator_source) == (
+        "bootstrap",
+        "recorded",
+    )
+    md = write_report(results_copy, gif=False).read_text()
+    assert "PF + CE MPC: `ukf`" in md and "The estimator of PF + CE MPC is the" in md
