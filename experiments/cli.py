@@ -524,7 +524,7 @@ def _render_episode(
 
     cfg = resolve_config(config, [agent_name])
     # The same drawing options as the report's replay (experiments.plots.replay_frames).
-    env = make_render_env(cfg, screen_size=size, scaling=20.0)
+    env = make_render_env(cfg, screen_size=size)  # each world's own view
     try:
         agent = make_agent(agent_name, cfg, env=env if agent_name == "oracle" else None)
         dt = env.unwrapped.model.dt

@@ -1066,7 +1066,7 @@ def replay_frames(
     true_state: np.ndarray,
     config: Any,
     screen_size: tuple[int, int] = (480, 240),
-    scaling: float = 20.0,
+    scaling: float | None = None,
     caption: str = "",
 ) -> list[np.ndarray]:
     """Frames of a saved episode drawn by the world's own scene, one per saved true state.
@@ -1078,13 +1078,15 @@ def replay_frames(
         true_state: ``(T+1, nx)`` true states in the states' units.
         config: an ``ExperimentConfig`` or the world config of the run.
         screen_size: frame ``(width, height)`` [px], if the world's env takes it.
-        scaling: [px/m], if the world's env takes it.
+        scaling: [px/m], if the world's env takes it; ``None`` for the world's own default
+            (the sine track follows the car at 25 px/m, the quadrotor fits the tunnel).
         caption: text put before the time stamp on each frame.
 
     Returns:
         ``T+1`` RGB frames ``(height, width, 3)`` uint8.
     """
-    env = make_render_env(config, screen_size=screen_size, scaling=scaling)
+    options = {} if scaling is None else {"scaling": scaling}
+    env = make_render_env(config, screen_size=screen_size, **options)
     try:
         dt = env.unwrapped.model.dt
         scene = env.unwrapped.make_scene()

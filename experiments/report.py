@@ -594,15 +594,19 @@ def _estimate_errors(traj: dict[str, np.ndarray], system: ControlSystem) -> tupl
     return np.hstack([err_x, force - truth]), np.hstack([std_x, std_w])
 
 
-def _estimator_name(results: Results, recorded: Iterable[str]) -> tuple[str, str]:
-    """The estimator's name: the most frequent one the agent recorded, else config.yaml's."""
+def _estimator_name(results: Results, recorded: Iterable[str], agent: str = "") -> tuple[str, str]:
+    """The estimator's name: the most frequent one the agent recorded, else config.yaml's
+    (``agents.robust.estimator`` for the robust agent, ``agents.estimator`` otherwise)."""
     names = [str(n) for n in recorded if str(n)]
     if names:
         values, counts = np.unique(names, return_counts=True)
         return str(values[np.argmax(counts)]), "recorded"
     # A folder written before the agents said it: the agents section's (the bootstrap
     # filter, the only one, when the section predates agents.estimator).
-    return str(results.agent_settings.get("estimator", "bootstrap")), "config.yaml"
+    settings = results.agent_settings
+    if agent == "robust" and isinstance(settings.get("robust"), dict):
+        return str(settings["robust"].get("estimator", "ukf")), "config.yaml"
+    return str(settings.get("estimator", "bootstrap")), "config.yaml"
 
 
 def calibration(results: Results) -> list[Calibration]:
@@ -629,7 +633,7 @@ def calibration(results: Results) -> list[Calibration]:
         if not counts:
             continue
         hits_a, sq_a, n_a = np.array(hits), np.array(squares), np.array(counts)
-        name, source = _estimator_name(results, recorded)
+        name, source = _estimator_name(results, recorded, agent)
         columns = range(len(labels))
         out.append(
             Calibration(

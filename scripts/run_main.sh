@@ -7,5 +7,5 @@ cd "$(dirname "$0")/.."
 bash scripts/setup_env.sh dist
 # One BLAS thread per process: episodes run in parallel processes instead.
 export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
-.venv/bin/lfm-evaluate --config configs/paper.yaml --agents nominal,pf,scenario,scenario_particles,oracle \
+.venv/bin/lfm-evaluate --config configs/paper.yaml --agents nominal,pf,scenario,scenario_particles,robust,oracle \
   --seeds 0:50 --jobs 2 --out results/paper "$@"
