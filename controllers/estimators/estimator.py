@@ -66,22 +66,26 @@ class StateEstimator:
         """Predict with the input applied since the last sample, update with ``y``."""
         raise NotImplementedError
 
+    # The estimates are the underlying filter's (``self.filter``, made by :meth:`start`).
+
     @property
     def mean(self) -> np.ndarray:
-        raise NotImplementedError
+        """Mean of ``[x, z]`` ``(nx + p,)``."""
+        return self.filter.mean
 
     @property
     def covariance(self) -> np.ndarray:
-        raise NotImplementedError
+        """Covariance of ``[x, z]``."""
+        return self.filter.covariance
 
     @property
     def std(self) -> np.ndarray:
         """Marginal standard deviations of ``[x, z]``."""
-        return np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+        return self.filter.std
 
     def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """``n`` draws of ``[x, z]`` ``(n, nx + p)`` from the estimate's distribution."""
-        raise NotImplementedError
+        return self.filter.sample(n, rng)
 
     # shared by the particle filters
     def _physical_prior(self, y: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -109,7 +113,7 @@ class BootstrapEstimator(StateEstimator):
         self.n_particles = int(n_particles)
         self.resampling, self.ess_threshold = resampling, ess_threshold
         self._log_lik = gaussian_log_likelihood(self.measurement_std, np.arange(self.nx))
-        self.pf: ParticleFilter | None = None
+        self.filter: ParticleFilter | None = None
 
     def _prior(self, y: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         n, p = self.n_particles, self.model.latent_dim
@@ -118,8 +122,8 @@ class BootstrapEstimator(StateEstimator):
         return np.concatenate([x, z], axis=1)
 
     def start(self, y: np.ndarray, rng: np.random.Generator) -> EstimateInfo:
-        if self.pf is None:
-            self.pf = ParticleFilter(
+        if self.filter is None:
+            self.filter = ParticleFilter(
                 self.model.transition,
                 self._log_lik,
                 self._prior(y, rng),
@@ -128,28 +132,18 @@ class BootstrapEstimator(StateEstimator):
                 ess_threshold=self.ess_threshold,
             )
         else:
-            self.pf.reset(self._prior(y, rng))
-        return EstimateInfo(False, self._closest(y, self.pf.particles[:, : self.nx]))
+            self.filter.reset(self._prior(y, rng))
+        return EstimateInfo(False, self._closest(y, self.filter.particles[:, : self.nx]))
 
     def step(self, u: np.ndarray, y: np.ndarray) -> EstimateInfo:
-        rec = self.pf.step(u, y)
-        return EstimateInfo(bool(rec.degenerate), self._closest(y, self.pf.particles[:, : self.nx]))
-
-    @property
-    def mean(self) -> np.ndarray:
-        return self.pf.mean
-
-    @property
-    def covariance(self) -> np.ndarray:
-        return self.pf.covariance
-
-    @property
-    def std(self) -> np.ndarray:
-        return self.pf.std
+        rec = self.filter.step(u, y)
+        return EstimateInfo(
+            bool(rec.degenerate), self._closest(y, self.filter.particles[:, : self.nx])
+        )
 
     def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
-        idx = rng.choice(self.pf.n_particles, size=n, p=self.pf.weights)
-        return self.pf.particles[idx]
+        idx = rng.choice(self.filter.n_particles, size=n, p=self.filter.weights)
+        return self.filter.particles[idx]
 
 
 class RBPFEstimator(StateEstimator):
@@ -197,21 +191,6 @@ class RBPFEstimator(StateEstimator):
         rec = self.filter.step(u, y)
         return EstimateInfo(bool(rec.degenerate), self._closest(y, self.filter.physical_particles))
 
-    @property
-    def mean(self) -> np.ndarray:
-        return self.filter.mean
-
-    @property
-    def covariance(self) -> np.ndarray:
-        return self.filter.covariance
-
-    @property
-    def std(self) -> np.ndarray:
-        return self.filter.std
-
-    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
-        return self.filter.sample(n, rng)
-
 
 class UKFEstimator(StateEstimator):
     """The unscented Kalman filter over ``[x, z]`` (one Gaussian)."""
@@ -237,21 +216,6 @@ class UKFEstimator(StateEstimator):
     def step(self, u: np.ndarray, y: np.ndarray) -> EstimateInfo:
         rec = self.filter.step(u, y)
         return EstimateInfo(rec.degenerate, rec.nis if not rec.degenerate else 0.0)
-
-    @property
-    def mean(self) -> np.ndarray:
-        return self.filter.mean
-
-    @property
-    def covariance(self) -> np.ndarray:
-        return self.filter.covariance
-
-    @property
-    def std(self) -> np.ndarray:
-        return self.filter.std
-
-    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
-        return self.filter.sample(n, rng)
 
 
 _CLASSES = {"bootstrap": BootstrapEstimator, "rbpf": RBPFEstimator, "ukf": UKFEstimator}

@@ -7,13 +7,12 @@ from typing import Any
 
 import numpy as np
 
-from lfm_env.config import QuadrotorGustConfig, check_latent_step, load_env_config
-from lfm_env.env import LatentForceEnv
-from lfm_env.envs.sine_track import segment_point_distance
+from lfm_env.config import QuadrotorGustConfig
+from lfm_env.envs.goal import GoalReachingEnv
 from lfm_env.systems.quadrotor import Corridor
 
 
-class QuadrotorGustEnv(LatentForceEnv):
+class QuadrotorGustEnv(GoalReachingEnv):
     """A planar quadrotor flying through a bending tunnel, pushed by a hidden gust.
 
     ## Description
@@ -93,6 +92,9 @@ class QuadrotorGustEnv(LatentForceEnv):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
+    CONFIG = QuadrotorGustConfig
+    SAFETY_GROUPS = ("corridor", "x")
+
     def __init__(
         self,
         config: Any = None,
@@ -100,39 +102,14 @@ class QuadrotorGustEnv(LatentForceEnv):
         screen_size: tuple[int, int] = (600, 300),
         scaling: float | None = None,
     ) -> None:
-        self.config: QuadrotorGustConfig = check_latent_step(
-            load_env_config(config, env_id=QuadrotorGustConfig.ENV_ID)
-        )
         self.screen_size = (int(screen_size[0]), int(screen_size[1]))
         if min(self.screen_size) < 1:
             raise ValueError(f"screen_size={screen_size!r}: must be two integers >= 1 [px]")
         if scaling is not None and not (math.isfinite(scaling) and scaling > 0.0):
             raise ValueError(f"scaling={scaling!r}: must be None or > 0 px/m")
         self.scaling = None if scaling is None else float(scaling)
+        super().__init__(config, render_mode)
         self.corridor = self.config.corridor
-        self._goal = np.asarray(self.config.goal, dtype=float)
-        super().__init__(
-            self.config.make_model(),
-            self.config.make_cost(),
-            initial_state=self.config.initial_state_rad,
-            measurement_std=self.config.measurement_std_rad,
-            max_steps=self.config.max_steps,
-            latent_start=self.config.disturbance.start,
-            render_mode=render_mode,
-        )
-
-    def _is_success(self, state: np.ndarray, next_state: np.ndarray) -> bool:
-        """The segment flown in the step passes within ``goal_radius`` of the goal."""
-        distance = segment_point_distance(state[:2], next_state[:2], self._goal)
-        return distance <= self.config.goal_radius
-
-    def _is_failure(self, state: np.ndarray) -> bool:
-        """Outside the safety box: ``safety_margin`` beyond the tunnel or the x bounds."""
-        if not np.all(np.isfinite(state)):
-            return True
-        excess = self.system.group_excess(state)
-        margin = self.config.safety_margin
-        return bool(float(excess["corridor"]) > margin or float(excess["x"]) > margin)
 
     def _make_scene(self) -> CorridorScene:
         """The tunnel, the goal and the vehicle drawn by matplotlib (:class:`CorridorScene`)."""

@@ -4,21 +4,11 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
-
-from lfm_env.config import EnvConfig, check_latent_step, load_env_config
-from lfm_env.env import LatentForceEnv
+from lfm_env.config import EnvConfig
+from lfm_env.envs.goal import GoalReachingEnv, segment_point_distance
 
 
-def segment_point_distance(p0: np.ndarray, p1: np.ndarray, q: np.ndarray) -> float:
-    """Distance [m] from point ``q`` to the segment ``p0 -> p1`` (all shape ``(2,)``)."""
-    d = p1 - p0
-    dd = float(d @ d)
-    t = 0.0 if dd == 0.0 else float(np.clip((q - p0) @ d / dd, 0.0, 1.0))
-    return float(np.linalg.norm(p0 + t * d - q))
-
-
-class SineTrackEnv(LatentForceEnv):
+class SineTrackEnv(GoalReachingEnv):
     """A kinematic-bicycle car on a sinusoidal track, pushed by a hidden Matern latent force.
 
     ## Description
@@ -92,6 +82,9 @@ class SineTrackEnv(LatentForceEnv):
       bit, and the added ``info["constraint_excess"]``).
     """
 
+    CONFIG = EnvConfig
+    SAFETY_GROUPS = ("track", "x")
+
     def __init__(
         self,
         config: Any = None,
@@ -100,34 +93,11 @@ class SineTrackEnv(LatentForceEnv):
         scaling: float = 25.0,
         follow: bool = True,
     ) -> None:
-        self.config: EnvConfig = check_latent_step(load_env_config(config, env_id=EnvConfig.ENV_ID))
         self.screen_size = (int(screen_size[0]), int(screen_size[1]))
         self.scaling = float(scaling)
         self.follow = bool(follow)
+        super().__init__(config, render_mode)
         self.track = self.config.track
-        self._goal = np.asarray(self.config.goal, dtype=float)
-        super().__init__(
-            self.config.make_model(),
-            self.config.make_cost(),
-            initial_state=self.config.initial_state_rad,
-            measurement_std=self.config.measurement_std_rad,
-            max_steps=self.config.max_steps,
-            latent_start=self.config.disturbance.start,
-            render_mode=render_mode,
-        )
-
-    def _is_success(self, state: np.ndarray, next_state: np.ndarray) -> bool:
-        """The segment travelled in the step passes within ``goal_radius`` of the goal."""
-        distance = segment_point_distance(state[:2], next_state[:2], self._goal)
-        return distance <= self.config.goal_radius
-
-    def _is_failure(self, state: np.ndarray) -> bool:
-        """Outside the safety box: ``safety_margin`` beyond the track band or the x bounds."""
-        if not np.all(np.isfinite(state)):
-            return True
-        excess = self.system.group_excess(state)
-        margin = self.config.safety_margin
-        return bool(float(excess["track"]) > margin or float(excess["x"]) > margin)
 
     def _make_scene(self):
         """highway-env's road with the sine lane and the car (:class:`TrackScene`)."""
@@ -145,4 +115,4 @@ class SineTrackEnv(LatentForceEnv):
         )
 
 
-__all__ = ["SineTrackEnv", "segment_point_distance"]
+__all__ = ["SineTrackEnv", "segment_point_distance"]  # the latter re-exported
