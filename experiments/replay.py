@@ -1,0 +1,126 @@
+"""Replays of saved episodes: frames drawn by each world's own scene, captions, GIFs.
+
+Nothing here runs an episode: the frames are saved true states drawn through
+:meth:`lfm_env.env.LatentForceEnv.make_scene` of the config's world.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def annotate_frame(frame: np.ndarray, text: str) -> np.ndarray:
+    """A copy of an RGB ``frame`` with ``text`` in its top-left corner.
+
+    Besides telling the time, the caption keeps consecutive frames distinct: a GIF writer
+    merges identical frames, and a stopped car would otherwise lose frames.
+    """
+    from PIL import Image, ImageDraw
+
+    image = Image.fromarray(np.ascontiguousarray(frame[..., :3]))
+    draw = ImageDraw.Draw(image)
+    box = draw.textbbox((4, 4), text)
+    draw.rectangle((box[0] - 2, box[1] - 2, box[2] + 2, box[3] + 2), fill=(0, 0, 0))
+    draw.text((4, 4), text, fill=(255, 255, 255))
+    return np.asarray(image)
+
+
+def _world(config: Any) -> tuple[str, Any]:
+    """``(env_id, world config)`` of an ``ExperimentConfig`` or of a world config."""
+    env_id, world = getattr(config, "env_id", None), getattr(config, "env", None)
+    if isinstance(env_id, str) and world is not None:
+        return env_id, world
+    env_id = getattr(config, "ENV_ID", "")
+    if not env_id:
+        raise ValueError(
+            f"config of type {type(config).__name__}: expected an ExperimentConfig or a world "
+            "config (e.g. lfm_env.config.EnvConfig) that names its env (ENV_ID)"
+        )
+    return env_id, config
+
+
+def make_render_env(config: Any, render_mode: str = "rgb_array", **options: Any):
+    """``gym.make(env_id, config=world, render_mode=...)`` of the config's world.
+
+    Args:
+        config: an :class:`~controllers.config.ExperimentConfig` (its ``env_id`` and
+            ``env``) or a world config (its ``ENV_ID``).
+        render_mode: ``"rgb_array"`` (frames) or ``"human"``.
+        **options: drawing options such as ``screen_size`` [px] or ``scaling`` [px/m];
+            those the world's env does not take are left out (each world draws its own
+            way).
+    """
+    import gymnasium as gym
+
+    import lfm_env  # noqa: F401  (registers the envs)
+
+    env_id, world = _world(config)
+    entry = gym.spec(env_id).entry_point
+    if not callable(entry):
+        from gymnasium.envs.registration import load_env_creator
+
+        entry = load_env_creator(entry)
+    params = inspect.signature(entry).parameters
+    if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        options = {k: v for k, v in options.items() if k in params}
+    return gym.make(env_id, config=world, render_mode=render_mode, **options)
+
+
+def replay_frames(
+    true_state: np.ndarray,
+    config: Any,
+    screen_size: tuple[int, int] = (480, 240),
+    scaling: float | None = None,
+    caption: str = "",
+) -> list[np.ndarray]:
+    """Frames of a saved episode drawn by the world's own scene, one per saved true state.
+
+    This replays ``true_state`` through ``env.unwrapped.make_scene()`` of the config's
+    env (``scene.update(x)``, ``scene.draw()``); it does not simulate anything.
+
+    Args:
+        true_state: ``(T+1, nx)`` true states in the states' units.
+        config: an ``ExperimentConfig`` or the world config of the run.
+        screen_size: frame ``(width, height)`` [px], if the world's env takes it.
+        scaling: [px/m], if the world's env takes it; ``None`` for the world's own default
+            (the sine track follows the car at 25 px/m, the quadrotor fits the tunnel).
+        caption: text put before the time stamp on each frame.
+
+    Returns:
+        ``T+1`` RGB frames ``(height, width, 3)`` uint8.
+    """
+    options = {} if scaling is None else {"scaling": scaling}
+    env = make_render_env(config, screen_size=screen_size, **options)
+    try:
+        dt = env.unwrapped.model.dt
+        scene = env.unwrapped.make_scene()
+        frames = []
+        try:
+            for k, state in enumerate(np.asarray(true_state, dtype=float)):
+                scene.update(state)
+                frame = scene.draw()
+                text = f"t = {k * dt:.1f} s"
+                text = f"{caption} | {text}" if caption else text
+                frames.append(annotate_frame(frame, text))
+        finally:
+            scene.close()
+    finally:
+        env.close()
+    return frames
+
+
+def write_gif(frames: Sequence[np.ndarray], path: str | Path, fps: float) -> Path:
+    """Write RGB ``frames`` as a looping GIF at ``fps`` frames per second."""
+    import imageio.v3 as iio
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not frames:
+        raise ValueError(f"no frames to write to {path}")
+    iio.imwrite(path, np.stack(frames), extension=".gif", duration=1000.0 / fps, loop=0)
+    return path
