@@ -34,7 +34,13 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from controllers.config import AgentConfig, ExperimentConfig, load_config
+from controllers.config import (
+    AgentConfig,
+    ExperimentConfig,
+    check_filter_memory,
+    check_problem_memory,
+    load_config,
+)
 from controllers.estimators.estimator import make_estimator
 from controllers.problem import MPCSolution, ScenarioProblem
 from controllers.solvers import make_solver
@@ -84,6 +90,7 @@ class MPCAgent:
             std, nx, "measurement_std", f"one per state {list(self.system.state_names)}"
         )
         n_scenarios = self.settings.scenario_count(self.system.nu) if self.uses_scenarios else 1
+        check_problem_memory(model, self.settings.horizon, n_scenarios)
         self.problem = ScenarioProblem(
             model,
             cost,
@@ -91,7 +98,13 @@ class MPCAgent:
             n_scenarios=n_scenarios,
             slack_penalty=self.settings.slack_penalty,
         )
-        self.mpc = make_solver(self.problem, self.settings.solver, max_iter=self.settings.max_iter)
+        # A solve that reaches max_solve_time fails, and _choose_action falls back.
+        self.mpc = make_solver(
+            self.problem,
+            self.settings.solver,
+            max_iter=self.settings.max_iter,
+            max_time=self.settings.max_solve_time,
+        )
         self.last_info: dict[str, Any] = {}
         self.rng = np.random.default_rng()
         self._u_prev: np.ndarray | None = None
@@ -198,6 +211,8 @@ class _FilteringAgent(MPCAgent):
             )
         self._divergence_nis = float(stats.chi2.isf(DIVERGENCE_TAIL, nx))
         s = self.settings
+        where = "agents.robust.n_particles" if self.name == "robust" else "agents.n_particles"
+        check_filter_memory(self.model, s.n_particles, s.estimator, where)
         self.estimator = make_estimator(
             s.estimator,
             self.model,

@@ -34,6 +34,76 @@ RESAMPLING = ("systematic", "stratified", "residual", "multinomial")
 SCENARIO_INITIAL_STATES = ("estimate", "particles")
 MAX_SCENARIOS = 100_000
 MAX_ITER = 2**31 - 1
+FAST_MAX_HORIZON = 40  # longest horizon of the fast solvers (see AgentConfig)
+MAX_SOLVE_TIME = 3600.0  # [s] largest agents.max_solve_time
+
+#: Memory budget [bytes] of an agent's filter and, separately, of its scenario problem:
+#: settings whose estimate (below) exceeds it are refused before anything is built.
+MEMORY_BUDGET = 2 * 1024**3
+#: Arrays of the particles' size alive at once in a filter step (particles, proposals,
+#: resampled copies, temporaries): 1e6 particles of 7 states took 447 MB, 8 x 56 MB.
+FILTER_COPIES = 8
+#: Copies of the condensed sensitivities ``(nx + ng) x N x Ns x N nu`` alive at once in a
+#: solve (the fast SQP's linearisation and its QP rows).
+PROBLEM_COPIES = 2
+
+
+def _gb(n_bytes: float) -> str:
+    return f"{n_bytes / 1024**3:.3g} GB"
+
+
+def filter_memory(n_particles: int, state_dim: int, latent_dim: int, estimator: str) -> float:
+    """Estimated peak memory [bytes] of a filter: ``n_particles x d x 8 bytes x``
+    :data:`FILTER_COPIES`, ``d`` the filter's state dimension (plus the latent covariance
+    of each particle, ``latent_dim^2``, for the Rao-Blackwellised filter; the UKF keeps no
+    particles)."""
+    if estimator == "ukf":
+        return 8.0 * FILTER_COPIES * (state_dim + 1) ** 2
+    per_particle = state_dim + (latent_dim**2 if estimator == "rbpf" else 0)
+    return 8.0 * FILTER_COPIES * float(n_particles) * per_particle
+
+
+def problem_memory(horizon: int, n_scenarios: int, nx: int, ng: int, nu: int) -> float:
+    """Estimated peak memory [bytes] of a scenario problem and its solve: the condensed
+    sensitivities of the ``nx`` states and ``ng`` constraints at ``N`` steps of ``Ns``
+    scenarios to the ``N nu`` inputs, 8 bytes each, times :data:`PROBLEM_COPIES`."""
+    return 8.0 * PROBLEM_COPIES * horizon * float(n_scenarios) * (nx + ng) * horizon * nu
+
+
+def check_filter_memory(
+    model: Any, n_particles: int, estimator: str, field_name: str = "agents.n_particles"
+) -> None:
+    """Refuse a filter whose estimate (:func:`filter_memory`) exceeds :data:`MEMORY_BUDGET`.
+
+    Raises:
+        ConfigError: naming ``field_name`` and the largest particle count within budget.
+    """
+    need = filter_memory(n_particles, model.state_dim, model.latent_dim, estimator)
+    if need > MEMORY_BUDGET:
+        largest = int(n_particles * MEMORY_BUDGET / need)
+        raise ConfigError(
+            f"{field_name}={n_particles}: the {estimator} filter of {model.state_dim} states "
+            f"would need about {_gb(need)} (n_particles x {model.state_dim} x 8 bytes x "
+            f"{FILTER_COPIES}), over the budget of {_gb(MEMORY_BUDGET)}; must be <= {largest}"
+        )
+
+
+def check_problem_memory(model: Any, horizon: int, n_scenarios: int) -> None:
+    """Refuse a scenario problem whose estimate (:func:`problem_memory`) exceeds
+    :data:`MEMORY_BUDGET`.
+
+    Raises:
+        ConfigError: naming ``agents.horizon`` and the scenario count.
+    """
+    system = model.system
+    need = problem_memory(horizon, n_scenarios, system.nx, system.ng, system.nu)
+    if need > MEMORY_BUDGET:
+        raise ConfigError(
+            f"agents.horizon={horizon} with {n_scenarios} scenarios: the scenario problem "
+            f"would need about {_gb(need)} ((nx + ng) x N x Ns x N nu x 8 bytes x "
+            f"{PROBLEM_COPIES}), over the budget of {_gb(MEMORY_BUDGET)}; lower "
+            "agents.horizon or the scenario count"
+        )
 
 
 def check_backoff(c: _Checker, backoff: tuple[float, ...]) -> None:
@@ -105,6 +175,9 @@ class AgentConfig:
     slack_penalty: float = 1.0e4  # exact L1 penalty per unit of state-constraint slack
     solver: str = "fast"  # one of controllers.solvers.SOLVERS
     max_iter: int = 100  # solver iteration limit per step
+    # Wall-clock limit of one solve [s]: a solve that reaches it fails and the agent falls
+    # back (the previous plan, else the system's fallback input), as on any failed solve.
+    max_solve_time: float = 10.0
     scenario_initial_states: str = "estimate"  # "estimate" (paper) or "particles" (its remark)
     # Constraint back-off of the filtering agents: each state constraint g_j is tightened
     # by k * sqrt(dg_j' Sigma_x dg_j), k estimate stds along its gradient: one k for all,
@@ -120,6 +193,16 @@ class AgentConfig:
         c = _Checker(self)
         c("horizon", self.horizon >= 1, "an integer >= 1")
         c("horizon", self.horizon <= 200, "<= 200")
+        # The fast SQP's work per iteration grows steeply with N (measured with 150
+        # scenarios: one step 1.2 s at N = 20, 11 s at N = 40 against the 10 s solve limit,
+        # 21 s at N = 60 and 84 s at N = 100): beyond FAST_MAX_HORIZON a single iteration
+        # overruns any solve limit, so such horizons are refused up front.
+        c(
+            "horizon",
+            self.solver not in ("fast", "fast_bicycle") or self.horizon <= FAST_MAX_HORIZON,
+            f"<= {FAST_MAX_HORIZON} with solver {self.solver!r} (its iterations outgrow any "
+            "solve-time limit beyond); use solver 'ipopt' for longer horizons",
+        )
         if self.n_scenarios is None:
             c(
                 "n_scenarios",
@@ -145,6 +228,11 @@ class AgentConfig:
         c("solver", self.solver in SOLVERS, f"one of {SOLVERS}")
         # IPOPT's iteration counter is a C int: larger values wrap around or are refused.
         c("max_iter", 1 <= self.max_iter <= MAX_ITER, f"an integer in [1, {MAX_ITER}]")
+        c(
+            "max_solve_time",
+            0.0 < self.max_solve_time <= MAX_SOLVE_TIME,
+            f"in (0, {MAX_SOLVE_TIME:g}] s",
+        )
         c(
             "scenario_initial_states",
             self.scenario_initial_states in SCENARIO_INITIAL_STATES,
@@ -214,6 +302,14 @@ class ExperimentConfig:
         self.make_cost()  # vector lengths against the system, with the field's name
         system = self.make_system()
         self.agents.check_scenario_count(system.nu)
+        model = self.make_model()
+        a = self.agents
+        # Memory up front, for the largest problem and each filter any agent builds.
+        r = a.robust
+        robust_ns = 1 if r.forecast == "mean" else (r.n_scenarios or self.scenario_count())
+        check_problem_memory(model, a.horizon, max(self.scenario_count(), robust_ns))
+        check_filter_memory(model, a.n_particles, a.estimator)
+        check_filter_memory(model, r.n_particles, r.estimator, "agents.robust.n_particles")
         groups = list(system.constraint_groups)
         for name, k in (
             ("backoff", self.agents.backoff),

@@ -60,6 +60,7 @@ from experiments.bench_suites import (
     time_episode,
     time_particle_filter,
 )
+from experiments.cli import one_line_errors
 
 DEFAULT_OUT = "results/benchmark.json"
 # Recorded steps per seed: a paper episode with the fast solver takes ~45 steps, so 50 keeps
@@ -244,6 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@one_line_errors("lfm-benchmark")
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line: run the benchmark, print the report, write JSON and Markdown."""
     parser = build_parser()

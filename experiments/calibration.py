@@ -24,6 +24,7 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
+from experiments.cli import check_writable, one_line_errors
 from lfm_env.config import DisturbanceConfig, EnvConfig, load_env_config
 from lfm_env.gp import StateSpaceKernel
 
@@ -239,14 +240,23 @@ def write_learned_config(config: Any, result: CalibrationResult, path: str) -> N
         "the agents model the learned one.\n"
     )
     fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
-    with os.fdopen(fd, "w") as fh:
-        fh.write(header)
-        yaml.safe_dump(out, fh, sort_keys=False)
-    os.replace(tmp, target)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(header)
+            yaml.safe_dump(out, fh, sort_keys=False)
+        os.replace(tmp, target)
+    except BaseException:  # disk full, Ctrl-C: leave no temporary file behind
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
+@one_line_errors("lfm-calibrate")
 def main(argv: list[str] | None = None) -> int:
-    """``lfm-calibrate``: learn the latent force's hyperparameters from calibration episodes."""
+    """``lfm-calibrate``: learn the latent force's hyperparameters from calibration episodes.
+
+    An unwritable ``--out`` is refused before the episodes run; operating-system errors
+    give one line and exit code 2 (:func:`experiments.cli.one_line_errors`).
+    """
     import argparse
     import sys
 
@@ -276,7 +286,11 @@ def main(argv: list[str] | None = None) -> int:
         seeds = parse_seeds(args.seeds)
         env_config = load_env_config(args.config)
     except ValueError as exc:
-        parser.error(str(exc))
+        parser.error(" ".join(str(exc).split()))
+    if args.out:  # before the episodes, not after them
+        problem = check_writable(args.out, "--out")
+        if problem is not None:
+            parser.error(problem)
     result = fit_disturbance(record_calibration_episodes(args.config, seeds), env_config)
     print(f"calibration: {result.n_episodes} episodes, {result.n_samples} samples")
     print(f"{'hyperparameter':<14} {'learned':>10} {'std err (log)':>14} {'true (hidden)':>14}")

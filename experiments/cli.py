@@ -3,14 +3,19 @@
 Each command is a ``<name>_main(argv=None) -> int`` function registered as a console
 script in ``pyproject.toml`` (``lfm-evaluate = "experiments.cli:evaluate_main"``) and
 wrapped by a one-line script in ``scripts/``. Bad arguments exit with code 2 and a
-one-line message (``argparse``'s ``parser.error``).
+one-line message (``argparse``'s ``parser.error``); so do operating-system errors (disk
+full, a read-only or impossible output path) and running out of memory
+(:func:`one_line_errors`). Ctrl-C prints one line and exits with code 130.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
+import os
 import sys
-from collections.abc import Sequence
+import tempfile
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import controllers
@@ -48,6 +53,61 @@ examples:
   lfm-evaluate --dask-workers 2                  local Dask cluster on 127.0.0.1
   lfm-evaluate --scheduler tcp://10.0.0.5:8786   existing Dask cluster (DIR shared)
 """
+
+
+def os_error_text(exc: OSError) -> str:
+    """One line for an operating-system error: its reason and the path it concerns."""
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    paths = [str(p) for p in (exc.filename, exc.filename2) if p is not None]
+    return " ".join(f"{reason}: {' -> '.join(paths)}".split()) if paths else reason
+
+
+def one_line_errors(prog: str) -> Callable:
+    """Decorate a ``main(argv) -> int``: an ``OSError`` or ``MemoryError`` escaping it is
+    printed as one line ``<prog>: error: ...`` on stderr and gives exit code 2, and
+    Ctrl-C (``KeyboardInterrupt``) one line ``<prog>: interrupted`` and exit code 130,
+    instead of a traceback."""
+
+    def decorate(main: Callable[..., int]) -> Callable[..., int]:
+        @functools.wraps(main)
+        def wrapped(argv: Sequence[str] | None = None) -> int:
+            try:
+                return main(argv)
+            except OSError as exc:
+                print(f"{prog}: error: {os_error_text(exc)}", file=sys.stderr)
+                return 2
+            except MemoryError:
+                print(
+                    f"{prog}: error: out of memory; use smaller settings (see README, Limits)",
+                    file=sys.stderr,
+                )
+                return 2
+            except KeyboardInterrupt:
+                print(f"\n{prog}: interrupted", file=sys.stderr)
+                return 130
+
+        return wrapped
+
+    return decorate
+
+
+def check_writable(path: str | os.PathLike, what: str) -> str | None:
+    """Why the file ``path`` cannot be written (one line naming ``what``), else ``None``.
+
+    Creates the missing parent folders and a temporary file beside ``path`` (removed at
+    once), so an unwritable, read-only or impossible path is found before any work.
+    """
+    target = Path(path)
+    if target.is_dir():
+        return f"{what} {path}: is a folder, expected a file name"
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as exc:
+        return f"{what} {path}: cannot be written ({os_error_text(exc)})"
+    return None
 
 
 def _positive_int(text: str) -> int:
@@ -169,6 +229,7 @@ def _print_summary(rows: list[dict]) -> None:
         )
 
 
+@one_line_errors("lfm-evaluate")
 def evaluate_main(argv: Sequence[str] | None = None) -> int:
     """``lfm-evaluate``: evaluate agents over seeds and write the results (see ``--help``).
 
@@ -282,8 +343,8 @@ def _report_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="S",
         help=(
-            "env seed of the episode figures and GIF (default: the smallest seed with a "
-            "saved trajectory of the scenario agent)"
+            "env seed of the episode figures and GIF (default: the smallest seed whose "
+            "scenario episode ran without error for at least one step)"
         ),
     )
     parser.add_argument("--no-gif", action="store_true", help="do not write figures/episode.gif")
@@ -299,6 +360,7 @@ def _report_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@one_line_errors("lfm-report")
 def report_main(argv: Sequence[str] | None = None) -> int:
     """``lfm-report``: write the report of a results folder (see ``--help``).
 
@@ -412,6 +474,7 @@ def _sweep_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@one_line_errors("lfm-sweep")
 def sweep_main(argv: Sequence[str] | None = None) -> int:
     """``lfm-sweep``: sweep one agent setting against a baseline (see ``--help``).
 
@@ -548,6 +611,13 @@ def _render_episode(
     return frames, dt
 
 
+#: Largest frame side of lfm-render [px], and the memory budget of all its frames [bytes]
+#: (the frames of a whole episode are kept until the GIF is written).
+MAX_RENDER_SIDE = 4096
+RENDER_MEMORY_BUDGET = 2 * 1024**3
+
+
+@one_line_errors("lfm-render")
 def render_main(argv: Sequence[str] | None = None) -> int:
     """``lfm-render``: run one episode and write it as a GIF or PNG (see ``--help``).
 
@@ -568,17 +638,36 @@ def render_main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"--seed {args.seed}: must be >= 0")
     try:
         width, height = (int(v) for v in args.size.lower().split("x"))
-        if width < 16 or height < 16:
+        if not (16 <= width <= MAX_RENDER_SIDE and 16 <= height <= MAX_RENDER_SIDE):
             raise ValueError
     except ValueError:
-        parser.error(f"--size {args.size}: expected WxH in pixels, each >= 16, e.g. 480x240")
+        parser.error(
+            f"--size {args.size[:40]}: expected WxH in pixels, each >= 16 and <= {MAX_RENDER_SIDE},"
+            " e.g. 480x240"
+        )
     config = _config_path(parser, args.config)
+    try:
+        from experiments.evaluation import resolve_config
+
+        max_steps = resolve_config(config, [args.agent]).env.max_steps
+    except ValueError as exc:  # a bad config: the loaders name the key
+        parser.error(" ".join(str(exc).split()))
+    n_frames = 1 + (max_steps if args.steps is None else min(args.steps, max_steps))
+    need = 3 * width * height * n_frames
+    if need > RENDER_MEMORY_BUDGET:
+        parser.error(
+            f"--size {width}x{height}: {n_frames} frames would need {need / 1024**3:.3g} GB,"
+            f" over the budget of {RENDER_MEMORY_BUDGET / 1024**3:.3g} GB; use a smaller"
+            " --size or fewer --steps"
+        )
+    problem = check_writable(out, "--out")
+    if problem is not None:
+        parser.error(problem)
 
     try:
         frames, dt = _render_episode(config, args.agent, args.seed, args.steps, (width, height))
     except ValueError as exc:  # a bad config: the loaders name the key
         parser.error(" ".join(str(exc).split()))
-    out.parent.mkdir(parents=True, exist_ok=True)
     if out.suffix.lower() == ".gif":
         write_gif(frames, out, fps=1.0 / dt)
     else:

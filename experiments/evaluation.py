@@ -24,14 +24,24 @@ episode that raises is saved as a row whose ``error`` holds the exception (its j
 holds the traceback, its npz the steps done before the error); such rows are kept in the
 table but, with ``retry_failed=True`` (the default), re-run by the next call. A folder
 holds the results of one config only: :func:`evaluate` refuses to resume into a folder
-whose ``config.yaml`` differs. Two calls must not write into the same folder at once.
+whose ``config.yaml`` differs or whose episodes carry another :func:`config_hash`. A
+folder is owned by one run at a time (``out/.lock`` holds its pid and host; a second run
+is refused naming it; the lock of a dead process is taken over). Every saved episode is
+verified before it is skipped on resume (its json names its own agent and seed, its npz
+loads with one step per row step); a damaged one is named on stderr and run again.
+
+An interrupt (Ctrl-C, or SIGTERM while :func:`evaluate` runs in the main thread) ends the
+workers at once, removes temporary files and rebuilds ``episodes.csv`` before
+``KeyboardInterrupt`` propagates; pool and Dask workers ignore Ctrl-C themselves.
 
 Runs are serial (``jobs=1``), on local processes (``jobs > 1``) or on a Dask cluster
-(``scheduler=`` an existing one, or ``dask_workers=`` a local one on loopback). Every
-worker writes its own episode files, so the folder must be visible to all workers (any
-single machine; a shared file system for a multi-machine cluster, whose workers must also
-have this package installed). Serial, parallel and distributed runs give identical rows
-apart from the timing columns :data:`TIMING_COLUMNS`.
+(``scheduler=`` an existing one, checked to answer as Dask within 5 s, or
+``dask_workers=`` a private local one: loopback, TLS, no HTTP endpoint,
+:mod:`experiments.executors`). Every worker writes its own episode files, so the folder
+must be visible to all workers (any single machine; a shared file system for a
+multi-machine cluster, whose workers must also have this package installed). Serial,
+parallel and distributed runs give identical rows apart from the timing columns
+:data:`TIMING_COLUMNS`.
 """
 
 from __future__ import annotations
@@ -44,8 +54,11 @@ import math
 import os
 import re
 import secrets
+import signal
+import socket
 import time
 import traceback
+import zipfile
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -245,6 +258,9 @@ def _metric_columns(columns: Sequence[str]) -> tuple[str, ...]:
 _EPISODES = "episodes"
 _TABLE = "episodes.csv"
 _CONFIG = "config.yaml"
+_LOCK = ".lock"  # the owner's pid and host while a run writes into the folder
+_SCHEDULER_TIMEOUT = 5.0  # [s] to connect to a Dask scheduler AND hear it answer as one
+_STOP_TIMEOUT = 5.0  # [s] for interrupted pool workers to end before they are killed
 _TABLE_REFRESH = 10.0  # [s] least time between rebuilds of episodes.csv during a run
 _POOL_RESTARTS = 3  # new process pools after a worker died, before lost episodes count as errors
 
@@ -286,6 +302,9 @@ def resolve_config(config: Any = None, agent_names: Iterable[str] = ()) -> Exper
     return resolved
 
 
+MAX_SEEDS = 1_000_000  # seeds of one run (a larger range is a typo, not a plan)
+
+
 def parse_seeds(text: str) -> list[int]:
     """Seeds from text: ``"0:20"`` (end exclusive), ``"3"``, ``"1,5,9"``, ``"0:10,20:25"``.
 
@@ -315,6 +334,8 @@ def parse_seeds(text: str) -> list[int]:
             raise ValueError(
                 f"seeds {text!r}: range {part!r} is empty or reversed (the end is exclusive)"
             )
+        if len(seeds) + (stop - start) > MAX_SEEDS:
+            raise ValueError(f"seeds {text!r}: at most {MAX_SEEDS} seeds in one run")
         seeds.extend(range(start, stop))
     return list(dict.fromkeys(seeds))
 
@@ -343,7 +364,11 @@ def _check_seeds(seeds: int | Iterable[int]) -> list[int]:
         return parse_seeds(seeds)
     if not isinstance(seeds, (int, np.integer, Iterable)):
         raise ValueError(f"seeds {seeds!r}: give integers >= 0, e.g. [0, 1, 2] or '0:20'")
+    if isinstance(seeds, range) and len(seeds) > MAX_SEEDS:
+        raise ValueError(f"seeds: {len(seeds)} of them; at most {MAX_SEEDS} in one run")
     values = [seeds] if isinstance(seeds, (int, np.integer)) else list(seeds)
+    if len(values) > MAX_SEEDS:
+        raise ValueError(f"seeds: {len(values)} of them; at most {MAX_SEEDS} in one run")
     if not values:
         raise ValueError("seeds: the list is empty; give at least one seed >= 0")
     out = []
@@ -644,11 +669,22 @@ def _json_value(v: Any) -> Any:
     return v
 
 
+def config_hash(config: ExperimentConfig) -> str:
+    """A short stable hash of a resolved config (16 hex digits of SHA-256 of its YAML).
+
+    Stored with every episode (``config_hash`` in its json), so a folder's episodes stay
+    bound to their config even if ``config.yaml`` is deleted or replaced.
+    """
+    text = yaml.safe_dump(config.to_dict(), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
 def save_episode(
     out: str | os.PathLike,
     row: dict[str, Any],
     trajectory: dict[str, np.ndarray] | None,
     traceback_text: str = "",
+    config_digest: str = "",
 ) -> Path:
     """Save an episode as ``episodes/<agent>__seed<seed>.npz`` then ``.json``, atomically.
 
@@ -657,6 +693,7 @@ def save_episode(
         row: the episode's row (:func:`row_columns`, in that order).
         trajectory: arrays for the npz; ``None`` writes the json only.
         traceback_text: the traceback of a failed episode, kept in the json.
+        config_digest: :func:`config_hash` of the episode's config, kept in the json.
 
     Returns:
         The json's path (its presence marks the episode finished).
@@ -668,13 +705,18 @@ def save_episode(
     record = {c: _json_value(v) for c, v in row.items()}
     record["agent_seed"] = agent_seed(row["seed"], row["agent"])
     record["traceback"] = traceback_text
+    record["config_hash"] = config_digest
     text = json.dumps(record, indent=1, allow_nan=False) + "\n"
     json_path = folder / f"{stem}.json"
     _atomic_write(json_path, lambda fh: fh.write(text.encode()))
     return json_path
 
 
-_JSON_EXTRAS = ("agent_seed", "traceback")  # keys of an episode json that are not columns
+_JSON_EXTRAS = (
+    "agent_seed",
+    "traceback",
+    "config_hash",
+)  # keys of an episode json that are not columns
 
 
 def _normalise_row(record: dict[str, Any]) -> dict[str, Any]:
@@ -701,33 +743,86 @@ def _normalise_row(record: dict[str, Any]) -> dict[str, Any]:
     return row
 
 
-def _read_row(path: Path) -> dict[str, Any] | None:
-    """The row of an episode json, or ``None`` if it is missing or unreadable."""
+class DamagedEpisodeError(ValueError):
+    """An episode file that cannot be trusted (torn, garbage, or not the episode named)."""
+
+
+def _read_record(path: Path) -> dict[str, Any]:
+    """The checked record of an episode json whose name is ``<agent>__seed<seed>.json``.
+
+    Raises:
+        DamagedEpisodeError: naming the file, if it cannot be read or parsed, is not an
+            episode record, or holds another (agent, seed) than its name.
+    """
     try:
         record = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
+    except (OSError, ValueError) as exc:
+        raise DamagedEpisodeError(f"episode file {str(path)!r}: {_one_line(exc)}") from exc
     if not isinstance(record, dict) or "agent" not in record or "seed" not in record:
+        raise DamagedEpisodeError(f"episode file {str(path)!r}: not an episode record")
+    try:
+        stem = episode_stem(str(record["agent"]), int(record["seed"]))
+        row = _normalise_row(record)
+    except (TypeError, ValueError) as exc:
+        raise DamagedEpisodeError(f"episode file {str(path)!r}: {_one_line(exc)}") from exc
+    if path.name != f"{stem}.json":
+        raise DamagedEpisodeError(
+            f"episode file {str(path)!r} holds the row of {stem} (a copy or a renamed file)"
+        )
+    return {**row, **{k: record.get(k) for k in _JSON_EXTRAS}}
+
+
+def _read_row(path: Path) -> dict[str, Any] | None:
+    """The row of an episode json, or ``None`` if it is missing or damaged."""
+    try:
+        record = _read_record(path)
+    except DamagedEpisodeError:
         return None
-    return _normalise_row(record)
+    return {k: v for k, v in record.items() if k not in _JSON_EXTRAS}
+
+
+def _warn(message: str) -> None:
+    """One line on stderr: a damaged file is named, never dropped silently."""
+    import sys
+
+    print(f"warning: {message}", file=sys.stderr, flush=True)
 
 
 def load_results(out: str | os.PathLike) -> list[dict[str, Any]]:
     """Every saved row of a results folder, sorted by (agent, seed).
 
     Reads the episode json files (exact values; ``episodes.csv`` holds the same rows as
-    text). Metrics of failed episodes are NaN; filter on ``row["error"] == ""``.
+    text). Metrics of failed episodes are NaN; filter on ``row["error"] == ""``. Files
+    that are damaged, or hold another episode than their name (a copy), are left out
+    with a warning on stderr naming them, so each (agent, seed) counts once.
     """
     folder = Path(out) / _EPISODES
-    rows = [r for p in sorted(folder.glob("*.json")) if (r := _read_row(p)) is not None]
+    rows = []
+    for p in sorted(folder.glob("*.json")):
+        try:
+            record = _read_record(p)
+        except DamagedEpisodeError as exc:
+            _warn(f"{exc}; left out")
+            continue
+        rows.append({k: v for k, v in record.items() if k not in _JSON_EXTRAS})
     return sorted(rows, key=lambda r: (r["agent"], r["seed"]))
 
 
 def load_trajectory(out: str | os.PathLike, agent_name: str, seed: int) -> dict[str, np.ndarray]:
-    """The saved trajectory of one episode (see :func:`run_episode` for its arrays)."""
+    """The saved trajectory of one episode (see :func:`run_episode` for its arrays).
+
+    Raises:
+        FileNotFoundError: the episode has no npz.
+        DamagedEpisodeError: naming the file, if it does not load (e.g. truncated).
+    """
     path = Path(out) / _EPISODES / f"{episode_stem(agent_name, seed)}.npz"
-    with np.load(path, allow_pickle=False) as data:
-        return {k: data[k] for k in data.files}
+    if not path.is_file():
+        raise FileNotFoundError(f"episode file {str(path)!r} does not exist")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise DamagedEpisodeError(f"episode file {str(path)!r}: {_one_line(exc)}") from exc
 
 
 def _csv_value(v: Any) -> str:
@@ -790,7 +885,11 @@ def _config_differences(a: dict, b: dict, prefix: str = "") -> list[str]:
 
 
 def _check_folder(out: Path, config: ExperimentConfig) -> None:
-    """Refuse a folder whose ``config.yaml`` differs from ``config`` (reads only)."""
+    """Refuse a folder of another config (reads only).
+
+    Its ``config.yaml`` must equal ``config``, and every episode json must carry
+    :func:`config_hash` of ``config`` (or none: folders of older versions).
+    """
     path = out / _CONFIG
     if out.exists() and not out.is_dir():
         raise ResultsFolderError(f"results folder {str(out)!r} is a file")
@@ -806,6 +905,85 @@ def _check_folder(out: Path, config: ExperimentConfig) -> None:
                 f"results folder {str(out)!r} holds results of a different config ({shown}); "
                 "choose another output folder or delete this one"
             )
+    digest = config_hash(config)
+    for json_path in sorted((out / _EPISODES).glob("*.json")):
+        try:
+            other = json.loads(json_path.read_text()).get("config_hash")
+        except (OSError, ValueError, AttributeError):
+            continue  # a damaged file is named and re-run later
+        if other not in (None, "", digest):
+            raise ResultsFolderError(
+                f"results folder {str(out)!r} holds results of a different config "
+                f"({json_path.name} has config hash {other}, this config {digest}); "
+                "choose another output folder or delete this one"
+            )
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # another user's live process
+    return True
+
+
+class FolderLock:
+    """Ownership of a results folder by one run: ``out/.lock`` holds ``<pid> <host>``.
+
+    Taken with ``O_EXCL``; a lock of a process that no longer runs on this host is stale
+    and taken over. Another live owner gets a :class:`ResultsFolderError` naming it.
+    """
+
+    def __init__(self, out: Path) -> None:
+        self.path = Path(out) / _LOCK
+        self.text = f"{os.getpid()} {socket.gethostname()}\n"
+
+    def _owner(self) -> tuple[int, str] | None:
+        for _ in range(10):  # the owner may be between creating and writing it
+            try:
+                parts = self.path.read_text().split()
+            except FileNotFoundError:
+                return None
+            if len(parts) == 2 and parts[0].isdigit():
+                return int(parts[0]), parts[1]
+            time.sleep(0.05)
+        return -1, ""  # garbage: treated as stale
+
+    def acquire(self) -> FolderLock:
+        for _ in range(3):
+            try:
+                fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            except FileExistsError:
+                owner = self._owner()
+                if owner is None:
+                    continue
+                pid, host = owner
+                if pid > 0 and (host != socket.gethostname() or _pid_alive(pid)):
+                    raise ResultsFolderError(
+                        f"results folder {str(self.path.parent)!r} is in use by process {pid} "
+                        f"on {host} (lock file {str(self.path)!r}); wait for that run to end "
+                        "or choose another output folder"
+                    ) from None
+                # Stale (its process is gone): move it aside, so only one taker wins.
+                try:
+                    os.rename(self.path, self.path.with_name(f"{_LOCK}.stale.{os.getpid()}"))
+                    self.path.with_name(f"{_LOCK}.stale.{os.getpid()}").unlink()
+                except FileNotFoundError:
+                    pass
+                continue
+            with os.fdopen(fd, "w") as fh:
+                fh.write(self.text)
+            return self
+        raise ResultsFolderError(f"results folder {str(self.path.parent)!r}: cannot take its lock")
+
+    def release(self) -> None:
+        try:
+            if self.path.read_text() == self.text:
+                self.path.unlink()
+        except FileNotFoundError:
+            pass
 
 
 def _prepare_folder(out: Path, config: ExperimentConfig) -> None:
@@ -825,7 +1003,12 @@ def _prepare_folder(out: Path, config: ExperimentConfig) -> None:
 
 
 def _episode_task(
-    agent_name: str, config: ExperimentConfig, seed: int, out: str | None, record: bool
+    agent_name: str,
+    config: ExperimentConfig,
+    seed: int,
+    out: str | None,
+    record: bool,
+    digest: str = "",
 ) -> dict[str, Any]:
     """Run and save one episode; never raises for an error of the episode itself.
 
@@ -850,7 +1033,7 @@ def _episode_task(
         except Exception:
             arrays = {}
     if out is not None:
-        save_episode(out, row, arrays if record else None, tb)
+        save_episode(out, row, arrays if record else None, tb, digest)
     return row
 
 
@@ -862,8 +1045,12 @@ def _exit_with_parent() -> None:
     file, which the next run removes.
     """
     import multiprocessing
+    import signal
     import threading
 
+    # Ctrl-C goes to the whole process group: the parent alone handles it (and ends the
+    # workers), so workers print no KeyboardInterrupt tracebacks.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     parent = multiprocessing.parent_process()
     if parent is None:
         return
@@ -875,13 +1062,36 @@ def _exit_with_parent() -> None:
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
 
-def _finished_row(out: Path, agent_name: str, seed: int, record: bool) -> dict | None:
-    """The saved row of a finished episode, or ``None`` if it must (re-)run."""
+def _finished_row(
+    out: Path, agent_name: str, seed: int, record: bool, digest: str = ""
+) -> dict | None:
+    """The saved and verified row of a finished episode, or ``None`` if it must (re-)run.
+
+    The json must be an episode record of this (agent, seed) and of this config (when
+    it carries a config hash); with ``record`` the npz must exist and, for an episode
+    that ran, load with one reward per step. A damaged file is named on stderr.
+    """
     stem = out / _EPISODES / episode_stem(agent_name, seed)
-    row = _read_row(stem.with_suffix(".json"))
-    if row is None or (record and not stem.with_suffix(".npz").exists()):
+    json_path, npz_path = stem.with_name(stem.name + ".json"), stem.with_name(stem.name + ".npz")
+    if not json_path.exists():
         return None
-    return row
+    try:
+        record_ = _read_record(json_path)
+        if digest and record_["config_hash"] not in (None, "", digest):
+            raise DamagedEpisodeError(f"episode file {str(json_path)!r} is of another config")
+        if record and not npz_path.exists():
+            return None
+        if record and record_["error"] == "":
+            steps = len(load_trajectory(out, agent_name, seed)["reward"])
+            if steps != record_["steps"]:
+                raise DamagedEpisodeError(
+                    f"episode file {str(npz_path)!r} holds {steps} steps, its row "
+                    f"{record_['steps']}"
+                )
+    except (DamagedEpisodeError, KeyError) as exc:
+        _warn(f"{exc}; running the episode again")
+        return None
+    return {k: v for k, v in record_.items() if k not in _JSON_EXTRAS}
 
 
 def _connect_dask(scheduler: str | None, dask_workers: int | None, stack: Any):
@@ -894,25 +1104,22 @@ def _connect_dask(scheduler: str | None, dask_workers: int | None, stack: Any):
         ) from exc
     import logging
 
+    from experiments import executors
+
     if scheduler is not None:
+        # Client's own timeout bounds only the TCP connect: check the answer first.
+        executors.check_scheduler(scheduler, _SCHEDULER_TIMEOUT)
         try:
-            client = distributed.Client(scheduler, timeout="5s")
+            client = distributed.Client(scheduler, timeout=f"{_SCHEDULER_TIMEOUT:g}s")
         except Exception as exc:  # OSError or TimeoutError, depending on the failure
             raise ConnectionError(
-                f"cannot reach the Dask scheduler at {scheduler!r} within 5 s ({_one_line(exc)})"
+                f"cannot reach the Dask scheduler at {scheduler!r} within "
+                f"{_SCHEDULER_TIMEOUT:g} s ({_one_line(exc)})"
             ) from exc
         return stack.enter_context(client)
-    cluster = stack.enter_context(
-        distributed.LocalCluster(
-            n_workers=dask_workers,
-            threads_per_worker=1,  # CasADi and the episode loop are single-threaded
-            processes=True,
-            host="127.0.0.1",  # loopback only: nothing is exposed to the network
-            dashboard_address=None,
-            silence_logs=logging.ERROR,
-        )
-    )
-    return stack.enter_context(distributed.Client(cluster))
+    # Loopback only, mutual TLS with a temporary certificate, no HTTP endpoint.
+    logging.getLogger("distributed").setLevel(logging.ERROR)
+    return executors.local_client(dask_workers, stack)
 
 
 def evaluate(
@@ -974,18 +1181,21 @@ def evaluate(
         raise ValueError("choose one of jobs > 1, scheduler and dask_workers")
 
     out_path = None if out is None else Path(out).resolve()
+    digest = config_hash(cfg)
     if out_path is not None:
         _check_folder(out_path, cfg)
 
     # Seed-major order: an interrupted run leaves complete pairs of agents per seed.
     pairs = [(a, s) for s in seed_list for a in names]
     rows: dict[tuple[str, int], dict[str, Any]] = {}
-    if out_path is not None:
+
+    def load_finished() -> None:
+        rows.clear()
         for a, s in pairs:
-            row = _finished_row(out_path, a, s, record)
+            row = _finished_row(out_path, a, s, record, digest)
             if row is not None and (row["error"] == "" or not retry_failed):
                 rows[(a, s)] = row
-    todo = [p for p in pairs if p not in rows]
+
     out_str = None if out_path is None else str(out_path)
 
     from contextlib import ExitStack
@@ -993,12 +1203,25 @@ def evaluate(
     from tqdm.auto import tqdm
 
     with ExitStack() as stack:
+        stack.enter_context(_sigterm_as_interrupt())
+        # Closed after the executor below (last in, first out): the folder is finished
+        # and unlocked only once no worker writes into it any more.
+        folder_stack = stack.enter_context(ExitStack())
+        if out_path is not None:
+            load_finished()  # read only: whether a Dask cluster is needed at all
         # Connect before the first episode: an unreachable scheduler fails fast.
         client = None
-        if todo and (scheduler is not None or dask_workers is not None):
+        if len(rows) < len(pairs) and (scheduler is not None or dask_workers is not None):
             client = _connect_dask(scheduler, dask_workers, stack)
         if out_path is not None:
+            out_path.mkdir(parents=True, exist_ok=True)
+            lock = FolderLock(out_path).acquire()
+            folder_stack.callback(lock.release)
+            folder_stack.callback(_finish_folder, out_path, columns)  # runs before release
+            _check_folder(out_path, cfg)  # again: another run may have written meanwhile
             _prepare_folder(out_path, cfg)
+            load_finished()
+        todo = [p for p in pairs if p not in rows]
         bar = stack.enter_context(
             tqdm(
                 total=len(pairs),
@@ -1026,29 +1249,42 @@ def evaluate(
             # The worker died (or the task was lost): record it so the rerun retries it,
             # unless the episode was saved before the loss.
             if out_path is not None:
-                saved = _finished_row(out_path, pair[0], pair[1], record)
+                saved = _finished_row(out_path, pair[0], pair[1], record, digest)
                 if saved is not None and saved["error"] == "":
                     return saved
             row = _error_row(pair[0], pair[1], _one_line(exc), math.nan, columns)
             if out_path is not None:
-                save_episode(out_path, row, None, "".join(traceback.format_exception(exc)))
+                tb = "".join(traceback.format_exception(exc))
+                save_episode(out_path, row, None, tb, digest)
             return row
 
-        if client is not None:
+        if client is not None and todo:
             import distributed
 
             futures = {
                 client.submit(
-                    _episode_task, a, cfg, s, out_str, record, pure=False, key=f"episode-{a}-{s}"
+                    _episode_task,
+                    a,
+                    cfg,
+                    s,
+                    out_str,
+                    record,
+                    digest,
+                    pure=False,
+                    key=f"episode-{a}-{s}",
                 ): (a, s)
                 for a, s in todo
             }
-            for fut in distributed.as_completed(futures):
-                try:
-                    row = fut.result()
-                except Exception as exc:
-                    row = lost(futures[fut], exc)
-                done(futures[fut], row)
+            try:
+                for fut in distributed.as_completed(futures):
+                    try:
+                        row = fut.result()
+                    except Exception as exc:
+                        row = lost(futures[fut], exc)
+                    done(futures[fut], row)
+            except BaseException:
+                client.cancel(list(futures), force=True)
+                raise
         elif jobs > 1 and len(todo) > 1:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -1066,7 +1302,7 @@ def evaluate(
                 )
                 try:
                     futs = {
-                        pool.submit(_episode_task, a, cfg, s, out_str, record): (a, s)
+                        pool.submit(_episode_task, a, cfg, s, out_str, record, digest): (a, s)
                         for a, s in pending
                     }
                     for fut in as_completed(futs):
@@ -1080,28 +1316,75 @@ def evaluate(
                         except Exception as exc:
                             row = lost(futs[fut], exc)
                         done(futs[fut], row)
-                finally:
-                    pool.shutdown(wait=True, cancel_futures=True)
+                except BaseException:
+                    _stop_pool(pool)  # Ctrl-C or SIGTERM: end the workers now
+                    raise
+                pool.shutdown(wait=True, cancel_futures=True)
                 if not broken:
                     break
                 pending = sorted(broken, key=pairs.index)
         else:
             for a, s in todo:
-                done((a, s), _episode_task(a, cfg, s, out_str, record))
+                done((a, s), _episode_task(a, cfg, s, out_str, record, digest))
 
-    if out_path is not None:
-        # A worker killed mid-write (then rerun elsewhere) leaves its temporary file.
-        _remove_stale_temp_files(out_path)
-        write_table(out_path, columns)
     return sorted((rows[p] for p in pairs), key=lambda r: (r["agent"], r["seed"]))
 
 
+def _finish_folder(out: Path, columns: Sequence[str]) -> None:
+    """End of a run, also an interrupted one: no temporary file, an up-to-date table."""
+    # A worker killed mid-write (then rerun elsewhere) leaves its temporary file; the
+    # folder is locked, so every temporary file in it is of this run.
+    _remove_stale_temp_files(out)
+    write_table(out, columns)
+
+
+def _stop_pool(pool: Any) -> None:
+    """End a process pool's workers at once (SIGTERM, then SIGKILL after a grace time)."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in processes:
+        if p.is_alive():
+            p.terminate()
+    deadline = time.monotonic() + _STOP_TIMEOUT
+    for p in processes:
+        p.join(max(0.0, deadline - time.monotonic()))
+        if p.is_alive():
+            p.kill()
+            p.join()
+
+
+class _sigterm_as_interrupt:
+    """Context: SIGTERM raises KeyboardInterrupt in the main thread, as Ctrl-C does.
+
+    So ``kill PID`` ends a run the same clean way (workers ended, temporary files
+    removed, the table rebuilt). Elsewhere than in the main thread it does nothing.
+    """
+
+    def __enter__(self) -> None:
+        import threading
+
+        self.previous = None
+        if threading.current_thread() is threading.main_thread():
+            self.previous = signal.signal(signal.SIGTERM, self._raise)
+
+    @staticmethod
+    def _raise(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.previous is not None:
+            signal.signal(signal.SIGTERM, self.previous)
+
+
 __all__ = [
+    "DamagedEpisodeError",
+    "FolderLock",
     "HEAD_COLUMNS",
     "TAIL_COLUMNS",
     "TIMING_COLUMNS",
     "ResultsFolderError",
     "agent_seed",
+    "config_hash",
     "evaluate",
     "episode_stem",
     "group_columns",

@@ -348,12 +348,17 @@ def _complete_tolerance_columns(results: Results) -> None:
 
 
 def load_trajectory(results: Results, agent: str, seed: int) -> dict[str, np.ndarray] | None:
-    """The saved arrays of one episode, or ``None`` if none were saved."""
+    """The saved arrays of one episode, or ``None`` if none were saved.
+
+    Raises:
+        DamagedEpisodeError: naming the file, if it exists but does not load (truncated).
+    """
     path = results.trajectory_path(agent, seed)
     if not path.is_file():
         return None
-    with np.load(path, allow_pickle=False) as data:
-        return {k: data[k] for k in data.files}
+    from experiments.evaluation import load_trajectory as load_saved
+
+    return load_saved(path.parent.parent, agent, seed)
 
 
 # --------------------------------------------------------------------------- statistics
@@ -1071,11 +1076,40 @@ def _check_figure_seed(results: Results, figure_seed: int | None) -> None:
         )
 
 
-def _default_figure_seed(results: Results, agent: str) -> int | None:
-    for row in results.rows_of(agent, include_errors=True):
-        if results.trajectory_path(agent, row["seed"]).is_file():
-            return int(row["seed"])
-    return None
+def _steps(row: dict) -> float:
+    """The ``steps`` of an episode row as a number (NaN when missing or unreadable)."""
+    try:
+        return float(row.get("steps", math.nan))
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _default_figure_seed(results: Results, agent: str) -> tuple[int | None, str]:
+    """The seed of the episode figures and why it was chosen (a sentence for the report).
+
+    The smallest seed whose ``agent`` episode ran without error for at least one step and
+    has a saved trajectory; a failed or 0-step episode draws empty figures, so it is
+    chosen only when no other has a trajectory, and the sentence says so.
+    """
+    rows = results.rows_of(agent, include_errors=True)
+    saved = [r for r in rows if results.trajectory_path(agent, r["seed"]).is_file()]
+    good = [r for r in saved if not r.get("error") and _steps(r) > 0]
+    skipped = sorted({int(r["seed"]) for r in saved if r not in good})
+    if good:
+        seed = int(good[0]["seed"])
+        why = f"the smallest seed whose `{agent}` episode ran without error for at least one step"
+        earlier = [s for s in skipped if s < seed]
+        if earlier:
+            shown = ", ".join(str(s) for s in earlier[:10]) + (", ..." if len(earlier) > 10 else "")
+            why += f"; seeds {shown} skipped: their episodes failed or have no step"
+        return seed, why
+    if saved:
+        seed = int(saved[0]["seed"])
+        return seed, (
+            f"no `{agent}` episode ran without error for a step, so this failed episode is "
+            "drawn: its figures may be empty"
+        )
+    return None, ""
 
 
 def _metric_values(results: Results, column: str) -> dict[str, np.ndarray]:
@@ -1139,7 +1173,12 @@ def _figures_section(doc: Document, results: Results, figure_seed: int | None, g
 
     doc.heading("One episode")
     if figure_seed is None:
-        figure_seed = _default_figure_seed(results, main_agent)
+        figure_seed, why = _default_figure_seed(results, main_agent)
+    else:
+        why = "chosen with --seed"
+        row = next((r for r in results.rows_of(main_agent, True) if r["seed"] == figure_seed), {})
+        if row.get("error") or not _steps(row) > 0:
+            why += "; this episode failed or has no step, so its figures may be empty"
     if figure_seed is None:
         doc.paragraph(f"No saved trajectory of `{main_agent}`: no episode figures.")
         return
@@ -1160,8 +1199,8 @@ def _figures_section(doc: Document, results: Results, figure_seed: int | None, g
     goal_state, goal_radius = _goal(results)
     names = system.state_labels
     doc.paragraph(
-        f"Env seed {figure_seed}, agent {label} (the default is the smallest seed with a "
-        f"saved `{main_agent}` trajectory), on the `{system.name}` system. Time in seconds, "
+        f"Env seed {figure_seed} ({why}), agent {label}, on the `{system.name}` system. "
+        "Time in seconds, "
         f"dt = {cfg.dt:g} s. The figures are drawn from the system's definition: its state, "
         "input and force names, its input bounds and its constraint functions."
     )

@@ -11,8 +11,10 @@ section (read by :mod:`controllers.config`).
 from __future__ import annotations
 
 import dataclasses
+import io
 import math
 import os
+import reprlib
 import types
 import typing
 from dataclasses import dataclass, field
@@ -31,15 +33,23 @@ class ConfigError(ValueError):
     """A configuration value is unknown, of the wrong type or out of range."""
 
 
-def _show(value: Any, limit: int = 80) -> str:
-    """``repr(value)`` for an error message, cut to ``limit`` characters; never raises.
+_REPR = reprlib.Repr()
+_REPR.maxlevel = 3  # nested lists shown this deep ...
+_REPR.maxlist = _REPR.maxtuple = _REPR.maxdict = _REPR.maxset = 8  # ... this wide
+_REPR.maxstring = _REPR.maxlong = _REPR.maxother = 100
 
-    An integer beyond ``sys.get_int_max_str_digits()`` has no repr (ValueError), and a
-    megabyte-long string would drown the message.
+
+def _show(value: Any, limit: int = 80) -> str:
+    """A short ``repr(value)`` for an error message, cut to ``limit`` characters; never raises.
+
+    Bounded in time and memory whatever the value: containers are shown at most 3 levels
+    deep and 8 items wide (a YAML alias bomb expands to billions of items, whose full
+    repr takes minutes and gigabytes); an integer beyond ``sys.get_int_max_str_digits()``
+    has no repr (ValueError), and a megabyte-long string would drown the message.
     """
     try:
-        text = repr(value)
-    except ValueError:
+        text = _REPR.repr(value)
+    except (ValueError, RecursionError):
         if isinstance(value, int):
             return f"<an integer of about {round(value.bit_length() * math.log10(2))} digits>"
         return f"<a {type(value).__name__}>"
@@ -86,22 +96,96 @@ def _check_unique_keys(root: yaml.Node | None) -> None:
             todo += node.value
 
 
+#: Limits of a config file: its size [bytes], the nesting depth of its lists and mappings,
+#: and the number of values it expands to once its aliases are followed. Real configs are
+#: a few kB, 3 levels deep and a few hundred values; the limits make the reading of any
+#: file, however hostile, take well under a second and a few MB.
+MAX_CONFIG_BYTES = 64_000
+MAX_CONFIG_DEPTH = 50
+MAX_CONFIG_VALUES = 10_000
+
+
+def _check_size(root: yaml.Node | None) -> None:
+    """Raise ``ConfigError`` when the node graph nests deeper than
+    :data:`MAX_CONFIG_DEPTH` or expands (aliases followed) to more than
+    :data:`MAX_CONFIG_VALUES` values; iterative, each shared node is counted once."""
+    if root is None:
+        return
+    expanded: dict[int, int] = {}  # id(node) -> values it expands to
+    todo: list[tuple[yaml.Node, int, bool]] = [(root, 1, False)]
+    while todo:
+        node, depth, children_done = todo.pop()
+        if depth > MAX_CONFIG_DEPTH:
+            raise ConfigError(
+                f"nests lists or mappings deeper than {MAX_CONFIG_DEPTH} levels "
+                f"(line {node.start_mark.line + 1})"
+            )
+        if isinstance(node, yaml.MappingNode):
+            children = [n for pair in node.value for n in pair]
+        elif isinstance(node, yaml.SequenceNode):
+            children = list(node.value)
+        else:
+            expanded[id(node)] = 1
+            continue
+        if children_done:
+            total = 1 + sum(expanded[id(c)] for c in children)
+            if total > MAX_CONFIG_VALUES:
+                raise ConfigError(
+                    f"expands to more than {MAX_CONFIG_VALUES} values once its aliases are "
+                    f"followed (line {node.start_mark.line + 1})"
+                )
+            expanded[id(node)] = total
+        elif id(node) not in expanded:
+            todo.append((node, depth, True))
+            todo += [(c, depth + 1, False) for c in children if id(c) not in expanded]
+
+
 def load_yaml(path: str | os.PathLike) -> dict:
     """Read a YAML file with the safe loader; the top level must be a mapping.
 
     A key given twice in one mapping is an error, as are bytes that are not UTF-8 or
-    UTF-16 text.
+    UTF-16 text, a file over :data:`MAX_CONFIG_BYTES`, nesting deeper than
+    :data:`MAX_CONFIG_DEPTH` and more than :data:`MAX_CONFIG_VALUES` values once the
+    aliases are followed (a "billion laughs" file).
+
+    Raises:
+        ConfigError: naming the file and the problem; an unreadable file too (``OSError``).
     """
     path = Path(path)
-    if not path.is_file():
-        problem = "is not a file" if path.exists() else "does not exist"
-        raise ConfigError(f"config file {str(path)!r} {problem}")
     try:
+        if not path.is_file():
+            problem = "is not a file" if path.exists() else "does not exist"
+            raise ConfigError(f"config file {str(path)!r} {problem}")
+        size = path.stat().st_size
+        if size > MAX_CONFIG_BYTES:
+            raise ConfigError(
+                f"config file {str(path)!r} has {size} bytes: must be <= {MAX_CONFIG_BYTES}"
+            )
         # Binary streams: PyYAML reads the encoding from the byte order mark.
         with path.open("rb") as fh:
-            _check_unique_keys(yaml.compose(fh, Loader=yaml.SafeLoader))
-        with path.open("rb") as fh:
-            data = yaml.safe_load(fh)
+            text = fh.read(MAX_CONFIG_BYTES + 1)
+    except OSError as exc:
+        raise ConfigError(f"config file {str(path)!r} cannot be read: {exc.strerror}") from None
+    if len(text) > MAX_CONFIG_BYTES:  # grew since stat
+        raise ConfigError(f"config file {str(path)!r}: must be <= {MAX_CONFIG_BYTES} bytes")
+    try:
+        # Bytes: PyYAML reads the encoding from the byte order mark. Parsed once; the
+        # checks run on the node graph before any Python value is built from it.
+        loader = yaml.SafeLoader(io.BytesIO(text))
+        try:
+            try:
+                root = loader.get_single_node()
+            except RecursionError:
+                raise ConfigError(
+                    f"nests lists or mappings deeper than {MAX_CONFIG_DEPTH} levels"
+                ) from None
+            _check_size(root)
+            _check_unique_keys(root)
+            data = None if root is None else loader.construct_document(root)
+        finally:
+            loader.dispose()
+    except ConfigError as exc:
+        raise ConfigError(f"config file {str(path)!r} {exc}") from None
     except (yaml.YAMLError, ValueError) as exc:  # ValueError: an int over 4300 digits
         raise ConfigError(f"config file {str(path)!r} is not valid YAML: {exc}") from exc
     if data is None:
@@ -144,6 +228,16 @@ def read_section(source: Any, section: str) -> dict | None:
     return source
 
 
+def _is_float_text(text: str) -> bool:
+    """Whether Python reads ``text`` (a short one) as a finite float, e.g. ``"1.0e6"``."""
+    if len(text) > 100:
+        return False
+    try:
+        return math.isfinite(float(text))
+    except ValueError:
+        return False
+
+
 def _convert(value: Any, tp: Any, key: str) -> Any:
     """Convert a plain YAML value to the annotated type ``tp``, or raise naming ``key``."""
     origin = typing.get_origin(tp)
@@ -169,7 +263,14 @@ def _convert(value: Any, tp: Any, key: str) -> Any:
         return int(value)
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-            hint = " (write floats with a dot, e.g. 1.0e-3)" if isinstance(value, str) else ""
+            hint = ""
+            if isinstance(value, str):
+                hint = " (write floats with a dot, e.g. 1.0e-3)"
+                if _is_float_text(value):
+                    hint = (
+                        f" (PyYAML, a YAML 1.1 reader, takes {_show(value)} for text: write"
+                        " floats with a dot and a signed exponent, e.g. 1.0e+6 or 1.0e-3)"
+                    )
             raise ConfigError(f"{key}={_show(value)}: expected a number{hint}")
         try:
             value = float(value)
@@ -268,6 +369,10 @@ class _Checker:
 
 
 # --------------------------------------------------------------------------- sections
+
+#: Longest episode [steps]: 100000 steps are hours of solves, and the recorded trajectory
+#: (a few arrays of this length) stays within megabytes.
+MAX_STEPS = 100_000
 
 MATERN_NUS = (0.5, 1.5, 2.5, 3.5)
 DISCRETIZATIONS = ("exact", "euler_maruyama")
@@ -448,6 +553,7 @@ class EnvConfig(WorldConfig):
         c = _Checker(self)
         c.positive("dt", "vehicle_length", "track_half_width", "accel_max", "goal_radius")
         c.positive("max_steps", "safety_margin")
+        c("max_steps", self.max_steps <= MAX_STEPS, f"an integer in [1, {MAX_STEPS}]")
         c.non_negative("track_amplitude", "track_pulsation", "Q", "R")
         c.non_negative("measurement_noise_std", "process_noise_diffusion")
         c("x_max", self.x_max > self.x_min, f"> x_min={self.x_min}")
@@ -644,6 +750,7 @@ class QuadrotorGustConfig(WorldConfig):
         c.positive("dt", "mass", "gravity", "thrust_max", "pitch_max", "attitude_frequency")
         c.positive("attitude_damping", "corridor_wavelength", "corridor_half_height")
         c.positive("goal_radius", "max_steps", "safety_margin")
+        c("max_steps", self.max_steps <= MAX_STEPS, f"an integer in [1, {MAX_STEPS}]")
         c.non_negative("corridor_amplitude", "Q", "R")
         c.non_negative("measurement_noise_std", "process_noise_diffusion")
         c("dt", self.dt <= 10.0, "<= 10 s")

@@ -17,7 +17,7 @@ import casadi as ca
 import numpy as np
 
 from controllers.problem import MPCSolution, ScenarioProblem
-from controllers.solvers.ipopt import DEFAULT_IPOPT_OPTIONS
+from controllers.solvers.ipopt import DEFAULT_IPOPT_OPTIONS, check_max_time
 
 SHOOTINGS = ("multi", "single")
 
@@ -56,6 +56,8 @@ class CsnlpScenarioSolver:
         shooting: csnlp's ``"multi"`` (default) or ``"single"`` shooting.
         ipopt_options: IPOPT options (names without the ``ipopt.`` prefix) merged over
             :data:`controllers.solvers.ipopt.DEFAULT_IPOPT_OPTIONS`.
+        max_time: wall-clock limit of one solve [s] (IPOPT's ``max_wall_time``), ``None``
+            for none; a solve that reaches it returns ``success=False``.
 
     Raises:
         ImportError: csnlp is not installed.
@@ -67,6 +69,7 @@ class CsnlpScenarioSolver:
         problem: ScenarioProblem,
         shooting: str = "multi",
         ipopt_options: dict[str, Any] | None = None,
+        max_time: float | None = None,
     ) -> None:
         if shooting not in SHOOTINGS:
             raise ValueError(f"shooting={shooting!r}: must be one of {SHOOTINGS}")
@@ -116,6 +119,8 @@ class CsnlpScenarioSolver:
         mpc.minimize_from_single(f)
 
         self.ipopt_options = {**DEFAULT_IPOPT_OPTIONS, **(ipopt_options or {})}
+        if max_time is not None:
+            self.ipopt_options.setdefault("max_wall_time", check_max_time(max_time))
         mpc.init_solver({"ipopt": self.ipopt_options, "print_time": False, "error_on_fail": False})
         self._mpc = mpc
         self._u = u

@@ -90,6 +90,10 @@ class FastSolverOptions:
     restart_optimism: float = 2.0  # multiple of the model's predicted decrease it may still get
     restart_margin: float = 0.0  # relative margin added to the merit an extra start must beat
     restart_same_tol: float = 0.05  # [m/s^2, rad] an extra start this close to the best: same
+    # Wall-clock limit of one solve [s], checked between SQP iterations: a solve that
+    # reaches it returns its best iterate with success=False, status
+    # "Maximum_WallTime_Exceeded" (IPOPT's name), and tries no further start.
+    max_time: float = math.inf
 
     def __post_init__(self) -> None:
         def check(name: str, ok: bool, allowed: str) -> None:
@@ -120,6 +124,9 @@ class FastSolverOptions:
         check("armijo", 0 < self.armijo < 0.5, "in (0, 0.5)")
         check("backtrack", 0 < self.backtrack < 1, "in (0, 1)")
         check("damping_threshold", 0 < self.damping_threshold <= 1, "in (0, 1]")
+        value = self.max_time
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0
+        check("max_time", ok and not math.isnan(value), "a number of seconds > 0 (inf: none)")
         check("qp_solver", self.qp_solver in QP_SOLVERS, f"one of {QP_SOLVERS}")
         if isinstance(self.restarts, list):
             object.__setattr__(self, "restarts", tuple(self.restarts))
@@ -186,6 +193,7 @@ class FastScenarioSolver:
         self._n_groups = max(m.screened.size * n, 1)
         self._qps: dict[tuple[int, int], SlotQP] = {}
         self._prev_u: np.ndarray | None = None
+        self._deadline = math.inf  # time.perf_counter() value ending the current solve
 
     @property
     def backend(self) -> str:
@@ -271,14 +279,20 @@ class FastScenarioSolver:
             cost0=self.model.state_cost0(x0),
             backoff=None if b is None else np.ascontiguousarray(b.T[:, :, None]),
         )
-        ro, status, success, iterations, extra = self._sqp(data, u0)
+        deadline = t_start + self.options.max_time
+        ro, status, success, iterations, extra = self._sqp(data, u0, deadline=deadline)
         extra["restarts"] = {}
         for name in self._restart_names(ro):
+            if time.perf_counter() >= deadline:
+                extra["restarts"][name] = "no_time"
+                continue
             # The problem is not convex: try another start, abandon it once it cannot
             # plausibly beat the best plan so far, and keep the better plan.
             u_alt = self._restart_guess(name, ro.u)
             bar = ro.merit + self.options.restart_margin * abs(ro.merit)
-            ro2, status2, success2, iterations2, extra2 = self._sqp(data, u_alt, bar, ro.u)
+            ro2, status2, success2, iterations2, extra2 = self._sqp(
+                data, u_alt, bar, ro.u, deadline=deadline
+            )
             iterations += iterations2
             for key in ("qp_solves", "soc_steps", "merit_evals"):
                 extra[key] += extra2[key]
@@ -406,6 +420,7 @@ class FastScenarioSolver:
                 opt.qp_solver,
                 p.slack_penalty,
                 opt.slack_regularisation,
+                max_time=opt.max_time,
             )
             self._qps[key] = qp
         return qp
@@ -482,6 +497,7 @@ class FastScenarioSolver:
         n, ng = p.horizon, p.ng
         g_shared = lin.ro.G[self.model.shared].max(axis=2).T.ravel()  # (step, constraint)
         for _ in range(self.options.max_qp_rounds):
+            self._check_time()
             a_pos, g_pos = self.model.rows(lin, pos)
             groups, slot_group, rank = SlotQP.layout(pos, g_pos, n)
             qp = self._qp(max(groups.size, 1), int(rank.max(initial=0)) + 1)
@@ -571,12 +587,18 @@ class FastScenarioSolver:
 
     # ------------------------------------------------------------------ SQP
 
+    def _check_time(self) -> None:
+        """Raise :class:`_OutOfTime` once the current solve's deadline has passed."""
+        if time.perf_counter() >= self._deadline:
+            raise _OutOfTime
+
     def _sqp(
         self,
         data: _Data,
         u0: np.ndarray,
         abandon_above: float = math.inf,
         rival: np.ndarray | None = None,
+        deadline: float = math.inf,
     ) -> tuple[Rollout, str, bool, int, dict[str, Any]]:
         """SQP iterations from ``u0``: ``(final rollout, status, success, iterations, extra)``.
 
@@ -585,6 +607,9 @@ class FastScenarioSolver:
         derivative along the QP step (the local model's promise) is above this value.
         ``rival``: the best plan so far; stop with status ``"Duplicate"`` when an iterate
         comes within ``restart_same_tol`` of it (the same local optimum again).
+        ``deadline``: a ``time.perf_counter()`` value; once past it, stop before the next
+        QP solve or line-search trial with status ``"Maximum_WallTime_Exceeded"`` (not a
+        success) and the last accepted iterate.
         """
         p, opt, model = self.problem, self.options, self.model
         nu, rho = self._n_u, p.slack_penalty
@@ -604,106 +629,120 @@ class FastScenarioSolver:
         status, success, iterations = "Maximum_Iterations_Exceeded", False, 0
         prev_step = math.inf  # size of the last accepted full step
         damping = 0.0  # Levenberg-Marquardt term: grows while the quadratic model is poor
-        while iterations < opt.max_iter:
-            iterations += 1
-            u = ro.u
-            with np.errstate(all="ignore"):
-                lin = model.linearise(ro, data.W_lanes)
-                H = model.hessian(lin, mu, data.W_lanes)
-            if not (np.all(np.isfinite(H)) and np.all(np.isfinite(lin.grad))):
-                status = "Invalid_Derivatives"
-                break
-            try:
-                qp_step, mu = self._newton_step(
-                    lin, H, u, active_pos, active_shared, damping, stats
-                )
-            except np.linalg.LinAlgError:  # eigen-decomposition failed: keep the best iterate
-                status = "Numerical_Error"
-                break
-            if qp_step is None:
-                status = "QP_Failed"
-                break
-            d, pos = qp_step.d, qp_step.pos
-            # Hard-active constraints of this QP: the prediction for the next convexification.
-            hard = (mu[pos[:, 0], pos[:, 1], pos[:, 2]] > 1e-9) & (
-                qp_step.s_pos[pos[:, 0], pos[:, 1]] <= 1e-9
-            )
-            active_pos = pos[hard]
-            active_shared = np.nonzero((qp_step.lam_shared > 1e-9) & (qp_step.s_shared <= 1e-9))[0]
-            if np.max(np.abs(d)) <= opt.step_tol:
-                status, success = "Solve_Succeeded", True
-                break
-            # Upper bound of the merit's directional derivative along d (< 0 unless d = 0).
-            D = float(lin.grad @ d) + rho * (qp_step.slack_sum - ro.slack)
-            if (
-                iterations >= opt.restart_probe
-                and ro.merit + opt.restart_optimism * D > abandon_above
-            ):
-                # Even a multiple of the decrease the local model promises leaves this
-                # start above the plan to beat: give it up.
-                status = "Abandoned"
-                break
-
-            # --- line search on the exact-penalty merit, with second-order correction ---
-            t = 1.0
-            accepted = None
-            while t >= opt.min_step:
-                trial = evaluate(np.clip(u + t * d, self._lower, self._upper))
-                stats["merit_evals"] += 1
-                if trial.merit <= ro.merit + opt.armijo * t * D:
-                    accepted = trial
+        self._deadline = deadline
+        try:
+            while iterations < opt.max_iter:
+                if time.perf_counter() >= deadline:
+                    status = "Maximum_WallTime_Exceeded"
                     break
-                if (
-                    t == 1.0
-                    and opt.second_order_correction
-                    and trial.slack > ro.slack
-                    and pos.shape[0]
-                ):
-                    # The constraints' curvature made the full step infeasible: shift the
-                    # rows by their second-order error and re-solve (Maratos effect).
-                    a_pos, _ = model.rows(lin, pos)
-                    g_try = trial.G[pos[:, 0], pos[:, 1], pos[:, 2]]
-                    qp_step.qp.set_position_bounds(qp_step.row, g_try - a_pos @ d)
-                    z_soc, _, ok_soc = qp_step.qp.solve()
-                    stats["qp_solves"] += 1
-                    if ok_soc:
-                        soc = evaluate(np.clip(u + z_soc[:nu], self._lower, self._upper))
-                        stats["merit_evals"] += 1
-                        if soc.merit <= ro.merit + opt.armijo * D:
-                            stats["soc_steps"] += 1
-                            accepted = soc
-                            break
-                t *= opt.backtrack
-            if accepted is None:
-                # No decrease along a descent direction: converged up to rounding if the
-                # predicted decrease is negligible, else a genuine failure.
-                if -D <= 1e3 * opt.tol * (1.0 + abs(ro.merit)):
+                iterations += 1
+                u = ro.u
+                with np.errstate(all="ignore"):
+                    lin = model.linearise(ro, data.W_lanes)
+                    H = model.hessian(lin, mu, data.W_lanes)
+                if not (np.all(np.isfinite(H)) and np.all(np.isfinite(lin.grad))):
+                    status = "Invalid_Derivatives"
+                    break
+                try:
+                    qp_step, mu = self._newton_step(
+                        lin, H, u, active_pos, active_shared, damping, stats
+                    )
+                except np.linalg.LinAlgError:  # eigen-decomposition failed: keep the best iterate
+                    status = "Numerical_Error"
+                    break
+                if qp_step is None:
+                    status = "QP_Failed"
+                    break
+                d, pos = qp_step.d, qp_step.pos
+                # Hard-active constraints of this QP: the prediction for the next convexification.
+                hard = (mu[pos[:, 0], pos[:, 1], pos[:, 2]] > 1e-9) & (
+                    qp_step.s_pos[pos[:, 0], pos[:, 1]] <= 1e-9
+                )
+                active_pos = pos[hard]
+                active_shared = np.nonzero(
+                    (qp_step.lam_shared > 1e-9) & (qp_step.s_shared <= 1e-9)
+                )[0]
+                if np.max(np.abs(d)) <= opt.step_tol:
                     status, success = "Solve_Succeeded", True
-                else:
-                    status = "Line_Search_Failed"
-                break
-            step = float(np.max(np.abs(accepted.u - u)))
-            slack_change = abs(accepted.slack - ro.slack)
-            ro = accepted
-            if rival is not None and np.max(np.abs(ro.u - rival)) <= opt.restart_same_tol:
-                status = "Duplicate"
-                break
-            # Heavy backtracking means the quadratic model is poor this far out (negative
-            # curvature, strongly curved constraints): damp the next steps, like a trust
-            # region; full steps undo it, so the local convergence stays quadratic.
-            if t < opt.damping_threshold:
-                damping = max(10.0 * damping, opt.damping_init)
-            elif t == 1.0:
-                damping = 0.1 * damping if damping > 1e-3 * opt.damping_init else 0.0
-            ratio = step / prev_step if math.isfinite(prev_step) else 1.0
-            predicted_next = step * min(ratio, 1.0) if t == 1.0 else math.inf
-            prev_step = step if t == 1.0 else math.inf
-            if predicted_next <= opt.final_step_tol and (
-                ro.slack <= opt.add_tol or slack_change <= opt.add_tol * (1.0 + ro.slack)
-            ):
-                status, success = "Solve_Succeeded", True
-                break
+                    break
+                # Upper bound of the merit's directional derivative along d (< 0 unless d = 0).
+                D = float(lin.grad @ d) + rho * (qp_step.slack_sum - ro.slack)
+                if (
+                    iterations >= opt.restart_probe
+                    and ro.merit + opt.restart_optimism * D > abandon_above
+                ):
+                    # Even a multiple of the decrease the local model promises leaves this
+                    # start above the plan to beat: give it up.
+                    status = "Abandoned"
+                    break
+
+                # --- line search on the exact-penalty merit, with second-order correction ---
+                t = 1.0
+                accepted = None
+                while t >= opt.min_step:
+                    self._check_time()
+                    trial = evaluate(np.clip(u + t * d, self._lower, self._upper))
+                    stats["merit_evals"] += 1
+                    if trial.merit <= ro.merit + opt.armijo * t * D:
+                        accepted = trial
+                        break
+                    if (
+                        t == 1.0
+                        and opt.second_order_correction
+                        and trial.slack > ro.slack
+                        and pos.shape[0]
+                    ):
+                        # The constraints' curvature made the full step infeasible: shift the
+                        # rows by their second-order error and re-solve (Maratos effect).
+                        a_pos, _ = model.rows(lin, pos)
+                        g_try = trial.G[pos[:, 0], pos[:, 1], pos[:, 2]]
+                        qp_step.qp.set_position_bounds(qp_step.row, g_try - a_pos @ d)
+                        z_soc, _, ok_soc = qp_step.qp.solve()
+                        stats["qp_solves"] += 1
+                        if ok_soc:
+                            soc = evaluate(np.clip(u + z_soc[:nu], self._lower, self._upper))
+                            stats["merit_evals"] += 1
+                            if soc.merit <= ro.merit + opt.armijo * D:
+                                stats["soc_steps"] += 1
+                                accepted = soc
+                                break
+                    t *= opt.backtrack
+                if accepted is None:
+                    # No decrease along a descent direction: converged up to rounding if the
+                    # predicted decrease is negligible, else a genuine failure.
+                    if -D <= 1e3 * opt.tol * (1.0 + abs(ro.merit)):
+                        status, success = "Solve_Succeeded", True
+                    else:
+                        status = "Line_Search_Failed"
+                    break
+                step = float(np.max(np.abs(accepted.u - u)))
+                slack_change = abs(accepted.slack - ro.slack)
+                ro = accepted
+                if rival is not None and np.max(np.abs(ro.u - rival)) <= opt.restart_same_tol:
+                    status = "Duplicate"
+                    break
+                # Heavy backtracking means the quadratic model is poor this far out (negative
+                # curvature, strongly curved constraints): damp the next steps, like a trust
+                # region; full steps undo it, so the local convergence stays quadratic.
+                if t < opt.damping_threshold:
+                    damping = max(10.0 * damping, opt.damping_init)
+                elif t == 1.0:
+                    damping = 0.1 * damping if damping > 1e-3 * opt.damping_init else 0.0
+                ratio = step / prev_step if math.isfinite(prev_step) else 1.0
+                predicted_next = step * min(ratio, 1.0) if t == 1.0 else math.inf
+                prev_step = step if t == 1.0 else math.inf
+                if predicted_next <= opt.final_step_tol and (
+                    ro.slack <= opt.add_tol or slack_change <= opt.add_tol * (1.0 + ro.slack)
+                ):
+                    status, success = "Solve_Succeeded", True
+                    break
+        except _OutOfTime:  # inside an iteration: keep the last accepted iterate
+            status, success = "Maximum_WallTime_Exceeded", False
         return ro, status, success, iterations, stats
+
+
+class _OutOfTime(Exception):
+    """The solve's wall-clock limit (``max_time``) passed inside an SQP iteration."""
 
 
 @dataclass

@@ -263,6 +263,9 @@ class IpoptScenarioSolver:
             the warm instance).
         warm_start_duals: pass the previous multipliers to the warm instance; with False
             only the primal guess is warm started.
+        max_time: wall-clock limit of one solve [s] (IPOPT's ``max_wall_time``), ``None``
+            for none; a solve that reaches it returns its last iterate with
+            ``success=False`` and status ``Maximum_WallTime_Exceeded``, and is not retried.
     """
 
     def __init__(
@@ -271,6 +274,7 @@ class IpoptScenarioSolver:
         formulation: str = "condensed",
         ipopt_options: dict[str, Any] | None = None,
         warm_start_duals: bool = True,
+        max_time: float | None = None,
     ) -> None:
         if formulation not in FORMULATIONS:
             raise ValueError(f"formulation={formulation!r}: must be one of {FORMULATIONS}")
@@ -278,6 +282,8 @@ class IpoptScenarioSolver:
         self.formulation = formulation
         self.warm_start_duals = warm_start_duals
         user = dict(ipopt_options or {})
+        if max_time is not None:
+            user.setdefault("max_wall_time", check_max_time(max_time))
         self.ipopt_options = {**DEFAULT_IPOPT_OPTIONS, **user}
         t0 = time.perf_counter()
         build = _build_condensed if formulation == "condensed" else _build_multiple_shooting
@@ -420,7 +426,8 @@ class IpoptScenarioSolver:
         )
         iterations = _iterations(stats_, error, self.ipopt_options)
         retried = False
-        if duals and (error is not None or not stats_.get("success", False)):
+        timed_out = stats_.get("return_status") == "Maximum_WallTime_Exceeded"
+        if duals and not timed_out and (error is not None or not stats_.get("success", False)):
             # A warm start that fails must not cost the step: retry cold from the same guess,
             # and if that fails too keep whichever iterate has the lower objective.
             warm_run = (result, error, stats_)
@@ -465,6 +472,14 @@ class IpoptScenarioSolver:
                 "slacks": z[nu * n : (nu + ng) * n].reshape(n, ng).copy(),
             },
         )
+
+
+def check_max_time(max_time: Any) -> float:
+    """A solve's wall-clock limit [s] as a float, or ``ValueError`` naming ``max_time``."""
+    ok = isinstance(max_time, (int, float)) and not isinstance(max_time, bool)
+    if not (ok and math.isfinite(max_time) and max_time > 0):
+        raise ValueError(f"max_time={max_time!r}: must be a finite number of seconds > 0")
+    return float(max_time)
 
 
 def _iterations(stats_: dict[str, Any], error: Exception | None, options: dict[str, Any]) -> int:

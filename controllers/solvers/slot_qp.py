@@ -6,6 +6,7 @@ Used by :mod:`controllers.solvers.fast` and :mod:`controllers.solvers.fast_bicyc
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import sys
 from collections.abc import Iterator
@@ -59,6 +60,7 @@ class SlotQP:
         solver: str,
         slack_penalty: float,
         slack_reg: float,
+        max_time: float = math.inf,
     ) -> None:
         self.groups, self.slots = groups, slots
         self.n_u, self.n_speed = n_u, n_shared
@@ -68,6 +70,10 @@ class SlotQP:
         opts: dict[str, Any] = {"error_on_fail": False}
         if solver == "qpoases":
             opts["printLevel"] = "none"
+            if math.isfinite(max_time):
+                # One QP cannot be interrupted from Python: let qpOASES stop itself, so a
+                # solve overruns its wall-clock limit by at most one QP's limit [s].
+                opts["CPUtime"] = float(max_time)
         with silenced_stdout():  # qpOASES prints a banner whenever a memory is created
             self._conic = ca.conic(
                 "fast_sqp_qp",

@@ -274,3 +274,60 @@ def test_a_filtering_agent_needs_measurement_noise():
             AgentConfig(Q=(1.0,) * 4, Qf=(1.0,) * 4, R=(0.1, 0.1)),
             measurement_std=[0.1, 0.1, 0.0, 0.1],
         )
+
+
+# --------------------------------------------------------------------------- solve time limit
+
+
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_a_solve_that_reaches_max_solve_time_fails_and_the_agent_falls_back(solver):
+    """Issue 15, case 5: a solve has a wall-clock limit (agents.max_solve_time); one that
+    reaches it is a failed solve (IPOPT's status Maximum_WallTime_Exceeded) and the agent
+    falls back, as on any failed solve."""
+    cfg = {"env": {"max_steps": 3}, "agents": {"solver": solver, "max_solve_time": 1e-9}}
+    actions, infos, est = run("nominal", cfg, max_steps=2)
+    for rec in est:
+        assert rec["status"] == "Maximum_WallTime_Exceeded"
+        assert rec["success"] is False
+        assert rec["fallback"] in ("previous_plan", "fallback")
+    assert est[0]["fallback"] == "fallback"  # no plan yet: the system's fallback input
+    assert np.all(np.isfinite(actions))
+
+
+def test_max_solve_time_default_leaves_normal_solves_alone():
+    assert AgentConfig().max_solve_time == 10.0
+    _, _, est = run("nominal", {"env": {"max_steps": 2}}, max_steps=2)
+    assert all(rec["success"] and rec["fallback"] == "" for rec in est)
+
+
+@pytest.mark.parametrize("value", [0.0, -1.0, float("nan"), 3601.0, "10"])
+def test_max_solve_time_out_of_range_is_refused(value):
+    with pytest.raises(ConfigError, match=r"max_solve_time"):
+        load_config({"agents": {"max_solve_time": value}})
+
+
+def test_a_fast_solver_horizon_beyond_its_practical_bound_is_refused_up_front():
+    """Issue 15, case 5: at horizon 100 one fast-SQP iteration alone outlasts any solve limit
+    (one step took 84 s against a 10 s limit), so such horizons are refused when read."""
+    from controllers.config import FAST_MAX_HORIZON
+
+    for solver in ("fast", "fast_bicycle"):
+        with pytest.raises(
+            ConfigError, match=rf"agents.horizon=100: must be <= {FAST_MAX_HORIZON}"
+        ):
+            load_config({"agents": {"horizon": 100, "solver": solver}})
+    assert load_config({"agents": {"horizon": FAST_MAX_HORIZON}}).agents.horizon == 40
+
+
+@pytest.mark.slow
+def test_horizon_60_ipopt_step_ends_within_the_solve_time_limit():
+    """Issue 15, case 5: long horizons took minutes for one MPC step; now one step ends after
+    agents.max_solve_time (plus one iteration), with a failed solve and a fallback."""
+    cfg = {
+        "env": {"max_steps": 2},
+        "agents": {"horizon": 60, "max_solve_time": 0.05, "solver": "ipopt"},
+    }
+    _, _, est = run("nominal", cfg, max_steps=1)
+    assert est[0]["status"] == "Maximum_WallTime_Exceeded"
+    assert est[0]["fallback"] == "fallback"
+    assert est[0]["solve_time"] < 60.0  # generous: 2 s plus one iteration

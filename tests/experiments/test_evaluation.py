@@ -415,9 +415,9 @@ def test_rerun_skips_finished_episodes_and_redoes_lost_ones(tmp_path, monkeypatc
     calls = []
     task = evaluation._episode_task
 
-    def counting(agent_name, config, seed, out, record):
+    def counting(agent_name, config, seed, out, record, digest=""):
         calls.append((agent_name, seed))
-        return task(agent_name, config, seed, out, record)
+        return task(agent_name, config, seed, out, record, digest)
 
     monkeypatch.setattr(evaluation, "_episode_task", counting)
     second = evaluate(["nominal"], range(3), TINY, out=tmp_path, progress=False)
