@@ -258,6 +258,12 @@ class _FilteringAgent(MPCAgent):
             "filter_resets": self.n_filter_resets,
         }
 
+    def _mean_forecast_scenario(self) -> tuple[np.ndarray, np.ndarray]:
+        """One scenario: the estimate's mean, the force's mean forecast ``H A^k z_hat``."""
+        nx = self.system.nx
+        W = self.model.mean_latent_forecast(self._mean[nx:], self.problem.horizon)
+        return self._mean[:nx], W[None]
+
     def _backoff(self) -> np.ndarray | None:
         """``settings.backoff`` times the estimate's std along each constraint's gradient.
 
@@ -300,9 +306,7 @@ class CertaintyEquivalentMPCAgent(_FilteringAgent):
     name = "pf"
 
     def _scenarios(self) -> tuple[np.ndarray, np.ndarray]:
-        nx = self.system.nx
-        W = self.model.mean_latent_forecast(self._mean[nx:], self.problem.horizon)
-        return self._mean[:nx], W[None]
+        return self._mean_forecast_scenario()
 
 
 class ScenarioMPCAgent(_FilteringAgent):
@@ -372,9 +376,7 @@ class RobustMPCAgent(ScenarioMPCAgent):
 
     def _scenarios(self) -> tuple[np.ndarray, np.ndarray]:
         if self.settings.robust.forecast == "mean":
-            nx = self.system.nx
-            W = self.model.mean_latent_forecast(self._mean[nx:], self.problem.horizon)
-            return self._mean[:nx], W[None]
+            return self._mean_forecast_scenario()
         return super()._scenarios()
 
 

@@ -229,19 +229,11 @@ def _print_summary(rows: list[dict]) -> None:
         )
 
 
-@one_line_errors("lfm-evaluate")
-def evaluate_main(argv: Sequence[str] | None = None) -> int:
-    """``lfm-evaluate``: evaluate agents over seeds and write the results (see ``--help``).
+def _seeds_and_executor(parser: argparse.ArgumentParser, args: argparse.Namespace) -> list[int]:
+    """The parsed ``--seeds``, after checking that the executor options fit together
+    (exits 2 through ``parser.error`` naming the option otherwise)."""
+    from experiments.evaluation import parse_seeds
 
-    Returns:
-        The exit code: 0 if every episode ran, 1 if some raised an error.
-    """
-    from experiments.evaluation import evaluate, parse_seeds
-
-    parser = _evaluate_parser()
-    args = parser.parse_args(argv)
-
-    config_path = _config_path(parser, args.config)
     try:
         seeds = parse_seeds(args.seeds)
     except ValueError as exc:
@@ -250,6 +242,23 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
         parser.error("--scheduler and --dask-workers exclude each other")
     if args.jobs > 1 and (args.scheduler is not None or args.dask_workers is not None):
         parser.error("--jobs runs local processes; do not combine it with Dask options")
+    return seeds
+
+
+@one_line_errors("lfm-evaluate")
+def evaluate_main(argv: Sequence[str] | None = None) -> int:
+    """``lfm-evaluate``: evaluate agents over seeds and write the results (see ``--help``).
+
+    Returns:
+        The exit code: 0 if every episode ran, 1 if some raised an error.
+    """
+    from experiments.evaluation import evaluate
+
+    parser = _evaluate_parser()
+    args = parser.parse_args(argv)
+
+    config_path = _config_path(parser, args.config)
+    seeds = _seeds_and_executor(parser, args)
     agents = [a.strip() for a in args.agents.split(",")]
     out = (
         Path(args.out)
@@ -481,20 +490,12 @@ def sweep_main(argv: Sequence[str] | None = None) -> int:
     Returns:
         The exit code: 0 if every episode ran, 1 if some raised an error.
     """
-    from experiments.evaluation import parse_seeds
     from experiments.sweep import run_sweep, sweep_errors
 
     parser = _sweep_parser()
     args = parser.parse_args(argv)
     config_path = _config_path(parser, args.config)
-    try:
-        seeds = parse_seeds(args.seeds)
-    except ValueError as exc:
-        parser.error(f"--seeds: {exc}")
-    if args.scheduler is not None and args.dask_workers is not None:
-        parser.error("--scheduler and --dask-workers exclude each other")
-    if args.jobs > 1 and (args.scheduler is not None or args.dask_workers is not None):
-        parser.error("--jobs runs local processes; do not combine it with Dask options")
+    seeds = _seeds_and_executor(parser, args)
     out = Path(args.out)
     try:
         summary = run_sweep(
