@@ -465,8 +465,8 @@ def check_agent_config(name: str, config: Any = None) -> ExperimentConfig:
         states = config.make_system().state_names
         zero = [n for n, s in zip(states, std, strict=False) if not s > 0.0]
         raise ConfigError(
-            f"env.measurement_noise_std={list(std)}: must be all in (0, inf) for the "
-            f"{name!r} agent (its estimator weighs each measurement by this noise); "
+            f"env.measurement_noise_std={list(std)}: must be all > 0 (each in (0, inf)) "
+            f"for the {name!r} agent (its estimator weighs each measurement by this noise); "
             f"zero for {zero}"
         )
     return config

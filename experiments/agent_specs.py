@@ -19,7 +19,8 @@
 Each agent is named, for the table's ``agent`` column, its files (``<name>__seed<S>``)
 and its seed (:func:`experiments.evaluation.agent_seed`), by the ``name`` attribute of
 its factory (or agent), else by the text ``module.attribute`` of a ``"module:attribute"``
-spec, else by the factory's qualified name. Names are 1 to 100 letters, digits or
+spec, else by the factory's qualified name (without ``<locals>``; a lambda is
+``lambda``). Names are 1 to 100 letters, digits or
 ``._+-`` (valid file names everywhere), unique in a run, and a user agent may not take
 a registered agent's name.
 
@@ -131,6 +132,7 @@ def _default_name(obj: Any, text: str | None) -> str:
         return text.replace(":", ".")
     source = obj if callable(obj) and not is_agent(obj) else type(obj)
     qualname = getattr(source, "__qualname__", type(source).__name__)
+    qualname = qualname.replace(".<locals>", "").replace("<lambda>", "lambda")
     return re.sub(r"[^A-Za-z0-9._+-]", "_", qualname)
 
 
