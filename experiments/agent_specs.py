@@ -165,8 +165,9 @@ def resolve_agent(spec: Any) -> str | AgentSpec:
         name = _default_name(obj, None)
     else:
         raise AgentSpecError(
-            f"agent {spec!r}: give a registered name {sorted(AGENTS)}, a factory "
-            "(config -> agent), an agent, or 'module:attribute'"
+            f"unknown agent {str(spec)!r} (a {type(spec).__name__}); choose from "
+            f"{sorted(AGENTS)}, or give a factory (config -> agent), an agent, or "
+            "'module:attribute'"
         )
     if not _NAME.fullmatch(name):
         raise AgentSpecError(

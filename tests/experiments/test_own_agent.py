@@ -178,7 +178,7 @@ class Registered(Unnamed):
         ([f"{OWN}:NOT_CALLABLE"], r"'NOT_CALLABLE' is a int, neither an agent factory"),
         ([f"{OWN}:not_an_agent_factory"], r"factory returned a str, which has no reset"),
         (["mod:"], r"agent 'mod:': expected 'module:attribute'"),
-        ([42], r"agent 42: give a registered name"),
+        ([42], r"unknown agent '42' \(a int\); choose from"),
         ([Named], r"its name 'a/b' must be 1 to 100 letters"),
         ([Registered], r"its name 'pf' is a registered agent's"),
         ([ProportionalAgent, f"{OWN}:ProportionalAgent"], r"\['proportional'\] twice"),
