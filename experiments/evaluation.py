@@ -34,6 +34,10 @@ An interrupt (Ctrl-C, or SIGTERM while :func:`evaluate` runs in the main thread)
 workers at once, removes temporary files and rebuilds ``episodes.csv`` before
 ``KeyboardInterrupt`` propagates; pool and Dask workers ignore Ctrl-C themselves.
 
+Agents are registered names, or a user's own agents (:class:`controllers.protocol.Agent`)
+given as factories, agent objects or ``"module:attribute"`` (:mod:`experiments.agent_specs`);
+an agent's ``last_info`` keys are all optional, read with their documented defaults.
+
 Runs are serial (``jobs=1``), on local processes (``jobs > 1``) or on a Dask cluster
 (``scheduler=`` an existing one, checked to answer as Dask within 5 s, or
 ``dask_workers=`` a private local one: loopback, TLS, no HTTP endpoint,
@@ -353,10 +357,13 @@ def parse_seeds(text: str) -> list[int]:
     return list(dict.fromkeys(seeds))
 
 
-def _check_agents(agents: Any) -> list[str | AgentSpec]:
-    """The agents resolved (:func:`experiments.agent_specs.resolve_agents`): a registered
-    agent as its name, a user agent as an :class:`~experiments.agent_specs.AgentSpec`."""
-    return resolve_agents(agents)
+def _check_agents(agents: Any) -> list[str]:
+    """Registered agent names only (for callers that store names, e.g. the sweep)."""
+    specs = resolve_agents(agents)
+    own = [s.text for s in specs if isinstance(s, AgentSpec)]
+    if own:
+        raise ValueError(f"agents {own}: only registered agents here; choose from {_known()}")
+    return specs
 
 
 def _known() -> list[str]:
@@ -659,7 +666,7 @@ def run_episode(
         ValueError: unknown agent or bad agent spec (naming it) or negative seed; any
             error of the episode itself propagates (:func:`evaluate` records it instead).
     """
-    (spec,) = _check_agents([agent])
+    (spec,) = resolve_agents([agent])
     (seed,) = _check_seeds([seed])
     cfg = resolve_config(config, [spec])
     t0 = time.perf_counter()
@@ -1216,7 +1223,7 @@ def evaluate(
             config, before any episode runs.
         ConnectionError: the Dask scheduler cannot be reached.
     """
-    specs = _check_agents(agents)
+    specs = resolve_agents(agents)
     names = [name_of(a) for a in specs]
     spec_of = dict(zip(names, specs, strict=True))
     seed_list = _check_seeds(seeds)

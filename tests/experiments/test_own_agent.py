@@ -81,6 +81,23 @@ def test_own_agents_in_a_process_pool_equal_the_serial_run(tmp_path):
     assert speed[-1] < speed[0]
 
 
+def test_own_agents_on_a_local_dask_cluster_equal_the_serial_run(tmp_path):
+    pytest.importorskip("distributed")
+    # Dask sends factories with cloudpickle: a lambda travels too.
+    agents = [BrakingAgent, f"{OWN}:constant_agent_factory", lambda config: BrakingAgent(config)]
+    serial = evaluate(agents, [2], TINY, progress=False)
+    dask = evaluate(agents, [2], TINY, out=tmp_path, dask_workers=1, progress=False)
+    assert [r["error"] for r in dask] == [""] * 3
+    assert comparable(dask) == comparable(serial)
+
+
+def test_sweeps_take_registered_agents_only():
+    from experiments.sweep import run_sweep
+
+    with pytest.raises(ValueError, match=r"only registered agents here"):
+        run_sweep(f"{OWN}:ProportionalAgent", "agents.backoff=0,1", [0], TINY, out="/nonexistent")
+
+
 def test_a_minimal_agent_has_no_solver_failures_and_na_estimates():
     row, traj = run_episode(BrakingAgent, TINY, seed=3)
     assert row["agent"] == "braking" and row["error"] == "" and row["steps"] == 15
