@@ -27,15 +27,23 @@ def test_the_own_system_example_runs(capsys):
     assert env.model.system.nw == 2
 
 
+def section_blocks(title: str) -> list[str]:
+    """The python blocks under ``## title``, each on its own."""
+    text = README.read_text()
+    start = text.index(f"## {title}\n")
+    end = text.find("\n## ", start + 1)
+    return re.findall(r"```python\n(.*?)```", text[start:end], flags=re.S)
+
+
 def test_the_own_agent_example_runs(monkeypatch):
     import math
 
     import pytest
 
-    pytest.importorskip("stable_baselines3")  # the section's last example uses it
-    monkeypatch.chdir(README.parent)  # the example reads configs/quick.yaml
+    evaluation_example, sb3_example = section_blocks("Your own agent")
+    monkeypatch.chdir(README.parent)  # the examples read configs/quick.yaml
     namespace: dict = {"__name__": "readme_example"}
-    exec(compile(section_code("Your own agent"), "README.md", "exec"), namespace)  # noqa: S102
+    exec(compile(evaluation_example, "README.md", "exec"), namespace)  # noqa: S102
     rows = namespace["rows"]
     assert [(r["agent"], r["seed"], r["error"]) for r in rows] == [
         (a, s, "") for a in ("nominal", "track_follower") for s in (0, 1)
@@ -45,4 +53,7 @@ def test_the_own_agent_example_runs(monkeypatch):
     assert all(r["solver_failures"] == 0 and r["fallback_steps"] == 0 for r in mine)
     assert all(math.isnan(r["solve_time_median"]) and math.isnan(r["latent_rmse"]) for r in mine)
     assert all(r["success"] for r in mine)  # it does follow the track to the goal
+
+    pytest.importorskip("stable_baselines3")  # the section's SB3 example needs it
+    exec(compile(sb3_example, "README.md", "exec"), namespace)  # noqa: S102
     assert math.isfinite(namespace["mean_reward"]) and namespace["mean_reward"] < 0.0
