@@ -37,7 +37,7 @@ that face.
 from __future__ import annotations
 
 import math
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Protocol, TypedDict, runtime_checkable
 
 import numpy as np
 
@@ -56,6 +56,22 @@ class Agent(Protocol):
 
     def act(self, obs: Any) -> Any:
         """The action ``(nu,)`` in the inputs' units for an observation ``(nx,)``."""
+
+
+class AgentInfo(TypedDict, total=False):
+    """The keys evaluation reads from ``last_info`` (all optional; see the module table)."""
+
+    estimate: np.ndarray  # (d,) state estimate, d >= nx (physical states first)
+    estimate_std: np.ndarray  # (d,) its standard deviation
+    latent_force: np.ndarray  # (nw,) estimate of the latent force
+    latent_force_std: np.ndarray  # (nw,) its standard deviation
+    predicted: np.ndarray  # (S, N+1, nx) predicted states of the plan's scenarios
+    solve_time: float  # [s] the step's optimisation
+    slack: float  # the plan's constraint slack (>= 0)
+    success: bool  # the step's solve succeeded
+    fallback: str  # '' or the name of the fallback action used
+    filter_reset: bool  # the estimator restarted after divergence
+    estimator: str  # the name of the agent's estimator
 
 
 #: Every optional ``last_info`` key and the value evaluation assumes when it is absent.
@@ -191,4 +207,12 @@ class SB3Policy(SB3Predict):
         return last_info(self.agent)
 
 
-__all__ = ["INFO_DEFAULTS", "Agent", "SB3Policy", "SB3Predict", "is_agent", "last_info"]
+__all__ = [
+    "INFO_DEFAULTS",
+    "Agent",
+    "AgentInfo",
+    "SB3Policy",
+    "SB3Predict",
+    "is_agent",
+    "last_info",
+]

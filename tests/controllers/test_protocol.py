@@ -14,7 +14,15 @@ import yaml
 import lfm_env  # noqa: F401  (registers the envs)
 from controllers.agents import AGENTS, make_agent
 from controllers.config import load_config
-from controllers.protocol import INFO_DEFAULTS, Agent, SB3Policy, SB3Predict, is_agent, last_info
+from controllers.protocol import (
+    INFO_DEFAULTS,
+    Agent,
+    AgentInfo,
+    SB3Policy,
+    SB3Predict,
+    is_agent,
+    last_info,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = {
@@ -56,6 +64,8 @@ def test_the_protocol_check():
 
 
 def test_last_info_defaults_and_bad_types():
+    assert set(AgentInfo.__annotations__) == set(INFO_DEFAULTS)  # one list of keys
+    assert INFO_DEFAULTS["success"] is True and INFO_DEFAULTS["fallback"] == ""
     assert last_info(Recorder()) == {}
     bad = Recorder()
     bad.last_info = ["estimate"]  # type: ignore[attr-defined]
