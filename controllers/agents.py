@@ -22,7 +22,9 @@ full-state observation ``y = x + e``; every dimension is read from the model.
   it reads the true state and the true future disturbance from the env.
 
 Agents draw their randomness from their own seed, independent of the env's, so the
-same env seed gives every agent the same disturbance and noise.
+same env seed gives every agent the same disturbance and noise. Every agent here follows
+:class:`controllers.protocol.Agent` and has stable-baselines3's ``predict``
+(:class:`controllers.protocol.SB3Predict`); an agent of one's own needs only the protocol.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from controllers.config import (
 )
 from controllers.estimators.estimator import make_estimator
 from controllers.problem import MPCSolution, ScenarioProblem
+from controllers.protocol import SB3Predict
 from controllers.solvers import make_solver
 from lfm_env.config import ConfigError
 from lfm_env.model import LatentForceModel
@@ -55,11 +58,14 @@ from lfm_env.validation import real_vector
 DIVERGENCE_TAIL = 1.0e-6
 
 
-class MPCAgent:
+class MPCAgent(SB3Predict):
     """Common receding-horizon loop: estimate, build scenarios, solve, apply ``u_0``.
 
-    Subclasses implement :meth:`_estimate` (the state estimate from the observation) and
-    :meth:`_scenarios` (``x0`` and ``W`` for the solver).
+    An :class:`~controllers.protocol.Agent` with every ``last_info`` key, and with
+    stable-baselines3's ``predict`` (:class:`~controllers.protocol.SB3Predict`), so
+    ``evaluate_policy(agent, env)`` runs it. Subclasses implement :meth:`_estimate` (the
+    state estimate from the observation) and :meth:`_scenarios` (``x0`` and ``W`` for the
+    solver).
 
     Args:
         model: the agent's latent-force model of the world.
@@ -72,6 +78,7 @@ class MPCAgent:
 
     name = "mpc"
     uses_scenarios = False  # True: Ns scenarios from settings; False: one scenario
+    needs_measurement_noise = False  # True: its estimator needs every noise std > 0
 
     def __init__(
         self,
@@ -200,6 +207,8 @@ class _FilteringAgent(MPCAgent):
     of :data:`controllers.estimators.estimator.ESTIMATORS` (the paper's bootstrap particle
     filter by default).
     """
+
+    needs_measurement_noise = True
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -434,21 +443,31 @@ AGENT_LABELS = {
 FILTERING_AGENTS = tuple(k for k, v in AGENTS.items() if issubclass(v, _FilteringAgent))
 
 
+def needs_measurement_noise(name: str) -> bool:
+    """Whether the registered agent ``name`` weighs measurements by their noise (its
+    estimator's likelihood), so every ``env.measurement_noise_std`` must be > 0."""
+    return bool(getattr(AGENTS[name], "needs_measurement_noise", False))
+
+
 def check_agent_config(name: str, config: Any = None) -> ExperimentConfig:
     """Raise ``ConfigError`` if agent ``name`` cannot run on this config; returns it resolved.
 
     Cheap (builds no solver), so :func:`experiments.evaluation.evaluate` calls it for every
-    agent before the first episode. The particle filter of the filtering agents weighs
+    agent before the first episode. Every agent with an estimator (``pf``, ``scenario``,
+    ``scenario_particles``, ``robust``: :func:`needs_measurement_noise`) weighs
     measurements by their noise, which must not be zero.
     """
     if name not in AGENTS:
         raise ValueError(f"unknown agent {name!r}; choose one of {sorted(AGENTS)}")
     config = load_config(config)
-    std = config.env.measurement_noise_std
-    if name in FILTERING_AGENTS and not all(s > 0.0 for s in std):
+    std = tuple(config.env.measurement_noise_std)
+    if needs_measurement_noise(name) and not all(s > 0.0 for s in std):
+        states = config.make_system().state_names
+        zero = [n for n, s in zip(states, std, strict=False) if not s > 0.0]
         raise ConfigError(
-            f"env.measurement_noise_std={list(std)}: must be all > 0 for the {name!r} agent "
-            "(its particle filter weighs each measurement by this noise)"
+            f"env.measurement_noise_std={list(std)}: must be all > 0 (each in (0, inf)) "
+            f"for the {name!r} agent (its estimator weighs each measurement by this noise); "
+            f"zero for {zero}"
         )
     return config
 
@@ -490,4 +509,5 @@ __all__ = [
     "ScenarioMPCAgent",
     "check_agent_config",
     "make_agent",
+    "needs_measurement_noise",
 ]

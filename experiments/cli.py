@@ -50,6 +50,7 @@ examples:
   lfm-evaluate --config configs/quick.yaml --seeds 0:5 --jobs 2
   lfm-evaluate --config configs/quadrotor.yaml --agents nominal,scenario,oracle
   lfm-evaluate --agents scenario,oracle --seeds 0:10,20:25 --out results/sweep
+  lfm-evaluate --agents nominal,mypkg.agents:MyAgent   your own agent next to nominal
   lfm-evaluate --dask-workers 2                  local Dask cluster on 127.0.0.1
   lfm-evaluate --scheduler tcp://10.0.0.5:8786   existing Dask cluster (DIR shared)
 """
@@ -166,7 +167,13 @@ def _evaluate_parser() -> argparse.ArgumentParser:
         "--agents",
         default="nominal,pf,scenario",
         metavar="A,B,...",
-        help=f"comma-separated agents (default: nominal,pf,scenario). {agents_help}",
+        help=(
+            "comma-separated agents (default: nominal,pf,scenario): registered names, or "
+            "your own agent as module:attribute, a factory called with the resolved config "
+            "(or an agent class taking it) returning an object with reset(seed=None) and "
+            "act(obs) (README, 'Your own agent'; the module is looked up from the current "
+            f"folder too). {agents_help}"
+        ),
     )
     parser.add_argument(
         "--seeds",
@@ -260,6 +267,9 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
     config_path = _config_path(parser, args.config)
     seeds = _seeds_and_executor(parser, args)
     agents = [a.strip() for a in args.agents.split(",")]
+    if any(":" in a for a in agents) and os.getcwd() not in sys.path:
+        # As `python -m` does: `module:attribute` agents import from the current folder.
+        sys.path.insert(0, os.getcwd())
     out = (
         Path(args.out)
         if args.out

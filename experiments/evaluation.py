@@ -34,6 +34,10 @@ An interrupt (Ctrl-C, or SIGTERM while :func:`evaluate` runs in the main thread)
 workers at once, removes temporary files and rebuilds ``episodes.csv`` before
 ``KeyboardInterrupt`` propagates; pool and Dask workers ignore Ctrl-C themselves.
 
+Agents are registered names, or a user's own agents (:class:`controllers.protocol.Agent`)
+given as factories, agent objects or ``"module:attribute"`` (:mod:`experiments.agent_specs`);
+an agent's ``last_info`` keys are all optional, read with their documented defaults.
+
 Runs are serial (``jobs=1``), on local processes (``jobs > 1``) or on a Dask cluster
 (``scheduler=`` an existing one, checked to answer as Dask within 5 s, or
 ``dask_workers=`` a private local one: loopback, TLS, no HTTP endpoint,
@@ -70,6 +74,14 @@ import yaml
 import lfm_env  # noqa: F401  (registers the envs, also in spawned workers)
 from controllers.agents import AGENTS, check_agent_config, make_agent
 from controllers.config import ExperimentConfig, load_config
+from controllers.protocol import INFO_DEFAULTS, last_info
+from experiments.agent_specs import (
+    AgentSpec,
+    check_agent,
+    check_picklable,
+    resolve_agents,
+)
+from experiments.agent_specs import agent_name as name_of
 from lfm_env.config import load_yaml
 
 #: Columns of every row before the constraint-group columns, in table order.
@@ -284,21 +296,26 @@ def agent_seed(seed: int, agent_name: str) -> int:
     return int(state[0])
 
 
-def resolve_config(config: Any = None, agent_names: Iterable[str] = ()) -> ExperimentConfig:
+def resolve_config(
+    config: Any = None, agent_names: Iterable[str | AgentSpec] = ()
+) -> ExperimentConfig:
     """The full config, read and validated once: workers get this object, not a path.
 
     Args:
         config: a YAML path, a dict (whole file), an
             :class:`~controllers.config.ExperimentConfig`, or ``None`` for the built-in
             defaults (the paper's values). Missing keys take their defaults.
-        agent_names: agents that will run on it; what each needs is checked too.
+        agent_names: agents that will run on it; what each registered agent needs is
+            checked too (user agents, :class:`~experiments.agent_specs.AgentSpec`, are
+            checked by building one: :func:`~experiments.agent_specs.check_agent`).
 
     Raises:
         ConfigError: (a ``ValueError``) for unknown keys or out-of-range values.
     """
     resolved = load_config(config)
     for name in agent_names:
-        check_agent_config(name, resolved)
+        if isinstance(name, str):
+            check_agent_config(name, resolved)
     return resolved
 
 
@@ -340,19 +357,13 @@ def parse_seeds(text: str) -> list[int]:
     return list(dict.fromkeys(seeds))
 
 
-def _check_agents(agents: str | Iterable[str]) -> list[str]:
-    if not isinstance(agents, (str, Iterable)):
-        raise ValueError(f"agents {agents!r}: give a list of agent names; choose from {_known()}")
-    names = agents.split(",") if isinstance(agents, str) else list(agents)
-    names = [str(n).strip() for n in names]
-    if not names or any(not n for n in names):
-        raise ValueError(f"agents {agents!r}: give at least one agent name; choose from {_known()}")
-    unknown = [n for n in names if n not in AGENTS]
-    if unknown:
-        raise ValueError(f"unknown agent(s) {unknown}; choose from {_known()}")
-    if len(set(names)) != len(names):
-        raise ValueError(f"agents {names}: each agent may appear only once")
-    return names
+def _check_agents(agents: Any) -> list[str]:
+    """Registered agent names only (for callers that store names, e.g. the sweep)."""
+    specs = resolve_agents(agents)
+    own = [s.text for s in specs if isinstance(s, AgentSpec)]
+    if own:
+        raise ValueError(f"agents {own}: only registered agents here; choose from {_known()}")
+    return specs
 
 
 def _known() -> list[str]:
@@ -392,7 +403,12 @@ def _one_line(exc: BaseException) -> str:
 
 class _EpisodeRecorder:
     """Collects one episode step by step; a step is appended whole, so a partial record
-    (after an exception) is still consistent."""
+    (after an exception) is still consistent.
+
+    Every key of the agent's ``last_info`` is optional, read with the default of
+    :data:`controllers.protocol.INFO_DEFAULTS`: an agent with only ``reset`` and ``act``
+    has no solver failures, no fallbacks and NaN estimates.
+    """
 
     def __init__(self, config: ExperimentConfig) -> None:
         system = config.make_system()
@@ -425,6 +441,7 @@ class _EpisodeRecorder:
             )
         }
         self.has_filter = False
+        self.slack_reported: list[bool] = []  # per step: the agent gave its slack
         self.final_info: dict[str, Any] = {}
 
     def start(self, obs: np.ndarray, info: dict[str, Any]) -> None:
@@ -438,7 +455,8 @@ class _EpisodeRecorder:
         nan_pred = np.full((self.horizon + 1, self.nx), np.nan)
         no_force = np.full(self.nw, np.nan)
         predicted = agent_info.get("predicted")
-        self.has_filter = self.has_filter or "latent_force" in agent_info
+        self.has_filter = self.has_filter or agent_info.get("latent_force") is not None
+        estimate, estimate_std = self._estimate(agent_info)
         values = {
             "true_state": np.asarray(info["true_state"], dtype=float),
             "obs": np.asarray(obs, dtype=float),
@@ -447,25 +465,44 @@ class _EpisodeRecorder:
             # w acting during this step: the quantity the agent estimated before it.
             "disturbance": self._force(info["disturbance"]),
             "reward": float(reward),
-            "estimate": np.asarray(agent_info["estimate"], dtype=float),
-            "estimate_std": np.asarray(agent_info["estimate_std"], dtype=float),
-            "latent_force_est": self._force(agent_info.get("latent_force", no_force)),
-            "latent_force_std": self._force(agent_info.get("latent_force_std", no_force)),
-            "predicted": nan_pred if predicted is None else np.asarray(predicted)[0],
-            "solve_time": float(agent_info.get("solve_time", np.nan)),
-            "slack": float(agent_info.get("slack", np.nan)),
-            "solver_success": bool(agent_info.get("success", False)),
-            "fallback": str(agent_info.get("fallback", "")),
-            "filter_reset": bool(agent_info.get("filter_reset", False)),
+            "estimate": estimate,
+            "estimate_std": estimate_std,
+            "latent_force_est": self._force(self._get(agent_info, "latent_force", no_force)),
+            "latent_force_std": self._force(self._get(agent_info, "latent_force_std", no_force)),
+            "predicted": nan_pred if predicted is None else np.array(predicted, dtype=float)[0],
+            "solve_time": float(self._get(agent_info, "solve_time")),
+            "slack": float(self._get(agent_info, "slack")),
+            "solver_success": bool(self._get(agent_info, "success")),
+            "fallback": str(self._get(agent_info, "fallback")),
+            "filter_reset": bool(self._get(agent_info, "filter_reset")),
             # The estimator's name, from agents that say which one they run (it may differ
             # from agents.estimator: the robust agent has its own).
-            "estimator": str(agent_info.get("estimator", "")),
+            "estimator": str(self._get(agent_info, "estimator")),
         }
         # The largest excess of each constraint group after the step, in its unit.
         values.update((k, float(info[k])) for k in self._excess_keys())
         for k, v in values.items():
             self.lists[k].append(v)
+        self.slack_reported.append(agent_info.get("slack") is not None)
         self.final_info = info
+
+    @staticmethod
+    def _get(agent_info: dict[str, Any], key: str, default: Any = None) -> Any:
+        """``agent_info[key]``, or its documented default when absent or ``None``."""
+        value = agent_info.get(key)
+        if value is not None:
+            return value
+        return INFO_DEFAULTS[key] if default is None else default
+
+    def _estimate(self, agent_info: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+        """The step's estimate and its std, copied; NaN (of the episode's width) if absent."""
+        previous = self.lists["estimate"]
+        width = len(previous[0]) if previous else self.nx
+        est = agent_info.get("estimate")
+        est = np.full(width, np.nan) if est is None else np.array(est, dtype=float)
+        std = agent_info.get("estimate_std")
+        std = np.full(est.shape, np.nan) if std is None else np.array(std, dtype=float)
+        return est, std
 
     def _excess_keys(self) -> tuple[str, ...]:
         """``info`` keys (and trajectory arrays) of the groups' excess: ``<group>_excess``."""
@@ -510,19 +547,25 @@ class _EpisodeRecorder:
         }
 
 
-def _simulate(agent_name: str, config: ExperimentConfig, seed: int, rec: _EpisodeRecorder) -> None:
+def _simulate(
+    agent_spec: str | AgentSpec, config: ExperimentConfig, seed: int, rec: _EpisodeRecorder
+) -> None:
     """Run one episode into ``rec``; exceptions propagate with ``rec`` holding the steps done."""
+    name = name_of(agent_spec)
     env = gym.make(config.env_id, config=config.env)
     try:
         obs, info = env.reset(seed=seed)
-        agent = make_agent(agent_name, config, env=env if agent_name == "oracle" else None)
-        agent.reset(seed=agent_seed(seed, agent_name))
+        if isinstance(agent_spec, AgentSpec):
+            agent = agent_spec.build(config)
+        else:
+            agent = make_agent(name, config, env=env if name == "oracle" else None)
+        agent.reset(seed=agent_seed(seed, name))
         rec.start(obs, info)
         terminated = truncated = False
         while not (terminated or truncated):
             # The agent's estimate made with obs k is compared with the w of step k.
             action = agent.act(obs)
-            agent_info = agent.last_info
+            agent_info = last_info(agent)
             obs, reward, terminated, truncated, info = env.step(action)
             rec.step(agent_info, obs, reward, info)
     finally:
@@ -535,6 +578,8 @@ def _episode_metrics(rec: _EpisodeRecorder, arrays: dict[str, np.ndarray]) -> di
     info = rec.final_info
     success = bool(info.get("is_success", False))
     solve = arrays["solve_time"]
+    solve = solve[np.isfinite(solve)]  # steps without a solve time are not counted
+    slack = arrays["slack"][np.asarray(rec.slack_reported[:T], dtype=bool)]
     if rec.has_filter and T:
         err = arrays["latent_force_est"] - arrays["disturbance"]
         latent_rmse = float(np.sqrt(np.mean(err**2)))
@@ -565,7 +610,7 @@ def _episode_metrics(rec: _EpisodeRecorder, arrays: dict[str, np.ndarray]) -> di
         "solver_failures": int(np.sum(~arrays["solver_success"])),
         "fallback_steps": int(np.sum(arrays["fallback"] != "")),
         "filter_resets": int(np.sum(arrays["filter_reset"])) if rec.has_filter else 0,
-        "slack_total": float(np.sum(arrays["slack"])),
+        "slack_total": float(np.sum(slack)) if len(slack) else math.nan,
     }
 
 
@@ -580,17 +625,19 @@ def _error_row(
 
 
 def run_episode(
-    agent_name: str, config: Any, seed: int, record: bool = True
+    agent: Any, config: Any, seed: int, record: bool = True
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """Run one closed-loop episode of ``agent_name`` on the env with seed ``seed``.
+    """Run one closed-loop episode of ``agent`` on the env with seed ``seed``.
 
     The env is the config's world, ``gym.make(cfg.env_id, config=cfg.env)``, reset with
     ``seed``; the agent's own randomness is seeded with :func:`agent_seed` (paired
     design). The oracle (an upper bound that reads the hidden truth) is given the env.
 
     Args:
-        agent_name: ``"nominal"``, ``"pf"``, ``"scenario"``, ``"oracle"``, ... (the
-            agent registry).
+        agent: a registered name (``"nominal"``, ``"pf"``, ``"scenario"``, ``"oracle"``,
+            ...), an agent factory called as ``factory(config)``, an agent, or
+            ``"module:attribute"`` (:mod:`experiments.agent_specs`; the row's ``agent``
+            is the agent's name there).
         config: a YAML path, a dict (whole file), an ``ExperimentConfig`` or ``None``
             (paper defaults).
         seed: env seed, an integer >= 0.
@@ -616,17 +663,17 @@ def run_episode(
         on the sine track).
 
     Raises:
-        ValueError: unknown agent name or negative seed; any error of the episode itself
-            propagates (:func:`evaluate` records it instead).
+        ValueError: unknown agent or bad agent spec (naming it) or negative seed; any
+            error of the episode itself propagates (:func:`evaluate` records it instead).
     """
-    (agent_name,) = _check_agents([agent_name])
+    (spec,) = resolve_agents([agent])
     (seed,) = _check_seeds([seed])
-    cfg = resolve_config(config, [agent_name])
+    cfg = resolve_config(config, [spec])
     t0 = time.perf_counter()
     rec = _EpisodeRecorder(cfg)
-    _simulate(agent_name, cfg, seed, rec)
+    _simulate(spec, cfg, seed, rec)
     arrays = rec.arrays()
-    row = {"agent": agent_name, "seed": seed, **_episode_metrics(rec, arrays)}
+    row = {"agent": name_of(spec), "seed": seed, **_episode_metrics(rec, arrays)}
     row.update(wall_time=time.perf_counter() - t0, error="")
     return {c: row[c] for c in rec.columns}, (arrays if record else {})
 
@@ -1003,7 +1050,7 @@ def _prepare_folder(out: Path, config: ExperimentConfig) -> None:
 
 
 def _episode_task(
-    agent_name: str,
+    agent: str | AgentSpec,
     config: ExperimentConfig,
     seed: int,
     out: str | None,
@@ -1013,21 +1060,23 @@ def _episode_task(
     """Run and save one episode; never raises for an error of the episode itself.
 
     Top-level (picklable by reference) so process pools and Dask workers can run it; the
-    resolved config travels with the task, so workers parse nothing.
+    resolved config travels with the task, so workers parse nothing. ``agent`` is a
+    registered name or a user agent's :class:`~experiments.agent_specs.AgentSpec`.
     """
+    name = name_of(agent)
     t0 = time.perf_counter()
     rec = _EpisodeRecorder(config)
     tb = ""
     try:
-        _simulate(agent_name, config, seed, rec)
+        _simulate(agent, config, seed, rec)
         arrays = rec.arrays()
-        row = {"agent": agent_name, "seed": seed, **_episode_metrics(rec, arrays)}
+        row = {"agent": name, "seed": seed, **_episode_metrics(rec, arrays)}
         row.update(wall_time=time.perf_counter() - t0, error="")
         row = {c: row[c] for c in rec.columns}
     except Exception as exc:  # one bad episode must not stop the others
         tb = traceback.format_exc()
         wall_time = time.perf_counter() - t0
-        row = _error_row(agent_name, seed, _one_line(exc), wall_time, rec.columns)
+        row = _error_row(name, seed, _one_line(exc), wall_time, rec.columns)
         try:
             arrays = rec.arrays()  # the steps done before the error, for debugging
         except Exception:
@@ -1123,7 +1172,7 @@ def _connect_dask(scheduler: str | None, dask_workers: int | None, stack: Any):
 
 
 def evaluate(
-    agents: Sequence[str] | str,
+    agents: Sequence[Any] | str,
     seeds: Iterable[int] | str,
     config: Any = None,
     out: str | os.PathLike | None = None,
@@ -1138,8 +1187,15 @@ def evaluate(
     """Run every (agent, env seed) episode and return one row of metrics per episode.
 
     Args:
-        agents: agent names (``"nominal"``, ``"pf"``, ``"scenario"``, ``"oracle"``; the
-            oracle is an upper bound that reads the hidden truth), or one comma list.
+        agents: the agents, each a registered name (``"nominal"``, ``"pf"``,
+            ``"scenario"``, ``"oracle"``; the oracle is an upper bound that reads the
+            hidden truth), an agent factory called as ``factory(config)`` with the
+            resolved :class:`~controllers.config.ExperimentConfig`, an agent object, or
+            ``"module:attribute"`` of a factory (:mod:`experiments.agent_specs`: how
+            they are named, and what ``jobs > 1`` and Dask need); or one comma list of
+            names and ``module:attribute`` texts. A user agent follows
+            :class:`controllers.protocol.Agent`; it is built once before any episode,
+            so a bad factory fails early.
         seeds: env seeds (integers >= 0), or a text for :func:`parse_seeds`.
         config: a YAML path, a dict (whole file) or ``None`` (paper defaults).
         out: results folder (see the module docstring); ``None`` keeps nothing on disk.
@@ -1162,13 +1218,16 @@ def evaluate(
         :func:`load_results`.
 
     Raises:
-        ValueError: unknown agents, empty or negative seeds, a bad config, conflicting
-            run modes or a results folder of another config, before any episode runs.
+        ValueError: unknown agents or a bad agent spec (naming it), empty or negative
+            seeds, a bad config, conflicting run modes or a results folder of another
+            config, before any episode runs.
         ConnectionError: the Dask scheduler cannot be reached.
     """
-    names = _check_agents(agents)
+    specs = resolve_agents(agents)
+    names = [name_of(a) for a in specs]
+    spec_of = dict(zip(names, specs, strict=True))
     seed_list = _check_seeds(seeds)
-    cfg = resolve_config(config, names)
+    cfg = resolve_config(config, specs)
     columns = row_columns(cfg.make_system())
     modes = sum([jobs != 1, scheduler is not None, dask_workers is not None])
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
@@ -1179,6 +1238,10 @@ def evaluate(
         raise ValueError(f"dask_workers={dask_workers!r}: must be an integer >= 1")
     if modes > 1:
         raise ValueError("choose one of jobs > 1, scheduler and dask_workers")
+    for spec in specs:
+        if jobs > 1 or scheduler is not None or dask_workers is not None:
+            check_picklable(spec, "pool" if jobs > 1 else "dask")
+        check_agent(spec, cfg)
 
     out_path = None if out is None else Path(out).resolve()
     digest = config_hash(cfg)
@@ -1258,13 +1321,16 @@ def evaluate(
                 save_episode(out_path, row, None, tb, digest)
             return row
 
+        def task_args(a: str, s: int) -> tuple:
+            return spec_of[a], cfg, s, out_str, record, digest
+
         if client is not None and todo:
             import distributed
 
             futures = {
                 client.submit(
                     _episode_task,
-                    a,
+                    spec_of[a],
                     cfg,
                     s,
                     out_str,
@@ -1302,8 +1368,7 @@ def evaluate(
                 )
                 try:
                     futs = {
-                        pool.submit(_episode_task, a, cfg, s, out_str, record, digest): (a, s)
-                        for a, s in pending
+                        pool.submit(_episode_task, *task_args(a, s)): (a, s) for a, s in pending
                     }
                     for fut in as_completed(futs):
                         try:
@@ -1325,7 +1390,7 @@ def evaluate(
                 pending = sorted(broken, key=pairs.index)
         else:
             for a, s in todo:
-                done((a, s), _episode_task(a, cfg, s, out_str, record, digest))
+                done((a, s), _episode_task(*task_args(a, s)))
 
     return sorted((rows[p] for p in pairs), key=lambda r: (r["agent"], r["seed"]))
 

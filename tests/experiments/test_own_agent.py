@@ -1,0 +1,252 @@
+"""Evaluating agents that are not registered: factories, agent objects, 'module:attribute'
+(``experiments.agent_specs``, through ``experiments.evaluation`` and ``lfm-evaluate``)."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from controllers.config import ExperimentConfig
+from controllers.protocol import Agent
+from experiments import evaluation
+from experiments.agent_specs import AgentSpec, AgentSpecError, resolve_agent
+from experiments.evaluation import (
+    TIMING_COLUMNS,
+    agent_seed,
+    evaluate,
+    load_results,
+    load_trajectory,
+    run_episode,
+)
+from tests.experiments.own_agents import ConstantAgent, ProportionalAgent
+
+REPO = Path(__file__).resolve().parents[2]
+TINY = {
+    "env": {"max_steps": 15},
+    "agents": {"horizon": 5, "n_scenarios": 5, "n_particles": 300},
+}
+OWN = "tests.experiments.own_agents"
+
+
+class BrakingAgent:
+    """Defined here, registered nowhere: brakes and keeps the wheel straight; no last_info."""
+
+    name = "braking"
+
+    def __init__(self, config: ExperimentConfig) -> None:
+        self.nu = config.make_system().nu
+        self.seeds: list[int | None] = []
+
+    def reset(self, seed: int | None = None) -> None:
+        self.seeds.append(seed)
+
+    def act(self, obs: Any) -> np.ndarray:
+        return np.array([-1.0, 0.0])[: self.nu]
+
+
+def comparable(rows: list[dict]) -> list[dict]:
+    """Rows without timing columns, NaN replaced so that equal rows compare equal."""
+    return [
+        {
+            k: ("NaN" if isinstance(v, float) and math.isnan(v) else v)
+            for k, v in r.items()
+            if k not in TIMING_COLUMNS
+        }
+        for r in rows
+    ]
+
+
+def test_own_agents_in_a_process_pool_equal_the_serial_run(tmp_path):
+    agents = [BrakingAgent, f"{OWN}:ProportionalAgent", "nominal"]
+    serial = evaluate(agents, [0, 1], TINY, out=tmp_path / "serial", progress=False)
+    pool = evaluate(agents, [0, 1], TINY, out=tmp_path / "pool", jobs=2, progress=False)
+
+    assert [r["error"] for r in pool] == [""] * 6
+    assert [(r["agent"], r["seed"]) for r in pool] == [
+        (a, s) for a in ("braking", "nominal", "proportional") for s in (0, 1)
+    ]
+    assert comparable(pool) == comparable(serial)
+    assert comparable(load_results(tmp_path / "pool")) == comparable(serial)
+    files = sorted(p.name for p in (tmp_path / "pool" / "episodes").glob("*.json"))
+    assert "braking__seed0.json" in files and "proportional__seed1.json" in files
+    # The braking agent does what it says: the speed falls at every step it is above 0.
+    speed = load_trajectory(tmp_path / "pool", "braking", 0)["true_state"][:, 2]
+    assert speed[-1] < speed[0]
+
+
+def test_own_agents_on_a_local_dask_cluster_equal_the_serial_run(tmp_path):
+    pytest.importorskip("distributed")
+    # Dask sends factories with cloudpickle: a lambda travels too.
+    agents = [BrakingAgent, f"{OWN}:constant_agent_factory", lambda config: BrakingAgent(config)]
+    serial = evaluate(agents, [2], TINY, progress=False)
+    dask = evaluate(agents, [2], TINY, out=tmp_path, dask_workers=1, progress=False)
+    assert [r["error"] for r in dask] == [""] * 3
+    assert comparable(dask) == comparable(serial)
+
+
+def test_sweeps_take_registered_agents_only():
+    from experiments.sweep import run_sweep
+
+    with pytest.raises(ValueError, match=r"only registered agents here"):
+        run_sweep(f"{OWN}:ProportionalAgent", "agents.backoff=0,1", [0], TINY, out="/nonexistent")
+
+
+def test_a_minimal_agent_has_no_solver_failures_and_na_estimates():
+    row, traj = run_episode(BrakingAgent, TINY, seed=3)
+    assert row["agent"] == "braking" and row["error"] == "" and row["steps"] == 15
+    assert row["solver_failures"] == 0 and row["fallback_steps"] == 0
+    assert row["filter_resets"] == 0
+    for column in ("latent_rmse", "latent_coverage", "solve_time_median", "slack_total"):
+        assert math.isnan(row[column]), column
+    assert traj["solver_success"].all() and not traj["fallback"].any()
+    assert traj["estimate"].shape == (15, 4) and np.isnan(traj["estimate"]).all()
+    assert np.isnan(traj["latent_force_est"]).all()
+
+    # An empty last_info (the constant agent) reads the same way.
+    constant, _ = run_episode(f"{OWN}:constant_agent_factory", TINY, seed=3)
+    assert constant["agent"] == f"{OWN}.constant_agent_factory"
+    assert constant["solver_failures"] == 0 and math.isnan(constant["latent_rmse"])
+
+
+def test_partial_last_info_is_read_with_its_defaults():
+    class HalfInformed(ConstantAgent):
+        name = "half_informed"
+
+        def act(self, obs: Any) -> np.ndarray:
+            # Reports a solve on even steps only, one failure, and its estimate.
+            self.k = getattr(self, "k", -1) + 1
+            self.last_info = {"estimate": np.asarray(obs, dtype=float)}
+            if self.k % 2 == 0:
+                self.last_info.update(solve_time=0.5, success=self.k != 4, slack=1.0)
+            return super().act(obs)
+
+    row, traj = run_episode(HalfInformed(np.zeros(2)), TINY, seed=0)
+    assert row["solver_failures"] == 1
+    assert row["solve_time_median"] == 0.5 and row["slack_total"] == 8.0  # 8 even steps
+    assert np.array_equal(traj["estimate"], traj["obs"][:-1])
+
+
+def test_agent_objects_are_reset_with_the_paired_seed():
+    cfg = evaluation.resolve_config(TINY)
+    agent = ProportionalAgent(cfg)
+    rows = evaluate([agent], [4, 7], TINY, progress=False)
+    assert [r["agent"] for r in rows] == ["proportional"] * 2
+    assert agent.resets == [agent_seed(4, "proportional"), agent_seed(7, "proportional")]
+    assert comparable(rows) == comparable(evaluate([ProportionalAgent], [4, 7], TINY))
+
+
+def test_a_lambda_runs_serially_and_is_refused_for_a_process_pool(tmp_path, monkeypatch):
+    def factory(config):
+        return ConstantAgent(np.zeros(2))
+
+    factory.name = "zero"  # type: ignore[attr-defined]
+    (row,) = evaluate([factory], [0], TINY, progress=False)
+    assert row["agent"] == "zero" and row["error"] == ""
+    (row,) = evaluate([lambda config: ConstantAgent(np.zeros(2))], [0], TINY, progress=False)
+    assert row["agent"].endswith("_refused_for_a_process_pool.lambda") and row["error"] == ""
+
+    monkeypatch.setattr(evaluation, "_episode_task", None)  # nothing may run
+    with pytest.raises(ValueError, match=r"agent '.*<lambda>'.*cannot be sent to worker"):
+        evaluate([lambda config: ConstantAgent(np.zeros(2))], [0, 1], TINY, jobs=2)
+    assert not (tmp_path / "out").exists()
+
+
+class Unnamed:
+    def __init__(self, config: Any) -> None:
+        pass
+
+    def reset(self, seed: int | None = None) -> None:
+        pass
+
+    def act(self, obs: Any) -> np.ndarray:
+        return np.zeros(2)
+
+
+def test_names_come_from_the_name_attribute_else_the_spec():
+    assert resolve_agent("scenario") == "scenario"
+    assert resolve_agent(f"{OWN}:ProportionalAgent").name == "proportional"
+    assert resolve_agent(f" {OWN}:ConstantAgent").name == f"{OWN}.ConstantAgent"
+    spec = resolve_agent(Unnamed)
+    assert isinstance(spec, AgentSpec) and spec.name == "Unnamed"
+    assert isinstance(spec.build(evaluation.resolve_config(TINY)), Agent)
+
+
+class Named:
+    name = "a/b"
+
+
+class Registered(Unnamed):
+    name = "pf"
+
+
+@pytest.mark.parametrize(
+    "agents, match",
+    [
+        (["nominal", "bogus"], r"unknown agent\(s\) \['bogus'\].*module:attribute"),
+        ([f"{OWN}.nope:Agent"], rf"agent '{OWN}.nope:Agent': cannot import module"),
+        ([f"{OWN}:Missing"], rf"agent '{OWN}:Missing': module '{OWN}' has no attribute"),
+        ([f"{OWN}:NOT_CALLABLE"], r"'NOT_CALLABLE' is a int, neither an agent factory"),
+        ([f"{OWN}:not_an_agent_factory"], r"factory returned a str, which has no reset"),
+        (["mod:"], r"agent 'mod:': expected 'module:attribute'"),
+        ([42], r"unknown agent '42' \(a int\); choose from"),
+        ([Named], r"its name 'a/b' must be 1 to 100 letters"),
+        ([Registered], r"its name 'pf' is a registered agent's"),
+        ([ProportionalAgent, f"{OWN}:ProportionalAgent"], r"\['proportional'\] twice"),
+        ([lambda config: 1 / 0], r"calling it with the config raised ZeroDivisionError"),
+    ],
+)
+def test_bad_agent_specs_fail_before_any_episode_naming_the_spec(
+    tmp_path, monkeypatch, agents, match
+):
+    monkeypatch.setattr(evaluation, "_episode_task", None)  # nothing may run
+    with pytest.raises(AgentSpecError, match=match) as exc:
+        evaluate(agents, [0], TINY, out=tmp_path / "out", progress=False)
+    assert "\n" not in str(exc.value)
+    assert not (tmp_path / "out").exists()
+
+
+def _command_line() -> list[str]:
+    script = Path(sys.executable).with_name("lfm-evaluate")
+    if script.is_file():
+        return [str(script)]
+    return [sys.executable, str(REPO / "scripts" / "evaluate.py")]
+
+
+def _run_cli(tmp_path: Path, agents: str) -> subprocess.CompletedProcess:
+    config = tmp_path / "tiny.yaml"
+    config.write_text(
+        "env:\n  max_steps: 15\nagents:\n  horizon: 5\n  n_scenarios: 5\n  n_particles: 300\n"
+    )
+    cmd = _command_line() + [
+        *("--config", str(config), "--agents", agents, "--seeds", "0:2"),
+        *("--jobs", "2", "--out", str(tmp_path / "out"), "--no-report", "--quiet"),
+    ]
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
+    env.pop("PYTHONPATH", None)  # the module must be found from the current folder
+    return subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+
+
+def test_cli_runs_a_module_attribute_agent_from_the_repo_root(tmp_path):
+    done = _run_cli(tmp_path, f"nominal,{OWN}:ProportionalAgent")
+    assert done.returncode == 0, done.stdout + done.stderr
+    rows = load_results(tmp_path / "out")
+    assert [(r["agent"], r["seed"], r["error"]) for r in rows] == [
+        (a, s, "") for a in ("nominal", "proportional") for s in (0, 1)
+    ]
+    assert rows[2]["solver_failures"] == 0 and math.isnan(rows[2]["latent_rmse"])
+
+
+def test_cli_exits_2_with_one_line_naming_a_bad_agent(tmp_path):
+    done = _run_cli(tmp_path, f"{OWN}:not_an_agent_factory")
+    assert done.returncode == 2
+    last = done.stderr.strip().splitlines()[-1]
+    assert last.startswith("lfm-evaluate: error: agent ")
+    assert f"{OWN}:not_an_agent_factory" in last and "no reset(seed=None) and act(obs)" in last
+    assert not (tmp_path / "out").exists()
