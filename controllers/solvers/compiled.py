@@ -75,9 +75,12 @@ def find_compiler() -> list[str]:
 def pointwise_functions(system, dt: float) -> list[ca.Function]:
     """The pointwise CasADi functions of ``system`` the driver calls (dense outputs).
 
-    ``lfm_step(x, u, w)``, ``lfm_step_jac(x, u, w)`` ``(nx, nx + nu)``,
-    ``lfm_step_hess(x, u, w, lam)`` ``(nx + nu, nx + nu)`` and, with constraints,
-    ``lfm_con(x)``, ``lfm_con_jac(x)`` ``(ng, nx)``, ``lfm_con_hess(x, mu)`` ``(nx, nx)``.
+    ``lfm_step(x, u, w, p)``, ``lfm_step_jac(x, u, w, p)`` ``(nx, nx + nu)`` and
+    ``lfm_step_hess(x, u, w, p, lam)`` ``(nx + nu, nx + nu)``, each with ``*_pre(u) -> p``:
+    the parts of its expression that depend on the input alone (CasADi's
+    ``extract_parametric``), computed once per step instead of once per scenario. With
+    constraints also ``lfm_con(x)``, ``lfm_con_jac(x)`` ``(ng, nx)`` and
+    ``lfm_con_hess(x, mu)`` ``(nx, nx)``.
     """
     nx, nu, nw, ng = system.nx, system.nu, system.nw, system.ng
     x, u, w = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("w", nw)
@@ -85,11 +88,17 @@ def pointwise_functions(system, dt: float) -> list[ca.Function]:
     F = system.casadi_step(dt)(x, u, w)
     z = ca.vertcat(x, u)
     d = ca.densify
-    fns = [
-        ca.Function("lfm_step", [x, u, w], [d(F)]),
-        ca.Function("lfm_step_jac", [x, u, w], [d(ca.jacobian(F, z))]),
-        ca.Function("lfm_step_hess", [x, u, w, lam], [d(ca.hessian(ca.dot(lam, F), z)[0])]),
-    ]
+    fns = []
+    for name, expr, extra in (
+        ("lfm_step", F, []),
+        ("lfm_step_jac", ca.jacobian(F, z), []),
+        ("lfm_step_hess", ca.hessian(ca.dot(lam, F), z)[0], [lam]),
+    ):
+        expr, symbols, values = ca.extract_parametric(d(expr), u)
+        p = ca.vertcat(*symbols) if symbols else ca.SX(0, 1)
+        pre = ca.vertcat(*values) if values else ca.SX(0, 1)
+        fns.append(ca.Function(f"{name}_pre", [u], [pre]))
+        fns.append(ca.Function(name, [x, u, w, p, *extra], [d(expr)]))
     if ng:
         mu = ca.SX.sym("mu", ng)
         g = system.casadi_constraints()(x)
@@ -107,13 +116,13 @@ def kernel_source(system, dt: float) -> str:
     fns = pointwise_functions(system, dt)
     for f in fns:
         cg.add(f)
-    names = [f.name() for f in fns]
-    sizes = "\n".join(
-        f"#define {k} {v}"
-        for k, v in (("NX", system.nx), ("NU", system.nu), ("NW", system.nw), ("NG", system.ng))
-    )
-    work = " ".join(f"W({n});" for n in names)
-    return cg.dump() + "\n" + sizes + "\n" + _DRIVER.replace("@WORK@", work)
+    sizes = {"NX": system.nx, "NU": system.nu, "NW": system.nw, "NG": system.ng}
+    for f in fns:
+        if f.name().endswith("_pre"):
+            sizes["NP_" + f.name()[4:-4].upper()] = f.nnz_out(0)
+    defines = "\n".join(f"#define {k} {v}" for k, v in sizes.items())
+    work = " ".join(f"W({f.name()});" for f in fns)
+    return cg.dump() + "\n" + defines + "\n" + _DRIVER.replace("@WORK@", work)
 
 
 @dataclass
@@ -216,6 +225,7 @@ _DRIVER = r"""
 #include <string.h>
 #define NZ (NX + NU)
 
+typedef int (*cfun)(const casadi_real**, casadi_real**, casadi_int*, casadi_real*, int);
 typedef struct {
   const casadi_real** arg; casadi_real** res; casadi_int* iw; casadi_real* w;
 } work_t;
@@ -239,8 +249,21 @@ static void work_free(work_t* wk) { free(wk->arg); free(wk->res); free(wk->iw); 
 #define CALL2(f, a0, a1, r0) (wk.arg[1] = (a1), CALL1(f, a0, r0))
 #define CALL3(f, a0, a1, a2, r0) (wk.arg[2] = (a2), CALL2(f, a0, a1, r0))
 #define CALL4(f, a0, a1, a2, a3, r0) (wk.arg[3] = (a3), CALL3(f, a0, a1, a2, r0))
+#define CALL5(f, a0, a1, a2, a3, a4, r0) (wk.arg[4] = (a4), CALL4(f, a0, a1, a2, a3, r0))
 
-/* Weighted state error: out = scale Wq_k (x - goal); returns (x - goal)' Wq_k (x - goal). */
+/* The input-only parts p of a step function for every step k: P (N, np); NULL on failure. */
+static double* parametric(work_t* wk, cfun f, long np, long n, const double* u) {
+  double* P = malloc((n * np + 1) * sizeof(double));
+  if (!P) return NULL;
+  for (long k = 0; k < n; ++k) {
+    wk->arg[0] = u + k * NU;
+    wk->res[0] = P + k * np;
+    if (f(wk->arg, wk->res, wk->iw, wk->w, 0)) { free(P); return NULL; }
+  }
+  return P;
+}
+
+/* Weighted state error: out = scale Wk (x - goal); returns (x - goal)' Wk (x - goal). */
 static double weighted(const double* x, const double* goal, const double* Wk, double scale,
                        double* out) {
   double e[NX], c = 0.0;
@@ -254,9 +277,9 @@ static double weighted(const double* x, const double* goal, const double* Wk, do
   return c;
 }
 
+/* The force of step k, scenario i: W[a sa + k sk + i si] (strides in elements). */
 static const double* gather(const double* W, long sa, long sk, long si, long k, long i,
                             double* wv) {
-  /* The force of step k, scenario i: W[a sa + k sk + i si] (strides in elements). */
   for (int a = 0; a < NW; ++a) wv[a] = W[a * sa + k * sk + i * si];
   return wv;
 }
@@ -265,29 +288,45 @@ static void load_state(const double* X, long k, long ns, long i, double* x) {
   for (int m = 0; m < NX; ++m) x[m] = X[(k * NX + m) * ns + i];
 }
 
+/* Sum of a[p] b[p], p < len, in four interleaved partial sums. */
+static double dot(const double* a, const double* b, long len) {
+  double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
+  long p = 0;
+  for (; p + 4 <= len; p += 4) {
+    s0 += a[p] * b[p];
+    s1 += a[p + 1] * b[p + 1];
+    s2 += a[p + 2] * b[p + 2];
+    s3 += a[p + 3] * b[p + 3];
+  }
+  for (; p < len; ++p) s0 += a[p] * b[p];
+  return (s0 + s1) + (s2 + s3);
+}
+
 CASADI_SYMBOL_EXPORT int lfm_rollout(long n, long ns, const double* x0T, const double* W,
     long sa, long sk, long si, const double* u, double* X, double* G) {
   /* The states X (N+1, NX, Ns) and constraint values G (NG, N, Ns) of every scenario. */
   work_t wk;
   if (work_alloc(&wk)) return 1;
+  double* P = parametric(&wk, lfm_step_pre, NP_STEP, n, u);
+  if (!P) { work_free(&wk); return 1; }
   double x[NX], xn[NX], wv[NW + 1];
-  for (long i = 0; i < ns; ++i) {
+  int status = 0;
+  for (long i = 0; i < ns && !status; ++i) {
     for (int m = 0; m < NX; ++m) X[m * ns + i] = x[m] = x0T[m * ns + i];
-    for (long k = 0; k < n; ++k) {
-      if (CALL3(lfm_step, x, u + k * NU, gather(W, sa, sk, si, k, i, wv), xn)) {
-        work_free(&wk);
-        return 1;
-      }
+    for (long k = 0; k < n && !status; ++k) {
+      gather(W, sa, sk, si, k, i, wv);
+      status = CALL4(lfm_step, x, u + k * NU, wv, P + k * NP_STEP, xn);
       for (int m = 0; m < NX; ++m) X[((k + 1) * NX + m) * ns + i] = x[m] = xn[m];
 #if NG > 0
       double g[NG];
-      CALL1(lfm_con, x, g);
+      status |= CALL1(lfm_con, x, g);
       for (int j = 0; j < NG; ++j) G[(j * n + k) * ns + i] = g[j];
 #endif
     }
   }
+  free(P);
   work_free(&wk);
-  return 0;
+  return status;
 }
 
 CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const double* W,
@@ -296,16 +335,17 @@ CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const d
   /* A, S, Jg and the state part of the gradient, sum_i sum_k S_k' scale Wq_k (x_k - goal). */
   work_t wk;
   if (work_alloc(&wk)) return 1;
+  double* P = parametric(&wk, lfm_step_jac_pre, NP_STEP_JAC, n, u);
+  if (!P) { work_free(&wk); return 1; }
   const long nut = n * NU;
   double x[NX], J[NX * NZ], gx[NX], wv[NW + 1];
+  int status = 0;
   memset(grad, 0, nut * sizeof(double));
-  for (long i = 0; i < ns; ++i) {
-    for (long k = 0; k < n; ++k) {
+  for (long i = 0; i < ns && !status; ++i) {
+    for (long k = 0; k < n && !status; ++k) {
       load_state(X, k, ns, i, x);
-      if (CALL3(lfm_step_jac, x, u + k * NU, gather(W, sa, sk, si, k, i, wv), J)) {
-        work_free(&wk);
-        return 1;
-      }
+      gather(W, sa, sk, si, k, i, wv);
+      status = CALL4(lfm_step_jac, x, u + k * NU, wv, P + k * NP_STEP_JAC, J);
       double* Ak = A + (k * ns + i) * NX * NX;
       for (int r = 0; r < NX; ++r)
         for (int c = 0; c < NX; ++c) Ak[r * NX + c] = J[r + c * NX];
@@ -325,7 +365,7 @@ CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const d
       load_state(X, k + 1, ns, i, x);
 #if NG > 0
       double jg[NG * NX];
-      CALL1(lfm_con_jac, x, jg);
+      status |= CALL1(lfm_con_jac, x, jg);
       double* Jk = Jg + (k * ns + i) * NG * NX;
       for (int j = 0; j < NG; ++j)
         for (int m = 0; m < NX; ++m) Jk[j * NX + m] = jg[j + m * NG];
@@ -335,26 +375,20 @@ CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const d
         for (long c = 0; c < cols + NU; ++c) grad[c] += gx[r] * Sk[r * nut + c];
     }
   }
+  free(P);
   work_free(&wk);
-  return 0;
+  return status;
 }
 
-CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const double* W,
-    long sa, long sk, long si, const double* u, const double* A, const double* S,
+/* Phase 1 of the Hessian: the adjoints lambda and the step Hessians M (N, Ns, NZ, NZ). */
+static int step_hessians(work_t* wkp, long n, long ns, const double* X, const double* W,
+    long sa, long sk, long si, const double* u, const double* P, const double* A,
     const double* Jg, const double* mu, const double* goal, const double* Wq, double scale,
-    double* H) {
-  /* sum over scenarios of the Hessian of (cost + mu' G) w.r.t. u, without the input cost. */
-  work_t wk;
-  if (work_alloc(&wk)) return 1;
-  const long nut = n * NU;
-  double* lam = malloc((n * NX + n * NZ * NZ + NX * nut + 1) * sizeof(double));
-  if (!lam) { work_free(&wk); return 1; }
-  double* M = lam + n * NX;  /* (N, NZ, NZ) column-major per step */
-  double* T = M + n * NZ * NZ; /* (NX, nut) */
-  double x[NX], Mxx[NX * NX], wv[NW + 1];
-  memset(H, 0, nut * nut * sizeof(double));
+    double* lam, double* M) {
+  work_t wk = *wkp;
+  double x[NX], wv[NW + 1];
   for (long i = 0; i < ns; ++i) {
-    /* adjoint: lam_k = dl/dx_{k+1} + Jg' mu + A_{k+1}' lam_{k+1} (lam_k: state k+1) */
+    /* lam_k = dl/dx_{k+1} + Jg' mu + A_{k+1}' lam_{k+1} (lam_k: the state of step k+1) */
     for (long k = 0; k < n; ++k) {
       load_state(X, k + 1, ns, i, x);
       double* lk = lam + k * NX;
@@ -372,61 +406,90 @@ CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const dou
     }
     for (long k = n - 2; k >= 0; --k) {
       const double* Ak = A + ((k + 1) * ns + i) * NX * NX;
-      double* lk = lam + k * NX;
       for (int m = 0; m < NX; ++m) {
         double s = 0.0;
         for (int r = 0; r < NX; ++r) s += lam[(k + 1) * NX + r] * Ak[r * NX + m];
-        lk[m] += s;
+        lam[k * NX + m] += s;
       }
     }
     for (long k = 0; k < n; ++k) {
       load_state(X, k, ns, i, x);
-      if (CALL4(lfm_step_hess, x, u + k * NU, gather(W, sa, sk, si, k, i, wv), lam + k * NX,
-                M + k * NZ * NZ)) { free(lam); work_free(&wk); return 1; }
+      gather(W, sa, sk, si, k, i, wv);
+      if (CALL5(lfm_step_hess, x, u + k * NU, wv, P + k * NP_STEP_HESS, lam + k * NX,
+                M + (k * ns + i) * NZ * NZ)) return 1;
     }
-    /* state curvature at steps j = 1..N: S_j' Mxx_j S_j on the first j NU columns */
-    for (long j = 1; j <= n; ++j) {
-      const long kk = j - 1, cols = j * NU;
-      const double* Wk = Wq + kk * NX * NX;
-      for (int a = 0; a < NX * NX; ++a) Mxx[a] = scale * Wk[a];
-      if (j < n) {
-        const double* Mj = M + j * NZ * NZ;
-        for (int r = 0; r < NX; ++r)
-          for (int c = 0; c < NX; ++c) Mxx[r * NX + c] += Mj[r + c * NZ];
-      }
+  }
+  return 0;
+}
+
+/* The state curvature of step j, scenario i: scale Wq + M_j[x, x] + Hessian of mu' g. */
+static int state_curvature(work_t* wkp, long n, long ns, long j, long i, const double* X,
+    const double* M, const double* mu, const double* Wq, double scale, double* Mxx) {
+  work_t wk = *wkp;
+  const double* Wk = Wq + (j - 1) * NX * NX;
+  for (int a = 0; a < NX * NX; ++a) Mxx[a] = scale * Wk[a];
+  if (j < n) {
+    const double* Mj = M + (j * ns + i) * NZ * NZ;
+    for (int r = 0; r < NX; ++r)
+      for (int c = 0; c < NX; ++c) Mxx[r * NX + c] += Mj[r + c * NZ];
+  }
 #if NG > 0
-      if (mu) {
-        double mk[NG], hg[NX * NX];
-        int any = 0;
-        for (int q = 0; q < NG; ++q) any |= (mk[q] = mu[(q * n + kk) * ns + i]) != 0.0;
-        if (any) {
-          load_state(X, j, ns, i, x);
-          CALL2(lfm_con_hess, x, mk, hg);
-          for (int r = 0; r < NX; ++r)
-            for (int c = 0; c < NX; ++c) Mxx[r * NX + c] += hg[r + c * NX];
-        }
-      }
-#endif
-      const double* Sj = S + (kk * ns + i) * NX * nut;
-      for (int m = 0; m < NX; ++m)
-        for (long c = 0; c < cols; ++c) {
-          double s = 0.0;
-          for (int r = 0; r < NX; ++r) s += Mxx[m * NX + r] * Sj[r * nut + c];
-          T[m * nut + c] = s;
-        }
-      for (long a = 0; a < cols; ++a) {
-        double* Ha = H + a * nut;
-        for (int m = 0; m < NX; ++m) {
-          const double sa = Sj[m * nut + a];
-          if (sa == 0.0) continue;
-          const double* Tm = T + m * nut;
-          for (long b = a; b < cols; ++b) Ha[b] += sa * Tm[b];
-        }
-      }
+  if (mu) {
+    double mk[NG], hg[NX * NX], x[NX];
+    int any = 0;
+    for (int q = 0; q < NG; ++q) any |= (mk[q] = mu[(q * n + j - 1) * ns + i]) != 0.0;
+    if (any) {
+      load_state(X, j, ns, i, x);
+      if (CALL2(lfm_con_hess, x, mk, hg)) return 1;
+      for (int r = 0; r < NX; ++r)
+        for (int c = 0; c < NX; ++c) Mxx[r * NX + c] += hg[r + c * NX];
     }
-    /* cross terms of step k = 1..N-1: S_k' Mxu_k into columns k NU.. (upper triangle) */
-    for (long k = 1; k < n; ++k) {
-      const double* Mk = M + k * NZ * NZ;
+  }
+#else
+  (void)X; (void)mu; (void)wk;
+#endif
+  return 0;
+}
+
+CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const double* W,
+    long sa, long sk, long si, const double* u, const double* A, const double* S,
+    const double* Jg, const double* mu, const double* goal, const double* Wq, double scale,
+    double* H) {
+  /* sum over scenarios of the Hessian of (cost + mu' G) w.r.t. u, without the input cost:
+     sum_j S_j' Mxx_j S_j (S_j stacked over scenarios: one product of length Ns NX per
+     entry) + the cross terms S_k' M_k[x, u] + M_k[u, u]. Upper triangle, then mirrored. */
+  work_t wk;
+  if (work_alloc(&wk)) return 1;
+  const long nut = n * NU, rows = ns * NX;
+  double* P = parametric(&wk, lfm_step_hess_pre, NP_STEP_HESS, n, u);
+  double* M = malloc((n * ns * NZ * NZ + n * NX + 2 * nut * rows + 1) * sizeof(double));
+  if (!P || !M) { free(P); free(M); work_free(&wk); return 1; }
+  double* lam = M + n * ns * NZ * NZ;
+  double* St = lam + n * NX; /* (cols, Ns NX): S_j transposed */
+  double* Tt = St + nut * rows; /* (cols, Ns NX): (Mxx_j S_j) transposed */
+  double Mxx[NX * NX];
+  int status = step_hessians(&wk, n, ns, X, W, sa, sk, si, u, P, A, Jg, mu, goal, Wq, scale,
+                             lam, M);
+  memset(H, 0, nut * nut * sizeof(double));
+  for (long j = 1; j <= n && !status; ++j) {
+    const long cols = j * NU;
+    for (long i = 0; i < ns && !status; ++i) {
+      status = state_curvature(&wk, n, ns, j, i, X, M, mu, Wq, scale, Mxx);
+      const double* Sj = S + ((j - 1) * ns + i) * NX * nut;
+      for (long c = 0; c < cols; ++c)
+        for (int m = 0; m < NX; ++m) {
+          double t = 0.0;
+          for (int r = 0; r < NX; ++r) t += Mxx[m * NX + r] * Sj[r * nut + c];
+          St[c * rows + i * NX + m] = Sj[m * nut + c];
+          Tt[c * rows + i * NX + m] = t;
+        }
+    }
+    for (long a = 0; a < cols; ++a)
+      for (long b = a; b < cols; ++b) H[a * nut + b] += dot(St + a * rows, Tt + b * rows, rows);
+  }
+  for (long k = 1; k < n; ++k) /* cross terms of step k: columns k NU.. */
+    for (long i = 0; i < ns; ++i) {
+      const double* Mk = M + (k * ns + i) * NZ * NZ;
       const double* Sk = S + ((k - 1) * ns + i) * NX * nut;
       for (long a = 0; a < k * NU; ++a)
         for (int b = 0; b < NU; ++b) {
@@ -435,18 +498,19 @@ CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const dou
           H[a * nut + k * NU + b] += s;
         }
     }
-    for (long k = 0; k < n; ++k) {
-      const double* Mk = M + k * NZ * NZ;
+  for (long k = 0; k < n; ++k)
+    for (long i = 0; i < ns; ++i) {
+      const double* Mk = M + (k * ns + i) * NZ * NZ;
       for (int a = 0; a < NU; ++a)
         for (int b = a; b < NU; ++b)
           H[(k * NU + a) * nut + k * NU + b] += Mk[(NX + a) + (NX + b) * NZ];
     }
-  }
   for (long a = 0; a < nut; ++a)
     for (long b = 0; b < a; ++b) H[a * nut + b] = H[b * nut + a];
-  free(lam);
+  free(P);
+  free(M);
   work_free(&wk);
-  return 0;
+  return status;
 }
 """
 
