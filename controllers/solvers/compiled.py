@@ -202,7 +202,7 @@ def _declare(lib: ctypes.CDLL) -> None:
     L, P, D = ctypes.c_long, ctypes.c_void_p, ctypes.c_double
     lib.lfm_rollout.argtypes = [L, L, P, P, L, L, L, P, P, P]
     lib.lfm_linearise.argtypes = [L, L, P, P, L, L, L, P, P, P, D, P, P, P, P]
-    lib.lfm_hessian.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, P, D, P]
+    lib.lfm_hessian.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, P, D, P, P]
     for fn in (lib.lfm_rollout, lib.lfm_linearise, lib.lfm_hessian):
         fn.restype = ctypes.c_int
 
@@ -454,25 +454,29 @@ static int state_curvature(work_t* wkp, long n, long ns, long j, long i, const d
 CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const double* W,
     long sa, long sk, long si, const double* u, const double* A, const double* S,
     const double* Jg, const double* mu, const double* goal, const double* Wq, double scale,
-    double* H) {
+    double* H, double* blocks) {
   /* sum over scenarios of the Hessian of (cost + mu' G) w.r.t. u, without the input cost:
      sum_j S_j' Mxx_j S_j (S_j stacked over scenarios: one product of length Ns NX per
-     entry) + the cross terms S_k' M_k[x, u] + M_k[u, u]. Upper triangle, then mirrored. */
+     entry) + the cross terms S_k' M_k[x, u] + M_k[u, u]. Upper triangle, then mirrored.
+     With blocks (N, Ns NX, N NU) given, the products S_j' (Mxx_j S_j) are left to the
+     caller (one matrix product per step): blocks[j - 1] = Mxx_j S_j, first j NU columns. */
   work_t wk;
   if (work_alloc(&wk)) return 1;
   const long nut = n * NU, rows = ns * NX;
   double* P = parametric(&wk, lfm_step_hess_pre, NP_STEP_HESS, n, u);
-  double* M = malloc((n * ns * NZ * NZ + n * NX + 2 * nut * rows + 1) * sizeof(double));
+  const long own = blocks ? 0 : 2 * nut * rows;
+  double* M = malloc((n * ns * NZ * NZ + n * NX + own + 1) * sizeof(double));
   if (!P || !M) { free(P); free(M); work_free(&wk); return 1; }
   double* lam = M + n * ns * NZ * NZ;
-  double* St = lam + n * NX; /* (cols, Ns NX): S_j transposed */
-  double* Tt = St + nut * rows; /* (cols, Ns NX): (Mxx_j S_j) transposed */
   double Mxx[NX * NX];
   int status = step_hessians(&wk, n, ns, X, W, sa, sk, si, u, P, A, Jg, mu, goal, Wq, scale,
                              lam, M);
   memset(H, 0, nut * nut * sizeof(double));
   for (long j = 1; j <= n && !status; ++j) {
     const long cols = j * NU;
+    double* St = lam + n * NX; /* S_j' (cols, Ns NX) */
+    double* Tt = St + nut * rows; /* (Mxx_j S_j)' */
+    double* Tb = blocks ? blocks + (j - 1) * rows * nut : NULL; /* Mxx_j S_j (Ns NX, nut) */
     for (long i = 0; i < ns && !status; ++i) {
       status = state_curvature(&wk, n, ns, j, i, X, M, mu, Wq, scale, Mxx);
       const double* Sj = S + ((j - 1) * ns + i) * NX * nut;
@@ -480,12 +484,17 @@ CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const dou
         for (int m = 0; m < NX; ++m) {
           double t = 0.0;
           for (int r = 0; r < NX; ++r) t += Mxx[m * NX + r] * Sj[r * nut + c];
-          St[c * rows + i * NX + m] = Sj[m * nut + c];
-          Tt[c * rows + i * NX + m] = t;
+          if (Tb) {
+            Tb[(i * NX + m) * nut + c] = t;
+          } else {
+            St[c * rows + i * NX + m] = Sj[m * nut + c];
+            Tt[c * rows + i * NX + m] = t;
+          }
         }
     }
-    for (long a = 0; a < cols; ++a)
-      for (long b = a; b < cols; ++b) H[a * nut + b] += dot(St + a * rows, Tt + b * rows, rows);
+    if (!blocks)
+      for (long a = 0; a < cols; ++a)
+        for (long b = a; b < cols; ++b) H[a * nut + b] += dot(St + a * rows, Tt + b * rows, rows);
   }
   for (long k = 1; k < n; ++k) /* cross terms of step k: columns k NU.. */
     for (long i = 0; i < ns; ++i) {

@@ -138,7 +138,8 @@ class CondensedModel:
         self.kernel = choice
 
         # --- the compiled kernel (a subclass with its own derivatives needs none) ---
-        self._lib = None
+        self._lib, self._blocks = None, None
+        self.blas_products = True  # the kernel's Hessian products by BLAS (else in C)
         self.compile_time, self.cache_hit, self.kernel_error = 0.0, False, None
         own = all(
             getattr(type(self), name) is getattr(CondensedModel, name)
@@ -409,8 +410,22 @@ class CondensedModel:
         sa, sk, si = self._strides(W_lanes, (0, 1, 2))
         data = (ptr(lin.ro.u), ptr(lin.A), ptr(lin.S), ptr(lin.Jg), ptr(mu_c))
         weights = (ptr(self._goal), ptr(self._w_state), 2.0 / ns)
-        if self._lib.lfm_hessian(n, ns, ptr(X), ptr(W_lanes), sa, sk, si, *data, *weights, ptr(H)):
+        # The kernel leaves sum_j S_j' (Mxx_j S_j) (stacked over scenarios) to BLAS.
+        blocks = None
+        if self.blas_products:
+            shape = (n, ns * self.nx, n_u)  # Mxx_j S_j of steps 1..N, stacked over scenarios
+            if self._blocks is None or self._blocks.shape != shape:
+                self._blocks = np.empty(shape)
+            blocks = self._blocks
+        out = (ptr(H), ptr(blocks))
+        if self._lib.lfm_hessian(n, ns, ptr(X), ptr(W_lanes), sa, sk, si, *data, *weights, *out):
             H[:] = np.nan
+        if blocks is not None:
+            S = lin.S.reshape(n, ns * self.nx, n_u)
+            for j in range(1, n + 1):
+                c = j * nu
+                H[:c, :c] += S[j - 1, :, :c].T @ blocks[j - 1, :, :c]
+            H = 0.5 * (H + H.T)
         for k in range(n):
             blk = slice(k * nu, (k + 1) * nu)
             H[blk, blk] += self._R2
