@@ -127,6 +127,8 @@ def test_compiled_equals_numpy_on_the_second_system(variant) -> None:
     model = point_mass_model(point_mass(**VARIANTS[variant]))
     problem = ScenarioProblem(model, COST, horizon=N, n_scenarios=NS, slack_penalty=1.0e3)
     models = {k: CondensedModel(problem, kernel=k) for k in ("numpy", "vm", "c")}
+    models["c_products"] = CondensedModel(problem, kernel="c")
+    models["c_products"].blas_products = False  # the Hessian's products in C too
     assert models["c"].backend == "compiled-c"
     assert models["vm"].backend == "casadi-vm"
     rng = np.random.default_rng(3)
@@ -135,7 +137,7 @@ def test_compiled_equals_numpy_on_the_second_system(variant) -> None:
         u = rng.uniform(-2.0, 2.0, N * problem.nu)
         mu = _multipliers(problem, NS, seed)
         ref = _everything(models["numpy"], problem, x0, W, u, mu)
-        for name in ("vm", "c"):
+        for name in ("vm", "c", "c_products"):
             _assert_same(ref, _everything(models[name], problem, x0, W, u, mu))
 
 
