@@ -203,7 +203,8 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.lfm_rollout.argtypes = [L, L, P, P, L, L, L, P, P, P]
     lib.lfm_linearise.argtypes = [L, L, P, P, L, L, L, P, P, P, D, P, P, P, P]
     lib.lfm_hessian.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, P, D, P, P]
-    for fn in (lib.lfm_rollout, lib.lfm_linearise, lib.lfm_hessian):
+    lib.lfm_linear_change.argtypes = [L, L, P, P, P, P]
+    for fn in (lib.lfm_rollout, lib.lfm_linearise, lib.lfm_hessian, lib.lfm_linear_change):
         fn.restype = ctypes.c_int
 
 
@@ -378,6 +379,26 @@ CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const d
   free(P);
   work_free(&wk);
   return status;
+}
+
+CASADI_SYMBOL_EXPORT int lfm_linear_change(long n, long ns, const double* S,
+    const double* Jg, const double* d, double* out) {
+  /* out (N, Ns, NG) = Jg_k S_k d: the first-order change of every constraint value along
+     the input step d (causal: S_k d over the first k NU inputs only). */
+  const long nut = n * NU;
+  for (long k = 0; k < n; ++k)
+    for (long i = 0; i < ns; ++i) {
+      const double* Sk = S + (k * ns + i) * NX * nut;
+      const double* Jk = Jg + (k * ns + i) * NG * NX;
+      double sd[NX];
+      for (int m = 0; m < NX; ++m) sd[m] = dot(Sk + m * nut, d, (k + 1) * NU);
+      for (int j = 0; j < NG; ++j) {
+        double s = 0.0;
+        for (int m = 0; m < NX; ++m) s += Jk[j * NX + m] * sd[m];
+        out[(k * ns + i) * NG + j] = s;
+      }
+    }
+  return 0;
 }
 
 /* Phase 1 of the Hessian: the adjoints lambda and the step Hessians M (N, Ns, NZ, NZ). */

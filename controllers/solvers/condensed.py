@@ -442,6 +442,12 @@ class CondensedModel:
 
     def linearised_values(self, lin: Linearisation, d: np.ndarray) -> np.ndarray:
         """``g + (dg/du) d`` of every screened scenario row, ``(n_screened, N, Ns)``."""
+        if self._lib is not None and self.ng:
+            d = np.ascontiguousarray(d, dtype=float)
+            n, ns = self.n, lin.ro.X.shape[2]
+            change = np.empty((n, ns, self.ng))
+            self._lib.lfm_linear_change(n, ns, ptr(lin.S), ptr(lin.Jg), ptr(d), ptr(change))
+            return lin.ro.G[self.screened] + change[:, :, self.screened].transpose(2, 0, 1)
         Sd = (lin.S.reshape(-1, self.n_u) @ d).reshape(lin.S.shape[:3] + (1,))  # (N, Ns, nx, 1)
         change = np.matmul(lin.Jg, Sd)[..., 0]  # (N, Ns, ng)
         return lin.ro.G[self.screened] + change[:, :, self.screened].transpose(2, 0, 1)
