@@ -209,7 +209,10 @@ class CondensedModel:
         return {"problem": self.problem, "kernel": self.kernel}
 
     def __setstate__(self, state: dict) -> None:
-        type(self).__init__(self, state["problem"], kernel=state["kernel"])
+        if type(self).__init__ is CondensedModel.__init__:
+            CondensedModel.__init__(self, state["problem"], kernel=state["kernel"])
+        else:  # a subclass with its own derivatives (and constructor)
+            type(self).__init__(self, state["problem"])
 
     @staticmethod
     def _strides(W: np.ndarray, axes: tuple[int, int, int]) -> tuple[int, int, int]:
