@@ -200,7 +200,7 @@ def forget_loaded() -> None:
 def _declare(lib: ctypes.CDLL) -> None:
     """Argument types of the driver's entry points."""
     L, P, D = ctypes.c_long, ctypes.c_void_p, ctypes.c_double
-    lib.lfm_rollout.argtypes = [L, L, P, P, L, L, L, P, P, P]
+    lib.lfm_rollout.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P]
     lib.lfm_linearise.argtypes = [L, L, P, P, L, L, L, P, P, P, D, P, P, P, P]
     lib.lfm_hessian.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, P, D, P, P]
     lib.lfm_linear_change.argtypes = [L, L, P, P, P, P]
@@ -304,13 +304,15 @@ static double dot(const double* a, const double* b, long len) {
 }
 
 CASADI_SYMBOL_EXPORT int lfm_rollout(long n, long ns, const double* x0T, const double* W,
-    long sa, long sk, long si, const double* u, double* X, double* G) {
-  /* The states X (N+1, NX, Ns) and constraint values G (NG, N, Ns) of every scenario. */
+    long sa, long sk, long si, const double* u, const double* goal, const double* Wq,
+    double* X, double* G, double* cost) {
+  /* The states X (N+1, NX, Ns), constraint values G (NG, N, Ns) of every scenario and the
+     state cost summed over them, sum_i sum_k (x_k - goal)' Wq_k (x_k - goal). */
   work_t wk;
   if (work_alloc(&wk)) return 1;
   double* P = parametric(&wk, lfm_step_pre, NP_STEP, n, u);
   if (!P) { work_free(&wk); return 1; }
-  double x[NX], xn[NX], wv[NW + 1];
+  double x[NX], xn[NX], wv[NW + 1], c = 0.0;
   int status = 0;
   for (long i = 0; i < ns && !status; ++i) {
     for (int m = 0; m < NX; ++m) X[m * ns + i] = x[m] = x0T[m * ns + i];
@@ -318,6 +320,7 @@ CASADI_SYMBOL_EXPORT int lfm_rollout(long n, long ns, const double* x0T, const d
       gather(W, sa, sk, si, k, i, wv);
       status = CALL4(lfm_step, x, u + k * NU, wv, P + k * NP_STEP, xn);
       for (int m = 0; m < NX; ++m) X[((k + 1) * NX + m) * ns + i] = x[m] = xn[m];
+      c += weighted(x, goal, Wq + k * NX * NX, 1.0, NULL);
 #if NG > 0
       double g[NG];
       status |= CALL1(lfm_con, x, g);
@@ -325,6 +328,7 @@ CASADI_SYMBOL_EXPORT int lfm_rollout(long n, long ns, const double* x0T, const d
 #endif
     }
   }
+  *cost = c;
   free(P);
   work_free(&wk);
   return status;

@@ -258,8 +258,11 @@ class CondensedModel:
             G = np.empty((self.ng, n, ns))
             sa, sk, si = self._strides(W, (2, 0, 1))
             x0c = np.ascontiguousarray(x0T, dtype=float)
-            if self._lib.lfm_rollout(n, ns, ptr(x0c), ptr(W), sa, sk, si, ptr(u), ptr(X), ptr(G)):
-                X[:], G[:] = np.nan, np.nan
+            c_sum = np.zeros(1)  # the state cost summed over scenarios
+            weights = (ptr(self._goal), ptr(self._w_state))
+            out = (ptr(X), ptr(G), ptr(c_sum))
+            if self._lib.lfm_rollout(n, ns, ptr(x0c), ptr(W), sa, sk, si, ptr(u), *weights, *out):
+                X[:], G[:], c_sum[:] = np.nan, np.nan, np.nan
         else:
             X[0] = x0T
             uk = u.reshape(n, nu)
@@ -276,11 +279,14 @@ class CondensedModel:
         else:
             G = np.zeros((0, n, ns))
             slack = 0.0
-        e = X[1:] - self._goal[None, :, None]
-        if self._diagonal:
-            cost = float(np.einsum("km,kmi,kmi->", self._w_diag, e, e))
+        if self._lib is not None:
+            cost = float(c_sum[0])
         else:
-            cost = float(np.einsum("kmi,kmn,kni->", e, self._w_state, e))
+            e = X[1:] - self._goal[None, :, None]
+            if self._diagonal:
+                cost = float(np.einsum("km,kmi,kmi->", self._w_diag, e, e))
+            else:
+                cost = float(np.einsum("kmi,kmn,kni->", e, self._w_state, e))
         merit = cost0 + cost / ns + self.input_cost(u) + p.slack_penalty * slack
         merit = merit if math.isfinite(merit) else math.inf
         return Rollout(u=u, X=X, G=G, slack=slack, merit=merit)
