@@ -505,33 +505,32 @@ CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const dou
     for (long i = 0; i < ns && !status; ++i) {
       status = state_curvature(&wk, n, ns, j, i, X, M, mu, Wq, scale, Mxx);
       const double* Sj = S + ((j - 1) * ns + i) * NX * nut;
-      for (long c = 0; c < cols; ++c)
+      const double* Mj = M + (j * ns + i) * NZ * NZ; /* step j's Hessian (j < N) */
+      for (long c = 0; c < cols; ++c) {
+        double sc[NX];
+        for (int r = 0; r < NX; ++r) sc[r] = Sj[r * nut + c];
         for (int m = 0; m < NX; ++m) {
           double t = 0.0;
-          for (int r = 0; r < NX; ++r) t += Mxx[m * NX + r] * Sj[r * nut + c];
+          for (int r = 0; r < NX; ++r) t += Mxx[m * NX + r] * sc[r];
           if (Tb) {
             Tb[(i * NX + m) * nut + c] = t;
           } else {
-            St[c * rows + i * NX + m] = Sj[m * nut + c];
+            St[c * rows + i * NX + m] = sc[m];
             Tt[c * rows + i * NX + m] = t;
           }
         }
+        if (j < n) /* cross terms of step j: S_j' M_j[x, u] into columns j NU.. */
+          for (int b = 0; b < NU; ++b) {
+            double x = 0.0;
+            for (int r = 0; r < NX; ++r) x += sc[r] * Mj[r + (NX + b) * NZ];
+            H[c * nut + j * NU + b] += x;
+          }
+      }
     }
     if (!blocks)
       for (long a = 0; a < cols; ++a)
         for (long b = a; b < cols; ++b) H[a * nut + b] += dot(St + a * rows, Tt + b * rows, rows);
   }
-  for (long k = 1; k < n; ++k) /* cross terms of step k: columns k NU.. */
-    for (long i = 0; i < ns; ++i) {
-      const double* Mk = M + (k * ns + i) * NZ * NZ;
-      const double* Sk = S + ((k - 1) * ns + i) * NX * nut;
-      for (long a = 0; a < k * NU; ++a)
-        for (int b = 0; b < NU; ++b) {
-          double s = 0.0;
-          for (int r = 0; r < NX; ++r) s += Sk[r * nut + a] * Mk[r + (NX + b) * NZ];
-          H[a * nut + k * NU + b] += s;
-        }
-    }
   for (long k = 0; k < n; ++k)
     for (long i = 0; i < ns; ++i) {
       const double* Mk = M + (k * ns + i) * NZ * NZ;
