@@ -13,8 +13,19 @@ all scenarios at once:
   ``lambda_{k+1}' F + l_k + mu_k' g`` in ``(x_k, u_k)``).
 
 Every derivative comes from the system's CasADi expressions (step Jacobian, Hessian of
-``lambda' F``, constraint Jacobian and Hessian), generated once and evaluated on all
-``Ns N`` points per call by :mod:`controllers.solvers.lanes`.
+``lambda' F``, constraint Jacobian and Hessian). Three backends evaluate them (the
+attribute :attr:`CondensedModel.backend`; chosen by the ``kernel`` argument or the
+environment variable ``LFM_KERNEL`` = ``auto`` (default), ``c``, ``numpy`` or ``vm``):
+
+* ``"compiled-c"``: the whole per-iteration work (rollout, sensitivities, gradient,
+  Hessian) in one C library generated from those expressions, compiled once per system
+  and cached on disk (:mod:`controllers.solvers.compiled`); the default when a C
+  compiler is found (or the library is cached);
+* ``"numpy-lanes"``: NumPy condensing, the pointwise derivatives generated as NumPy code
+  evaluated on all ``Ns N`` points per call (:mod:`controllers.solvers.lanes`); the
+  fallback when no compiler is found or compilation fails (:attr:`kernel_error` says why);
+* ``"casadi-vm"``: the same NumPy condensing with the pointwise functions in CasADi's
+  virtual machine (slow; used when the lanes lack an operation, or when asked for).
 
 It also finds structure the solver exploits: constraints whose condensed Jacobian
 ``d g_j(x_k) / d u`` is the same constant for every scenario, step input and force (the
@@ -25,13 +36,18 @@ scenario matters at every step, whatever ``u`` is: one exact linear row per step
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
 from controllers.problem import ScenarioProblem
+from controllers.solvers.compiled import KernelUnavailable, build_kernel, ptr
 from controllers.solvers.lanes import LaneFunction
+
+KERNEL_ENV = "LFM_KERNEL"
+KERNELS = ("auto", "c", "numpy", "vm")
 
 
 @dataclass
@@ -91,9 +107,23 @@ class CondensedModel:
 
     Args:
         problem: the scenario problem (its model's system gives every expression).
+        kernel: ``"auto"`` (compiled C if a compiler or a cached library is there, else
+            NumPy lanes), ``"c"`` (compiled C or :class:`KernelUnavailable`), ``"numpy"``
+            or ``"vm"``; ``None`` reads ``$LFM_KERNEL`` (default ``"auto"``).
+
+    Attributes:
+        backend: ``"compiled-c"``, ``"numpy-lanes"`` or ``"casadi-vm"``.
+        compile_time: [s] building the C kernel in this constructor (generation, and
+            compilation unless cached; 0 for the other backends).
+        cache_hit: the C kernel came from the disk cache or this process (no compiler run).
+        kernel_error: why the C kernel is not used under ``"auto"`` (``None`` if it is).
+
+    Raises:
+        ValueError: on an unknown ``kernel``.
+        KernelUnavailable: for ``kernel="c"`` when no kernel can be built.
     """
 
-    def __init__(self, problem: ScenarioProblem) -> None:
+    def __init__(self, problem: ScenarioProblem, kernel: str | None = None) -> None:
         self.problem = problem
         system, cost = problem.system, problem.cost
         n, nx, nu, nw, ng = problem.horizon, problem.nx, problem.nu, problem.nw, problem.ng
@@ -101,20 +131,52 @@ class CondensedModel:
         self.n_u = n * nu
         self.lower = np.tile(problem.input_lower, n)
         self.upper = np.tile(problem.input_upper, n)
+        choice = kernel if kernel is not None else (os.environ.get(KERNEL_ENV) or "auto")
+        if choice not in KERNELS:
+            source = "kernel" if kernel is not None else f"${KERNEL_ENV}"
+            raise ValueError(f"CondensedModel {source}={choice!r}: must be one of {KERNELS}")
+        self.kernel = choice
+
+        # --- the compiled kernel (a subclass with its own derivatives needs none) ---
+        self._lib, self._blocks = None, None
+        self.blas_products = True  # the kernel's Hessian products by BLAS (else in C)
+        self.compile_time, self.cache_hit, self.kernel_error = 0.0, False, None
+        own = all(
+            getattr(type(self), name) is getattr(CondensedModel, name)
+            for name in ("evaluate", "linearise", "hessian")
+        )
+        if choice in ("auto", "c") and own:
+            try:
+                built = build_kernel(system, problem.dt)
+            except KernelUnavailable as err:
+                if choice == "c":
+                    raise
+                self.kernel_error = str(err)
+            else:
+                self._lib, self.compile_time, self.cache_hit = (
+                    built.lib,
+                    built.build_time,
+                    built.cache_hit,
+                )
 
         # --- the generated derivative functions, evaluated on all points at once ---
         x, u, w = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("w", nw)
         lam, mu = ca.SX.sym("lam", nx), ca.SX.sym("mu", max(ng, 1))
         F = system.casadi_step(problem.dt)(x, u, w)
         z = ca.vertcat(x, u)
-        self._step_jac = LaneFunction(ca.Function("step_jac", [x, u, w], [ca.jacobian(F, z)]))
+        vm = choice == "vm"
+        self._step_jac = LaneFunction(
+            ca.Function("step_jac", [x, u, w], [ca.jacobian(F, z)]), vm=vm
+        )
         hess_F = ca.hessian(ca.dot(lam, F), z)[0]
-        self._step_hess = LaneFunction(ca.Function("step_hess", [x, u, w, lam], [hess_F]))
+        self._step_hess = LaneFunction(ca.Function("step_hess", [x, u, w, lam], [hess_F]), vm=vm)
         g = system.casadi_constraints()(x)
+        lanes = [self._step_jac, self._step_hess]
         if ng:
-            self._con_jac = LaneFunction(ca.Function("con_jac", [x], [ca.jacobian(g, x)]))
+            self._con_jac = LaneFunction(ca.Function("con_jac", [x], [ca.jacobian(g, x)]), vm=vm)
             hess_g = ca.hessian(ca.dot(mu, g), x)[0]
-            self._con_hess = LaneFunction(ca.Function("con_hess", [x, mu], [hess_g]))
+            self._con_hess = LaneFunction(ca.Function("con_hess", [x, mu], [hess_g]), vm=vm)
+            lanes += [self._con_jac, self._con_hess]
             # The states each constraint depends on (for picking extreme scenarios).
             pattern = ca.jacobian(g, x).sparsity()
             self.depends = np.zeros((ng, nx), dtype=bool)  # constraint j depends on state m
@@ -122,20 +184,42 @@ class CondensedModel:
             self.depends[rows, cols] = True
         else:
             self.depends = np.zeros((0, nx), dtype=bool)
-        self.backend = self._step_jac.backend
+        if self._lib is not None:
+            self.backend = "compiled-c"
+        elif all(f.backend == "numpy" for f in lanes):
+            self.backend = "numpy-lanes"
+        else:
+            self.backend = "casadi-vm"
 
         # --- structure: constraints that are one exact linear row per step ---
         self.shared, self.shared_rows = _shared_linear(problem)
         self.screened = np.array([j for j in range(ng) if j not in set(self.shared)], dtype=int)
 
         # --- cost weights ---
-        self._goal = cost.x_goal
+        self._goal = np.ascontiguousarray(cost.x_goal, dtype=float)
         self._diagonal = cost.diagonal
         weights = np.stack([cost.Q] * (n - 1) + [cost.Qf])  # (N, nx, nx) for steps 1..N
         self._w_state = weights
         self._w_diag = np.stack([np.diag(m) for m in weights])  # (N, nx)
         self._R2 = 2.0 * cost.R
         self._r_diag = np.tile(np.diag(cost.R), n)
+
+    def __getstate__(self) -> dict:
+        # The loaded library and the generated code are rebuilt (from the disk cache).
+        return {"problem": self.problem, "kernel": self.kernel}
+
+    def __setstate__(self, state: dict) -> None:
+        if type(self).__init__ is CondensedModel.__init__:
+            CondensedModel.__init__(self, state["problem"], kernel=state["kernel"])
+        else:  # a subclass with its own derivatives (and constructor)
+            type(self).__init__(self, state["problem"])
+
+    @staticmethod
+    def _strides(W: np.ndarray, axes: tuple[int, int, int]) -> tuple[int, int, int]:
+        """Element strides of ``W`` along (force component, step, scenario) = ``axes``."""
+        if W.dtype != np.float64:
+            raise ValueError(f"W: must be float64, got {W.dtype}")
+        return tuple(W.strides[a] // W.itemsize for a in axes)
 
     # ------------------------------------------------------------------ evaluation
 
@@ -169,25 +253,40 @@ class CondensedModel:
         p, model = self.problem, self.problem.model
         n, nu, ns = self.n, self.nu, x0T.shape[1]
         X = np.empty((n + 1, self.nx, ns))
-        X[0] = x0T
-        uk = u.reshape(n, nu)
-        for k in range(n):
-            X[k + 1] = model.physical_step(X[k].T, uk[k], W[k]).T
+        if self._lib is not None:
+            u = np.ascontiguousarray(u, dtype=float)
+            G = np.empty((self.ng, n, ns))
+            sa, sk, si = self._strides(W, (2, 0, 1))
+            x0c = np.ascontiguousarray(x0T, dtype=float)
+            c_sum = np.zeros(1)  # the state cost summed over scenarios
+            weights = (ptr(self._goal), ptr(self._w_state))
+            out = (ptr(X), ptr(G), ptr(c_sum))
+            if self._lib.lfm_rollout(n, ns, ptr(x0c), ptr(W), sa, sk, si, ptr(u), *weights, *out):
+                X[:], G[:], c_sum[:] = np.nan, np.nan, np.nan
+        else:
+            X[0] = x0T
+            uk = u.reshape(n, nu)
+            for k in range(n):
+                X[k + 1] = model.physical_step(X[k].T, uk[k], W[k]).T
+            if self.ng:
+                G = np.ascontiguousarray(
+                    np.moveaxis(p.system.constraint_values(X[1:].transpose(0, 2, 1)), -1, 0)
+                )
         if self.ng:
-            G = np.ascontiguousarray(
-                np.moveaxis(p.system.constraint_values(X[1:].transpose(0, 2, 1)), -1, 0)
-            )
             if backoff is not None:
                 G += backoff
             slack = float(np.maximum(G.max(axis=2), 0.0).sum())
         else:
             G = np.zeros((0, n, ns))
             slack = 0.0
-        e = X[1:] - self._goal[None, :, None]
-        if self._diagonal:
-            cost = float(np.einsum("km,kmi,kmi->", self._w_diag, e, e))
+        if self._lib is not None:
+            cost = float(c_sum[0])
         else:
-            cost = float(np.einsum("kmi,kmn,kni->", e, self._w_state, e))
+            e = X[1:] - self._goal[None, :, None]
+            if self._diagonal:
+                cost = float(np.einsum("km,kmi,kmi->", self._w_diag, e, e))
+            else:
+                cost = float(np.einsum("kmi,kmn,kni->", e, self._w_state, e))
         merit = cost0 + cost / ns + self.input_cost(u) + p.slack_penalty * slack
         merit = merit if math.isfinite(merit) else math.inf
         return Rollout(u=u, X=X, G=G, slack=slack, merit=merit)
@@ -203,6 +302,8 @@ class CondensedModel:
 
     def linearise(self, ro: Rollout, W_lanes: np.ndarray) -> Linearisation:
         """Step Jacobians, sensitivities, constraint Jacobians and the cost gradient."""
+        if self._lib is not None:
+            return self._linearise_c(ro, W_lanes)
         n, nx, nu, n_u = self.n, self.nx, self.nu, self.n_u
         X = ro.X
         ns = X.shape[2]
@@ -242,6 +343,8 @@ class CondensedModel:
         ``mu`` ``(ng, N, Ns)`` are the multipliers of the scenario rows (zero for rows that
         are not in the QP and for the shared linear rows, whose condensed curvature is zero).
         """
+        if self._lib is not None:
+            return self._hessian_c(lin, mu, W_lanes)
         n, nx, nu, n_u = self.n, self.nx, self.nu, self.n_u
         X, S, A, Jg = lin.ro.X, lin.S, lin.A, lin.Jg
         ns = X.shape[2]
@@ -288,6 +391,55 @@ class CondensedModel:
             H[blk, blk] += uu[k] + self._R2
         return 0.5 * (H + H.T)
 
+    def _linearise_c(self, ro: Rollout, W_lanes: np.ndarray) -> Linearisation:
+        """:meth:`linearise` by the compiled kernel."""
+        n, nx, nu, n_u, ng = self.n, self.nx, self.nu, self.n_u, self.ng
+        X = np.ascontiguousarray(ro.X, dtype=float)
+        u = np.ascontiguousarray(ro.u, dtype=float)
+        ns = X.shape[2]
+        A = np.empty((n, ns, nx, nx))
+        S = np.empty((n, ns, nx, n_u))
+        Jg = np.empty((n, ns, ng, nx))
+        grad = np.empty(n_u)
+        sa, sk, si = self._strides(W_lanes, (0, 1, 2))
+        args = (ptr(self._goal), ptr(self._w_state), 2.0 / ns)
+        out = (ptr(A), ptr(S), ptr(Jg), ptr(grad))
+        if self._lib.lfm_linearise(n, ns, ptr(X), ptr(W_lanes), sa, sk, si, ptr(u), *args, *out):
+            grad[:] = np.nan
+        grad += (u.reshape(n, nu) @ self._R2).ravel()  # d(u' R u)/du, R symmetric
+        return Linearisation(ro=ro, A=A, S=S, Jg=Jg, grad=grad)
+
+    def _hessian_c(self, lin: Linearisation, mu: np.ndarray, W_lanes: np.ndarray) -> np.ndarray:
+        """:meth:`hessian` by the compiled kernel."""
+        n, nu, n_u = self.n, self.nu, self.n_u
+        X, ns = lin.ro.X, lin.ro.X.shape[2]
+        has_mu = self.ng > 0 and bool(mu.any())
+        mu_c = np.ascontiguousarray(mu, dtype=float) if has_mu else None
+        H = np.empty((n_u, n_u))
+        sa, sk, si = self._strides(W_lanes, (0, 1, 2))
+        data = (ptr(lin.ro.u), ptr(lin.A), ptr(lin.S), ptr(lin.Jg), ptr(mu_c))
+        weights = (ptr(self._goal), ptr(self._w_state), 2.0 / ns)
+        # The kernel leaves sum_j S_j' (Mxx_j S_j) (stacked over scenarios) to BLAS.
+        blocks = None
+        if self.blas_products:
+            shape = (n, ns * self.nx, n_u)  # Mxx_j S_j of steps 1..N, stacked over scenarios
+            if self._blocks is None or self._blocks.shape != shape:
+                self._blocks = np.empty(shape)
+            blocks = self._blocks
+        out = (ptr(H), ptr(blocks))
+        if self._lib.lfm_hessian(n, ns, ptr(X), ptr(W_lanes), sa, sk, si, *data, *weights, *out):
+            H[:] = np.nan
+        if blocks is not None:
+            S = lin.S.reshape(n, ns * self.nx, n_u)
+            for j in range(1, n + 1):
+                c = j * nu
+                H[:c, :c] += S[j - 1, :, :c].T @ blocks[j - 1, :, :c]
+            H = 0.5 * (H + H.T)
+        for k in range(n):
+            blk = slice(k * nu, (k + 1) * nu)
+            H[blk, blk] += self._R2
+        return H
+
     def rows(self, lin: Linearisation, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Jacobian rows ``(r, N nu)`` and values ``(r,)`` of scenario rows ``(j, k, i)``.
 
@@ -299,6 +451,12 @@ class CondensedModel:
 
     def linearised_values(self, lin: Linearisation, d: np.ndarray) -> np.ndarray:
         """``g + (dg/du) d`` of every screened scenario row, ``(n_screened, N, Ns)``."""
+        if self._lib is not None and self.ng:
+            d = np.ascontiguousarray(d, dtype=float)
+            n, ns = self.n, lin.ro.X.shape[2]
+            change = np.empty((n, ns, self.ng))
+            self._lib.lfm_linear_change(n, ns, ptr(lin.S), ptr(lin.Jg), ptr(d), ptr(change))
+            return lin.ro.G[self.screened] + change[:, :, self.screened].transpose(2, 0, 1)
         Sd = (lin.S.reshape(-1, self.n_u) @ d).reshape(lin.S.shape[:3] + (1,))  # (N, Ns, nx, 1)
         change = np.matmul(lin.Jg, Sd)[..., 0]  # (N, Ns, ng)
         return lin.ro.G[self.screened] + change[:, :, self.screened].transpose(2, 0, 1)

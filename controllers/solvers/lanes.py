@@ -131,6 +131,7 @@ class LaneFunction:
 
     Args:
         fn: a function of SX expressions (any sparsity; outputs are returned dense).
+        vm: evaluate with CasADi's virtual machine (``map``) even when NumPy could.
 
     Call it with one array per input of shape ``(rows * cols, *lanes)`` (the input's dense,
     column-major entries along the first axis; the lane axes broadcast against each other,
@@ -139,13 +140,15 @@ class LaneFunction:
     of shape ``(rows * cols, *lanes)``.
     """
 
-    def __init__(self, fn: ca.Function) -> None:
+    def __init__(self, fn: ca.Function, vm: bool = False) -> None:
         if not fn.is_a("SXFunction"):
             fn = fn.expand()
         self.fn = fn
         self.out_sizes = [fn.size1_out(i) * fn.size2_out(i) for i in range(fn.n_out())]
         self.in_sizes = [fn.size1_in(i) * fn.size2_in(i) for i in range(fn.n_in())]
         try:
+            if vm:
+                raise NotImplementedError("the CasADi VM was asked for")
             namespace: dict = {"np": np}
             exec(compile(_source(fn), f"<lanes:{fn.name()}>", "exec"), namespace)  # noqa: S102
             self._eval = namespace["lane_eval"]

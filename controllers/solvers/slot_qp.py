@@ -74,13 +74,10 @@ class SlotQP:
                 # One QP cannot be interrupted from Python: let qpOASES stop itself, so a
                 # solve overruns its wall-clock limit by at most one QP's limit [s].
                 opts["CPUtime"] = float(max_time)
+        sparsity = {"h": ca.Sparsity.dense(nv, nv), "a": ca.Sparsity.dense(cap, nv)}
+        self._conic_args = ("fast_sqp_qp", solver, sparsity, opts)
         with silenced_stdout():  # qpOASES prints a banner whenever a memory is created
-            self._conic = ca.conic(
-                "fast_sqp_qp",
-                solver,
-                {"h": ca.Sparsity.dense(nv, nv), "a": ca.Sparsity.dense(cap, nv)},
-                opts,
-            )
+            self._conic = ca.conic(*self._conic_args)
             self._buffer, self._evaluate = self._conic.buffer()
         # Dense inputs are column-major nonzeros; H is symmetric, A is viewed transposed.
         self._h = np.zeros(nv * nv)
@@ -171,6 +168,18 @@ class SlotQP:
         """Solve from the previous active set: ``(z, row multipliers >= 0, success)``."""
         self._evaluate()
         ok = self._buffer.ret() == 0 and bool(np.all(np.isfinite(self.x)))
+        if not ok:  # a failed hot start can leave qpOASES stuck: retry once from cold
+            with silenced_stdout():
+                self._conic = ca.conic(*self._conic_args)
+                self._buffer, self._evaluate = self._conic.buffer()
+            n_in = self._conic.n_in()
+            for i, arr in enumerate(self._keep):  # inputs, then outputs
+                if i < n_in:
+                    self._buffer.set_arg(i, memoryview(arr))
+                else:
+                    self._buffer.set_res(i - n_in, memoryview(arr))
+            self._evaluate()
+            ok = self._buffer.ret() == 0 and bool(np.all(np.isfinite(self.x)))
         return self.x.copy(), np.maximum(self.lam_a, 0.0), ok
 
 

@@ -1,0 +1,560 @@
+"""The fast solver's per-iteration work compiled to C: generated, compiled once, cached.
+
+:class:`~controllers.solvers.condensed.CondensedModel` needs, at every SQP iteration, the
+rollout of all scenarios, the step Jacobians, the causal forward sensitivities, the
+constraint Jacobians, the cost gradient and the exact Hessian of the Lagrangian (second-order
+adjoint). This module generates that work as one C library:
+
+* the pointwise functions (Euler step, its Jacobian, the Hessian of ``lambda' F``, the
+  constraints, their Jacobian and the Hessian of ``mu' g``) are CasADi functions of the
+  system's own expressions (:meth:`ControlSystem.casadi_step`,
+  :meth:`ControlSystem.casadi_constraints`), written as C by CasADi's ``CodeGenerator``;
+* a fixed driver (:data:`_DRIVER`, below) loops over the scenarios and steps, with the
+  horizon ``N`` and the scenario count ``Ns`` given at run time, and skips the structural
+  zeros of the sensitivities (``S_k`` has nonzero columns only for inputs before step ``k``).
+
+So one library serves a system and time step at every ``N`` and ``Ns``. It is compiled with
+the system C compiler (``$CC``, else ``cc``, else ``gcc``; ``-O3 -fPIC -shared``), cached on
+disk under ``$LFM_CACHE_DIR`` (default ``~/.cache/lfm-scenario-mpc``) by a hash of its C
+source and compile command, written atomically (two processes compiling the same kernel at
+once both end with a valid library), and called through ``ctypes`` on the NumPy arrays
+directly (no copies). :func:`build_kernel` raises :class:`KernelUnavailable` when no
+compiler is found or compilation fails; the caller then falls back to NumPy.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import shlex
+import shutil
+import subprocess
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+CACHE_ENV = "LFM_CACHE_DIR"
+FLAGS = ("-O3", "-fPIC", "-shared")
+COMPILE_TIMEOUT = 120.0  # [s] a compile taking longer is abandoned (fallback)
+
+# Loaded libraries of this process, by source hash (a second build is free).
+_LOADED: dict[str, ctypes.CDLL] = {}
+
+
+class KernelUnavailable(RuntimeError):
+    """No compiled kernel: no compiler found, compilation failed or the library did not load."""
+
+
+def cache_dir() -> Path:
+    """The kernel cache directory: ``$LFM_CACHE_DIR`` or ``~/.cache/lfm-scenario-mpc``."""
+    env = os.environ.get(CACHE_ENV)
+    return Path(env) if env else Path.home() / ".cache" / "lfm-scenario-mpc"
+
+
+def find_compiler() -> list[str]:
+    """The C compiler command: ``$CC`` if set (only it), else ``cc`` or ``gcc`` on ``PATH``.
+
+    Raises:
+        KernelUnavailable: when that compiler is not found.
+    """
+    cc = os.environ.get("CC")
+    candidates = [shlex.split(cc)] if cc else [["cc"], ["gcc"]]
+    for cmd in candidates:
+        if cmd and shutil.which(cmd[0]):
+            return [shutil.which(cmd[0]) or cmd[0], *cmd[1:]]
+    raise KernelUnavailable(
+        f"no C compiler found (CC={cc!r})" if cc else "no C compiler found (cc, gcc on PATH)"
+    )
+
+
+def pointwise_functions(system, dt: float) -> list[ca.Function]:
+    """The pointwise CasADi functions of ``system`` the driver calls (dense outputs).
+
+    ``lfm_step(x, u, w, p)``, ``lfm_step_jac(x, u, w, p)`` ``(nx, nx + nu)`` and
+    ``lfm_step_hess(x, u, w, p, lam)`` ``(nx + nu, nx + nu)``, each with ``*_pre(u) -> p``:
+    the parts of its expression that depend on the input alone (CasADi's
+    ``extract_parametric``), computed once per step instead of once per scenario. With
+    constraints also ``lfm_con(x)``, ``lfm_con_jac(x)`` ``(ng, nx)`` and
+    ``lfm_con_hess(x, mu)`` ``(nx, nx)``.
+    """
+    nx, nu, nw, ng = system.nx, system.nu, system.nw, system.ng
+    x, u, w = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("w", nw)
+    lam = ca.SX.sym("lam", nx)
+    F = system.casadi_step(dt)(x, u, w)
+    z = ca.vertcat(x, u)
+    d = ca.densify
+    fns = []
+    for name, expr, extra in (
+        ("lfm_step", F, []),
+        ("lfm_step_jac", ca.jacobian(F, z), []),
+        ("lfm_step_hess", ca.hessian(ca.dot(lam, F), z)[0], [lam]),
+    ):
+        expr, symbols, values = ca.extract_parametric(d(expr), u)
+        p = ca.vertcat(*symbols) if symbols else ca.SX(0, 1)
+        pre = ca.vertcat(*values) if values else ca.SX(0, 1)
+        fns.append(ca.Function(f"{name}_pre", [u], [pre]))
+        fns.append(ca.Function(name, [x, u, w, p, *extra], [d(expr)]))
+    if ng:
+        mu = ca.SX.sym("mu", ng)
+        g = system.casadi_constraints()(x)
+        fns += [
+            ca.Function("lfm_con", [x], [d(g)]),
+            ca.Function("lfm_con_jac", [x], [d(ca.jacobian(g, x))]),
+            ca.Function("lfm_con_hess", [x, mu], [d(ca.hessian(ca.dot(mu, g), x)[0])]),
+        ]
+    return fns
+
+
+def kernel_source(system, dt: float) -> str:
+    """The complete C source of ``system``'s kernel at time step ``dt`` [s]."""
+    cg = ca.CodeGenerator("lfm_kernel.c", {"with_header": False, "casadi_real": "double"})
+    fns = pointwise_functions(system, dt)
+    for f in fns:
+        cg.add(f)
+    sizes = {"NX": system.nx, "NU": system.nu, "NW": system.nw, "NG": system.ng}
+    for f in fns:
+        if f.name().endswith("_pre"):
+            sizes["NP_" + f.name()[4:-4].upper()] = f.nnz_out(0)
+    defines = "\n".join(f"#define {k} {v}" for k, v in sizes.items())
+    work = " ".join(f"W({f.name()});" for f in fns)
+    return cg.dump() + "\n" + defines + "\n" + _DRIVER.replace("@WORK@", work)
+
+
+@dataclass
+class Kernel:
+    """A loaded kernel library and how it was obtained."""
+
+    lib: ctypes.CDLL
+    path: Path
+    key: str  # hash of the C source and compile command
+    cache_hit: bool  # found on disk or already loaded (no compiler was run)
+    build_time: float  # [s] generation + compilation (or cache lookup) + loading
+
+
+def _compile(source: str, target: Path, compiler: list[str]) -> None:
+    """Compile ``source`` to the shared library ``target``, atomically."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tag = f"{os.getpid()}-{os.urandom(4).hex()}"
+    c_file = target.with_name(f"{target.stem}.{tag}.c")
+    tmp = target.with_name(f"{target.stem}.{tag}.so.tmp")
+    try:
+        c_file.write_text(source)
+        cmd = [*compiler, *FLAGS, str(c_file), "-o", str(tmp), "-lm"]
+        try:
+            out = subprocess.run(
+                cmd, capture_output=True, text=True, timeout=COMPILE_TIMEOUT, check=False
+            )
+        except (OSError, subprocess.TimeoutExpired) as err:
+            raise KernelUnavailable(f"compiler {compiler[0]!r} failed to run: {err}") from err
+        if out.returncode != 0:
+            msg = (out.stderr or out.stdout).strip().splitlines()[:3]
+            raise KernelUnavailable(f"compilation with {compiler[0]!r} failed: {msg}")
+        os.replace(tmp, target)  # atomic: a concurrent build replaces an equal file
+        os.replace(c_file, target.with_suffix(".c"))
+    finally:
+        for leftover in (c_file, tmp):
+            leftover.unlink(missing_ok=True)
+
+
+def build_kernel(system, dt: float) -> Kernel:
+    """The compiled kernel of ``system`` at time step ``dt`` [s], from the cache if there.
+
+    Raises:
+        KernelUnavailable: no compiler found, compilation failed or the library did not load.
+    """
+    start = time.perf_counter()
+    source = kernel_source(system, dt)
+    compiler_env = os.environ.get("CC", "")
+    key = hashlib.sha256((source + "\0" + " ".join(FLAGS)).encode()).hexdigest()[:24]
+    lib = _LOADED.get(key)
+    if lib is not None:
+        path = Path(lib._name)
+        return Kernel(lib, path, key, True, time.perf_counter() - start)
+    path = cache_dir() / f"lfm_kernel_{key}.so"
+    hit = path.is_file()
+    if not hit:
+        try:
+            _compile(source, path, find_compiler())
+        except OSError:  # the cache is not writable: compile into a private directory
+            path = Path(tempfile.mkdtemp(prefix="lfm-kernel-")) / path.name
+            _compile(source, path, find_compiler())
+    try:
+        lib = ctypes.CDLL(str(path))
+    except OSError as err:
+        raise KernelUnavailable(f"cannot load {path}: {err} (CC={compiler_env!r})") from err
+    _declare(lib)
+    _LOADED[key] = lib
+    return Kernel(lib, path, key, hit, time.perf_counter() - start)
+
+
+def forget_loaded() -> None:
+    """Forget the libraries loaded by this process (the next build looks at the disk again)."""
+    _LOADED.clear()
+
+
+def _declare(lib: ctypes.CDLL) -> None:
+    """Argument types of the driver's entry points."""
+    L, P, D = ctypes.c_long, ctypes.c_void_p, ctypes.c_double
+    lib.lfm_rollout.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P]
+    lib.lfm_linearise.argtypes = [L, L, P, P, L, L, L, P, P, P, D, P, P, P, P]
+    lib.lfm_hessian.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, P, D, P, P]
+    lib.lfm_linear_change.argtypes = [L, L, P, P, P, P]
+    for fn in (lib.lfm_rollout, lib.lfm_linearise, lib.lfm_hessian, lib.lfm_linear_change):
+        fn.restype = ctypes.c_int
+
+
+def ptr(a: np.ndarray | None) -> int | None:
+    """The data address of a C-contiguous float64 array (``None`` for ``None``)."""
+    if a is None:
+        return None
+    if a.dtype != np.float64 or not a.flags.c_contiguous:
+        raise ValueError(f"kernel array: must be C-contiguous float64, got {a.dtype}")
+    return a.ctypes.data
+
+
+# The driver. Layouts (C order): x0T (NX, Ns); W any (strides sa, sk, si of force
+# component, step, scenario, in elements); u (N NU); goal (NX);
+# Wq (N, NX, NX) state weights of steps 1..N; X (N+1, NX, Ns); G (NG, N, Ns);
+# A (N, Ns, NX, NX); S (N, Ns, NX, N NU); Jg (N, Ns, NG, NX); mu (NG, N, Ns); H (N NU, N NU).
+_DRIVER = r"""
+#include <stdlib.h>
+#include <string.h>
+#define NZ (NX + NU)
+
+typedef int (*cfun)(const casadi_real**, casadi_real**, casadi_int*, casadi_real*, int);
+typedef struct {
+  const casadi_real** arg; casadi_real** res; casadi_int* iw; casadi_real* w;
+} work_t;
+
+static int work_alloc(work_t* wk) {
+  casadi_int a = 0, r = 0, i = 0, w = 0, sa, sr, si, sw;
+#define W(f) f##_work(&sa, &sr, &si, &sw); a = a > sa ? a : sa; r = r > sr ? r : sr; \
+  i = i > si ? i : si; w = w > sw ? w : sw;
+  @WORK@
+#undef W
+  wk->arg = malloc((a + 1) * sizeof(void*));
+  wk->res = malloc((r + 1) * sizeof(void*));
+  wk->iw = malloc((i + 1) * sizeof(casadi_int));
+  wk->w = malloc((w + 1) * sizeof(casadi_real));
+  return wk->arg && wk->res && wk->iw && wk->w ? 0 : 1;
+}
+
+static void work_free(work_t* wk) { free(wk->arg); free(wk->res); free(wk->iw); free(wk->w); }
+
+#define CALL1(f, a0, r0) (wk.arg[0] = (a0), wk.res[0] = (r0), f(wk.arg, wk.res, wk.iw, wk.w, 0))
+#define CALL2(f, a0, a1, r0) (wk.arg[1] = (a1), CALL1(f, a0, r0))
+#define CALL3(f, a0, a1, a2, r0) (wk.arg[2] = (a2), CALL2(f, a0, a1, r0))
+#define CALL4(f, a0, a1, a2, a3, r0) (wk.arg[3] = (a3), CALL3(f, a0, a1, a2, r0))
+#define CALL5(f, a0, a1, a2, a3, a4, r0) (wk.arg[4] = (a4), CALL4(f, a0, a1, a2, a3, r0))
+
+/* The input-only parts p of a step function for every step k: P (N, np); NULL on failure. */
+static double* parametric(work_t* wk, cfun f, long np, long n, const double* u) {
+  double* P = malloc((n * np + 1) * sizeof(double));
+  if (!P) return NULL;
+  for (long k = 0; k < n; ++k) {
+    wk->arg[0] = u + k * NU;
+    wk->res[0] = P + k * np;
+    if (f(wk->arg, wk->res, wk->iw, wk->w, 0)) { free(P); return NULL; }
+  }
+  return P;
+}
+
+/* Weighted state error: out = scale Wk (x - goal); returns (x - goal)' Wk (x - goal). */
+static double weighted(const double* x, const double* goal, const double* Wk, double scale,
+                       double* out) {
+  double e[NX], c = 0.0;
+  for (int m = 0; m < NX; ++m) e[m] = x[m] - goal[m];
+  for (int m = 0; m < NX; ++m) {
+    double s = 0.0;
+    for (int r = 0; r < NX; ++r) s += Wk[m * NX + r] * e[r];
+    if (out) out[m] = scale * s;
+    c += e[m] * s;
+  }
+  return c;
+}
+
+/* The force of step k, scenario i: W[a sa + k sk + i si] (strides in elements). */
+static const double* gather(const double* W, long sa, long sk, long si, long k, long i,
+                            double* wv) {
+  for (int a = 0; a < NW; ++a) wv[a] = W[a * sa + k * sk + i * si];
+  return wv;
+}
+
+static void load_state(const double* X, long k, long ns, long i, double* x) {
+  for (int m = 0; m < NX; ++m) x[m] = X[(k * NX + m) * ns + i];
+}
+
+/* Sum of a[p] b[p], p < len, in four interleaved partial sums. */
+static double dot(const double* a, const double* b, long len) {
+  double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
+  long p = 0;
+  for (; p + 4 <= len; p += 4) {
+    s0 += a[p] * b[p];
+    s1 += a[p + 1] * b[p + 1];
+    s2 += a[p + 2] * b[p + 2];
+    s3 += a[p + 3] * b[p + 3];
+  }
+  for (; p < len; ++p) s0 += a[p] * b[p];
+  return (s0 + s1) + (s2 + s3);
+}
+
+CASADI_SYMBOL_EXPORT int lfm_rollout(long n, long ns, const double* x0T, const double* W,
+    long sa, long sk, long si, const double* u, const double* goal, const double* Wq,
+    double* X, double* G, double* cost) {
+  /* The states X (N+1, NX, Ns), constraint values G (NG, N, Ns) of every scenario and the
+     state cost summed over them, sum_i sum_k (x_k - goal)' Wq_k (x_k - goal). */
+  work_t wk;
+  if (work_alloc(&wk)) return 1;
+  double* P = parametric(&wk, lfm_step_pre, NP_STEP, n, u);
+  if (!P) { work_free(&wk); return 1; }
+  double x[NX], xn[NX], wv[NW + 1], c = 0.0;
+  int status = 0;
+  for (long i = 0; i < ns && !status; ++i) {
+    for (int m = 0; m < NX; ++m) X[m * ns + i] = x[m] = x0T[m * ns + i];
+    for (long k = 0; k < n && !status; ++k) {
+      gather(W, sa, sk, si, k, i, wv);
+      status = CALL4(lfm_step, x, u + k * NU, wv, P + k * NP_STEP, xn);
+      for (int m = 0; m < NX; ++m) X[((k + 1) * NX + m) * ns + i] = x[m] = xn[m];
+      c += weighted(x, goal, Wq + k * NX * NX, 1.0, NULL);
+#if NG > 0
+      double g[NG];
+      status |= CALL1(lfm_con, x, g);
+      for (int j = 0; j < NG; ++j) G[(j * n + k) * ns + i] = g[j];
+#endif
+    }
+  }
+  *cost = c;
+  free(P);
+  work_free(&wk);
+  return status;
+}
+
+CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const double* W,
+    long sa, long sk, long si, const double* u, const double* goal, const double* Wq,
+    double scale, double* A, double* S, double* Jg, double* grad) {
+  /* A, S, Jg and the state part of the gradient, sum_i sum_k S_k' scale Wq_k (x_k - goal). */
+  work_t wk;
+  if (work_alloc(&wk)) return 1;
+  double* P = parametric(&wk, lfm_step_jac_pre, NP_STEP_JAC, n, u);
+  if (!P) { work_free(&wk); return 1; }
+  const long nut = n * NU;
+  double x[NX], J[NX * NZ], gx[NX], wv[NW + 1];
+  int status = 0;
+  memset(grad, 0, nut * sizeof(double));
+  for (long i = 0; i < ns && !status; ++i) {
+    for (long k = 0; k < n && !status; ++k) {
+      load_state(X, k, ns, i, x);
+      gather(W, sa, sk, si, k, i, wv);
+      status = CALL4(lfm_step_jac, x, u + k * NU, wv, P + k * NP_STEP_JAC, J);
+      double* Ak = A + (k * ns + i) * NX * NX;
+      for (int r = 0; r < NX; ++r)
+        for (int c = 0; c < NX; ++c) Ak[r * NX + c] = J[r + c * NX];
+      double* Sk = S + (k * ns + i) * NX * nut;
+      const double* Sp = S + ((k - 1) * ns + i) * NX * nut;
+      const long cols = k * NU; /* causal: S_{k+1} = A_k S_k (first k NU columns) + B_k */
+      for (int r = 0; r < NX; ++r) {
+        double* row = Sk + r * nut;
+        for (long c = 0; c < cols; ++c) {
+          double s = 0.0;
+          for (int m = 0; m < NX; ++m) s += Ak[r * NX + m] * Sp[m * nut + c];
+          row[c] = s;
+        }
+        for (int b = 0; b < NU; ++b) row[cols + b] = J[r + (NX + b) * NX];
+        for (long c = cols + NU; c < nut; ++c) row[c] = 0.0;
+      }
+      load_state(X, k + 1, ns, i, x);
+#if NG > 0
+      double jg[NG * NX];
+      status |= CALL1(lfm_con_jac, x, jg);
+      double* Jk = Jg + (k * ns + i) * NG * NX;
+      for (int j = 0; j < NG; ++j)
+        for (int m = 0; m < NX; ++m) Jk[j * NX + m] = jg[j + m * NG];
+#endif
+      weighted(x, goal, Wq + k * NX * NX, scale, gx);
+      for (int r = 0; r < NX; ++r)
+        for (long c = 0; c < cols + NU; ++c) grad[c] += gx[r] * Sk[r * nut + c];
+    }
+  }
+  free(P);
+  work_free(&wk);
+  return status;
+}
+
+CASADI_SYMBOL_EXPORT int lfm_linear_change(long n, long ns, const double* S,
+    const double* Jg, const double* d, double* out) {
+  /* out (N, Ns, NG) = Jg_k S_k d: the first-order change of every constraint value along
+     the input step d (causal: S_k d over the first k NU inputs only). */
+  const long nut = n * NU;
+  for (long k = 0; k < n; ++k)
+    for (long i = 0; i < ns; ++i) {
+      const double* Sk = S + (k * ns + i) * NX * nut;
+      const double* Jk = Jg + (k * ns + i) * NG * NX;
+      double sd[NX];
+      for (int m = 0; m < NX; ++m) sd[m] = dot(Sk + m * nut, d, (k + 1) * NU);
+      for (int j = 0; j < NG; ++j) {
+        double s = 0.0;
+        for (int m = 0; m < NX; ++m) s += Jk[j * NX + m] * sd[m];
+        out[(k * ns + i) * NG + j] = s;
+      }
+    }
+  return 0;
+}
+
+/* Phase 1 of the Hessian: the adjoints lambda and the step Hessians M (N, Ns, NZ, NZ). */
+static int step_hessians(work_t* wkp, long n, long ns, const double* X, const double* W,
+    long sa, long sk, long si, const double* u, const double* P, const double* A,
+    const double* Jg, const double* mu, const double* goal, const double* Wq, double scale,
+    double* lam, double* M) {
+  work_t wk = *wkp;
+  double x[NX], wv[NW + 1];
+  for (long i = 0; i < ns; ++i) {
+    /* lam_k = dl/dx_{k+1} + Jg' mu + A_{k+1}' lam_{k+1} (lam_k: the state of step k+1) */
+    for (long k = 0; k < n; ++k) {
+      load_state(X, k + 1, ns, i, x);
+      double* lk = lam + k * NX;
+      weighted(x, goal, Wq + k * NX * NX, scale, lk);
+#if NG > 0
+      if (mu) {
+        const double* Jk = Jg + (k * ns + i) * NG * NX;
+        for (int j = 0; j < NG; ++j) {
+          const double mj = mu[(j * n + k) * ns + i];
+          if (mj != 0.0)
+            for (int m = 0; m < NX; ++m) lk[m] += mj * Jk[j * NX + m];
+        }
+      }
+#endif
+    }
+    for (long k = n - 2; k >= 0; --k) {
+      const double* Ak = A + ((k + 1) * ns + i) * NX * NX;
+      for (int m = 0; m < NX; ++m) {
+        double s = 0.0;
+        for (int r = 0; r < NX; ++r) s += lam[(k + 1) * NX + r] * Ak[r * NX + m];
+        lam[k * NX + m] += s;
+      }
+    }
+    for (long k = 0; k < n; ++k) {
+      load_state(X, k, ns, i, x);
+      gather(W, sa, sk, si, k, i, wv);
+      if (CALL5(lfm_step_hess, x, u + k * NU, wv, P + k * NP_STEP_HESS, lam + k * NX,
+                M + (k * ns + i) * NZ * NZ)) return 1;
+    }
+  }
+  return 0;
+}
+
+/* The state curvature of step j, scenario i: scale Wq + M_j[x, x] + Hessian of mu' g. */
+static int state_curvature(work_t* wkp, long n, long ns, long j, long i, const double* X,
+    const double* M, const double* mu, const double* Wq, double scale, double* Mxx) {
+  work_t wk = *wkp;
+  const double* Wk = Wq + (j - 1) * NX * NX;
+  for (int a = 0; a < NX * NX; ++a) Mxx[a] = scale * Wk[a];
+  if (j < n) {
+    const double* Mj = M + (j * ns + i) * NZ * NZ;
+    for (int r = 0; r < NX; ++r)
+      for (int c = 0; c < NX; ++c) Mxx[r * NX + c] += Mj[r + c * NZ];
+  }
+#if NG > 0
+  if (mu) {
+    double mk[NG], hg[NX * NX], x[NX];
+    int any = 0;
+    for (int q = 0; q < NG; ++q) any |= (mk[q] = mu[(q * n + j - 1) * ns + i]) != 0.0;
+    if (any) {
+      load_state(X, j, ns, i, x);
+      if (CALL2(lfm_con_hess, x, mk, hg)) return 1;
+      for (int r = 0; r < NX; ++r)
+        for (int c = 0; c < NX; ++c) Mxx[r * NX + c] += hg[r + c * NX];
+    }
+  }
+#else
+  (void)X; (void)mu; (void)wk;
+#endif
+  return 0;
+}
+
+CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const double* W,
+    long sa, long sk, long si, const double* u, const double* A, const double* S,
+    const double* Jg, const double* mu, const double* goal, const double* Wq, double scale,
+    double* H, double* blocks) {
+  /* sum over scenarios of the Hessian of (cost + mu' G) w.r.t. u, without the input cost:
+     sum_j S_j' Mxx_j S_j (S_j stacked over scenarios: one product of length Ns NX per
+     entry) + the cross terms S_k' M_k[x, u] + M_k[u, u]. Upper triangle, then mirrored.
+     With blocks (N, Ns NX, N NU) given, the products S_j' (Mxx_j S_j) are left to the
+     caller (one matrix product per step): blocks[j - 1] = Mxx_j S_j, first j NU columns. */
+  work_t wk;
+  if (work_alloc(&wk)) return 1;
+  const long nut = n * NU, rows = ns * NX;
+  double* P = parametric(&wk, lfm_step_hess_pre, NP_STEP_HESS, n, u);
+  const long own = blocks ? 0 : 2 * nut * rows;
+  double* M = malloc((n * ns * NZ * NZ + n * NX + own + 1) * sizeof(double));
+  if (!P || !M) { free(P); free(M); work_free(&wk); return 1; }
+  double* lam = M + n * ns * NZ * NZ;
+  double Mxx[NX * NX];
+  int status = step_hessians(&wk, n, ns, X, W, sa, sk, si, u, P, A, Jg, mu, goal, Wq, scale,
+                             lam, M);
+  memset(H, 0, nut * nut * sizeof(double));
+  for (long j = 1; j <= n && !status; ++j) {
+    const long cols = j * NU;
+    double* St = lam + n * NX; /* S_j' (cols, Ns NX) */
+    double* Tt = St + nut * rows; /* (Mxx_j S_j)' */
+    double* Tb = blocks ? blocks + (j - 1) * rows * nut : NULL; /* Mxx_j S_j (Ns NX, nut) */
+    for (long i = 0; i < ns && !status; ++i) {
+      status = state_curvature(&wk, n, ns, j, i, X, M, mu, Wq, scale, Mxx);
+      const double* Sj = S + ((j - 1) * ns + i) * NX * nut;
+      const double* Mj = M + (j * ns + i) * NZ * NZ; /* step j's Hessian (j < N) */
+      for (long c = 0; c < cols; ++c) {
+        double sc[NX];
+        for (int r = 0; r < NX; ++r) sc[r] = Sj[r * nut + c];
+        for (int m = 0; m < NX; ++m) {
+          double t = 0.0;
+          for (int r = 0; r < NX; ++r) t += Mxx[m * NX + r] * sc[r];
+          if (Tb) {
+            Tb[(i * NX + m) * nut + c] = t;
+          } else {
+            St[c * rows + i * NX + m] = sc[m];
+            Tt[c * rows + i * NX + m] = t;
+          }
+        }
+        if (j < n) /* cross terms of step j: S_j' M_j[x, u] into columns j NU.. */
+          for (int b = 0; b < NU; ++b) {
+            double x = 0.0;
+            for (int r = 0; r < NX; ++r) x += sc[r] * Mj[r + (NX + b) * NZ];
+            H[c * nut + j * NU + b] += x;
+          }
+      }
+    }
+    if (!blocks)
+      for (long a = 0; a < cols; ++a)
+        for (long b = a; b < cols; ++b) H[a * nut + b] += dot(St + a * rows, Tt + b * rows, rows);
+  }
+  for (long k = 0; k < n; ++k)
+    for (long i = 0; i < ns; ++i) {
+      const double* Mk = M + (k * ns + i) * NZ * NZ;
+      for (int a = 0; a < NU; ++a)
+        for (int b = a; b < NU; ++b)
+          H[(k * NU + a) * nut + k * NU + b] += Mk[(NX + a) + (NX + b) * NZ];
+    }
+  for (long a = 0; a < nut; ++a)
+    for (long b = 0; b < a; ++b) H[a * nut + b] = H[b * nut + a];
+  free(P);
+  free(M);
+  work_free(&wk);
+  return status;
+}
+"""
+
+__all__ = [
+    "CACHE_ENV",
+    "Kernel",
+    "KernelUnavailable",
+    "build_kernel",
+    "cache_dir",
+    "find_compiler",
+    "forget_loaded",
+    "kernel_source",
+    "pointwise_functions",
+]

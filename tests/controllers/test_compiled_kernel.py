@@ -1,0 +1,281 @@
+"""The compiled C kernel of the condensed model against its NumPy reference.
+
+:class:`CondensedModel` evaluates the rollout, sensitivities, gradient and exact Lagrangian
+Hessian either with a C library generated from the system's CasADi expressions
+(``"compiled-c"``) or with NumPy (``"numpy-lanes"``, ``"casadi-vm"``). Checked here: the
+backends agree to 1e-12 on the recorded paper problems and on the point mass of
+``test_second_system.py``; without a working compiler the model really falls back to NumPy
+(the compiler is hidden, not mocked); the disk cache serves a second build without a
+compiler; two processes compiling the same kernel at once leave a valid library; the model
+and the solver pickle.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from controllers.problem import ScenarioProblem
+from controllers.solvers import make_solver
+from controllers.solvers.compiled import KernelUnavailable, forget_loaded
+from controllers.solvers.condensed import CondensedModel
+from controllers.solvers.fast_bicycle import BicycleCondensedModel
+from experiments.bench_problems import problem_from_config
+from tests.controllers.test_second_system import (
+    COST,
+    NS,
+    STARTS,
+    VARIANTS,
+    N,
+    point_mass,
+    point_mass_model,
+    sample_forces,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+DATA = dict(np.load(ROOT / "tests" / "data" / "recorded_problems.npz"))
+IDS = [f"seed{s}-step{k}" for s, k in zip(DATA["seed"], DATA["step"], strict=True)]
+RTOL = 1e-12  # relative to the largest entry of each compared array
+
+
+@pytest.fixture(scope="module")
+def paper() -> ScenarioProblem:
+    return problem_from_config(n_scenarios=150)
+
+
+@pytest.fixture(scope="module")
+def paper_models(paper: ScenarioProblem) -> dict[str, CondensedModel]:
+    return {k: CondensedModel(paper, kernel=k) for k in ("numpy", "c")}
+
+
+def _layouts(problem: ScenarioProblem, x0: np.ndarray, W: np.ndarray) -> tuple:
+    x0, W = problem.check_data(x0, W)
+    x0T = np.ascontiguousarray(x0.T)
+    W_steps = np.ascontiguousarray(W.transpose(1, 0, 2))
+    W_lanes = np.ascontiguousarray(W.transpose(2, 1, 0))
+    return x0, x0T, W_steps, W_lanes
+
+
+def _everything(model: CondensedModel, problem, x0, W, u, mu, backoff=None) -> dict:
+    """Every output of one SQP iteration of ``model`` at ``u``, with multipliers ``mu``."""
+    x0, x0T, W_steps, W_lanes = _layouts(problem, x0, W)
+    ro = model.evaluate(x0T, W_steps, u, model.state_cost0(x0), backoff)
+    lin = model.linearise(ro, W_lanes)
+    d = np.linspace(-0.1, 0.1, u.size)
+    pos = np.array([[j % max(problem.ng, 1), j % problem.horizon, 3 * j] for j in range(5)])
+    out = {
+        "merit": np.array([ro.merit]),
+        "X": ro.X,
+        "G": ro.G,
+        "A": lin.A,
+        "S": lin.S,
+        "Jg": lin.Jg,
+        "grad": lin.grad,
+        "H0": model.hessian(lin, np.zeros_like(mu), W_lanes),
+        "H": model.hessian(lin, mu, W_lanes),
+    }
+    if problem.ng:
+        out["rows"] = model.rows(lin, pos)[0]
+        out["linearised"] = model.linearised_values(lin, d)
+    return out
+
+
+def _multipliers(problem: ScenarioProblem, ns: int, seed: int) -> np.ndarray:
+    """Multipliers ``(ng, N, Ns)`` on a few scenario rows, as the QP gives them."""
+    rng = np.random.default_rng(seed)
+    mu = np.zeros((problem.ng, problem.horizon, ns))
+    if problem.ng:
+        k = 12
+        where = (rng.integers(0, problem.ng, k), rng.integers(0, problem.horizon, k))
+        mu[where + (rng.integers(0, ns, k),)] = rng.uniform(0.0, 50.0, k)
+    return mu
+
+
+def _assert_same(ref: dict, got: dict) -> None:
+    for key, a in ref.items():
+        b = got[key]
+        assert b.shape == a.shape, key
+        scale = max(float(np.max(np.abs(a), initial=0.0)), 1e-300)
+        err = float(np.max(np.abs(b - a), initial=0.0)) / scale
+        assert err <= RTOL, f"{key}: relative difference {err:.2e}"
+
+
+def test_the_compiled_kernel_is_used_when_a_compiler_is_there(paper_models) -> None:
+    model = paper_models["c"]
+    assert model.backend == "compiled-c"
+    assert model.kernel_error is None and model.compile_time > 0.0
+    assert paper_models["numpy"].backend == "numpy-lanes"
+
+
+@pytest.mark.parametrize("i", range(len(IDS)), ids=IDS)
+def test_compiled_equals_numpy_on_the_recorded_problems(i, paper, paper_models) -> None:
+    x0, W = DATA["x0"][i], DATA["W"][i]
+    mu = _multipliers(paper, W.shape[0], i)
+    backoff = None if i % 2 else np.full((paper.ng, paper.horizon, 1), 0.05)
+    for u in (DATA["reference_u"][i].ravel(), DATA["u_guess"][i].ravel()):
+        ref = _everything(paper_models["numpy"], paper, x0, W, u, mu, backoff)
+        _assert_same(ref, _everything(paper_models["c"], paper, x0, W, u, mu, backoff))
+
+
+@pytest.mark.parametrize("variant", sorted(VARIANTS))
+def test_compiled_equals_numpy_on_the_second_system(variant) -> None:
+    model = point_mass_model(point_mass(**VARIANTS[variant]))
+    problem = ScenarioProblem(model, COST, horizon=N, n_scenarios=NS, slack_penalty=1.0e3)
+    models = {k: CondensedModel(problem, kernel=k) for k in ("numpy", "vm", "c")}
+    models["c_products"] = CondensedModel(problem, kernel="c")
+    models["c_products"].blas_products = False  # the Hessian's products in C too
+    assert models["c"].backend == "compiled-c"
+    assert models["vm"].backend == "casadi-vm"
+    rng = np.random.default_rng(3)
+    for seed, x0 in enumerate(STARTS.values()):
+        W = sample_forces(model, seed)
+        u = rng.uniform(-2.0, 2.0, N * problem.nu)
+        mu = _multipliers(problem, NS, seed)
+        ref = _everything(models["numpy"], problem, x0, W, u, mu)
+        for name in ("vm", "c", "c_products"):
+            _assert_same(ref, _everything(models[name], problem, x0, W, u, mu))
+
+
+# ----------------------------------------------------------------------------- fallback
+
+
+@pytest.fixture
+def fresh_cache(tmp_path, monkeypatch) -> Path:
+    """An empty kernel cache, and no library loaded in this process (restored after)."""
+    monkeypatch.setenv("LFM_CACHE_DIR", str(tmp_path / "cache"))
+    forget_loaded()
+    yield tmp_path / "cache"
+    forget_loaded()
+
+
+@pytest.mark.parametrize("hide", ["missing_cc", "failing_cc", "empty_path"])
+def test_without_a_compiler_the_model_falls_back_to_numpy(
+    hide, paper, paper_models, fresh_cache, tmp_path, monkeypatch
+) -> None:
+    if hide == "missing_cc":
+        monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))
+    elif hide == "failing_cc":  # a real program that fails on every input
+        monkeypatch.setenv("CC", "false")
+    else:
+        monkeypatch.delenv("CC", raising=False)
+        monkeypatch.setenv("PATH", str(tmp_path))  # neither cc nor gcc on it
+    model = CondensedModel(paper)
+    assert model.backend == "numpy-lanes"
+    assert "compil" in model.kernel_error
+    assert not list(fresh_cache.glob("*.so"))
+    i = 2
+    mu = _multipliers(paper, 150, i)
+    u = DATA["reference_u"][i].ravel()
+    ref = _everything(paper_models["c"], paper, DATA["x0"][i], DATA["W"][i], u, mu)
+    _assert_same(ref, _everything(model, paper, DATA["x0"][i], DATA["W"][i], u, mu))
+    with pytest.raises(KernelUnavailable, match="compil"):
+        CondensedModel(paper, kernel="c")
+
+
+def test_an_unknown_kernel_is_named(paper, monkeypatch) -> None:
+    with pytest.raises(ValueError, match="kernel='fortran'"):
+        CondensedModel(paper, kernel="fortran")
+    monkeypatch.setenv("LFM_KERNEL", "gpu")
+    with pytest.raises(ValueError, match=r"\$LFM_KERNEL='gpu'.*one of"):
+        CondensedModel(paper)
+    monkeypatch.setenv("LFM_KERNEL", "numpy")
+    assert CondensedModel(paper).backend == "numpy-lanes"
+
+
+# ----------------------------------------------------------------------------- cache
+
+
+def test_the_disk_cache_serves_a_second_build_without_a_compiler(
+    paper, fresh_cache, tmp_path, monkeypatch
+) -> None:
+    first = CondensedModel(paper)
+    assert first.backend == "compiled-c" and not first.cache_hit
+    assert len(list(fresh_cache.glob("lfm_kernel_*.so"))) == 1
+    forget_loaded()
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))  # compiling would fail
+    second = CondensedModel(paper)
+    assert second.backend == "compiled-c" and second.cache_hit
+    # And within the process, without looking at the disk again.
+    assert CondensedModel(paper).cache_hit
+
+
+_BUILD = """
+import sys
+import numpy as np
+from controllers.solvers.condensed import CondensedModel
+from controllers.solvers.fast_bicycle import BicycleCondensedModel
+from experiments.bench_problems import problem_from_config
+data = dict(np.load(sys.argv[1]))
+p = problem_from_config(n_scenarios=150)
+m = CondensedModel(p, kernel="c")
+x0, W = p.check_data(data["x0"][0], data["W"][0])
+ro = m.evaluate(np.ascontiguousarray(x0.T), np.ascontiguousarray(W.transpose(1, 0, 2)),
+                data["reference_u"][0].ravel(), m.state_cost0(x0))
+lin = m.linearise(ro, np.ascontiguousarray(W.transpose(2, 1, 0)))
+H = m.hessian(lin, np.zeros((p.ng, p.horizon, 150)), np.ascontiguousarray(W.transpose(2, 1, 0)))
+print(m.backend, m.cache_hit, repr(float(ro.merit)), repr(float(np.abs(H).sum())))
+"""
+
+
+def test_two_processes_compiling_at_once_leave_a_valid_kernel(paper, paper_models, tmp_path):
+    env = {**os.environ, "LFM_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": str(ROOT)}
+    env.pop("LFM_KERNEL", None)
+    cmd = [sys.executable, "-c", _BUILD, str(ROOT / "tests" / "data" / "recorded_problems.npz")]
+    procs = [
+        subprocess.Popen(cmd, env=env, cwd=ROOT, stdout=subprocess.PIPE, text=True)
+        for _ in range(2)
+    ]
+    outputs = [p.communicate(timeout=600)[0].split() for p in procs]
+    assert all(p.returncode == 0 for p in procs)
+    x0, x0T, W_steps, W_lanes = _layouts(paper, DATA["x0"][0], DATA["W"][0])
+    m = paper_models["numpy"]
+    ro = m.evaluate(x0T, W_steps, DATA["reference_u"][0].ravel(), m.state_cost0(x0))
+    H = m.hessian(m.linearise(ro, W_lanes), np.zeros((paper.ng, paper.horizon, 150)), W_lanes)
+    for backend, _, merit, h_sum in outputs:
+        assert backend == "compiled-c"
+        assert float(merit) == pytest.approx(ro.merit, rel=RTOL)
+        assert float(h_sum) == pytest.approx(float(np.abs(H).sum()), rel=1e-12)
+    files = sorted(p.name for p in (tmp_path / "cache").iterdir())
+    assert len([f for f in files if f.endswith(".so")]) == 1, files  # no temporary left
+    third = subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, text=True, check=True)
+    assert third.stdout.split()[:2] == ["compiled-c", "True"]  # loads what they left
+
+
+# ----------------------------------------------------------------------------- pickling
+
+
+def test_the_model_and_the_solver_pickle_with_their_kernel(paper, paper_models) -> None:
+    model = pickle.loads(pickle.dumps(paper_models["c"]))
+    assert model.backend == "compiled-c" and model.cache_hit
+    i = 4
+    mu = _multipliers(paper, 150, i)
+    u = DATA["reference_u"][i].ravel()
+    ref = _everything(paper_models["c"], paper, DATA["x0"][i], DATA["W"][i], u, mu)
+    _assert_same(ref, _everything(model, paper, DATA["x0"][i], DATA["W"][i], u, mu))
+    bicycle = pickle.loads(pickle.dumps(BicycleCondensedModel(paper)))
+    assert bicycle.backend == "hand_written"  # its own derivatives: no kernel built
+    solver = pickle.loads(pickle.dumps(make_solver(paper, "fast")))
+    sol = solver.solve(DATA["x0"][i], DATA["W"][i], u_guess=DATA["u_guess"][i])
+    assert sol.extra["backend"] == "compiled-c"
+
+
+def test_the_fast_solver_reaches_the_same_plan_with_either_backend(paper, monkeypatch) -> None:
+    plans = {}
+    for kernel in ("numpy", "c"):
+        monkeypatch.setenv("LFM_KERNEL", kernel)
+        solver = make_solver(paper, "fast")
+        plans[kernel] = [
+            solver.solve(DATA["x0"][i], DATA["W"][i], u_guess=DATA["u_guess"][i])
+            for i in range(0, len(IDS), 3)
+        ]
+    assert {s.extra["backend"] for s in plans["c"]} == {"compiled-c"}
+    for a, b in zip(plans["numpy"], plans["c"], strict=True):
+        assert b.status == a.status
+        assert b.objective == pytest.approx(a.objective, rel=1e-9)
+        np.testing.assert_allclose(b.u, a.u, atol=1e-6)
