@@ -390,6 +390,11 @@ def _one_line(exc: BaseException) -> str:
 # --------------------------------------------------------------------------- one episode
 
 
+#: Scenarios of the plan kept per step in ``predicted_scenarios`` (the first ones: the
+#: scenarios are independent draws, so these are a random subset of the fan).
+SAVED_SCENARIOS = 20
+
+
 class _EpisodeRecorder:
     """Collects one episode step by step; a step is appended whole, so a partial record
     (after an exception) is still consistent."""
@@ -415,6 +420,7 @@ class _EpisodeRecorder:
                 "latent_force_est",
                 "latent_force_std",
                 "predicted",
+                "predicted_scenarios",
                 "solve_time",
                 "slack",
                 "solver_success",
@@ -452,6 +458,10 @@ class _EpisodeRecorder:
             "latent_force_est": self._force(agent_info.get("latent_force", no_force)),
             "latent_force_std": self._force(agent_info.get("latent_force_std", no_force)),
             "predicted": nan_pred if predicted is None else np.asarray(predicted)[0],
+            # A compact fan: the first SAVED_SCENARIOS predicted trajectories, float32.
+            "predicted_scenarios": (
+                nan_pred[None] if predicted is None else np.asarray(predicted)[:SAVED_SCENARIOS]
+            ).astype(np.float32),
             "solve_time": float(agent_info.get("solve_time", np.nan)),
             "slack": float(agent_info.get("slack", np.nan)),
             "solver_success": bool(agent_info.get("success", False)),
@@ -466,6 +476,16 @@ class _EpisodeRecorder:
         for k, v in values.items():
             self.lists[k].append(v)
         self.final_info = info
+
+    def _fan(self) -> np.ndarray:
+        """``(T, S, N+1, nx)`` float32 saved scenario predictions, NaN-padded to the widest
+        step's ``S`` (an agent's scenario count may change, e.g. after a fallback)."""
+        fans = self.lists["predicted_scenarios"]
+        width = max((len(f) for f in fans), default=1)
+        out = np.full((len(fans), width, self.horizon + 1, self.nx), np.nan, dtype=np.float32)
+        for k, f in enumerate(fans):
+            out[k, : len(f)] = f
+        return out
 
     def _excess_keys(self) -> tuple[str, ...]:
         """``info`` keys (and trajectory arrays) of the groups' excess: ``<group>_excess``."""
@@ -500,6 +520,7 @@ class _EpisodeRecorder:
             "latent_force_est": stack("latent_force_est", force),
             "latent_force_std": stack("latent_force_std", force),
             "predicted": stack("predicted", (0, self.horizon + 1, self.nx)),
+            "predicted_scenarios": self._fan(),
             "solve_time": stack("solve_time", (0,)),
             "slack": stack("slack", (0,)),
             "solver_success": stack("solver_success", (0,), bool),

@@ -43,7 +43,7 @@ from experiments.evaluation import tolerance_columns, violation_counts
 from lfm_env.config import WorldConfig, load_env_config, load_yaml
 from lfm_env.system import ControlSystem, split_unit
 
-REFERENCE_AGENT = "scenario"
+REFERENCE_AGENT = "scenario"  # the paper's agent: the default baseline and episode figures
 KNOWN_AGENT_ORDER = ("nominal", "pf", "scenario", "scenario_particles", "robust", "oracle")
 
 # Short labels for tables and axes; the oracle is an upper bound everywhere it appears.
@@ -734,7 +734,15 @@ class Document:
 
     # ---- HTML
 
-    def html(self, title: str) -> str:
+    def html(self, title: str, base_dir: str | Path | None = None) -> str:
+        """The document as one HTML page.
+
+        Args:
+            title: the page title.
+            base_dir: the folder the images' relative paths start from; each image is
+                embedded from there as a base64 ``data:`` URI (see :func:`embedded_image`),
+                so the page shows every figure alone. ``None`` links them instead.
+        """
         body = []
         for block in self.blocks:
             kind = block[0]
@@ -753,12 +761,52 @@ class Document:
                 )
                 body.append(f"<table><thead><tr>{head}</tr></thead><tbody>{rows}</tbody></table>")
             elif kind == "image":
-                src, cap = html.escape(block[1], quote=True), _inline_html(block[2])
+                src, caption = block[1], block[2]
+                if base_dir is not None:
+                    src, caption = embedded_image(Path(base_dir) / block[1], caption)
+                src, cap = html.escape(src, quote=True), _inline_html(caption)
                 body.append(
                     f'<figure><img src="{src}" alt="{html.escape(block[2], quote=True)}">'
                     f"<figcaption>{cap}</figcaption></figure>"
                 )
         return _HTML_TEMPLATE.format(title=html.escape(title), body="\n".join(body))
+
+
+#: Largest GIF embedded whole in report.html [bytes]; a larger one is shown as a still.
+GIF_EMBED_LIMIT = 6 * 1024**2
+
+_MIME = {".png": "image/png", ".gif": "image/gif", ".jpg": "image/jpeg", ".svg": "image/svg+xml"}
+
+
+def embedded_image(path: str | Path, caption: str) -> tuple[str, str]:
+    """A ``data:`` URI of an image file and its caption, for a self-contained page.
+
+    A GIF larger than :data:`GIF_EMBED_LIMIT` is replaced by a PNG still of its last
+    frame, and the caption says so (the GIF stays beside the report).
+
+    Raises:
+        FileNotFoundError: naming the image, if it does not exist.
+    """
+    import base64
+
+    path = Path(path)
+    data = path.read_bytes()
+    mime = _MIME.get(path.suffix.lower(), "application/octet-stream")
+    if mime == "image/gif" and len(data) > GIF_EMBED_LIMIT:
+        import io
+
+        import imageio.v3 as iio
+
+        last = iio.imread(path, index=-1)
+        buf = io.BytesIO()
+        iio.imwrite(buf, last[..., :3], extension=".png")
+        data, mime = buf.getvalue(), "image/png"
+        caption = (
+            f"STILL (last frame) of the animation: the GIF ({len(path.read_bytes()) / 1024**2:.1f}"
+            f" MB) is over the {GIF_EMBED_LIMIT / 1024**2:g} MB embedding limit and is at "
+            f"figures/{path.name} beside the report. {caption}"
+        )
+    return f"data:{mime};base64,{base64.b64encode(data).decode('ascii')}", caption
 
 
 _HTML_TEMPLATE = """<!DOCTYPE html>
@@ -890,23 +938,44 @@ def _reported(results: Results, metrics: Sequence[Metric]) -> list[Metric]:
     ]
 
 
-def _paired_section(doc: Document, results: Results) -> list[PairedDifference]:
-    doc.heading(f"Paired differences against {agent_label(REFERENCE_AGENT)}")
-    others = [a for a in results.agents if a != REFERENCE_AGENT]
-    if REFERENCE_AGENT not in results.agents or not others:
+def choose_baseline(results: Results, baseline: str | None = None) -> str:
+    """The agent of the paired differences: ``baseline``, else the paper's scenario agent
+    when the results hold it, else the first agent.
+
+    Raises:
+        ValueError: naming ``baseline`` and the results' agents, if it is not among them.
+    """
+    if baseline is None:
+        return REFERENCE_AGENT if REFERENCE_AGENT in results.agents else results.agents[0]
+    if baseline not in results.agents:
+        raise ValueError(
+            f"baseline {baseline!r} is not an agent of {results.directory}; choose one of "
+            + ", ".join(results.agents)
+        )
+    return baseline
+
+
+def _paired_section(
+    doc: Document, results: Results, baseline: str = REFERENCE_AGENT
+) -> list[PairedDifference]:
+    doc.heading(f"Paired differences against {agent_label(baseline)}")
+    others = [a for a in results.agents if a != baseline]
+    if baseline not in results.agents or not others:
         doc.paragraph(
-            f"Not available: the results need the `{REFERENCE_AGENT}` agent and at least one "
-            "other agent."
+            f"Not available: the results need the `{baseline}` agent and at least one other agent."
         )
         return []
     doc.paragraph(
-        f"Difference `agent - {REFERENCE_AGENT}` on the same env seeds (same disturbance and "
+        f"Difference `agent - {baseline}` on the same env seeds (same disturbance and "
         "noise), mean with a 95% bootstrap interval over seeds. Negative: the agent's value "
-        f"is lower than {REFERENCE_AGENT}'s. Only seeds where both episodes are error-free "
-        "and the metric is defined count."
+        f"is lower than {baseline}'s. Only seeds where both episodes are error-free "
+        "and the metric is defined count. The baseline is chosen with "
+        "`lfm-report --baseline NAME`."
     )
     metrics = _reported(results, paired_metrics(results.system))
-    found = {(a, m.column): paired_differences(results, m, a) for a in others for m in metrics}
+    found = {
+        (a, m.column): paired_differences(results, m, a, baseline) for a in others for m in metrics
+    }
     rows = []
     for m in metrics:
         cells = []
@@ -922,10 +991,10 @@ def _paired_section(doc: Document, results: Results) -> list[PairedDifference]:
             d = found[(agent, m.column)]
             n = len(d.seeds)
             if n == 0:
-                reading.append(f"{m.label}: no common seeds of {REFERENCE_AGENT} and {agent}.")
+                reading.append(f"{m.label}: no common seeds of {baseline} and {agent}.")
                 continue
             reading.append(
-                f"{REFERENCE_AGENT} has {m.fewer} than {agent_label(agent)} in "
+                f"{baseline} has {m.fewer} than {agent_label(agent)} in "
                 f"{d.reference_lower} of {_seeds(n)} (the opposite in {d.agent_lower}, "
                 f"equal in {d.ties})."
             )
@@ -1114,7 +1183,7 @@ def _default_figure_seed(results: Results, agent: str) -> tuple[int | None, str]
 
 def _metric_values(results: Results, column: str) -> dict[str, np.ndarray]:
     return {
-        agent_label(a, wrap=True): np.array([r.get(column, math.nan) for r in results.rows_of(a)])
+        agent_label(a): np.array([r.get(column, math.nan) for r in results.rows_of(a)])
         for a in results.agents
     }
 
@@ -1255,15 +1324,63 @@ def _figures_section(doc: Document, results: Results, figure_seed: int | None, g
             plots.save_figure(fig, results.directory / rel)
             doc.image(rel, "Constraint-group excess of all agents on the same seed.")
 
+    _fan_figure(doc, results, traj, main_agent, figure_seed, goal_state, goal_radius)
     if gif:
         frames = plots.replay_frames(traj["true_state"], cfg, caption=label)
+        width = frames[0].shape[1] if frames else 480
+        panels = plots.plan_panel_frames(
+            system, traj, size=(width, max(160, width // 3)), goal_state=goal_state,
+            goal_radius=goal_radius,
+        )  # fmt: skip
         rel = "figures/episode.gif"
-        plots.write_gif(frames, results.directory / rel, fps=1.0 / cfg.dt)
+        plots.write_gif(plots.stack_frames(frames, panels), results.directory / rel, 1.0 / cfg.dt)
         doc.image(
             rel,
             f"The episode replayed from its saved true states ({len(frames)} frames, "
-            f"{1.0 / cfg.dt:g} frames/s), drawn by the world's own scene.",
+            f"{1.0 / cfg.dt:g} frames/s): above, the world's own scene; below, a camera "
+            "following the true state (green square) in the plane of the first two states, "
+            "with the estimate and its 2-sigma ellipse (red), the plan's scenario "
+            "predictions (blue) and their mean (navy) at each step.",
         )
+
+
+def _fan_figure(
+    doc: Document,
+    results: Results,
+    traj: dict[str, np.ndarray],
+    agent: str,
+    seed: int,
+    goal_state: np.ndarray,
+    goal_radius: float | None,
+) -> None:
+    """What the scenario MPC plans: the fan of scenario predictions at four steps."""
+    fig = plots.scenario_fan_figure(
+        results.system,
+        traj,
+        results.config.dt,
+        goal_state=goal_state,
+        goal_radius=goal_radius,
+        title=f"The plan's scenario fan - {agent_label(agent)}, seed {seed}",
+    )
+    if fig is None:
+        doc.paragraph(f"`{agent}` saved no predicted trajectories: no scenario-fan figure.")
+        return
+    fans, compact = plots.saved_fans(traj)
+    rel = f"figures/seed{seed}_{agent}_scenario_fan.png"
+    plots.save_figure(fig, results.directory / rel)
+    shown = (
+        f"up to {fans.shape[1]} of the plan's scenarios (the first ones saved per step)"
+        if compact
+        else "only the first scenario (this episode file predates the saved fans)"
+    )
+    doc.image(
+        rel,
+        "What scenario MPC does, at four steps of the episode: from the estimate (red, "
+        "2-sigma ellipse) one input sequence is planned for all scenarios of the latent "
+        f"force; each thin blue line is one scenario's predicted path ({shown}), the navy "
+        "line their mean; the true path so far (grey) and over the next horizon (green "
+        "dashed) with the infeasible region shaded. Equal axes: lengths to scale.",
+    )
 
 
 def _pooled_solve_times(results: Results, agent: str) -> np.ndarray:
@@ -1316,6 +1433,7 @@ def write_report(
     figure_seed: int | None = None,
     gif: bool = True,
     sweep_dir: str | Path | None = None,
+    baseline: str | None = None,
 ) -> Path:
     """Write ``report.md`` and ``report.html`` (same content) for a results folder.
 
@@ -1327,15 +1445,20 @@ def write_report(
         sweep_dir: a folder of the risk sweep (:mod:`experiments.sweep`) whose table and
             Pareto figure the report includes; by default ``results_dir`` itself when it
             holds a ``sweep.md``.
+        baseline: the agent every other one is compared with in the paired differences;
+            ``None`` for the scenario agent when the results hold it, else the first agent.
 
     Returns:
-        Path of ``report.md``; ``report.html`` and ``figures/`` are beside it.
+        Path of ``report.md`` (figures linked from ``figures/``); ``report.html`` beside
+        it holds every figure embedded, so it can be sent alone.
 
     Raises:
         FileNotFoundError: if the folder, ``episodes.csv`` or ``config.yaml`` is missing.
-        ValueError: if there are no episodes, or ``figure_seed`` has no saved trajectory.
+        ValueError: if there are no episodes, ``figure_seed`` has no saved trajectory, or
+            ``baseline`` is not an agent of the results (the message lists them).
     """
     results = load_results(results_dir)
+    baseline = choose_baseline(results, baseline)
     _check_figure_seed(results, figure_seed)  # before writing any file
     sweep = _load_sweep(results.directory, sweep_dir)
     stats = summarize(results)
@@ -1354,7 +1477,7 @@ def write_report(
     _model_section(doc, results)
     _summary_section(doc, results, stats)
     _errors_section(doc, results)
-    _paired_section(doc, results)
+    _paired_section(doc, results, baseline)
     if results.config.ENV_ID == PAPER_ENV_ID:
         _paper_vs_measured_section(doc, results, _pooled_solve_times(results, REFERENCE_AGENT))
     _calibration_section(doc, results)
@@ -1364,7 +1487,7 @@ def write_report(
 
     md_path = results.directory / "report.md"
     md_path.write_text(doc.markdown())
-    (results.directory / "report.html").write_text(doc.html(title))
+    (results.directory / "report.html").write_text(doc.html(title, results.directory))
     return md_path
 
 
@@ -1378,6 +1501,7 @@ __all__ = [
     "agent_label",
     "bootstrap_ci",
     "calibration",
+    "choose_baseline",
     "load_results",
     "load_trajectory",
     "group_metrics",
