@@ -809,8 +809,10 @@ def _warn(message: str) -> None:
     print(f"warning: {message}", file=sys.stderr, flush=True)
 
 
-def load_results(out: str | os.PathLike) -> list[dict[str, Any]]:
-    """Every saved row of a results folder, sorted by (agent, seed).
+def saved_rows(out: str | os.PathLike) -> list[dict[str, Any]]:
+    """Every saved row of a results folder, sorted by (agent, seed): the storage layer's
+    reader of the episode records (:func:`experiments.results.load_results` reads a folder
+    for analysis: its table, config and trajectories).
 
     Reads the episode json files (exact values; ``episodes.csv`` holds the same rows as
     text). Metrics of failed episodes are NaN; filter on ``row["error"] == ""``. Files
@@ -873,7 +875,7 @@ def write_table(out: str | os.PathLike, columns: Sequence[str] | None = None) ->
             rows hold). A column a row lacks (e.g. a group added since it was saved) is
             written as ``nan``.
     """
-    rows = load_results(out)
+    rows = saved_rows(out)
     if columns is None:
         columns = _folder_columns(Path(out)) or _table_columns(rows)
     buf = io.StringIO()
@@ -1180,7 +1182,7 @@ def evaluate(
         The rows (:func:`row_columns` of the config's system) of the requested episodes,
         sorted by (agent, seed), including those loaded from ``out``. Trajectories are not
         kept in memory; read them with :func:`load_trajectory`, all rows with
-        :func:`load_results`.
+        :func:`saved_rows`.
 
     Raises:
         ValueError: unknown agents, empty or negative seeds, a bad config, conflicting
@@ -1409,7 +1411,7 @@ __all__ = [
     "evaluate",
     "episode_stem",
     "group_columns",
-    "load_results",
+    "saved_rows",
     "load_trajectory",
     "parse_seeds",
     "resolve_config",
