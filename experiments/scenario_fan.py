@@ -234,14 +234,18 @@ def plan_panel_frames(
     fig.set_layout_engine("none")
     ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
     ax.set_axis_off()
-    # The region once, over the whole episode's plane; each frame only moves the camera.
-    full_x, full_y = _plane_limits(system, base, plane, [true[:, i]], [true[:, j]])
-    _draw_feasible_region(ax, system, base, plane, full_x, full_y, resolution=(1200, 400))
-    _draw_goal(ax, None if goal_state is None else base[[i, j]], goal_radius)
     reach = [np.ptp(_finite_fan(f, plane).reshape(-1, 2), axis=0).max() for f in fans if
              len(_finite_fan(f, plane))]  # fmt: skip
     half_x = max(float(np.median(reach)) if reach else 1.0, 0.5)
     aspect = size[1] / size[0]
+    # The region once, over the whole episode's plane and as far as the camera sees past
+    # it; each frame only moves the camera.
+    full_x, full_y = _plane_limits(system, base, plane, [true[:, i]], [true[:, j]])
+    reach_x, reach_y = 1.2 * half_x, 1.2 * aspect * half_x
+    full_x = (full_x[0] - reach_x, full_x[1] + reach_x)
+    full_y = (full_y[0] - reach_y, full_y[1] + reach_y)
+    _draw_feasible_region(ax, system, base, plane, full_x, full_y, resolution=(1200, 400))
+    _draw_goal(ax, None if goal_state is None else base[[i, j]], goal_radius)
     ax.plot(*true[:, [i, j]].T, color="green", ls="--", lw=1.0, alpha=0.6)
     fan_lines = LineCollection([], colors=FAN_COLOUR, linewidths=0.8, alpha=0.6, zorder=3)
     ax.add_collection(fan_lines)
@@ -251,7 +255,7 @@ def plan_panel_frames(
     ellipse = Ellipse((0.0, 0.0), 0.0, 0.0, facecolor="red", alpha=0.25, lw=0, zorder=5)
     ax.add_patch(ellipse)
     ax.text(
-        0.01, 0.03, "estimate 2-sigma (red), scenario fan (blue), mean plan (navy)",
+        0.01, 0.03, "true state (green), estimate 2-sigma (red), scenario fan (blue), mean (navy)",
         transform=ax.transAxes, fontsize=7, color="0.2",
     )  # fmt: skip
     frames = []
@@ -268,8 +272,8 @@ def plan_panel_frames(
         else:
             dot.set_data([], [])
             ellipse.set_width(0.0)
-        ax.set_xlim(state[i] - 1.2 * half_x, state[i] + 1.2 * half_x)
-        ax.set_ylim(state[j] - 1.2 * aspect * half_x, state[j] + 1.2 * aspect * half_x)
+        ax.set_xlim(state[i] - reach_x, state[i] + reach_x)
+        ax.set_ylim(state[j] - reach_y, state[j] + reach_y)
         fig.canvas.draw()
         frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
     return frames
