@@ -13,7 +13,7 @@ from matplotlib.patches import Patch
 from experiments.figures import agent_colour, new_figure, unit_of
 from lfm_env.system import split_unit
 
-TICK_LABEL_CHARS = 22  # longest tick label of an agent; longer ones keep their end
+TICK_LABEL_CHARS = 30  # longest tick label of an agent; longer ones keep their end
 
 
 def tick_label(label: str) -> str:

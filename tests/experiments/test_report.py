@@ -595,9 +595,9 @@ def test_html_alone_shows_every_figure(report_path, tmp_path):
 
 
 def test_a_gif_over_the_limit_is_embedded_as_a_labelled_still(results_copy, monkeypatch):
-    from experiments import report
+    from experiments import document
 
-    monkeypatch.setattr(report, "GIF_EMBED_LIMIT", 1000)
+    monkeypatch.setattr(document, "GIF_EMBED_LIMIT", 1000)
     path = write_report(results_copy)
     html = path.with_suffix(".html").read_text()
     assert "data:image/gif" not in html
