@@ -1362,8 +1362,8 @@ def test_library_code_loads_nothing_unsafely():
     config_source = sources["config.py"]
     assert "yaml.safe_load(fh)" in config_source or "yaml.SafeLoader(" in config_source
     assert "np.load(path, allow_pickle=False)" in sources["evaluation.py"]
-    # The report loads episodes through the evaluation's checked loader.
-    assert "from experiments.evaluation import load_trajectory" in sources["report.py"]
+    # The report reads episodes (experiments.results) through the evaluation's checked loader.
+    assert "from experiments.evaluation import load_trajectory" in sources["results.py"]
 
 
 def test_the_scanner_finds_what_it_looks_for(tmp_path):
