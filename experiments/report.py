@@ -1073,7 +1073,8 @@ def _fan_figure(
     )
     doc.image(
         rel,
-        "What scenario MPC does, at four steps of the episode: from the estimate (red, "
+        f"What the MPC of {agent_label(agent)} plans, at four steps of the episode (for the "
+        "scenario MPC, its scenario fan): from the estimate (red, "
         "2-sigma ellipse) one input sequence is planned for all scenarios of the latent "
         f"force; each thin blue line is one scenario's predicted path ({shown}), the navy "
         "line their mean; the true path so far (grey) and over the next horizon (green "
