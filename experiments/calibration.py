@@ -24,7 +24,7 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
-from experiments.cli import check_writable, one_line_errors
+from experiments.cli import check_writable, config_file, one_line_errors, preset_names
 from lfm_env.config import DisturbanceConfig, EnvConfig, load_env_config
 from lfm_env.gp import StateSpaceKernel
 
@@ -270,10 +270,14 @@ def main(argv: list[str] | None = None) -> int:
             "[(m/s^2)^2] and lengthscale [s] by maximum likelihood (Kalman filter on speed "
             "and latent state). Writes a config whose agents model the learned force."
         ),
-        epilog="example: lfm-calibrate --config configs/paper.yaml --seeds 100:105 "
-        "--out results/learned.yaml",
+        epilog="example: lfm-calibrate --config paper --seeds 100:105 --out results/learned.yaml",
     )
-    parser.add_argument("--config", default="configs/paper.yaml", help="config YAML")
+    parser.add_argument(
+        "--config",
+        metavar="NAME|YAML",
+        default="paper",
+        help=f"a preset's name ({', '.join(preset_names())}) or a config file (default: paper)",
+    )
     parser.add_argument(
         "--seeds",
         default="1000:1005",
@@ -284,6 +288,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         seeds = parse_seeds(args.seeds)
+        args.config = str(config_file(args.config))
         env_config = load_env_config(args.config)
     except ValueError as exc:
         parser.error(" ".join(str(exc).split()))

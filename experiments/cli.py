@@ -18,10 +18,8 @@ import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-import controllers
-
-# configs/ next to the package (a source checkout or an editable install).
-_REPO_CONFIGS = Path(controllers.__file__).resolve().parent.parent / "configs"
+PRESETS_PACKAGE = "experiments.presets"  # the configs/ folder, shipped in the package
+DEFAULT_PRESET = "paper"
 
 _EVALUATE_EPILOG = """\
 files written (DIR is --out):
@@ -47,8 +45,9 @@ fallback_steps, filter_resets, slack_total, wall_time [s], error.
 
 examples:
   lfm-evaluate                                   paper config, seeds 0:20, 3 agents
-  lfm-evaluate --config configs/quick.yaml --seeds 0:5 --jobs 2
-  lfm-evaluate --config configs/quadrotor.yaml --agents nominal,scenario,oracle
+  lfm-evaluate --config quick --seeds 0:5 --jobs 2      a preset, by name
+  lfm-evaluate --config quadrotor --agents nominal,scenario,oracle
+  lfm-evaluate --config my/config.yaml --seeds 0:5      a config file, by path
   lfm-evaluate --agents scenario,oracle --seeds 0:10,20:25 --out results/sweep
   lfm-evaluate --agents nominal,mypkg.agents:MyAgent   your own agent next to nominal
   lfm-evaluate --dask-workers 2                  local Dask cluster on 127.0.0.1
@@ -121,30 +120,73 @@ def _positive_int(text: str) -> int:
     return value
 
 
-_DEFAULT_CONFIG = _REPO_CONFIGS / "paper.yaml"
+def _presets_folder() -> Path:
+    """The folder of the presets: the installed package's, else a checkout's ``configs/``.
+
+    A wheel ships ``configs/`` as the package ``experiments.presets``; an editable install
+    maps it there too. A source tree used without installing it (``PYTHONPATH=.``) has
+    no such package, and its ``configs/`` folder beside ``experiments/`` is used instead.
+    """
+    from importlib import resources
+
+    try:
+        return Path(str(resources.files(PRESETS_PACKAGE)))
+    except ModuleNotFoundError:
+        return Path(__file__).resolve().parent.parent / "configs"
+
+
+def preset_names() -> list[str]:
+    """The names of the shipped presets (``paper``, ``quick``, ``quadrotor``, ...), sorted."""
+    return sorted(p.stem for p in _presets_folder().glob("*.yaml"))
+
+
+def config_file(given: str | os.PathLike | None) -> Path:
+    """The config file of a ``--config`` value: a path to a YAML file, or a preset's name.
+
+    Every command with ``--config`` resolves it here. A path that names an existing file
+    wins; otherwise ``given`` is looked up among the presets shipped in the package
+    (``paper``, ``quick``, ``quadrotor``, with or without ``.yaml``), from any folder.
+
+    Args:
+        given: the option's value; ``None`` for the default preset (``paper``).
+
+    Raises:
+        ValueError: naming ``given`` and the preset names, if it is neither.
+    """
+    if given is None:
+        given = DEFAULT_PRESET
+    path = Path(given)
+    if path.is_file():
+        return path
+    name = path.name[: -len(".yaml")] if path.name.endswith(".yaml") else path.name
+    if path.parent == Path(".") and name in preset_names():
+        return _presets_folder() / f"{name}.yaml"
+    raise ValueError(
+        f"--config {str(given)[:200]}: no such file and no preset of that name; presets: "
+        f"{', '.join(preset_names())} (or a path to a YAML file)"
+    )
 
 
 def _add_config_argument(parser: argparse.ArgumentParser) -> None:
     """The ``--config`` option shared by the commands that run episodes."""
     parser.add_argument(
         "--config",
-        metavar="YAML",
+        metavar="NAME|YAML",
         default=None,
         help=(
-            f"config file with env_id, env and agents sections; env_id picks the world "
-            f"(default: {_DEFAULT_CONFIG} if present, else the built-in paper defaults)"
+            "a preset's name (" + ", ".join(preset_names()) + ") or a config file with "
+            f"env_id, env and agents sections; env_id picks the world (default: "
+            f"{DEFAULT_PRESET})"
         ),
     )
 
 
-def _config_path(parser: argparse.ArgumentParser, given: str | None) -> Path | None:
-    """The config file to use, or ``None`` for the built-in defaults; exits 2 if missing."""
-    if given is None:
-        return _DEFAULT_CONFIG if _DEFAULT_CONFIG.is_file() else None
-    path = Path(given)
-    if not path.is_file():
-        parser.error(f"--config {given}: no such file")
-    return path
+def _config_path(parser: argparse.ArgumentParser, given: str | None) -> Path:
+    """The config file of ``--config`` (:func:`config_file`); exits 2 if there is none."""
+    try:
+        return config_file(given)
+    except ValueError as exc:
+        parser.error(str(exc))
 
 
 def _evaluate_parser() -> argparse.ArgumentParser:
@@ -319,9 +361,12 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
 
 _REPORT_EPILOG = """\
 files written (DIR is the results folder):
-  DIR/report.md, DIR/report.html   the same report (HTML shows the PNGs beside it)
-  DIR/figures/*.png                figures of one episode, across-seed plots
-  DIR/figures/episode.gif          the episode replayed from its saved true states
+  DIR/report.md, DIR/report.html   the same report; report.md links the figures,
+                                   report.html embeds them all (it can be sent alone)
+  DIR/figures/*.png                figures of one episode (with the plan's scenario fan
+                                   at four steps), across-seed plots
+  DIR/figures/episode.gif          the episode replayed from its saved true states, with
+                                   the estimate and the scenario fan below the scene
   DIR/figures/estimator_calibration.png   coverage and RMSE of the filtering agents
   DIR/figures/sweep.png            the risk sweep's Pareto picture (with --sweep, or
                                    when DIR holds a sweep.md of lfm-sweep)
@@ -336,6 +381,7 @@ examples:
   lfm-report results/paper
   lfm-report results/quick --seed 3 --no-gif
   lfm-report results/paper --sweep results/sweep
+  lfm-report results/paper --baseline pf         paired differences against pf
 """
 
 
@@ -345,7 +391,7 @@ def _report_parser() -> argparse.ArgumentParser:
         description=(
             "Write report.md and report.html for a results folder of lfm-evaluate: per-agent\n"
             "means with 95% bootstrap intervals (constraint metrics per group of the world's\n"
-            "system), paired differences against the scenario agent, one episode's figures\n"
+            "system), paired differences against a baseline agent, one episode's figures\n"
             "drawn from the system (path in the plane of the first two states with the\n"
             "feasible region, latent force, inputs with bounds, other states, constraint\n"
             "excess), across-seed plots, a GIF of the episode and, for the sine track, a\n"
@@ -367,6 +413,15 @@ def _report_parser() -> argparse.ArgumentParser:
         ),
     )
     parser.add_argument("--no-gif", action="store_true", help="do not write figures/episode.gif")
+    parser.add_argument(
+        "--baseline",
+        metavar="NAME",
+        default=None,
+        help=(
+            "the agent the paired differences compare every other agent with (default: "
+            "scenario if DIR holds it, else the first agent)"
+        ),
+    )
     parser.add_argument(
         "--sweep",
         metavar="SWEEPDIR",
@@ -392,7 +447,11 @@ def report_main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         path = write_report(
-            args.results_dir, figure_seed=args.seed, gif=not args.no_gif, sweep_dir=args.sweep
+            args.results_dir,
+            figure_seed=args.seed,
+            gif=not args.no_gif,
+            sweep_dir=args.sweep,
+            baseline=args.baseline,
         )
     except (FileNotFoundError, ValueError) as exc:
         parser.error(" ".join(str(exc).split()))

@@ -401,6 +401,11 @@ def _one_line(exc: BaseException) -> str:
 # --------------------------------------------------------------------------- one episode
 
 
+#: Scenarios of the plan kept per step in ``predicted_scenarios`` (the first ones: the
+#: scenarios are independent draws, so these are a random subset of the fan).
+SAVED_SCENARIOS = 20
+
+
 class _EpisodeRecorder:
     """Collects one episode step by step; a step is appended whole, so a partial record
     (after an exception) is still consistent.
@@ -431,6 +436,7 @@ class _EpisodeRecorder:
                 "latent_force_est",
                 "latent_force_std",
                 "predicted",
+                "predicted_scenarios",
                 "solve_time",
                 "slack",
                 "solver_success",
@@ -470,6 +476,10 @@ class _EpisodeRecorder:
             "latent_force_est": self._force(self._get(agent_info, "latent_force", no_force)),
             "latent_force_std": self._force(self._get(agent_info, "latent_force_std", no_force)),
             "predicted": nan_pred if predicted is None else np.array(predicted, dtype=float)[0],
+            # A compact fan: the first SAVED_SCENARIOS predicted trajectories, float32.
+            "predicted_scenarios": (
+                nan_pred[None] if predicted is None else np.asarray(predicted)[:SAVED_SCENARIOS]
+            ).astype(np.float32),
             "solve_time": float(self._get(agent_info, "solve_time")),
             "slack": float(self._get(agent_info, "slack")),
             "solver_success": bool(self._get(agent_info, "success")),
@@ -504,6 +514,16 @@ class _EpisodeRecorder:
         std = np.full(est.shape, np.nan) if std is None else np.array(std, dtype=float)
         return est, std
 
+    def _fan(self) -> np.ndarray:
+        """``(T, S, N+1, nx)`` float32 saved scenario predictions, NaN-padded to the widest
+        step's ``S`` (an agent's scenario count may change, e.g. after a fallback)."""
+        fans = self.lists["predicted_scenarios"]
+        width = max((len(f) for f in fans), default=1)
+        out = np.full((len(fans), width, self.horizon + 1, self.nx), np.nan, dtype=np.float32)
+        for k, f in enumerate(fans):
+            out[k, : len(f)] = f
+        return out
+
     def _excess_keys(self) -> tuple[str, ...]:
         """``info`` keys (and trajectory arrays) of the groups' excess: ``<group>_excess``."""
         return tuple(f"{g}_excess" for g in self.groups)
@@ -537,6 +557,7 @@ class _EpisodeRecorder:
             "latent_force_est": stack("latent_force_est", force),
             "latent_force_std": stack("latent_force_std", force),
             "predicted": stack("predicted", (0, self.horizon + 1, self.nx)),
+            "predicted_scenarios": self._fan(),
             "solve_time": stack("solve_time", (0,)),
             "slack": stack("slack", (0,)),
             "solver_success": stack("solver_success", (0,), bool),
@@ -835,8 +856,10 @@ def _warn(message: str) -> None:
     print(f"warning: {message}", file=sys.stderr, flush=True)
 
 
-def load_results(out: str | os.PathLike) -> list[dict[str, Any]]:
-    """Every saved row of a results folder, sorted by (agent, seed).
+def saved_rows(out: str | os.PathLike) -> list[dict[str, Any]]:
+    """Every saved row of a results folder, sorted by (agent, seed): the storage layer's
+    reader of the episode records (:func:`experiments.results.load_results` reads a folder
+    for analysis: its table, config and trajectories).
 
     Reads the episode json files (exact values; ``episodes.csv`` holds the same rows as
     text). Metrics of failed episodes are NaN; filter on ``row["error"] == ""``. Files
@@ -899,7 +922,7 @@ def write_table(out: str | os.PathLike, columns: Sequence[str] | None = None) ->
             rows hold). A column a row lacks (e.g. a group added since it was saved) is
             written as ``nan``.
     """
-    rows = load_results(out)
+    rows = saved_rows(out)
     if columns is None:
         columns = _folder_columns(Path(out)) or _table_columns(rows)
     buf = io.StringIO()
@@ -1215,7 +1238,7 @@ def evaluate(
         The rows (:func:`row_columns` of the config's system) of the requested episodes,
         sorted by (agent, seed), including those loaded from ``out``. Trajectories are not
         kept in memory; read them with :func:`load_trajectory`, all rows with
-        :func:`load_results`.
+        :func:`saved_rows`.
 
     Raises:
         ValueError: unknown agents or a bad agent spec (naming it), empty or negative
@@ -1453,7 +1476,7 @@ __all__ = [
     "evaluate",
     "episode_stem",
     "group_columns",
-    "load_results",
+    "saved_rows",
     "load_trajectory",
     "parse_seeds",
     "resolve_config",

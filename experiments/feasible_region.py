@@ -248,16 +248,26 @@ def _plane_figure(
     ys = [p[:, 1] for p in pts] + ([goal[1:] - r, goal[1:] + r] if goal is not None else [])
     xlim, ylim = _plane_limits(system, base, plane, xs, ys)
     ratio = (ylim[1] - ylim[0]) / (xlim[1] - xlim[0])
-    fig = new_figure(11.0, float(np.clip(8.0 * ratio + 1.2, 3.6, 7.5)))
+    # Equal axes (same unit) draw the plane to scale: the figure is as tall as that needs.
+    low = 2.0 if _same_unit(system, plane) else 3.6
+    fig = new_figure(11.0, float(np.clip(8.0 * ratio + 1.2, low, 7.5)))
     ax = fig.add_subplot()
     _draw_feasible_region(ax, system, base, plane, xlim, ylim)
     _draw_goal(ax, goal, goal_radius)
     return fig, ax, xlim, ylim
 
 
+def _same_unit(system: ControlSystem, plane: tuple[int, int]) -> bool:
+    """Whether the plane's two states share a unit (then one metre is one metre)."""
+    units = [split_unit(system.state_names[i])[1] for i in plane]
+    return units[0] == units[1]
+
+
 def _finish_plane_axes(ax, system, plane, xlim, ylim, title: str) -> None:
     ax.set_xlim(*xlim)
     ax.set_ylim(*ylim)
+    if _same_unit(system, plane):  # lengths drawn to scale: the goal disc is a circle
+        ax.set_aspect("equal", adjustable="box")
     ax.set_xlabel(_axis_label(system.state_names[plane[0]]))
     ax.set_ylabel(_axis_label(system.state_names[plane[1]]))
     ax.grid(alpha=0.3)

@@ -54,7 +54,14 @@ from experiments.figures import (
     save_figure,
     unit_of,
 )
-from experiments.replay import annotate_frame, make_render_env, replay_frames, write_gif
+from experiments.replay import (
+    annotate_frame,
+    make_render_env,
+    replay_frames,
+    stack_frames,
+    write_gif,
+)
+from experiments.scenario_fan import plan_panel_frames, saved_fans, scenario_fan_figure
 from experiments.summary_plots import (
     calibration_figure,
     distribution_axes,
@@ -507,7 +514,11 @@ __all__ = [
     "new_figure",
     "pareto_figure",
     "paths_figure",
+    "plan_panel_frames",
     "replay_frames",
+    "saved_fans",
+    "scenario_fan_figure",
+    "stack_frames",
     "sample_times",
     "save_figure",
     "solve_time_figure",

@@ -114,6 +114,19 @@ def replay_frames(
     return frames
 
 
+def stack_frames(top: Sequence[np.ndarray], bottom: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """Frames of ``top`` over ``bottom``, pairwise (the shorter list sets the count); a
+    narrower frame is padded on the right with white to the wider one's width."""
+    out = []
+    for a, b in zip(top, bottom, strict=False):
+        a, b = np.asarray(a)[..., :3], np.asarray(b)[..., :3]
+        width = max(a.shape[1], b.shape[1])
+        pad = [np.pad(f, ((0, 0), (0, width - f.shape[1]), (0, 0)), constant_values=255)
+               for f in (a, b)]  # fmt: skip
+        out.append(np.concatenate(pad, axis=0).astype(np.uint8))
+    return out
+
+
 def write_gif(frames: Sequence[np.ndarray], path: str | Path, fps: float) -> Path:
     """Write RGB ``frames`` as a looping GIF at ``fps`` frames per second."""
     import imageio.v3 as iio

@@ -20,31 +20,55 @@ the tables, and the figures (:mod:`experiments.plots`). Only the "paper vs measu
 section is the sine track's own, and it is left out for other worlds.
 
 :func:`write_report` writes ``report.md`` and ``report.html`` (the same content) into the
-folder and the figures into ``DIR/figures/``.
+folder and the figures into ``DIR/figures/``; ``report.html`` embeds every figure, so it can
+be sent alone. Its pieces: :mod:`experiments.results` reads the folder,
+:mod:`experiments.stats` computes the metrics and intervals, :mod:`experiments.document`
+renders Markdown and HTML, :mod:`experiments.plots` draws.
 """
 
 from __future__ import annotations
 
-import csv
-import html
 import math
-import re
-import zipfile
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
-from functools import cached_property
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from experiments import plots
-from experiments.evaluation import tolerance_columns, violation_counts
-from lfm_env.config import WorldConfig, load_env_config, load_yaml
-from lfm_env.system import ControlSystem, split_unit
-
-REFERENCE_AGENT = "scenario"
-KNOWN_AGENT_ORDER = ("nominal", "pf", "scenario", "scenario_particles", "robust", "oracle")
+from experiments.document import GIF_EMBED_LIMIT, Document, embedded_image
+from experiments.evaluation import tolerance_columns
+from experiments.results import (
+    KNOWN_AGENT_ORDER,
+    Results,
+    load_results,
+    load_trajectory,
+    read_episodes_csv,
+)
+from experiments.stats import (
+    BOOTSTRAP_RESAMPLES,
+    BOOTSTRAP_SEED,
+    REFERENCE_AGENT,
+    TWO_SIGMA_COVERAGE,
+    Calibration,
+    Estimate,
+    Metric,
+    PairedDifference,
+    _beyond,
+    _key,
+    bootstrap_ci,
+    calibration,
+    group_metrics,
+    paired_differences,
+    paired_metrics,
+    paired_rows_difference,
+    pooled_ratio_ci,
+    summarize,
+    summary_metrics,
+    tolerance_metrics,
+    zero_violation_metrics,
+)
+from lfm_env.system import split_unit
 
 # Short labels for tables and axes; the oracle is an upper bound everywhere it appears.
 AGENT_SHORT_LABELS = {
@@ -58,187 +82,6 @@ AGENT_SHORT_LABELS = {
 
 PAPER_ENV_ID = "lfm_env/SineTrack-v0"  # the paper's world: "paper vs measured" only there
 PAPER_SPEED_EXCESS = 0.35  # [m/s] largest speed excess over the bound reported in the paper
-BOOTSTRAP_RESAMPLES = 2000
-BOOTSTRAP_SEED = 0
-
-
-@dataclass(frozen=True)
-class Metric:
-    """One column of ``episodes.csv`` as it appears in the report."""
-
-    column: str
-    label: str
-    unit: str = ""
-    lower_is_better: bool = True
-    fewer: str = ""  # plain-language comparative, e.g. "fewer track violation steps"
-    zero_count: bool = False  # the value is 1 where the column is 0, else 0 (a fraction)
-
-    @property
-    def title(self) -> str:
-        """Label with its unit in brackets."""
-        return f"{self.label} [{self.unit}]" if self.unit else self.label
-
-    def value(self, row: dict[str, Any]) -> float:
-        """The metric of one episode's row: the column, or whether it is 0; NaN if missing."""
-        v = row.get(self.column, math.nan)
-        v = math.nan if v is None else float(v)
-        if self.zero_count and not math.isnan(v):
-            return float(v == 0.0)
-        return v
-
-
-def group_metrics(system: ControlSystem) -> tuple[Metric, ...]:
-    """Per constraint group ``g`` of the system: violation steps, then the largest excess.
-
-    The columns are the evaluation's (``{g}_violation_steps``, ``max_{g}_excess``); the
-    excess is in the unit of the group's constraints (``system.constraint_names``).
-    """
-    out = []
-    for g in system.constraint_groups:
-        unit = plots.group_unit(system, g)
-        out.append(Metric(f"{g}_violation_steps", f"{g} violation steps", "steps"))
-        out.append(Metric(f"max_{g}_excess", f"max {g} excess", unit))
-    return tuple(out)
-
-
-def _beyond(system: ControlSystem, group: str, tolerance: float) -> str:
-    """``"> 0.01 m"``: a tolerance with its group's unit."""
-    unit = plots.group_unit(system, group)
-    return f"> {tolerance:g} {unit}" if unit else f"> {tolerance:g}"
-
-
-def tolerance_metrics(system: ControlSystem, group: str | None = None) -> tuple[Metric, ...]:
-    """Violation steps beyond each tolerance of ``system.violation_tolerances``.
-
-    The evaluation's ``{g}_violation_steps_over_{t:g}`` columns, labelled with the
-    tolerance and its unit ("track violation steps > 0.01 m").
-
-    Args:
-        system: the world's system.
-        group: only this group's; ``None`` for every group's, in the groups' order.
-    """
-    return tuple(
-        Metric(column, f"{g} violation steps {_beyond(system, g, t)}", "steps")
-        for g, t, column in tolerance_columns(system)
-        if group is None or g == group
-    )
-
-
-def zero_violation_metrics(system: ControlSystem, group: str) -> tuple[Metric, ...]:
-    """The fraction of episodes without violation steps of ``group``: raw, then per tolerance.
-
-    Each is the mean over episodes of "this episode has 0 such steps", so its bootstrap
-    interval is that of a proportion.
-    """
-    out = [
-        Metric(
-            f"{group}_violation_steps",
-            f"{group} zero-violation episodes",
-            lower_is_better=False,
-            zero_count=True,
-        )
-    ]
-    for g, t, column in tolerance_columns(system):
-        if g == group:
-            out.append(
-                Metric(
-                    column,
-                    f"{g} zero-violation episodes ({_beyond(system, g, t)})",
-                    lower_is_better=False,
-                    zero_count=True,
-                )
-            )
-    return tuple(out)
-
-
-def summary_metrics(system: ControlSystem) -> tuple[Metric, ...]:
-    """The rows of the per-agent table for a system: its group metrics among the fixed ones.
-
-    Per constraint group: violation steps, the largest excess, the violation steps beyond
-    each of its tolerances, then the zero-violation episodes (raw and per tolerance).
-    """
-    force = plots.force_unit(system)
-    groups = []
-    for g in system.constraint_groups:
-        groups += [Metric(f"{g}_violation_steps", f"{g} violation steps", "steps")]
-        groups += [Metric(f"max_{g}_excess", f"max {g} excess", plots.group_unit(system, g))]
-        groups += [*tolerance_metrics(system, g), *zero_violation_metrics(system, g)]
-    return (
-        Metric("success", "success rate", lower_is_better=False),
-        Metric("failure", "failure rate (the env ended the episode as a failure)"),
-        Metric("time_to_goal", "time to goal (successful episodes)", "s"),
-        Metric("cost", "cost (sum of stage costs)"),
-        *groups,
-        Metric("latent_rmse", "latent-force RMSE", force),
-        Metric("latent_coverage", "latent-force 2-sigma coverage", lower_is_better=False),
-        Metric("solve_time_median", "solve time, episode median", "s"),
-        Metric("solve_time_p95", "solve time, episode p95", "s"),
-        Metric("solver_failures", "solver failures", "steps"),
-        Metric("fallback_steps", "fallback steps", "steps"),
-        Metric("filter_resets", "particle-filter restarts", "per episode"),
-    )
-
-
-def paired_metrics(system: ControlSystem) -> tuple[Metric, ...]:
-    """The rows of the paired-difference table: cost, each group's metrics (with its
-    tolerance-aware violation steps), time to goal."""
-    groups = []
-    for m in group_metrics(system):
-        if m.column.startswith("max_"):
-            groups.append(Metric(m.column, m.label, m.unit, fewer=f"a smaller {m.label}"))
-            g = m.column[len("max_") : -len("_excess")]
-            for t in tolerance_metrics(system, g):
-                groups.append(Metric(t.column, t.label, t.unit, fewer=f"fewer {t.label}"))
-        else:
-            groups.append(Metric(m.column, m.label, m.unit, fewer=f"fewer {m.label}"))
-    return (
-        Metric("cost", "cost", fewer="a lower cost"),
-        *groups,
-        Metric("time_to_goal", "time to goal", "s", fewer="a shorter time to goal"),
-    )
-
-
-_TEXT_COLUMNS = ("agent", "error")
-_FALSY = ("", "0", "0.0", "false", "no", "none", "nan")
-
-
-# --------------------------------------------------------------------------- loading
-
-
-@dataclass
-class Results:
-    """The saved results of one evaluation run."""
-
-    directory: Path
-    rows: list[dict[str, Any]]  # one per episode; numbers as float, agent/error as str
-    config: WorldConfig  # the ``env`` section, as the config of the file's world (env_id)
-    agent_settings: dict = field(default_factory=dict)  # the ``agents`` section, plain
-
-    @cached_property
-    def system(self) -> ControlSystem:
-        """The world's system (labels, units, constraints, groups) of the run."""
-        return self.config.make_system()
-
-    @property
-    def agents(self) -> list[str]:
-        """Agent names, the known ones in their usual order, then the rest sorted."""
-        names = {r["agent"] for r in self.rows}
-        known = [a for a in KNOWN_AGENT_ORDER if a in names]
-        return known + sorted(names - set(known))
-
-    def rows_of(self, agent: str, include_errors: bool = False) -> list[dict[str, Any]]:
-        """Rows of ``agent`` sorted by seed; episodes with errors only if asked."""
-        rows = [r for r in self.rows if r["agent"] == agent and (include_errors or not r["error"])]
-        return sorted(rows, key=lambda r: r["seed"])
-
-    @property
-    def error_rows(self) -> list[dict[str, Any]]:
-        """Episodes that ended with an error, sorted by agent and seed."""
-        return sorted((r for r in self.rows if r["error"]), key=lambda r: (r["agent"], r["seed"]))
-
-    def trajectory_path(self, agent: str, seed: int) -> Path:
-        """Where the arrays of one episode are saved."""
-        return self.directory / "episodes" / f"{agent}__seed{seed}.npz"
 
 
 def agent_label(name: str, wrap: bool = False) -> str:
@@ -254,405 +97,6 @@ def _long_label(name: str) -> str:
     from controllers.agents import AGENT_LABELS
 
     return AGENT_LABELS.get(name, name)
-
-
-def _parse_value(column: str, text: str | None) -> Any:
-    """A CSV cell as float (booleans as 0/1, empty or "nan" as NaN); text columns as str."""
-    text = "" if text is None else text.strip()
-    if column in _TEXT_COLUMNS:
-        return "" if text.lower() in ("nan", "none") else text
-    if column == "seed":
-        return int(float(text))
-    low = text.lower()
-    if low in ("true", "yes"):
-        return 1.0
-    if low in ("false", "no"):
-        return 0.0
-    if low in ("", "nan", "none"):
-        return math.nan
-    try:
-        return float(text)
-    except ValueError:
-        # A free-text outcome (e.g. a failure reason) counts as "happened".
-        return 0.0 if low in _FALSY else 1.0
-
-
-def read_episodes_csv(path: str | Path) -> list[dict[str, Any]]:
-    """The rows of an ``episodes.csv``, parsed (see :func:`_parse_value`).
-
-    Raises:
-        FileNotFoundError: if the file does not exist.
-        ValueError: if it has no ``agent``/``seed`` columns or no rows.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no episodes table at {path}")
-    with path.open(newline="") as fh:
-        reader = csv.DictReader(fh)
-        missing = {"agent", "seed"} - set(reader.fieldnames or ())
-        if missing:
-            raise ValueError(f"{path}: missing column(s) {sorted(missing)}")
-        rows = []
-        for line in reader:
-            row = {k: _parse_value(k, v) for k, v in line.items() if k is not None}
-            row.setdefault("error", "")
-            rows.append(row)
-    if not rows:
-        raise ValueError(f"{path} holds no episodes")
-    return rows
-
-
-def load_results(results_dir: str | Path) -> Results:
-    """Load ``episodes.csv`` and ``config.yaml`` of a results folder.
-
-    A table written before the tolerance-aware columns existed
-    (``{g}_violation_steps_over_{t:g}``, see :func:`~experiments.evaluation.row_columns`)
-    gets them from the saved trajectories where those exist; episodes without one keep
-    them missing (NaN), and the report leaves such metrics out.
-
-    Raises:
-        FileNotFoundError: if the folder, its ``episodes.csv`` or its ``config.yaml`` is
-            missing (the message names the path).
-        ValueError: if the table holds no episodes.
-    """
-    directory = Path(results_dir)
-    if not directory.is_dir():
-        problem = "is a file, not a folder" if directory.exists() else "does not exist"
-        raise FileNotFoundError(f"results folder {directory} {problem}")
-    rows = read_episodes_csv(directory / "episodes.csv")
-    config_path = directory / "config.yaml"
-    if not config_path.is_file():
-        raise FileNotFoundError(f"no config.yaml in {directory} (needed for dt and the system)")
-    config = load_env_config(config_path)
-    agents_section = load_yaml(config_path).get("agents") or {}
-    results = Results(directory, rows, config, dict(agents_section))
-    _complete_tolerance_columns(results)
-    return results
-
-
-def _complete_tolerance_columns(results: Results) -> None:
-    """Fill missing tolerance-aware counts of error-free rows from their trajectories."""
-    columns = [c for _, _, c in tolerance_columns(results.system)]
-    for row in results.rows:
-        missing = [c for c in columns if not np.isfinite(row.get(c, math.nan))]
-        if not missing or row["error"]:
-            continue
-        try:
-            traj = load_trajectory(results, row["agent"], row["seed"])
-        except (OSError, ValueError, zipfile.BadZipFile):  # unreadable: leave them missing
-            continue
-        if traj is None:
-            continue
-        counts = violation_counts(traj, results.system)
-        row.update((c, float(counts[c])) for c in missing if c in counts)
-
-
-def load_trajectory(results: Results, agent: str, seed: int) -> dict[str, np.ndarray] | None:
-    """The saved arrays of one episode, or ``None`` if none were saved.
-
-    Raises:
-        DamagedEpisodeError: naming the file, if it exists but does not load (truncated).
-    """
-    path = results.trajectory_path(agent, seed)
-    if not path.is_file():
-        return None
-    from experiments.evaluation import load_trajectory as load_saved
-
-    return load_saved(path.parent.parent, agent, seed)
-
-
-# --------------------------------------------------------------------------- statistics
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """A mean with its percentile-bootstrap confidence interval."""
-
-    mean: float
-    low: float
-    high: float
-    n: int  # number of finite values used
-
-
-def bootstrap_ci(
-    values: Iterable[float],
-    n_resamples: int = BOOTSTRAP_RESAMPLES,
-    level: float = 0.95,
-    seed: int = BOOTSTRAP_SEED,
-) -> Estimate:
-    """Mean and percentile-bootstrap CI of the finite values (NaNs are left out).
-
-    The resampling generator is seeded, so the same values give the same interval.
-
-    Args:
-        values: the sample (e.g. one metric over seeds).
-        n_resamples: bootstrap resamples.
-        level: confidence level of the interval.
-        seed: seed of the resampling generator.
-
-    Returns:
-        The mean and interval; all NaN for an empty sample, a zero-width interval for one
-        value.
-    """
-    x = np.asarray(list(values), dtype=float)
-    x = x[np.isfinite(x)]
-    n = len(x)
-    if n == 0:
-        return Estimate(math.nan, math.nan, math.nan, 0)
-    mean = float(x.mean())
-    if n == 1:
-        return Estimate(mean, mean, mean, 1)
-    rng = np.random.default_rng(seed)
-    means = x[rng.integers(0, n, size=(n_resamples, n))].mean(axis=1)
-    alpha = 0.5 * (1.0 - level)
-    low, high = np.quantile(means, [alpha, 1.0 - alpha])
-    # Rounding in the resampled means can put the bound a hair past the mean.
-    return Estimate(mean, float(min(low, mean)), float(max(high, mean)), n)
-
-
-def summarize(results: Results, metrics: Sequence[Metric] | None = None) -> dict:
-    """Per agent and metric, the mean and bootstrap CI over error-free episodes.
-
-    Args:
-        results: the loaded results.
-        metrics: the metrics; ``None`` for :func:`summary_metrics` of the run's system.
-
-    Returns:
-        ``{agent: {column: Estimate}}`` (a zero-violation metric's key is
-        ``"zero:" + column``); a column missing from the table gives NaNs.
-    """
-    if metrics is None:
-        metrics = summary_metrics(results.system)
-    out = {}
-    for agent in results.agents:
-        rows = results.rows_of(agent)
-        out[agent] = {_key(m): bootstrap_ci([m.value(r) for r in rows]) for m in metrics}
-    return out
-
-
-def _key(metric: Metric) -> str:
-    """The key of a metric in :func:`summarize`'s result: its column, ``zero:`` marked."""
-    return f"zero:{metric.column}" if metric.zero_count else metric.column
-
-
-@dataclass(frozen=True)
-class PairedDifference:
-    """``agent - reference`` of one metric over the seeds both have (error-free)."""
-
-    metric: str
-    agent: str
-    reference: str
-    seeds: tuple[int, ...]
-    differences: tuple[float, ...]
-    estimate: Estimate
-    agent_lower: int  # seeds where the agent's value is lower than the reference's
-    reference_lower: int
-    ties: int
-
-
-def paired_differences(
-    results: Results, metric: str | Metric, agent: str, reference: str = REFERENCE_AGENT
-) -> PairedDifference:
-    """Differences ``agent - reference`` of ``metric`` on matching seeds only.
-
-    A seed counts when both agents have an error-free episode on it and both values are
-    finite (e.g. time to goal only where both reached the goal).
-
-    Args:
-        results: the loaded results.
-        metric: a column, or a :class:`Metric` (e.g. a zero-violation fraction).
-        agent: the agent whose values come first.
-        reference: the agent subtracted.
-    """
-    return paired_rows_difference(
-        results.rows_of(agent), results.rows_of(reference), metric, agent, reference
-    )
-
-
-def paired_rows_difference(
-    rows: Iterable[dict[str, Any]],
-    reference_rows: Iterable[dict[str, Any]],
-    metric: str | Metric,
-    agent: str = "",
-    reference: str = "",
-) -> PairedDifference:
-    """Differences ``row - reference row`` of ``metric`` on the seeds both lists hold.
-
-    Rows with an error are left out; a seed counts when both values are finite. This is
-    :func:`paired_differences` for rows of two different folders (the risk sweep's).
-
-    Args:
-        rows: episode rows (``seed`` and the metric's column).
-        reference_rows: the rows subtracted.
-        metric: a column, or a :class:`Metric`.
-        agent: name of ``rows``' side, recorded in the result.
-        reference: name of the reference side.
-    """
-    m = metric if isinstance(metric, Metric) else Metric(str(metric), str(metric))
-    ref = {r["seed"]: m.value(r) for r in reference_rows if not r.get("error")}
-    seeds, diffs = [], []
-    for r in sorted((r for r in rows if not r.get("error")), key=lambda r: r["seed"]):
-        s = r["seed"]
-        a, b = m.value(r), ref.get(s, math.nan)
-        if s in ref and np.isfinite(a) and np.isfinite(b):
-            seeds.append(s)
-            diffs.append(float(a - b))
-    d = np.asarray(diffs)
-    return PairedDifference(
-        metric=m.column,
-        agent=agent,
-        reference=reference,
-        seeds=tuple(seeds),
-        differences=tuple(diffs),
-        estimate=bootstrap_ci(d),
-        agent_lower=int(np.sum(d < 0)),
-        reference_lower=int(np.sum(d > 0)),
-        ties=int(np.sum(d == 0)),
-    )
-
-
-TWO_SIGMA_COVERAGE = 0.9545  # P(|e| <= 2 sigma) of a Gaussian: a calibrated 2-sigma band
-
-
-def pooled_ratio_ci(
-    numerators: Sequence[float],
-    denominators: Sequence[float],
-    root: bool = False,
-    n_resamples: int = BOOTSTRAP_RESAMPLES,
-    level: float = 0.95,
-    seed: int = BOOTSTRAP_SEED,
-) -> Estimate:
-    """A ratio pooled over episodes, ``sum(num) / sum(den)``, with a bootstrap over episodes.
-
-    The episodes are resampled whole (a cluster bootstrap), so the interval accounts for
-    the steps of one episode being correlated.
-
-    Args:
-        numerators: per episode, e.g. the steps inside the 2-sigma band, or the sum of
-            squared errors.
-        denominators: per episode, the steps counted.
-        root: report the square root of the ratio (an RMSE from squared errors).
-        n_resamples: bootstrap resamples.
-        level: confidence level of the interval.
-        seed: seed of the resampling generator.
-
-    Returns:
-        The pooled value and interval, ``n`` the number of episodes with steps; all NaN
-        when no episode has any.
-    """
-    num = np.asarray(numerators, dtype=float)
-    den = np.asarray(denominators, dtype=float)
-    keep = den > 0
-    num, den = num[keep], den[keep]
-    n = len(den)
-    if n == 0:
-        return Estimate(math.nan, math.nan, math.nan, 0)
-    f = np.sqrt if root else (lambda x: x)
-    value = float(f(num.sum() / den.sum()))
-    if n == 1:
-        return Estimate(value, value, value, 1)
-    idx = np.random.default_rng(seed).integers(0, n, size=(n_resamples, n))
-    ratios = f(num[idx].sum(axis=1) / den[idx].sum(axis=1))
-    alpha = 0.5 * (1.0 - level)
-    low, high = np.quantile(ratios, [alpha, 1.0 - alpha])
-    return Estimate(value, float(min(low, value)), float(max(high, value)), n)
-
-
-@dataclass(frozen=True)
-class Calibration:
-    """How well one agent's estimator knows what it does not see, over its episodes.
-
-    ``quantities`` are the system's states then its latent-force components (labels with
-    units); ``coverage[i]`` is the fraction of steps with the truth inside the estimate's
-    2-sigma band and ``rmse[i]`` the root-mean-square estimate error [the quantity's
-    unit], both pooled over steps and episodes with a bootstrap interval over episodes.
-    """
-
-    agent: str
-    estimator: str  # the estimator's name
-    estimator_source: str  # "recorded" (last_info) or "config.yaml"
-    quantities: tuple[str, ...]
-    coverage: tuple[Estimate, ...]
-    rmse: tuple[Estimate, ...]
-    episodes: int
-    steps: int
-
-
-def _estimate_errors(traj: dict[str, np.ndarray], system: ControlSystem) -> tuple:
-    """``(error, std)`` arrays ``(T, nx + nw)``: the states', then the force's.
-
-    The estimate made from ``obs[k]`` is compared with ``true_state[k]`` and the force
-    estimate with the force acting during step ``k``; errors of states in rad are
-    wrapped to ``[-pi, pi)``.
-    """
-    nx, nw = system.nx, system.nw
-    est = np.asarray(traj["estimate"], dtype=float)
-    T = len(est)
-    err_x = est[:, :nx] - np.asarray(traj["true_state"], dtype=float)[:T]
-    for i, name in enumerate(system.state_names):
-        if split_unit(name)[1] == "rad":
-            err_x[:, i] = (err_x[:, i] + math.pi) % (2.0 * math.pi) - math.pi
-    std_x = np.asarray(traj["estimate_std"], dtype=float)[:, :nx]
-    force = np.asarray(traj["latent_force_est"], dtype=float).reshape(T, nw)
-    truth = np.asarray(traj["disturbance"], dtype=float).reshape(T, nw)
-    std_w = np.asarray(traj["latent_force_std"], dtype=float).reshape(T, nw)
-    return np.hstack([err_x, force - truth]), np.hstack([std_x, std_w])
-
-
-def _estimator_name(results: Results, recorded: Iterable[str], agent: str = "") -> tuple[str, str]:
-    """The estimator's name: the most frequent one the agent recorded, else config.yaml's
-    (``agents.robust.estimator`` for the robust agent, ``agents.estimator`` otherwise)."""
-    names = [str(n) for n in recorded if str(n)]
-    if names:
-        values, counts = np.unique(names, return_counts=True)
-        return str(values[np.argmax(counts)]), "recorded"
-    # A folder written before the agents said it: the agents section's (the bootstrap
-    # filter, the only one, when the section predates agents.estimator).
-    settings = results.agent_settings
-    if agent == "robust" and isinstance(settings.get("robust"), dict):
-        return str(settings["robust"].get("estimator", "ukf")), "config.yaml"
-    return str(settings.get("estimator", "bootstrap")), "config.yaml"
-
-
-def calibration(results: Results) -> list[Calibration]:
-    """The estimator calibration of every agent with a filter (saved trajectories only).
-
-    An agent counts when some error-free episode of it has a saved trajectory with a
-    finite latent-force estimate (the nominal MPC and the oracle have none).
-    """
-    system = results.system
-    labels = tuple(system.state_names) + tuple(f"latent force {w}" for w in system.force_names)
-    out = []
-    for agent in results.agents:
-        hits, squares, counts, recorded = [], [], [], []
-        for row in results.rows_of(agent):
-            traj = load_trajectory(results, agent, row["seed"])
-            if traj is None or not np.any(np.isfinite(traj.get("latent_force_est", np.nan))):
-                continue
-            err, std = _estimate_errors(traj, system)
-            ok = np.isfinite(err) & np.isfinite(std)
-            hits.append(np.sum(ok & (np.abs(np.where(ok, err, 0.0)) <= 2.0 * std), axis=0))
-            squares.append(np.sum(np.where(ok, err, 0.0) ** 2, axis=0))
-            counts.append(np.sum(ok, axis=0))
-            recorded += list(traj.get("estimator", ()))
-        if not counts:
-            continue
-        hits_a, sq_a, n_a = np.array(hits), np.array(squares), np.array(counts)
-        name, source = _estimator_name(results, recorded, agent)
-        columns = range(len(labels))
-        out.append(
-            Calibration(
-                agent=agent,
-                estimator=name,
-                estimator_source=source,
-                quantities=labels,
-                coverage=tuple(pooled_ratio_ci(hits_a[:, i], n_a[:, i]) for i in columns),
-                rmse=tuple(pooled_ratio_ci(sq_a[:, i], n_a[:, i], root=True) for i in columns),
-                episodes=len(counts),
-                steps=int(n_a[:, -1].sum()),
-            )
-        )
-    return out
 
 
 def _seeds(n: int) -> str:
@@ -687,115 +131,6 @@ def fmt_estimate(e: Estimate, n_total: int | None = None) -> str:
     if n_total is not None and e.n < n_total:
         text += f" (n={e.n})"
     return text
-
-
-class Document:
-    """A small document model rendered to both Markdown and HTML, so they match."""
-
-    def __init__(self) -> None:
-        self.blocks: list[tuple] = []
-
-    def heading(self, text: str, level: int = 2) -> None:
-        self.blocks.append(("heading", level, text))
-
-    def paragraph(self, text: str) -> None:
-        self.blocks.append(("paragraph", text))
-
-    def bullets(self, items: Sequence[str]) -> None:
-        self.blocks.append(("bullets", list(items)))
-
-    def table(self, header: Sequence[str], rows: Sequence[Sequence[str]]) -> None:
-        self.blocks.append(("table", list(header), [list(r) for r in rows]))
-
-    def image(self, relpath: str, caption: str) -> None:
-        self.blocks.append(("image", relpath, caption))
-
-    # ---- Markdown
-
-    def markdown(self) -> str:
-        out = []
-        for block in self.blocks:
-            kind = block[0]
-            if kind == "heading":
-                out.append("#" * block[1] + " " + block[2])
-            elif kind == "paragraph":
-                out.append(block[1])
-            elif kind == "bullets":
-                out.append("\n".join(f"- {item}" for item in block[1]))
-            elif kind == "table":
-                header, rows = block[1], block[2]
-                lines = ["| " + " | ".join(_md_cell(h) for h in header) + " |"]
-                lines.append("|" + "|".join("---" for _ in header) + "|")
-                lines += ["| " + " | ".join(_md_cell(c) for c in row) + " |" for row in rows]
-                out.append("\n".join(lines))
-            elif kind == "image":
-                out.append(f"![{block[2]}]({block[1]})\n\n*{block[2]}*")
-        return "\n\n".join(out) + "\n"
-
-    # ---- HTML
-
-    def html(self, title: str) -> str:
-        body = []
-        for block in self.blocks:
-            kind = block[0]
-            if kind == "heading":
-                body.append(f"<h{block[1]}>{_inline_html(block[2])}</h{block[1]}>")
-            elif kind == "paragraph":
-                body.append(f"<p>{_inline_html(block[1])}</p>")
-            elif kind == "bullets":
-                items = "".join(f"<li>{_inline_html(i)}</li>" for i in block[1])
-                body.append(f"<ul>{items}</ul>")
-            elif kind == "table":
-                head = "".join(f"<th>{_inline_html(h)}</th>" for h in block[1])
-                rows = "".join(
-                    "<tr>" + "".join(f"<td>{_inline_html(c)}</td>" for c in row) + "</tr>"
-                    for row in block[2]
-                )
-                body.append(f"<table><thead><tr>{head}</tr></thead><tbody>{rows}</tbody></table>")
-            elif kind == "image":
-                src, cap = html.escape(block[1], quote=True), _inline_html(block[2])
-                body.append(
-                    f'<figure><img src="{src}" alt="{html.escape(block[2], quote=True)}">'
-                    f"<figcaption>{cap}</figcaption></figure>"
-                )
-        return _HTML_TEMPLATE.format(title=html.escape(title), body="\n".join(body))
-
-
-_HTML_TEMPLATE = """<!DOCTYPE html>
-<html lang="en">
-<head>
-<meta charset="utf-8">
-<title>{title}</title>
-<style>
-body {{ font-family: system-ui, sans-serif; max-width: 1150px; margin: 2em auto;
-       padding: 0 1em; color: #222; line-height: 1.45; }}
-table {{ border-collapse: collapse; margin: 1em 0; font-size: 0.9em; }}
-th, td {{ border: 1px solid #ccc; padding: 0.3em 0.6em; text-align: left;
-         vertical-align: top; }}
-th {{ background: #f2f2f2; }}
-tbody tr:nth-child(even) {{ background: #fafafa; }}
-code {{ background: #f4f4f4; padding: 0 0.2em; }}
-figure {{ margin: 1.2em 0; }}
-img {{ max-width: 100%; border: 1px solid #ddd; }}
-figcaption {{ font-style: italic; font-size: 0.9em; color: #555; }}
-</style>
-</head>
-<body>
-{body}
-</body>
-</html>
-"""
-
-
-def _md_cell(text: str) -> str:
-    return str(text).replace("|", "\\|").replace("\n", " ")
-
-
-def _inline_html(text: str) -> str:
-    """Escape text and turn Markdown's ``code`` and **bold** spans into HTML."""
-    escaped = html.escape(str(text))
-    escaped = re.sub(r"`([^`]+)`", r"<code>\1</code>", escaped)
-    return re.sub(r"\*\*([^*]+)\*\*", r"<strong>\1</strong>", escaped)
 
 
 # --------------------------------------------------------------------------- sections
@@ -890,23 +225,44 @@ def _reported(results: Results, metrics: Sequence[Metric]) -> list[Metric]:
     ]
 
 
-def _paired_section(doc: Document, results: Results) -> list[PairedDifference]:
-    doc.heading(f"Paired differences against {agent_label(REFERENCE_AGENT)}")
-    others = [a for a in results.agents if a != REFERENCE_AGENT]
-    if REFERENCE_AGENT not in results.agents or not others:
+def choose_baseline(results: Results, baseline: str | None = None) -> str:
+    """The agent of the paired differences: ``baseline``, else the paper's scenario agent
+    when the results hold it, else the first agent.
+
+    Raises:
+        ValueError: naming ``baseline`` and the results' agents, if it is not among them.
+    """
+    if baseline is None:
+        return REFERENCE_AGENT if REFERENCE_AGENT in results.agents else results.agents[0]
+    if baseline not in results.agents:
+        raise ValueError(
+            f"baseline {baseline!r} is not an agent of {results.directory}; choose one of "
+            + ", ".join(results.agents)
+        )
+    return baseline
+
+
+def _paired_section(
+    doc: Document, results: Results, baseline: str = REFERENCE_AGENT
+) -> list[PairedDifference]:
+    doc.heading(f"Paired differences against {agent_label(baseline)}")
+    others = [a for a in results.agents if a != baseline]
+    if baseline not in results.agents or not others:
         doc.paragraph(
-            f"Not available: the results need the `{REFERENCE_AGENT}` agent and at least one "
-            "other agent."
+            f"Not available: the results need the `{baseline}` agent and at least one other agent."
         )
         return []
     doc.paragraph(
-        f"Difference `agent - {REFERENCE_AGENT}` on the same env seeds (same disturbance and "
+        f"Difference `agent - {baseline}` on the same env seeds (same disturbance and "
         "noise), mean with a 95% bootstrap interval over seeds. Negative: the agent's value "
-        f"is lower than {REFERENCE_AGENT}'s. Only seeds where both episodes are error-free "
-        "and the metric is defined count."
+        f"is lower than {baseline}'s. Only seeds where both episodes are error-free "
+        "and the metric is defined count. The baseline is chosen with "
+        "`lfm-report --baseline NAME`."
     )
     metrics = _reported(results, paired_metrics(results.system))
-    found = {(a, m.column): paired_differences(results, m, a) for a in others for m in metrics}
+    found = {
+        (a, m.column): paired_differences(results, m, a, baseline) for a in others for m in metrics
+    }
     rows = []
     for m in metrics:
         cells = []
@@ -922,10 +278,10 @@ def _paired_section(doc: Document, results: Results) -> list[PairedDifference]:
             d = found[(agent, m.column)]
             n = len(d.seeds)
             if n == 0:
-                reading.append(f"{m.label}: no common seeds of {REFERENCE_AGENT} and {agent}.")
+                reading.append(f"{m.label}: no common seeds of {baseline} and {agent}.")
                 continue
             reading.append(
-                f"{REFERENCE_AGENT} has {m.fewer} than {agent_label(agent)} in "
+                f"{baseline} has {m.fewer} than {agent_label(agent)} in "
                 f"{d.reference_lower} of {_seeds(n)} (the opposite in {d.agent_lower}, "
                 f"equal in {d.ties})."
             )
@@ -1068,9 +424,11 @@ def _main_agent(results: Results) -> str:
 
 def _check_figure_seed(results: Results, figure_seed: int | None) -> None:
     """Raise ``ValueError`` if ``figure_seed`` has no saved trajectory to draw."""
+    if figure_seed is None:
+        return
     agent = _main_agent(results)
     path = results.trajectory_path(agent, figure_seed)
-    if figure_seed is not None and not path.is_file():
+    if not path.is_file():
         raise ValueError(
             f"no saved trajectory of agent {agent!r} for seed {figure_seed}: {path} does not exist"
         )
@@ -1114,7 +472,7 @@ def _default_figure_seed(results: Results, agent: str) -> tuple[int | None, str]
 
 def _metric_values(results: Results, column: str) -> dict[str, np.ndarray]:
     return {
-        agent_label(a, wrap=True): np.array([r.get(column, math.nan) for r in results.rows_of(a)])
+        agent_label(a): np.array([r.get(column, math.nan) for r in results.rows_of(a)])
         for a in results.agents
     }
 
@@ -1255,15 +613,64 @@ def _figures_section(doc: Document, results: Results, figure_seed: int | None, g
             plots.save_figure(fig, results.directory / rel)
             doc.image(rel, "Constraint-group excess of all agents on the same seed.")
 
+    _fan_figure(doc, results, traj, main_agent, figure_seed, goal_state, goal_radius)
     if gif:
         frames = plots.replay_frames(traj["true_state"], cfg, caption=label)
+        width = frames[0].shape[1] if frames else 480
+        panels = plots.plan_panel_frames(
+            system, traj, size=(width, max(160, width // 3)), goal_state=goal_state,
+            goal_radius=goal_radius,
+        )  # fmt: skip
         rel = "figures/episode.gif"
-        plots.write_gif(frames, results.directory / rel, fps=1.0 / cfg.dt)
+        plots.write_gif(plots.stack_frames(frames, panels), results.directory / rel, 1.0 / cfg.dt)
         doc.image(
             rel,
             f"The episode replayed from its saved true states ({len(frames)} frames, "
-            f"{1.0 / cfg.dt:g} frames/s), drawn by the world's own scene.",
+            f"{1.0 / cfg.dt:g} frames/s): above, the world's own scene; below, a camera "
+            "following the true state (green square) in the plane of the first two states, "
+            "with the estimate and its 2-sigma ellipse (red), the plan's scenario "
+            "predictions (blue) and their mean (navy) at each step.",
         )
+
+
+def _fan_figure(
+    doc: Document,
+    results: Results,
+    traj: dict[str, np.ndarray],
+    agent: str,
+    seed: int,
+    goal_state: np.ndarray,
+    goal_radius: float | None,
+) -> None:
+    """What the scenario MPC plans: the fan of scenario predictions at four steps."""
+    fig = plots.scenario_fan_figure(
+        results.system,
+        traj,
+        results.config.dt,
+        goal_state=goal_state,
+        goal_radius=goal_radius,
+        title=f"The plan's scenario fan - {agent_label(agent)}, seed {seed}",
+    )
+    if fig is None:
+        doc.paragraph(f"`{agent}` saved no predicted trajectories: no scenario-fan figure.")
+        return
+    fans, compact = plots.saved_fans(traj)
+    rel = f"figures/seed{seed}_{agent}_scenario_fan.png"
+    plots.save_figure(fig, results.directory / rel)
+    shown = (
+        f"up to {fans.shape[1]} of the plan's scenarios (the first ones saved per step)"
+        if compact
+        else "only the first scenario (this episode file predates the saved fans)"
+    )
+    doc.image(
+        rel,
+        f"What the MPC of {agent_label(agent)} plans, at four steps of the episode (for the "
+        "scenario MPC, its scenario fan): from the estimate (red, "
+        "2-sigma ellipse) one input sequence is planned for all scenarios of the latent "
+        f"force; each thin blue line is one scenario's predicted path ({shown}), the navy "
+        "line their mean; the true path so far (grey) and over the next horizon (green "
+        "dashed) with the infeasible region shaded. Equal axes: lengths to scale.",
+    )
 
 
 def _pooled_solve_times(results: Results, agent: str) -> np.ndarray:
@@ -1316,6 +723,7 @@ def write_report(
     figure_seed: int | None = None,
     gif: bool = True,
     sweep_dir: str | Path | None = None,
+    baseline: str | None = None,
 ) -> Path:
     """Write ``report.md`` and ``report.html`` (same content) for a results folder.
 
@@ -1327,15 +735,20 @@ def write_report(
         sweep_dir: a folder of the risk sweep (:mod:`experiments.sweep`) whose table and
             Pareto figure the report includes; by default ``results_dir`` itself when it
             holds a ``sweep.md``.
+        baseline: the agent every other one is compared with in the paired differences;
+            ``None`` for the scenario agent when the results hold it, else the first agent.
 
     Returns:
-        Path of ``report.md``; ``report.html`` and ``figures/`` are beside it.
+        Path of ``report.md`` (figures linked from ``figures/``); ``report.html`` beside
+        it holds every figure embedded, so it can be sent alone.
 
     Raises:
         FileNotFoundError: if the folder, ``episodes.csv`` or ``config.yaml`` is missing.
-        ValueError: if there are no episodes, or ``figure_seed`` has no saved trajectory.
+        ValueError: if there are no episodes, ``figure_seed`` has no saved trajectory, or
+            ``baseline`` is not an agent of the results (the message lists them).
     """
     results = load_results(results_dir)
+    baseline = choose_baseline(results, baseline)
     _check_figure_seed(results, figure_seed)  # before writing any file
     sweep = _load_sweep(results.directory, sweep_dir)
     stats = summarize(results)
@@ -1354,7 +767,7 @@ def write_report(
     _model_section(doc, results)
     _summary_section(doc, results, stats)
     _errors_section(doc, results)
-    _paired_section(doc, results)
+    _paired_section(doc, results, baseline)
     if results.config.ENV_ID == PAPER_ENV_ID:
         _paper_vs_measured_section(doc, results, _pooled_solve_times(results, REFERENCE_AGENT))
     _calibration_section(doc, results)
@@ -1364,12 +777,16 @@ def write_report(
 
     md_path = results.directory / "report.md"
     md_path.write_text(doc.markdown())
-    (results.directory / "report.html").write_text(doc.html(title))
+    (results.directory / "report.html").write_text(doc.html(title, results.directory))
     return md_path
 
 
 __all__ = [
     "AGENT_SHORT_LABELS",
+    "Document",
+    "GIF_EMBED_LIMIT",
+    "embedded_image",
+    "KNOWN_AGENT_ORDER",
     "Metric",
     "Estimate",
     "PairedDifference",
@@ -1378,6 +795,7 @@ __all__ = [
     "agent_label",
     "bootstrap_ci",
     "calibration",
+    "choose_baseline",
     "load_results",
     "load_trajectory",
     "group_metrics",

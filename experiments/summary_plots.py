@@ -13,6 +13,17 @@ from matplotlib.patches import Patch
 from experiments.figures import agent_colour, new_figure, unit_of
 from lfm_env.system import split_unit
 
+TICK_LABEL_CHARS = 30  # longest tick label of an agent; longer ones keep their end
+
+
+def tick_label(label: str) -> str:
+    """``label`` on one line, cut to its last :data:`TICK_LABEL_CHARS` characters with an
+    ellipsis when longer (``"...own_agents:Factory"``: the end names the agent)."""
+    text = " ".join(str(label).split())
+    if len(text) <= TICK_LABEL_CHARS:
+        return text
+    return "\u2026" + text[-(TICK_LABEL_CHARS - 1) :]
+
 
 def distribution_axes(
     ax,
@@ -64,7 +75,10 @@ def distribution_axes(
                 transform=ax.get_xaxis_transform(),
                 color="0.5",
             )
-    ax.set_xticks(positions, labels, fontsize=8 if len(labels) <= 4 else 6.5)
+    # Slanted, one line each and at most TICK_LABEL_CHARS long, so that six agents (or an
+    # agent named by its import path) do not run into each other.
+    short = [tick_label(label) for label in labels]
+    ax.set_xticks(positions, short, fontsize=8, rotation=30, ha="right", rotation_mode="anchor")
     ax.set_xlim(0.4, len(labels) + 0.6)
     if log:
         ax.set_yscale("log")

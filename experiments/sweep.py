@@ -285,7 +285,7 @@ def _rows(
     """The agent's rows of an evaluation folder on ``seeds``; tolerance-aware counts that
     an older row lacks are counted from its saved trajectory when there is one."""
     wanted = set(seeds)
-    rows = evaluation.load_results(folder) if (folder / "episodes").is_dir() else []
+    rows = evaluation.saved_rows(folder) if (folder / "episodes").is_dir() else []
     rows = [r for r in rows if r["agent"] == agent and r["seed"] in wanted]
     columns = [c for _, _, c in evaluation.tolerance_columns(system)]
     for row in rows:

@@ -27,11 +27,11 @@ from experiments.evaluation import (
     agent_seed,
     evaluate,
     group_columns,
-    load_results,
     load_trajectory,
     parse_seeds,
     row_columns,
     run_episode,
+    saved_rows,
     tolerance_column,
     tolerance_columns,
     violation_counts,
@@ -236,7 +236,7 @@ def test_rows_of_older_tables_read_with_the_groups_they_hold(tmp_path):
     record = json.loads(old.read_text())
     del record["x_violation_steps"]
     old.write_text(json.dumps(record))
-    loaded = load_results(tmp_path)
+    loaded = saved_rows(tmp_path)
     assert tuple(loaded[0]) == tuple(c for c in SINE_TRACK_COLUMNS if c != "x_violation_steps")
     assert tuple(loaded[1]) == SINE_TRACK_COLUMNS and loaded[1]["x_violation_steps"] == 0
     assert loaded[0]["max_x_excess"] == rows[0]["max_x_excess"]
@@ -370,7 +370,7 @@ def test_serial_processes_and_dask_give_identical_tables(tmp_path):
     assert comparable(dask) == comparable(serial)
     # What was saved is what was returned, and the trajectories agree too.
     for name in ("serial", "procs", "dask"):
-        assert comparable(load_results(tmp_path / name)) == comparable(serial)
+        assert comparable(saved_rows(tmp_path / name)) == comparable(serial)
     for a in agents:
         ref = load_trajectory(tmp_path / "serial", a, 1)
         assert_same_trajectory(load_trajectory(tmp_path / "procs", a, 1), ref)
@@ -468,7 +468,7 @@ def test_failing_episode_is_recorded_and_retried(tmp_path, monkeypatch):
     assert "act_then_fail" in record["traceback"] and record["cost"] is None
     partial = load_trajectory(tmp_path, "pf", 0)
     assert partial["action"].shape == (2, 2) and partial["true_state"].shape == (3, 4)
-    assert len(load_results(tmp_path)) == 4
+    assert len(saved_rows(tmp_path)) == 4
 
     # Without retries the failure stays; by default a rerun retries it.
     kept = evaluate(["pf"], [0], TINY, out=tmp_path, progress=False, retry_failed=False)
@@ -599,7 +599,7 @@ def test_cli_runs_and_calls_the_report(tmp_path, capsys, monkeypatch):
     text = capsys.readouterr().out
     assert str(out / "episodes.csv") in text and str(out / "report.md") in text
     assert reported == [out]
-    assert [(r["agent"], r["seed"]) for r in load_results(out)] == [("nominal", 0), ("nominal", 1)]
+    assert [(r["agent"], r["seed"]) for r in saved_rows(out)] == [("nominal", 0), ("nominal", 1)]
 
     # Without the report module the run still succeeds, saying why there is no report.
     monkeypatch.setitem(sys.modules, "experiments.report", None)
@@ -626,7 +626,7 @@ def test_quick_config_sweep_with_local_dask_cluster(tmp_path):
     rows = evaluate(agents, range(10), config, out=tmp_path, dask_workers=2, progress=False)
     assert len(rows) == 40
     assert all(r["error"] == "" for r in rows), [r["error"] for r in rows if r["error"]]
-    assert comparable(load_results(tmp_path)) == comparable(rows)
+    assert comparable(saved_rows(tmp_path)) == comparable(rows)
 
 
 # ----------------------------------------------------------------------------- tolerances
@@ -660,7 +660,7 @@ def test_rows_without_tolerance_columns_read_as_written(tmp_path):
     for key in [k for k in record if "_over_" in k]:
         del record[key]
     path.write_text(json.dumps(record))
-    (row,) = load_results(tmp_path)
+    (row,) = saved_rows(tmp_path)
     assert tuple(row) == RAW_GROUP_COLUMNS
     assert isinstance(row["track_violation_steps"], int)
     write_table(tmp_path)
@@ -671,7 +671,7 @@ def test_rows_without_tolerance_columns_read_as_written(tmp_path):
 
 def test_saved_rows_hold_tolerance_counts_as_integers_equal_to_the_trajectory(tmp_path):
     (row,) = evaluate(["scenario"], [1], TINY, out=tmp_path, progress=False)
-    (loaded,) = load_results(tmp_path)
+    (loaded,) = saved_rows(tmp_path)
     traj = load_trajectory(tmp_path, "scenario", 1)
     for g, t, column in tolerance_columns(load_config(TINY).make_system()):
         assert isinstance(loaded[column], int)

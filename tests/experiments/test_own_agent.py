@@ -21,9 +21,9 @@ from experiments.evaluation import (
     TIMING_COLUMNS,
     agent_seed,
     evaluate,
-    load_results,
     load_trajectory,
     run_episode,
+    saved_rows,
 )
 from tests.experiments.own_agents import ConstantAgent, ProportionalAgent
 
@@ -73,7 +73,7 @@ def test_own_agents_in_a_process_pool_equal_the_serial_run(tmp_path):
         (a, s) for a in ("braking", "nominal", "proportional") for s in (0, 1)
     ]
     assert comparable(pool) == comparable(serial)
-    assert comparable(load_results(tmp_path / "pool")) == comparable(serial)
+    assert comparable(saved_rows(tmp_path / "pool")) == comparable(serial)
     files = sorted(p.name for p in (tmp_path / "pool" / "episodes").glob("*.json"))
     assert "braking__seed0.json" in files and "proportional__seed1.json" in files
     # The braking agent does what it says: the speed falls at every step it is above 0.
@@ -236,7 +236,7 @@ def _run_cli(tmp_path: Path, agents: str) -> subprocess.CompletedProcess:
 def test_cli_runs_a_module_attribute_agent_from_the_repo_root(tmp_path):
     done = _run_cli(tmp_path, f"nominal,{OWN}:ProportionalAgent")
     assert done.returncode == 0, done.stdout + done.stderr
-    rows = load_results(tmp_path / "out")
+    rows = saved_rows(tmp_path / "out")
     assert [(r["agent"], r["seed"], r["error"]) for r in rows] == [
         (a, s, "") for a in ("nominal", "proportional") for s in (0, 1)
     ]

@@ -30,8 +30,8 @@ from experiments.evaluation import (
     ResultsFolderError,
     config_hash,
     evaluate,
-    load_results,
     load_trajectory,
+    saved_rows,
     write_table,
 )
 
@@ -336,7 +336,7 @@ def test_a_copied_or_garbage_json_is_named_and_not_counted(tmp_path, capsys):
         ("nominal", "2"),
     ]
     assert copy.name in err and junk.name in err
-    assert len(load_results(tmp_path)) == 3
+    assert len(saved_rows(tmp_path)) == 3
 
 
 # ===================================================== 9: the local Dask cluster is private

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import base64
 import csv
+import io
 import re
 import shutil
 import subprocess
@@ -103,11 +105,15 @@ def test_report_has_agent_table_and_existing_figures(report_path):
     assert "| x violation steps [steps] |" in md
     assert "<table>" in html and "<th>metric</th>" in html
     md_refs, html_refs = referenced_files(md, html=False), referenced_files(html, html=True)
-    assert md_refs == html_refs, "Markdown and HTML must show the same figures"
+    # The HTML shows the same figures as the Markdown, each embedded byte for byte.
+    assert len(md_refs) == len(html_refs)
+    for ref, src in zip(md_refs, html_refs, strict=True):
+        assert src.startswith("data:image/"), src[:40]
+        assert base64.b64decode(src.split(",", 1)[1]) == (report_path.parent / ref).read_bytes()
     pngs = [r for r in md_refs if r.endswith(".png")]
     # Five episode figures, two overlays of all agents, two across-seed plots.
     names = {Path(r).name for r in pngs}
-    for name in ("trajectory", "latent_force", "inputs", "states", "constraints"):
+    for name in ("trajectory", "latent_force", "inputs", "states", "constraints", "scenario_fan"):
         assert f"seed0_scenario_{name}.png" in names
     assert {"seed0_agents_trajectory.png", "seed0_agents_constraints.png"} <= names
     assert {"metrics_by_agent.png", "solve_time.png"} <= names
@@ -145,11 +151,18 @@ def test_gif_replays_every_saved_state(results_dir, report_path):
     assert len(traj["true_state"]) == int(row["steps"]) + 1
     frames = iio.imread(report_path.parent / "figures" / "episode.gif", index=None)
     assert frames.shape[0] == int(row["steps"]) + 1
-    assert frames.shape[1:3] == (240, 480)
+    # The world's scene (480 x 240) above a panel of the estimate and the scenario fan.
+    assert frames.shape[1:3] == (240 + 160, 480)
     for frame in frames[:: max(1, len(frames) // 5)]:
-        assert frame[..., :3].std() > 10
-        assert is_road(frame).sum() > 200
-        assert is_car(frame).sum() > 10
+        scene, panel = frame[:240], frame[240:]
+        assert scene[..., :3].std() > 10
+        assert is_road(scene).sum() > 200
+        assert is_car(scene).sum() > 10
+    for frame in frames[:-1:4]:  # every step but the last has an estimate and a plan
+        panel = frame[240:, :, :3].astype(int)
+        red = (panel[..., 0] > 180) & (panel[..., 1] < 90) & (panel[..., 2] < 90)
+        navy = (panel[..., 0] < 60) & (panel[..., 1] < 60) & (panel[..., 2] > 90)
+        assert red.sum() > 5 and navy.sum() > 5
     meta = iio.immeta(report_path.parent / "figures" / "episode.gif")
     assert meta["duration"] == pytest.approx(1000.0 * load_env_config(TINY).dt)
 
@@ -550,3 +563,123 @@ def test_calibration_names_the_configs_estimator_when_none_was_recorded(results_
     )
     md = write_report(results_copy, gif=False).read_text()
     assert "PF + CE MPC: `ukf`" in md and "The estimator of PF + CE MPC is the" in md
+
+
+# --------------------------------------------------------------------------- self-contained
+
+
+def embedded_images(html: str) -> list[tuple[str, bytes]]:
+    """``(mime, bytes)`` of every ``data:`` image of a page; fails on any other reference."""
+    refs = re.findall(r'(?:src|href)="([^"]+)"', html)
+    assert refs and all(r.startswith("data:image/") for r in refs), [r[:60] for r in refs]
+    out = []
+    for ref in refs:
+        head, data = ref[len("data:") :].split(";base64,", 1)
+        out.append((head, base64.b64decode(data, validate=True)))
+    return out
+
+
+def test_html_alone_shows_every_figure(report_path, tmp_path):
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    shutil.copy(report_path.with_suffix(".html"), alone / "report.html")
+    html = (alone / "report.html").read_text()
+    assert 'src="figures/' not in html and "figures/" not in re.sub(r"data:[^\"]+", "", html)
+    images = embedded_images(html)
+    md_refs = referenced_files(report_path.read_text(), html=False)
+    assert len(images) == len(md_refs) >= 10
+    for (mime, raw), ref in zip(images, md_refs, strict=True):
+        assert mime == ("image/gif" if ref.endswith(".gif") else "image/png"), ref
+        pixels = iio.imread(io.BytesIO(raw), index=None)  # every frame decodes
+        assert pixels.shape[-1] in (3, 4) and pixels[..., :3].std() > 10, ref
+
+
+def test_a_gif_over_the_limit_is_embedded_as_a_labelled_still(results_copy, monkeypatch):
+    from experiments import document
+
+    monkeypatch.setattr(document, "GIF_EMBED_LIMIT", 1000)
+    path = write_report(results_copy)
+    html = path.with_suffix(".html").read_text()
+    assert "data:image/gif" not in html
+    assert "STILL (last frame) of the animation" in html and "figures/episode.gif" in html
+    assert all(mime == "image/png" for mime, _ in embedded_images(html))
+    assert "](figures/episode.gif)" in path.read_text()  # Markdown still links the GIF
+
+
+# --------------------------------------------------------------------------- baseline
+
+
+def paired_section(md: str) -> str:
+    return md.split("## Paired differences against ")[1].split("\n## ")[0]
+
+
+def test_paired_differences_against_the_chosen_baseline(results_copy, report_path):
+    assert paired_section(report_path.read_text()).startswith("scenario MPC (paper)")
+    path = write_report(results_copy, baseline="pf", gif=False)
+    section = paired_section(path.read_text())
+    assert section.startswith("PF + CE MPC")
+    header = next(line for line in section.splitlines() if line.startswith("| metric"))
+    assert header == "| metric | nominal MPC | scenario MPC (paper) | oracle (upper bound) |"
+    results = load_results(results_copy)
+    cost = next(line for line in section.splitlines() if line.startswith("| cost |"))
+    for cell, agent in zip(cost.split(" | ")[1:], ("nominal", "scenario", "oracle"), strict=True):
+        d = paired_differences(results, "cost", agent, "pf")
+        assert d.reference == "pf" and cell.startswith(fmt_estimate(d.estimate))
+    assert "- pf has a lower cost than scenario MPC (paper) in " in section
+
+
+def test_unknown_baseline_names_the_agents(results_copy, capsys):
+    with pytest.raises(ValueError, match="'bogus'.*choose one of nominal, pf, scenario, oracle"):
+        write_report(results_copy, baseline="bogus")
+    assert not (results_copy / "report.md").exists()  # refused before writing anything
+    with pytest.raises(SystemExit) as exc:
+        report_main([str(results_copy), "--baseline", "bogus"])
+    assert exc.value.code == 2
+    assert "choose one of nominal, pf, scenario, oracle" in capsys.readouterr().err
+    assert report_main([str(results_copy), "--baseline", "oracle", "--no-gif"]) == 0
+    assert (
+        "## Paired differences against oracle (upper bound)"
+        in (results_copy / "report.md").read_text()
+    )
+
+
+def test_default_baseline_without_the_scenario_agent_and_agents_of_any_name(results_copy):
+    from experiments.report import choose_baseline
+
+    table = results_copy / "episodes.csv"
+    with table.open(newline="") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["agent"] != "scenario"]
+    own = "tests.experiments.own_agents:Factory"  # a user's agent, named by its import path
+    for r in rows:
+        r["agent"] = own if r["agent"] == "pf" else r["agent"]
+    with table.open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    results = load_results(results_copy)
+    assert results.agents == ["nominal", "oracle", own]
+    assert choose_baseline(results) == "nominal"
+    md = write_report(results_copy, gif=False).read_text()
+    section = paired_section(md)
+    assert section.startswith("nominal MPC")
+    assert f"| metric | oracle (upper bound) | {own} |" in section  # the raw name as label
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def test_one_load_results_for_every_reader(results_dir):
+    from experiments import evaluation, report, results, sweep
+
+    assert report.load_results is results.load_results is load_results
+    for module in (evaluation, sweep):
+        assert not hasattr(module, "load_results")
+    loaded = load_results(results_dir)
+    assert isinstance(loaded, Results) and loaded.directory == results_dir
+    assert loaded.system.name == "sine_track" and loaded.agents == AGENTS
+    saved = evaluation.saved_rows(results_dir)  # the storage layer's episode records
+    table = sorted(loaded.rows, key=lambda r: (r["agent"], r["seed"]))
+    assert [(r["agent"], r["seed"]) for r in table] == [(r["agent"], r["seed"]) for r in saved]
+    for a, b in zip(table, saved, strict=True):
+        for column in ("success", "steps", "cost", "max_track_excess", "latent_rmse"):
+            assert a[column] == pytest.approx(float(b[column]), nan_ok=True), column

@@ -43,10 +43,10 @@ from experiments.evaluation import (
     TIMING_COLUMNS,
     ResultsFolderError,
     evaluate,
-    load_results,
     load_trajectory,
     resolve_config,
     run_episode,
+    saved_rows,
 )
 from lfm_env.config import (
     DEFAULT_ENV_ID as ENV_ID,
@@ -1095,7 +1095,7 @@ def test_dask_worker_killed_mid_run_the_table_ends_complete(tmp_path):
     rows = result["rows"]
     assert [(r["agent"], r["seed"]) for r in rows] == [(a, s) for a in agents for s in seeds]
     assert all(r["error"] == "" for r in rows), [r["error"] for r in rows if r["error"]]
-    assert comparable(load_results(out)) == comparable(rows)
+    assert comparable(saved_rows(out)) == comparable(rows)
     assert not list(out.rglob("*.tmp"))
     # The killed episode ran again from scratch and equals an undisturbed run.
     agent_name, seed = episode_of_key(killed_key)
@@ -1147,7 +1147,7 @@ def test_pool_worker_killed_mid_run_the_table_ends_complete(tmp_path):
     rows = result["rows"]
     assert [(r["agent"], r["seed"]) for r in rows] == [(a, s) for a in agents for s in seeds]
     assert all(r["error"] == "" for r in rows), [r["error"] for r in rows if r["error"]]
-    assert comparable(load_results(out)) == comparable(rows)
+    assert comparable(saved_rows(out)) == comparable(rows)
     assert not list(out.rglob("*.tmp"))
 
 
@@ -1245,7 +1245,7 @@ def test_run_killed_at_random_moments_resumes_to_every_episode_once(
     assert not list(out.rglob("*.tmp"))
     assert len(list((out / "episodes").glob("*.npz"))) == total
     assert_folder_consistent(out)
-    assert comparable(load_results(out)) == comparable(undisturbed_rows)
+    assert comparable(saved_rows(out)) == comparable(undisturbed_rows)
 
 
 # ================================================================================== security
@@ -1362,8 +1362,8 @@ def test_library_code_loads_nothing_unsafely():
     config_source = sources["config.py"]
     assert "yaml.safe_load(fh)" in config_source or "yaml.SafeLoader(" in config_source
     assert "np.load(path, allow_pickle=False)" in sources["evaluation.py"]
-    # The report loads episodes through the evaluation's checked loader.
-    assert "from experiments.evaluation import load_trajectory" in sources["report.py"]
+    # The report reads episodes (experiments.results) through the evaluation's checked loader.
+    assert "from experiments.evaluation import load_trajectory" in sources["results.py"]
 
 
 def test_the_scanner_finds_what_it_looks_for(tmp_path):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import base64
 import json
 import shutil
 from pathlib import Path
@@ -246,7 +247,8 @@ def test_report_includes_the_sweep(sweep_dir, tmp_path, capsys):
     for row in rows:
         assert "| " + " | ".join(row) + " |" in md
     assert (results / "figures" / "sweep.png").is_file() and "(figures/sweep.png)" in md
-    assert "figures/sweep.png" in (results / "report.html").read_text()
+    png = base64.b64encode((results / "figures" / "sweep.png").read_bytes()).decode()
+    assert f"data:image/png;base64,{png}" in (results / "report.html").read_text()  # embedded
     # A results folder that holds the sweep itself needs no option.
     both = tmp_path / "both"
     shutil.copytree(sweep_dir, both)
