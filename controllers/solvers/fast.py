@@ -56,6 +56,11 @@ from controllers.solvers.condensed import CondensedModel, Linearisation, Rollout
 from controllers.solvers.slot_qp import QP_SOLVERS, SlotQP
 
 RESTARTS = ("mirror", "straight")
+# How an indefinite Hessian is made positive definite when adding sigma J_A' J_A of the
+# predicted active constraints does not do it (see FastScenarioSolver._convexify):
+# "floor": negative eigenvalues raised to hessian_floor; "abs": replaced by their absolute
+# values (at least the floor); "augmented": the floor applied to the augmented Hessian.
+HESSIAN_MODIFICATIONS = ("floor", "abs", "augmented")
 
 
 @dataclass(frozen=True)
@@ -82,8 +87,9 @@ class FastSolverOptions:
     second_order_correction: bool = True  # against the Maratos effect
     damping_init: float = 1.0  # first Levenberg-Marquardt damping after heavy backtracking
     damping_threshold: float = 0.1  # line-search step below which the damping grows
+    damping_decrease: float = 0.1  # factor on the damping after a full step
     qp_solver: str = "qpoases"  # one of QP_SOLVERS
-    hessian_modification: str = "floor"
+    hessian_modification: str = "floor"  # one of HESSIAN_MODIFICATIONS
     # Expansion of a full step that decreased the merit by at least expand_ratio times the
     # linear prediction (the model's curvature along it is too high, e.g. after a negative
     # eigenvalue was raised): steps 2, 4, ... times as long while the merit keeps falling.
@@ -130,10 +136,16 @@ class FastSolverOptions:
         check("armijo", 0 < self.armijo < 0.5, "in (0, 0.5)")
         check("backtrack", 0 < self.backtrack < 1, "in (0, 1)")
         check("damping_threshold", 0 < self.damping_threshold <= 1, "in (0, 1]")
+        check("damping_decrease", 0 <= self.damping_decrease < 1, "in [0, 1)")
         value = self.max_time
         ok = isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0
         check("max_time", ok and not math.isnan(value), "a number of seconds > 0 (inf: none)")
         check("qp_solver", self.qp_solver in QP_SOLVERS, f"one of {QP_SOLVERS}")
+        ok = self.hessian_modification in HESSIAN_MODIFICATIONS
+        check("hessian_modification", ok, f"one of {HESSIAN_MODIFICATIONS}")
+        ok = isinstance(self.max_expand, int) and not isinstance(self.max_expand, bool)
+        check("max_expand", ok and self.max_expand >= 0, "an int >= 0")
+        check("expand_ratio", 0 < self.expand_ratio <= 1, "in (0, 1]")
         if isinstance(self.restarts, list):
             object.__setattr__(self, "restarts", tuple(self.restarts))
         ok = isinstance(self.restarts, tuple) and all(r in RESTARTS for r in self.restarts)
@@ -809,7 +821,9 @@ class FastScenarioSolver:
                 if t < opt.damping_threshold:
                     damping = max(10.0 * damping, opt.damping_init)
                 elif t == 1.0:
-                    damping = 0.1 * damping if damping > 1e-3 * opt.damping_init else 0.0
+                    damping = (
+                        opt.damping_decrease * damping if damping > 1e-3 * opt.damping_init else 0.0
+                    )
                 ratio = step / prev_step if math.isfinite(prev_step) else 1.0
                 predicted_next = step * min(ratio, 1.0) if t == 1.0 else math.inf
                 prev_step = step if t == 1.0 else math.inf
@@ -838,4 +852,4 @@ class _Data:
     backoff: np.ndarray | None = None  # (ng, N, 1) constraint tightening, or None
 
 
-__all__ = ["RESTARTS", "FastScenarioSolver", "FastSolverOptions"]
+__all__ = ["HESSIAN_MODIFICATIONS", "RESTARTS", "FastScenarioSolver", "FastSolverOptions"]

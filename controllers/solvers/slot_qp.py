@@ -3,15 +3,15 @@
 Used by :mod:`controllers.solvers.fast` and :mod:`controllers.solvers.fast_bicycle`.
 Two QP solvers (:data:`QP_SOLVERS`):
 
-* ``"daqp"`` (default): the dual active-set solver DAQP on the rows in use only, cold
-  started at every call, so nothing carries over from one QP (or one problem) to the
-  next. Fastest here on the SQP's QPs (tens of variables, up to a few hundred rows).
-* ``"qpoases"``: qpOASES through CasADi on every row slot, hot-started from the previous
-  active set of the same object; :meth:`SlotQP.reset` forgets it, and a failed call is
-  retried once cold.
+* ``"qpoases"`` (default): qpOASES through CasADi on every row slot, hot-started from the
+  previous active set of the same object; :meth:`SlotQP.reset` forgets it (the fast
+  solvers reset at every solve, so nothing carries over from one problem to the next).
+* ``"daqp"``: the dual active-set solver DAQP on the rows in use only, cold started at
+  every call. It cycles on some degenerate QPs (many near-parallel scenario rows); those
+  fall back to qpOASES.
 
-A QP that still fails is retried with a proximal term on the step (``1e-6`` times the
-largest Hessian diagonal entry), which recovers the degenerate QPs of near-parallel rows.
+A failed call is retried once with a cold qpOASES, then with a proximal term on the step
+(``1e-6`` times the largest Hessian diagonal entry) against degenerate QPs.
 """
 
 from __future__ import annotations
@@ -106,12 +106,12 @@ class SlotQP:
         self.lam_a = np.zeros(cap)
         self.failures = 0  # calls whose first attempt failed (recovered or not)
         self._conic: Any = None
+        self._hot = False
         if solver == "qpoases":
             self._build_conic()
-        else:
-            # DAQP reads simple bounds first, then the rows: [bounds (nv), rows (<= cap)].
-            self._bu = np.empty(nv + cap)
-            self._bl = np.empty(nv + cap)
+        # DAQP reads simple bounds first, then the rows: [bounds (nv), rows (<= cap)].
+        self._bu = np.empty(nv + cap)
+        self._bl = np.empty(nv + cap)
 
     def _build_conic(self) -> None:
         """A fresh qpOASES conic on this object's arrays (no hot-start information)."""
@@ -154,7 +154,7 @@ class SlotQP:
 
     def reset(self) -> None:
         """Forget every hot-start information (qpOASES: a fresh conic; DAQP has none)."""
-        if self.solver == "qpoases" and self._hot:
+        if self._hot:
             self._build_conic()
 
     @staticmethod
@@ -208,26 +208,27 @@ class SlotQP:
         A failed attempt is retried (qpOASES: cold, from a fresh conic), then with a
         proximal term on the step; the arrays of the problem are left as they were.
         """
-        ok = self._attempt()
+        ok = self._attempt(self.solver)
         if not ok:
             self.failures += 1
-            if self.solver == "qpoases":
-                self._build_conic()
-                ok = self._attempt()
+            # qpOASES cold (a fresh conic); after DAQP (which cycles on some degenerate
+            # QPs of near-parallel scenario rows) qpOASES as the fallback.
+            self._build_conic()
+            ok = self._attempt("qpoases")
             if not ok:
                 nu = self.n_u
                 diag = self.H[np.arange(nu), np.arange(nu)].copy()
                 prox = 1e-6 * max(float(np.max(np.abs(diag))), 1.0)
                 self.H[np.arange(nu), np.arange(nu)] = diag + prox
                 try:
-                    ok = self._attempt()
+                    ok = self._attempt("qpoases")
                 finally:
                     self.H[np.arange(nu), np.arange(nu)] = diag
         return self.x.copy(), np.maximum(self.lam_a, 0.0), ok
 
-    def _attempt(self) -> bool:
-        """One call of the QP solver on the current arrays; True on success."""
-        if self.solver == "daqp":
+    def _attempt(self, solver: str) -> bool:
+        """One call of ``solver`` on the current arrays; True on success."""
+        if solver == "daqp":
             return self._solve_daqp()
         self._hot = True
         self._evaluate()
@@ -254,7 +255,7 @@ class SlotQP:
             time_limit=self.max_time if math.isfinite(self.max_time) else 0,
         )
         self.lam_a[:] = 0.0
-        if flag < 1:  # 1 optimal, 2 soft-optimal; <= 0 infeasible, cycling, iteration limit
+        if flag not in (1, 2):  # optimal, soft-optimal; < 0: infeasible, cycling, limits
             self.x[:] = np.nan
             return False
         self.x[:] = x
