@@ -261,10 +261,14 @@ class FastScenarioSolver:
             ``predicted`` those of :class:`ScenarioProblem` (``objective``,
             ``minimal_slack`` summed, ``rollout``) for ``u``, computed by the solver's own
             vectorised rollout (equal up to rounding); ``solve_time`` the wall time of the
-            whole call; ``extra`` counts QP solves, QP rows, merit evaluations and
-            second-order corrections, names the derivative backend, and
-            ``extra["restarts"]`` maps each extra start tried to ``"kept"`` or the status
-            it ended with; ``iterations`` counts the iterations of every start. A solve
+            whole call; ``extra`` counts QP solves (``qp_solves``), the most QP rows
+            (``qp_rows``), QP calls retried after a failure (``qp_retries``), iterations
+            whose check-and-add rounds ran out (``qp_rounds_exhausted``), merit
+            evaluations and second-order corrections, names the derivative backend
+            (``backend``) and the QP solver (``qp_solver``), gives the first start's
+            ``{"status", "iterations"}`` (``first_start``), and ``extra["restarts"]`` maps
+            each extra start tried to ``"kept"`` or the status it ended with;
+            ``iterations`` counts the iterations of every start. A solve
             that does not converge does not raise: it returns the best iterate (the merit
             decreases monotonically) with ``success=False``.
 
@@ -529,12 +533,20 @@ class FastScenarioSolver:
         return np.column_stack([screened[group // n], group % n, worst[sub, col]])
 
     def _solve_qp(
-        self, lin: Linearisation, H: np.ndarray, u: np.ndarray, pos: np.ndarray, stats: dict
+        self,
+        lin: Linearisation,
+        H: np.ndarray,
+        u: np.ndarray,
+        pos: np.ndarray,
+        g_shared: np.ndarray,
+        stats: dict,
     ) -> _QPStep | None:
-        """Step of the full QP by check-and-add over the scenario rows; None on failure."""
+        """Step of the full QP by check-and-add over the scenario rows; None on failure.
+
+        ``g_shared``: the shared rows' values, ordered (step, constraint).
+        """
         p, nu = self.problem, self._n_u
         n, ng = p.horizon, p.ng
-        g_shared = lin.ro.G[self.model.shared].max(axis=2).T.ravel()  # (step, constraint)
         for round_ in range(self.options.max_qp_rounds):
             self._check_time()
             a_pos, g_pos = self.model.rows(lin, pos)
@@ -600,7 +612,7 @@ class FastScenarioSolver:
             self._last_sigma = sigma if sigma > 0 else (-1.0 if H_qp is not H else 0.0)
             if damping > 0.0:
                 H_qp = H_qp + damping * np.eye(self._n_u)
-            step = self._solve_qp(lin, H_qp, u, screened, stats)
+            step = self._solve_qp(lin, H_qp, u, screened, g_shared, stats)
             if step is None:
                 return None, mu
             mu[:] = 0.0

@@ -106,7 +106,8 @@ class SlotQP:
         self.lam_a = np.zeros(cap)
         self.failures = 0  # calls whose first attempt failed (recovered or not)
         self._conic: Any = None
-        self._hot = False
+        self._hot = False  # the conic has solved a QP (it then hot-starts)
+        self._stale = False  # reset() was called: no hot start at the next call
         if solver == "qpoases":
             self._build_conic()
         # DAQP reads simple bounds first, then the rows: [bounds (nv), rows (<= cap)].
@@ -150,12 +151,12 @@ class SlotQP:
             arr = outputs.get(name, np.zeros(self._conic.nnz_out(i)))
             self._keep.append(arr)
             self._buffer.set_res(i, memoryview(arr))
-        self._hot = False  # True once the conic has solved a QP (it then hot-starts)
+        self._hot = False
 
     def reset(self) -> None:
-        """Forget every hot-start information (qpOASES: a fresh conic; DAQP has none)."""
-        if self._hot:
-            self._build_conic()
+        """Forget every hot-start information before the next call (qpOASES: a fresh conic,
+        built when this object is next used; DAQP has none)."""
+        self._stale = True
 
     @staticmethod
     def layout(pos: np.ndarray, values: np.ndarray, horizon: int) -> tuple[np.ndarray, ...]:
@@ -230,7 +231,9 @@ class SlotQP:
         """One call of ``solver`` on the current arrays; True on success."""
         if solver == "daqp":
             return self._solve_daqp()
-        self._hot = True
+        if self._stale and self._hot:
+            self._build_conic()
+        self._stale, self._hot = False, True
         self._evaluate()
         return self._buffer.ret() == 0 and bool(np.all(np.isfinite(self.x)))
 
