@@ -8,10 +8,11 @@ Two QP solvers (:data:`QP_SOLVERS`):
   solvers reset at every solve, so nothing carries over from one problem to the next).
 * ``"daqp"``: the dual active-set solver DAQP on the rows in use only, cold started at
   every call. It cycles on some degenerate QPs (many near-parallel scenario rows); those
-  fall back to qpOASES.
+  fall back as below.
 
-A failed call is retried once with a cold qpOASES, then with a proximal term on the step
-(``1e-6`` times the largest Hessian diagonal entry) against degenerate QPs.
+A failed call is retried by a cold qpOASES, then by CasADi's qrqp (which solves some
+degenerate QPs on which qpOASES's factorisation breaks down), then both with a small
+proximal term on the step (:meth:`SlotQP.solve`).
 """
 
 from __future__ import annotations
@@ -27,6 +28,9 @@ import casadi as ca
 import numpy as np
 
 QP_SOLVERS = ("daqp", "qpoases")
+# Proximal terms on the step (relative to the largest Hessian diagonal entry) of the
+# retries of a failed QP: none first.
+PROXIMAL_STEPS = (0.0, 1e-8, 1e-4)
 DAQP_INF = 1e30  # DAQP's infinity (a bound at or beyond it is none)
 # DAQP's primal feasibility tolerance [m, m/s]: below the SQP's check-and-add tolerance,
 # so that rows close to a QP row are not added round after round (DAQP's default is 1e-6).
@@ -206,36 +210,61 @@ class SlotQP:
     def solve(self) -> tuple[np.ndarray, np.ndarray, bool]:
         """Solve the QP: ``(z, row multipliers >= 0, success)``.
 
-        A failed attempt is retried (qpOASES: cold, from a fresh conic), then with a
-        proximal term on the step; the arrays of the problem are left as they were.
+        A failed attempt is retried by qpOASES cold (a fresh conic), then by qrqp; then
+        both again with a proximal term on the step of ``1e-8``, then ``1e-4``, times the
+        largest Hessian diagonal entry (degenerate QPs). The arrays of the problem are
+        left as they were.
         """
         ok = self._attempt(self.solver)
-        if not ok:
-            self.failures += 1
-            # qpOASES cold (a fresh conic); after DAQP (which cycles on some degenerate
-            # QPs of near-parallel scenario rows) qpOASES as the fallback.
-            self._build_conic()
-            ok = self._attempt("qpoases")
-            if not ok:
-                nu = self.n_u
-                diag = self.H[np.arange(nu), np.arange(nu)].copy()
-                prox = 1e-6 * max(float(np.max(np.abs(diag))), 1.0)
-                self.H[np.arange(nu), np.arange(nu)] = diag + prox
-                try:
-                    ok = self._attempt("qpoases")
-                finally:
-                    self.H[np.arange(nu), np.arange(nu)] = diag
+        if ok:
+            return self.x.copy(), np.maximum(self.lam_a, 0.0), ok
+        self.failures += 1
+        nu = self.n_u
+        diag = self.H[np.arange(nu), np.arange(nu)].copy()
+        scale = max(float(np.max(np.abs(diag))), 1.0)
+        for prox in PROXIMAL_STEPS:
+            self.H[np.arange(nu), np.arange(nu)] = diag + prox * scale
+            try:
+                self._build_conic()
+                ok = self._attempt("qpoases") or self._attempt("qrqp")
+            finally:
+                self.H[np.arange(nu), np.arange(nu)] = diag
+            if ok:
+                break
         return self.x.copy(), np.maximum(self.lam_a, 0.0), ok
 
     def _attempt(self, solver: str) -> bool:
         """One call of ``solver`` on the current arrays; True on success."""
         if solver == "daqp":
             return self._solve_daqp()
+        if solver == "qrqp":
+            return self._solve_qrqp()
         if self._stale and self._hot:
             self._build_conic()
         self._stale, self._hot = False, True
         self._evaluate()
         return self._buffer.ret() == 0 and bool(np.all(np.isfinite(self.x)))
+
+    def _solve_qrqp(self) -> bool:
+        """CasADi's active-set QP solver qrqp on the rows in use (a fallback)."""
+        rows = np.flatnonzero(self.uba < np.inf)
+        nv, m = self.n_var, rows.size
+        conic = ca.conic(
+            "fast_sqp_qrqp",
+            "qrqp",
+            {"h": ca.Sparsity.dense(nv, nv), "a": ca.Sparsity.dense(m, nv)},
+            {"print_iter": False, "print_header": False, "error_on_fail": False},
+        )
+        a = self.A[rows]
+        res = conic(h=self.H, g=self.g, a=a, uba=self.uba[rows], lbx=self.lbx, ubx=self.ubx)
+        x = np.asarray(res["x"]).ravel()
+        self.lam_a[:] = 0.0
+        if not conic.stats()["success"] or not np.all(np.isfinite(x)):
+            self.x[:] = np.nan
+            return False
+        self.x[:] = x
+        self.lam_a[rows] = np.asarray(res["lam_a"]).ravel()
+        return True
 
     def _solve_daqp(self) -> bool:
         """DAQP on the rows in use (finite ``uba``), cold started."""
