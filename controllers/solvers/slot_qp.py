@@ -83,6 +83,14 @@ class SlotQP:
     ) -> None:
         if solver not in QP_SOLVERS:
             raise ValueError(f"solver={solver!r}: must be one of {QP_SOLVERS}")
+        if solver == "daqp":
+            try:
+                import daqp  # noqa: F401
+            except ImportError as err:
+                raise ValueError(
+                    "qp_solver='daqp' needs the daqp package (pip install daqp, or the "
+                    "test/bench extras)"
+                ) from err
         self.solver = solver
         self.groups, self.slots = groups, slots
         self.n_u, self.n_speed = n_u, n_shared
