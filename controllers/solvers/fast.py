@@ -56,6 +56,11 @@ from controllers.solvers.condensed import CondensedModel, Linearisation, Rollout
 from controllers.solvers.slot_qp import QP_SOLVERS, SlotQP
 
 RESTARTS = ("mirror", "straight")
+# How an indefinite Hessian is made positive definite when adding sigma J_A' J_A of the
+# predicted active constraints does not do it (see FastScenarioSolver._convexify):
+# "floor": negative eigenvalues raised to hessian_floor; "abs": replaced by their absolute
+# values (at least the floor); "augmented": the floor applied to the augmented Hessian.
+HESSIAN_MODIFICATIONS = ("floor", "abs", "augmented")
 
 
 @dataclass(frozen=True)
@@ -82,7 +87,14 @@ class FastSolverOptions:
     second_order_correction: bool = True  # against the Maratos effect
     damping_init: float = 1.0  # first Levenberg-Marquardt damping after heavy backtracking
     damping_threshold: float = 0.1  # line-search step below which the damping grows
+    damping_decrease: float = 0.1  # factor on the damping after a full step
     qp_solver: str = "qpoases"  # one of QP_SOLVERS
+    hessian_modification: str = "floor"  # one of HESSIAN_MODIFICATIONS
+    # Expansion of a full step that decreased the merit by at least expand_ratio times the
+    # linear prediction (the model's curvature along it is too high, e.g. after a negative
+    # eigenvalue was raised): steps 2, 4, ... times as long while the merit keeps falling.
+    max_expand: int = 0
+    expand_ratio: float = 0.75
     # Extra starts against local optima (see FastScenarioSolver.solve): any of RESTARTS.
     restarts: tuple[str, ...] = ("mirror", "straight")
     restart_threshold: float = 0.35  # fraction of a mirrored input's bound that calls for them
@@ -124,10 +136,16 @@ class FastSolverOptions:
         check("armijo", 0 < self.armijo < 0.5, "in (0, 0.5)")
         check("backtrack", 0 < self.backtrack < 1, "in (0, 1)")
         check("damping_threshold", 0 < self.damping_threshold <= 1, "in (0, 1]")
+        check("damping_decrease", 0 <= self.damping_decrease < 1, "in [0, 1)")
         value = self.max_time
         ok = isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0
         check("max_time", ok and not math.isnan(value), "a number of seconds > 0 (inf: none)")
         check("qp_solver", self.qp_solver in QP_SOLVERS, f"one of {QP_SOLVERS}")
+        ok = self.hessian_modification in HESSIAN_MODIFICATIONS
+        check("hessian_modification", ok, f"one of {HESSIAN_MODIFICATIONS}")
+        ok = isinstance(self.max_expand, int) and not isinstance(self.max_expand, bool)
+        check("max_expand", ok and self.max_expand >= 0, "an int >= 0")
+        check("expand_ratio", 0 < self.expand_ratio <= 1, "in (0, 1]")
         if isinstance(self.restarts, list):
             object.__setattr__(self, "restarts", tuple(self.restarts))
         ok = isinstance(self.restarts, tuple) and all(r in RESTARTS for r in self.restarts)
@@ -194,6 +212,8 @@ class FastScenarioSolver:
         self._qps: dict[tuple[int, int], SlotQP] = {}
         self._prev_u: np.ndarray | None = None
         self._deadline = math.inf  # time.perf_counter() value ending the current solve
+        # A list to record one dict per SQP iteration into (diagnostics), or None.
+        self.trace: list[dict[str, Any]] | None = None
 
     @property
     def backend(self) -> str:
@@ -241,10 +261,14 @@ class FastScenarioSolver:
             ``predicted`` those of :class:`ScenarioProblem` (``objective``,
             ``minimal_slack`` summed, ``rollout``) for ``u``, computed by the solver's own
             vectorised rollout (equal up to rounding); ``solve_time`` the wall time of the
-            whole call; ``extra`` counts QP solves, QP rows, merit evaluations and
-            second-order corrections, names the derivative backend, and
-            ``extra["restarts"]`` maps each extra start tried to ``"kept"`` or the status
-            it ended with; ``iterations`` counts the iterations of every start. A solve
+            whole call; ``extra`` counts QP solves (``qp_solves``), the most QP rows
+            (``qp_rows``), QP calls retried after a failure (``qp_retries``), iterations
+            whose check-and-add rounds ran out (``qp_rounds_exhausted``), merit
+            evaluations and second-order corrections, names the derivative backend
+            (``backend``) and the QP solver (``qp_solver``), gives the first start's
+            ``{"status", "iterations"}`` (``first_start``), and ``extra["restarts"]`` maps
+            each extra start tried to ``"kept"`` or the status it ended with;
+            ``iterations`` counts the iterations of every start. A solve
             that does not converge does not raise: it returns the best iterate (the merit
             decreases monotonically) with ``success=False``.
 
@@ -280,7 +304,10 @@ class FastScenarioSolver:
             backoff=None if b is None else np.ascontiguousarray(b.T[:, :, None]),
         )
         deadline = t_start + self.options.max_time
+        for qp in self._qps.values():  # no hot start carries over from another problem
+            qp.reset()
         ro, status, success, iterations, extra = self._sqp(data, u0, deadline=deadline)
+        first_status, first_iterations = status, iterations
         extra["restarts"] = {}
         for name in self._restart_names(ro):
             if time.perf_counter() >= deadline:
@@ -294,7 +321,13 @@ class FastScenarioSolver:
                 data, u_alt, bar, ro.u, deadline=deadline
             )
             iterations += iterations2
-            for key in ("qp_solves", "soc_steps", "merit_evals"):
+            for key in (
+                "qp_solves",
+                "qp_retries",
+                "qp_rounds_exhausted",
+                "soc_steps",
+                "merit_evals",
+            ):
                 extra[key] += extra2[key]
             extra["qp_rows"] = max(extra["qp_rows"], extra2["qp_rows"])
             better = ro2.merit < ro.merit - 1e-12 * (1.0 + abs(ro.merit))
@@ -303,6 +336,8 @@ class FastScenarioSolver:
             if keep:
                 ro, status, success = ro2, status2, success2
         extra["backend"] = self.backend
+        extra["qp_solver"] = self.options.qp_solver
+        extra["first_start"] = {"status": first_status, "iterations": first_iterations}
 
         u = ro.u.reshape(n, nu).copy()
         self._prev_u = u.copy()
@@ -374,6 +409,7 @@ class FastScenarioSolver:
         """
         floor = self.options.hessian_floor
         w, V = np.linalg.eigh(H)
+        self._last_eig = (float(w[0]), float(w[-1]))
         j_pos = np.empty((0, self._n_u))
         if w[0] >= floor:
             return H, 0.0, j_pos
@@ -391,9 +427,16 @@ class FastScenarioSolver:
             sigma = float(np.max(np.abs(w))) / max(float(np.max(np.diag(G))), 1e-12)
             for _ in range(4):
                 H_aug = H + sigma * G
-                if np.linalg.eigvalsh(H_aug)[0] >= floor:
+                w_aug, V_aug = np.linalg.eigh(H_aug)
+                if w_aug[0] >= floor:
                     return H_aug, sigma, j_pos
+                if self.options.hessian_modification == "augmented":
+                    # Negative curvature left on the active constraints' null space: raise
+                    # only those eigenvalues, keeping the constraints' own curvature.
+                    return (V_aug * np.maximum(w_aug, floor)) @ V_aug.T, sigma, j_pos
                 sigma *= 10.0
+        if self.options.hessian_modification == "abs":
+            return (V * np.maximum(np.abs(w), floor)) @ V.T, 0.0, j_pos
         return (V * np.maximum(w, floor)) @ V.T, 0.0, j_pos
 
     # ------------------------------------------------------------------ QP subproblem
@@ -490,13 +533,21 @@ class FastScenarioSolver:
         return np.column_stack([screened[group // n], group % n, worst[sub, col]])
 
     def _solve_qp(
-        self, lin: Linearisation, H: np.ndarray, u: np.ndarray, pos: np.ndarray, stats: dict
+        self,
+        lin: Linearisation,
+        H: np.ndarray,
+        u: np.ndarray,
+        pos: np.ndarray,
+        g_shared: np.ndarray,
+        stats: dict,
     ) -> _QPStep | None:
-        """Step of the full QP by check-and-add over the scenario rows; None on failure."""
+        """Step of the full QP by check-and-add over the scenario rows; None on failure.
+
+        ``g_shared``: the shared rows' values, ordered (step, constraint).
+        """
         p, nu = self.problem, self._n_u
         n, ng = p.horizon, p.ng
-        g_shared = lin.ro.G[self.model.shared].max(axis=2).T.ravel()  # (step, constraint)
-        for _ in range(self.options.max_qp_rounds):
+        for round_ in range(self.options.max_qp_rounds):
             self._check_time()
             a_pos, g_pos = self.model.rows(lin, pos)
             groups, slot_group, rank = SlotQP.layout(pos, g_pos, n)
@@ -504,8 +555,10 @@ class FastScenarioSolver:
             row = qp.n_speed + slot_group * qp.slots + rank
             qp.set_problem(H, lin.grad, self._lower - u, self._upper - u, self._a_shared, g_shared)
             qp.set_position_rows(row, a_pos, g_pos)
+            retried = qp.failures
             z, lam_all, ok = qp.solve()
             stats["qp_solves"] += 1
+            stats["qp_retries"] += qp.failures - retried
             if not ok:
                 return None
             s_pos = np.zeros((ng, n))
@@ -513,6 +566,9 @@ class FastScenarioSolver:
             s_pos.reshape(-1)[groups] = z[first : first + groups.size]
             missing = self._missing_rows(lin, z[:nu], s_pos, pos)
             if missing.shape[0] == 0:
+                break
+            if round_ == self.options.max_qp_rounds - 1:  # keep the last QP's rows
+                stats["qp_rounds_exhausted"] += 1
                 break
             pos = np.concatenate([pos, missing])
         stats["qp_rows"] = max(stats["qp_rows"], pos.shape[0])
@@ -553,9 +609,10 @@ class FastScenarioSolver:
             if attempt == 3:  # give up predicting: plain eigenvalue clipping
                 active_pos, active_shared, bounds = active_pos[:0], active_shared[:0], bounds[:0]
             H_qp, sigma, j_pos = self._convexify(H, lin, active_pos, active_shared, bounds)
+            self._last_sigma = sigma if sigma > 0 else (-1.0 if H_qp is not H else 0.0)
             if damping > 0.0:
                 H_qp = H_qp + damping * np.eye(self._n_u)
-            step = self._solve_qp(lin, H_qp, u, screened, stats)
+            step = self._solve_qp(lin, H_qp, u, screened, g_shared, stats)
             if step is None:
                 return None, mu
             mu[:] = 0.0
@@ -587,6 +644,23 @@ class FastScenarioSolver:
 
     # ------------------------------------------------------------------ SQP
 
+    def _expand(
+        self, evaluate: Any, u: np.ndarray, d: np.ndarray, accepted: Rollout, stats: dict
+    ) -> tuple[Rollout, float]:
+        """The best of ``u + t d`` for ``t = 1, 2, 4, ...`` while the merit keeps falling."""
+        t = 1.0
+        for _ in range(self.options.max_expand):
+            self._check_time()
+            u_try = np.clip(u + 2.0 * t * d, self._lower, self._upper)
+            if np.array_equal(u_try, accepted.u):  # the bounds stop the step
+                break
+            trial = evaluate(u_try)
+            stats["merit_evals"] += 1
+            if not trial.merit < accepted.merit:
+                break
+            accepted, t = trial, 2.0 * t
+        return accepted, t
+
     def _check_time(self) -> None:
         """Raise :class:`_OutOfTime` once the current solve's deadline has passed."""
         if time.perf_counter() >= self._deadline:
@@ -617,7 +691,14 @@ class FastScenarioSolver:
         mu = np.zeros((p.ng, p.horizon, ns))
         active_pos = np.empty((0, 3), dtype=int)
         active_shared = np.empty(0, dtype=int)
-        stats: dict[str, Any] = {"qp_solves": 0, "qp_rows": 0, "soc_steps": 0, "merit_evals": 1}
+        stats: dict[str, Any] = {
+            "qp_solves": 0,
+            "qp_rows": 0,
+            "qp_retries": 0,
+            "qp_rounds_exhausted": 0,
+            "soc_steps": 0,
+            "merit_evals": 1,
+        }
 
         def evaluate(u: np.ndarray) -> Rollout:
             with np.errstate(all="ignore"):
@@ -707,6 +788,13 @@ class FastScenarioSolver:
                                 accepted = soc
                                 break
                     t *= opt.backtrack
+                if (
+                    accepted is not None
+                    and t == 1.0
+                    and opt.max_expand > 0
+                    and ro.merit - accepted.merit >= -opt.expand_ratio * D
+                ):
+                    accepted, t = self._expand(evaluate, u, d, accepted, stats)
                 if accepted is None:
                     # No decrease along a descent direction: converged up to rounding if the
                     # predicted decrease is negligible, else a genuine failure.
@@ -716,6 +804,24 @@ class FastScenarioSolver:
                         status = "Line_Search_Failed"
                     break
                 step = float(np.max(np.abs(accepted.u - u)))
+                if self.trace is not None:
+                    self.trace.append(
+                        {
+                            "merit": ro.merit,
+                            "ratio": (accepted.merit - ro.merit) / D,
+                            "slack": ro.slack,
+                            "D": D,
+                            "t": t,
+                            "step": step,
+                            "d": float(np.max(np.abs(d))),
+                            "damping": damping,
+                            "qp_solves": stats["qp_solves"],
+                            "rows": pos.shape[0],
+                            "eig0": self._last_eig[0],
+                            "eig1": self._last_eig[1],
+                            "sigma": self._last_sigma,
+                        }
+                    )
                 slack_change = abs(accepted.slack - ro.slack)
                 ro = accepted
                 if rival is not None and np.max(np.abs(ro.u - rival)) <= opt.restart_same_tol:
@@ -727,7 +833,9 @@ class FastScenarioSolver:
                 if t < opt.damping_threshold:
                     damping = max(10.0 * damping, opt.damping_init)
                 elif t == 1.0:
-                    damping = 0.1 * damping if damping > 1e-3 * opt.damping_init else 0.0
+                    damping = (
+                        opt.damping_decrease * damping if damping > 1e-3 * opt.damping_init else 0.0
+                    )
                 ratio = step / prev_step if math.isfinite(prev_step) else 1.0
                 predicted_next = step * min(ratio, 1.0) if t == 1.0 else math.inf
                 prev_step = step if t == 1.0 else math.inf
@@ -756,4 +864,4 @@ class _Data:
     backoff: np.ndarray | None = None  # (ng, N, 1) constraint tightening, or None
 
 
-__all__ = ["RESTARTS", "FastScenarioSolver", "FastSolverOptions"]
+__all__ = ["HESSIAN_MODIFICATIONS", "RESTARTS", "FastScenarioSolver", "FastSolverOptions"]

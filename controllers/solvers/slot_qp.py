@@ -1,6 +1,18 @@
 """The dense QP of the fast SQP solvers, in fixed row slots so that hot starts mean something.
 
 Used by :mod:`controllers.solvers.fast` and :mod:`controllers.solvers.fast_bicycle`.
+Two QP solvers (:data:`QP_SOLVERS`):
+
+* ``"qpoases"`` (default): qpOASES through CasADi on every row slot, hot-started from the
+  previous active set of the same object; :meth:`SlotQP.reset` forgets it (the fast
+  solvers reset at every solve, so nothing carries over from one problem to the next).
+* ``"daqp"``: the dual active-set solver DAQP on the rows in use only, cold started at
+  every call. It cycles on some degenerate QPs (many near-parallel scenario rows); those
+  fall back as below.
+
+A failed call is retried by a cold qpOASES, then by CasADi's qrqp (which solves some
+degenerate QPs on which qpOASES's factorisation breaks down), then both with a small
+proximal term on the step (:meth:`SlotQP.solve`).
 """
 
 from __future__ import annotations
@@ -15,7 +27,14 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-QP_SOLVERS = ("qpoases",)
+QP_SOLVERS = ("daqp", "qpoases")
+# Proximal terms on the step (relative to the largest Hessian diagonal entry) of the
+# retries of a failed QP: none first.
+PROXIMAL_STEPS = (0.0, 1e-8, 1e-4)
+DAQP_INF = 1e30  # DAQP's infinity (a bound at or beyond it is none)
+# DAQP's primal feasibility tolerance [m, m/s]: below the SQP's check-and-add tolerance,
+# so that rows close to a QP row are not added round after round (DAQP's default is 1e-6).
+DAQP_PRIMAL_TOL = 1e-10
 
 
 @contextlib.contextmanager
@@ -46,9 +65,9 @@ class SlotQP:
     group per constraint and step) that have rows. Rows ``[J_r, -e_slack] z <= -g_r``:
     first the shared rows, then ``K`` row slots per group slack slot, filled by
     decreasing value. Unused slots are zero rows with ``uba = +inf`` (their slack stays
-    at zero). Only the Jacobian part of ``A``
-    changes between calls, so qpOASES can hot-start from the previous active set. The
-    CasADi conic is evaluated through a ``FunctionBuffer`` on persistent NumPy arrays.
+    at zero). Only the Jacobian part of ``A`` changes between calls, so qpOASES can
+    hot-start from the previous active set; its CasADi conic is evaluated through a
+    ``FunctionBuffer`` on persistent NumPy arrays. DAQP gets the rows in use only.
     """
 
     def __init__(
@@ -62,23 +81,23 @@ class SlotQP:
         slack_reg: float,
         max_time: float = math.inf,
     ) -> None:
+        if solver not in QP_SOLVERS:
+            raise ValueError(f"solver={solver!r}: must be one of {QP_SOLVERS}")
+        if solver == "daqp":
+            try:
+                import daqp  # noqa: F401
+            except ImportError as err:
+                raise ValueError(
+                    "qp_solver='daqp' needs the daqp package (pip install daqp, or the "
+                    "test/bench extras)"
+                ) from err
+        self.solver = solver
         self.groups, self.slots = groups, slots
         self.n_u, self.n_speed = n_u, n_shared
         self.n_var = n_u + n_shared + groups
         self.capacity = self.n_speed + groups * slots
+        self.max_time = max_time
         nv, cap, nu = self.n_var, self.capacity, self.n_u
-        opts: dict[str, Any] = {"error_on_fail": False}
-        if solver == "qpoases":
-            opts["printLevel"] = "none"
-            if math.isfinite(max_time):
-                # One QP cannot be interrupted from Python: let qpOASES stop itself, so a
-                # solve overruns its wall-clock limit by at most one QP's limit [s].
-                opts["CPUtime"] = float(max_time)
-        sparsity = {"h": ca.Sparsity.dense(nv, nv), "a": ca.Sparsity.dense(cap, nv)}
-        self._conic_args = ("fast_sqp_qp", solver, sparsity, opts)
-        with silenced_stdout():  # qpOASES prints a banner whenever a memory is created
-            self._conic = ca.conic(*self._conic_args)
-            self._buffer, self._evaluate = self._conic.buffer()
         # Dense inputs are column-major nonzeros; H is symmetric, A is viewed transposed.
         self._h = np.zeros(nv * nv)
         self.H = self._h.reshape(nv, nv)
@@ -97,6 +116,32 @@ class SlotQP:
         self.ubx = np.full(nv, np.inf)
         self.x = np.zeros(nv)
         self.lam_a = np.zeros(cap)
+        self.failures = 0  # calls whose first attempt failed (recovered or not)
+        self._conic: Any = None
+        self._hot = False  # the conic has solved a QP (it then hot-starts)
+        self._stale = False  # reset() was called: no hot start at the next call
+        if solver == "qpoases":
+            self._build_conic()
+        # DAQP reads simple bounds first, then the rows: [bounds (nv), rows (<= cap)].
+        self._bu = np.empty(nv + cap)
+        self._bl = np.empty(nv + cap)
+
+    def _build_conic(self) -> None:
+        """A fresh qpOASES conic on this object's arrays (no hot-start information)."""
+        nv, cap = self.n_var, self.capacity
+        opts: dict[str, Any] = {"error_on_fail": False, "printLevel": "none"}
+        if math.isfinite(self.max_time):
+            # One QP cannot be interrupted from Python: let qpOASES stop itself, so a
+            # solve overruns its wall-clock limit by at most one QP's limit [s].
+            opts["CPUtime"] = float(self.max_time)
+        with silenced_stdout():  # qpOASES prints a banner whenever a memory is created
+            self._conic = ca.conic(
+                "fast_sqp_qp",
+                "qpoases",
+                {"h": ca.Sparsity.dense(nv, nv), "a": ca.Sparsity.dense(cap, nv)},
+                opts,
+            )
+            self._buffer, self._evaluate = self._conic.buffer()
         outputs = {"x": self.x, "cost": np.zeros(1), "lam_a": self.lam_a, "lam_x": np.zeros(nv)}
         inputs = {
             "h": self._h,
@@ -118,6 +163,12 @@ class SlotQP:
             arr = outputs.get(name, np.zeros(self._conic.nnz_out(i)))
             self._keep.append(arr)
             self._buffer.set_res(i, memoryview(arr))
+        self._hot = False
+
+    def reset(self) -> None:
+        """Forget every hot-start information before the next call (qpOASES: a fresh conic,
+        built when this object is next used; DAQP has none)."""
+        self._stale = True
 
     @staticmethod
     def layout(pos: np.ndarray, values: np.ndarray, horizon: int) -> tuple[np.ndarray, ...]:
@@ -165,22 +216,91 @@ class SlotQP:
         self.uba[row] = -g_pos
 
     def solve(self) -> tuple[np.ndarray, np.ndarray, bool]:
-        """Solve from the previous active set: ``(z, row multipliers >= 0, success)``."""
-        self._evaluate()
-        ok = self._buffer.ret() == 0 and bool(np.all(np.isfinite(self.x)))
-        if not ok:  # a failed hot start can leave qpOASES stuck: retry once from cold
-            with silenced_stdout():
-                self._conic = ca.conic(*self._conic_args)
-                self._buffer, self._evaluate = self._conic.buffer()
-            n_in = self._conic.n_in()
-            for i, arr in enumerate(self._keep):  # inputs, then outputs
-                if i < n_in:
-                    self._buffer.set_arg(i, memoryview(arr))
-                else:
-                    self._buffer.set_res(i - n_in, memoryview(arr))
-            self._evaluate()
-            ok = self._buffer.ret() == 0 and bool(np.all(np.isfinite(self.x)))
+        """Solve the QP: ``(z, row multipliers >= 0, success)``.
+
+        A failed attempt is retried by qpOASES cold (a fresh conic), then by qrqp; then
+        both again with a proximal term on the step of ``1e-8``, then ``1e-4``, times the
+        largest Hessian diagonal entry (degenerate QPs). The arrays of the problem are
+        left as they were.
+        """
+        ok = self._attempt(self.solver)
+        if ok:
+            return self.x.copy(), np.maximum(self.lam_a, 0.0), ok
+        self.failures += 1
+        nu = self.n_u
+        diag = self.H[np.arange(nu), np.arange(nu)].copy()
+        scale = max(float(np.max(np.abs(diag))), 1.0)
+        for prox in PROXIMAL_STEPS:
+            self.H[np.arange(nu), np.arange(nu)] = diag + prox * scale
+            try:
+                self._build_conic()
+                ok = self._attempt("qpoases") or self._attempt("qrqp")
+            finally:
+                self.H[np.arange(nu), np.arange(nu)] = diag
+            if ok:
+                break
         return self.x.copy(), np.maximum(self.lam_a, 0.0), ok
+
+    def _attempt(self, solver: str) -> bool:
+        """One call of ``solver`` on the current arrays; True on success."""
+        if solver == "daqp":
+            return self._solve_daqp()
+        if solver == "qrqp":
+            return self._solve_qrqp()
+        if self._stale and self._hot:
+            self._build_conic()
+        self._stale, self._hot = False, True
+        self._evaluate()
+        return self._buffer.ret() == 0 and bool(np.all(np.isfinite(self.x)))
+
+    def _solve_qrqp(self) -> bool:
+        """CasADi's active-set QP solver qrqp on the rows in use (a fallback)."""
+        rows = np.flatnonzero(self.uba < np.inf)
+        nv, m = self.n_var, rows.size
+        conic = ca.conic(
+            "fast_sqp_qrqp",
+            "qrqp",
+            {"h": ca.Sparsity.dense(nv, nv), "a": ca.Sparsity.dense(m, nv)},
+            {"print_iter": False, "print_header": False, "error_on_fail": False},
+        )
+        a = self.A[rows]
+        res = conic(h=self.H, g=self.g, a=a, uba=self.uba[rows], lbx=self.lbx, ubx=self.ubx)
+        x = np.asarray(res["x"]).ravel()
+        self.lam_a[:] = 0.0
+        if not conic.stats()["success"] or not np.all(np.isfinite(x)):
+            self.x[:] = np.nan
+            return False
+        self.x[:] = x
+        self.lam_a[rows] = np.asarray(res["lam_a"]).ravel()
+        return True
+
+    def _solve_daqp(self) -> bool:
+        """DAQP on the rows in use (finite ``uba``), cold started."""
+        import daqp
+
+        rows = np.flatnonzero(self.uba < np.inf)
+        nv, m = self.n_var, rows.size
+        bu, bl = self._bu[: nv + m], self._bl[: nv + m]
+        np.minimum(self.ubx, DAQP_INF, out=bu[:nv])
+        np.maximum(self.lbx, -DAQP_INF, out=bl[:nv])
+        bu[nv:] = self.uba[rows]
+        bl[nv:] = -DAQP_INF
+        x, _, flag, info = daqp.solve(
+            self.H,
+            self.g,
+            np.ascontiguousarray(self.A[rows]),
+            bu,
+            bl,
+            primal_tol=DAQP_PRIMAL_TOL,
+            time_limit=self.max_time if math.isfinite(self.max_time) else 0,
+        )
+        self.lam_a[:] = 0.0
+        if flag not in (1, 2):  # optimal, soft-optimal; < 0: infeasible, cycling, limits
+            self.x[:] = np.nan
+            return False
+        self.x[:] = x
+        self.lam_a[rows] = info["lam"][nv:]
+        return bool(np.all(np.isfinite(self.x)))
 
 
 __all__ = ["QP_SOLVERS", "SlotQP", "silenced_stdout"]

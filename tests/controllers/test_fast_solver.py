@@ -350,6 +350,10 @@ def test_bad_input_raises_value_error(x0, W, u_guess) -> None:
         {"restart_optimism": -1.0},
         {"restart_margin": float("nan")},
         {"restart_probe": 0},
+        {"hessian_modification": "clip"},
+        {"max_expand": -1},
+        {"expand_ratio": 0.0},
+        {"damping_decrease": 1.0},
     ],
 )
 def test_bad_options_raise_value_error(options: dict) -> None:

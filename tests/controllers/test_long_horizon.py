@@ -1,0 +1,96 @@
+"""The fast SQP at long horizons, its QP solvers, and no state carried between solves.
+
+``data/long_horizon_problems.npz`` holds closed-loop-like problems at N = 15 and 30 (see
+``data/make_long_horizon_problems.py``) with IPOPT's solution from the same warm start.
+The fast solver must converge on them within a bounded iteration count and reach at least
+IPOPT's objective (the problem is not convex: a lower objective is another, better local
+optimum, never an error). At N = 30 IPOPT on the condensed NLP stopped at its iteration
+limit on all three problems, so its objective there is only an upper bound.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from controllers.problem import ScenarioProblem
+from controllers.solvers.fast import FastScenarioSolver
+from controllers.solvers.slot_qp import QP_SOLVERS
+from experiments.bench_problems import problem_from_config
+
+DATA_DIR = Path(__file__).resolve().parents[1] / "data"
+LONG = dict(np.load(DATA_DIR / "long_horizon_problems.npz"))
+RECORDED = dict(np.load(DATA_DIR / "recorded_problems.npz"))
+RTOL = 1e-4  # objective no more than this above IPOPT's (the benchmark's target)
+MAX_ITERATIONS = {15: 60, 30: 80}  # SQP iterations of all starts together
+# Open (issue 16): at N = 15 the first start of problem 1 crawls (full steps growing a few
+# per cent per iteration after a negative Hessian eigenvalue was raised to the floor) and
+# reaches max_iter; problem 2 converges to a local optimum 7% above IPOPT's.
+KNOWN = {
+    (15, 1): "first start crawls to max_iter (Hessian floor on negative curvature)",
+    (15, 2): "converges to another local optimum, 7% above IPOPT's",
+}
+CASES = [
+    pytest.param(n, i, id=f"N{n}-{i}", marks=[pytest.mark.xfail(reason=KNOWN[n, i], strict=True)])
+    if (n, i) in KNOWN
+    else pytest.param(n, i, id=f"N{n}-{i}")
+    for n in (15, 30)
+    for i in range(LONG[f"seed_{n}"].size)
+]
+
+
+def _problem(n: int) -> ScenarioProblem:
+    ns = LONG[f"W_{n}"].shape[1]
+    return problem_from_config(n_scenarios=ns, horizon=n)
+
+
+@pytest.mark.parametrize(("n", "i"), CASES)
+def test_long_horizon_problem_converges_to_ipopts_objective(n: int, i: int) -> None:
+    problem = _problem(n)
+    x0, W, guess = LONG[f"x0_{n}"][i], LONG[f"W_{n}"][i], LONG[f"u_guess_{n}"][i]
+    sol = FastScenarioSolver(problem).solve(x0, W, u_guess=guess)
+    assert sol.success, sol.status
+    assert sol.iterations <= MAX_ITERATIONS[n]
+    reference = float(LONG[f"reference_objective_{n}"][i])
+    assert sol.objective <= reference + RTOL * abs(reference)
+    assert sol.objective == pytest.approx(problem.objective(x0, W, sol.u), rel=1e-10)
+
+
+def test_the_long_horizon_set_has_the_stored_shapes() -> None:
+    for n in (15, 30):
+        k = LONG[f"seed_{n}"].size
+        assert k >= 2
+        assert LONG[f"W_{n}"].shape[:3] == (k, LONG[f"W_{n}"].shape[1], n)
+        assert LONG[f"reference_u_{n}"].shape == LONG[f"u_guess_{n}"].shape == (k, n, 2)
+
+
+@pytest.mark.parametrize("qp_solver", QP_SOLVERS)
+def test_every_qp_solver_matches_the_recorded_references(qp_solver: str) -> None:
+    """Each QP solver kept reaches the textbook's objective on recorded closed-loop problems."""
+    problem = problem_from_config(n_scenarios=150)
+    solver = FastScenarioSolver(problem, qp_solver=qp_solver)
+    for i in range(0, RECORDED["seed"].size, 4):
+        x0, W = RECORDED["x0"][i], RECORDED["W"][i]
+        sol = solver.solve(x0, W, u_guess=RECORDED["reference_u"][i])
+        assert sol.success, (i, sol.status)
+        assert sol.extra["qp_solver"] == qp_solver
+        reference = float(RECORDED["reference_objective"][i])
+        assert sol.objective <= reference + RTOL * abs(reference)
+
+
+@pytest.mark.parametrize("qp_solver", QP_SOLVERS)
+def test_solving_in_sequence_equals_solving_each_fresh(qp_solver: str) -> None:
+    """No state (QP hot starts, buffers) leaks from one problem into the next."""
+    problem = problem_from_config(n_scenarios=150)
+    picks = range(0, RECORDED["seed"].size, 3)
+    shared = FastScenarioSolver(problem, qp_solver=qp_solver)
+    for i in picks:
+        x0, W, guess = RECORDED["x0"][i], RECORDED["W"][i], RECORDED["u_guess"][i]
+        in_sequence = shared.solve(x0, W, u_guess=guess)
+        fresh = FastScenarioSolver(problem, qp_solver=qp_solver).solve(x0, W, u_guess=guess)
+        assert in_sequence.status == fresh.status
+        assert in_sequence.iterations == fresh.iterations
+        np.testing.assert_array_equal(in_sequence.u, fresh.u)
+        assert in_sequence.objective == fresh.objective
