@@ -43,6 +43,7 @@ from controllers.config import (
 )
 from controllers.estimators.estimator import make_estimator
 from controllers.problem import MPCSolution, ScenarioProblem
+from controllers.rl_agent import RLAgent
 from controllers.solvers import make_solver
 from lfm_env.config import ConfigError
 from lfm_env.model import LatentForceModel
@@ -420,6 +421,7 @@ AGENTS = {
     "scenario_particles": ParticleScenarioMPCAgent,
     "robust": RobustMPCAgent,
     "oracle": OracleMPCAgent,
+    "rl": RLAgent,
 }
 
 AGENT_LABELS = {
@@ -429,6 +431,7 @@ AGENT_LABELS = {
     "scenario_particles": "PF + scenario MPC, scenarios start from particles (paper's remark)",
     "robust": "robust: calibrated estimator + MPC with constraint back-off",
     "oracle": "oracle MPC (upper bound, reads hidden truth)",
+    "rl": "RL baseline (a policy trained by lfm-train, agents.rl_policy)",
 }
 
 FILTERING_AGENTS = tuple(k for k, v in AGENTS.items() if issubclass(v, _FilteringAgent))
