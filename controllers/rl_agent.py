@@ -109,6 +109,11 @@ class RLAgent:
             raise _policy_error(path, f"unreadable files beside it ({exc})") from None
         if algo not in ALGOS:
             raise _policy_error(path, f"unknown algorithm {algo!r} in {summary.name}")
+        trained_on = info.get("system", self.system.name)  # written by lfm-train
+        if trained_on != self.system.name:
+            raise _policy_error(
+                path, f"trained on the {trained_on} system, this is {self.system.name}"
+            )
         self.policy = _load(algo, policy, path)
         n_features = self.system.nx + self.system.ng
         shape = self.policy.observation_space.shape

@@ -139,15 +139,18 @@ class _Progress:
         return Callback()
 
 
-def _make_model(algo: str, venv: Any, seed: int) -> Any:
+def _make_model(algo: str, venv: Any, seed: int, timesteps: int) -> Any:
+    """PPO (512 steps per env and update, minibatches of 256) or SAC (SB3's defaults, first
+    update after 1000 steps); shorter for runs shorter than one such update (smoke tests)."""
     from stable_baselines3 import PPO, SAC
 
     if algo == "ppo":
+        n_steps = max(8, min(512, -(-timesteps // venv.num_envs)))
         return PPO(
             "MlpPolicy",
             venv,
-            n_steps=512,
-            batch_size=256,
+            n_steps=n_steps,
+            batch_size=min(256, n_steps * venv.num_envs),
             n_epochs=10,
             gamma=0.99,
             gae_lambda=0.95,
@@ -156,7 +159,8 @@ def _make_model(algo: str, venv: Any, seed: int) -> Any:
             device="cpu",
             verbose=0,
         )
-    return SAC("MlpPolicy", venv, learning_starts=1000, seed=seed, device="cpu", verbose=0)
+    starts = min(1000, timesteps // 2)
+    return SAC("MlpPolicy", venv, learning_starts=starts, seed=seed, device="cpu", verbose=0)
 
 
 def train(
@@ -198,7 +202,7 @@ def train(
     venv = DummyVecEnv([lambda: make_training_env(cfg, cost_weight)] * n_envs)
     venv.seed(seed)
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=0.99)
-    model = _make_model(algo, venv, seed)
+    model = _make_model(algo, venv, seed, int(timesteps))
     callback = _Progress.make(timesteps, minutes, progress)
     t0 = time.perf_counter()
     try:
@@ -250,6 +254,7 @@ def _save(
     summary = {
         "algo": algo,
         "env_id": cfg.env_id,
+        "system": cfg.make_model().system.name,  # the rl agent refuses another system
         "timesteps": int(model.num_timesteps),
         "wall_time_s": round(time.perf_counter() - t0, 1),
         "seed": int(seed),
