@@ -101,7 +101,7 @@ class RLAgent:
         try:
             info = json.loads(summary.read_text())
             algo = info["algo"]
-            stats = np.load(norm)
+            stats = np.load(norm, allow_pickle=False)
             self._mean = np.asarray(stats["mean"], dtype=float)
             self._std = np.sqrt(np.asarray(stats["var"], dtype=float) + float(stats["epsilon"]))
             self._clip = float(stats["clip_obs"])
