@@ -72,9 +72,8 @@ class LatentForceEnv(gym.Env):
     ``Box(system.input_lower, system.input_upper, (nu,), float32)`` in the inputs' units.
     Actions of any real dtype are accepted and used in float64 (a float64 action is not
     rounded to float32); out-of-range actions are clipped to the system's bounds (the
-    applied action is in
-    ``info["applied_action"]``); non-finite actions, a wrong shape or a dtype that is not
-    real numbers (text, objects, complex) raise ``ValueError``.
+    applied action is in ``info["applied_action"]``); non-finite actions, a wrong shape or
+    a dtype that is not real numbers (text, objects, complex) raise ``ValueError``.
 
     ## Observation Space
     The physical state plus Gaussian measurement noise of std ``measurement_std``, in the
@@ -118,8 +117,8 @@ class LatentForceEnv(gym.Env):
     truth (its ``system`` the physics), ``cost`` the reward's cost, ``initial_state``
     ``(nx,)`` and ``measurement_std`` ``(nx,)`` in the states' units; ``max_steps`` is the
     episode length the registered time limit uses (the env itself does not truncate).
-    ``scene_factory(env)``
-    returns a :class:`Scene` for rendering (or a subclass overrides :meth:`_make_scene`).
+    ``scene_factory(env)`` returns a :class:`Scene` for rendering (or a subclass overrides
+    :meth:`_make_scene`).
     ``reset(options=...)`` accepts ``initial_state`` ``(nx,)`` and ``latent_state``
     ``(p,)`` overrides.
 
