@@ -46,6 +46,7 @@ from controllers.config import (
 from controllers.estimators.estimator import make_estimator
 from controllers.problem import MPCSolution, ScenarioProblem
 from controllers.protocol import SB3Predict
+from controllers.rl_agent import RLAgent, check_rl_policy
 from controllers.solvers import make_solver
 from lfm_env.config import ConfigError
 from lfm_env.model import LatentForceModel
@@ -429,6 +430,7 @@ AGENTS = {
     "scenario_particles": ParticleScenarioMPCAgent,
     "robust": RobustMPCAgent,
     "oracle": OracleMPCAgent,
+    "rl": RLAgent,
 }
 
 AGENT_LABELS = {
@@ -438,6 +440,7 @@ AGENT_LABELS = {
     "scenario_particles": "PF + scenario MPC, scenarios start from particles (paper's remark)",
     "robust": "robust: calibrated estimator + MPC with constraint back-off",
     "oracle": "oracle MPC (upper bound, reads hidden truth)",
+    "rl": "RL baseline (a policy trained by lfm-train, agents.rl_policy)",
 }
 
 FILTERING_AGENTS = tuple(k for k, v in AGENTS.items() if issubclass(v, _FilteringAgent))
@@ -469,6 +472,8 @@ def check_agent_config(name: str, config: Any = None) -> ExperimentConfig:
             f"for the {name!r} agent (its estimator weighs each measurement by this noise); "
             f"zero for {zero}"
         )
+    if name == "rl":  # the policy file must be there before the first episode
+        check_rl_policy(config.agents.rl_policy)
     return config
 
 

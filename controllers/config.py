@@ -188,9 +188,13 @@ class AgentConfig:
     # The agents' belief about the latent force. null: the env section's, known a priori
     # (the paper); set it to learned hyperparameters (see lfm-calibrate).
     disturbance: DisturbanceConfig | None = None
+    # The "rl" agent's saved policy: a .zip written by lfm-train (its observation
+    # normalisation beside it); null when no RL agent is run. Relative to the working dir.
+    rl_policy: str | None = None
 
     def __post_init__(self) -> None:
         c = _Checker(self)
+        c("rl_policy", self.rl_policy is None or self.rl_policy != "", "null or a file path")
         c("horizon", self.horizon >= 1, "an integer >= 1")
         c("horizon", self.horizon <= 200, "<= 200")
         # The fast SQP's work per iteration grows steeply with N (measured with 150

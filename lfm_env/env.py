@@ -69,15 +69,18 @@ class LatentForceEnv(gym.Env):
     (:meth:`preview_disturbance`, for an oracle) never changes the episode.
 
     ## Action Space
-    ``Box(system.input_lower, system.input_upper, (nu,), float64)`` in the inputs' units.
-    Out-of-range actions are clipped to the box (the applied action is in
-    ``info["applied_action"]``); non-finite actions, a wrong shape or a dtype that is not
-    real numbers (text, objects, complex) raise ``ValueError``.
+    ``Box(system.input_lower, system.input_upper, (nu,), float32)`` in the inputs' units.
+    Actions of any real dtype are accepted and used in float64 (a float64 action is not
+    rounded to float32); out-of-range actions are clipped to the system's bounds (the
+    applied action is in ``info["applied_action"]``); non-finite actions, a wrong shape or
+    a dtype that is not real numbers (text, objects, complex) raise ``ValueError``.
 
     ## Observation Space
     The physical state plus Gaussian measurement noise of std ``measurement_std``, in the
     states' units (``system.state_names``); the latent force is hidden.
-    ``Box(-max_float, max_float, (nx,), float64)``.
+    ``Box(-inf, inf, (nx,), float64)`` (Gaussian noise has unbounded support). The
+    observations stay float64: rounding them to float32 changes the MPC agents' closed-loop
+    episodes (README, "Gymnasium conventions"); RL code casts them to float32 itself.
 
     ## Rewards
     Minus the stage cost on the true state before the step and the applied action:
@@ -93,7 +96,10 @@ class LatentForceEnv(gym.Env):
       step just taken (never, unless a subclass says so);
     * ``terminated`` with ``info["failure"]`` when :meth:`_is_failure` holds for the new
       state (by default: a state that is not finite);
-    * ``truncated`` after ``max_steps`` steps.
+    * the env never truncates: the time limit is Gymnasium's ``TimeLimit`` wrapper, applied
+      by ``gym.make`` with ``max_steps`` steps unless ``max_episode_steps`` is given
+      (:class:`lfm_env.wrappers.ConfigTimeLimit`); a directly constructed env runs until
+      it terminates, so wrap it in ``TimeLimit(env, env.max_steps)``.
     State constraints are recorded in ``info``, not enforced.
 
     ## Info
@@ -101,15 +107,18 @@ class LatentForceEnv(gym.Env):
     taken, at reset the one that acts next; a float when ``nw == 1``, else ``(nw,)``),
     ``latent_state`` (z), ``<group>_excess`` for each of ``system.constraint_groups`` (the
     largest excess ``max(g, 0)`` in the group, in its unit), ``constraint_excess`` (ng,) in
-    ``system.constraint_names`` order, ``is_success``, ``failure``, ``applied_action``,
-    ``time`` [s].
+    ``system.constraint_names`` order, ``cost`` (the safe-RL constraint cost: the number of
+    constraint groups violated by the new state, dimensionless, 0 when every constraint
+    holds), ``is_success``, ``failure``, ``applied_action``, ``time`` [s].
 
     ## Arguments
     ``LatentForceEnv(model, cost, initial_state, measurement_std, max_steps=200,
     latent_start="stationary", render_mode=None, scene_factory=None)``: ``model`` is the
     truth (its ``system`` the physics), ``cost`` the reward's cost, ``initial_state``
-    ``(nx,)`` and ``measurement_std`` ``(nx,)`` in the states' units. ``scene_factory(env)``
-    returns a :class:`Scene` for rendering (or a subclass overrides :meth:`_make_scene`).
+    ``(nx,)`` and ``measurement_std`` ``(nx,)`` in the states' units; ``max_steps`` is the
+    episode length the registered time limit uses (the env itself does not truncate).
+    ``scene_factory(env)`` returns a :class:`Scene` for rendering (or a subclass overrides
+    :meth:`_make_scene`).
     ``reset(options=...)`` accepts ``initial_state`` ``(nx,)`` and ``latent_state``
     ``(p,)`` overrides.
 
@@ -179,15 +188,16 @@ class LatentForceEnv(gym.Env):
             "render_fps": max(1, round(1.0 / model.dt)),
         }
 
+        # float32 as RL libraries expect; actions are read and clipped in float64 against
+        # the system's exact bounds, so float64 actions are never rounded.
         self.action_space = spaces.Box(
-            system.input_lower.copy(),
-            system.input_upper.copy(),
+            system.input_lower.astype(np.float32),
+            system.input_upper.astype(np.float32),
             shape=(system.nu,),
-            dtype=np.float64,
+            dtype=np.float32,
         )
-        # Finite (but never binding) bounds: Gaussian noise has unbounded support.
-        big = np.finfo(np.float64).max
-        self.observation_space = spaces.Box(-big, big, shape=(system.nx,), dtype=np.float64)
+        # Unbounded: Gaussian noise has unbounded support.
+        self.observation_space = spaces.Box(-np.inf, np.inf, shape=(system.nx,), dtype=np.float64)
 
         self._action_layout = _labelled(system.input_names)
         self._state = np.zeros(system.nx)
@@ -310,7 +320,7 @@ class LatentForceEnv(gym.Env):
         success = bool(self._is_success(x, x_next))
         failure = (not success) and bool(self._is_failure(x_next))
         terminated = bool(success or failure)
-        truncated = bool(not terminated and self._steps >= self.max_steps)
+        truncated = False  # the time limit is the TimeLimit wrapper's (gym.make)
         self._sync_scene()
         if self.render_mode == "human":
             self.render()
@@ -319,7 +329,7 @@ class LatentForceEnv(gym.Env):
 
     def _check_action(self, action: Any) -> np.ndarray:
         u = real_vector(action, self.system.nu, "action", self._action_layout)
-        return np.clip(u, self.action_space.low, self.action_space.high)
+        return np.clip(u, self.system.input_lower, self.system.input_upper)
 
     def _observe(self) -> np.ndarray:
         noise = self._noise_rng.standard_normal(self.system.nx) * self.measurement_std
@@ -338,10 +348,13 @@ class LatentForceEnv(gym.Env):
             "disturbance": float(w[0]) if self.model.nw == 1 else np.array(w, dtype=float),
             "latent_state": z.copy(),
         }
+        violated = 0
         for group, idx in self.system.constraint_groups.items():
             info[f"{group}_excess"] = float(np.max(excess[list(idx)]))
+            violated += info[f"{group}_excess"] > 0.0
         info.update(
             constraint_excess=excess,
+            cost=float(violated),
             is_success=bool(success),
             failure=bool(failure),
             applied_action=np.asarray(action, dtype=float).copy(),

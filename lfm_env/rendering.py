@@ -9,10 +9,39 @@ into the dynamics.
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 import numpy as np
 
 from lfm_env.config import EnvConfig
 from lfm_env.systems.sine_track import SineTrack
+
+
+@contextmanager
+def offscreen_video_driver(offscreen: bool) -> Iterator[None]:
+    """Initialise pygame's display with SDL's ``offscreen`` video driver while inside.
+
+    Offscreen frames need no display; without a driver named, SDL probes Wayland and X11
+    first and prints ``error: XDG_RUNTIME_DIR is invalid or not set`` on a headless machine.
+    A driver the user chose (``SDL_VIDEODRIVER``) or an already initialised display is left
+    alone, so a failing real window still reports its error. The variable is restored on
+    exit (SDL reads it only when the display initialises).
+
+    Args:
+        offscreen: whether the frames are drawn without a window; ``False`` does nothing.
+    """
+    import pygame
+
+    if not offscreen or "SDL_VIDEODRIVER" in os.environ or pygame.display.get_init():
+        yield
+        return
+    os.environ["SDL_VIDEODRIVER"] = "offscreen"
+    try:
+        yield
+    finally:
+        os.environ.pop("SDL_VIDEODRIVER", None)
 
 
 class TrackScene:
@@ -104,7 +133,8 @@ class TrackScene:
         from highway_env.road.graphics import LaneGraphics
 
         if self._viewer is None:
-            self._viewer = EnvViewer(self, config=self.config)
+            with offscreen_video_driver(self.config["offscreen_rendering"]):
+                self._viewer = EnvViewer(self, config=self.config)
             # highway-env disables drawing under SDL_VIDEODRIVER=dummy, but its offscreen
             # surfaces draw fine without a display; keep it on so frames are never blank.
             self._viewer.enabled = True

@@ -29,12 +29,12 @@ class QuadrotorGustEnv(GoalReachingEnv):
     its state-space form.
 
     ## Action Space
-    ``Box([0, -theta_max], [T_max, theta_max], (2,), float64)``: collective thrust ``T``
+    ``Box([0, -theta_max], [T_max, theta_max], (2,), float32)``: collective thrust ``T``
     [N] and pitch command ``theta_cmd`` [rad]; by default ``T_max = 2 m g = 0.53 N`` and
-    ``theta_max = 0.4 rad``; hovering takes ``T = m g = 0.265 N``. Out-of-range actions
-    are clipped to the box (the applied action is in ``info["applied_action"]``);
-    non-finite actions, a wrong shape or a dtype that is not real numbers raise
-    ``ValueError``.
+    ``theta_max = 0.4 rad``; hovering takes ``T = m g = 0.265 N``. Actions are read in
+    float64; out-of-range actions are clipped to the system's bounds (the applied action
+    is in ``info["applied_action"]``); non-finite actions, a wrong shape or a dtype that is
+    not real numbers raise ``ValueError``.
 
     ## Observation Space
     The physical state plus Gaussian measurement noise; the gust is hidden.
@@ -48,7 +48,7 @@ class QuadrotorGustEnv(GoalReachingEnv):
     | 4   | ``v_z`` vertical velocity | m/s | 0.05 |
     | 5   | ``omega`` pitch rate | rad/s | 5 deg/s |
 
-    ``Box(-max_float, max_float, (6,), float64)``.
+    ``Box(-inf, inf, (6,), float64)``.
 
     ## Rewards
     Minus the stage cost on the true state before the step and the applied action:
@@ -67,7 +67,8 @@ class QuadrotorGustEnv(GoalReachingEnv):
     * ``terminated`` with failure when the vehicle leaves the safety box: farther than
       ``safety_margin`` (1 m) above the ceiling, below the floor or outside the x bounds,
       or a state that is not finite.
-    * ``truncated`` after ``max_steps`` (120 steps, 12 s).
+    * ``truncated`` by ``gym.make``'s time limit after ``max_steps`` (120 steps, 12 s), or
+      ``max_episode_steps`` when given; the env itself never truncates.
     Constraint violations (tunnel, x bounds) are recorded in ``info``, not enforced.
 
     ## Info
@@ -75,7 +76,8 @@ class QuadrotorGustEnv(GoalReachingEnv):
     at reset, the one that will act next), ``latent_state`` (z), ``corridor_excess`` [m]
     and ``x_excess`` [m] (each 0 inside the bounds; the system's constraint groups),
     ``constraint_excess`` (4,) in the order corridor_floor, corridor_ceiling, x_min,
-    x_max [m], ``is_success``, ``failure``, ``applied_action``, ``time`` [s].
+    x_max [m], ``cost`` (the number of violated constraint groups, 0 to 2),
+    ``is_success``, ``failure``, ``applied_action``, ``time`` [s].
 
     ## Arguments
     ``gym.make("lfm_env/QuadrotorGust-v0", config=None, render_mode=None,
@@ -87,7 +89,9 @@ class QuadrotorGustEnv(GoalReachingEnv):
     ``system``, ``model`` (the truth), ``cost`` and ``corridor``.
 
     ## Version History
-    * v0: initial version.
+    * v0: initial version; then Gymnasium's conventions: a float32 action space, an
+      unbounded observation space, ``info["cost"]`` and the time limit as a ``TimeLimit``
+      wrapper (same episodes).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}

@@ -22,11 +22,12 @@ class SineTrackEnv(GoalReachingEnv):
     is simulated exactly through its state-space form.
 
     ## Action Space
-    ``Box([-a_max, -delta_max], [a_max, delta_max], (2,), float64)``: acceleration
+    ``Box([-a_max, -delta_max], [a_max, delta_max], (2,), float32)``: acceleration
     ``a`` [m/s^2] and steering angle ``delta`` [rad]; by default ``|a| <= 5``,
-    ``|delta| <= 25 deg``. Out-of-range actions are clipped to the box (the applied
-    action is in ``info["applied_action"]``); non-finite actions, a wrong shape or a
-    dtype that is not real numbers (text, objects, complex) raise ``ValueError``.
+    ``|delta| <= 25 deg``. Actions are read in float64; out-of-range actions are clipped
+    to the system's bounds (the applied action is in ``info["applied_action"]``);
+    non-finite actions, a wrong shape or a dtype that is not real numbers (text, objects,
+    complex) raise ``ValueError``.
 
     ## Observation Space
     The physical state plus Gaussian measurement noise; the latent force is hidden.
@@ -38,7 +39,7 @@ class SineTrackEnv(GoalReachingEnv):
     | 2   | ``v`` speed | m/s | 0.15 |
     | 3   | ``psi`` heading | rad | 0.5 deg |
 
-    ``Box(-max_float, max_float, (4,), float64)``.
+    ``Box(-inf, inf, (4,), float64)``.
 
     ## Rewards
     Minus the paper's stage cost on the true state before the step and the applied
@@ -57,7 +58,8 @@ class SineTrackEnv(GoalReachingEnv):
     * ``terminated`` with failure when the car leaves the safety box: farther than
       ``safety_margin`` (10 m) outside the track band or the x bounds, or a state that
       is not finite.
-    * ``truncated`` after ``max_steps`` (150 steps, 30 s).
+    * ``truncated`` by ``gym.make``'s time limit after ``max_steps`` (150 steps, 30 s), or
+      ``max_episode_steps`` when given; the env itself never truncates.
     Constraint violations (track, speed, x bounds) are recorded in ``info``, not enforced.
 
     ## Info
@@ -65,7 +67,8 @@ class SineTrackEnv(GoalReachingEnv):
     taken; at reset, the one that will act next), ``latent_state`` (z), ``track_excess``
     [m], ``x_excess`` [m], ``speed_excess`` [m/s] (each 0 inside the bounds; the system's
     constraint groups), ``constraint_excess`` (6,) in the order track_left, track_right,
-    x_min, x_max [m], speed_min, speed_max [m/s], ``is_success``, ``failure``,
+    x_min, x_max [m], speed_min, speed_max [m/s], ``cost`` (the number of violated
+    constraint groups, 0 to 3), ``is_success``, ``failure``,
     ``applied_action``, ``time`` [s].
 
     ## Arguments
@@ -79,7 +82,9 @@ class SineTrackEnv(GoalReachingEnv):
 
     ## Version History
     * v0: initial version (rebuilt on ``LatentForceEnv`` with the same episodes, bit for
-      bit, and the added ``info["constraint_excess"]``).
+      bit, and the added ``info["constraint_excess"]``); then Gymnasium's conventions: a
+      float32 action space, an unbounded observation space, ``info["cost"]`` and the time
+      limit as a ``TimeLimit`` wrapper (same episodes).
     """
 
     CONFIG = EnvConfig

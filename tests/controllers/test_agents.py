@@ -37,7 +37,7 @@ def run(agent_name: str, config, seed: int = 0, max_steps: int | None = None):
     return np.array(actions), infos, est
 
 
-@pytest.mark.parametrize("name", sorted(AGENTS))
+@pytest.mark.parametrize("name", sorted(set(AGENTS) - {"rl"}))  # rl: test_rl_agent.py
 def test_each_agent_reaches_the_goal_on_the_quick_config(name):
     actions, infos, est = run(name, QUICK, seed=0)
     assert infos[-1]["is_success"], f"{name} did not reach the goal"

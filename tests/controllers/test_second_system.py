@@ -12,6 +12,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 import pytest
+from gymnasium.wrappers import TimeLimit
 
 from controllers.estimators.particle_filter import ParticleFilter, gaussian_log_likelihood
 from controllers.problem import ScenarioProblem, largest_local_descent
@@ -324,8 +325,8 @@ def test_env_episode_with_the_scenario_mpc(variant: str) -> None:
     system = point_mass(**VARIANTS[variant])
     # The force starts at rest: the scenario MPC below draws it from the prior, with no
     # filter to learn a strong persistent push, which short horizons cannot anticipate.
-    env = make_env(system, max_steps=30, latent_start="zero")
-    model = env.model
+    env = TimeLimit(make_env(system, latent_start="zero"), 30)
+    model = env.unwrapped.model
     problem = ScenarioProblem(model, COST, horizon=N, n_scenarios=NS, slack_penalty=1.0e3)
     solver = make_solver(problem, "fast", max_iter=50)
     rng = np.random.default_rng(2)

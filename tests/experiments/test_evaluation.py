@@ -195,6 +195,7 @@ def test_recorder_and_metrics_of_any_system_come_from_its_groups():
     env = LatentForceEnv(
         model, QuadraticCost(Q=[1, 0], R=[1]), [0.0, 0.5], [0.01, 0.01], max_steps=12
     )
+    env = gym.wrappers.TimeLimit(env, env.max_steps)  # a built env never truncates itself
     config = types.SimpleNamespace(
         make_system=lambda: system, agents=types.SimpleNamespace(horizon=3)
     )

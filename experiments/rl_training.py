@@ -1,0 +1,335 @@
+"""RL baseline: train PPO or SAC (stable-baselines3) on the config's world, through the
+same ``gym.make`` step API as the MPC agents.
+
+``lfm-train`` builds ``n_envs`` copies of ``gym.make(config.env_id, config=config.env)``
+(the config's time limit), rescales the actions to ``[-1, 1]`` (``RescaleAction``), and
+trains on a *training* reward (:class:`TrainingReward`): the env's reward divided by the
+stage cost at the start state, minus ``cost_weight`` times ``info["cost"]`` (the number of
+violated constraint groups), and on a failure the current step's penalty once for every
+step the time limit had left, so that leaving the safety box never pays. Observations are
+normalised by running statistics (``VecNormalize``), which are saved with the policy.
+
+The policy observes :func:`~controllers.rl_agent.policy_features` of the observation (the
+noisy state and the known system's signed constraint values), as the ``rl`` agent does.
+The run writes ``OUT/policy.zip`` (the SB3 model), ``OUT/policy.npz`` (the observation
+normalisation) and ``OUT/policy.json`` (algorithm, world, steps, wall time, seed, the
+training reward's settings and the last episodes' statistics). The ``rl`` agent
+(:class:`controllers.rl_agent.RLAgent`) loads them from ``agents.rl_policy: OUT/policy.zip``.
+The evaluation tables use the env's own reward, not the training reward.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from collections import deque
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+import lfm_env  # noqa: F401  (registers the envs)
+from controllers.config import ExperimentConfig, load_config
+from controllers.rl_agent import policy_features
+from experiments.cli import _add_config_argument, _config_path, check_writable, one_line_errors
+
+ALGOS = ("ppo", "sac")
+MAX_TIMESTEPS = 10**9
+POLICY_FILE = "policy.zip"
+
+
+class TrainingReward(gym.Wrapper):
+    """The reward RL trains on (the evaluation keeps the env's own reward).
+
+    ``r = reward / scale - cost_weight * info["cost"]``; when the env ends the episode as
+    a failure, ``r`` is added once more for each step the time limit had left
+    (``max_steps - t``), so that ending an episode early by leaving the safety box costs at
+    least as much as staying there.
+
+    Args:
+        env: the env (rewards are minus stage costs, ``info`` has ``cost`` and ``failure``).
+        scale: divisor of the env's reward, > 0 (the stage cost at the start state).
+        cost_weight: weight of ``info["cost"]`` [per violated constraint group], >= 0.
+        max_steps: the episode's time limit [steps], >= 1.
+    """
+
+    def __init__(self, env: gym.Env, scale: float, cost_weight: float, max_steps: int) -> None:
+        super().__init__(env)
+        if not (math.isfinite(scale) and scale > 0.0):
+            raise ValueError(f"scale={scale!r}: must be > 0")
+        if not (math.isfinite(cost_weight) and cost_weight >= 0.0):
+            raise ValueError(f"cost_weight={cost_weight!r}: must be >= 0")
+        self.scale = float(scale)
+        self.cost_weight = float(cost_weight)
+        self.max_steps = int(max_steps)
+        self._t = 0
+
+    def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
+        self._t = 0
+        return self.env.reset(**kwargs)
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self._t += 1
+        r = float(reward) / self.scale - self.cost_weight * float(info["cost"])
+        if terminated and info.get("failure", False):
+            r += r * max(0, self.max_steps - self._t)
+        return obs, r, terminated, truncated, info
+
+
+def reward_scale(config: ExperimentConfig) -> float:
+    """The stage cost at the start state with no input (the training reward's divisor)."""
+    cfg = config.env
+    cost = cfg.make_cost()
+    nu = cfg.make_model().system.nu
+    return max(float(cost.stage_cost(np.asarray(cfg.initial_state_rad), np.zeros(nu))), 1e-9)
+
+
+def make_training_env(config: ExperimentConfig, cost_weight: float = 1.0) -> gym.Env:
+    """One training env: ``gym.make`` of the config's world, observed through
+    :func:`~controllers.rl_agent.policy_features` of the agents' known system, actions in
+    ``[-1, 1]``, the :class:`TrainingReward`, and SB3's ``Monitor`` (returns, lengths)."""
+    from stable_baselines3.common.monitor import Monitor
+
+    system = config.make_model().system  # the agents' model of the world, as the rl agent
+    env = gym.make(config.env_id, config=config.env)
+    n = system.nx + system.ng
+    space = gym.spaces.Box(-np.inf, np.inf, shape=(n,), dtype=np.float64)
+    env = gym.wrappers.TransformObservation(env, lambda y: policy_features(system, y), space)
+    env = gym.wrappers.RescaleAction(env, np.float32(-1.0), np.float32(1.0))
+    env = TrainingReward(env, reward_scale(config), cost_weight, env.spec.max_episode_steps)
+    return Monitor(env, info_keywords=("is_success",))
+
+
+class _Progress:
+    """SB3 callback factory: a tqdm bar, a wall-clock budget and the last episodes' stats."""
+
+    @staticmethod
+    def make(total: int, minutes: float | None, show: bool) -> Any:
+        from stable_baselines3.common.callbacks import BaseCallback
+        from tqdm import tqdm
+
+        class Callback(BaseCallback):
+            def _on_training_start(self) -> None:
+                self.t0 = time.perf_counter()
+                self.returns: deque[float] = deque(maxlen=100)
+                self.successes: deque[float] = deque(maxlen=100)
+                self.bar = tqdm(total=total, unit="step", disable=not show, smoothing=0.05)
+
+            def _on_step(self) -> bool:
+                self.bar.update(self.training_env.num_envs)
+                for info in self.locals.get("infos", ()):
+                    if "episode" in info:
+                        self.returns.append(float(info["episode"]["r"]))
+                        self.successes.append(float(info.get("is_success", False)))
+                if self.returns and self.n_calls % 200 == 0:
+                    self.bar.set_postfix(
+                        ret=f"{np.mean(self.returns):.1f}", success=f"{np.mean(self.successes):.2f}"
+                    )
+                elapsed = time.perf_counter() - self.t0
+                return minutes is None or elapsed < 60.0 * minutes
+
+            def _on_training_end(self) -> None:
+                self.bar.close()
+
+        return Callback()
+
+
+def _make_model(algo: str, venv: Any, seed: int, timesteps: int) -> Any:
+    """PPO (512 steps per env and update, minibatches of 256) or SAC (SB3's defaults, first
+    update after 1000 steps); shorter for runs shorter than one such update (smoke tests)."""
+    from stable_baselines3 import PPO, SAC
+
+    if algo == "ppo":
+        n_steps = max(8, min(512, -(-timesteps // venv.num_envs)))
+        return PPO(
+            "MlpPolicy",
+            venv,
+            n_steps=n_steps,
+            batch_size=min(256, n_steps * venv.num_envs),
+            n_epochs=10,
+            gamma=0.99,
+            gae_lambda=0.95,
+            learning_rate=3e-4,
+            seed=seed,
+            device="cpu",
+            verbose=0,
+        )
+    starts = min(1000, timesteps // 2)
+    return SAC("MlpPolicy", venv, learning_starts=starts, seed=seed, device="cpu", verbose=0)
+
+
+def train(
+    config: Any = None,
+    algo: str = "ppo",
+    timesteps: int = 1_000_000,
+    minutes: float | None = None,
+    out: str | Path = "results/rl/ppo",
+    seed: int = 0,
+    n_envs: int = 4,
+    cost_weight: float = 1.0,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Train a policy and save it under ``out``; returns the run's summary (``policy.json``).
+
+    Args:
+        config: an :class:`~controllers.config.ExperimentConfig`, YAML path, dict or ``None``
+            (the paper's values); its ``env_id`` and ``env`` are the world.
+        algo: ``"ppo"`` or ``"sac"``.
+        timesteps: env steps to train at most, >= 1 (summed over the ``n_envs`` envs).
+        minutes: wall-clock budget [min] (> 0) that stops training earlier; ``None``: none.
+        out: folder of ``policy.zip``, ``policy.npz`` and ``policy.json`` (created).
+        seed: seed of the networks, the sampling and the envs (env ``i`` gets ``seed + i``).
+        n_envs: envs stepped in lockstep in this process, >= 1.
+        cost_weight: training penalty per violated constraint group and step, >= 0.
+        progress: show a tqdm progress bar.
+
+    Raises:
+        ValueError: naming the bad argument and its allowed range.
+    """
+    _check_args(algo, timesteps, minutes, n_envs, cost_weight)
+    import torch
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    torch.set_num_threads(1)
+    cfg = load_config(config)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    venv = DummyVecEnv([lambda: make_training_env(cfg, cost_weight)] * n_envs)
+    venv.seed(seed)
+    venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=0.99)
+    model = _make_model(algo, venv, seed, int(timesteps))
+    callback = _Progress.make(timesteps, minutes, progress)
+    t0 = time.perf_counter()
+    try:
+        model.learn(total_timesteps=timesteps, callback=callback)
+    finally:  # Ctrl-C or an error: keep what was learnt
+        summary = _save(model, venv, cfg, out, algo, seed, cost_weight, t0, callback)
+        venv.close()
+    return summary
+
+
+def _check_args(
+    algo: str, timesteps: int, minutes: float | None, n_envs: int, cost_weight: float
+) -> None:
+    if algo not in ALGOS:
+        raise ValueError(f"algo={algo!r}: must be one of {ALGOS}")
+    if isinstance(timesteps, bool) or not 1 <= int(timesteps) <= MAX_TIMESTEPS:
+        raise ValueError(f"timesteps={timesteps!r}: must be an integer in [1, {MAX_TIMESTEPS}]")
+    if minutes is not None and not (math.isfinite(minutes) and minutes > 0.0):
+        raise ValueError(f"minutes={minutes!r}: must be > 0 (or None for no budget)")
+    if isinstance(n_envs, bool) or not 1 <= int(n_envs) <= 64:
+        raise ValueError(f"n_envs={n_envs!r}: must be an integer in [1, 64]")
+    if not (math.isfinite(cost_weight) and cost_weight >= 0.0):
+        raise ValueError(f"cost_weight={cost_weight!r}: must be >= 0")
+
+
+def _save(
+    model: Any,
+    venv: Any,
+    cfg: ExperimentConfig,
+    out: Path,
+    algo: str,
+    seed: int,
+    cost_weight: float,
+    t0: float,
+    callback: Any,
+) -> dict[str, Any]:
+    """Write ``policy.zip``, ``policy.npz`` (observation normalisation) and ``policy.json``."""
+    model.save(out / POLICY_FILE)
+    rms = venv.obs_rms
+    np.savez(
+        out / "policy.npz",
+        mean=rms.mean,
+        var=rms.var,
+        epsilon=np.float64(venv.epsilon),
+        clip_obs=np.float64(venv.clip_obs),
+    )
+    returns = list(getattr(callback, "returns", []))
+    successes = list(getattr(callback, "successes", []))
+    summary = {
+        "algo": algo,
+        "env_id": cfg.env_id,
+        "system": cfg.make_model().system.name,  # the rl agent refuses another system
+        "timesteps": int(model.num_timesteps),
+        "wall_time_s": round(time.perf_counter() - t0, 1),
+        "seed": int(seed),
+        "n_envs": int(venv.num_envs),
+        "cost_weight": float(cost_weight),
+        "reward_scale": reward_scale(cfg),
+        "last_episodes": len(returns),
+        "last_training_return_mean": float(np.mean(returns)) if returns else None,
+        "last_success_rate": float(np.mean(successes)) if successes else None,
+        "n_features": int(rms.mean.shape[0]),
+    }
+    (out / "policy.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="lfm-train",
+        description=(
+            "Train an RL baseline (stable-baselines3 PPO or SAC) on the config's world "
+            "through gym.make; saves OUT/policy.zip for the 'rl' agent "
+            "(agents.rl_policy: OUT/policy.zip)."
+        ),
+        epilog="example: lfm-train --config configs/paper.yaml --algo ppo --minutes 25 "
+        "--out results/rl/ppo",
+    )
+    _add_config_argument(parser)
+    parser.add_argument("--algo", choices=ALGOS, default="ppo", help="algorithm (default ppo)")
+    parser.add_argument(
+        "--timesteps", type=int, default=1_000_000, help="env steps at most (default 1e6)"
+    )
+    parser.add_argument(
+        "--minutes", type=float, default=None, help="wall-clock budget [min] (default none)"
+    )
+    parser.add_argument("--out", default="results/rl/ppo", help="output folder")
+    parser.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    parser.add_argument("--n-envs", type=int, default=4, help="envs in lockstep (default 4)")
+    parser.add_argument(
+        "--cost-weight",
+        type=float,
+        default=1.0,
+        help="training penalty per violated constraint group and step (default 1)",
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return parser
+
+
+@one_line_errors("lfm-train")
+def main(argv: Sequence[str] | None = None) -> int:
+    """``lfm-train``: train and save a policy; prints the run's summary as JSON."""
+    parser = _parser()
+    args = parser.parse_args(argv)
+    path = _config_path(parser, args.config)
+    try:
+        _check_args(args.algo, args.timesteps, args.minutes, args.n_envs, args.cost_weight)
+        config = load_config(path)
+    except ValueError as exc:
+        parser.error(" ".join(str(exc).split()))
+    problem = check_writable(Path(args.out) / POLICY_FILE, "--out")
+    if problem is not None:
+        parser.error(problem)
+    summary = train(
+        config,
+        algo=args.algo,
+        timesteps=args.timesteps,
+        minutes=args.minutes,
+        out=args.out,
+        seed=args.seed,
+        n_envs=args.n_envs,
+        cost_weight=args.cost_weight,
+        progress=not args.no_progress,
+    )
+    print(json.dumps(summary, indent=2))
+    print(f"policy: {Path(args.out) / POLICY_FILE}")
+    return 0
+
+
+__all__ = ["ALGOS", "TrainingReward", "make_training_env", "main", "reward_scale", "train"]

@@ -1,0 +1,9 @@
+"""Train the RL baseline; see ``python scripts/train_rl.py --help``.
+
+The same command is installed as ``lfm-train``.
+"""
+
+from experiments.rl_training import main
+
+if __name__ == "__main__":
+    raise SystemExit(main())
