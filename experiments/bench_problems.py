@@ -24,7 +24,7 @@ from controllers.problem import ScenarioProblem
 
 ENV_ID = "lfm_env/SineTrack-v0"  # the env whose episodes the benchmark records
 DEFAULT_CONFIG = "configs/paper.yaml"
-DEFAULT_SEEDS = (0, 1, 2)
+DEFAULT_SEEDS = (0, 1, 2, 3, 4, 5)  # the issue's closed-loop problems: seeds 0..5
 RECORDING_SOLVER = "fast"  # the agent's solver while recording (the default controller)
 
 
@@ -58,18 +58,28 @@ def config_path(config: Any) -> Any:
     return config
 
 
-def experiment_config(config: Any = DEFAULT_CONFIG, solver: str | None = None) -> ExperimentConfig:
-    """The resolved, validated config, optionally with another ``agents.solver``.
+def experiment_config(
+    config: Any = DEFAULT_CONFIG, solver: str | None = None, horizon: int | None = None
+) -> ExperimentConfig:
+    """The resolved, validated config, optionally with another ``agents.solver`` or horizon.
 
     Args:
         config: a YAML path (relative paths also from the repository root), a dict (whole
             file), an :class:`~controllers.config.ExperimentConfig` or ``None`` (paper values).
         solver: if given, replaces ``agents.solver`` (one of ``controllers.solvers.SOLVERS``;
             checked like a config value).
+        horizon: if given, replaces ``agents.horizon`` (prediction steps ``N``; checked like
+            a config value).
     """
     cfg = load_config(config_path(config))
+    changes: dict[str, Any] = {}
     if solver is not None and solver != cfg.agents.solver:
-        cfg = dataclasses.replace(cfg, agents=dataclasses.replace(cfg.agents, solver=solver))
+        changes["solver"] = solver
+    if horizon is not None and int(horizon) != cfg.agents.horizon:
+        changes["horizon"] = int(horizon)
+    if changes:
+        # AgentConfig checks its fields on construction, so replace() checks the new values.
+        cfg = dataclasses.replace(cfg, agents=dataclasses.replace(cfg.agents, **changes))
     return cfg
 
 
@@ -113,6 +123,7 @@ def record_closed_loop(
     max_steps: int | None = None,
     progress: bool = False,
     solver: str = RECORDING_SOLVER,
+    horizon: int | None = None,
 ) -> tuple[list[RecordedProblem], list[SweepAnchor]]:
     """Scenario-agent episodes: every step's scenario problem and state estimate.
 
@@ -125,6 +136,7 @@ def record_closed_loop(
             episodes.
         progress: show a progress bar.
         solver: the agent's solver while recording.
+        horizon: the agent's horizon ``N`` (``agents.horizon``); by default the config's.
 
     Returns:
         ``(problems, anchors)``, seed by seed in closed-loop order: the problems the agent
@@ -136,7 +148,7 @@ def record_closed_loop(
     import lfm_env  # noqa: F401  (registers the env id)
     from controllers.agents import make_agent
 
-    cfg = experiment_config(config, solver=solver)
+    cfg = experiment_config(config, solver=solver, horizon=horizon)
     nx = cfg.make_system().nx
     problems: list[RecordedProblem] = []
     anchors: list[SweepAnchor] = []

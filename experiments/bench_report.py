@@ -1,10 +1,10 @@
-"""The benchmark's verdicts and report: PASS/FAIL per target, text, Markdown and JSON.
+"""The benchmark's report: text, Markdown and JSON (the verdicts: :mod:`bench_targets`).
 
-:func:`speed_targets` judges the issue's speed and accuracy targets from measured numbers
-alone; :func:`evaluate_targets` collects those numbers (and the other targets') from a
-benchmark result; :func:`format_report` prints the speed table, the detailed tables and
-the targets; :func:`format_markdown` gives the speed table as Markdown (for the README);
-:func:`json_ready` makes a result strict JSON.
+:func:`format_report` prints the speed table, the detailed tables (closed loop, horizons,
+scenario sweep, first solve, filter, episode), every failed solve and the targets;
+:func:`format_markdown` gives the speed table and the targets as Markdown (for the README);
+:func:`json_ready` makes a result strict JSON. :func:`evaluate_targets` and
+:func:`speed_targets` are :mod:`experiments.bench_targets`'.
 """
 
 from __future__ import annotations
@@ -15,263 +15,19 @@ from typing import Any
 import numpy as np
 
 from experiments.bench_solvers import GAP_TOL, NO_SLACK_TOL
+from experiments.bench_targets import (
+    ANCHOR,
+    LARGE_NS,
+    TEXTBOOK,
+    _get,
+    _ratio,
+    evaluate_targets,
+    large_ns_median,
+    speed_targets,
+    target,
+)
 
-TEXTBOOK = "ipopt_multiple_shooting"
-SPEED_TABLE_SOLVERS = ("fast", "fast_bicycle", "ipopt", TEXTBOOK, "csnlp")
-LARGE_NS = 1000  # the sweep's scenario count of the large-Ns target
-
-# Targets of the issue (N = 7, Ns = 150 closed-loop problems unless said otherwise).
-GENERIC_OVER_HAND_MAX = 1.5  # generic fast median / hand-written (fast_bicycle) median
-TEXTBOOK_OVER_FAST_MIN = 30.0  # textbook median / fast median
-LARGE_NS_MEDIAN_MAX_MS = 50.0  # [ms] fast median at Ns = LARGE_NS
-WORSE_SHARE_MAX_PCT = 2.0  # [%] problems where fast ends > GAP_TOL above the textbook
-FAST_MEDIAN_MAX_MS = 10.0  # [ms]
-FAST_P95_MAX_MS = 25.0  # [ms]
-VIOLATION_TOL = 1e-6  # largest scenario violation allowed where no slack is needed
-PF_STEP_MAX_MS = 1.0  # [ms] 7000 particles
-EPISODE_MAX_S = 3.0  # [s] a whole paper episode
-
-
-def target(
-    text: str, value: float | None, threshold: float, op: str, unit: str = "", note: str = ""
-) -> dict[str, Any]:
-    """One target, judged from a measured ``value`` (``None`` or NaN: not measured, SKIP).
-
-    Args:
-        text: what is required, as printed.
-        value: the measured figure.
-        threshold: the bound.
-        op: ``"<="``, ``">="`` or ``">"``: ``value op threshold`` passes.
-        unit: unit of ``value`` and ``threshold`` (``"x"`` for a ratio).
-        note: printed after the figure.
-
-    Raises:
-        ValueError: for another ``op``.
-    """
-    ops = {"<=": np.less_equal, ">=": np.greater_equal, ">": np.greater}
-    if op not in ops:
-        raise ValueError(f"op={op!r}: must be one of {sorted(ops)}")
-    measured = value is not None and math.isfinite(value)
-    return {
-        "target": text,
-        "value": value,
-        "threshold": threshold,
-        "op": op,
-        "unit": unit,
-        "passed": bool(ops[op](value, threshold)) if measured else None,
-        "note": note,
-    }
-
-
-def _ratio(a: float | None, b: float | None) -> float | None:
-    if a is None or b is None or not (math.isfinite(a) and math.isfinite(b)) or b <= 0:
-        return None
-    return a / b
-
-
-def _problem_list(worse: list[dict[str, Any]], limit: int = 12) -> str:
-    items = [
-        f"seed {w['seed']} step {w['step']} ({_fmt(w['rel_gap'], '+.1e')})" for w in worse[:limit]
-    ]
-    more = f", and {len(worse) - limit} more" if len(worse) > limit else ""
-    return ", ".join(items) + more
-
-
-def speed_targets(
-    fast_ms: float | None,
-    fast_bicycle_ms: float | None,
-    textbook_ms: float | None,
-    fast_large_ns_ms: float | None,
-    worse: list[dict[str, Any]] | None,
-    n_compared: int | None,
-    where: str = "N=7, Ns=150",
-) -> list[dict[str, Any]]:
-    """The issue's four speed and accuracy targets, judged from measured figures.
-
-    Args:
-        fast_ms: median solve time of the generic fast solver [ms], side by side.
-        fast_bicycle_ms: the same of the hand-written one (today's fast solver) [ms].
-        textbook_ms: the same of the textbook IPOPT formulation [ms].
-        fast_large_ns_ms: fast median at ``Ns`` = :data:`LARGE_NS` [ms].
-        worse: the problems where fast ends more than :data:`GAP_TOL` (relative) above the
-            textbook (``{"seed", "step", "rel_gap"}``), ``None`` if not compared.
-        n_compared: how many problems the textbook solved (the share's denominator).
-        where: the problem size, for the texts.
-
-    Returns:
-        Four :func:`target` dicts: generic / hand-written, textbook / fast, the large-Ns
-        median and the share of problems where fast ends above the textbook.
-    """
-    generic = _ratio(fast_ms, fast_bicycle_ms)
-    textbook = _ratio(textbook_ms, fast_ms)
-    measured = f"fast {_fmt(fast_ms, '.2f')} ms"
-    share = None
-    if worse is not None and n_compared:
-        share = 100.0 * len(worse) / n_compared
-    if worse is None or not n_compared:
-        worse_note = "textbook not run or unavailable"
-    elif worse:
-        worse_note = f"{len(worse)} of {n_compared}: {_problem_list(worse)}"
-    else:
-        worse_note = f"none of {n_compared}"
-    return [
-        target(
-            f"generic fast / fast_bicycle median solve time <= {GENERIC_OVER_HAND_MAX:g} "
-            f"({where}, side by side)",
-            generic,
-            GENERIC_OVER_HAND_MAX,
-            "<=",
-            "x",
-            f"{measured}, fast_bicycle {_fmt(fast_bicycle_ms, '.2f')} ms",
-        ),
-        target(
-            f"textbook ({TEXTBOOK}) / fast median solve time >= {TEXTBOOK_OVER_FAST_MIN:g} "
-            f"({where}, side by side)",
-            textbook,
-            TEXTBOOK_OVER_FAST_MIN,
-            ">=",
-            "x",
-            f"{measured}, textbook {_fmt(textbook_ms, '.1f')} ms",
-        ),
-        target(
-            f"fast median solve <= {LARGE_NS_MEDIAN_MAX_MS:g} ms at Ns={LARGE_NS}",
-            fast_large_ns_ms,
-            LARGE_NS_MEDIAN_MAX_MS,
-            "<=",
-            "ms",
-        ),
-        target(
-            f"problems where fast ends > {GAP_TOL:g} (relative) above the textbook "
-            f"<= {WORSE_SHARE_MAX_PCT:g}%",
-            share,
-            WORSE_SHARE_MAX_PCT,
-            "<=",
-            "%",
-            worse_note,
-        ),
-    ]
-
-
-def _get(d: dict | None, key: str) -> Any:
-    return None if d is None else d.get(key)
-
-
-def large_ns_median(results: dict[str, Any], name: str = "fast") -> float | None:
-    """``name``'s median solve time [ms] at ``Ns`` = :data:`LARGE_NS` in the sweep."""
-    for row in results.get("sweep", {}).get("results", []):
-        if row["n_scenarios"] == LARGE_NS and name in row["summary"]:
-            return row["summary"][name]["solve_ms_median"]
-    return None
-
-
-def _closed_loop_targets(closed: dict[str, Any]) -> list[dict[str, Any]]:
-    """The fast solver's latency, its speed over csnlp and its violations (closed loop)."""
-    fast = closed.get("summary", {}).get("fast")
-    problem = closed.get("problem", {})
-    where = f"N={problem.get('horizon')}, Ns={problem.get('n_scenarios')}"
-    fast_note = "" if fast else "fast solver unavailable"
-    alone = (closed.get("alone") or {}).get("fast")
-
-    def latency_note(key: str) -> str:
-        if not fast:
-            return fast_note
-        if alone:
-            return f"warm-started solves; the fast solvers alone: {_fmt(alone.get(key))} ms"
-        return "warm-started solves"
-
-    speed = closed.get("speedup", {})
-    return [
-        target(
-            f"fast median solve <= {FAST_MEDIAN_MAX_MS:g} ms ({where}, closed loop, side by side)",
-            _get(fast, "solve_ms_median"),
-            FAST_MEDIAN_MAX_MS,
-            "<=",
-            "ms",
-            latency_note("solve_ms_median"),
-        ),
-        target(
-            f"fast p95 solve <= {FAST_P95_MAX_MS:g} ms ({where}, side by side)",
-            _get(fast, "solve_ms_p95"),
-            FAST_P95_MAX_MS,
-            "<=",
-            "ms",
-            latency_note("solve_ms_p95"),
-        ),
-        target(
-            "csnlp / fast median solve time > 1",
-            _get(speed.get("csnlp"), "median_ratio"),
-            1.0,
-            ">",
-            "x",
-            fast_note or ("" if "csnlp" in speed else "csnlp not run or unavailable"),
-        ),
-        target(
-            f"fast max violation <= {VIOLATION_TOL:g} where the reference needs no slack",
-            _get(fast, "max_violation_no_slack"),
-            VIOLATION_TOL,
-            "<=",
-            "",
-            (
-                f"reference {closed.get('reference')}; {_get(fast, 'n_no_slack')} problems"
-                if fast
-                else fast_note
-            ),
-        ),
-    ]
-
-
-def _filter_and_episode_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
-    """The particle filter's step and update at 7000 particles, a whole episode."""
-    pf_rows = results.get("particle_filter", {}).get("results", [])
-    pf7000 = next((r for r in pf_rows if r["n_particles"] == 7000), None)
-    targets = [
-        target(
-            f"PF {what}, 7000 particles, median <= {PF_STEP_MAX_MS:g} ms",
-            _get(pf7000, key),
-            PF_STEP_MAX_MS,
-            "<=",
-            "ms",
-        )
-        for what, key in (
-            ("step (transition + update)", "step_ms_median"),
-            ("update alone", "update_ms_median"),
-        )
-    ]
-    episode = results.get("episode")
-    targets.append(
-        target(
-            f"whole paper episode, scenario agent, <= {EPISODE_MAX_S:g} s wall",
-            _get(episode, "episode_s"),
-            EPISODE_MAX_S,
-            "<=",
-            "s",
-            "" if episode is None else f"solver {episode['solver']}, {episode['steps']} steps",
-        )
-    )
-    return targets
-
-
-def evaluate_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
-    """PASS/FAIL of every target, from the measurements in a benchmark result.
-
-    The issue's speed targets first (:func:`speed_targets`), then the fast solver's
-    latency, csnlp, violations, the particle filter and the episode.
-    """
-    closed = results.get("closed_loop", {})
-    summary = closed.get("summary", {})
-    fast = summary.get("fast")
-    problem = closed.get("problem", {})
-    compared = closed.get("reference") == TEXTBOOK and fast is not None
-    targets = speed_targets(
-        _get(fast, "solve_ms_median"),
-        _get(summary.get("fast_bicycle"), "solve_ms_median"),
-        _get(summary.get(TEXTBOOK), "solve_ms_median"),
-        large_ns_median(results),
-        fast.get("worse_than_reference") if compared else None,
-        fast.get("n_reference_ok") if compared else None,
-        f"N={problem.get('horizon')}, Ns={problem.get('n_scenarios')}",
-    )
-    return targets + _closed_loop_targets(closed) + _filter_and_episode_targets(results)
+SPEED_TABLE_SOLVERS = ("fast", "fast_bicycle", ANCHOR, "ipopt", TEXTBOOK, "csnlp")
 
 
 # --------------------------------------------------------------------------- text
@@ -344,8 +100,10 @@ def _ratio_line(results: dict[str, Any]) -> str:
     med = {name: _get(s, "solve_ms_median") for name, s in summary.items()}
     generic = _ratio(med.get("fast"), med.get("fast_bicycle"))
     textbook = _ratio(med.get(TEXTBOOK), med.get("fast"))
+    anchor = _ratio(med.get(ANCHOR), med.get("fast"))
     return (
         f"generic fast / fast_bicycle: {_fmt(generic, '.2f')}x; "
+        f"{ANCHOR} / fast: {_fmt(anchor, '.1f')}x; "
         f"textbook / fast: {_fmt(textbook, '.0f')}x (medians)"
     )
 
@@ -490,26 +248,121 @@ def _sweep_lines(sweep: dict[str, Any]) -> list[str]:
     return lines
 
 
+def _horizon_lines(horizons: dict[str, Any]) -> list[str]:
+    lines = [
+        "Horizons (closed-loop problems recorded at each N, warm-started, side by side; "
+        f"within: fast at most {GAP_TOL:g} (relative) above IPOPT's objective)"
+    ]
+    head = (
+        f"{'N':>4}{'Ns':>6}{'problems':>10}{'fast med':>10}{'p95':>9}{'iters':>7}{'fails':>7}"
+        f"{'ipopt med':>11}{'p95':>9}{'iters':>7}{'fails':>7}{'x fast':>8}{'within':>9}"
+    )
+    lines += [head, f"{'':>20}{'[ms]':>10}{'[ms]':>9}{'':>14}{'[ms]':>11}{'[ms]':>9}"]
+    lines.append("-" * len(head))
+    for row in horizons.get("results", []):
+        cells = []
+        for name in ("fast", "ipopt"):
+            s = row["summary"].get(name)
+            if s is None:
+                cells.append(f"{'-':>10}{'-':>9}{'-':>7}{'-':>7}" if name == "fast" else "")
+                continue
+            width = 10 if name == "fast" else 11
+            cells.append(
+                f"{_fmt(s['solve_ms_median'], '.2f'):>{width}}{_fmt(s['solve_ms_p95'], '.2f'):>9}"
+                f"{_fmt(s['iterations_median'], '.0f'):>7}"
+                f"{s['n_problems'] - s['n_success']:>7}"
+            )
+        ipopt, fast = row["summary"].get("ipopt"), row["summary"].get("fast")
+        ratio = _ratio(_get(ipopt, "solve_ms_median"), _get(fast, "solve_ms_median"))
+        agreement = row.get("agreement") or {}
+        within = (
+            f"{agreement['n_within']}/{agreement['n_compared']}"
+            if agreement.get("n_compared")
+            else "-"
+        )
+        lines.append(
+            f"{row['horizon']:>4}{row['n_scenarios']:>6}{row['n_problems']:>10}"
+            + "".join(cells)
+            + f"{_fmt(ratio, '.0f'):>8}{within:>9}"
+        )
+    lines.append(
+        "N at the config's horizon: the main comparison's problems (whole episodes); "
+        "other N: the first steps of each seed's episode run at that N."
+    )
+    return lines
+
+
+def _failure_lines(failures: list[dict[str, Any]]) -> list[str]:
+    if not failures:
+        return ["Failed solves: none (every solver, every part)"]
+    kinds: dict[str, int] = {}
+    for f in failures:
+        kinds[f["kind"]] = kinds.get(f["kind"], 0) + 1
+    lines = [
+        f"Failed solves: {len(failures)} ("
+        + ", ".join(f"{k} {v}" for k, v in sorted(kinds.items()))
+        + ")",
+        f"{'part':<20}{'solver':<25}{'seed':>5}{'step':>6}{'N':>4}{'Ns':>6}  status",
+    ]
+    for f in failures:
+        lines.append(
+            f"{f['part']:<20}{f['solver']:<25}{f['seed']:>5}{f['step']:>6}{f['N']:>4}"
+            f"{f['Ns']:>6}  {f['status'][:80]}"
+        )
+    return lines
+
+
+def _first_solve_lines(first: dict[str, Any]) -> list[str]:
+    lines = [f"First solve of a freshly built {first['solver']} solver (build + first solve)"]
+    for i, r in enumerate(first.get("results", [])):
+        if "error" in r:
+            lines.append(f"  build {i + 1}: unavailable: {r['error']}")
+            continue
+        extra = ", ".join(
+            f"{k} {_fmt(v, '.2f') if isinstance(v, float) else v}"
+            for k, v in r.items()
+            if k not in ("build_s", "first_solve_ms", "total_s", "success")
+        )
+        lines.append(
+            f"  build {i + 1}: build {r['build_s']:.2f} s, first solve "
+            f"{r['first_solve_ms']:.1f} ms, total {r['total_s']:.2f} s, "
+            f"success {r['success']}; {extra}"
+        )
+    return lines
+
+
 def format_report(results: dict[str, Any]) -> str:
     """The printed report: speed table, closed-loop details, sweep, filter, episode, targets."""
     lines = []
     if results.get("closed_loop"):
         lines += [format_speed_table(results), ""]
         lines += _closed_loop_lines(results) + [""]
+    if results.get("horizons"):
+        lines += _horizon_lines(results["horizons"]) + [""]
     if results.get("sweep"):
         lines += _sweep_lines(results["sweep"]) + [""]
+    if results.get("first_solve"):
+        lines += _first_solve_lines(results["first_solve"]) + [""]
     pf = results.get("particle_filter")
     if pf:
         lines.append(f"Particle filter ({pf['n_steps']} steps per size)")
-        head = f"{'particles':>10}{'step med':>10}{'p95':>9}{'update med':>12}{'predict med':>13}"
-        lines += [head, f"{'':>10}{'[ms]':>10}{'[ms]':>9}{'[ms]':>12}{'[ms]':>13}"]
+        head = (
+            f"{'particles':>10}{'step med':>10}{'p95':>9}{'update med':>12}{'predict med':>13}"
+            f"{'ziggurat step med':>19}"
+        )
+        lines += [head, f"{'':>10}{'[ms]':>10}{'[ms]':>9}{'[ms]':>12}{'[ms]':>13}{'[ms]':>19}"]
         lines.append("-" * len(head))
         for r in pf["results"]:
             lines.append(
                 f"{r['n_particles']:>10}{_fmt(r['step_ms_median'], '.3f'):>10}"
                 f"{_fmt(r['step_ms_p95'], '.3f'):>9}{_fmt(r['update_ms_median'], '.3f'):>12}"
                 f"{_fmt(r['predict_ms_median'], '.3f'):>13}"
+                f"{_fmt(r.get('numpy_normals_step_ms_median'), '.3f'):>19}"
             )
+        lines.append(
+            "ziggurat: the same filter drawing its noise with NumPy's ziggurat (the filter "
+            "before its Box-Muller draws), interleaved on the same measurements."
+        )
         lines.append("")
     ep = results.get("episode")
     if ep:
@@ -522,6 +375,8 @@ def format_report(results: dict[str, Any]) -> str:
             f"max {ep['solve_ms_max']:.1f}; estimate {ep['estimate_ms_median']:.1f} ms)"
         )
         lines.append("")
+    if "failures" in results:
+        lines += _failure_lines(results["failures"]) + [""]
     lines.append("Targets")
     lines += [f"  {_target_line(t)}" for t in results.get("targets", [])]
     return "\n".join(lines)
@@ -548,6 +403,7 @@ def json_ready(obj: Any) -> Any:
 
 
 __all__ = [
+    "LARGE_NS",
     "evaluate_targets",
     "format_markdown",
     "format_report",

@@ -30,6 +30,7 @@ SOLVER_LABELS = {
     "fast_bicycle": "fast SQP, the bicycle's hand-written derivatives (BicycleFastSolver)",
     "ipopt": "IPOPT, condensed (single shooting)",
     "ipopt_multiple_shooting": "IPOPT, multiple shooting, exact Hessian (textbook reference)",
+    "sqpmethod": "CasADi sqpmethod + qpOASES, condensed, JIT-compiled (the SQP anchor)",
     "csnlp": "csnlp ScenarioBasedMpc + IPOPT",
 }
 FAST_SOLVERS = ("fast", "fast_bicycle")  # timed again alone, without IPOPT in between
@@ -381,6 +382,62 @@ def speedups(
     return out
 
 
+# --------------------------------------------------------------------------- failures
+
+FAILURE_KINDS = (
+    "QP_Failed",
+    "Maximum_Iterations_Exceeded",
+    "wall_time",
+    "infeasible",
+    "exception",
+    "other",
+)
+
+
+def classify_failure(status: str) -> str:
+    """The kind of a failed solve's status, one of :data:`FAILURE_KINDS`."""
+    if status.startswith("raised"):
+        return "exception"
+    if "QP_Failed" in status:
+        return "QP_Failed"
+    if "Maximum_Iterations_Exceeded" in status:
+        return "Maximum_Iterations_Exceeded"
+    if "WallTime" in status or "wall time" in status.lower():
+        return "wall_time"
+    if "nfeasib" in status:
+        return "infeasible"
+    return "other"
+
+
+def failures_of(
+    records: dict[str, list[dict[str, Any]]], part: str, horizon: int, n_scenarios: int
+) -> list[dict[str, Any]]:
+    """Every failed solve of ``records``, with the problem's id and the failure's kind.
+
+    Returns:
+        ``[{"part", "solver", "seed", "step", "N", "Ns", "kind", "status"}]``, solver by
+        solver in problem order.
+    """
+    out = []
+    for name, recs in records.items():
+        for r in recs:
+            if r["success"]:
+                continue
+            out.append(
+                {
+                    "part": part,
+                    "solver": name,
+                    "seed": int(r["seed"]),
+                    "step": int(r["step"]),
+                    "N": int(horizon),
+                    "Ns": int(n_scenarios),
+                    "kind": classify_failure(str(r["status"])),
+                    "status": str(r["status"]),
+                }
+            )
+    return out
+
+
 # --------------------------------------------------------------------------- comparison
 
 
@@ -391,18 +448,22 @@ def _alone(
     records: dict[str, list[dict[str, Any]]],
     warmup: bool,
     progress: bool,
-) -> dict[str, dict[str, Any]]:
+) -> tuple[dict[str, dict[str, Any]], list[dict[str, Any]]]:
     """The fast solvers' closed loop again, without IPOPT or csnlp solves in between.
 
     Side by side, every fast solve follows an IPOPT or csnlp solve that has evicted its
     data from the caches; this is the loop as a controller runs it. ``plan_difference_max``
     compares the plans with the side-by-side ones: qpOASES hot-starts from each QP
     object's last active set, so they agree to solver tolerance rather than bit for bit.
+
+    Returns:
+        ``(timing figures per fast solver, their failed solves (:func:`failures_of`))``.
     """
     fast = {name: built[name] for name in FAST_SOLVERS if name in built}
     if not fast or len(fast) == len(built):
-        return {}
+        return {}, []
     solo = run_interleaved(fast, problem, problems, warmup, progress, "fast solvers alone")
+    failed = failures_of(solo, "closed_loop_alone", problem.horizon, problem.n_scenarios)
     out = {}
     for name, recs in solo.items():
         out[name] = timing_summary(recs)
@@ -414,7 +475,7 @@ def _alone(
             ),
             default=math.nan,
         )
-    return out
+    return out, failed
 
 
 def time_solvers(
@@ -449,7 +510,8 @@ def time_solvers(
         "step"}], "solvers": {name: {"available", "reason", "build_time_s", "label"}},
         "reference": name or None, "records": {name: [per-problem dicts]},
         "summary": {name: timing and accuracy figures}, "speedup": {name: ratios over
-        fast}, "alone": {fast solver: timing figures}}``. Times in ms, build times in s.
+        fast}, "alone": {fast solver: timing figures}, "failures": every failed solve
+        (:func:`failures_of`), side by side and alone}``. Times in ms, build times in s.
 
     Raises:
         ValueError: for an unknown solver name, or no problems and no ``problem``.
@@ -485,6 +547,8 @@ def time_solvers(
     if reference is not None:
         restart_check(built, problem, problems, records, reference, summary)
         certify_lower_plans(problem, problems, records, reference, summary)
+    alone, alone_failures = _alone(built, problem, problems, records, warmup, progress)
+    failed = failures_of(records, "closed_loop", problem.horizon, problem.n_scenarios)
     return {
         "problem": {"horizon": problem.horizon, "n_scenarios": problem.n_scenarios},
         "n_problems": len(problems),
@@ -494,11 +558,13 @@ def time_solvers(
         "records": records,
         "summary": summary,
         "speedup": speedups(summary, records),
-        "alone": _alone(built, problem, problems, records, warmup, progress),
+        "alone": alone,
+        "failures": failed + alone_failures,
     }
 
 
 __all__ = [
+    "FAILURE_KINDS",
     "FAST_SOLVERS",
     "GAP_TOL",
     "NO_SLACK_TOL",
@@ -507,6 +573,8 @@ __all__ = [
     "accuracy_summary",
     "build_solver",
     "certify_lower_plans",
+    "classify_failure",
+    "failures_of",
     "relative_gap",
     "restart_check",
     "run_interleaved",

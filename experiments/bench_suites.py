@@ -1,7 +1,11 @@
-"""The benchmark's other parts: the scenario-count sweep, the particle filter, one episode.
+"""The benchmark's other parts: horizon and scenario-count sweeps, the filter, one episode.
 
+* :func:`sweep_horizons`: the fast solver and IPOPT (condensed) side by side on
+  closed-loop problems recorded at each horizon ``N``; times, failures, objective gaps.
 * :func:`sweep_scenarios`: solve time against the scenario count ``Ns`` on problems drawn
   around recorded closed-loop estimates, as the scenario agent draws them.
+* :func:`first_solve`: building the fast solver and its first solve (compilation
+  included), twice, so a compiled kernel's cache shows.
 * :func:`time_particle_filter`: one filter step (model transition + update) and the update
   alone, for several particle counts.
 * :func:`time_episode`: the wall time of a whole scenario-agent episode.
@@ -12,6 +16,7 @@ Everything is built from the config; nothing here knows the system.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -31,16 +36,29 @@ from experiments.bench_problems import (
     scenario_draws,
 )
 from experiments.bench_solvers import (
+    GAP_TOL,
     accuracy_summary,
     build_solver,
+    failures_of,
     p95,
+    relative_gap,
     run_interleaved,
     speedups,
     timing_summary,
 )
 
-DEFAULT_SWEEP_NS = (10, 50, 150, 500, 1000)
-DEFAULT_SWEEP_STEPS = 10  # anchors per seed in the sweep (IPOPT takes ~1 s per problem at 150)
+DEFAULT_SWEEP_NS = (10, 50, 150, 500, 1000, 5000)
+DEFAULT_SWEEP_STEPS = 5  # anchors per seed in the sweep (IPOPT takes ~0.3 s per problem at 150)
+DEFAULT_HORIZONS = (7, 15, 30)
+# Closed-loop problems per seed timed at each horizon (the first steps of each episode);
+# IPOPT takes ~1 s per problem at N = 15 and ~3 s at N = 30 (Ns = 150). At the config's
+# own horizon the main closed-loop comparison (whole episodes) is reused.
+DEFAULT_HORIZON_STEPS = {15: 8, 30: 2}
+HORIZON_SOLVERS = ("fast", "ipopt")  # the second is the objective reference
+# Wall-clock limits of one solve in the horizon sweep [s]: IPOPT at N = 30 takes seconds
+# (about 10 s on a busy 2-core machine) and can spend minutes on a hard problem; a solve
+# that reaches its limit is a failed solve (kind wall_time).
+HORIZON_MAX_TIME_S = {"fast": 10.0, "ipopt": 30.0}
 SWEEP_SOLVERS = ("fast", "fast_bicycle")  # timed at every Ns
 SWEEP_REFERENCE = "ipopt"  # timed, and the objective reference, up to ipopt_max_ns
 SWEEP_IPOPT_MAX_NS = 150
@@ -82,7 +100,7 @@ def sweep_scenarios(
 
     Returns:
         ``{"horizon", "n_anchors", "results": [{"n_scenarios", "solvers", "summary",
-        "speedup"}]}``, times in milliseconds.
+        "speedup", "failures"}]}``, times in milliseconds.
     """
     cfg = experiment_config(config)
     if anchors is None:
@@ -114,10 +132,208 @@ def sweep_scenarios(
                 "solvers": info,
                 "summary": summary,
                 "speedup": speedups(summary, records),
+                "failures": failures_of(records, "ns_sweep", problem.horizon, int(ns)),
             }
         )
     n = cfg.agents.horizon if problem is None else problem.horizon
     return {"horizon": int(n), "n_anchors": len(sequence), "results": results}
+
+
+def objective_agreement(
+    records: list[dict[str, Any]], reference: list[dict[str, Any]], tol: float = GAP_TOL
+) -> dict[str, Any]:
+    """Per-problem relative objective gaps of a solver to a reference, and their shares.
+
+    A problem counts as *within* when the solver's objective is at most ``tol``
+    (relative) above the reference's (lower is at least as good); a failed or raised
+    solve never counts as within. The denominator is every problem the reference solved.
+
+    Returns:
+        ``{"n_compared", "n_within", "share_within_pct", "n_within_abs" (``|gap| <=
+        tol``), "gaps": [{"seed", "step", "rel_gap"}]}``.
+    """
+    gaps, within, within_abs = [], 0, 0
+    for rec, ref in zip(records, reference, strict=True):
+        if not ref["success"]:
+            continue
+        gap = relative_gap(rec, ref) if rec["success"] else math.nan
+        gaps.append({"seed": rec["seed"], "step": rec["step"], "rel_gap": gap})
+        within += bool(gap <= tol)
+        within_abs += bool(abs(gap) <= tol)
+    n = len(gaps)
+    return {
+        "n_compared": n,
+        "n_within": within,
+        "share_within_pct": 100.0 * within / n if n else math.nan,
+        "n_within_abs": within_abs,
+        "gaps": gaps,
+    }
+
+
+def _horizon_row(
+    horizon: int,
+    problem: Any,
+    records: dict[str, list[dict[str, Any]]],
+    info: dict[str, Any],
+    source: str,
+    part: str,
+) -> dict[str, Any]:
+    fast, ref = HORIZON_SOLVERS
+    summary = {name: timing_summary(recs) for name, recs in records.items()}
+    agreement = None
+    if fast in records and ref in records:
+        agreement = objective_agreement(records[fast], records[ref])
+    n = len(next(iter(records.values()), []))
+    return {
+        "horizon": int(horizon),
+        "n_scenarios": int(problem.n_scenarios),
+        "n_problems": n,
+        "source": source,
+        "solvers": info,
+        "summary": summary,
+        "agreement": agreement,
+        "failures": failures_of(records, part, horizon, problem.n_scenarios),
+    }
+
+
+def sweep_horizons(
+    horizons: Sequence[int] = DEFAULT_HORIZONS,
+    config: Any = DEFAULT_CONFIG,
+    seeds: Sequence[int] = DEFAULT_SEEDS,
+    steps_per_seed: dict[int, int] | int | None = None,
+    closed_loop: dict[str, Any] | None = None,
+    max_time: dict[str, float] | float | None = None,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """The fast solver and IPOPT (condensed) side by side at several horizons ``N``.
+
+    At each ``N`` the scenario agent runs the config's episodes with ``agents.horizon``
+    set to ``N`` (:func:`experiments.bench_problems.record_closed_loop`, the first
+    ``steps_per_seed`` steps of each seed), and both solvers solve the recorded problems
+    in closed-loop order, warm-started, interleaved. At the horizon of ``closed_loop``
+    (the main comparison's result) its records are reused instead, when both solvers are
+    in it.
+
+    Args:
+        horizons: prediction steps ``N``.
+        config: a YAML path, a dict (whole file), an ExperimentConfig or ``None``.
+        seeds: env seeds.
+        steps_per_seed: problems per seed, one count for every ``N`` or a dict by ``N``
+            (default :data:`DEFAULT_HORIZON_STEPS`, 5 for an ``N`` not in it); ``None``
+            entries: whole episodes.
+        closed_loop: the result of :func:`experiments.bench_solvers.time_solvers`.
+        max_time: wall-clock limit of one solve [s] (the solvers' ``max_time``), one for
+            both or a dict by solver name (default :data:`HORIZON_MAX_TIME_S`); a solve
+            that reaches it fails (kind ``wall_time``).
+        progress: show progress bars.
+
+    Returns:
+        ``{"results": [{"horizon", "n_scenarios", "n_problems", "source", "solvers",
+        "summary", "agreement" (:func:`objective_agreement` of fast to IPOPT),
+        "failures"}]}``, times in milliseconds.
+    """
+    cfg = experiment_config(config)
+    counts = DEFAULT_HORIZON_STEPS if steps_per_seed is None else steps_per_seed
+    max_time = HORIZON_MAX_TIME_S if max_time is None else max_time
+    rows = []
+    for n in horizons:
+        n = int(n)
+        reuse = closed_loop or {}
+        if reuse.get("problem", {}).get("horizon") == n and all(
+            name in reuse.get("records", {}) for name in HORIZON_SOLVERS
+        ):
+            records = {name: reuse["records"][name] for name in HORIZON_SOLVERS}
+            info = {name: reuse["solvers"][name] for name in HORIZON_SOLVERS}
+            problem = cfg.make_problem(horizon=n)
+            rows.append(_horizon_row(n, problem, records, info, "closed_loop", "closed_loop"))
+            continue
+        steps = counts.get(n, 5) if isinstance(counts, dict) else counts
+        problems, _ = record_closed_loop(cfg, seeds, steps, progress, horizon=n)
+        problem = experiment_config(cfg, horizon=n).make_problem()
+        built, info = {}, {}
+        for name in HORIZON_SOLVERS:
+            limit = max_time.get(name) if isinstance(max_time, dict) else max_time
+            solver, build_time, reason = build_solver(name, problem, max_time=limit)
+            info[name] = {"available": solver is not None, "reason": reason}
+            info[name]["build_time_s"] = build_time
+            if solver is not None:
+                built[name] = solver
+        records = run_interleaved(
+            built, problem, problems, warmup=True, progress=progress, desc=f"horizon N={n}"
+        )
+        rows.append(_horizon_row(n, problem, records, info, "recorded", "horizon_sweep"))
+    return {"results": rows}
+
+
+def _compile_info(solver: Any) -> dict[str, Any]:
+    """What a fast solver says about its derivative kernel (read defensively)."""
+    model = getattr(solver, "model", None)
+    info: dict[str, Any] = {"backend": getattr(solver, "backend", None)}
+    for key in ("compile_time", "build_time"):
+        value = getattr(model, key, None)
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            info[f"kernel_{key}_s"] = float(value)
+    for key in dir(model) if model is not None else ():
+        if "cache" in key.lower() and not key.startswith("__"):
+            value = getattr(model, key, None)
+            if isinstance(value, (bool, np.bool_)):
+                info["cache_hit"] = bool(value)
+                info["cache_flag"] = key
+    return info
+
+
+def first_solve(
+    config: Any = DEFAULT_CONFIG,
+    problem_data: tuple[np.ndarray, np.ndarray] | None = None,
+    solver: str = RECORDING_SOLVER,
+    builds: int = 2,
+) -> dict[str, Any]:
+    """Build a solver and time its first solve, ``builds`` times in a row.
+
+    The first build pays any compilation (a compiled kernel's compile time, unless a
+    cache from an earlier run serves it); later builds show the warm cache. Each row reads
+    the solver's ``backend`` and its model's ``compile_time`` and cache-hit flag where
+    they exist.
+
+    Args:
+        config: a YAML path, a dict (whole file), an ExperimentConfig or ``None``.
+        problem_data: ``(x0, W)`` of the first solve; by default the env's start with
+            scenarios drawn around a zero latent state.
+        solver: the registry name.
+        builds: how many times to build and solve.
+
+    Returns:
+        ``{"solver", "results": [{"build_s", "first_solve_ms", "total_s", "success",
+        "backend", ...}]}``.
+    """
+    cfg = experiment_config(config)
+    problem = cfg.make_problem()
+    if problem_data is None:
+        x0, _ = env_start(cfg, 0)
+        z0 = np.zeros((problem.n_scenarios, problem.model.latent_dim))
+        W = problem.model.sample_latent_forecasts(z0, problem.horizon, np.random.default_rng(0))
+    else:
+        x0, W = problem_data
+    rows = []
+    for _ in range(builds):
+        t0 = time.perf_counter()
+        built, _, reason = build_solver(solver, problem)
+        t1 = time.perf_counter()
+        if built is None:
+            rows.append({"build_s": math.nan, "error": reason})
+            continue
+        sol = built.solve(x0, W)
+        t2 = time.perf_counter()
+        rows.append(
+            {
+                "build_s": t1 - t0,
+                "first_solve_ms": 1e3 * (t2 - t1),
+                "total_s": t2 - t0,
+                "success": bool(sol.success),
+                **_compile_info(built),
+            }
+        )
+    return {"solver": solver, "results": rows}
 
 
 def time_particle_filter(
@@ -127,6 +343,9 @@ def time_particle_filter(
     seed: int = 0,
 ) -> dict[str, Any]:
     """Time one particle-filter step (model transition + update) and the update alone.
+
+    Beside it, the same filter with NumPy's ziggurat normals (``fast_normals=False``, the
+    filter before the Box-Muller draws) is timed on the same measurements, interleaved.
 
     The filter is the filtering agents' (their model's transition, the Gaussian likelihood
     of the full-state measurement, the config's resampling rule, the prior around the
@@ -142,7 +361,8 @@ def time_particle_filter(
 
     Returns:
         ``{"n_steps", "results": [{"n_particles", "step_ms_median", "step_ms_p95",
-        "step_ms_max", "update_ms_median", "update_ms_p95", "predict_ms_median"}]}``.
+        "step_ms_max", "update_ms_median", "update_ms_p95", "predict_ms_median",
+        "numpy_normals_step_ms_median"}]}``.
     """
     from controllers.estimators.particle_filter import ParticleFilter, gaussian_log_likelihood
     from lfm_env.model import psd_factor
@@ -168,28 +388,38 @@ def time_particle_filter(
             ],
             axis=1,
         )
-        pf = ParticleFilter(
-            model.transition,
-            log_lik,
-            prior,
-            rng,
-            resampling=cfg.agents.resampling,
-            ess_threshold=cfg.agents.ess_threshold,
-        )
-        t_step, t_update, t_predict = [], [], []
+        # The filter as the agents run it, and beside it (same prior, same measurements,
+        # interleaved) the same filter drawing its noise with NumPy's ziggurat.
+        filters = {
+            fast: ParticleFilter(
+                model.transition,
+                log_lik,
+                prior,
+                np.random.default_rng([seed, int(n), int(fast)]),
+                resampling=cfg.agents.resampling,
+                ess_threshold=cfg.agents.ess_threshold,
+                fast_normals=fast,
+            )
+            for fast in (True, False)
+        }
+        t_step, t_update, t_predict, t_numpy = [], [], [], []
         for _ in range(n_steps):
             truth = truth_model.transition(truth[None], u, rng)[0]
             y = truth[:nx] + rng.standard_normal(nx) * meas_std
             # pf.step(u, y) is exactly predict(u) then update(y); timing the halves apart
             # gives both figures from one run.
+            pf = filters[True]
             t0 = time.perf_counter()
             pf.predict(u)
             t1 = time.perf_counter()
             pf.update(y)
             t2 = time.perf_counter()
+            filters[False].step(u, y)
+            t3 = time.perf_counter()
             t_step.append(t2 - t0)
             t_update.append(t2 - t1)
             t_predict.append(t1 - t0)
+            t_numpy.append(t3 - t2)
         ms = 1e3
         results.append(
             {
@@ -200,6 +430,7 @@ def time_particle_filter(
                 "update_ms_median": ms * float(np.median(t_update)),
                 "update_ms_p95": ms * p95(np.asarray(t_update)),
                 "predict_ms_median": ms * float(np.median(t_predict)),
+                "numpy_normals_step_ms_median": ms * float(np.median(t_numpy)),
             }
         )
     return {"n_steps": int(n_steps), "results": results}
@@ -266,9 +497,15 @@ def time_episode(
 
 
 __all__ = [
+    "DEFAULT_HORIZONS",
+    "DEFAULT_HORIZON_STEPS",
     "DEFAULT_PF_SIZES",
+    "HORIZON_MAX_TIME_S",
     "DEFAULT_SWEEP_NS",
     "DEFAULT_SWEEP_STEPS",
+    "first_solve",
+    "objective_agreement",
+    "sweep_horizons",
     "sweep_scenarios",
     "time_episode",
     "time_particle_filter",

@@ -16,6 +16,12 @@ default) and the event is recorded in :attr:`ParticleFilter.last_info` and
 log-likelihoods finite, however small) is not skipped: it is used, and typically
 collapses the weights onto the particles closest to it (``ess`` near 1).
 
+The transition's process noise is drawn through a :class:`BoxMullerGenerator` sharing
+the filter's bit generator: its large single-precision ``standard_normal`` draws use the
+Box-Muller transform on vectorised ``log``/``sin``/``cos`` (about 3x faster than NumPy's
+ziggurat for the 49000 normals of a 7000-particle step). The samples have the same
+standard normal distribution; only the random stream differs from NumPy's.
+
 Typical use at sample ``k``, where ``u_prev`` is the input applied since sample ``k-1``::
 
     pf.step(u_prev, y_k)          # predict(u_prev) then update(y_k)
@@ -30,6 +36,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers.estimators.resampling import RESAMPLERS
+
+# Draws with fewer values go to NumPy's ziggurat: Box-Muller's fixed costs do not pay off.
+BOX_MULLER_MIN_SIZE = 1024
+_TWO_PI32 = np.float32(2.0 * np.pi)
+_TWO_TO_MINUS_24 = np.float32(2.0**-24)
 
 Transition = Callable[[np.ndarray, object, np.random.Generator], np.ndarray]
 LogLikelihood = Callable[[object, np.ndarray], np.ndarray]
@@ -115,6 +126,53 @@ def gaussian_log_likelihood(
     return log_likelihood
 
 
+class BoxMullerGenerator(np.random.Generator):
+    """A :class:`numpy.random.Generator` whose large float32 normal draws use Box-Muller.
+
+    It shares the bit generator it is built on (drawing from it advances that stream).
+    ``standard_normal(size, dtype=np.float32)`` with at least :data:`BOX_MULLER_MIN_SIZE`
+    values (and no ``out``) is computed as ``sqrt(-2 log(1 - U1)) (cos, sin)(2 pi U2)`` from
+    float32 uniforms ``U1, U2 ~ U[0, 1)``: two normals per pair of uniforms, exactly the
+    standard normal distribution up to single-precision rounding, except that the radius of
+    a 24-bit uniform truncates ``|z|`` at ``sqrt(48 log 2) = 5.77`` (probability ``8e-9`` per
+    value). Every other draw is NumPy's own.
+    """
+
+    def standard_normal(self, size=None, dtype=np.float64, out=None):  # noqa: D102
+        if out is None and size is not None and np.dtype(dtype) == np.float32:
+            shape = (int(size),) if np.ndim(size) == 0 else tuple(int(s) for s in size)
+            m = int(np.prod(shape))
+            if m >= BOX_MULLER_MIN_SIZE:
+                return _box_muller32(self, m).reshape(shape)
+        return super().standard_normal(size, dtype=dtype, out=out)
+
+
+def _box_muller32(rng: np.random.Generator, m: int) -> np.ndarray:
+    """``m`` standard normal float32 values by the Box-Muller transform, in one new array."""
+    h = (m + 1) // 2
+    # 2h uniforms on [0, 1) with 24 bits each (as Generator.random(dtype=np.float32) makes
+    # them), from the two 32-bit halves of h raw 64-bit words: the bit generator's cheapest
+    # output, and most of this function's cost.
+    bits = rng.bit_generator.random_raw(h).view(np.uint32)
+    bits >>= 8
+    uniforms = bits.astype(np.float32)
+    uniforms *= _TWO_TO_MINUS_24
+    radius, angle = uniforms[:h], uniforms[h:]
+    # In place on the uniforms: radius = sqrt(-2 log(1 - U1)), angle = 2 pi U2.
+    np.negative(radius, out=radius)
+    np.log1p(radius, out=radius)
+    radius *= -2.0
+    np.sqrt(radius, out=radius)
+    angle *= _TWO_PI32
+    out = np.empty(m, dtype=np.float32)
+    np.cos(angle, out=out[:h])
+    out[:h] *= radius
+    rest = m - h
+    np.sin(angle[:rest], out=out[h:])
+    out[h:] *= radius[:rest]
+    return out
+
+
 class ParticleFilter:
     """Bootstrap particle filter over ``n`` particles of dimension ``d``.
 
@@ -132,6 +190,9 @@ class ParticleFilter:
         resampling: one of :data:`controllers.estimators.resampling.RESAMPLERS`' keys.
         ess_threshold: ``None`` resamples after every update (the paper's filter); a
             float in ``(0, 1]`` resamples only when ``ESS < ess_threshold * n``.
+        fast_normals: pass ``transition`` a :class:`BoxMullerGenerator` on ``rng``'s bit
+            generator (the default) instead of ``rng`` itself: the same distributions,
+            a different random stream, faster large float32 normal draws.
 
     Raises:
         ValueError: an argument is invalid; the message names it.
@@ -146,6 +207,7 @@ class ParticleFilter:
         rng: np.random.Generator,
         resampling: str = "systematic",
         ess_threshold: float | None = None,
+        fast_normals: bool = True,
     ) -> None:
         if not callable(transition):
             raise ValueError("transition: must be callable")
@@ -166,6 +228,7 @@ class ParticleFilter:
         self._transition = transition
         self._log_likelihood = log_likelihood
         self._rng = rng
+        self._fast_normals = bool(fast_normals)
         self._resampling = resampling
         self._resample = RESAMPLERS[resampling]
         self._ess_threshold = ess_threshold
@@ -208,7 +271,9 @@ class ParticleFilter:
             ValueError: ``transition`` returned a wrong shape.
             FloatingPointError: no particle with non-zero weight stayed finite.
         """
-        out = self._transition(self._particles, u, self._rng)
+        # Built per call (about 1 us) so that a pickled filter keeps sharing one stream.
+        rng = BoxMullerGenerator(self._rng.bit_generator) if self._fast_normals else self._rng
+        out = self._transition(self._particles, u, rng)
         # Row-major keeps the resampling gather fast (np.take on a column-major (n, d)
         # array is ~10x slower); this copies only if the transition returned otherwise.
         out = np.ascontiguousarray(out, dtype=float)
@@ -289,7 +354,6 @@ class ParticleFilter:
         # Before normalising: equal weights then give exactly n, not n +- round-off.
         ess = float(total * total / np.dot(w, w))
         w /= total
-        lw -= np.log(total)
 
         resample = self._ess_threshold is None or ess < self._ess_threshold * n
         if resample:
@@ -300,6 +364,7 @@ class ParticleFilter:
             self._uniform = True
             self._n_resampled += 1
         else:
+            lw -= np.log(total)
             self._log_weights = lw
             self._weights = w
             self._uniform = False

@@ -10,6 +10,8 @@
   (:mod:`controllers.solvers.fast_bicycle`; sine-track problems only);
 * ``"ipopt"``: IPOPT on the condensed NLP (inputs and slacks only);
 * ``"ipopt_multiple_shooting"``: IPOPT on the textbook multiple-shooting NLP (the reference);
+* ``"sqpmethod"``: CasADi's ``sqpmethod`` + qpOASES on the condensed NLP, JIT-compiled
+  (the compiled SQP anchor; building it runs the C compiler);
 * ``"csnlp"``: csnlp's ``ScenarioBasedMpc`` (multiple shooting; needs the ``bench`` extra).
 """
 
@@ -19,7 +21,7 @@ from typing import Any
 
 from controllers.problem import ScenarioProblem
 
-SOLVERS = ("fast", "fast_bicycle", "ipopt", "ipopt_multiple_shooting", "csnlp")
+SOLVERS = ("fast", "fast_bicycle", "ipopt", "ipopt_multiple_shooting", "sqpmethod", "csnlp")
 
 
 def make_solver(problem: ScenarioProblem, name: str = "fast", **options: Any):
@@ -30,8 +32,9 @@ def make_solver(problem: ScenarioProblem, name: str = "fast", **options: Any):
         name: one of :data:`SOLVERS`.
         **options: the solver's own settings: :class:`~controllers.solvers.fast.FastSolverOptions`
             fields for ``"fast"``; ``ipopt_options`` / ``warm_start_duals`` for the IPOPT
-            solvers; ``shooting`` / ``ipopt_options`` for ``"csnlp"``. ``max_iter`` is
-            understood by every solver (SQP or IPOPT iterations).
+            solvers; ``sqp_options`` / ``jit`` / ``warm_start_duals`` for ``"sqpmethod"``;
+            ``shooting`` / ``ipopt_options`` for ``"csnlp"``. ``max_iter`` is understood
+            by every solver (SQP or IPOPT iterations).
 
     Raises:
         ValueError: for an unknown name or option.
@@ -50,19 +53,23 @@ def make_solver(problem: ScenarioProblem, name: str = "fast", **options: Any):
         from controllers.solvers.csnlp import CsnlpScenarioSolver
 
         return CsnlpScenarioSolver(problem, **_ipopt_options(options))
+    if name == "sqpmethod":
+        from controllers.solvers.ipopt import SqpMethodScenarioSolver
+
+        return SqpMethodScenarioSolver(problem, **_ipopt_options(options, "sqp_options"))
     from controllers.solvers.ipopt import IpoptScenarioSolver
 
     formulation = "multiple_shooting" if name == "ipopt_multiple_shooting" else "condensed"
     return IpoptScenarioSolver(problem, formulation, **_ipopt_options(options))
 
 
-def _ipopt_options(options: dict[str, Any]) -> dict[str, Any]:
-    """``max_iter=`` folded into ``ipopt_options`` (the one option every solver takes)."""
+def _ipopt_options(options: dict[str, Any], key: str = "ipopt_options") -> dict[str, Any]:
+    """``max_iter=`` folded into ``options[key]`` (the one option every solver takes)."""
     options = dict(options)
     if "max_iter" in options:
-        ipopt = dict(options.get("ipopt_options") or {})
-        ipopt.setdefault("max_iter", options.pop("max_iter"))
-        options["ipopt_options"] = ipopt
+        inner = dict(options.get(key) or {})
+        inner.setdefault("max_iter", options.pop("max_iter"))
+        options[key] = inner
     return options
 
 

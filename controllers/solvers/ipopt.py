@@ -109,23 +109,24 @@ class _Symbols:
         return self.constraints(X) + ca.repmat(shift, 1, X.shape[1])
 
 
-def _symbols(problem: ScenarioProblem) -> _Symbols:
+def _symbols(problem: ScenarioProblem, kind: type = ca.SX) -> _Symbols:
     """Symbols of both formulations and the per-scenario functions mapped over ``Ns``.
 
     ``Function.map`` evaluates the one-scenario step, constraints and costs on all columns
     at once (the shared input column is broadcast), so building the NLP costs ``N`` Python
-    iterations, not ``N Ns``.
+    iterations, not ``N Ns``. With ``kind=ca.MX`` the mapped calls stay calls (a loop in
+    generated C code) instead of being expanded into ``Ns`` copies of every expression.
     """
     system, cost = problem.system, problem.cost
     n, ns = problem.horizon, problem.n_scenarios
     nx, nu, nw, ng = problem.nx, problem.nu, problem.nw, problem.ng
     x = ca.SX.sym("x", nx)
     return _Symbols(
-        U=ca.SX.sym("u", nu, n),
-        S=ca.SX.sym("s", ng, n) if ng else ca.SX(0, n),
-        X0=ca.SX.sym("x0", nx, ns),
-        W=ca.SX.sym("W", nw * n, ns),
-        B=ca.SX.sym("b", ng, n) if ng else ca.SX(0, n),
+        U=kind.sym("u", nu, n),
+        S=kind.sym("s", ng, n) if ng else kind(0, n),
+        X0=kind.sym("x0", nx, ns),
+        W=kind.sym("W", nw * n, ns),
+        B=kind.sym("b", ng, n) if ng else kind(0, n),
         step=system.casadi_step(problem.dt).map(ns),
         constraints=system.casadi_constraints().map(ns) if ng else None,
         state_cost=ca.Function("state_cost", [x], [cost.state_cost(x)]).map(ns),
@@ -142,10 +143,14 @@ def _objective(problem: ScenarioProblem, sym: _Symbols, state_costs: ca.SX) -> c
     return f
 
 
-def _build_condensed(problem: ScenarioProblem) -> _NLP:
-    """Single shooting: inputs and slacks are the only decision variables."""
+def _build_condensed(problem: ScenarioProblem, kind: type = ca.SX) -> _NLP:
+    """Single shooting: inputs and slacks are the only decision variables.
+
+    ``kind``: the symbols' type, ``ca.SX`` (expanded expressions, for IPOPT) or ``ca.MX``
+    (mapped per-scenario calls kept, compact when compiled).
+    """
     n, ns, nu, ng = problem.horizon, problem.n_scenarios, problem.nu, problem.ng
-    sym = _symbols(problem)
+    sym = _symbols(problem, kind)
 
     # --- dynamics ---
     X = sym.X0
@@ -164,7 +169,7 @@ def _build_condensed(problem: ScenarioProblem) -> _NLP:
         "x": ca.vertcat(ca.vec(sym.U), ca.vec(sym.S)),
         "p": ca.vertcat(ca.vec(sym.X0), ca.vec(sym.W), ca.vec(sym.B)),
         "f": _objective(problem, sym, costs),
-        "g": ca.vertcat(*g) if g else ca.SX(0, 1),
+        "g": ca.vertcat(*g) if g else kind(0, 1),
     }
     lbx, ubx = _input_and_slack_bounds(problem)
     n_g = n * ns * ng
@@ -472,6 +477,100 @@ class IpoptScenarioSolver:
                 "slacks": z[nu * n : (nu + ng) * n].reshape(n, ng).copy(),
             },
         )
+
+
+# CasADi's sqpmethod with qpOASES: the compiled SQP anchor of the benchmark.
+DEFAULT_SQP_OPTIONS: dict[str, Any] = {
+    "qpsol": "qpoases",
+    "qpsol_options": {"printLevel": "none", "error_on_fail": False},
+    "max_iter": 100,
+    "tol_pr": 1e-8,
+    "tol_du": 1e-8,
+    "print_header": False,
+    "print_iteration": False,
+    "print_status": False,
+}
+# JIT: CasADi writes the NLP's functions (objective, constraints, their derivatives and the
+# Lagrangian's Hessian) as C and compiles them with the system's compiler.
+JIT_OPTIONS: dict[str, Any] = {
+    "jit": True,
+    "compiler": "shell",
+    "jit_options": {"flags": ["-O2"], "verbose": False},
+}
+WALL_TIME_STATUS = "Maximum_WallTime_Exceeded"
+
+
+class SqpMethodScenarioSolver(IpoptScenarioSolver):
+    """CasADi's ``sqpmethod`` + qpOASES on the condensed NLP, JIT-compiled: the SQP anchor.
+
+    The NLP is the condensed one of :class:`IpoptScenarioSolver` (built by the same
+    function), solved by CasADi's exact-Hessian SQP with qpOASES for the QPs, the
+    generated derivatives compiled to C (:data:`JIT_OPTIONS`; needs a C compiler, and the
+    build then takes seconds to minutes). Warm starts as for IPOPT: the previous plan
+    shifted, and its multipliers when it succeeded without slack; a failed warm-started
+    solve is retried once without multipliers.
+
+    Args:
+        problem: the scenario problem.
+        sqp_options: ``sqpmethod`` options merged over :data:`DEFAULT_SQP_OPTIONS`.
+        jit: compile the NLP's functions (default); False evaluates them in CasADi's
+            virtual machine.
+        warm_start_duals: pass the previous multipliers.
+        max_time: wall-clock limit of one solve [s], ``None`` for none. ``sqpmethod`` has no
+            time limit of its own, so it is judged after the solve: a solve that took longer
+            fails with status ``Maximum_WallTime_Exceeded`` (its plan came too late).
+    """
+
+    def __init__(
+        self,
+        problem: ScenarioProblem,
+        sqp_options: dict[str, Any] | None = None,
+        jit: bool = True,
+        warm_start_duals: bool = True,
+        max_time: float | None = None,
+    ) -> None:
+        # Not IpoptScenarioSolver.__init__: one sqpmethod instance serves cold and warm
+        # solves (multipliers are inputs of the call); solve() is inherited.
+        self.problem = problem
+        self.formulation = "condensed"
+        self.warm_start_duals = warm_start_duals
+        self.max_time = None if max_time is None else check_max_time(max_time)
+        self.jit = bool(jit)
+        self.ipopt_options = {**DEFAULT_SQP_OPTIONS, **(sqp_options or {})}  # read by solve()
+        t0 = time.perf_counter()
+        # MX symbols: the compiled code loops over the scenarios instead of spelling out
+        # every scenario's derivatives (the SX form took gcc minutes and gigabytes).
+        self._nlp = _build_condensed(problem, ca.MX)
+        self._cold = self._make_solver("sqp", self.ipopt_options)
+        self._warm = self._cold if warm_start_duals else None
+        self.build_time = time.perf_counter() - t0  # [s], including the compilation
+        self._prev = None
+
+    def _make_solver(self, name: str, options: dict[str, Any]) -> ca.Function:
+        opts = {**options, "print_time": False, "error_on_fail": False}
+        if self.jit:
+            opts.update(JIT_OPTIONS)
+        return ca.nlpsol(f"scenario_mpc_sqpmethod_{name}", "sqpmethod", self._nlp.nlp, opts)
+
+    def solve(
+        self,
+        x0: np.ndarray,
+        W: np.ndarray,
+        u_guess: np.ndarray | None = None,
+        backoff: np.ndarray | None = None,
+    ) -> MPCSolution:
+        """Solve as :meth:`IpoptScenarioSolver.solve` does, with ``sqpmethod``.
+
+        ``extra["method"]`` is ``"sqpmethod"``; a solve longer than ``max_time`` fails with
+        status ``Maximum_WallTime_Exceeded``.
+        """
+        sol = super().solve(x0, W, u_guess=u_guess, backoff=backoff)
+        sol.extra["method"] = "sqpmethod"
+        if self.max_time is not None and sol.solve_time > self.max_time:
+            sol.extra["sqpmethod_status"] = sol.status
+            sol.status, sol.success = WALL_TIME_STATUS, False
+            self._prev = {**self._prev, "lam_x": None, "lam_g": None}
+        return sol
 
 
 def check_max_time(max_time: Any) -> float:

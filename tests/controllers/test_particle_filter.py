@@ -9,6 +9,8 @@ import pytest
 from scipy.stats import norm
 
 from controllers.estimators.particle_filter import (
+    BOX_MULLER_MIN_SIZE,
+    BoxMullerGenerator,
     ParticleFilter,
     UpdateInfo,
     gaussian_log_likelihood,
@@ -39,6 +41,13 @@ def _linear_transition(particles: np.ndarray, u: object, rng: np.random.Generato
     return particles @ A.T + rng.standard_normal(particles.shape) @ chol.T
 
 
+def _linear_transition32(particles: np.ndarray, u: object, rng: np.random.Generator) -> np.ndarray:
+    """The same model with single-precision noise (the filter's Box-Muller path)."""
+    chol = np.linalg.cholesky(Q)
+    noise = rng.standard_normal(particles.shape[::-1], dtype=np.float32)
+    return particles @ A.T + (chol @ noise).T
+
+
 def _simulate_measurements(seed: int, steps: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     x = M0 + np.linalg.cholesky(P0) @ rng.standard_normal(2)
@@ -67,12 +76,16 @@ def _kalman(ys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _make_linear_pf(
-    n: int, seed: int, resampling: str = "systematic", ess_threshold: float | None = None
+    n: int,
+    seed: int,
+    resampling: str = "systematic",
+    ess_threshold: float | None = None,
+    transition=_linear_transition,
 ) -> ParticleFilter:
     rng = np.random.default_rng(seed)
     p0 = M0 + rng.standard_normal((n, 2)) @ np.linalg.cholesky(P0).T
     return ParticleFilter(
-        _linear_transition,
+        transition,
         gaussian_log_likelihood([R_STD], [0]),
         p0,
         rng,
@@ -93,19 +106,20 @@ def _flat(y: object, particles: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize(
-    ("resampling", "ess_threshold"),
+    ("resampling", "ess_threshold", "transition"),
     [
-        ("systematic", None),
-        ("stratified", None),
-        ("residual", 0.5),
-        ("multinomial", None),
+        ("systematic", None, _linear_transition),
+        ("stratified", None, _linear_transition),
+        ("residual", 0.5, _linear_transition),
+        ("multinomial", None, _linear_transition),
+        ("systematic", None, _linear_transition32),  # float32 noise: Box-Muller normals
     ],
 )
-def test_matches_kalman_filter_on_linear_gaussian_model(resampling, ess_threshold):
+def test_matches_kalman_filter_on_linear_gaussian_model(resampling, ess_threshold, transition):
     n, steps = 20000, 30
     ys = _simulate_measurements(seed=0, steps=steps)
     kf_means, kf_covs = _kalman(ys)
-    pf = _make_linear_pf(n, seed=1, resampling=resampling, ess_threshold=ess_threshold)
+    pf = _make_linear_pf(n, 1, resampling, ess_threshold, transition)
 
     min_ess = float(n)
     for k, y in enumerate(ys):
@@ -122,6 +136,65 @@ def test_matches_kalman_filter_on_linear_gaussian_model(resampling, ess_threshol
         np.testing.assert_allclose(pf.std, np.sqrt(np.diag(pf.covariance)))
     # Guard against a vacuous tolerance: the filter stayed reasonably healthy.
     assert min_ess > 0.05 * n
+
+
+# ------------------------------------------------------------------ noise draws
+
+
+def test_box_muller_normals_are_standard_normal():
+    from scipy import stats
+
+    g = BoxMullerGenerator(np.random.PCG64(3))
+    z = g.standard_normal((7, 30001), dtype=np.float32)  # an odd count: one unused sine
+    assert z.shape == (7, 30001) and z.dtype == np.float32
+    flat = z.ravel().astype(float)
+    assert np.all(np.isfinite(flat))
+    assert stats.kstest(flat, "norm").pvalue > 1e-3
+    # Moments within ~5 standard errors of the normal's (210007 values).
+    se = 1.0 / np.sqrt(flat.size)
+    assert abs(flat.mean()) < 5 * se
+    assert abs(flat.var() - 1.0) < 5 * np.sqrt(2.0) * se
+    assert abs(stats.kurtosis(flat)) < 5 * np.sqrt(24.0) * se
+    # Pairs from one uniform pair are uncorrelated (cos and sin halves).
+    half = flat.size // 2
+    assert abs(np.corrcoef(flat[:half], flat[half : 2 * half])[0, 1]) < 5 * np.sqrt(2) * se
+
+
+def test_box_muller_generator_shares_the_stream_and_defers_small_draws():
+    plain = np.random.default_rng(11)
+    same = np.random.default_rng(11)
+    g = BoxMullerGenerator(same.bit_generator)
+    # Small or double-precision draws are NumPy's own, from the shared stream.
+    np.testing.assert_array_equal(g.standard_normal(5), plain.standard_normal(5))
+    np.testing.assert_array_equal(
+        g.standard_normal(BOX_MULLER_MIN_SIZE - 1, dtype=np.float32),
+        plain.standard_normal(BOX_MULLER_MIN_SIZE - 1, dtype=np.float32),
+    )
+    np.testing.assert_array_equal(g.standard_normal((3, 2000)), plain.standard_normal((3, 2000)))
+    # A large float32 draw uses the transform and advances the shared bit generator.
+    before = same.bit_generator.state["state"]["state"]
+    a = g.standard_normal(4000, dtype=np.float32)
+    assert same.bit_generator.state["state"]["state"] != before
+    b = BoxMullerGenerator(np.random.default_rng(11).bit_generator)
+    b.standard_normal(5), b.standard_normal(BOX_MULLER_MIN_SIZE - 1, dtype=np.float32)
+    b.standard_normal((3, 2000))
+    np.testing.assert_array_equal(b.standard_normal(4000, dtype=np.float32), a)
+
+
+def test_filter_passes_the_transition_a_box_muller_generator_on_its_stream():
+    seen = []
+
+    def transition(particles, u, rng):
+        seen.append(rng)
+        return particles
+
+    rng = np.random.default_rng(0)
+    for fast in (True, False):
+        pf = ParticleFilter(transition, _flat, np.zeros((10, 2)), rng, fast_normals=fast)
+        pf.predict(None)
+    assert isinstance(seen[0], BoxMullerGenerator)
+    assert seen[0].bit_generator is rng.bit_generator
+    assert seen[1] is rng
 
 
 # ------------------------------------------------------------------ resamplers

@@ -14,10 +14,26 @@ import numpy as np
 import pytest
 
 from controllers.solvers import SOLVERS, make_solver
-from experiments import bench_problems, bench_report, bench_solvers, benchmark
+from experiments import (
+    bench_problems,
+    bench_report,
+    bench_solvers,
+    bench_suites,
+    bench_targets,
+    benchmark,
+)
 
 TIMING_KEYS = ("solve_ms_median", "solve_ms_p95", "solve_ms_max", "wall_ms_median")
-QUICK_SOLVERS = ("fast", "fast_bicycle", "ipopt")  # the textbook and csnlp are slow
+# The textbook and csnlp are slow; sqpmethod (the anchor) is in, JIT compilation included.
+QUICK_SOLVERS = ("fast", "fast_bicycle", "ipopt", "sqpmethod")
+# A threshold no run can meet: the quick run must still exit 0 (no --check) and say FAIL.
+IMPOSSIBLE = "fast_median_ms=1e-9"
+# Thresholds every measured figure meets: with --check such a run exits 0.
+LOOSE = [
+    f"{key}={-1e9 if key.endswith(('_over_fast', '_share_pct')) else 1e9}"
+    for key in bench_targets.DEFAULT_THRESHOLDS
+    if key != "worse_share_pct"
+] + ["worse_share_pct=100"]
 
 
 def _finite(x: object) -> bool:
@@ -27,9 +43,10 @@ def _finite(x: object) -> bool:
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, str]:
     out = tmp_path_factory.mktemp("bench") / "b.json"
-    skips = [a for s in SOLVERS if s not in QUICK_SOLVERS for a in ("--skip", s)]
-    code = benchmark.main(["--quick", "--out", str(out), "--no-progress", *skips])
-    assert code == 0
+    solvers = ",".join(QUICK_SOLVERS)
+    argv = ["--quick", "--out", str(out), "--no-progress", "--solvers", solvers]
+    code = benchmark.main([*argv, "--threshold", IMPOSSIBLE])
+    assert code == 0  # a failing target without --check: exit 0, the verdict in the report
     return json.loads(out.read_text()), str(out)
 
 
@@ -38,7 +55,17 @@ def quick_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, str]:
 
 def test_quick_run_writes_complete_json(quick_run: tuple[dict, str]) -> None:
     data, _ = quick_run
-    for key in ("meta", "closed_loop", "sweep", "particle_filter", "episode", "targets"):
+    for key in (
+        "meta",
+        "closed_loop",
+        "horizons",
+        "sweep",
+        "first_solve",
+        "particle_filter",
+        "episode",
+        "failures",
+        "targets",
+    ):
         assert key in data
     closed = data["closed_loop"]
     assert set(closed["solvers"]) == set(QUICK_SOLVERS)
@@ -64,6 +91,9 @@ def test_quick_run_writes_complete_json(quick_run: tuple[dict, str]) -> None:
     for name in closed["summary"]:
         assert closed["summary"][name]["n_cold"] == n_loops
         assert _finite(closed["summary"][name]["cold_solve_ms_max"])
+    # The anchor: compiled at build, its solves timed like the others'.
+    assert closed["solvers"]["sqpmethod"]["build_time_s"] > 0
+    assert _finite(closed["speedup"]["sqpmethod"]["median_ratio"])
     # The fast solvers' closed loop again, alone: same problems, the same plans.
     assert set(closed["alone"]) == {"fast", "fast_bicycle"}
     for alone in closed["alone"].values():
@@ -80,30 +110,149 @@ def test_quick_run_writes_complete_json(quick_run: tuple[dict, str]) -> None:
     for row in data["particle_filter"]["results"]:
         assert _finite(row["step_ms_median"]) and _finite(row["update_ms_median"])
         assert row["step_ms_median"] >= row["update_ms_median"] > 0
+        assert _finite(row["numpy_normals_step_ms_median"])
     episode = data["episode"]
     assert episode["steps"] > 0 and _finite(episode["episode_s"])
+    first = data["first_solve"]["results"]
+    assert len(first) == 2
+    for row in first:
+        assert row["build_s"] > 0 and row["first_solve_ms"] > 0 and row["success"]
+        assert row["backend"]
+
+
+def test_quick_run_sweeps_the_horizons(quick_run: tuple[dict, str]) -> None:
+    data, _ = quick_run
+    rows = {row["horizon"]: row for row in data["horizons"]["results"]}
+    assert sorted(rows) == [7, 15, 30]
+    # N = 7 is the main comparison's problems, the others recorded at their own horizon.
+    assert rows[7]["source"] == "closed_loop"
+    assert rows[7]["n_problems"] == data["closed_loop"]["n_problems"]
+    for n in (15, 30):
+        assert rows[n]["source"] == "recorded"
+        assert rows[n]["n_problems"] == 2  # quick: 2 steps of seed 0
+    for row in rows.values():
+        assert row["n_scenarios"] == 150
+        for name in ("fast", "ipopt"):
+            s = row["summary"][name]
+            assert s["n_problems"] == row["n_problems"]
+            assert _finite(s["solve_ms_median"]) and s["solve_ms_median"] > 0
+        agreement = row["agreement"]
+        ok = row["summary"]["ipopt"]["n_success"]
+        assert agreement["n_compared"] == ok == len(agreement["gaps"])
+        gaps = [g["rel_gap"] for g in agreement["gaps"]]
+        within = sum(g is not None and g <= bench_solvers.GAP_TOL for g in gaps)
+        assert agreement["n_within"] == within
+        if ok:
+            assert agreement["share_within_pct"] == pytest.approx(100.0 * within / ok)
+
+
+def test_every_failed_solve_is_listed_with_its_problem(quick_run: tuple[dict, str]) -> None:
+    data, _ = quick_run
+    failures = data["failures"]
+    for f in failures:
+        assert set(f) == {"part", "solver", "seed", "step", "N", "Ns", "kind", "status"}
+        assert f["kind"] == bench_solvers.classify_failure(f["status"])
+    # The list matches the success counts of every part, solver by solver.
+    closed = data["closed_loop"]
+    for name, s in closed["summary"].items():
+        listed = [f for f in failures if f["part"] == "closed_loop" and f["solver"] == name]
+        assert len(listed) == s["n_problems"] - s["n_success"]
+        assert all(f["N"] == 7 and f["Ns"] == 150 for f in listed)
+    for row in data["horizons"]["results"]:
+        if row["source"] == "recorded":
+            for name, s in row["summary"].items():
+                listed = [
+                    f
+                    for f in failures
+                    if f["part"] == "horizon_sweep"
+                    and f["solver"] == name
+                    and f["N"] == row["horizon"]
+                ]
+                assert len(listed) == s["n_problems"] - s["n_success"]
+    for row in data["sweep"]["results"]:
+        for name, s in row["summary"].items():
+            listed = [
+                f
+                for f in failures
+                if f["part"] == "ns_sweep" and f["solver"] == name and f["Ns"] == row["n_scenarios"]
+            ]
+            assert len(listed) == s["n_problems"] - s["n_success"]
+    report = benchmark.format_report(data)
+    assert "Failed solves: " in report
+    for f in failures:
+        assert f"{f['part']:<20}{f['solver']:<25}{f['seed']:>5}{f['step']:>6}" in report
 
 
 def test_targets_of_the_run_follow_from_its_figures(quick_run: tuple[dict, str]) -> None:
     data, _ = quick_run
     targets = data["targets"]
-    assert len(targets) >= 11
+    keys = [t["key"] for t in targets]
+    assert len(keys) == len(set(keys))  # one target per key
+    assert {t["key"] for t in targets} == set(bench_targets.DEFAULT_THRESHOLDS)
     for t in targets:
         assert t["passed"] in (True, False, None)
+        assert t["threshold"] == data["meta"]["thresholds"][t["key"]]
         if t["passed"] is not None:
             op = {"<=": np.less_equal, ">=": np.greater_equal, ">": np.greater}[t["op"]]
             assert bool(op(t["value"], t["threshold"])) == t["passed"], t["target"]
-    # The generic / hand-written ratio is the run's two medians.
+    by_key = {t["key"]: t for t in targets}
     summary = data["closed_loop"]["summary"]
-    generic = next(t for t in targets if t["target"].startswith("generic fast / fast_bicycle"))
-    ratio = summary["fast"]["solve_ms_median"] / summary["fast_bicycle"]["solve_ms_median"]
-    assert generic["value"] == pytest.approx(ratio)
-    # The textbook and csnlp were skipped, and the quick sweep has no Ns = 1000.
-    skipped = [t["target"] for t in targets if t["passed"] is None]
-    assert any(t.startswith("textbook") for t in skipped)
-    assert any(t.startswith("problems where fast ends") for t in skipped)
-    assert any("csnlp" in t for t in skipped)
-    assert any("1000" in t for t in skipped)
+    # The impossible threshold given on the command line: the measured median, FAIL.
+    assert by_key["fast_median_ms"]["threshold"] == 1e-9
+    assert by_key["fast_median_ms"]["value"] == summary["fast"]["solve_ms_median"]
+    assert by_key["fast_median_ms"]["passed"] is False
+    anchor = summary["sqpmethod"]["solve_ms_median"] / summary["fast"]["solve_ms_median"]
+    assert by_key["anchor_over_fast"]["value"] == pytest.approx(anchor)
+    rows = {r["horizon"]: r for r in data["horizons"]["results"]}
+    assert by_key["horizon_30_median_ms"]["value"] == rows[30]["summary"]["fast"]["solve_ms_median"]
+    fast_failed = [
+        f
+        for f in data["failures"]
+        if f["solver"] == "fast"
+        and f["part"] in ("closed_loop", "closed_loop_alone", "horizon_sweep")
+    ]
+    assert by_key["fast_failures"]["value"] == len(fast_failed)
+    qp = [
+        f for f in data["failures"] if f["kind"] == "QP_Failed" and f["solver"].startswith("fast")
+    ]
+    assert by_key["qp_failed"]["value"] == len(qp)
+    pf = next(r for r in data["particle_filter"]["results"] if r["n_particles"] == 7000)
+    assert by_key["pf_step_ms"]["value"] == pf["step_ms_median"]
+    # The textbook and csnlp were skipped, and the quick sweep has no Ns = 5000.
+    skipped = {t["key"] for t in targets if t["passed"] is None}
+    assert {"textbook_over_fast", "worse_share_pct", "csnlp_over_fast"} <= skipped
+    assert "large_ns_median_ms" in skipped
+
+
+def test_check_exits_1_when_a_target_fails_and_0_when_all_pass(tmp_path) -> None:
+    """--check on a small real run: an impossible threshold fails it, loose ones pass."""
+    small = ["--quick", "--solvers", "fast", "--horizons", "7", "--max-steps", "2"]
+    small += ["--no-progress", "--out", str(tmp_path / "c.json")]
+    assert benchmark.main([*small, "--check", "--threshold", IMPOSSIBLE]) == 1
+    data = json.loads((tmp_path / "c.json").read_text())
+    assert "fast_median_ms" in [t["key"] for t in data["targets"] if t["passed"] is False]
+    loose = [a for kv in LOOSE for a in ("--threshold", kv)]
+    assert benchmark.main([*small, "--check", *loose]) == 0
+    data = json.loads((tmp_path / "c.json").read_text())
+    assert not [t for t in data["targets"] if t["passed"] is False]
+    assert any(t["passed"] for t in data["targets"])
+
+
+@pytest.mark.parametrize(
+    ("argv", "match"),
+    [
+        (["--threshold", "no_such_key=1"], "no_such_key"),
+        (["--threshold", "pf_step_ms=fast"], "pf_step_ms"),
+        (["--threshold", "pf_step_ms"], "KEY=VALUE"),
+        (["--horizons", "7,0"], "horizons"),
+        (["--solvers", "fast,gurobi"], "gurobi"),
+    ],
+)
+def test_bad_options_name_the_field(argv: list[str], match: str, capsys) -> None:
+    with pytest.raises(SystemExit) as exc:
+        benchmark.main([*argv, "--no-progress"])
+    assert exc.value.code == 2
+    assert match in capsys.readouterr().err
 
 
 def test_json_is_strict_and_the_markdown_has_the_speed_table(quick_run) -> None:
@@ -139,31 +288,101 @@ def _verdicts(targets: list[dict]) -> list[bool | None]:
 
 def test_speed_targets_are_judged_from_the_given_figures() -> None:
     worse = [{"seed": 1, "step": 7, "rel_gap": 3e-4}]
-    # generic 1.2x hand-written, textbook 40x fast, 30 ms at Ns=1000, 1 of 50 problems (2%).
-    targets = bench_report.speed_targets(6.0, 5.0, 240.0, 30.0, worse, 50)
-    assert [t["value"] for t in targets] == pytest.approx([1.2, 40.0, 30.0, 2.0])
-    assert _verdicts(targets) == [True, True, True, True]
-    assert "seed 1 step 7 (+3.0e-04)" in targets[3]["note"]
+    # fast 1.2 ms (p95 4), sqpmethod 15x, textbook 400x, generic 1.2x, 1 of 50 problems (2%).
+    medians = {"fast": 1.2, "sqpmethod": 18.0, "ipopt_multiple_shooting": 480.0}
+    medians["fast_bicycle"] = 1.0
+    targets = bench_report.speed_targets(medians, 4.0, worse, 50)
+    assert [t["key"] for t in targets] == [
+        "fast_median_ms",
+        "fast_p95_ms",
+        "anchor_over_fast",
+        "textbook_over_fast",
+        "generic_over_hand",
+        "worse_share_pct",
+    ]
+    assert [t["value"] for t in targets] == pytest.approx([1.2, 4.0, 15.0, 400.0, 1.2, 2.0])
+    assert _verdicts(targets) == [True] * 6
+    assert "seed 1 step 7 (+3.0e-04)" in targets[5]["note"]
     # The limits themselves pass; just past them fails.
-    at_limits = bench_report.speed_targets(7.5, 5.0, 225.0, 50.0, [], 10)
-    assert _verdicts(at_limits) == [True, True, True, True]
-    failing = bench_report.speed_targets(8.0, 5.0, 200.0, 50.5, worse * 2, 50)
-    assert _verdicts(failing) == [False, False, False, False]
-    assert [t["value"] for t in failing] == pytest.approx([1.6, 25.0, 50.5, 4.0])
+    at_limits = {"fast": 1.5, "sqpmethod": 15.0, "ipopt_multiple_shooting": 450.0}
+    at_limits["fast_bicycle"] = 1.0
+    assert _verdicts(bench_report.speed_targets(at_limits, 5.0, [], 10)) == [True] * 6
+    past = {"fast": 1.6, "sqpmethod": 15.9, "ipopt_multiple_shooting": 479.0}
+    past["fast_bicycle"] = 1.0
+    failing = bench_report.speed_targets(past, 5.1, worse * 2, 50)
+    assert _verdicts(failing) == [False] * 6
+    # Other thresholds, by key.
+    relaxed = bench_report.speed_targets(past, 5.1, worse * 2, 50, {"fast_median_ms": 2.0})
+    assert _verdicts(relaxed)[0] is True and relaxed[0]["threshold"] == 2.0
 
 
 def test_speed_targets_skip_what_was_not_measured() -> None:
-    targets = bench_report.speed_targets(6.0, None, math.nan, None, None, None)
-    assert _verdicts(targets) == [None, None, None, None]
-    assert "not run" in targets[3]["note"]
+    targets = bench_report.speed_targets({"fast": 6.0, "sqpmethod": math.nan}, None, None, None)
+    assert _verdicts(targets) == [False, None, None, None, None, None]
+    assert "not run" in targets[5]["note"]
     # No problem compared: no share, even with an empty list.
-    assert bench_report.speed_targets(6.0, 5.0, 240.0, 30.0, [], 0)[3]["passed"] is None
+    assert bench_report.speed_targets({"fast": 1.0}, 1.0, [], 0)[5]["passed"] is None
+
+
+def test_thresholds_are_checked_by_key() -> None:
+    th = bench_targets.check_thresholds({"pf_step_ms": "0.5"})
+    assert th["pf_step_ms"] == 0.5 and th["fast_median_ms"] == 1.5
+    with pytest.raises(ValueError, match="'pf_step'"):
+        bench_targets.check_thresholds({"pf_step": 1.0})
+    with pytest.raises(ValueError, match="pf_step_ms"):
+        bench_targets.check_thresholds({"pf_step_ms": math.inf})
+
+
+def test_failures_are_classified_by_kind() -> None:
+    kinds = {
+        "QP_Failed": "QP_Failed",
+        "Maximum_Iterations_Exceeded": "Maximum_Iterations_Exceeded",
+        "Maximum_WallTime_Exceeded": "wall_time",
+        "Infeasible_Problem_Detected": "infeasible",
+        "raised RuntimeError: boom": "exception",
+        "Line_Search_Failed": "other",
+    }
+    for status, kind in kinds.items():
+        assert bench_solvers.classify_failure(status) == kind
+    records = {
+        "a": [
+            {"seed": 2, "step": 0, "success": True, "status": "Solve_Succeeded"},
+            {"seed": 2, "step": 1, "success": False, "status": "QP_Failed"},
+        ]
+    }
+    assert bench_solvers.failures_of(records, "part", 15, 150) == [
+        {
+            "part": "part",
+            "solver": "a",
+            "seed": 2,
+            "step": 1,
+            "N": 15,
+            "Ns": 150,
+            "kind": "QP_Failed",
+            "status": "QP_Failed",
+        }
+    ]
+
+
+def test_objective_agreement_counts_problems_within_the_tolerance() -> None:
+    def rec(step: int, objective: float, success: bool = True) -> dict:
+        return {"seed": 0, "step": step, "objective": objective, "success": success}
+
+    reference = [rec(0, 100.0), rec(1, 100.0), rec(2, 100.0), rec(3, 100.0, success=False)]
+    records = [rec(0, 100.005), rec(1, 90.0), rec(2, 100.0, success=False), rec(3, 50.0)]
+    out = bench_suites.objective_agreement(records, reference)
+    # within: 5e-5 above, and 10% lower (at least as good); a failed solve never is; the
+    # problem the reference did not solve is not compared.
+    assert (out["n_compared"], out["n_within"], out["n_within_abs"]) == (3, 2, 1)
+    assert out["share_within_pct"] == pytest.approx(200.0 / 3.0)
+    assert [g["step"] for g in out["gaps"]] == [0, 1, 2]
+    assert math.isnan(out["gaps"][2]["rel_gap"])
 
 
 def test_target_rejects_an_unknown_comparison() -> None:
-    assert bench_report.target("x", 1.0, 1.0, ">")["passed"] is False
+    assert bench_targets.target("x", 1.0, 1.0, ">")["passed"] is False
     with pytest.raises(ValueError, match="op="):
-        bench_report.target("x", 1.0, 1.0, "<")
+        bench_targets.target("x", 1.0, 1.0, "<")
 
 
 def test_worse_problems_lists_gaps_above_the_tolerance_and_crashes() -> None:
@@ -201,6 +420,7 @@ def test_only_the_registry_names_are_accepted(name: str) -> None:
         bench_solvers.time_solvers([], [name], problem=problem)
     with pytest.raises(SystemExit):
         benchmark.build_parser().parse_args(["--skip", name])
+    assert name not in SOLVERS
 
 
 def test_an_unavailable_solver_is_reported_with_its_reason() -> None:
