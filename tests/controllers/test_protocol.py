@@ -157,5 +157,8 @@ def test_every_agent_with_an_estimator_refuses_zero_measurement_noise():
     for name in needing:
         with pytest.raises(ValueError, match=rf"env\.measurement_noise_std=.*all > 0.*'{name}'"):
             check_agent_config(name, config)
-    for name in sorted(set(AGENTS) - set(needing)):
+    for name in sorted(set(AGENTS) - set(needing) - {"rl"}):
         check_agent_config(name, config)  # nominal and oracle read no noise
+    # rl reads no noise either; it stops only at its missing policy (agents.rl_policy).
+    with pytest.raises(ValueError, match=r"agents\.rl_policy"):
+        check_agent_config("rl", config)
