@@ -83,6 +83,8 @@ QUICK = {
     "seeds": "0",
     "max_steps": 3,
     "horizon_steps": 2,
+    # [s] per solve at N = 15, 30: a smoke run, not a verdict (failed solves are listed)
+    "horizon_max_time": 2.0,
     "sweep_ns": (10, 50),
     "sweep_steps_per_seed": 3,
     "pf_sizes": (1000, 7000),
@@ -125,6 +127,7 @@ def run_benchmark(
     solvers: Sequence[str] = DEFAULT_SOLVERS,
     horizons: Sequence[int] = DEFAULT_HORIZONS,
     horizon_steps: dict[int, int] | int | None = None,
+    horizon_max_time: dict[str, float] | float | None = None,
     sweep_ns: Sequence[int] = DEFAULT_SWEEP_NS,
     sweep_steps_per_seed: int | None = DEFAULT_SWEEP_STEPS,
     pf_sizes: Sequence[int] = DEFAULT_PF_SIZES,
@@ -143,6 +146,9 @@ def run_benchmark(
         horizons: horizons ``N`` of the horizon sweep (empty: none).
         horizon_steps: problems per seed at each horizon (an int, or a dict by ``N``;
             default :data:`experiments.bench_suites.DEFAULT_HORIZON_STEPS`).
+        horizon_max_time: wall-clock limit of one solve in the horizon sweep [s], one for
+            both solvers or a dict by name (default
+            :data:`experiments.bench_suites.HORIZON_MAX_TIME_S`).
         sweep_ns: scenario counts of the sweep (empty: no sweep).
         sweep_steps_per_seed: anchors per seed in the sweep.
         pf_sizes: particle-filter sizes (empty: no filter timing).
@@ -201,6 +207,7 @@ def run_benchmark(
             seeds=seeds,
             steps_per_seed=horizon_steps,
             closed_loop=results["closed_loop"],
+            max_time=horizon_max_time,
             progress=progress,
         )
     if sweep_ns:
