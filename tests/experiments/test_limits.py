@@ -35,6 +35,10 @@ def run_python(code: str, timeout: float = 60.0, memory: int | None = None, **kw
     """Run ``code`` in a fresh interpreter (optionally under an address-space limit)."""
 
     def limit() -> None:
+        # As in a terminal: a suite started in the background (nohup ... &) ignores SIGINT,
+        # and an ignored SIGINT is inherited, so Python would not turn Ctrl-C into
+        # KeyboardInterrupt in the child.
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
         if memory is not None:
             resource.setrlimit(resource.RLIMIT_AS, (memory, memory))
 

@@ -64,6 +64,9 @@ def start_evaluate(args: list[str], cwd: Path) -> subprocess.Popen:
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
+        # A suite started in the background (nohup ... &) ignores SIGINT, and its children
+        # would inherit that: start the run with SIGINT as a terminal's job has it.
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
 
 
