@@ -27,8 +27,8 @@ the problem. Everything it knows about the system comes from the system definiti
   linearisation of *every* scenario row is checked at the QP step; violated rows are added
   and the QP re-solved, so the accepted step is exactly the step of the full QP.
 * **Exact penalty inside the QP.** One slack per (constraint, step), shared by its rows,
-  as in the NLP; a dense QP in fixed slots (:class:`~controllers.solvers.slot_qp.SlotQP`)
-  solved by qpOASES with hot starts.
+  as in the NLP; a dense QP whose rows keep their slots while they stay in it
+  (:class:`~controllers.solvers.slot_qp.SlotQP`), solved by qpOASES with hot starts.
 * **Globalisation.** Backtracking Armijo line search on the exact-penalty merit, with a
   second-order correction against the Maratos effect and Levenberg-Marquardt damping
   after heavy backtracking.
@@ -76,7 +76,7 @@ class FastSolverOptions:
     step_tol: float = 1e-8  # [m/s^2, rad] input step that counts as converged
     final_step_tol: float = 1e-6  # [m/s^2, rad] predicted next step that counts as converged
     screen_margin: float = 0.5  # [m] rows within this of activity enter the QP at once
-    screen_rows: int = 4  # QP row slots per (constraint, step); grows when needed
+    screen_rows: int = 4  # scenario rows per (constraint, step) screened or added per round
     add_tol: float = 1e-9  # [m] linearised violation of a missing row that adds it
     max_qp_rounds: int = 20  # check-and-add rounds per SQP iteration
     armijo: float = 1e-4  # sufficient-decrease fraction of the predicted decrease
@@ -441,25 +441,23 @@ class FastScenarioSolver:
 
     # ------------------------------------------------------------------ QP subproblem
 
-    def _qp(self, groups: int, slots: int) -> SlotQP:
-        """The cached QP with room for ``groups`` row groups of ``slots`` rows each.
+    def _qp(self, rows: int, groups: int) -> SlotQP:
+        """The cached QP with room for ``rows`` scenario rows in ``groups`` groups.
 
-        Sizes are rounded up to powers of two, so a few QP objects serve every solve and
-        each keeps its own hot-start information.
+        Capacities are rounded up to powers of two, so a few QP objects serve every solve
+        and each keeps its own hot-start information and slot assignment.
         """
         groups = min(max(4, 1 << (groups - 1).bit_length()), self._n_groups)
-        base = self.options.screen_rows
-        while base < slots:
-            base *= 2
-        key = (groups, base)
+        rows = max(8, 1 << (rows - 1).bit_length())
+        key = (rows, groups)
         qp = self._qps.get(key)
         if qp is None:
             p, opt = self.problem, self.options
             qp = SlotQP(
                 self._n_u,
                 self._n_shared,
+                rows,
                 groups,
-                base,
                 opt.qp_solver,
                 p.slack_penalty,
                 opt.slack_regularisation,
@@ -547,14 +545,16 @@ class FastScenarioSolver:
         """
         p, nu = self.problem, self._n_u
         n, ng = p.horizon, p.ng
+        n_scen = lin.ro.X.shape[2]
         for round_ in range(self.options.max_qp_rounds):
             self._check_time()
             a_pos, g_pos = self.model.rows(lin, pos)
-            groups, slot_group, rank = SlotQP.layout(pos, g_pos, n)
-            qp = self._qp(max(groups.size, 1), int(rank.max(initial=0)) + 1)
-            row = qp.n_speed + slot_group * qp.slots + rank
+            group = pos[:, 0] * n + pos[:, 1]
+            n_groups = np.unique(group).size
+            qp = self._qp(max(pos.shape[0], 1), max(n_groups, 1))
+            row, column = qp.assign(group * n_scen + pos[:, 2], group)
             qp.set_problem(H, lin.grad, self._lower - u, self._upper - u, self._a_shared, g_shared)
-            qp.set_position_rows(row, a_pos, g_pos)
+            qp.set_position_rows(row, column, a_pos, g_pos)
             retried = qp.failures
             z, lam_all, ok = qp.solve()
             stats["qp_solves"] += 1
@@ -562,8 +562,7 @@ class FastScenarioSolver:
             if not ok:
                 return None
             s_pos = np.zeros((ng, n))
-            first = nu + self._n_shared
-            s_pos.reshape(-1)[groups] = z[first : first + groups.size]
+            s_pos.reshape(-1)[group] = z[nu + self._n_shared + column]
             missing = self._missing_rows(lin, z[:nu], s_pos, pos)
             if missing.shape[0] == 0:
                 break

@@ -57,25 +57,29 @@ def silenced_stdout() -> Iterator[None]:
 
 
 class SlotQP:
-    """The SQP's QP ``min 1/2 z'Hz + g'z  s.t.  A z <= uba, lbx <= z <= ubx`` in fixed slots.
+    """The SQP's QP ``min 1/2 z'Hz + g'z  s.t.  A z <= uba, lbx <= z <= ubx`` in persistent slots.
 
-    ``z = [d (n_u), s_shared (n_shared), s_pos (P)]``: the input step, one slack per
-    shared row (a constraint whose row is the same for every scenario, one per step, e.g.
-    the bicycle's speed bounds), and ``P`` slack slots for the scenario-row groups (one
-    group per constraint and step) that have rows. Rows ``[J_r, -e_slack] z <= -g_r``:
-    first the shared rows, then ``K`` row slots per group slack slot, filled by
-    decreasing value. Unused slots are zero rows with ``uba = +inf`` (their slack stays
-    at zero). Only the Jacobian part of ``A`` changes between calls, so qpOASES can
-    hot-start from the previous active set; its CasADi conic is evaluated through a
-    ``FunctionBuffer`` on persistent NumPy arrays. DAQP gets the rows in use only.
+    ``z = [d (n_u), s_shared (n_shared), s_pos (group_capacity)]``: the input step, one
+    slack per shared row (a constraint whose row is the same for every scenario, one per
+    step, e.g. the bicycle's speed bounds), and one slack column per scenario-row group
+    (one group per constraint and step) that has rows. Rows ``[J_r, -e_slack] z <= -g_r``:
+    first the shared rows, then ``row_capacity`` slots for scenario rows. Each scenario
+    row keeps its slot (and each group its slack column) for as long as it stays in the QP
+    (:meth:`assign`), so that qpOASES's hot start from the previous active set of the same
+    object means something; unused slots are zero rows with ``uba = +inf``, and the slack
+    of an unused column stays at zero (it has no row and only costs). The capacities are the rows and groups in use rounded
+    up to powers of two by the caller, so the dense QP stays close to the rows it needs
+    (a padded layout with the same slot count for every group made the QP at N = 30 up to
+    eight times as tall as its rows in use). qpOASES is a CasADi conic evaluated through a
+    ``FunctionBuffer`` on persistent NumPy arrays; DAQP gets the rows in use only.
     """
 
     def __init__(
         self,
         n_u: int,
         n_shared: int,
-        groups: int,
-        slots: int,
+        row_capacity: int,
+        group_capacity: int,
         solver: str,
         slack_penalty: float,
         slack_reg: float,
@@ -92,10 +96,10 @@ class SlotQP:
                     "test/bench extras)"
                 ) from err
         self.solver = solver
-        self.groups, self.slots = groups, slots
+        self.row_capacity, self.group_capacity = row_capacity, group_capacity
         self.n_u, self.n_speed = n_u, n_shared
-        self.n_var = n_u + n_shared + groups
-        self.capacity = self.n_speed + groups * slots
+        self.n_var = n_u + n_shared + group_capacity
+        self.capacity = self.n_speed + row_capacity
         self.max_time = max_time
         nv, cap, nu = self.n_var, self.capacity, self.n_u
         # Dense inputs are column-major nonzeros; H is symmetric, A is viewed transposed.
@@ -105,9 +109,6 @@ class SlotQP:
         self._a = np.zeros(cap * nv)
         self.A = self._a.reshape(nv, cap).T
         self.A[np.arange(self.n_speed), nu + np.arange(self.n_speed)] = -1.0
-        for q in range(groups):
-            first = self.n_speed + q * slots
-            self.A[first : first + slots, nu + self.n_speed + q] = -1.0
         self.g = np.zeros(nv)
         self.g[nu:] = slack_penalty
         self.lba = np.full(cap, -np.inf)
@@ -117,6 +118,10 @@ class SlotQP:
         self.x = np.zeros(nv)
         self.lam_a = np.zeros(cap)
         self.failures = 0  # calls whose first attempt failed (recovered or not)
+        # Persistent assignment: the key of the row in each slot, the group of each slack
+        # column (-1: free).
+        self._slot_key = np.full(row_capacity, -1, dtype=np.int64)
+        self._col_key = np.full(group_capacity, -1, dtype=np.int64)
         self._conic: Any = None
         self._hot = False  # the conic has solved a QP (it then hot-starts)
         self._stale = False  # reset() was called: no hot start at the next call
@@ -166,24 +171,57 @@ class SlotQP:
         self._hot = False
 
     def reset(self) -> None:
-        """Forget every hot-start information before the next call (qpOASES: a fresh conic,
-        built when this object is next used; DAQP has none)."""
+        """Forget every hot-start information and slot assignment before the next call
+        (qpOASES: a fresh conic, built when this object is next used; DAQP has none)."""
         self._stale = True
+        self._slot_key[:] = -1
+        self._col_key[:] = -1
 
     @staticmethod
-    def layout(pos: np.ndarray, values: np.ndarray, horizon: int) -> tuple[np.ndarray, ...]:
-        """Group slot and rank of each scenario row ``(kind, step, scenario)``.
+    def _place(keys: np.ndarray, held: np.ndarray) -> np.ndarray:
+        """Slots of ``keys`` (unique) in the assignment ``held`` (updated in place).
 
-        Returns ``(groups, slot_group, rank)``: the sorted group ids ``kind * N + step`` in
-        use, the slack slot of each row and its rank by decreasing value in its group.
+        A key already held keeps its slot; slots whose key is not in ``keys`` are freed;
+        new keys take free slots in order.
         """
-        group = pos[:, 0] * horizon + pos[:, 1]
-        groups, slot_group = np.unique(group, return_inverse=True)
-        order = np.lexsort((-values, group))
-        g_sorted = group[order]
-        rank = np.empty(group.size, dtype=int)
-        rank[order] = np.arange(g_sorted.size) - np.searchsorted(g_sorted, g_sorted, side="left")
-        return groups, slot_group, rank
+        slot = np.full(keys.size, -1, dtype=np.int64)
+        taken = np.flatnonzero(held >= 0)
+        if taken.size:
+            order = np.argsort(held[taken])
+            sorted_keys = held[taken][order]
+            idx = np.minimum(np.searchsorted(sorted_keys, keys), sorted_keys.size - 1)
+            found = sorted_keys[idx] == keys
+            slot[found] = taken[order[idx[found]]]
+            keep = np.zeros(held.size, dtype=bool)
+            keep[slot[found]] = True
+            held[~keep] = -1
+        new = np.flatnonzero(slot < 0)
+        if new.size > np.count_nonzero(held < 0):
+            raise ValueError(f"{keys.size} keys do not fit {held.size} slots")
+        slot[new] = np.flatnonzero(held < 0)[: new.size]
+        held[slot[new]] = keys[new]
+        return slot
+
+    def assign(self, keys: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Row slots and slack columns of scenario rows.
+
+        Args:
+            keys: ``(r,)`` unique ids of the rows (e.g. ``(group, scenario)`` flattened).
+            groups: ``(r,)`` the group id of each row.
+
+        Returns:
+            ``(row, column)``: each row's index in ``A`` (after the shared rows) and the
+            index of its group's slack column among the group columns. Rows and groups that
+            were in the previous call keep their slots.
+
+        Raises:
+            ValueError: when the rows or groups exceed the capacities.
+        """
+        keys = np.asarray(keys, dtype=np.int64)
+        group_ids, inverse = np.unique(np.asarray(groups, dtype=np.int64), return_inverse=True)
+        columns = self._place(group_ids, self._col_key)
+        rows = self._place(keys, self._slot_key)
+        return self.n_speed + rows, columns[inverse]
 
     def set_problem(
         self,
@@ -203,12 +241,18 @@ class SlotQP:
         self.A[:ns, :nu] = a_speed
         self.uba[:ns] = -g_speed
 
-    def set_position_rows(self, row: np.ndarray, a_pos: np.ndarray, g_pos: np.ndarray) -> None:
-        """Fill the given row slots; every other position slot becomes an inactive zero row."""
+    def set_position_rows(
+        self, row: np.ndarray, column: np.ndarray, a_pos: np.ndarray, g_pos: np.ndarray
+    ) -> None:
+        """Fill the given row slots (from :meth:`assign`), each linked to its group's slack
+        ``column``; every other slot becomes an inactive zero row (a slack column without
+        a row stays at zero: it only costs)."""
         nu, ns = self.n_u, self.n_speed
-        self.A[ns:, :nu] = 0.0
+        first = nu + ns
+        self.A[ns:, :] = 0.0
         self.uba[ns:] = np.inf
         self.A[row, :nu] = a_pos
+        self.A[row, first + column] = -1.0
         self.uba[row] = -g_pos
 
     def set_position_bounds(self, row: np.ndarray, g_pos: np.ndarray) -> None:

@@ -1,0 +1,66 @@
+"""The fast SQP's dense QP: persistent row slots, sizes that follow the rows in use."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from controllers.solvers.slot_qp import QP_SOLVERS, SlotQP
+
+
+def _qp(rows: int = 8, groups: int = 4, solver: str = "qpoases") -> SlotQP:
+    return SlotQP(2, 0, rows, groups, solver, slack_penalty=100.0, slack_reg=1e-8)
+
+
+def test_rows_and_groups_keep_their_slots_while_they_stay() -> None:
+    qp = _qp()
+    row, col = qp.assign(np.array([10, 11, 20]), np.array([1, 1, 2]))
+    assert row.tolist() == [0, 1, 2] and col.tolist() == [0, 0, 1]
+    # 11 leaves, 30 (a new group) and 12 come: the others keep their slots, the new ones
+    # take the freed and the next free slots.
+    row2, col2 = qp.assign(np.array([20, 10, 30, 12]), np.array([2, 1, 3, 1]))
+    assert row2[0] == 2 and row2[1] == 0
+    assert sorted(row2.tolist()) == [0, 1, 2, 3]
+    assert col2[0] == 1 and col2[1] == 0 and col2[3] == 0 and col2[2] == 2
+
+
+def test_reset_forgets_the_assignment() -> None:
+    qp = _qp()
+    qp.assign(np.array([5, 6]), np.array([0, 0]))
+    qp.reset()
+    row, col = qp.assign(np.array([6]), np.array([0]))
+    assert row.tolist() == [0] and col.tolist() == [0]
+
+
+def test_too_many_rows_is_an_error_naming_the_sizes() -> None:
+    qp = _qp(rows=8)
+    with pytest.raises(ValueError, match="9 keys do not fit 8 slots"):
+        qp.assign(np.arange(9), np.zeros(9, dtype=int))
+
+
+@pytest.mark.parametrize("solver", QP_SOLVERS)
+def test_the_qp_of_two_groups_has_the_exact_penalty_solution(solver: str) -> None:
+    """min 1/2 |d - (3, 0)|^2 s.t. d0 <= 1 (group a) and d0 + d1 <= 5 (group b), with the
+    L1 penalty 100 on each group's slack: the first row binds, no slack is used, and
+    unused slots and slack columns stay at zero."""
+    qp = _qp(solver=solver)
+    H = np.eye(2)
+    qp.set_problem(H, np.array([-3.0, 0.0]), np.full(2, -10.0), np.full(2, 10.0),
+                   np.empty((0, 2)), np.empty(0))
+    row, col = qp.assign(np.array([1, 2]), np.array([7, 9]))
+    qp.set_position_rows(row, col, np.array([[1.0, 0.0], [1.0, 1.0]]), np.array([-1.0, -5.0]))
+    z, lam, ok = qp.solve()
+    assert ok
+    np.testing.assert_allclose(z[:2], [1.0, 0.0], atol=1e-8)
+    np.testing.assert_allclose(z[2:], 0.0, atol=1e-8)
+    assert lam[row[0]] == pytest.approx(2.0, abs=1e-8)
+    assert lam[row[1]] == pytest.approx(0.0, abs=1e-8)
+    # A row beyond what the penalty pays for: d0 <= -20 costs more than 100 per unit of
+    # slack only up to the penalty, so the slack takes it.
+    row, col = qp.assign(np.array([1, 2]), np.array([7, 9]))
+    qp.set_position_rows(row, col, np.array([[1.0, 0.0], [1.0, 1.0]]), np.array([20.0, -5.0]))
+    z, lam, ok = qp.solve()
+    assert ok
+    assert z[:2] == pytest.approx([-10.0, 0.0], abs=1e-7)  # the step's bound
+    assert z[2 + col[0]] == pytest.approx(10.0, abs=1e-7)  # the rest is slack
+    assert lam[row[0]] == pytest.approx(100.0, rel=1e-6)
