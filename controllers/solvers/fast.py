@@ -29,9 +29,15 @@ the problem. Everything it knows about the system comes from the system definiti
 * **Exact penalty inside the QP.** One slack per (constraint, step), shared by its rows,
   as in the NLP; a dense QP whose rows keep their slots while they stay in it
   (:class:`~controllers.solvers.slot_qp.SlotQP`), solved by qpOASES with hot starts.
-* **Globalisation.** Backtracking Armijo line search on the exact-penalty merit, with a
-  second-order correction against the Maratos effect and Levenberg-Marquardt damping
-  after heavy backtracking.
+* **Globalisation.** A box trust region on the QP step (a fraction of each input's
+  range: shrunk to half the accepted step after backtracking or when the merit falls by
+  less than a quarter of what the QP model predicted, doubled after a full step that
+  reached it and did better; never below ``min_trust_radius``), inside a backtracking
+  Armijo line search on the exact-penalty merit, with a second-order correction against
+  the Maratos effect. Where the Hessian had to be floored on negative curvature, the QP
+  model is flat in those directions and only the trust region keeps the step from
+  running to the input bounds. (``trust_radius=0``: Levenberg-Marquardt damping after
+  heavy backtracking instead.)
 * **Extra starts.** The problem is not convex. A system may declare inputs whose sign
   flip mirrors a manoeuvre (``ControlSystem.mirror_inputs``, the bicycle's steering);
   when a plan uses them hard, the SQP also starts from the mirrored plan (and, with
@@ -85,7 +91,7 @@ class FastSolverOptions:
     hessian_floor: float = 1e-3  # smallest Hessian eigenvalue [per (m/s^2)^2 or rad^2]
     slack_regularisation: float = 1e-8  # quadratic weight on the QP slacks (strict convexity)
     second_order_correction: bool = True  # against the Maratos effect
-    damping_init: float = 1.0  # first Levenberg-Marquardt damping after heavy backtracking
+    damping_init: float = 1.0  # first Levenberg-Marquardt damping (trust_radius=0 only)
     damping_threshold: float = 0.1  # line-search step below which the damping grows
     damping_decrease: float = 0.1  # factor on the damping after a full step
     qp_solver: str = "qpoases"  # one of QP_SOLVERS
@@ -102,6 +108,16 @@ class FastSolverOptions:
     restart_optimism: float = 2.0  # multiple of the model's predicted decrease it may still get
     restart_margin: float = 0.0  # relative margin added to the merit an extra start must beat
     restart_same_tol: float = 0.05  # [m/s^2, rad] an extra start this close to the best: same
+    # Initial box trust region on the QP step, |d_i| <= radius * (upper_i - lower_i) (a
+    # fraction of each input's range): shrunk to half the accepted step (not below
+    # min_trust_radius) after backtracking or when the merit fell by less than 1/4 of the
+    # QP model's prediction, doubled (up to 1) after a full step that reached it and fell
+    # by more. 0: no trust region; Levenberg-Marquardt damping (damping_*) after heavy
+    # backtracking instead.
+    trust_radius: float = 0.25
+    # Smallest trust radius: below it the line search alone handles a poor model, so the
+    # trust region never holds back the fast local convergence near a solution.
+    min_trust_radius: float = 1e-3
     # Wall-clock limit of one solve [s], checked between SQP iterations: a solve that
     # reaches it returns its best iterate with success=False, status
     # "Maximum_WallTime_Exceeded" (IPOPT's name), and tries no further start.
@@ -137,6 +153,12 @@ class FastSolverOptions:
         check("backtrack", 0 < self.backtrack < 1, "in (0, 1)")
         check("damping_threshold", 0 < self.damping_threshold <= 1, "in (0, 1]")
         check("damping_decrease", 0 <= self.damping_decrease < 1, "in [0, 1)")
+        for name in ("trust_radius", "min_trust_radius"):
+            value = getattr(self, name)
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and 0 <= value <= 1
+            check(name, ok, "in [0, 1] (a fraction of each input's range; 0: none)")
+        ok = self.trust_radius == 0 or self.min_trust_radius <= self.trust_radius
+        check("min_trust_radius", ok, f"<= trust_radius ({self.trust_radius})")
         value = self.max_time
         ok = isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0
         check("max_time", ok and not math.isnan(value), "a number of seconds > 0 (inf: none)")
@@ -171,6 +193,7 @@ class _QPStep:
     s_pos: np.ndarray  # (ng, N) slack of each (constraint, step) group
     s_shared: np.ndarray  # (n_shared,) slack of each shared row, ordered (step, constraint)
     lam_shared: np.ndarray  # (n_shared,) multipliers of the shared rows
+    curvature: float = 0.0  # d' H_qp d of the QP's (convexified) Hessian
 
 
 class FastScenarioSolver:
@@ -212,6 +235,11 @@ class FastScenarioSolver:
         self._qps: dict[tuple[int, int], SlotQP] = {}
         self._prev_u: np.ndarray | None = None
         self._deadline = math.inf  # time.perf_counter() value ending the current solve
+        # (N nu,) each input's range; inf where it has none (an unbounded input gets no
+        # trust region, a fixed one needs none)
+        span = self._upper - self._lower
+        self._range = np.where(np.isfinite(span) & (span > 0), span, np.inf)
+        self._radius = 0.0  # current trust radius (fraction of the range; 0: none)
         # A list to record one dict per SQP iteration into (diagnostics), or None.
         self.trace: list[dict[str, Any]] | None = None
 
@@ -553,7 +581,11 @@ class FastScenarioSolver:
             n_groups = np.unique(group).size
             qp = self._qp(max(pos.shape[0], 1), max(n_groups, 1))
             row, column = qp.assign(group * n_scen + pos[:, 2], group)
-            qp.set_problem(H, lin.grad, self._lower - u, self._upper - u, self._a_shared, g_shared)
+            lo, hi = self._lower - u, self._upper - u
+            if self._radius > 0.0:
+                lo = np.maximum(lo, -self._radius * self._range)
+                hi = np.minimum(hi, self._radius * self._range)
+            qp.set_problem(H, lin.grad, lo, hi, self._a_shared, g_shared)
             qp.set_position_rows(row, column, a_pos, g_pos)
             retried = qp.failures
             z, lam_all, ok = qp.solve()
@@ -614,6 +646,7 @@ class FastScenarioSolver:
             step = self._solve_qp(lin, H_qp, u, screened, g_shared, stats)
             if step is None:
                 return None, mu
+            step.curvature = float(step.d @ H_qp @ step.d)
             mu[:] = 0.0
             mu[step.pos[:, 0], step.pos[:, 1], step.pos[:, 2]] = step.lam
             if sigma == 0.0:
@@ -709,6 +742,7 @@ class FastScenarioSolver:
         status, success, iterations = "Maximum_Iterations_Exceeded", False, 0
         prev_step = math.inf  # size of the last accepted full step
         damping = 0.0  # Levenberg-Marquardt term: grows while the quadratic model is poor
+        self._radius = opt.trust_radius
         self._deadline = deadline
         try:
             while iterations < opt.max_iter:
@@ -819,24 +853,40 @@ class FastScenarioSolver:
                             "eig0": self._last_eig[0],
                             "eig1": self._last_eig[1],
                             "sigma": self._last_sigma,
+                            "radius": self._radius,
                         }
                     )
                 slack_change = abs(accepted.slack - ro.slack)
+                prev_merit = ro.merit
                 ro = accepted
                 if rival is not None and np.max(np.abs(ro.u - rival)) <= opt.restart_same_tol:
                     status = "Duplicate"
                     break
-                # Heavy backtracking means the quadratic model is poor this far out (negative
-                # curvature, strongly curved constraints): damp the next steps, like a trust
-                # region; full steps undo it, so the local convergence stays quadratic.
-                if t < opt.damping_threshold:
+                # A trust region (or, without one, Levenberg-Marquardt damping) keeps steps
+                # where the quadratic model holds: after heavy backtracking or a poor model
+                # ratio (negative curvature floored, strongly curved constraints) the next
+                # steps are shorter; good full steps lift the limit again, so the local
+                # convergence stays fast.
+                at_radius = False
+                if opt.trust_radius > 0.0:
+                    # The QP model's predicted decrease against the actual one at the full step.
+                    size = float(np.max(np.abs(d) / self._range))
+                    at_radius = size >= 0.99 * self._radius
+                    predicted = -(D + 0.5 * qp_step.curvature)
+                    model_ratio = (prev_merit - ro.merit) / predicted if predicted > 0 else 1.0
+                    if t < 1.0 or model_ratio < 0.25:
+                        self._radius = max(0.5 * t * size, opt.min_trust_radius)
+                    elif model_ratio > 0.25 and at_radius:
+                        self._radius = min(2.0 * self._radius, 1.0)
+                elif t < opt.damping_threshold:
                     damping = max(10.0 * damping, opt.damping_init)
                 elif t == 1.0:
                     damping = (
                         opt.damping_decrease * damping if damping > 1e-3 * opt.damping_init else 0.0
                     )
                 ratio = step / prev_step if math.isfinite(prev_step) else 1.0
-                predicted_next = step * min(ratio, 1.0) if t == 1.0 else math.inf
+                # (a step cut by the trust region says nothing about convergence)
+                predicted_next = step * min(ratio, 1.0) if t == 1.0 and not at_radius else math.inf
                 prev_step = step if t == 1.0 else math.inf
                 if predicted_next <= opt.final_step_tol and (
                     ro.slack <= opt.add_tol or slack_change <= opt.add_tol * (1.0 + ro.slack)

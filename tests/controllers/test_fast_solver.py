@@ -354,8 +354,38 @@ def test_bad_input_raises_value_error(x0, W, u_guess) -> None:
         {"max_expand": -1},
         {"expand_ratio": 0.0},
         {"damping_decrease": 1.0},
+        {"trust_radius": -0.1},
+        {"trust_radius": 1.5},
+        {"trust_radius": float("nan")},
     ],
 )
 def test_bad_options_raise_value_error(options: dict) -> None:
     with pytest.raises(ValueError):
         FastScenarioSolver(paper_problem(n_scenarios=5), **options)
+
+
+def test_a_bad_trust_radius_names_the_field_and_the_range() -> None:
+    with pytest.raises(ValueError, match=r"trust_radius=1\.5: must be in \[0, 1\]"):
+        FastScenarioSolver(paper_problem(n_scenarios=5), trust_radius=1.5)
+
+
+@pytest.mark.parametrize(
+    "options",
+    [{"min_trust_radius": 0.5, "trust_radius": 0.25}, {"min_trust_radius": -1e-3}],
+)
+def test_a_bad_minimum_trust_radius_raises_value_error(options: dict) -> None:
+    with pytest.raises(ValueError, match="min_trust_radius"):
+        FastScenarioSolver(paper_problem(n_scenarios=5), **options)
+
+
+def test_the_trust_region_bounds_every_qp_step() -> None:
+    """With a tiny trust region the first SQP step moves no input by more than its share
+    of the input's range."""
+    problem = paper_problem(n_scenarios=20)
+    x0, W = STARTS["mid_track"], draw_W(3, 20)
+    solver = FastScenarioSolver(problem, trust_radius=0.01, min_trust_radius=0.01, max_iter=1)
+    solver.trace = []
+    sol = solver.solve(x0, W)
+    span = problem.system.input_upper - problem.system.input_lower
+    assert np.all(np.abs(sol.u) <= 0.01 * span + 1e-12)
+    assert solver.trace and solver.trace[0]["d"] <= 0.01 * float(np.max(span)) + 1e-12

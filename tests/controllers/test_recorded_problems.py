@@ -119,10 +119,11 @@ def test_fast_plan_is_a_local_optimum_of_the_full_problem(i, problem) -> None:
         assert violation <= VIOLATION_TOL
 
 
-def test_extra_starts_only_ever_lower_the_objective(problem) -> None:
+@pytest.mark.parametrize("trust_radius", [0.25, 0.0])
+def test_extra_starts_only_ever_lower_the_objective(problem, trust_radius: float) -> None:
     kept = 0
-    plain_solver = make_solver(problem, "fast", restarts=())
-    best_solver = make_solver(problem, "fast")
+    plain_solver = make_solver(problem, "fast", restarts=(), trust_radius=trust_radius)
+    best_solver = make_solver(problem, "fast", trust_radius=trust_radius)
     for i in range(len(IDS)):
         x0, W, guess, _ = _problem(i)
         plain = plain_solver.solve(x0, W, u_guess=guess)
@@ -130,5 +131,8 @@ def test_extra_starts_only_ever_lower_the_objective(problem) -> None:
         assert best.objective <= plain.objective * (1 + 1e-12), IDS[i]
         if "kept" in best.extra["restarts"].values():
             kept += best.objective < plain.objective * (1 - 1e-3)
-    # On this set the extra starts matter: some problem ends clearly lower with them.
-    assert kept >= 1
+    if trust_radius == 0.0:
+        # Without the trust region the extra starts matter on this set: some problem ends
+        # clearly lower with them (with it, the first start already reaches those plans
+        # here; on closed-loop problems the extra starts still lower some objectives).
+        assert kept >= 1
