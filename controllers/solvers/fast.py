@@ -37,7 +37,10 @@ the problem. Everything it knows about the system comes from the system definiti
   the Maratos effect. Where the Hessian had to be floored on negative curvature, the QP
   model is flat in those directions and only the trust region keeps the step from
   running to the input bounds. (``trust_radius=0``: Levenberg-Marquardt damping after
-  heavy backtracking instead.)
+  heavy backtracking instead.) A full step whose merit decrease came close to the linear
+  prediction is tried 2, 4, ... times as long while the merit keeps falling
+  (``max_expand``): where the model is too curved, full steps otherwise shrink by a
+  constant factor and the SQP crawls.
 * **Extra starts.** The problem is not convex. A system may declare inputs whose sign
   flip mirrors a manoeuvre (``ControlSystem.mirror_inputs``, the bicycle's steering);
   when a plan uses them hard, the SQP also starts from the mirrored plan (and, with
@@ -78,7 +81,9 @@ class FastSolverOptions:
     """
 
     max_iter: int = 50  # SQP iterations per start
-    tol: float = 1e-10  # relative predicted decrease below which a failed line search is OK
+    # Predicted merit decrease, relative to the merit, that counts as converged (1e3 times
+    # it after a failed line search, where rounding stops the search).
+    tol: float = 1e-10
     step_tol: float = 1e-8  # [m/s^2, rad] input step that counts as converged
     final_step_tol: float = 1e-6  # [m/s^2, rad] predicted next step that counts as converged
     screen_margin: float = 0.5  # [m] rows within this of activity enter the QP at once
@@ -98,8 +103,10 @@ class FastSolverOptions:
     hessian_modification: str = "floor"  # one of HESSIAN_MODIFICATIONS
     # Expansion of a full step that decreased the merit by at least expand_ratio times the
     # linear prediction (the model's curvature along it is too high, e.g. after a negative
-    # eigenvalue was raised): steps 2, 4, ... times as long while the merit keeps falling.
-    max_expand: int = 0
+    # eigenvalue was raised): steps 2, 4, ... times as long while the merit keeps falling,
+    # at most max_expand doublings (0: none). Against the linear crawl of full steps that
+    # each shrink by a constant factor.
+    max_expand: int = 4
     expand_ratio: float = 0.75
     # Extra starts against local optima (see FastScenarioSolver.solve): any of RESTARTS.
     restarts: tuple[str, ...] = ("mirror", "straight")
@@ -781,6 +788,14 @@ class FastScenarioSolver:
                     break
                 # Upper bound of the merit's directional derivative along d (< 0 unless d = 0).
                 D = float(lin.grad @ d) + rho * (qp_step.slack_sum - ro.slack)
+                cut = opt.trust_radius > 0.0 and bool(
+                    np.max(np.abs(d) / self._range) >= 0.99 * self._radius
+                )
+                if -D <= opt.tol * (1.0 + abs(ro.merit)) and not cut:
+                    # The QP step (not cut by the trust region) promises nothing beyond
+                    # rounding: a KKT point up to the tolerance.
+                    status, success = "Solve_Succeeded", True
+                    break
                 if (
                     iterations >= opt.restart_probe
                     and ro.merit + opt.restart_optimism * D > abandon_above

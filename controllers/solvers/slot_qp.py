@@ -184,23 +184,23 @@ class SlotQP:
         A key already held keeps its slot; slots whose key is not in ``keys`` are freed;
         new keys take free slots in order.
         """
-        slot = np.full(keys.size, -1, dtype=np.int64)
-        taken = np.flatnonzero(held >= 0)
-        if taken.size:
-            order = np.argsort(held[taken])
-            sorted_keys = held[taken][order]
-            idx = np.minimum(np.searchsorted(sorted_keys, keys), sorted_keys.size - 1)
-            found = sorted_keys[idx] == keys
-            slot[found] = taken[order[idx[found]]]
-            keep = np.zeros(held.size, dtype=bool)
-            keep[slot[found]] = True
-            held[~keep] = -1
-        new = np.flatnonzero(slot < 0)
-        if new.size > np.count_nonzero(held < 0):
-            raise ValueError(f"{keys.size} keys do not fit {held.size} slots")
-        slot[new] = np.flatnonzero(held < 0)[: new.size]
-        held[slot[new]] = keys[new]
-        return slot
+        # A dict over the few held keys beats sorting arrays at these sizes (tens of keys).
+        where = {k: i for i, k in enumerate(held.tolist()) if k >= 0}
+        slot = [where.get(k, -1) for k in keys.tolist()]
+        kept = set(slot)
+        kept.discard(-1)
+        if len(kept) < len(where):
+            held[[i for i in where.values() if i not in kept]] = -1
+        new = [i for i, s in enumerate(slot) if s < 0]
+        if new:
+            free = np.flatnonzero(held < 0)
+            if len(new) > free.size:
+                raise ValueError(f"{keys.size} keys do not fit {held.size} slots")
+            free = free[: len(new)]
+            held[free] = keys[new]
+            for i, f in zip(new, free.tolist()):
+                slot[i] = f
+        return np.array(slot, dtype=np.int64)
 
     def assign(self, keys: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Row slots and slack columns of scenario rows.
@@ -295,7 +295,10 @@ class SlotQP:
             self._build_conic()
         self._stale, self._hot = False, True
         self._evaluate()
-        return self._buffer.ret() == 0 and bool(np.all(np.isfinite(self.x)))
+        ok = self._buffer.ret() == 0 and bool(np.all(np.isfinite(self.x)))
+        # qpOASES cannot hot-start from a QP it failed on: the next call starts afresh.
+        self._stale = not ok
+        return ok
 
     def _solve_qrqp(self) -> bool:
         """CasADi's active-set QP solver qrqp on the rows in use (a fallback)."""
