@@ -30,6 +30,7 @@ from lfm_env.gp import StateSpaceKernel
 from lfm_env.system import ControlSystem
 
 DISCRETIZATIONS = ("exact", "euler_maruyama")
+DRIFT_PRECISIONS = ("single", "double")  # of the drift in the particle transition
 
 
 def psd_factor(cov: np.ndarray) -> np.ndarray:
@@ -56,6 +57,16 @@ class LatentForceModel:
         process_noise_std: per-step std of the physical process noise ``(nx,)``, in the
             states' units; ``None`` for none.
         discretization: ``"exact"`` (matrix exponential) or ``"euler_maruyama"`` for the GP.
+        drift_precision: precision of the physics' drift ``f(x, u, w)`` in the particle
+            :meth:`transition`: ``"single"`` (default; the state update itself stays in
+            double precision) or ``"double"``. Single precision makes the drift's
+            transcendental functions several times faster (the bicycle's drift for 7000
+            particles: 144 -> 29 us). Its error comes from rounding the states and ``f``
+            to about 6e-8 relative: for the case studies about 1e-7 of ``|x| + |f dt|``
+            per step, four orders of magnitude below their process noise. Use
+            ``"double"`` for a system whose drift is sensitive to the last digits of a
+            large state (e.g. ``sin`` of a position of many kilometres). Simulation,
+            solvers and :meth:`physical_step` always use double precision.
     """
 
     system: ControlSystem
@@ -63,6 +74,7 @@ class LatentForceModel:
     dt: float
     process_noise_std: Any = None
     discretization: str = "exact"
+    drift_precision: str = "single"
     kernels: tuple[StateSpaceKernel, ...] = field(init=False)
     A: np.ndarray = field(init=False)  # (p, p) latent transition
     Q: np.ndarray = field(init=False)  # (p, p) latent process noise covariance
@@ -92,6 +104,11 @@ class LatentForceModel:
         if self.discretization not in DISCRETIZATIONS:
             raise ValueError(
                 f"LatentForceModel.discretization={self.discretization!r}: one of {DISCRETIZATIONS}"
+            )
+        if self.drift_precision not in DRIFT_PRECISIONS:
+            raise ValueError(
+                f"LatentForceModel.drift_precision={self.drift_precision!r}: one of "
+                f"{DRIFT_PRECISIONS}"
             )
         blocks = [k.discretize(self.dt, method=self.discretization) for k in kernels]
         A = scipy.linalg.block_diag(*[np.asarray(a, dtype=float) for a, _ in blocks])
@@ -261,7 +278,12 @@ class LatentForceModel:
         # The system's functions take components on the last axis: transposed views of
         # the component-major rows (its stack() returns a view of a component-major buffer).
         w = self.latent_force(z.T)
-        dx = self.system.rhs(X[:nx].T, u, w).T
+        if self.drift_precision == "single":
+            x32 = X[:nx].astype(np.float32)
+            u32 = np.asarray(u, dtype=np.float32)
+            dx = self.system.rhs(x32.T, u32, w.astype(np.float32)).T
+        else:
+            dx = self.system.rhs(X[:nx].T, u, w).T
         np.multiply(dx, self.dt, out=out[:nx])
         out[:nx] += X[:nx]
         out[:nx] += noise[:nx] * self._process_std_col
@@ -270,4 +292,4 @@ class LatentForceModel:
         return np.ascontiguousarray(out.T)
 
 
-__all__ = ["DISCRETIZATIONS", "LatentForceModel", "psd_factor"]
+__all__ = ["DISCRETIZATIONS", "DRIFT_PRECISIONS", "LatentForceModel", "psd_factor"]

@@ -36,6 +36,8 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+_FLOAT_DTYPES = (np.dtype(np.float64), np.dtype(np.float32))
+
 _UNIT = re.compile(r"^\s*(?P<name>[^\[]+?)\s*(\[(?P<unit>[^\]]*)\])?\s*$")
 
 
@@ -85,10 +87,15 @@ class _ArrayNamespace:
 
     @staticmethod
     def unstack(x: Any) -> list[Any]:
-        """The components of ``x``: ``x[..., i]`` (NumPy) or ``x[i]`` (CasADi)."""
+        """The components of ``x``: ``x[..., i]`` (NumPy) or ``x[i]`` (CasADi).
+
+        NumPy data stays in double or single precision (the particle transition evaluates
+        the drift in single precision, :meth:`lfm_env.model.LatentForceModel.transition`);
+        anything else becomes double.
+        """
         if isinstance(x, _CASADI_TYPES):
             return [x[i] for i in range(x.shape[0])]
-        if not isinstance(x, np.ndarray) or x.dtype != np.float64:
+        if not isinstance(x, np.ndarray) or x.dtype not in _FLOAT_DTYPES:
             x = np.asarray(x, dtype=float)
         if x.ndim == 1:
             return list(x)

@@ -193,3 +193,27 @@ def test_transition_is_reproducible_from_the_generator_state(model):
     np.testing.assert_array_equal(a, b)
     c = model.transition(particles, u, np.random.default_rng(8))
     assert not np.array_equal(a, c)
+
+
+def test_single_precision_drift_is_the_double_precision_step_up_to_float32_rounding(model):
+    """The same draws through both drift precisions: the states differ by float32 rounding
+    of f dt (far below the process noise), the latent states not at all."""
+    import dataclasses
+
+    double = dataclasses.replace(model, drift_precision="double")
+    particles = _particles(model, 2000, np.random.default_rng(3))
+    u = _input(model)
+    a = model.transition(particles, u, np.random.default_rng(11))
+    b = double.transition(particles, u, np.random.default_rng(11))
+    nx = model.nx
+    np.testing.assert_array_equal(a[:, nx:], b[:, nx:])
+    # float32 rounds the states and f by ~6e-8 relative: errors scale with |x| and |f dt|,
+    # here below 1e-6 of them, while the process noise is >= 1e-3 of them.
+    scale = np.abs(particles[:, :nx]) + np.abs(b[:, :nx] - particles[:, :nx]) + 1.0
+    assert np.all(np.abs(a[:, :nx] - b[:, :nx]) <= 1e-6 * scale)
+    assert not np.array_equal(a[:, :nx], b[:, :nx])  # single precision was used
+
+
+def test_an_unknown_drift_precision_names_the_field_and_the_choices():
+    with pytest.raises(ValueError, match=r"drift_precision='half': one of \('single', 'double'\)"):
+        LatentForceModel(PLANAR, PLANAR_KERNELS, 0.1, drift_precision="half")
