@@ -105,7 +105,8 @@ class FastSolverOptions:
     # linear prediction (the model's curvature along it is too high, e.g. after a negative
     # eigenvalue was raised): steps 2, 4, ... times as long while the merit keeps falling,
     # at most max_expand doublings (0: none). Against the linear crawl of full steps that
-    # each shrink by a constant factor.
+    # each shrink by a constant factor; not tried while steps shrink fast (a QP step below
+    # half the last full step), where it would only cost merit evaluations.
     max_expand: int = 4
     expand_ratio: float = 0.75
     # Extra starts against local optima (see FastScenarioSolver.solve): any of RESTARTS.
@@ -841,6 +842,9 @@ class FastScenarioSolver:
                     and t == 1.0
                     and opt.max_expand > 0
                     and ro.merit - accepted.merit >= -opt.expand_ratio * D
+                    # no fast local convergence under way: the last step was cut, or this
+                    # QP step is not less than half the last full step
+                    and (not math.isfinite(prev_step) or float(np.max(np.abs(d))) > 0.5 * prev_step)
                 ):
                     accepted, t = self._expand(evaluate, u, d, accepted, stats)
                 if accepted is None:

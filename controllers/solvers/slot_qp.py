@@ -67,11 +67,12 @@ class SlotQP:
     row keeps its slot (and each group its slack column) for as long as it stays in the QP
     (:meth:`assign`), so that qpOASES's hot start from the previous active set of the same
     object means something; unused slots are zero rows with ``uba = +inf``, and the slack
-    of an unused column stays at zero (it has no row and only costs). The capacities are the rows and groups in use rounded
-    up to powers of two by the caller, so the dense QP stays close to the rows it needs
-    (a padded layout with the same slot count for every group made the QP at N = 30 up to
-    eight times as tall as its rows in use). qpOASES is a CasADi conic evaluated through a
-    ``FunctionBuffer`` on persistent NumPy arrays; DAQP gets the rows in use only.
+    of an unused column stays at zero (it has no row and only costs). The capacities are
+    the rows and groups in use rounded up to powers of two by the caller, so the dense QP
+    stays close to the rows it needs (a padded layout with the same slot count for every
+    group made the QP at N = 30 up to eight times as tall as its rows in use). qpOASES is
+    a CasADi conic evaluated through a ``FunctionBuffer`` on persistent NumPy arrays; DAQP
+    gets the rows in use only.
     """
 
     def __init__(
@@ -198,7 +199,7 @@ class SlotQP:
                 raise ValueError(f"{keys.size} keys do not fit {held.size} slots")
             free = free[: len(new)]
             held[free] = keys[new]
-            for i, f in zip(new, free.tolist()):
+            for i, f in zip(new, free.tolist(), strict=True):
                 slot[i] = f
         return np.array(slot, dtype=np.int64)
 

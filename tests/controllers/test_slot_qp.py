@@ -45,8 +45,9 @@ def test_the_qp_of_two_groups_has_the_exact_penalty_solution(solver: str) -> Non
     unused slots and slack columns stay at zero."""
     qp = _qp(solver=solver)
     H = np.eye(2)
-    qp.set_problem(H, np.array([-3.0, 0.0]), np.full(2, -10.0), np.full(2, 10.0),
-                   np.empty((0, 2)), np.empty(0))
+    qp.set_problem(
+        H, np.array([-3.0, 0.0]), np.full(2, -10.0), np.full(2, 10.0), np.empty((0, 2)), np.empty(0)
+    )
     row, col = qp.assign(np.array([1, 2]), np.array([7, 9]))
     qp.set_position_rows(row, col, np.array([[1.0, 0.0], [1.0, 1.0]]), np.array([-1.0, -5.0]))
     z, lam, ok = qp.solve()
