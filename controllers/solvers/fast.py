@@ -890,7 +890,7 @@ class FastScenarioSolver:
                 if opt.trust_radius > 0.0:
                     # The QP model's predicted decrease against the actual one at the full step.
                     size = float(np.max(np.abs(d) / self._range))
-                    at_radius = size >= 0.99 * self._radius
+                    at_radius = cut  # (the radius has not changed since)
                     predicted = -(D + 0.5 * qp_step.curvature)
                     model_ratio = (prev_merit - ro.merit) / predicted if predicted > 0 else 1.0
                     if t < 1.0 or model_ratio < 0.25:
