@@ -99,7 +99,8 @@ class FastSolverOptions:
     damping_init: float = 1.0  # first Levenberg-Marquardt damping (trust_radius=0 only)
     damping_threshold: float = 0.1  # line-search step below which the damping grows
     damping_decrease: float = 0.1  # factor on the damping after a full step
-    qp_solver: str = "qpoases"  # one of QP_SOLVERS
+    # One of QP_SOLVERS; "auto": qpOASES on small QPs, PIQP on large ones (slot_qp).
+    qp_solver: str = "auto"
     hessian_modification: str = "floor"  # one of HESSIAN_MODIFICATIONS
     # Expansion of a full step that decreased the merit by at least expand_ratio times the
     # linear prediction (the model's curvature along it is too high, e.g. after a negative
@@ -301,10 +302,11 @@ class FastScenarioSolver:
             (``qp_rows``), QP calls retried after a failure (``qp_retries``), iterations
             whose check-and-add rounds ran out (``qp_rounds_exhausted``), merit
             evaluations and second-order corrections, names the derivative backend
-            (``backend``) and the QP solver (``qp_solver``), gives the first start's
-            ``{"status", "iterations"}`` (``first_start``), and ``extra["restarts"]`` maps
-            each extra start tried to ``"kept"`` or the status it ended with;
-            ``iterations`` counts the iterations of every start. A solve
+            (``backend``) and the QP solver option (``qp_solver``) with the QP calls
+            per solver it resolved to (``qp_calls``, e.g. ``{"qpoases": 12}``), gives the
+            first start's ``{"status", "iterations"}`` (``first_start``), and
+            ``extra["restarts"]`` maps each extra start tried to ``"kept"`` or the status it
+            ended with; ``iterations`` counts the iterations of every start. A solve
             that does not converge does not raise: it returns the best iterate (the merit
             decreases monotonically) with ``success=False``.
 
@@ -366,6 +368,8 @@ class FastScenarioSolver:
             ):
                 extra[key] += extra2[key]
             extra["qp_rows"] = max(extra["qp_rows"], extra2["qp_rows"])
+            for key, count in extra2["qp_calls"].items():
+                extra["qp_calls"][key] = extra["qp_calls"].get(key, 0) + count
             better = ro2.merit < ro.merit - 1e-12 * (1.0 + abs(ro.merit))
             keep = better and (success2 or not success)
             extra["restarts"][name] = "kept" if keep else status2.lower()
@@ -598,6 +602,7 @@ class FastScenarioSolver:
             retried = qp.failures
             z, lam_all, ok = qp.solve()
             stats["qp_solves"] += 1
+            stats["qp_calls"][qp.solver] = stats["qp_calls"].get(qp.solver, 0) + 1
             stats["qp_retries"] += qp.failures - retried
             if not ok:
                 return None
@@ -738,6 +743,7 @@ class FastScenarioSolver:
             "qp_rounds_exhausted": 0,
             "soc_steps": 0,
             "merit_evals": 1,
+            "qp_calls": {},
         }
 
         def evaluate(u: np.ndarray) -> Rollout:
@@ -829,6 +835,8 @@ class FastScenarioSolver:
                         qp_step.qp.set_position_bounds(qp_step.row, g_try - a_pos @ d)
                         z_soc, _, ok_soc = qp_step.qp.solve()
                         stats["qp_solves"] += 1
+                        calls, used = stats["qp_calls"], qp_step.qp.solver
+                        calls[used] = calls.get(used, 0) + 1
                         if ok_soc:
                             soc = evaluate(np.clip(u + z_soc[:nu], self._lower, self._upper))
                             stats["merit_evals"] += 1

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 
-from controllers.solvers.slot_qp import QP_SOLVERS, SlotQP
+from controllers.solvers.slot_qp import AUTO_PIQP_VARIABLES, QP_SOLVERS, SlotQP, resolve_qp_solver
 
 
 def _qp(rows: int = 8, groups: int = 4, solver: str = "qpoases") -> SlotQP:
@@ -65,3 +67,54 @@ def test_the_qp_of_two_groups_has_the_exact_penalty_solution(solver: str) -> Non
     assert z[:2] == pytest.approx([-10.0, 0.0], abs=1e-7)  # the step's bound
     assert z[2 + col[0]] == pytest.approx(10.0, abs=1e-7)  # the rest is slack
     assert lam[row[0]] == pytest.approx(100.0, rel=1e-6)
+
+
+def _random_qp(solver: str, seed: int = 0) -> tuple[SlotQP, np.ndarray]:
+    """A strictly convex QP with 40 inputs and 64 group slack columns (104 variables)."""
+    rng = np.random.default_rng(seed)
+    n_u, groups, rows = 40, 64, 120
+    qp = SlotQP(n_u, 0, 128, groups, solver, slack_penalty=50.0, slack_reg=1e-8)
+    root = rng.normal(size=(n_u, n_u))
+    H = root @ root.T / n_u + 0.1 * np.eye(n_u)
+    qp.set_problem(
+        H,
+        rng.normal(size=n_u),
+        np.full(n_u, -1.0),
+        np.full(n_u, 1.0),
+        np.empty((0, n_u)),
+        np.empty(0),
+    )
+    row, col = qp.assign(np.arange(rows), rng.integers(0, groups, size=rows))
+    qp.set_position_rows(row, col, rng.normal(size=(rows, n_u)), rng.normal(size=rows))
+    return qp, H
+
+
+def test_auto_resolves_by_the_qp_size() -> None:
+    assert resolve_qp_solver("auto", AUTO_PIQP_VARIABLES - 1) == "qpoases"
+    assert resolve_qp_solver("auto", AUTO_PIQP_VARIABLES) == "piqp"
+    assert resolve_qp_solver("daqp", 10_000) == "daqp"
+    assert _qp(solver="auto").solver == "qpoases"
+    assert _random_qp("auto")[0].solver == "piqp"
+
+
+def test_piqp_and_qpoases_agree_on_a_large_qp() -> None:
+    """The interior point's step, slacks and multipliers equal the active set's (a QP
+    whose rows partly need slack)."""
+    results = {}
+    for solver in ("qpoases", "piqp"):
+        qp, H = _random_qp(solver)
+        z, lam, ok = qp.solve()
+        assert ok, solver
+        results[solver] = (z, lam, 0.5 * z @ qp.H @ z + qp.g @ z)
+    (z0, lam0, f0), (z1, lam1, f1) = results["qpoases"], results["piqp"]
+    assert f1 == pytest.approx(f0, rel=1e-9)
+    np.testing.assert_allclose(z1, z0, atol=1e-6)
+    np.testing.assert_allclose(lam1, lam0, atol=1e-5 * max(1.0, float(np.max(lam0))))
+    assert np.max(z0[40:]) > 1e-3  # some rows really need slack
+
+
+def test_without_piqp_auto_falls_back_and_piqp_is_an_error(monkeypatch) -> None:
+    monkeypatch.setitem(sys.modules, "piqp", None)  # the package is not installed
+    assert resolve_qp_solver("auto", 10 * AUTO_PIQP_VARIABLES) == "qpoases"
+    with pytest.raises(ValueError, match="qp_solver='piqp' needs the piqp package"):
+        _qp(solver="piqp")
