@@ -289,6 +289,23 @@ def _horizon_lines(horizons: dict[str, Any]) -> list[str]:
         "N at the config's horizon: the main comparison's problems (whole episodes); "
         "other N: the first steps of each seed's episode run at that N."
     )
+    feasible = [row for row in horizons.get("results", []) if row.get("feasibility")]
+    if feasible:
+        lines.append(
+            "Infeasible for every input (the least slack of the shared linear constraints "
+            "over all inputs, an LP, is > 0; controllers.feasibility):"
+        )
+        for row in feasible:
+            f = row["feasibility"]
+            text = f"  N = {row['horizon']}: {f['n_infeasible']}/{f['n_problems']} problems"
+            if f["n_infeasible"]:
+                seeds = ", ".join(str(s) for s in f["seeds_infeasible"])
+                text += (
+                    f" (seeds {seeds}); least slack median {_fmt(f['bound_median'], '.3g')}, "
+                    f"max {_fmt(f['bound_max'], '.3g')}; fast solver's slack / least slack "
+                    f"{_fmt(f['slack_over_bound_median'], '.3f')} (median over those)"
+                )
+            lines.append(text)
     return lines
 
 

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from controllers.feasibility import INFEASIBLE_TOL, SharedConstraints, shared_slack_bound
 from experiments.bench_problems import (
     DEFAULT_CONFIG,
     DEFAULT_SEEDS,
@@ -170,6 +171,45 @@ def objective_agreement(
     }
 
 
+def feasibility_summary(
+    problem: Any, problems: Sequence[Any], records: list[dict[str, Any]] | None = None
+) -> dict[str, Any]:
+    """How many problems no input can satisfy (:func:`controllers.feasibility.shared_slack_bound`).
+
+    Args:
+        problem: the scenario problem of these data.
+        problems: ``(seed, step, x0, W)`` tuples.
+        records: a solver's :func:`solve_record` per problem (same order), to compare its
+            plans' slack with the bound.
+
+    Returns:
+        ``{"n_problems", "n_infeasible", "seeds_infeasible", "bound_median",
+        "bound_max", "slack_over_bound_median"}``: the bound is the least total slack of
+        the shared linear constraints over every input (constraint units; the bicycle:
+        m/s); the last is the solver's total slack over the bound, median over the
+        infeasible problems (NaN without records or infeasible problems).
+    """
+    shared = SharedConstraints.of(problem)
+    bounds = np.array(
+        [shared_slack_bound(problem, x0, W, shared=shared).total for _, _, x0, W in problems]
+    )
+    infeasible = bounds > INFEASIBLE_TOL
+    ratio = math.nan
+    if records is not None and infeasible.any():
+        slack = np.array([rec.get("slack", math.nan) for rec in records], dtype=float)
+        if slack.size == bounds.size:
+            ratio = float(np.nanmedian(slack[infeasible] / bounds[infeasible]))
+    seeds = sorted({int(p[0]) for p, bad in zip(problems, infeasible, strict=True) if bad})
+    return {
+        "n_problems": int(bounds.size),
+        "n_infeasible": int(infeasible.sum()),
+        "seeds_infeasible": seeds,
+        "bound_median": float(np.median(bounds)) if bounds.size else math.nan,
+        "bound_max": float(np.max(bounds)) if bounds.size else math.nan,
+        "slack_over_bound_median": ratio,
+    }
+
+
 def _horizon_row(
     horizon: int,
     problem: Any,
@@ -177,6 +217,7 @@ def _horizon_row(
     info: dict[str, Any],
     source: str,
     part: str,
+    problems: Sequence[Any] | None = None,
 ) -> dict[str, Any]:
     fast, ref = HORIZON_SOLVERS
     summary = {name: timing_summary(recs) for name, recs in records.items()}
@@ -184,6 +225,9 @@ def _horizon_row(
     if fast in records and ref in records:
         agreement = objective_agreement(records[fast], records[ref])
     n = len(next(iter(records.values()), []))
+    feasibility = None
+    if problems is not None and len(problems) == n:
+        feasibility = feasibility_summary(problem, problems, records.get(fast))
     return {
         "horizon": int(horizon),
         "n_scenarios": int(problem.n_scenarios),
@@ -192,6 +236,7 @@ def _horizon_row(
         "solvers": info,
         "summary": summary,
         "agreement": agreement,
+        "feasibility": feasibility,
         "failures": failures_of(records, part, horizon, problem.n_scenarios),
     }
 
@@ -204,6 +249,7 @@ def sweep_horizons(
     closed_loop: dict[str, Any] | None = None,
     max_time: dict[str, float] | float | None = None,
     progress: bool = False,
+    closed_loop_problems: Sequence[Any] | None = None,
 ) -> dict[str, Any]:
     """The fast solver and IPOPT (condensed) side by side at several horizons ``N``.
 
@@ -226,11 +272,14 @@ def sweep_horizons(
             both or a dict by solver name (default :data:`HORIZON_MAX_TIME_S`); a solve
             that reaches it fails (kind ``wall_time``).
         progress: show progress bars.
+        closed_loop_problems: the problems of ``closed_loop`` (for its row's
+            feasibility figures).
 
     Returns:
         ``{"results": [{"horizon", "n_scenarios", "n_problems", "source", "solvers",
         "summary", "agreement" (:func:`objective_agreement` of fast to IPOPT),
-        "failures"}]}``, times in milliseconds.
+        "feasibility" (:func:`feasibility_summary`, with the fast solver's slack; None
+        without the problems), "failures"}]}``, times in milliseconds.
     """
     cfg = experiment_config(config)
     counts = DEFAULT_HORIZON_STEPS if steps_per_seed is None else steps_per_seed
@@ -245,7 +294,11 @@ def sweep_horizons(
             records = {name: reuse["records"][name] for name in HORIZON_SOLVERS}
             info = {name: reuse["solvers"][name] for name in HORIZON_SOLVERS}
             problem = cfg.make_problem(horizon=n)
-            rows.append(_horizon_row(n, problem, records, info, "closed_loop", "closed_loop"))
+            rows.append(
+                _horizon_row(
+                    n, problem, records, info, "closed_loop", "closed_loop", closed_loop_problems
+                )
+            )
             continue
         steps = counts.get(n, 5) if isinstance(counts, dict) else counts
         problems, _ = record_closed_loop(cfg, seeds, steps, progress, horizon=n)
@@ -261,7 +314,7 @@ def sweep_horizons(
         records = run_interleaved(
             built, problem, problems, warmup=True, progress=progress, desc=f"horizon N={n}"
         )
-        rows.append(_horizon_row(n, problem, records, info, "recorded", "horizon_sweep"))
+        rows.append(_horizon_row(n, problem, records, info, "recorded", "horizon_sweep", problems))
     return {"results": rows}
 
 
@@ -503,6 +556,7 @@ __all__ = [
     "HORIZON_MAX_TIME_S",
     "DEFAULT_SWEEP_NS",
     "DEFAULT_SWEEP_STEPS",
+    "feasibility_summary",
     "first_solve",
     "objective_agreement",
     "sweep_horizons",

@@ -209,6 +209,7 @@ def run_benchmark(
             closed_loop=results["closed_loop"],
             max_time=horizon_max_time,
             progress=progress,
+            closed_loop_problems=problems,
         )
     if sweep_ns:
         results["sweep"] = timed(

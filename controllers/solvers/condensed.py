@@ -72,7 +72,7 @@ class Linearisation:
     grad: np.ndarray  # (N nu,) gradient of the cost
 
 
-def _shared_linear(problem: ScenarioProblem) -> tuple[np.ndarray, np.ndarray]:
+def shared_linear_constraints(problem: ScenarioProblem) -> tuple[np.ndarray, np.ndarray]:
     """Constraints whose condensed Jacobian is one constant row per step, and those rows.
 
     Returns ``(indices (nL,), rows (nL, N, N nu))``: ``d g_j(x_k) / d u`` does not depend
@@ -192,7 +192,7 @@ class CondensedModel:
             self.backend = "casadi-vm"
 
         # --- structure: constraints that are one exact linear row per step ---
-        self.shared, self.shared_rows = _shared_linear(problem)
+        self.shared, self.shared_rows = shared_linear_constraints(problem)
         self.screened = np.array([j for j in range(ng) if j not in set(self.shared)], dtype=int)
 
         # --- cost weights ---
@@ -462,4 +462,4 @@ class CondensedModel:
         return lin.ro.G[self.screened] + change[:, :, self.screened].transpose(2, 0, 1)
 
 
-__all__ = ["CondensedModel", "Linearisation", "Rollout"]
+__all__ = ["CondensedModel", "Linearisation", "Rollout", "shared_linear_constraints"]

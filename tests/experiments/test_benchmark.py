@@ -146,6 +146,26 @@ def test_quick_run_sweeps_the_horizons(quick_run: tuple[dict, str]) -> None:
             assert agreement["share_within_pct"] == pytest.approx(100.0 * within / ok)
 
 
+def test_quick_run_says_which_problems_no_input_can_satisfy(quick_run) -> None:
+    """At N = 30 the scenarios' speeds spread wider than the 8 m/s band (measured: the
+    least slack of seed 0's first two problems is about 100 m/s); the fast solver's plans
+    keep at least that much slack (the bound is a lower bound), and the report says so."""
+    data, path = quick_run
+    rows = {row["horizon"]: row for row in data["horizons"]["results"]}
+    for row in rows.values():
+        f = row["feasibility"]
+        assert f["n_problems"] == row["n_problems"]
+        assert 0 <= f["n_infeasible"] <= f["n_problems"]
+    f30 = rows[30]["feasibility"]
+    assert f30["n_infeasible"] == 2 and f30["seeds_infeasible"] == [0]
+    assert f30["bound_median"] > 10.0
+    assert f30["slack_over_bound_median"] >= 1.0 - 1e-9
+    assert rows[15]["feasibility"]["n_infeasible"] == 0
+    report = bench_report.format_report(data)
+    assert "Infeasible for every input" in report
+    assert "N = 30: 2/2 problems (seeds 0)" in report
+
+
 def test_every_failed_solve_is_listed_with_its_problem(quick_run: tuple[dict, str]) -> None:
     data, _ = quick_run
     failures = data["failures"]
