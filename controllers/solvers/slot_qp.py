@@ -59,13 +59,19 @@ def resolve_qp_solver(solver: str, n_var: int) -> str:
     """
     if solver != "auto":
         return solver
-    if n_var < AUTO_PIQP_VARIABLES:
-        return "qpoases"
+    return "piqp" if n_var >= AUTO_PIQP_VARIABLES and _available("piqp") else "qpoases"
+
+
+def _available(package: str) -> bool:
+    """Whether the optional QP package ``"daqp"`` or ``"piqp"`` imports."""
     try:
-        import piqp  # noqa: F401
+        if package == "daqp":
+            import daqp  # noqa: F401
+        else:
+            import piqp  # noqa: F401
     except ImportError:
-        return "qpoases"
-    return "piqp"
+        return False
+    return True
 
 
 @contextlib.contextmanager
@@ -120,14 +126,10 @@ class SlotQP:
         if solver not in QP_SOLVERS:
             raise ValueError(f"solver={solver!r}: must be one of {QP_SOLVERS}")
         solver = resolve_qp_solver(solver, n_u + n_shared + group_capacity)
-        needs = {"daqp": "daqp", "piqp": "piqp"}.get(solver)
-        if needs:
-            try:
-                __import__(needs)
-            except ImportError as err:
-                raise ValueError(
-                    f"qp_solver={solver!r} needs the {needs} package (pip install {needs})"
-                ) from err
+        if solver in ("daqp", "piqp") and not _available(solver):
+            raise ValueError(
+                f"qp_solver={solver!r} needs the {solver} package (pip install {solver})"
+            )
         self.solver = solver
         self.row_capacity, self.group_capacity = row_capacity, group_capacity
         self.n_u, self.n_speed = n_u, n_shared
