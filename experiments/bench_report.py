@@ -319,13 +319,19 @@ def _failure_lines(failures: list[dict[str, Any]]) -> list[str]:
         f"Failed solves: {len(failures)} ("
         + ", ".join(f"{k} {v}" for k, v in sorted(kinds.items()))
         + ")",
-        f"{'part':<20}{'solver':<25}{'seed':>5}{'step':>6}{'N':>4}{'Ns':>6}  status",
+        f"{'part':<20}{'solver':<25}{'seed':>5}{'step':>6}{'N':>4}{'Ns':>6}"
+        f"{'least slack':>13}  status",
     ]
     for f in failures:
+        least = f.get("least_slack")
         lines.append(
             f"{f['part']:<20}{f['solver']:<25}{f['seed']:>5}{f['step']:>6}{f['N']:>4}"
-            f"{f['Ns']:>6}  {f['status'][:80]}"
+            f"{f['Ns']:>6}{_fmt(least, '.3g'):>13}  {f['status'][:80]}"
         )
+    lines.append(
+        "least slack: the least total slack any input leaves on that problem (> 0: no input "
+        "satisfies every scenario; '-': not computed)"
+    )
     return lines
 
 

@@ -184,10 +184,11 @@ def feasibility_summary(
 
     Returns:
         ``{"n_problems", "n_infeasible", "seeds_infeasible", "bound_median",
-        "bound_max", "slack_over_bound_median"}``: the bound is the least total slack of
-        the shared linear constraints over every input (constraint units; the bicycle:
-        m/s); the last is the solver's total slack over the bound, median over the
-        infeasible problems (NaN without records or infeasible problems).
+        "bound_max", "slack_over_bound_median", "infeasible"}``: the bound is the least
+        total slack of the shared linear constraints over every input (constraint units;
+        the bicycle: m/s); ``slack_over_bound_median`` is the solver's total slack over the
+        bound, median over the infeasible problems (NaN without records or infeasible
+        problems); ``infeasible`` lists ``{"seed", "step", "least_slack"}`` of those.
     """
     shared = SharedConstraints.of(problem)
     bounds = np.array(
@@ -200,6 +201,11 @@ def feasibility_summary(
         if slack.size == bounds.size:
             ratio = float(np.nanmedian(slack[infeasible] / bounds[infeasible]))
     seeds = sorted({int(p[0]) for p, bad in zip(problems, infeasible, strict=True) if bad})
+    listed = [
+        {"seed": int(p[0]), "step": int(p[1]), "least_slack": float(b)}
+        for p, b, bad in zip(problems, bounds, infeasible, strict=True)
+        if bad
+    ]
     return {
         "n_problems": int(bounds.size),
         "n_infeasible": int(infeasible.sum()),
@@ -207,6 +213,7 @@ def feasibility_summary(
         "bound_median": float(np.median(bounds)) if bounds.size else math.nan,
         "bound_max": float(np.max(bounds)) if bounds.size else math.nan,
         "slack_over_bound_median": ratio,
+        "infeasible": listed,
     }
 
 
@@ -226,8 +233,12 @@ def _horizon_row(
         agreement = objective_agreement(records[fast], records[ref])
     n = len(next(iter(records.values()), []))
     feasibility = None
+    failures = failures_of(records, part, horizon, problem.n_scenarios)
     if problems is not None and len(problems) == n:
         feasibility = feasibility_summary(problem, problems, records.get(fast))
+        least = {(f["seed"], f["step"]): f["least_slack"] for f in feasibility["infeasible"]}
+        for f in failures:  # a failure on a problem no input can satisfy says so
+            f["least_slack"] = least.get((f["seed"], f["step"]), 0.0)
     return {
         "horizon": int(horizon),
         "n_scenarios": int(problem.n_scenarios),
@@ -237,7 +248,7 @@ def _horizon_row(
         "summary": summary,
         "agreement": agreement,
         "feasibility": feasibility,
-        "failures": failures_of(records, part, horizon, problem.n_scenarios),
+        "failures": failures,
     }
 
 

@@ -164,13 +164,20 @@ def test_quick_run_says_which_problems_no_input_can_satisfy(quick_run) -> None:
     report = bench_report.format_report(data)
     assert "Infeasible for every input" in report
     assert "N = 30: 2/2 problems (seeds 0)" in report
+    least = {(f["seed"], f["step"]): f["least_slack"] for f in f30["infeasible"]}
+    assert sorted(least) == [(0, 0), (0, 1)]
+    for f in data["failures"]:  # a failed N = 30 solve carries its problem's least slack
+        if f["part"] == "horizon_sweep" and f["N"] == 30:
+            assert f["least_slack"] == least[(f["seed"], f["step"])]
 
 
 def test_every_failed_solve_is_listed_with_its_problem(quick_run: tuple[dict, str]) -> None:
     data, _ = quick_run
     failures = data["failures"]
+    keys = {"part", "solver", "seed", "step", "N", "Ns", "kind", "status"}
     for f in failures:
-        assert set(f) == {"part", "solver", "seed", "step", "N", "Ns", "kind", "status"}
+        # horizon-sweep failures also give the problem's least slack over every input
+        assert set(f) - keys <= {"least_slack"} and keys <= set(f)
         assert f["kind"] == bench_solvers.classify_failure(f["status"])
     # The list matches the success counts of every part, solver by solver.
     closed = data["closed_loop"]
