@@ -36,11 +36,11 @@ QP_SOLVERS = ("auto", "daqp", "piqp", "qpoases")
 # Proximal terms on the step (relative to the largest Hessian diagonal entry) of the
 # retries of a failed QP: none first.
 PROXIMAL_STEPS = (0.0, 1e-8, 1e-4)
-DAQP_INF = 1e30  # DAQP's infinity (a bound at or beyond it is none)
+# DAQP's and PIQP's infinity: a bound at or beyond it is none.
+INF_BOUND = 1e30
 # DAQP's primal feasibility tolerance [m, m/s]: below the SQP's check-and-add tolerance,
 # so that rows close to a QP row are not added round after round (DAQP's default is 1e-6).
 DAQP_PRIMAL_TOL = 1e-10
-PIQP_INF = 1e30  # PIQP's infinity
 PIQP_EPS_ABS = 1e-9  # PIQP's absolute tolerance on the KKT residuals
 PIQP_EPS_REL = 1e-12
 # "auto": QPs with at least this many variables (inputs of the horizon, shared slacks,
@@ -162,7 +162,8 @@ class SlotQP:
         self._stale = False  # reset() was called: no hot start at the next call
         if solver == "qpoases":
             self._build_conic()
-        # DAQP reads simple bounds first, then the rows: [bounds (nv), rows (<= cap)].
+        # Finite simple bounds for DAQP and PIQP; DAQP reads the rows' bounds after them:
+        # [bounds (nv), rows (<= cap)].
         self._bu = np.empty(nv + cap)
         self._bl = np.empty(nv + cap)
 
@@ -362,13 +363,11 @@ class SlotQP:
         """DAQP on the rows in use (finite ``uba``), cold started."""
         import daqp
 
-        rows = np.flatnonzero(self.uba < np.inf)
+        rows = self._rows_and_bounds()
         nv, m = self.n_var, rows.size
         bu, bl = self._bu[: nv + m], self._bl[: nv + m]
-        np.minimum(self.ubx, DAQP_INF, out=bu[:nv])
-        np.maximum(self.lbx, -DAQP_INF, out=bl[:nv])
         bu[nv:] = self.uba[rows]
-        bl[nv:] = -DAQP_INF
+        bl[nv:] = -INF_BOUND
         x, _, flag, info = daqp.solve(
             self.H,
             self.g,
@@ -378,23 +377,15 @@ class SlotQP:
             primal_tol=DAQP_PRIMAL_TOL,
             time_limit=self.max_time if math.isfinite(self.max_time) else 0,
         )
-        self.lam_a[:] = 0.0
-        if flag not in (1, 2):  # optimal, soft-optimal; < 0: infeasible, cycling, limits
-            self.x[:] = np.nan
-            return False
-        self.x[:] = x
-        self.lam_a[rows] = info["lam"][nv:]
-        return bool(np.all(np.isfinite(self.x)))
+        # flag 1, 2: optimal, soft-optimal; < 0: infeasible, cycling, limits
+        return self._store(flag in (1, 2), x, rows, info["lam"][nv:])
 
     def _solve_piqp(self) -> bool:
         """PIQP (proximal interior point, dense) on the rows in use, cold started."""
         import piqp
 
-        rows = np.flatnonzero(self.uba < np.inf)
+        rows = self._rows_and_bounds()
         nv = self.n_var
-        bu, bl = self._bu[:nv], self._bl[:nv]
-        np.minimum(self.ubx, PIQP_INF, out=bu)
-        np.maximum(self.lbx, -PIQP_INF, out=bl)
         qp = piqp.DenseSolver()
         qp.settings.eps_abs = PIQP_EPS_ABS
         qp.settings.eps_rel = PIQP_EPS_REL
@@ -406,16 +397,29 @@ class SlotQP:
             np.asfortranarray(self.A[rows]),
             None,
             self.uba[rows],
-            bl,
-            bu,
+            self._bl[:nv],
+            self._bu[:nv],
         )
-        status = qp.solve()
+        solved = qp.solve() == piqp.PIQP_SOLVED
+        return self._store(solved, qp.result.x, rows, qp.result.z_u)
+
+    def _rows_and_bounds(self) -> np.ndarray:
+        """The rows in use (finite ``uba``); the simple bounds, clipped to
+        ``+-INF_BOUND``, into the first ``n_var`` entries of ``_bl`` and ``_bu``."""
+        nv = self.n_var
+        np.minimum(self.ubx, INF_BOUND, out=self._bu[:nv])
+        np.maximum(self.lbx, -INF_BOUND, out=self._bl[:nv])
+        return np.flatnonzero(self.uba < np.inf)
+
+    def _store(self, solved: bool, x: np.ndarray, rows: np.ndarray, lam: np.ndarray) -> bool:
+        """Keep a cold-started solver's result (``x``, the multipliers ``lam`` of ``rows``);
+        True if it solved with a finite step."""
         self.lam_a[:] = 0.0
-        if status != piqp.PIQP_SOLVED:
+        if not solved:
             self.x[:] = np.nan
             return False
-        self.x[:] = qp.result.x
-        self.lam_a[rows] = qp.result.z_u
+        self.x[:] = x
+        self.lam_a[rows] = lam
         return bool(np.all(np.isfinite(self.x)))
 
 
