@@ -199,7 +199,11 @@ class CondensedModel:
         self._goal = np.ascontiguousarray(cost.x_goal, dtype=float)
         self._diagonal = cost.diagonal
         weights = np.stack([cost.Q] * (n - 1) + [cost.Qf])  # (N, nx, nx) for steps 1..N
-        self._w_state = weights
+        self._w_state = np.ascontiguousarray(weights, dtype=float)
+        # The kernel's constant arguments, and the addresses of the arrays a solve passes at
+        # every call (its x0 and forces; :meth:`_held`).
+        self._weights_p = (ptr(self._goal), ptr(self._w_state))
+        self._held_ptrs: dict[int, tuple[np.ndarray, int]] = {}
         self._w_diag = np.stack([np.diag(m) for m in weights])  # (N, nx)
         self._R2 = 2.0 * cost.R
         self._r_diag = np.tile(np.diag(cost.R), n)
@@ -220,6 +224,19 @@ class CondensedModel:
         if W.dtype != np.float64:
             raise ValueError(f"W: must be float64, got {W.dtype}")
         return tuple(W.strides[a] // W.itemsize for a in axes)
+
+    def _held(self, a: np.ndarray) -> int:
+        """``ptr(a)`` of an array passed again and again (a solve's initial states and
+        forces), remembered by identity; the few arrays remembered are kept referenced, so
+        their ids cannot be reused by other arrays meanwhile."""
+        entry = self._held_ptrs.get(id(a))
+        if entry is not None and entry[0] is a:
+            return entry[1]
+        if len(self._held_ptrs) >= 8:
+            self._held_ptrs.clear()
+        address = ptr(a)
+        self._held_ptrs[id(a)] = (a, address)
+        return address
 
     # ------------------------------------------------------------------ evaluation
 
@@ -259,9 +276,9 @@ class CondensedModel:
             sa, sk, si = self._strides(W, (2, 0, 1))
             x0c = np.ascontiguousarray(x0T, dtype=float)
             c_sum = np.zeros(1)  # the state cost summed over scenarios
-            weights = (ptr(self._goal), ptr(self._w_state))
             out = (ptr(X), ptr(G), ptr(c_sum))
-            if self._lib.lfm_rollout(n, ns, ptr(x0c), ptr(W), sa, sk, si, ptr(u), *weights, *out):
+            x0p, Wp = self._held(x0c), self._held(W)
+            if self._lib.lfm_rollout(n, ns, x0p, Wp, sa, sk, si, ptr(u), *self._weights_p, *out):
                 X[:], G[:], c_sum[:] = np.nan, np.nan, np.nan
         else:
             X[0] = x0T
@@ -402,9 +419,10 @@ class CondensedModel:
         Jg = np.empty((n, ns, ng, nx))
         grad = np.empty(n_u)
         sa, sk, si = self._strides(W_lanes, (0, 1, 2))
-        args = (ptr(self._goal), ptr(self._w_state), 2.0 / ns)
+        args = (*self._weights_p, 2.0 / ns)
         out = (ptr(A), ptr(S), ptr(Jg), ptr(grad))
-        if self._lib.lfm_linearise(n, ns, ptr(X), ptr(W_lanes), sa, sk, si, ptr(u), *args, *out):
+        Wp = self._held(W_lanes)
+        if self._lib.lfm_linearise(n, ns, ptr(X), Wp, sa, sk, si, ptr(u), *args, *out):
             grad[:] = np.nan
         grad += (u.reshape(n, nu) @ self._R2).ravel()  # d(u' R u)/du, R symmetric
         return Linearisation(ro=ro, A=A, S=S, Jg=Jg, grad=grad)
@@ -418,7 +436,7 @@ class CondensedModel:
         H = np.empty((n_u, n_u))
         sa, sk, si = self._strides(W_lanes, (0, 1, 2))
         data = (ptr(lin.ro.u), ptr(lin.A), ptr(lin.S), ptr(lin.Jg), ptr(mu_c))
-        weights = (ptr(self._goal), ptr(self._w_state), 2.0 / ns)
+        weights = (*self._weights_p, 2.0 / ns)
         # The kernel leaves sum_j S_j' (Mxx_j S_j) (stacked over scenarios) to BLAS.
         blocks = None
         if self.blas_products:
@@ -427,7 +445,8 @@ class CondensedModel:
                 self._blocks = np.empty(shape)
             blocks = self._blocks
         out = (ptr(H), ptr(blocks))
-        if self._lib.lfm_hessian(n, ns, ptr(X), ptr(W_lanes), sa, sk, si, *data, *weights, *out):
+        Wp = self._held(W_lanes)
+        if self._lib.lfm_hessian(n, ns, ptr(X), Wp, sa, sk, si, *data, *weights, *out):
             H[:] = np.nan
         if blocks is not None:
             S = lin.S.reshape(n, ns * self.nx, n_u)

@@ -374,7 +374,7 @@ class FastScenarioSolver(SubproblemMixin):
                 with np.errstate(all="ignore"):
                     lin = model.linearise(ro, data.W_lanes)
                     H = model.hessian(lin, mu, data.W_lanes)
-                if not (np.all(np.isfinite(H)) and np.all(np.isfinite(lin.grad))):
+                if not (np.isfinite(H).all() and np.isfinite(lin.grad).all()):
                     status = "Invalid_Derivatives"
                     break
                 try:

@@ -177,12 +177,13 @@ class SubproblemMixin:
         step = active % n
         j_of = screened[active // n]
         X = ro.X[1:]  # (N, nx, Ns)
-        for state in range(self.problem.nx):
+        for state in np.flatnonzero(m.depends[screened].any(axis=0)):
             users = m.depends[j_of, state]
             if users.any():
                 steps = step[users]
-                flat.append(active[users] * ns + X[steps, state].argmax(axis=1))
-                flat.append(active[users] * ns + X[steps, state].argmin(axis=1))
+                # the extreme scenarios of every step, then those of the groups' steps
+                flat.append(active[users] * ns + X[:, state].argmax(axis=1)[steps])
+                flat.append(active[users] * ns + X[:, state].argmin(axis=1)[steps])
         group, scen = np.divmod(np.unique(np.concatenate(flat)), ns)
         return np.column_stack([screened[group // n], group % n, scen])
 
