@@ -7,7 +7,13 @@ import sys
 import numpy as np
 import pytest
 
-from controllers.solvers.slot_qp import AUTO_PIQP_VARIABLES, QP_SOLVERS, SlotQP, resolve_qp_solver
+from controllers.solvers.slot_qp import (
+    AUTO_PIQP_VARIABLES,
+    MAX_SPENT_MEMORIES,
+    QP_SOLVERS,
+    SlotQP,
+    resolve_qp_solver,
+)
 
 
 def _qp(rows: int = 8, groups: int = 4, solver: str = "qpoases") -> SlotQP:
@@ -118,3 +124,36 @@ def test_without_piqp_auto_falls_back_and_piqp_is_an_error(monkeypatch) -> None:
     assert resolve_qp_solver("auto", 10 * AUTO_PIQP_VARIABLES) == "qpoases"
     with pytest.raises(ValueError, match="qp_solver='piqp' needs the piqp package"):
         _qp(solver="piqp")
+
+
+def _small_random_qp(qp: SlotQP, rng: np.random.Generator) -> None:
+    """A random strictly convex QP with two active-ish rows in two groups on ``qp``."""
+    M = rng.normal(size=(2, 2))
+    lo = np.full(2, -1.0)
+    qp.set_problem(M @ M.T + np.eye(2), rng.normal(size=2), lo, -lo, np.empty((0, 2)), np.empty(0))
+    row, col = qp.assign(np.array([1, 2]), np.array([7, 9]))
+    qp.set_position_rows(row, col, rng.normal(size=(2, 2)), rng.normal(size=2) - 0.5)
+
+
+def test_after_reset_qpoases_starts_cold_however_many_problems_came_before() -> None:
+    """A reset QP object solves like a new one, bit for bit, also after more resets than it
+    keeps spent qpOASES memories (then it builds a new conic), and it keeps no more."""
+    rng = np.random.default_rng(3)
+    target = _qp()
+    _small_random_qp(target, np.random.default_rng(99))
+    expected = target.solve()
+    used = _qp()
+    assert used.max_spent == MAX_SPENT_MEMORIES  # (a small QP)
+    for _ in range(MAX_SPENT_MEMORIES + 5):
+        _small_random_qp(used, rng)  # a hot-started history on this object
+        assert used.solve()[2]
+        _small_random_qp(used, rng)
+        assert used.solve()[2]
+        used.reset()
+        _small_random_qp(used, np.random.default_rng(99))
+        z, lam, ok = used.solve()
+        assert ok
+        np.testing.assert_array_equal(z, expected[0])
+        np.testing.assert_array_equal(lam, expected[1])
+        assert len(used._spent) <= MAX_SPENT_MEMORIES
+        used.reset()
