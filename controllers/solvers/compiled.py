@@ -405,59 +405,58 @@ CASADI_SYMBOL_EXPORT int lfm_linear_change(long n, long ns, const double* S,
   return 0;
 }
 
-/* Phase 1 of the Hessian: the adjoints lambda and the step Hessians M (N, Ns, NZ, NZ). */
-static int step_hessians(work_t* wkp, long n, long ns, const double* X, const double* W,
-    long sa, long sk, long si, const double* u, const double* P, const double* A,
-    const double* Jg, const double* mu, const double* goal, const double* Wq, double scale,
-    double* lam, double* M) {
+/* Step k of scenario i in the backward sweep: its adjoint lambda_k = dl/dx_{k+1} + Jg' mu
+   + A_{k+1}' lambda_{k+1} (lam_next; none at the last step) into lam_k, its Hessian
+   M = d2(lambda_k' F)/dz2 at (x_k, u_k) (NZ x NZ, column-major) and its uu terms into H. */
+static inline int step_hessian(work_t* wkp, long n, long ns, long k, long i, const double* X,
+    const double* W, long sa, long sk, long si, const double* u, const double* P,
+    const double* A, const double* Jg, const double* mu, const double* goal, const double* Wq,
+    double scale, const double* lam_next, double* lam_k, double* M, double* H) {
   work_t wk = *wkp;
+  const long nut = n * NU;
   double x[NX], wv[NW + 1];
-  for (long i = 0; i < ns; ++i) {
-    /* lam_k = dl/dx_{k+1} + Jg' mu + A_{k+1}' lam_{k+1} (lam_k: the state of step k+1) */
-    for (long k = 0; k < n; ++k) {
-      load_state(X, k + 1, ns, i, x);
-      double* lk = lam + k * NX;
-      weighted(x, goal, Wq + k * NX * NX, scale, lk);
+  double* lk = lam_k + i * NX;
+  load_state(X, k + 1, ns, i, x);
+  weighted(x, goal, Wq + k * NX * NX, scale, lk);
 #if NG > 0
-      if (mu) {
-        const double* Jk = Jg + (k * ns + i) * NG * NX;
-        for (int j = 0; j < NG; ++j) {
-          const double mj = mu[(j * n + k) * ns + i];
-          if (mj != 0.0)
-            for (int m = 0; m < NX; ++m) lk[m] += mj * Jk[j * NX + m];
-        }
-      }
-#endif
-    }
-    for (long k = n - 2; k >= 0; --k) {
-      const double* Ak = A + ((k + 1) * ns + i) * NX * NX;
-      for (int m = 0; m < NX; ++m) {
-        double s = 0.0;
-        for (int r = 0; r < NX; ++r) s += lam[(k + 1) * NX + r] * Ak[r * NX + m];
-        lam[k * NX + m] += s;
-      }
-    }
-    for (long k = 0; k < n; ++k) {
-      load_state(X, k, ns, i, x);
-      gather(W, sa, sk, si, k, i, wv);
-      if (CALL5(lfm_step_hess, x, u + k * NU, wv, P + k * NP_STEP_HESS, lam + k * NX,
-                M + (k * ns + i) * NZ * NZ)) return 1;
+  if (mu) {
+    const double* Jk = Jg + (k * ns + i) * NG * NX;
+    for (int j = 0; j < NG; ++j) {
+      const double mj = mu[(j * n + k) * ns + i];
+      if (mj != 0.0)
+        for (int m = 0; m < NX; ++m) lk[m] += mj * Jk[j * NX + m];
     }
   }
+#else
+  (void)Jg; (void)mu;
+#endif
+  if (k < n - 1) {
+    const double* Ak = A + ((k + 1) * ns + i) * NX * NX;
+    const double* ln = lam_next + i * NX;
+    for (int m = 0; m < NX; ++m) {
+      double s = 0.0;
+      for (int r = 0; r < NX; ++r) s += ln[r] * Ak[r * NX + m];
+      lk[m] += s;
+    }
+  }
+  load_state(X, k, ns, i, x);
+  gather(W, sa, sk, si, k, i, wv);
+  if (CALL5(lfm_step_hess, x, u + k * NU, wv, P + k * NP_STEP_HESS, lk, M)) return 1;
+  for (int a = 0; a < NU; ++a)
+    for (int b = a; b < NU; ++b) H[(k * NU + a) * nut + k * NU + b] += M[(NX + a) + (NX + b) * NZ];
   return 0;
 }
 
-/* The state curvature of step j, scenario i: scale Wq + M_j[x, x] + Hessian of mu' g. */
-static int state_curvature(work_t* wkp, long n, long ns, long j, long i, const double* X,
-    const double* M, const double* mu, const double* Wq, double scale, double* Mxx) {
+/* The curvature of state x_j (j = 1..N) of scenario i: Mxx = scale Wq_j + M_j[x, x] (the
+   Hessian of step j, when j < N: Mj not NULL) + the Hessian of mu' g at x_j. */
+static inline int state_curvature(work_t* wkp, long n, long ns, long j, long i, const double* X,
+    const double* Mj, const double* mu, const double* Wq, double scale, double* Mxx) {
   work_t wk = *wkp;
   const double* Wk = Wq + (j - 1) * NX * NX;
   for (int a = 0; a < NX * NX; ++a) Mxx[a] = scale * Wk[a];
-  if (j < n) {
-    const double* Mj = M + (j * ns + i) * NZ * NZ;
+  if (Mj)
     for (int r = 0; r < NX; ++r)
       for (int c = 0; c < NX; ++c) Mxx[r * NX + c] += Mj[r + c * NZ];
-  }
 #if NG > 0
   if (mu) {
     double mk[NG], hg[NX * NX], x[NX];
@@ -471,9 +470,38 @@ static int state_curvature(work_t* wkp, long n, long ns, long j, long i, const d
     }
   }
 #else
-  (void)X; (void)mu; (void)wk;
+  (void)X; (void)mu; (void)wk; (void)n; (void)ns; (void)i;
 #endif
   return 0;
+}
+
+/* The products of state x_j of scenario i (Mxx its curvature, Sj (NX, N NU) its
+   sensitivity): Mxx Sj into the BLAS blocks Tb (rows i NX.., first j NU columns) or into
+   St / Tt (transposed, for the C products), and, with the Hessian Mj of step j, the cross
+   terms Sj' Mj[x, u] into columns j NU.. of H. */
+static inline void state_products(long n, long ns, long j, long i, const double* Mxx,
+    const double* Sj, const double* Mj, double* Tb, double* St, double* Tt, double* H) {
+  const long nut = n * NU, rows = ns * NX, cols = j * NU;
+  for (long c = 0; c < cols; ++c) {
+    double sc[NX];
+    for (int r = 0; r < NX; ++r) sc[r] = Sj[r * nut + c];
+    for (int m = 0; m < NX; ++m) {
+      double t = 0.0;
+      for (int r = 0; r < NX; ++r) t += Mxx[m * NX + r] * sc[r];
+      if (Tb) {
+        Tb[(i * NX + m) * nut + c] = t;
+      } else {
+        St[c * rows + i * NX + m] = sc[m];
+        Tt[c * rows + i * NX + m] = t;
+      }
+    }
+    if (Mj)
+      for (int b = 0; b < NU; ++b) {
+        double x = 0.0;
+        for (int r = 0; r < NX; ++r) x += sc[r] * Mj[r + (NX + b) * NZ];
+        H[c * nut + j * NU + b] += x;
+      }
+  }
 }
 
 CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const double* W,
@@ -484,64 +512,56 @@ CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const dou
      sum_j S_j' Mxx_j S_j (S_j stacked over scenarios: one product of length Ns NX per
      entry) + the cross terms S_k' M_k[x, u] + M_k[u, u]. Upper triangle, then mirrored.
      With blocks (N, Ns NX, N NU) given, the products S_j' (Mxx_j S_j) are left to the
-     caller (one matrix product per step): blocks[j - 1] = Mxx_j S_j, first j NU columns. */
+     caller (one matrix product per step): blocks[j - 1] = Mxx_j S_j, first j NU columns.
+     One backward sweep over the steps, all scenarios at each: the adjoints lambda_k of
+     step k, its Hessian M_k (used at once, never stored) and every term of step k, so
+     the arrays are read in their (step, scenario) order. Each entry of H sums its terms
+     over the scenarios in ascending order, as a scenario-by-scenario sweep would. */
   work_t wk;
   if (work_alloc(&wk)) return 1;
   const long nut = n * NU, rows = ns * NX;
   double* P = parametric(&wk, lfm_step_hess_pre, NP_STEP_HESS, n, u);
   const long own = blocks ? 0 : 2 * nut * rows;
-  double* M = malloc((n * ns * NZ * NZ + n * NX + own + 1) * sizeof(double));
-  if (!P || !M) { free(P); free(M); work_free(&wk); return 1; }
-  double* lam = M + n * ns * NZ * NZ;
-  double Mxx[NX * NX];
-  int status = step_hessians(&wk, n, ns, X, W, sa, sk, si, u, P, A, Jg, mu, goal, Wq, scale,
-                             lam, M);
+  double* lam = malloc((2 * rows + own + 1) * sizeof(double));
+  if (!P || !lam) { free(P); free(lam); work_free(&wk); return 1; }
+  double* lam_k = lam;         /* lambda_k (the adjoint of x_{k+1}), (Ns, NX) */
+  double* lam_next = lam + rows; /* lambda_{k+1} */
+  double* St = lam + 2 * rows; /* S_j' (cols, Ns NX) */
+  double* Tt = St + nut * rows; /* (Mxx_j S_j)' */
+  double Mxx[NX * NX], M[NZ * NZ];
+  int status = 0;
   memset(H, 0, nut * nut * sizeof(double));
-  for (long j = 1; j <= n && !status; ++j) {
-    const long cols = j * NU;
-    double* St = lam + n * NX; /* S_j' (cols, Ns NX) */
-    double* Tt = St + nut * rows; /* (Mxx_j S_j)' */
-    double* Tb = blocks ? blocks + (j - 1) * rows * nut : NULL; /* Mxx_j S_j (Ns NX, nut) */
+  for (long k = n; k >= 1 && !status; --k) {
+    /* Step k (k < N): lambda_k and M_k of every scenario, their uu and cross terms; the
+       products of state x_k. (k = N: the last state has no step after it.) */
+    const long j = k;
+    double* Tb = blocks ? blocks + (j - 1) * rows * nut : NULL;
     for (long i = 0; i < ns && !status; ++i) {
-      status = state_curvature(&wk, n, ns, j, i, X, M, mu, Wq, scale, Mxx);
-      const double* Sj = S + ((j - 1) * ns + i) * NX * nut;
-      const double* Mj = M + (j * ns + i) * NZ * NZ; /* step j's Hessian (j < N) */
-      for (long c = 0; c < cols; ++c) {
-        double sc[NX];
-        for (int r = 0; r < NX; ++r) sc[r] = Sj[r * nut + c];
-        for (int m = 0; m < NX; ++m) {
-          double t = 0.0;
-          for (int r = 0; r < NX; ++r) t += Mxx[m * NX + r] * sc[r];
-          if (Tb) {
-            Tb[(i * NX + m) * nut + c] = t;
-          } else {
-            St[c * rows + i * NX + m] = sc[m];
-            Tt[c * rows + i * NX + m] = t;
-          }
-        }
-        if (j < n) /* cross terms of step j: S_j' M_j[x, u] into columns j NU.. */
-          for (int b = 0; b < NU; ++b) {
-            double x = 0.0;
-            for (int r = 0; r < NX; ++r) x += sc[r] * Mj[r + (NX + b) * NZ];
-            H[c * nut + j * NU + b] += x;
-          }
+      const double* Mj = NULL;
+      if (k < n) {
+        status = step_hessian(&wk, n, ns, k, i, X, W, sa, sk, si, u, P, A, Jg, mu, goal, Wq,
+                              scale, lam_next, lam_k, M, H);
+        Mj = M;
       }
+      if (!status) status = state_curvature(&wk, n, ns, j, i, X, Mj, mu, Wq, scale, Mxx);
+      if (!status)
+        state_products(n, ns, j, i, Mxx, S + ((j - 1) * ns + i) * NX * nut, Mj, Tb, St, Tt, H);
     }
-    if (!blocks)
+    if (!blocks) {
+      const long cols = j * NU;
       for (long a = 0; a < cols; ++a)
         for (long b = a; b < cols; ++b) H[a * nut + b] += dot(St + a * rows, Tt + b * rows, rows);
-  }
-  for (long k = 0; k < n; ++k)
-    for (long i = 0; i < ns; ++i) {
-      const double* Mk = M + (k * ns + i) * NZ * NZ;
-      for (int a = 0; a < NU; ++a)
-        for (int b = a; b < NU; ++b)
-          H[(k * NU + a) * nut + k * NU + b] += Mk[(NX + a) + (NX + b) * NZ];
     }
+    if (k < n) { double* t = lam_next; lam_next = lam_k; lam_k = t; }
+  }
+  /* Step 0: its adjoint and Hessian (uu terms only: x_0 is fixed). */
+  for (long i = 0; i < ns && !status && n > 0; ++i)
+    status = step_hessian(&wk, n, ns, 0, i, X, W, sa, sk, si, u, P, A, Jg, mu, goal, Wq, scale,
+                          lam_next, lam_k, M, H);
   for (long a = 0; a < nut; ++a)
     for (long b = 0; b < a; ++b) H[a * nut + b] = H[b * nut + a];
   free(P);
-  free(M);
+  free(lam);
   work_free(&wk);
   return status;
 }
