@@ -24,6 +24,7 @@ compiler is found or compilation fails; the caller then falls back to NumPy.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import hashlib
 import os
@@ -32,6 +33,7 @@ import shutil
 import subprocess
 import tempfile
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,6 +46,8 @@ COMPILE_TIMEOUT = 120.0  # [s] a compile taking longer is abandoned (fallback)
 
 # Loaded libraries of this process, by source hash (a second build is free).
 _LOADED: dict[str, ctypes.CDLL] = {}
+# The cache directories that replace the configured one inside fresh_cache() (innermost last).
+_CACHE_OVERRIDE: list[Path] = []
 
 
 class KernelUnavailable(RuntimeError):
@@ -51,9 +55,33 @@ class KernelUnavailable(RuntimeError):
 
 
 def cache_dir() -> Path:
-    """The kernel cache directory: ``$LFM_CACHE_DIR`` or ``~/.cache/lfm-scenario-mpc``."""
+    """The kernel cache directory: ``$LFM_CACHE_DIR`` or ``~/.cache/lfm-scenario-mpc``
+    (inside :func:`fresh_cache`, its temporary directory)."""
+    if _CACHE_OVERRIDE:
+        return _CACHE_OVERRIDE[-1]
     env = os.environ.get(CACHE_ENV)
     return Path(env) if env else Path.home() / ".cache" / "lfm-scenario-mpc"
+
+
+@contextlib.contextmanager
+def fresh_cache() -> Iterator[Path]:
+    """An empty, temporary kernel cache for the duration, yielded as a path.
+
+    A kernel built inside is compiled anew (the libraries this process has loaded are set
+    aside meanwhile, and restored after), so its ``compile_time`` is a cold build's: the
+    benchmark measures compilation this way without touching the real cache. Solvers
+    built inside keep their loaded library after the directory is removed.
+    """
+    saved = dict(_LOADED)
+    _LOADED.clear()
+    with tempfile.TemporaryDirectory(prefix="lfm-kernel-cache-") as tmp:
+        _CACHE_OVERRIDE.append(Path(tmp))
+        try:
+            yield Path(tmp)
+        finally:
+            _CACHE_OVERRIDE.pop()
+            _LOADED.clear()
+            _LOADED.update(saved)
 
 
 def find_compiler() -> list[str]:
@@ -578,6 +606,7 @@ __all__ = [
     "cache_dir",
     "find_compiler",
     "forget_loaded",
+    "fresh_cache",
     "kernel_source",
     "pointwise_functions",
 ]

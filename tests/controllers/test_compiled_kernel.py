@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from controllers.problem import ScenarioProblem
-from controllers.solvers import make_solver
+from controllers.solvers import compiled, make_solver
 from controllers.solvers.compiled import KernelUnavailable, forget_loaded
 from controllers.solvers.condensed import CondensedModel
 from controllers.solvers.fast_bicycle import BicycleCondensedModel
@@ -203,6 +203,27 @@ def test_the_disk_cache_serves_a_second_build_without_a_compiler(
     assert second.backend == "compiled-c" and second.cache_hit
     # And within the process, without looking at the disk again.
     assert CondensedModel(paper).cache_hit
+
+
+def test_a_fresh_cache_compiles_anew_and_leaves_the_real_one(paper, paper_models) -> None:
+    """Inside ``compiled.fresh_cache()`` the kernel is compiled again into a temporary
+    directory (the benchmark's cold first build); afterwards the configured cache and the
+    libraries loaded before are back, and a solver built inside still solves."""
+    before = compiled.cache_dir()
+    assert CondensedModel(paper).cache_hit  # loaded in this process (paper_models)
+    with compiled.fresh_cache() as tmp:
+        assert compiled.cache_dir() == tmp
+        model = CondensedModel(paper, kernel="c")
+        assert not model.cache_hit and model.compile_time > 0
+        assert len(list(tmp.glob("lfm_kernel_*.so"))) == 1
+        solver = make_solver(paper, "fast")
+    assert compiled.cache_dir() == before and not tmp.exists()
+    assert CondensedModel(paper).cache_hit
+    x0, W = DATA["x0"][0], DATA["W"][0]
+    sol = solver.solve(x0, W, u_guess=DATA["reference_u"][0])
+    reference = make_solver(paper, "fast").solve(x0, W, u_guess=DATA["reference_u"][0])
+    assert sol.success and sol.extra["backend"] == "compiled-c"
+    np.testing.assert_array_equal(sol.u, reference.u)
 
 
 _BUILD = """

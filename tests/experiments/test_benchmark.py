@@ -118,6 +118,11 @@ def test_quick_run_writes_complete_json(quick_run: tuple[dict, str]) -> None:
     for row in first:
         assert row["build_s"] > 0 and row["first_solve_ms"] > 0 and row["success"]
         assert row["backend"]
+    # The first build compiles its kernel in an empty cache, the second finds it.
+    assert [row["kernel_cache"] for row in first] == ["fresh", "as found"]
+    if first[0]["backend"] == "compiled-c":
+        assert not first[0]["cache_hit"] and first[0]["kernel_compile_time_s"] > 0
+        assert first[1]["cache_hit"]
 
 
 def test_quick_run_sweeps_the_horizons(quick_run: tuple[dict, str]) -> None:
