@@ -250,6 +250,9 @@ def test_targets_of_the_run_follow_from_its_figures(quick_run: tuple[dict, str])
     assert by_key["qp_failed"]["value"] == len(qp)
     pf = next(r for r in data["particle_filter"]["results"] if r["n_particles"] == 7000)
     assert by_key["pf_step_ms"]["value"] == pf["step_ms_median"]
+    cold = data["first_solve"]["results"][0]
+    assert cold["kernel_cache"] == "fresh"
+    assert by_key["cold_build_s"]["value"] == cold["total_s"] > 0
     # The textbook and csnlp were skipped, and the quick sweep has no Ns = 5000.
     skipped = {t["key"] for t in targets if t["passed"] is None}
     assert {"textbook_over_fast", "worse_share_pct", "csnlp_over_fast"} <= skipped
