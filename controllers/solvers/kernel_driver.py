@@ -1,0 +1,365 @@
+"""The fixed C driver of the compiled kernel (:mod:`controllers.solvers.compiled`).
+
+System-independent C that loops over the steps and scenarios and calls the system's
+pointwise functions, which :func:`controllers.solvers.compiled.kernel_source` generates and
+puts in front of it (with the sizes ``NX``, ``NU``, ``NW``, ``NG``, ``NP_*`` as macros and the
+work-size queries at ``@WORK@``). Entry points: ``lfm_rollout``, ``lfm_linearise``,
+``lfm_linear_change`` and ``lfm_hessian``; their argument types are declared in
+:func:`controllers.solvers.compiled._declare`. Both sweeps run step by step over all
+scenarios, in the (step, scenario) order of the arrays.
+"""
+
+# The driver. Layouts (C order): x0T (NX, Ns); W any (strides sa, sk, si of force
+# component, step, scenario, in elements); u (N NU); goal (NX);
+# Wq (N, NX, NX) state weights of steps 1..N; X (N+1, NX, Ns); G (NG, N, Ns);
+# A (N, Ns, NX, NX); S (N, Ns, NX, N NU); Jg (N, Ns, NG, NX); mu (NG, N, Ns); H (N NU, N NU).
+DRIVER = r"""
+#include <stdlib.h>
+#include <string.h>
+#define NZ (NX + NU)
+
+typedef int (*cfun)(const casadi_real**, casadi_real**, casadi_int*, casadi_real*, int);
+typedef struct {
+  const casadi_real** arg; casadi_real** res; casadi_int* iw; casadi_real* w;
+} work_t;
+
+static int work_alloc(work_t* wk) {
+  casadi_int a = 0, r = 0, i = 0, w = 0, sa, sr, si, sw;
+#define W(f) f##_work(&sa, &sr, &si, &sw); a = a > sa ? a : sa; r = r > sr ? r : sr; \
+  i = i > si ? i : si; w = w > sw ? w : sw;
+  @WORK@
+#undef W
+  wk->arg = malloc((a + 1) * sizeof(void*));
+  wk->res = malloc((r + 1) * sizeof(void*));
+  wk->iw = malloc((i + 1) * sizeof(casadi_int));
+  wk->w = malloc((w + 1) * sizeof(casadi_real));
+  return wk->arg && wk->res && wk->iw && wk->w ? 0 : 1;
+}
+
+static void work_free(work_t* wk) { free(wk->arg); free(wk->res); free(wk->iw); free(wk->w); }
+
+#define CALL1(f, a0, r0) (wk.arg[0] = (a0), wk.res[0] = (r0), f(wk.arg, wk.res, wk.iw, wk.w, 0))
+#define CALL2(f, a0, a1, r0) (wk.arg[1] = (a1), CALL1(f, a0, r0))
+#define CALL3(f, a0, a1, a2, r0) (wk.arg[2] = (a2), CALL2(f, a0, a1, r0))
+#define CALL4(f, a0, a1, a2, a3, r0) (wk.arg[3] = (a3), CALL3(f, a0, a1, a2, r0))
+#define CALL5(f, a0, a1, a2, a3, a4, r0) (wk.arg[4] = (a4), CALL4(f, a0, a1, a2, a3, r0))
+
+/* The input-only parts p of a step function for every step k: P (N, np); NULL on failure. */
+static double* parametric(work_t* wk, cfun f, long np, long n, const double* u) {
+  double* P = malloc((n * np + 1) * sizeof(double));
+  if (!P) return NULL;
+  for (long k = 0; k < n; ++k) {
+    wk->arg[0] = u + k * NU;
+    wk->res[0] = P + k * np;
+    if (f(wk->arg, wk->res, wk->iw, wk->w, 0)) { free(P); return NULL; }
+  }
+  return P;
+}
+
+/* Weighted state error: out = scale Wk (x - goal); returns (x - goal)' Wk (x - goal). */
+static double weighted(const double* x, const double* goal, const double* Wk, double scale,
+                       double* out) {
+  double e[NX], c = 0.0;
+  for (int m = 0; m < NX; ++m) e[m] = x[m] - goal[m];
+  for (int m = 0; m < NX; ++m) {
+    double s = 0.0;
+    for (int r = 0; r < NX; ++r) s += Wk[m * NX + r] * e[r];
+    if (out) out[m] = scale * s;
+    c += e[m] * s;
+  }
+  return c;
+}
+
+/* The force of step k, scenario i: W[a sa + k sk + i si] (strides in elements). */
+static const double* gather(const double* W, long sa, long sk, long si, long k, long i,
+                            double* wv) {
+  for (int a = 0; a < NW; ++a) wv[a] = W[a * sa + k * sk + i * si];
+  return wv;
+}
+
+static void load_state(const double* X, long k, long ns, long i, double* x) {
+  for (int m = 0; m < NX; ++m) x[m] = X[(k * NX + m) * ns + i];
+}
+
+/* Sum of a[p] b[p], p < len, in four interleaved partial sums. */
+static double dot(const double* a, const double* b, long len) {
+  double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
+  long p = 0;
+  for (; p + 4 <= len; p += 4) {
+    s0 += a[p] * b[p];
+    s1 += a[p + 1] * b[p + 1];
+    s2 += a[p + 2] * b[p + 2];
+    s3 += a[p + 3] * b[p + 3];
+  }
+  for (; p < len; ++p) s0 += a[p] * b[p];
+  return (s0 + s1) + (s2 + s3);
+}
+
+CASADI_SYMBOL_EXPORT int lfm_rollout(long n, long ns, const double* x0T, const double* W,
+    long sa, long sk, long si, const double* u, const double* goal, const double* Wq,
+    double* X, double* G, double* cost) {
+  /* The states X (N+1, NX, Ns), constraint values G (NG, N, Ns) of every scenario and the
+     state cost summed over them, sum_i sum_k (x_k - goal)' Wq_k (x_k - goal). */
+  work_t wk;
+  if (work_alloc(&wk)) return 1;
+  double* P = parametric(&wk, lfm_step_pre, NP_STEP, n, u);
+  if (!P) { work_free(&wk); return 1; }
+  double x[NX], xn[NX], wv[NW + 1], c = 0.0;
+  int status = 0;
+  for (long i = 0; i < ns && !status; ++i) {
+    for (int m = 0; m < NX; ++m) X[m * ns + i] = x[m] = x0T[m * ns + i];
+    for (long k = 0; k < n && !status; ++k) {
+      gather(W, sa, sk, si, k, i, wv);
+      status = CALL4(lfm_step, x, u + k * NU, wv, P + k * NP_STEP, xn);
+      for (int m = 0; m < NX; ++m) X[((k + 1) * NX + m) * ns + i] = x[m] = xn[m];
+      c += weighted(x, goal, Wq + k * NX * NX, 1.0, NULL);
+#if NG > 0
+      double g[NG];
+      status |= CALL1(lfm_con, x, g);
+      for (int j = 0; j < NG; ++j) G[(j * n + k) * ns + i] = g[j];
+#endif
+    }
+  }
+  *cost = c;
+  free(P);
+  work_free(&wk);
+  return status;
+}
+
+CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const double* W,
+    long sa, long sk, long si, const double* u, const double* goal, const double* Wq,
+    double scale, double* A, double* S, double* Jg, double* grad) {
+  /* A, S, Jg and the state part of the gradient, sum_k sum_i S_k' scale Wq_k (x_k - goal).
+     Step by step, all scenarios at each: S_{k+1} is written, and S_k read, in the arrays'
+     (step, scenario) order (a scenario-by-scenario sweep wrote N blocks at N distant places
+     per scenario, and took 1.6x as long at Ns = 5000). */
+  work_t wk;
+  if (work_alloc(&wk)) return 1;
+  double* P = parametric(&wk, lfm_step_jac_pre, NP_STEP_JAC, n, u);
+  if (!P) { work_free(&wk); return 1; }
+  const long nut = n * NU;
+  double x[NX], J[NX * NZ], gx[NX], wv[NW + 1];
+  int status = 0;
+  memset(grad, 0, nut * sizeof(double));
+  for (long k = 0; k < n && !status; ++k) {
+    for (long i = 0; i < ns && !status; ++i) {
+      load_state(X, k, ns, i, x);
+      gather(W, sa, sk, si, k, i, wv);
+      status = CALL4(lfm_step_jac, x, u + k * NU, wv, P + k * NP_STEP_JAC, J);
+      double* Ak = A + (k * ns + i) * NX * NX;
+      for (int r = 0; r < NX; ++r)
+        for (int c = 0; c < NX; ++c) Ak[r * NX + c] = J[r + c * NX];
+      double* Sk = S + (k * ns + i) * NX * nut;
+      const double* Sp = S + ((k - 1) * ns + i) * NX * nut;
+      const long cols = k * NU; /* causal: S_{k+1} = A_k S_k (first k NU columns) + B_k */
+      for (int r = 0; r < NX; ++r) {
+        double* row = Sk + r * nut;
+        for (long c = 0; c < cols; ++c) {
+          double s = 0.0;
+          for (int m = 0; m < NX; ++m) s += Ak[r * NX + m] * Sp[m * nut + c];
+          row[c] = s;
+        }
+        for (int b = 0; b < NU; ++b) row[cols + b] = J[r + (NX + b) * NX];
+        for (long c = cols + NU; c < nut; ++c) row[c] = 0.0;
+      }
+      load_state(X, k + 1, ns, i, x);
+#if NG > 0
+      double jg[NG * NX];
+      status |= CALL1(lfm_con_jac, x, jg);
+      double* Jk = Jg + (k * ns + i) * NG * NX;
+      for (int j = 0; j < NG; ++j)
+        for (int m = 0; m < NX; ++m) Jk[j * NX + m] = jg[j + m * NG];
+#endif
+      weighted(x, goal, Wq + k * NX * NX, scale, gx);
+      for (int r = 0; r < NX; ++r)
+        for (long c = 0; c < cols + NU; ++c) grad[c] += gx[r] * Sk[r * nut + c];
+    }
+  }
+  free(P);
+  work_free(&wk);
+  return status;
+}
+
+CASADI_SYMBOL_EXPORT int lfm_linear_change(long n, long ns, const double* S,
+    const double* Jg, const double* d, double* out) {
+  /* out (N, Ns, NG) = Jg_k S_k d: the first-order change of every constraint value along
+     the input step d (causal: S_k d over the first k NU inputs only). */
+  const long nut = n * NU;
+  for (long k = 0; k < n; ++k)
+    for (long i = 0; i < ns; ++i) {
+      const double* Sk = S + (k * ns + i) * NX * nut;
+      const double* Jk = Jg + (k * ns + i) * NG * NX;
+      double sd[NX];
+      for (int m = 0; m < NX; ++m) sd[m] = dot(Sk + m * nut, d, (k + 1) * NU);
+      for (int j = 0; j < NG; ++j) {
+        double s = 0.0;
+        for (int m = 0; m < NX; ++m) s += Jk[j * NX + m] * sd[m];
+        out[(k * ns + i) * NG + j] = s;
+      }
+    }
+  return 0;
+}
+
+/* Step k of scenario i in the backward sweep: its adjoint lambda_k = dl/dx_{k+1} + Jg' mu
+   + A_{k+1}' lambda_{k+1} (lam_next; none at the last step) into lam_k, its Hessian
+   M = d2(lambda_k' F)/dz2 at (x_k, u_k) (NZ x NZ, column-major) and its uu terms into H. */
+static inline int step_hessian(work_t* wkp, long n, long ns, long k, long i, const double* X,
+    const double* W, long sa, long sk, long si, const double* u, const double* P,
+    const double* A, const double* Jg, const double* mu, const double* goal, const double* Wq,
+    double scale, const double* lam_next, double* lam_k, double* M, double* H) {
+  work_t wk = *wkp;
+  const long nut = n * NU;
+  double x[NX], wv[NW + 1];
+  double* lk = lam_k + i * NX;
+  load_state(X, k + 1, ns, i, x);
+  weighted(x, goal, Wq + k * NX * NX, scale, lk);
+#if NG > 0
+  if (mu) {
+    const double* Jk = Jg + (k * ns + i) * NG * NX;
+    for (int j = 0; j < NG; ++j) {
+      const double mj = mu[(j * n + k) * ns + i];
+      if (mj != 0.0)
+        for (int m = 0; m < NX; ++m) lk[m] += mj * Jk[j * NX + m];
+    }
+  }
+#else
+  (void)Jg; (void)mu;
+#endif
+  if (k < n - 1) {
+    const double* Ak = A + ((k + 1) * ns + i) * NX * NX;
+    const double* ln = lam_next + i * NX;
+    for (int m = 0; m < NX; ++m) {
+      double s = 0.0;
+      for (int r = 0; r < NX; ++r) s += ln[r] * Ak[r * NX + m];
+      lk[m] += s;
+    }
+  }
+  load_state(X, k, ns, i, x);
+  gather(W, sa, sk, si, k, i, wv);
+  if (CALL5(lfm_step_hess, x, u + k * NU, wv, P + k * NP_STEP_HESS, lk, M)) return 1;
+  for (int a = 0; a < NU; ++a)
+    for (int b = a; b < NU; ++b) H[(k * NU + a) * nut + k * NU + b] += M[(NX + a) + (NX + b) * NZ];
+  return 0;
+}
+
+/* The curvature of state x_j (j = 1..N) of scenario i: Mxx = scale Wq_j + M_j[x, x] (the
+   Hessian of step j, when j < N: Mj not NULL) + the Hessian of mu' g at x_j. */
+static inline int state_curvature(work_t* wkp, long n, long ns, long j, long i, const double* X,
+    const double* Mj, const double* mu, const double* Wq, double scale, double* Mxx) {
+  work_t wk = *wkp;
+  const double* Wk = Wq + (j - 1) * NX * NX;
+  for (int a = 0; a < NX * NX; ++a) Mxx[a] = scale * Wk[a];
+  if (Mj)
+    for (int r = 0; r < NX; ++r)
+      for (int c = 0; c < NX; ++c) Mxx[r * NX + c] += Mj[r + c * NZ];
+#if NG > 0
+  if (mu) {
+    double mk[NG], hg[NX * NX], x[NX];
+    int any = 0;
+    for (int q = 0; q < NG; ++q) any |= (mk[q] = mu[(q * n + j - 1) * ns + i]) != 0.0;
+    if (any) {
+      load_state(X, j, ns, i, x);
+      if (CALL2(lfm_con_hess, x, mk, hg)) return 1;
+      for (int r = 0; r < NX; ++r)
+        for (int c = 0; c < NX; ++c) Mxx[r * NX + c] += hg[r + c * NX];
+    }
+  }
+#else
+  (void)X; (void)mu; (void)wk; (void)n; (void)ns; (void)i;
+#endif
+  return 0;
+}
+
+/* The products of state x_j of scenario i (Mxx its curvature, Sj (NX, N NU) its
+   sensitivity): Mxx Sj into the BLAS blocks Tb (rows i NX.., first j NU columns) or into
+   St / Tt (transposed, for the C products), and, with the Hessian Mj of step j, the cross
+   terms Sj' Mj[x, u] into columns j NU.. of H. */
+static inline void state_products(long n, long ns, long j, long i, const double* Mxx,
+    const double* Sj, const double* Mj, double* Tb, double* St, double* Tt, double* H) {
+  const long nut = n * NU, rows = ns * NX, cols = j * NU;
+  for (long c = 0; c < cols; ++c) {
+    double sc[NX];
+    for (int r = 0; r < NX; ++r) sc[r] = Sj[r * nut + c];
+    for (int m = 0; m < NX; ++m) {
+      double t = 0.0;
+      for (int r = 0; r < NX; ++r) t += Mxx[m * NX + r] * sc[r];
+      if (Tb) {
+        Tb[(i * NX + m) * nut + c] = t;
+      } else {
+        St[c * rows + i * NX + m] = sc[m];
+        Tt[c * rows + i * NX + m] = t;
+      }
+    }
+    if (Mj)
+      for (int b = 0; b < NU; ++b) {
+        double x = 0.0;
+        for (int r = 0; r < NX; ++r) x += sc[r] * Mj[r + (NX + b) * NZ];
+        H[c * nut + j * NU + b] += x;
+      }
+  }
+}
+
+CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const double* W,
+    long sa, long sk, long si, const double* u, const double* A, const double* S,
+    const double* Jg, const double* mu, const double* goal, const double* Wq, double scale,
+    double* H, double* blocks) {
+  /* sum over scenarios of the Hessian of (cost + mu' G) w.r.t. u, without the input cost:
+     sum_j S_j' Mxx_j S_j (S_j stacked over scenarios: one product of length Ns NX per
+     entry) + the cross terms S_k' M_k[x, u] + M_k[u, u]. Upper triangle, then mirrored.
+     With blocks (N, Ns NX, N NU) given, the products S_j' (Mxx_j S_j) are left to the
+     caller (one matrix product per step): blocks[j - 1] = Mxx_j S_j, first j NU columns.
+     One backward sweep over the steps, all scenarios at each: the adjoints lambda_k of
+     step k, its Hessian M_k (used at once, never stored) and every term of step k, so
+     the arrays are read in their (step, scenario) order. Each entry of H sums its terms
+     over the scenarios in ascending order, as a scenario-by-scenario sweep would. */
+  work_t wk;
+  if (work_alloc(&wk)) return 1;
+  const long nut = n * NU, rows = ns * NX;
+  double* P = parametric(&wk, lfm_step_hess_pre, NP_STEP_HESS, n, u);
+  const long own = blocks ? 0 : 2 * nut * rows;
+  double* lam = malloc((2 * rows + own + 1) * sizeof(double));
+  if (!P || !lam) { free(P); free(lam); work_free(&wk); return 1; }
+  double* lam_k = lam;         /* lambda_k (the adjoint of x_{k+1}), (Ns, NX) */
+  double* lam_next = lam + rows; /* lambda_{k+1} */
+  double* St = lam + 2 * rows; /* S_j' (cols, Ns NX) */
+  double* Tt = St + nut * rows; /* (Mxx_j S_j)' */
+  double Mxx[NX * NX], M[NZ * NZ];
+  int status = 0;
+  memset(H, 0, nut * nut * sizeof(double));
+  for (long k = n; k >= 1 && !status; --k) {
+    /* Step k (k < N): lambda_k and M_k of every scenario, their uu and cross terms; the
+       products of state x_k. (k = N: the last state has no step after it.) */
+    const long j = k;
+    double* Tb = blocks ? blocks + (j - 1) * rows * nut : NULL;
+    for (long i = 0; i < ns && !status; ++i) {
+      const double* Mj = NULL;
+      if (k < n) {
+        status = step_hessian(&wk, n, ns, k, i, X, W, sa, sk, si, u, P, A, Jg, mu, goal, Wq,
+                              scale, lam_next, lam_k, M, H);
+        Mj = M;
+      }
+      if (!status) status = state_curvature(&wk, n, ns, j, i, X, Mj, mu, Wq, scale, Mxx);
+      if (!status)
+        state_products(n, ns, j, i, Mxx, S + ((j - 1) * ns + i) * NX * nut, Mj, Tb, St, Tt, H);
+    }
+    if (!blocks) {
+      const long cols = j * NU;
+      for (long a = 0; a < cols; ++a)
+        for (long b = a; b < cols; ++b) H[a * nut + b] += dot(St + a * rows, Tt + b * rows, rows);
+    }
+    if (k < n) { double* t = lam_next; lam_next = lam_k; lam_k = t; }
+  }
+  /* Step 0: its adjoint and Hessian (uu terms only: x_0 is fixed). */
+  for (long i = 0; i < ns && !status && n > 0; ++i)
+    status = step_hessian(&wk, n, ns, 0, i, X, W, sa, sk, si, u, P, A, Jg, mu, goal, Wq, scale,
+                          lam_next, lam_k, M, H);
+  for (long a = 0; a < nut; ++a)
+    for (long b = 0; b < a; ++b) H[a * nut + b] = H[b * nut + a];
+  free(P);
+  free(lam);
+  work_free(&wk);
+  return status;
+}
+"""
+
+__all__ = ["DRIVER"]
