@@ -247,12 +247,16 @@ class SlotQP:
         for i, name in enumerate(self._arg_order):
             arr = inputs.get(name)
             if arr is None:
-                arr = self._spare_in.setdefault(name, np.zeros(self._conic.nnz_in(i)))
+                if name not in self._spare_in:
+                    self._spare_in[name] = np.zeros(self._conic.nnz_in(i))
+                arr = self._spare_in[name]
             self._buffer.set_arg(i, memoryview(arr))
         for i, (name, size) in enumerate(self._res_sizes):
             arr = outputs.get(name)
             if arr is None:
-                arr = self._spare_out.setdefault(name, np.zeros(size))
+                if name not in self._spare_out:
+                    self._spare_out[name] = np.zeros(size)
+                arr = self._spare_out[name]
             self._buffer.set_res(i, memoryview(arr))
         self._hot = False
 
