@@ -21,6 +21,8 @@ import time
 from contextlib import ExitStack
 from pathlib import Path
 
+import casadi as ca
+import numpy as np
 import pytest
 
 from experiments import evaluation
@@ -160,6 +162,83 @@ def test_sigterm_ends_workers_and_rebuilds_the_table(tmp_path):
     assert proc.returncode != 0
     assert "Traceback" not in stderr, stderr
     assert_no_orphans(children)
+    assert_folder_consistent(out)
+
+
+class _CtrlCInConversion:
+    """Presses Ctrl-C (SIGINT to this process) when CasADi tries it as a numeric matrix."""
+
+    def __DM__(self):  # CasADi's conversion hooks, tried in turn by its bindings
+        signal.raise_signal(signal.SIGINT)  # the handler raises KeyboardInterrupt here
+        return ca.DM(1.0)
+
+    def __SX__(self):
+        return ca.SX(1.0)
+
+
+class CtrlCSwallowingAgent:
+    """Zero inputs; at its third step a Ctrl-C lands inside CasADi, which swallows it.
+
+    CasADi's bindings try an argument's conversions in turn and clear the error of a
+    failed one, KeyboardInterrupt included (measured with CasADi 3.8.2, and seen in a
+    real run inside its NumPy conversion): the expression is built as if nothing
+    happened.
+    """
+
+    name = "swallower"
+
+    def __init__(self, config) -> None:
+        self.nu = config.make_system().nu
+        self.steps = 0
+
+    def reset(self, seed=None) -> None:
+        self.steps = 0
+
+    def act(self, obs):
+        self.steps += 1
+        if self.steps == 3:
+            value = ca.DM(2.0) + _CtrlCInConversion()
+            assert str(value) == "3"  # computed: the Ctrl-C did not reach this code
+        return np.zeros(self.nu)
+
+
+class CtrlCConvertingAgent(CtrlCSwallowingAgent):
+    """At its third step a library turns the Ctrl-C into an error of its own."""
+
+    name = "converter"
+
+    def act(self, obs):
+        self.steps += 1
+        if self.steps == 3:
+            try:
+                signal.raise_signal(signal.SIGINT)
+            except KeyboardInterrupt:
+                raise RuntimeError("solver stopped by the user") from None
+        return np.zeros(self.nu)
+
+
+@pytest.mark.parametrize("agent", [CtrlCSwallowingAgent, CtrlCConvertingAgent])
+def test_a_ctrl_c_that_a_library_swallows_still_stops_the_run(agent, tmp_path):
+    """Case 1: the serial run stops at the next step and saves no error row for it.
+
+    (Found under load: ``lfm-evaluate`` went on after Ctrl-C when the signal landed in
+    a CasADi expression being built, e.g. in an agent's constructor.)
+    """
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # as a terminal's
+    try:
+        out = tmp_path / "out"
+        with pytest.raises(KeyboardInterrupt):
+            evaluate(
+                [agent],
+                [0, 1],
+                config=quick_yaml(tmp_path, max_steps=10),
+                out=out,
+                progress=False,
+            )
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert not list((out / "episodes").glob("*.json"))  # no error row for the interrupt
     assert_folder_consistent(out)
 
 
