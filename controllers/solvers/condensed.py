@@ -67,9 +67,31 @@ class Linearisation:
 
     ro: Rollout
     A: np.ndarray  # (N, Ns, nx, nx) step Jacobians d x_{k+1} / d x_k
-    S: np.ndarray  # (N, Ns, nx, N nu) sensitivities d x_k / d u of steps 1..N
+    S: np.ndarray  # (N, Ns, nx, N nu) sensitivities d x_k / d u of steps 1..N, or packed
     Jg: np.ndarray  # (N, Ns, ng, nx) constraint Jacobians at steps 1..N
     grad: np.ndarray  # (N nu,) gradient of the cost
+    # S causally packed (the compiled kernel): x_k depends on u_0..u_{k-1} only, so step k
+    # (from 0) is stored as (Ns, nx, (k + 1) nu), the steps one after another, flat.
+    packed: bool = False
+
+    def sensitivities(self) -> np.ndarray:
+        """``S`` as ``(N, Ns, nx, N nu)`` (a new array if it is packed)."""
+        if not self.packed:
+            return self.S
+        n, ns, nx, _ = self.A.shape
+        nu = self.grad.size // n
+        full = np.zeros((n, ns, nx, n * nu))
+        for k in range(n):
+            width = (k + 1) * nu
+            full[k, :, :, :width] = packed_block(self.S, k, ns, nx, nu)
+        return full
+
+
+def packed_block(S: np.ndarray, k: int, ns: int, nx: int, nu: int) -> np.ndarray:
+    """Step ``k`` (from 0) of a causally packed ``S``: a view ``(Ns, nx, (k + 1) nu)``."""
+    start = ns * nx * nu * k * (k + 1) // 2
+    width = (k + 1) * nu
+    return S[start : start + ns * nx * width].reshape(ns, nx, width)
 
 
 def shared_linear_constraints(problem: ScenarioProblem) -> tuple[np.ndarray, np.ndarray]:
@@ -317,10 +339,18 @@ class CondensedModel:
         """The inputs ``(N nu,)`` as points ``(nu, N, 1)``: the same for every scenario."""
         return u.reshape(self.n, self.nu).T[:, :, None]
 
-    def linearise(self, ro: Rollout, W_lanes: np.ndarray) -> Linearisation:
-        """Step Jacobians, sensitivities, constraint Jacobians and the cost gradient."""
+    def linearise(
+        self, ro: Rollout, W_lanes: np.ndarray, recycle: Linearisation | None = None
+    ) -> Linearisation:
+        """Step Jacobians, sensitivities, constraint Jacobians and the cost gradient.
+
+        ``recycle``: a linearisation the caller no longer needs; the compiled kernel writes
+        the new one into its arrays (same sizes), which are then no longer its.
+        Allocating them anew each iteration cost page faults: at Ns = 5000 a fresh 9 MB
+        ``S`` took 1300 faults per call and doubled the kernel's time.
+        """
         if self._lib is not None:
-            return self._linearise_c(ro, W_lanes)
+            return self._linearise_c(ro, W_lanes, recycle)
         n, nx, nu, n_u = self.n, self.nx, self.nu, self.n_u
         X = ro.X
         ns = X.shape[2]
@@ -363,7 +393,7 @@ class CondensedModel:
         if self._lib is not None:
             return self._hessian_c(lin, mu, W_lanes)
         n, nx, nu, n_u = self.n, self.nx, self.nu, self.n_u
-        X, S, A, Jg = lin.ro.X, lin.S, lin.A, lin.Jg
+        X, S, A, Jg = lin.ro.X, lin.sensitivities(), lin.A, lin.Jg
         ns = X.shape[2]
         # --- adjoint sweep: lambda_k = dl_k/dx_k + Jg_k' mu_k + A_k' lambda_{k+1} ---
         lam = self.state_gradient(X)  # (N, Ns, nx): dl/dx of steps 1..N
@@ -408,15 +438,20 @@ class CondensedModel:
             H[blk, blk] += uu[k] + self._R2
         return 0.5 * (H + H.T)
 
-    def _linearise_c(self, ro: Rollout, W_lanes: np.ndarray) -> Linearisation:
+    def _linearise_c(
+        self, ro: Rollout, W_lanes: np.ndarray, recycle: Linearisation | None
+    ) -> Linearisation:
         """:meth:`linearise` by the compiled kernel."""
         n, nx, nu, n_u, ng = self.n, self.nx, self.nu, self.n_u, self.ng
         X = np.ascontiguousarray(ro.X, dtype=float)
         u = np.ascontiguousarray(ro.u, dtype=float)
         ns = X.shape[2]
-        A = np.empty((n, ns, nx, nx))
-        S = np.empty((n, ns, nx, n_u))
-        Jg = np.empty((n, ns, ng, nx))
+        if recycle is not None and recycle.packed and recycle.A.shape == (n, ns, nx, nx):
+            A, S, Jg = recycle.A, recycle.S, recycle.Jg  # every entry is written below
+        else:
+            A = np.empty((n, ns, nx, nx))
+            S = np.empty(ns * nx * nu * n * (n + 1) // 2)  # causally packed
+            Jg = np.empty((n, ns, ng, nx))
         grad = np.empty(n_u)
         sa, sk, si = self._strides(W_lanes, (0, 1, 2))
         args = (*self._weights_p, 2.0 / ns)
@@ -425,7 +460,7 @@ class CondensedModel:
         if self._lib.lfm_linearise(n, ns, ptr(X), Wp, sa, sk, si, ptr(u), *args, *out):
             grad[:] = np.nan
         grad += (u.reshape(n, nu) @ self._R2).ravel()  # d(u' R u)/du, R symmetric
-        return Linearisation(ro=ro, A=A, S=S, Jg=Jg, grad=grad)
+        return Linearisation(ro=ro, A=A, S=S, Jg=Jg, grad=grad, packed=True)
 
     def _hessian_c(self, lin: Linearisation, mu: np.ndarray, W_lanes: np.ndarray) -> np.ndarray:
         """:meth:`hessian` by the compiled kernel."""
@@ -440,7 +475,7 @@ class CondensedModel:
         # The kernel leaves sum_j S_j' (Mxx_j S_j) (stacked over scenarios) to BLAS.
         blocks = None
         if self.blas_products:
-            shape = (n, ns * self.nx, n_u)  # Mxx_j S_j of steps 1..N, stacked over scenarios
+            shape = lin.S.shape  # Mxx_j S_j of steps 1..N, stacked over scenarios, packed
             if self._blocks is None or self._blocks.shape != shape:
                 self._blocks = np.empty(shape)
             blocks = self._blocks
@@ -449,10 +484,11 @@ class CondensedModel:
         if self._lib.lfm_hessian(n, ns, ptr(X), Wp, sa, sk, si, *data, *weights, *out):
             H[:] = np.nan
         if blocks is not None:
-            S = lin.S.reshape(n, ns * self.nx, n_u)
+            rows = ns * self.nx
             for j in range(1, n + 1):
                 c = j * nu
-                H[:c, :c] += S[j - 1, :, :c].T @ blocks[j - 1, :, :c]
+                Sj = packed_block(lin.S, j - 1, ns, self.nx, nu).reshape(rows, c)
+                H[:c, :c] += Sj.T @ packed_block(blocks, j - 1, ns, self.nx, nu).reshape(rows, c)
             H = 0.5 * (H + H.T)
         for k in range(n):
             blk = slice(k * nu, (k + 1) * nu)
@@ -465,7 +501,15 @@ class CondensedModel:
         ``k`` indexes steps ``1..N`` from 0.
         """
         j, k, i = pos[:, 0], pos[:, 1], pos[:, 2]
-        jac = np.einsum("rm,rmn->rn", lin.Jg[k, i, j], lin.S[k, i])
+        if lin.packed:
+            pos_c = np.ascontiguousarray(pos, dtype=np.int64)
+            jac = np.empty((pos.shape[0], self.n_u))
+            ns = lin.ro.X.shape[2]
+            self._lib.lfm_rows(
+                self.n, ns, ptr(lin.S), ptr(lin.Jg), pos.shape[0], pos_c.ctypes.data, ptr(jac)
+            )
+        else:
+            jac = np.einsum("rm,rmn->rn", lin.Jg[k, i, j], lin.S[k, i])
         return jac, lin.ro.G[j, k, i]
 
     def linearised_values(self, lin: Linearisation, d: np.ndarray) -> np.ndarray:
@@ -476,9 +520,16 @@ class CondensedModel:
             change = np.empty((n, ns, self.ng))
             self._lib.lfm_linear_change(n, ns, ptr(lin.S), ptr(lin.Jg), ptr(d), ptr(change))
             return lin.ro.G[self.screened] + change[:, :, self.screened].transpose(2, 0, 1)
-        Sd = (lin.S.reshape(-1, self.n_u) @ d).reshape(lin.S.shape[:3] + (1,))  # (N, Ns, nx, 1)
+        S = lin.sensitivities()
+        Sd = (S.reshape(-1, self.n_u) @ d).reshape(S.shape[:3] + (1,))  # (N, Ns, nx, 1)
         change = np.matmul(lin.Jg, Sd)[..., 0]  # (N, Ns, ng)
         return lin.ro.G[self.screened] + change[:, :, self.screened].transpose(2, 0, 1)
 
 
-__all__ = ["CondensedModel", "Linearisation", "Rollout", "shared_linear_constraints"]
+__all__ = [
+    "CondensedModel",
+    "Linearisation",
+    "Rollout",
+    "packed_block",
+    "shared_linear_constraints",
+]

@@ -364,6 +364,7 @@ class FastScenarioSolver(SubproblemMixin):
         damping = 0.0  # Levenberg-Marquardt term: grows while the quadratic model is poor
         self._radius = opt.trust_radius
         self._deadline = deadline
+        lin = None  # the last iteration's linearisation (its arrays are reused)
         try:
             while iterations < opt.max_iter:
                 if time.perf_counter() >= deadline:
@@ -372,7 +373,7 @@ class FastScenarioSolver(SubproblemMixin):
                 iterations += 1
                 u = ro.u
                 with np.errstate(all="ignore"):
-                    lin = model.linearise(ro, data.W_lanes)
+                    lin = model.linearise(ro, data.W_lanes, recycle=lin)
                     H = model.hessian(lin, mu, data.W_lanes)
                 if not (np.isfinite(H).all() and np.isfinite(lin.grad).all()):
                     status = "Invalid_Derivatives"

@@ -192,8 +192,11 @@ class BicycleCondensedModel(CondensedModel):
             merit=merit if math.isfinite(merit) else math.inf,
         )
 
-    def linearise(self, ro: _BicycleRollout, W_lanes: np.ndarray) -> _BicycleLinearisation:
-        """Forward sensitivities, cost gradient and track slope at a rollout."""
+    def linearise(
+        self, ro: _BicycleRollout, W_lanes: np.ndarray, recycle: object = None
+    ) -> _BicycleLinearisation:
+        """Forward sensitivities, cost gradient and track slope at a rollout (``recycle``:
+        accepted for the generic signature, unused: the arrays are built anew)."""
         p = self.bicycle
         n, nu, dt = p.horizon, self.n_u, p.dt
         ns = ro.Xc.shape[2]

@@ -4,7 +4,7 @@ System-independent C that loops over the steps and scenarios and calls the syste
 pointwise functions, which :func:`controllers.solvers.compiled.kernel_source` generates and
 puts in front of it (with the sizes ``NX``, ``NU``, ``NW``, ``NG``, ``NP_*`` as macros and the
 work-size queries at ``@WORK@``). Entry points: ``lfm_rollout``, ``lfm_linearise``,
-``lfm_linear_change`` and ``lfm_hessian``; their argument types are declared in
+``lfm_linear_change``, ``lfm_rows`` and ``lfm_hessian``; their argument types are declared in
 :func:`controllers.solvers.compiled._declare`. Both sweeps run step by step over all
 scenarios, in the (step, scenario) order of the arrays.
 """
@@ -12,11 +12,15 @@ scenarios, in the (step, scenario) order of the arrays.
 # The driver. Layouts (C order): x0T (NX, Ns); W any (strides sa, sk, si of force
 # component, step, scenario, in elements); u (N NU); goal (NX);
 # Wq (N, NX, NX) state weights of steps 1..N; X (N+1, NX, Ns); G (NG, N, Ns);
-# A (N, Ns, NX, NX); S (N, Ns, NX, N NU); Jg (N, Ns, NG, NX); mu (NG, N, Ns); H (N NU, N NU).
+# A (N, Ns, NX, NX); Jg (N, Ns, NG, NX); mu (NG, N, Ns); H (N NU, N NU).
+# S causally packed: x_{k+1} depends on u_0..u_k only, so step k (from 0) is stored as
+# (Ns, NX, (k + 1) NU) from S_OFF(k), the steps one after another (N (N + 1) / 2 NU NX Ns
+# values instead of N^2 NU NX Ns; the zeros are never written or read).
 DRIVER = r"""
 #include <stdlib.h>
 #include <string.h>
 #define NZ (NX + NU)
+#define S_OFF(k, ns) ((ns) * NX * NU * (k) * ((k) + 1) / 2)
 
 typedef int (*cfun)(const casadi_real**, casadi_real**, casadi_int*, casadi_real*, int);
 typedef struct {
@@ -149,18 +153,17 @@ CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const d
       double* Ak = A + (k * ns + i) * NX * NX;
       for (int r = 0; r < NX; ++r)
         for (int c = 0; c < NX; ++c) Ak[r * NX + c] = J[r + c * NX];
-      double* Sk = S + (k * ns + i) * NX * nut;
-      const double* Sp = S + ((k - 1) * ns + i) * NX * nut;
-      const long cols = k * NU; /* causal: S_{k+1} = A_k S_k (first k NU columns) + B_k */
+      const long cols = k * NU, width = cols + NU; /* S_{k+1} = [A_k S_k, B_k] */
+      double* Sk = S + S_OFF(k, ns) + i * NX * width;
+      const double* Sp = k ? S + S_OFF(k - 1, ns) + i * NX * cols : NULL;
       for (int r = 0; r < NX; ++r) {
-        double* row = Sk + r * nut;
+        double* row = Sk + r * width;
         for (long c = 0; c < cols; ++c) {
           double s = 0.0;
-          for (int m = 0; m < NX; ++m) s += Ak[r * NX + m] * Sp[m * nut + c];
+          for (int m = 0; m < NX; ++m) s += Ak[r * NX + m] * Sp[m * cols + c];
           row[c] = s;
         }
         for (int b = 0; b < NU; ++b) row[cols + b] = J[r + (NX + b) * NX];
-        for (long c = cols + NU; c < nut; ++c) row[c] = 0.0;
       }
       load_state(X, k + 1, ns, i, x);
 #if NG > 0
@@ -172,7 +175,7 @@ CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const d
 #endif
       weighted(x, goal, Wq + k * NX * NX, scale, gx);
       for (int r = 0; r < NX; ++r)
-        for (long c = 0; c < cols + NU; ++c) grad[c] += gx[r] * Sk[r * nut + c];
+        for (long c = 0; c < width; ++c) grad[c] += gx[r] * Sk[r * width + c];
     }
   }
   free(P);
@@ -184,19 +187,39 @@ CASADI_SYMBOL_EXPORT int lfm_linear_change(long n, long ns, const double* S,
     const double* Jg, const double* d, double* out) {
   /* out (N, Ns, NG) = Jg_k S_k d: the first-order change of every constraint value along
      the input step d (causal: S_k d over the first k NU inputs only). */
-  const long nut = n * NU;
   for (long k = 0; k < n; ++k)
     for (long i = 0; i < ns; ++i) {
-      const double* Sk = S + (k * ns + i) * NX * nut;
+      const long width = (k + 1) * NU;
+      const double* Sk = S + S_OFF(k, ns) + i * NX * width;
       const double* Jk = Jg + (k * ns + i) * NG * NX;
       double sd[NX];
-      for (int m = 0; m < NX; ++m) sd[m] = dot(Sk + m * nut, d, (k + 1) * NU);
+      for (int m = 0; m < NX; ++m) sd[m] = dot(Sk + m * width, d, width);
       for (int j = 0; j < NG; ++j) {
         double s = 0.0;
         for (int m = 0; m < NX; ++m) s += Jk[j * NX + m] * sd[m];
         out[(k * ns + i) * NG + j] = s;
       }
     }
+  return 0;
+}
+
+CASADI_SYMBOL_EXPORT int lfm_rows(long n, long ns, const double* S, const double* Jg,
+    long r, const long* pos, double* out) {
+  /* out (r, N NU): the Jacobian rows Jg_k[j] S_k of the scenario rows pos (r, 3) of
+     (constraint j, step k from 0, scenario i); zero beyond the first (k + 1) NU columns. */
+  const long nut = n * NU;
+  for (long q = 0; q < r; ++q) {
+    const long j = pos[3 * q], k = pos[3 * q + 1], i = pos[3 * q + 2], width = (k + 1) * NU;
+    const double* Sk = S + S_OFF(k, ns) + i * NX * width;
+    const double* jg = Jg + ((k * ns + i) * NG + j) * NX;
+    double* row = out + q * nut;
+    for (long c = 0; c < width; ++c) {
+      double s = 0.0;
+      for (int m = 0; m < NX; ++m) s += jg[m] * Sk[m * width + c];
+      row[c] = s;
+    }
+    for (long c = width; c < nut; ++c) row[c] = 0.0;
+  }
   return 0;
 }
 
@@ -270,8 +293,8 @@ static inline int state_curvature(work_t* wkp, long n, long ns, long j, long i, 
   return 0;
 }
 
-/* The products of state x_j of scenario i (Mxx its curvature, Sj (NX, N NU) its
-   sensitivity): Mxx Sj into the BLAS blocks Tb (rows i NX.., first j NU columns) or into
+/* The products of state x_j of scenario i (Mxx its curvature, Sj (NX, j NU) its
+   sensitivity): Mxx Sj into the BLAS blocks Tb (rows i NX.., packed as S) or into
    St / Tt (transposed, for the C products), and, with the Hessian Mj of step j, the cross
    terms Sj' Mj[x, u] into columns j NU.. of H. */
 static inline void state_products(long n, long ns, long j, long i, const double* Mxx,
@@ -279,12 +302,12 @@ static inline void state_products(long n, long ns, long j, long i, const double*
   const long nut = n * NU, rows = ns * NX, cols = j * NU;
   for (long c = 0; c < cols; ++c) {
     double sc[NX];
-    for (int r = 0; r < NX; ++r) sc[r] = Sj[r * nut + c];
+    for (int r = 0; r < NX; ++r) sc[r] = Sj[r * cols + c];
     for (int m = 0; m < NX; ++m) {
       double t = 0.0;
       for (int r = 0; r < NX; ++r) t += Mxx[m * NX + r] * sc[r];
       if (Tb) {
-        Tb[(i * NX + m) * nut + c] = t;
+        Tb[(i * NX + m) * cols + c] = t;
       } else {
         St[c * rows + i * NX + m] = sc[m];
         Tt[c * rows + i * NX + m] = t;
@@ -306,8 +329,8 @@ CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const dou
   /* sum over scenarios of the Hessian of (cost + mu' G) w.r.t. u, without the input cost:
      sum_j S_j' Mxx_j S_j (S_j stacked over scenarios: one product of length Ns NX per
      entry) + the cross terms S_k' M_k[x, u] + M_k[u, u]. Upper triangle, then mirrored.
-     With blocks (N, Ns NX, N NU) given, the products S_j' (Mxx_j S_j) are left to the
-     caller (one matrix product per step): blocks[j - 1] = Mxx_j S_j, first j NU columns.
+     With blocks given (packed as S), the products S_j' (Mxx_j S_j) are left to the caller
+     (one matrix product per step): the block of step j - 1 is Mxx_j S_j, (Ns NX, j NU).
      One backward sweep over the steps, all scenarios at each: the adjoints lambda_k of
      step k, its Hessian M_k (used at once, never stored) and every term of step k, so
      the arrays are read in their (step, scenario) order. Each entry of H sums its terms
@@ -330,7 +353,7 @@ CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const dou
     /* Step k (k < N): lambda_k and M_k of every scenario, their uu and cross terms; the
        products of state x_k. (k = N: the last state has no step after it.) */
     const long j = k;
-    double* Tb = blocks ? blocks + (j - 1) * rows * nut : NULL;
+    double* Tb = blocks ? blocks + S_OFF(j - 1, ns) : NULL;
     for (long i = 0; i < ns && !status; ++i) {
       const double* Mj = NULL;
       if (k < n) {
@@ -340,7 +363,8 @@ CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const dou
       }
       if (!status) status = state_curvature(&wk, n, ns, j, i, X, Mj, mu, Wq, scale, Mxx);
       if (!status)
-        state_products(n, ns, j, i, Mxx, S + ((j - 1) * ns + i) * NX * nut, Mj, Tb, St, Tt, H);
+        state_products(n, ns, j, i, Mxx, S + S_OFF(j - 1, ns) + i * NX * j * NU, Mj, Tb, St, Tt,
+                       H);
     }
     if (!blocks) {
       const long cols = j * NU;

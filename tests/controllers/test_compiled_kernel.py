@@ -74,7 +74,7 @@ def _everything(model: CondensedModel, problem, x0, W, u, mu, backoff=None) -> d
         "X": ro.X,
         "G": ro.G,
         "A": lin.A,
-        "S": lin.S,
+        "S": lin.sensitivities(),
         "Jg": lin.Jg,
         "grad": lin.grad,
         "H0": model.hessian(lin, np.zeros_like(mu), W_lanes),
@@ -121,6 +121,24 @@ def test_compiled_equals_numpy_on_the_recorded_problems(i, paper, paper_models) 
     for u in (DATA["reference_u"][i].ravel(), DATA["u_guess"][i].ravel()):
         ref = _everything(paper_models["numpy"], paper, x0, W, u, mu, backoff)
         _assert_same(ref, _everything(paper_models["c"], paper, x0, W, u, mu, backoff))
+
+
+def test_a_recycled_linearisation_equals_a_fresh_one(paper, paper_models) -> None:
+    """``linearise(..., recycle=old)`` writes into ``old``'s arrays, bit for bit as anew."""
+    model = paper_models["c"]
+    _, x0T, W_steps, W_lanes = _layouts(paper, DATA["x0"][0], DATA["W"][0])
+    u_a, u_b = DATA["reference_u"][0].ravel(), DATA["u_guess"][0].ravel()
+    ro_a = model.evaluate(x0T, W_steps, u_a, 0.0, None)
+    ro_b = model.evaluate(x0T, W_steps, u_b, 0.0, None)
+    fresh = model.linearise(ro_b, W_lanes)
+    old = model.linearise(ro_a, W_lanes)
+    arrays = (old.A, old.S, old.Jg)
+    new = model.linearise(ro_b, W_lanes, recycle=old)
+    assert new.packed and all(a is b for a, b in zip((new.A, new.S, new.Jg), arrays, strict=True))
+    for key in ("A", "S", "Jg", "grad"):
+        assert np.array_equal(getattr(new, key), getattr(fresh, key)), key
+    n = paper.horizon  # packed: N (N + 1) / 2 of the N^2 input columns
+    assert new.S.size * 2 * n == new.sensitivities().size * (n + 1)
 
 
 @pytest.mark.parametrize("variant", sorted(VARIANTS))
