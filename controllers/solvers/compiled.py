@@ -247,13 +247,24 @@ def ptr(a: np.ndarray | None) -> int | None:
         return None
     if a.dtype != np.float64 or not a.flags.c_contiguous:
         raise ValueError(f"kernel array: must be C-contiguous float64, got {a.dtype}")
-    return a.ctypes.data
+    return address(a)
+
+
+def address(a: np.ndarray) -> int:
+    """The data address of a C-contiguous array (checked by the caller)."""
+    try:
+        # Through the buffer protocol: 0.27 us against 0.95 us for ``a.ctypes.data``
+        # (a solve takes a few hundred addresses).
+        return ctypes.addressof(ctypes.c_char.from_buffer(a))
+    except (TypeError, ValueError):  # read-only or empty: NumPy's own way
+        return a.ctypes.data
 
 
 __all__ = [
     "CACHE_ENV",
     "Kernel",
     "KernelUnavailable",
+    "address",
     "build_kernel",
     "cache_dir",
     "find_compiler",

@@ -43,7 +43,7 @@ import casadi as ca
 import numpy as np
 
 from controllers.problem import ScenarioProblem
-from controllers.solvers.compiled import KernelUnavailable, build_kernel, ptr
+from controllers.solvers.compiled import KernelUnavailable, address, build_kernel, ptr
 from controllers.solvers.lanes import LaneFunction
 
 KERNEL_ENV = "LFM_KERNEL"
@@ -506,7 +506,7 @@ class CondensedModel:
             jac = np.empty((pos.shape[0], self.n_u))
             ns = lin.ro.X.shape[2]
             self._lib.lfm_rows(
-                self.n, ns, ptr(lin.S), ptr(lin.Jg), pos.shape[0], pos_c.ctypes.data, ptr(jac)
+                self.n, ns, ptr(lin.S), ptr(lin.Jg), pos.shape[0], address(pos_c), ptr(jac)
             )
         else:
             jac = np.einsum("rm,rmn->rn", lin.Jg[k, i, j], lin.S[k, i])

@@ -123,6 +123,21 @@ def test_compiled_equals_numpy_on_the_recorded_problems(i, paper, paper_models) 
         _assert_same(ref, _everything(paper_models["c"], paper, x0, W, u, mu, backoff))
 
 
+def test_array_addresses_are_numpys_for_views_read_only_and_empty_arrays() -> None:
+    base = np.arange(24.0)
+    read_only = base.copy()
+    read_only.setflags(write=False)
+    cases = [base, base[5:], base.reshape(4, 6)[1:], read_only, np.empty(0), np.empty((3, 0))]
+    for a in cases:
+        assert compiled.ptr(a) == a.ctypes.data
+    pos = np.arange(9, dtype=np.int64).reshape(3, 3)[1:]
+    assert compiled.address(pos) == pos.ctypes.data
+    with pytest.raises(ValueError, match="C-contiguous float64"):
+        compiled.ptr(base[::2])
+    with pytest.raises(ValueError, match="C-contiguous float64"):
+        compiled.ptr(pos)
+
+
 def test_a_recycled_linearisation_equals_a_fresh_one(paper, paper_models) -> None:
     """``linearise(..., recycle=old)`` writes into ``old``'s arrays, bit for bit as anew."""
     model = paper_models["c"]
