@@ -24,6 +24,7 @@ from tqdm.auto import tqdm
 from controllers.problem import ScenarioProblem
 from controllers.solvers import SOLVERS, make_solver
 from experiments.bench_problems import DEFAULT_CONFIG, problem_from_config
+from experiments.interrupts import raise_if_interrupted
 
 SOLVER_LABELS = {
     "fast": "fast SQP, derivatives generated from the system (FastScenarioSolver)",
@@ -62,10 +63,12 @@ def build_solver(
     """
     if name not in SOLVERS:
         raise ValueError(f"unknown solver {name!r}; choose one of {SOLVERS}")
+    raise_if_interrupted()
     t0 = time.perf_counter()
     try:
         solver = make_solver(problem, name, **options)
     except Exception as exc:  # unavailable, reported in the table, never a crashed run
+        raise_if_interrupted()  # a Ctrl-C turned into another error stops the run
         return None, math.nan, f"{type(exc).__name__}: {exc}"
     return solver, time.perf_counter() - t0, ""
 
@@ -86,10 +89,12 @@ def solve_record(
         value, in the constraints' units) and ``u`` ``(N, nu)`` as a list. A solve that
         raises is a failed record with NaN figures.
     """
+    raise_if_interrupted()
     t0 = time.perf_counter()
     try:
         sol = solver.solve(x0, W, u_guess=u_guess)
     except Exception as exc:  # a crashing solver is a failed solve, not a crashed benchmark
+        raise_if_interrupted()
         return {
             "solve_time_ms": math.nan,
             "wall_time_ms": 1e3 * (time.perf_counter() - t0),
@@ -102,6 +107,7 @@ def solve_record(
             "u": None,
         }
     wall = time.perf_counter() - t0
+    raise_if_interrupted()  # stopped by a Ctrl-C: not a failed solve to record
     X = problem.rollout(x0, W, sol.u)
     return {
         "solve_time_ms": 1e3 * float(sol.solve_time),

@@ -18,6 +18,8 @@ import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from experiments.interrupts import remember_interrupts
+
 PRESETS_PACKAGE = "experiments.presets"  # the configs/ folder, shipped in the package
 DEFAULT_PRESET = "paper"
 
@@ -66,13 +68,15 @@ def one_line_errors(prog: str) -> Callable:
     """Decorate a ``main(argv) -> int``: an ``OSError`` or ``MemoryError`` escaping it is
     printed as one line ``<prog>: error: ...`` on stderr and gives exit code 2, and
     Ctrl-C (``KeyboardInterrupt``) one line ``<prog>: interrupted`` and exit code 130,
-    instead of a traceback."""
+    instead of a traceback. ``main`` runs under
+    :func:`experiments.interrupts.remember_interrupts` (SIGTERM ends it like Ctrl-C)."""
 
     def decorate(main: Callable[..., int]) -> Callable[..., int]:
         @functools.wraps(main)
         def wrapped(argv: Sequence[str] | None = None) -> int:
             try:
-                return main(argv)
+                with remember_interrupts():  # a Ctrl-C a library swallows still stops
+                    return main(argv)
             except OSError as exc:
                 print(f"{prog}: error: {os_error_text(exc)}", file=sys.stderr)
                 return 2

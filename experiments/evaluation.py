@@ -33,8 +33,9 @@ loads with one step per row step); a damaged one is named on stderr and run agai
 An interrupt (Ctrl-C, or SIGTERM while :func:`evaluate` runs in the main thread) ends the
 workers at once, removes temporary files and rebuilds ``episodes.csv`` before
 ``KeyboardInterrupt`` propagates; pool and Dask workers ignore Ctrl-C themselves. An
-interrupt is also remembered and checked at every step, so one that a library swallowed
-(CasADi's bindings clear errors raised inside their type conversions) still stops the run.
+interrupt is also remembered and checked at every step (:mod:`experiments.interrupts`), so
+one that a library swallowed (CasADi clears errors raised inside its type conversions)
+still stops the run.
 
 Agents are registered names, or a user's own agents (:class:`controllers.protocol.Agent`)
 given as factories, agent objects or ``"module:attribute"`` (:mod:`experiments.agent_specs`);
@@ -60,7 +61,6 @@ import math
 import os
 import re
 import secrets
-import signal
 import socket
 import time
 import traceback
@@ -84,6 +84,7 @@ from experiments.agent_specs import (
     resolve_agents,
 )
 from experiments.agent_specs import agent_name as name_of
+from experiments.interrupts import raise_if_interrupted, remember_interrupts
 from lfm_env.config import load_yaml
 
 #: Columns of every row before the constraint-group columns, in table order.
@@ -586,7 +587,7 @@ def _simulate(
         rec.start(obs, info)
         terminated = truncated = False
         while not (terminated or truncated):
-            _raise_if_interrupted()  # a Ctrl-C that a library swallowed
+            raise_if_interrupted()  # a Ctrl-C that a library swallowed
             # The agent's estimate made with obs k is compared with the w of step k.
             action = agent.act(obs)
             agent_info = last_info(agent)
@@ -1100,7 +1101,7 @@ def _episode_task(
         row.update(wall_time=time.perf_counter() - t0, error="")
         row = {c: row[c] for c in rec.columns}
     except Exception as exc:  # one bad episode must not stop the others
-        _raise_if_interrupted()  # a Ctrl-C a library turned into another error: no error row
+        raise_if_interrupted()  # a Ctrl-C a library turned into another error: no error row
         tb = traceback.format_exc()
         wall_time = time.perf_counter() - t0
         row = _error_row(name, seed, _one_line(exc), wall_time, rec.columns)
@@ -1293,7 +1294,7 @@ def evaluate(
     from tqdm.auto import tqdm
 
     with ExitStack() as stack:
-        stack.enter_context(_interrupts())
+        stack.enter_context(remember_interrupts())
         # Closed after the executor below (last in, first out): the folder is finished
         # and unlocked only once no worker writes into it any more.
         folder_stack = stack.enter_context(ExitStack())
@@ -1417,7 +1418,7 @@ def evaluate(
                 pending = sorted(broken, key=pairs.index)
         else:
             for a, s in todo:
-                _raise_if_interrupted()
+                raise_if_interrupted()
                 done((a, s), _episode_task(*task_args(a, s)))
 
     return sorted((rows[p] for p in pairs), key=lambda r: (r["agent"], r["seed"]))
@@ -1444,53 +1445,6 @@ def _stop_pool(pool: Any) -> None:
         if p.is_alive():
             p.kill()
             p.join()
-
-
-_INTERRUPTS: list[int] = []  # the signals received while an evaluation runs (main thread)
-
-
-def _raise_if_interrupted() -> None:
-    """Raise ``KeyboardInterrupt`` if a Ctrl-C or SIGTERM came during this evaluation.
-
-    The signal handler raises at once too, but a library may swallow that exception:
-    CasADi's Python bindings clear errors raised while they try type conversions (which
-    call back into Python), so a Ctrl-C landing there was lost and the run went on. The
-    handler also records the signal here, and the episode loop checks it every step.
-    """
-    if _INTERRUPTS:
-        raise KeyboardInterrupt(f"signal {_INTERRUPTS[0]}")
-
-
-class _interrupts:
-    """Context: Ctrl-C and SIGTERM raise ``KeyboardInterrupt`` and are remembered.
-
-    So ``kill PID`` ends a run the same clean way as Ctrl-C (workers ended, temporary
-    files removed, the table rebuilt), and an interrupt that a library swallowed is
-    raised again by :func:`_raise_if_interrupted`. Ctrl-C is taken over only from
-    Python's default handler (an ignored or a user's own handler is kept). Elsewhere than
-    in the main thread it does nothing.
-    """
-
-    def __enter__(self) -> None:
-        import threading
-
-        self.previous: dict[int, Any] = {}
-        _INTERRUPTS.clear()
-        if threading.current_thread() is not threading.main_thread():
-            return
-        self.previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, self._raise)
-        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-            self.previous[signal.SIGINT] = signal.signal(signal.SIGINT, self._raise)
-
-    @staticmethod
-    def _raise(signum: int, frame: Any) -> None:
-        _INTERRUPTS.append(signum)
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    def __exit__(self, *exc: Any) -> None:
-        for signum, handler in self.previous.items():
-            signal.signal(signum, handler)
-        _INTERRUPTS.clear()
 
 
 __all__ = [

@@ -26,6 +26,8 @@ import numpy as np
 import pytest
 
 from experiments import evaluation
+from experiments.bench_problems import problem_from_config
+from experiments.bench_solvers import build_solver, solve_record
 from experiments.evaluation import (
     DamagedEpisodeError,
     FolderLock,
@@ -36,6 +38,7 @@ from experiments.evaluation import (
     saved_rows,
     write_table,
 )
+from experiments.interrupts import raise_if_interrupted, remember_interrupts
 
 REPO = Path(__file__).resolve().parents[2]
 LFM_EVALUATE = Path(sys.executable).with_name("lfm-evaluate")
@@ -240,6 +243,60 @@ def test_a_ctrl_c_that_a_library_swallows_still_stops_the_run(agent, tmp_path):
         signal.signal(signal.SIGINT, previous)
     assert not list((out / "episodes").glob("*.json"))  # no error row for the interrupt
     assert_folder_consistent(out)
+
+
+def test_a_ctrl_c_during_an_ipopt_solve_stops_the_benchmark(paper_problem_data):
+    """CasADi's IPOPT ends a solve on Ctrl-C with a status instead of an error; the
+    benchmark's solve loop raises it (found: ``lfm-benchmark`` went on after Ctrl-C)."""
+    problem, x0, W = paper_problem_data
+    solver, _, reason = build_solver("ipopt", problem)
+    assert solver is not None, reason
+    solve_record(solver, problem, x0, W)  # warm (the JIT, the first call's set-up)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # as a terminal's
+    timer = threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT))
+    try:
+        with remember_interrupts():
+            timer.start()  # lands inside the solve (about 0.3 s)
+            with pytest.raises(KeyboardInterrupt):
+                solve_record(solver, problem, x0, W)
+                time.sleep(5.0)  # (only reached if the solve ended before the timer)
+    finally:
+        timer.cancel()
+        signal.signal(signal.SIGINT, previous)
+
+
+def test_remembered_interrupts_nest_and_restore_the_handlers():
+    """The outermost context installs and restores; a nested one (``evaluate`` inside a
+    command line) shares its record; the record is cleared on leaving the outermost."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    term = signal.getsignal(signal.SIGTERM)
+    try:
+        with remember_interrupts():
+            outer = signal.getsignal(signal.SIGINT)
+            assert outer is not signal.default_int_handler
+            with remember_interrupts():
+                assert signal.getsignal(signal.SIGINT) is outer
+                with pytest.raises(KeyboardInterrupt):
+                    signal.raise_signal(signal.SIGINT)
+            with pytest.raises(KeyboardInterrupt):  # still remembered by the outer one
+                raise_if_interrupted()
+        raise_if_interrupted()  # cleared
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        assert signal.getsignal(signal.SIGTERM) is term
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # an ignored Ctrl-C stays ignored
+        with remember_interrupts():
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+@pytest.fixture(scope="module")
+def paper_problem_data():
+    """The paper's problem at N = 7, Ns = 150 and a recorded closed-loop problem of it."""
+    data = np.load(REPO / "tests" / "data" / "recorded_problems.npz")
+    W = data["W"][0]
+    problem = problem_from_config(horizon=W.shape[1], n_scenarios=W.shape[0])
+    return problem, data["x0"][0], W
 
 
 # ================================================================ 2: not a Dask scheduler
