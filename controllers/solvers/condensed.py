@@ -70,8 +70,9 @@ class Linearisation:
     S: np.ndarray  # (N, Ns, nx, N nu) sensitivities d x_k / d u of steps 1..N, or packed
     Jg: np.ndarray  # (N, Ns, ng, nx) constraint Jacobians at steps 1..N
     grad: np.ndarray  # (N nu,) gradient of the cost
-    # S causally packed (the compiled kernel): x_k depends on u_0..u_{k-1} only, so step k
-    # (from 0) is stored as (Ns, nx, (k + 1) nu), the steps one after another, flat.
+    # S causally packed (the compiled kernel): the state of step k + 1 (k from 0) depends on
+    # u_0..u_k only, so its block is stored as (Ns, nx, (k + 1) nu), the steps one after
+    # another in one flat array.
     packed: bool = False
 
     def sensitivities(self) -> np.ndarray:
@@ -347,7 +348,7 @@ class CondensedModel:
         ``recycle``: a linearisation the caller no longer needs; the compiled kernel writes
         the new one into its arrays (same sizes), which are then no longer its.
         Allocating them anew each iteration cost page faults: at Ns = 5000 a fresh 9 MB
-        ``S`` took 1300 faults per call and doubled the kernel's time.
+        ``S`` took about 1000 faults per call and doubled the kernel's time.
         """
         if self._lib is not None:
             return self._linearise_c(ro, W_lanes, recycle)
