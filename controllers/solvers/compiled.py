@@ -234,7 +234,7 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.lfm_rollout.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P]
     lib.lfm_linearise.argtypes = [L, L, P, P, L, L, L, P, P, P, D, P, P, P, P]
     lib.lfm_hessian.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, P, D, P, P]
-    lib.lfm_linear_change.argtypes = [L, L, P, P, P, P]
+    lib.lfm_linear_change.argtypes = [L, L, P, P, P, P, P]
     lib.lfm_rows.argtypes = [L, L, P, P, L, P, P]
     for fn in (lib.lfm_rollout, lib.lfm_linearise, lib.lfm_hessian, lib.lfm_linear_change):
         fn.restype = ctypes.c_int

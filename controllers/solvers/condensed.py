@@ -217,6 +217,7 @@ class CondensedModel:
         # --- structure: constraints that are one exact linear row per step ---
         self.shared, self.shared_rows = shared_linear_constraints(problem)
         self.screened = np.array([j for j in range(ng) if j not in set(self.shared)], dtype=int)
+        self._screens_all = self.screened.size == ng
 
         # --- cost weights ---
         self._goal = np.ascontiguousarray(cost.x_goal, dtype=float)
@@ -517,10 +518,11 @@ class CondensedModel:
         """``g + (dg/du) d`` of every screened scenario row, ``(n_screened, N, Ns)``."""
         if self._lib is not None and self.ng:
             d = np.ascontiguousarray(d, dtype=float)
-            n, ns = self.n, lin.ro.X.shape[2]
-            change = np.empty((n, ns, self.ng))
-            self._lib.lfm_linear_change(n, ns, ptr(lin.S), ptr(lin.Jg), ptr(d), ptr(change))
-            return lin.ro.G[self.screened] + change[:, :, self.screened].transpose(2, 0, 1)
+            G = lin.ro.G  # (ng, N, Ns), C-contiguous (built by evaluate)
+            values = np.empty(G.shape)
+            data = (ptr(lin.S), ptr(lin.Jg), ptr(G), ptr(d))
+            self._lib.lfm_linear_change(self.n, G.shape[2], *data, ptr(values))
+            return values if self._screens_all else values[self.screened]
         S = lin.sensitivities()
         Sd = (S.reshape(-1, self.n_u) @ d).reshape(S.shape[:3] + (1,))  # (N, Ns, nx, 1)
         change = np.matmul(lin.Jg, Sd)[..., 0]  # (N, Ns, ng)

@@ -184,9 +184,9 @@ CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const d
 }
 
 CASADI_SYMBOL_EXPORT int lfm_linear_change(long n, long ns, const double* S,
-    const double* Jg, const double* d, double* out) {
-  /* out (N, Ns, NG) = Jg_k S_k d: the first-order change of every constraint value along
-     the input step d (causal: S_k d over the first k NU inputs only). */
+    const double* Jg, const double* G, const double* d, double* out) {
+  /* out (NG, N, Ns) = G + Jg_k S_k d: every constraint value changed to first order along
+     the input step d (causal: S_k d over the first k NU inputs only), in G's layout. */
   for (long k = 0; k < n; ++k)
     for (long i = 0; i < ns; ++i) {
       const long width = (k + 1) * NU;
@@ -197,7 +197,8 @@ CASADI_SYMBOL_EXPORT int lfm_linear_change(long n, long ns, const double* S,
       for (int j = 0; j < NG; ++j) {
         double s = 0.0;
         for (int m = 0; m < NX; ++m) s += Jk[j * NX + m] * sd[m];
-        out[(k * ns + i) * NG + j] = s;
+        const long at = (j * n + k) * ns + i;
+        out[at] = G[at] + s;
       }
     }
   return 0;
