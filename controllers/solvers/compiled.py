@@ -236,9 +236,9 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.lfm_hessian.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, P, D, P, P]
     lib.lfm_linear_change.argtypes = [L, L, P, P, P, P, P]
     lib.lfm_rows.argtypes = [L, L, P, P, L, P, P]
-    for fn in (lib.lfm_rollout, lib.lfm_linearise, lib.lfm_hessian, lib.lfm_linear_change):
+    entries = (lib.lfm_rollout, lib.lfm_linearise, lib.lfm_hessian, lib.lfm_linear_change)
+    for fn in (*entries, lib.lfm_rows):
         fn.restype = ctypes.c_int
-    lib.lfm_rows.restype = ctypes.c_int
 
 
 def ptr(a: np.ndarray | None) -> int | None:

@@ -258,9 +258,9 @@ class CondensedModel:
             return entry[1]
         if len(self._held_ptrs) >= 8:
             self._held_ptrs.clear()
-        address = ptr(a)
-        self._held_ptrs[id(a)] = (a, address)
-        return address
+        addr = ptr(a)
+        self._held_ptrs[id(a)] = (a, addr)
+        return addr
 
     # ------------------------------------------------------------------ evaluation
 
