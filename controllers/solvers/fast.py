@@ -361,6 +361,7 @@ class FastScenarioSolver(SubproblemMixin):
             return ro, "Invalid_Initial_Point", False, 0, stats
         status, success, iterations = "Maximum_Iterations_Exceeded", False, 0
         prev_step = math.inf  # size of the last accepted full step
+        acceptable = 0  # iterations in a row whose QP step promised <= acceptable_tol
         damping = 0.0  # Levenberg-Marquardt term: grows while the quadratic model is poor
         self._radius = opt.trust_radius
         self._deadline = deadline
@@ -493,6 +494,13 @@ class FastScenarioSolver(SubproblemMixin):
                 slack_change = abs(accepted.slack - ro.slack)
                 prev_merit = ro.merit
                 ro = accepted
+                # Stagnation (see FastSolverOptions.acceptable_tol): the merit has fallen by
+                # next to nothing in each of the last acceptable_iter iterations.
+                small = prev_merit - ro.merit <= opt.acceptable_tol * (1.0 + abs(ro.merit))
+                acceptable = acceptable + 1 if small else 0
+                if acceptable >= opt.acceptable_iter:
+                    status, success = "Solved_To_Acceptable_Level", True
+                    break
                 if rival is not None and np.max(np.abs(ro.u - rival)) <= opt.restart_same_tol:
                     status = "Duplicate"
                     break

@@ -23,10 +23,19 @@ class FastSolverOptions:
     rad, m, m/s).
     """
 
-    max_iter: int = 50  # SQP iterations per start
+    # SQP iterations per start. Long horizons need many: on 36 recorded N = 30 problems
+    # (infeasible for every input, flat penalty valleys) starts converged after up to ~120,
+    # and 9 of the 36 solves stopped at a limit of 50 while still converging.
+    max_iter: int = 150
     # Predicted merit decrease, relative to the merit, that counts as converged (1e3 times
     # it after a failed line search, where rounding stops the search).
     tol: float = 1e-10
+    # Stagnation stop (after IPOPT's "acceptable" level): acceptable_iter accepted steps in a
+    # row that each lowered the merit by at most acceptable_tol of it end the start with
+    # status "Solved_To_Acceptable_Level" (a success). On the flat, infeasible valleys of long
+    # horizons an SQP can otherwise creep for a hundred iterations at ~1e-9 of the merit each.
+    acceptable_tol: float = 1e-8
+    acceptable_iter: int = 15
     step_tol: float = 1e-8  # [m/s^2, rad] input step that counts as converged
     final_step_tol: float = 1e-6  # [m/s^2, rad] predicted next step that counts as converged
     screen_margin: float = 0.5  # [m] rows within this of activity enter the QP at once
@@ -82,11 +91,18 @@ class FastSolverOptions:
                     f"FastSolverOptions.{name}={getattr(self, name)!r}: must be {allowed}"
                 )
 
-        for name in ("max_iter", "screen_rows", "max_qp_rounds", "restart_probe"):
+        for name in (
+            "max_iter",
+            "screen_rows",
+            "max_qp_rounds",
+            "restart_probe",
+            "acceptable_iter",
+        ):
             value = getattr(self, name)
             check(name, isinstance(value, int) and value >= 1, "an int >= 1")
         for name in (
             "tol",
+            "acceptable_tol",
             "step_tol",
             "final_step_tol",
             "screen_margin",

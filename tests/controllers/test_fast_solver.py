@@ -226,6 +226,23 @@ def test_screening_gives_the_unscreened_solution() -> None:
     np.testing.assert_allclose(screened.u, full.u, atol=1e-6)
 
 
+def test_the_stagnation_stop_counts_accepted_steps_in_a_row() -> None:
+    """With a stagnation threshold every decrease meets, the start ends as acceptable after
+    exactly acceptable_iter accepted steps; with the default one it runs on to convergence."""
+    problem = PROBLEM_30
+    x0, W = STARTS["start"], draw_W(10, 30)
+    full = FastScenarioSolver(problem, restarts=()).solve(x0, W)
+    assert full.status == "Solve_Succeeded" and full.iterations > 3
+    for count in (1, 2):
+        sol = FastScenarioSolver(
+            problem, restarts=(), acceptable_tol=1.0, acceptable_iter=count
+        ).solve(x0, W)
+        assert sol.success
+        assert sol.status == "Solved_To_Acceptable_Level"
+        assert sol.iterations == count
+        assert sol.objective < mpc_problem.objective(problem, x0, W, np.zeros((7, 2)))
+
+
 def test_iteration_limit_returns_best_iterate_without_raising() -> None:
     problem = PROBLEM_30
     x0, W = STARTS["start"], draw_W(10, 30)
@@ -341,6 +358,9 @@ def test_bad_input_raises_value_error(x0, W, u_guess) -> None:
     [
         {"max_iter": 0},
         {"tol": -1.0},
+        {"acceptable_tol": 0.0},
+        {"acceptable_iter": 0},
+        {"acceptable_iter": 1.5},
         {"armijo": 0.7},
         {"qp_solver": "nope"},
         {"foo": 1},
