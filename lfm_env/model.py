@@ -263,12 +263,15 @@ class LatentForceModel:
     ) -> np.ndarray:
         """Propagate augmented states ``(n, nx + p)`` one step, with process noise.
 
-        This is the bootstrap particle filter's proposal: all particles at once.
+        This is the bootstrap particle filter's proposal: all particles at once. The result
+        ``(n, nx + p)`` is column-major (the transpose of a component-major buffer): the
+        filter keeps that layout, so neither this step nor the next one copies it across.
         """
         n, d = particles.shape
         nx = self.nx
-        # Component-major (d, n) working copy: contiguous rows make the elementwise model
-        # several times faster than strided columns of the row-major particle array.
+        # Component-major (d, n): contiguous rows make the elementwise model several times
+        # faster than strided columns of a row-major particle array (free when the particles
+        # are the column-major result of the previous step).
         X = np.ascontiguousarray(particles.T)
         z = X[nx:]
         # One draw for all components; single precision is ample for noise samples and
@@ -289,7 +292,7 @@ class LatentForceModel:
         out[:nx] += noise[:nx] * self._process_std_col
         np.matmul(self.A, z, out=out[nx:])
         out[nx:] += self._q_factor32 @ noise[nx:]
-        return np.ascontiguousarray(out.T)
+        return out.T
 
 
 __all__ = ["DISCRETIZATIONS", "DRIFT_PRECISIONS", "LatentForceModel", "psd_factor"]

@@ -24,8 +24,9 @@ class FastSolverOptions:
     """
 
     # SQP iterations per start. Long horizons need many: on 36 recorded N = 30 problems
-    # (infeasible for every input, flat penalty valleys) starts converged after up to ~120,
-    # and 9 of the 36 solves stopped at a limit of 50 while still converging.
+    # (infeasible for every input, flat penalty valleys; solved in closed-loop order) first
+    # starts took up to 132 with the stagnation stop below, and at a limit of 50, 9 of the
+    # 36 solves stopped while still converging.
     max_iter: int = 150
     # Predicted merit decrease, relative to the merit, that counts as converged (1e3 times
     # it after a failed line search, where rounding stops the search).

@@ -573,3 +573,44 @@ def test_unlikely_but_finite_measurement_is_used_not_skipped():
     assert 1.0 <= info.ess < 5.0  # weights collapse onto the closest particles
     assert np.isfinite(info.max_log_likelihood)
     assert np.all(np.isfinite(pf.mean)) and np.all(np.isfinite(pf.covariance))
+
+
+# ------------------------------------------------------------------ particle layout
+
+
+@pytest.mark.parametrize("resampling", ["systematic", "residual"])
+def test_a_column_major_transition_gives_the_row_major_filter(resampling: str) -> None:
+    """The filter keeps a column-major transition's particles as they come (as
+    LatentForceModel.transition returns them): same particles, weights and estimates as
+    the row-major filter on the same draws, with and without resampling every step."""
+
+    def column_major(particles, u, rng):
+        return np.asfortranarray(_linear_transition(particles, u, rng))
+
+    ess = None if resampling == "systematic" else 0.5
+    rows = _make_linear_pf(400, 5, resampling, ess)
+    cols = _make_linear_pf(400, 5, resampling, ess, transition=column_major)
+    for y in np.linspace(-1.0, 1.0, 12):
+        a, b = rows.step(0.1, y), cols.step(0.1, y)
+        assert a == b
+        assert rows.particles.flags.c_contiguous and cols.particles.flags.f_contiguous
+        np.testing.assert_array_equal(rows.particles, cols.particles)
+        np.testing.assert_array_equal(rows.weights, cols.weights)
+        np.testing.assert_allclose(rows.mean, cols.mean, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(rows.covariance, cols.covariance, rtol=0, atol=1e-14)
+    assert rows.n_resampled == cols.n_resampled > 0
+
+
+def test_a_strided_transition_result_is_copied_to_row_major() -> None:
+    def strided(particles, u, rng):
+        out = _linear_transition(particles, u, rng)
+        wide = np.zeros((out.shape[0], 2 * out.shape[1]))
+        wide[:, ::2] = out
+        return wide[:, ::2]  # neither row- nor column-major
+
+    pf = _make_linear_pf(50, 2, transition=strided)
+    ref = _make_linear_pf(50, 2)
+    pf.predict(0.1)
+    ref.predict(0.1)
+    assert pf.particles.flags.c_contiguous
+    np.testing.assert_array_equal(pf.particles, ref.particles)

@@ -157,8 +157,13 @@ def test_transition_shape_layout_and_input_untouched(model):
     before = particles.copy()
     out = model.transition(particles, _input(model), rng)
     assert out.shape == particles.shape and out.dtype == np.float64
-    assert out.flags.c_contiguous  # row-major, as the filter's resampling gather wants
+    # Column-major (a component-major buffer): the next transition needs no transposed copy.
+    assert out.flags.f_contiguous
     np.testing.assert_array_equal(particles, before)
+    # Fed back in that layout, the same step with the same draws gives the same particles.
+    again = model.transition(out, _input(model), np.random.default_rng(3))
+    row_major = model.transition(np.ascontiguousarray(out), _input(model), np.random.default_rng(3))
+    np.testing.assert_array_equal(again, row_major)
 
 
 def test_transition_mean_and_noise_covariance_match_the_model(model):
