@@ -178,7 +178,10 @@ class FastScenarioSolver(SubproblemMixin):
             ``extra["restarts"]`` maps each extra start tried to ``"kept"`` or the status it
             ended with; ``iterations`` counts the iterations of every start. A solve
             that does not converge does not raise: it returns the best iterate (the merit
-            decreases monotonically) with ``success=False``.
+            decreases monotonically) with ``success=False``. A start whose merit stagnates
+            (``acceptable_iter`` steps in a row, each lowering it by at most
+            ``acceptable_tol`` of it) ends with status ``"Solved_To_Acceptable_Level"``, a
+            success.
 
         Extra starts: when the first plan drives an input of ``system.mirror_inputs``
         beyond ``restart_threshold`` of its bound, the SQP also starts from that plan with
