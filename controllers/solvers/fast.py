@@ -364,7 +364,7 @@ class FastScenarioSolver(SubproblemMixin):
             return ro, "Invalid_Initial_Point", False, 0, stats
         status, success, iterations = "Maximum_Iterations_Exceeded", False, 0
         prev_step = math.inf  # size of the last accepted full step
-        acceptable = 0  # iterations in a row whose QP step promised <= acceptable_tol
+        acceptable = 0  # accepted steps in a row that each lowered the merit <= acceptable_tol
         damping = 0.0  # Levenberg-Marquardt term: grows while the quadratic model is poor
         self._radius = opt.trust_radius
         self._deadline = deadline
