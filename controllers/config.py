@@ -174,7 +174,9 @@ class AgentConfig:
     goal_state: tuple[float, ...] = (62.83, 0.0, 4.0, 0.0)  # e.g. [m, m, m/s, deg]
     slack_penalty: float = 1.0e4  # exact L1 penalty per unit of state-constraint slack
     solver: str = "fast"  # one of controllers.solvers.SOLVERS
-    max_iter: int = 100  # solver iteration limit per step
+    # Solver iteration limit per step (the fast SQP's per start; its own default too: long
+    # horizons need it, see FastSolverOptions.max_iter).
+    max_iter: int = 150
     # Wall-clock limit of one solve [s]: a solve that reaches it fails and the agent falls
     # back (the previous plan, else the system's fallback input), as on any failed solve.
     max_solve_time: float = 10.0
