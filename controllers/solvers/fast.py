@@ -35,9 +35,10 @@ the problem. Everything it knows about the system comes from the system definiti
   less than a quarter of what the QP model predicted, doubled after a full step that
   reached it and did better; never below ``min_trust_radius``), inside a backtracking
   Armijo line search on the exact-penalty merit, with a second-order correction against
-  the Maratos effect. Where the Hessian had to be floored on negative curvature, the QP
-  model is flat in those directions and only the trust region keeps the step from
-  running to the input bounds. (``trust_radius=0``: Levenberg-Marquardt damping after
+  the Maratos effect (for a full step that fails the search, or passes it far short of the
+  model's promise while the slack grew). Where the Hessian had to be floored on negative
+  curvature, the QP model is flat in those directions and only the trust region keeps the
+  step from running to the input bounds. (``trust_radius=0``: Levenberg-Marquardt damping after
   heavy backtracking instead.) A full step whose merit decrease came close to the linear
   prediction is tried 2, 4, ... times as long while the merit keeps falling
   (``max_expand``): where the model is too curved, full steps otherwise shrink by a
@@ -69,9 +70,9 @@ from typing import Any
 import numpy as np
 
 from controllers.problem import MPCSolution, ScenarioProblem
-from controllers.solvers.condensed import CondensedModel, Rollout
+from controllers.solvers.condensed import CondensedModel, Linearisation, Rollout
 from controllers.solvers.fast_options import HESSIAN_MODIFICATIONS, RESTARTS, FastSolverOptions
-from controllers.solvers.fast_subproblem import SubproblemMixin
+from controllers.solvers.fast_subproblem import QPStep, SubproblemMixin
 from controllers.solvers.slot_qp import SlotQP
 
 
@@ -315,6 +316,34 @@ class FastScenarioSolver(SubproblemMixin):
             accepted, t = trial, 2.0 * t
         return accepted, t
 
+    def _corrected(
+        self,
+        evaluate: Any,
+        lin: Linearisation,
+        qp_step: QPStep,
+        u: np.ndarray,
+        trial: Rollout,
+        stats: dict,
+    ) -> Rollout | None:
+        """The second-order correction of the full step that gave ``trial`` (or None).
+
+        The constraints' curvature made the full step infeasible: the QP's scenario rows
+        are shifted by their second-order error at ``trial`` and the QP re-solved (against
+        the Maratos effect); returns the rollout of the corrected step.
+        """
+        pos, d = qp_step.pos, qp_step.d
+        a_pos, _ = self.model.rows(lin, pos)
+        g_try = trial.G[pos[:, 0], pos[:, 1], pos[:, 2]]
+        qp_step.qp.set_position_bounds(qp_step.row, g_try - a_pos @ d)
+        z_soc, _, ok_soc = qp_step.qp.solve()
+        stats["qp_solves"] += 1
+        calls, used = stats["qp_calls"], qp_step.qp.solver
+        calls[used] = calls.get(used, 0) + 1
+        if not ok_soc:
+            return None
+        stats["merit_evals"] += 1
+        return evaluate(np.clip(u + z_soc[: self._n_u], self._lower, self._upper))
+
     def _check_time(self) -> None:
         """Raise :class:`_OutOfTime` once the current solve's deadline has passed."""
         if time.perf_counter() >= self._deadline:
@@ -340,7 +369,7 @@ class FastScenarioSolver(SubproblemMixin):
         success) and the last accepted iterate.
         """
         p, opt, model = self.problem, self.options, self.model
-        nu, rho = self._n_u, p.slack_penalty
+        rho = p.slack_penalty
         ns = data.x0T.shape[1]
         mu = np.zeros((p.ng, p.horizon, ns))
         active_pos = np.empty((0, 3), dtype=int)
@@ -424,6 +453,7 @@ class FastScenarioSolver(SubproblemMixin):
                     break
 
                 # --- line search on the exact-penalty merit, with second-order correction ---
+                soc_ok = opt.second_order_correction and pos.shape[0] > 0
                 t = 1.0
                 accepted = None
                 while t >= opt.min_step:
@@ -432,29 +462,27 @@ class FastScenarioSolver(SubproblemMixin):
                     stats["merit_evals"] += 1
                     if trial.merit <= ro.merit + opt.armijo * t * D:
                         accepted = trial
-                        break
-                    if (
-                        t == 1.0
-                        and opt.second_order_correction
-                        and trial.slack > ro.slack
-                        and pos.shape[0]
-                    ):
-                        # The constraints' curvature made the full step infeasible: shift the
-                        # rows by their second-order error and re-solve (Maratos effect).
-                        a_pos, _ = model.rows(lin, pos)
-                        g_try = trial.G[pos[:, 0], pos[:, 1], pos[:, 2]]
-                        qp_step.qp.set_position_bounds(qp_step.row, g_try - a_pos @ d)
-                        z_soc, _, ok_soc = qp_step.qp.solve()
-                        stats["qp_solves"] += 1
-                        calls, used = stats["qp_calls"], qp_step.qp.solver
-                        calls[used] = calls.get(used, 0) + 1
-                        if ok_soc:
-                            soc = evaluate(np.clip(u + z_soc[:nu], self._lower, self._upper))
-                            stats["merit_evals"] += 1
-                            if soc.merit <= ro.merit + opt.armijo * D:
+                        if (
+                            t == 1.0
+                            and soc_ok
+                            and opt.soc_below_ratio > 0.0
+                            and trial.slack > ro.slack
+                            and ro.merit - trial.merit
+                            < opt.soc_below_ratio * -(D + 0.5 * qp_step.curvature)
+                        ):
+                            # Accepted, but far below the model's promise while the slack
+                            # grew: the same curvature error; keep the correction if better.
+                            soc = self._corrected(evaluate, lin, qp_step, u, trial, stats)
+                            if soc is not None and soc.merit < trial.merit:
                                 stats["soc_steps"] += 1
                                 accepted = soc
-                                break
+                        break
+                    if t == 1.0 and soc_ok and trial.slack > ro.slack:
+                        soc = self._corrected(evaluate, lin, qp_step, u, trial, stats)
+                        if soc is not None and soc.merit <= ro.merit + opt.armijo * D:
+                            stats["soc_steps"] += 1
+                            accepted = soc
+                            break
                     t *= opt.backtrack
                 if (
                     accepted is not None

@@ -49,6 +49,11 @@ class FastSolverOptions:
     hessian_floor: float = 1e-3  # smallest Hessian eigenvalue [per (m/s^2)^2 or rad^2]
     slack_regularisation: float = 1e-8  # quadratic weight on the QP slacks (strict convexity)
     second_order_correction: bool = True  # against the Maratos effect
+    # A full step accepted with less than this fraction of the QP model's predicted decrease
+    # while the slack grew also gets the correction (kept if it lowers the merit further):
+    # otherwise the trust region shrinks to its minimum on the constraints' curvature and
+    # the SQP creeps along the constraint. 0: only failed full steps are corrected.
+    soc_below_ratio: float = 0.25
     damping_init: float = 1.0  # first Levenberg-Marquardt damping (trust_radius=0 only)
     damping_threshold: float = 0.1  # line-search step below which the damping grows
     damping_decrease: float = 0.1  # factor on the damping after a full step
@@ -119,6 +124,7 @@ class FastSolverOptions:
             ok = isinstance(value, (int, float)) and math.isfinite(value) and value > 0
             check(name, ok, "finite and > 0")
         check("armijo", 0 < self.armijo < 0.5, "in (0, 0.5)")
+        check("soc_below_ratio", 0 <= self.soc_below_ratio <= 1, "in [0, 1]")
         check("backtrack", 0 < self.backtrack < 1, "in (0, 1)")
         check("damping_threshold", 0 < self.damping_threshold <= 1, "in (0, 1]")
         check("damping_decrease", 0 <= self.damping_decrease < 1, "in [0, 1)")

@@ -243,6 +243,38 @@ def test_the_stagnation_stop_counts_accepted_steps_in_a_row() -> None:
         assert sol.objective < mpc_problem.objective(problem, x0, W, np.zeros((7, 2)))
 
 
+# One closed-loop problem of the paper evaluation's certainty-equivalent agent ("pf", env seed
+# 0, step 41, near the goal; one scenario: the estimated force), with its warm start.
+CREEPING_X0 = [57.77821232013492, -1.5702984472042978, 7.453441270459591, 0.3481842597733405]
+CREEPING_W = [
+    2.5423411385032457, 2.600331412906511, 2.639652715893501, 2.6612736765473826,
+    2.6664135849261608, 2.6564524290691316, 2.6328599201276264,
+]  # fmt: skip
+CREEPING_GUESS = [
+    [-5.0, 0.004289226959010901], [-5.0, -0.12075060944105738],
+    [-4.566141109947966, -0.1204691834042342], [-3.458349196589167, 0.38476033284438294],
+    [-2.3360084932596132, 0.4363323129985824], [-1.1103095554667035, 0.1143932978605367],
+    [-1.1103095554667035, 0.1143932978605367],
+]  # fmt: skip
+
+
+def test_a_poor_accepted_step_gets_the_second_order_correction() -> None:
+    """Along a curved constraint, full steps that the line search accepts but that fall far
+    short of the model (the slack grows with the constraint's curvature) held the trust
+    region at its minimum: 108 first-start iterations. Correcting those steps too lets it
+    grow again: far fewer iterations, the same objective."""
+    problem = paper_problem(n_scenarios=1)
+    x0, W = np.array(CREEPING_X0), np.array(CREEPING_W).reshape(1, 7, 1)
+    guess = np.array(CREEPING_GUESS)
+    before = FastScenarioSolver(problem, soc_below_ratio=0.0).solve(x0, W, u_guess=guess)
+    after = FastScenarioSolver(problem).solve(x0, W, u_guess=guess)
+    assert before.success and after.success, (before.status, after.status)
+    assert before.extra["first_start"]["iterations"] > 100
+    assert after.extra["first_start"]["iterations"] <= 80
+    assert after.extra["soc_steps"] > before.extra["soc_steps"]
+    assert after.objective == pytest.approx(before.objective, rel=1e-7)
+
+
 def test_iteration_limit_returns_best_iterate_without_raising() -> None:
     problem = PROBLEM_30
     x0, W = STARTS["start"], draw_W(10, 30)
@@ -361,6 +393,8 @@ def test_bad_input_raises_value_error(x0, W, u_guess) -> None:
         {"acceptable_tol": 0.0},
         {"acceptable_iter": 0},
         {"acceptable_iter": 1.5},
+        {"soc_below_ratio": -0.1},
+        {"soc_below_ratio": 1.5},
         {"armijo": 0.7},
         {"qp_solver": "nope"},
         {"foo": 1},
