@@ -435,6 +435,7 @@ class FastScenarioSolver(SubproblemMixin):
                     break
                 # Upper bound of the merit's directional derivative along d (< 0 unless d = 0).
                 D = float(lin.grad @ d) + rho * (qp_step.slack_sum - ro.slack)
+                predicted = -(D + 0.5 * qp_step.curvature)  # the QP model's merit decrease
                 cut = opt.trust_radius > 0.0 and bool(
                     np.max(np.abs(d) / self._range) >= 0.99 * self._radius
                 )
@@ -467,8 +468,7 @@ class FastScenarioSolver(SubproblemMixin):
                             and soc_ok
                             and opt.soc_below_ratio > 0.0
                             and trial.slack > ro.slack
-                            and ro.merit - trial.merit
-                            < opt.soc_below_ratio * -(D + 0.5 * qp_step.curvature)
+                            and ro.merit - trial.merit < opt.soc_below_ratio * predicted
                         ):
                             # Accepted, but far below the model's promise while the slack
                             # grew: the same curvature error; keep the correction if better.
@@ -545,7 +545,6 @@ class FastScenarioSolver(SubproblemMixin):
                     # The QP model's predicted decrease against the actual one at the full step.
                     size = float(np.max(np.abs(d) / self._range))
                     at_radius = cut  # (the radius has not changed since)
-                    predicted = -(D + 0.5 * qp_step.curvature)
                     model_ratio = (prev_merit - ro.merit) / predicted if predicted > 0 else 1.0
                     if t < 1.0 or model_ratio < 0.25:
                         self._radius = max(0.5 * t * size, opt.min_trust_radius)
