@@ -236,6 +236,9 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.lfm_hessian.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, P, D, P, P]
     lib.lfm_linear_change.argtypes = [L, L, P, P, P, P, P]
     lib.lfm_rows.argtypes = [L, L, P, P, L, P, P]
+    lib.lfm_screen.argtypes = [L, L, L, P, P, P, P, D, L, P, L]
+    lib.lfm_violated.argtypes = [L, L, L, P, P, P, P, P, P, L, P, D, L, P, L]
+    lib.lfm_screen.restype = lib.lfm_violated.restype = ctypes.c_long
     entries = (lib.lfm_rollout, lib.lfm_linearise, lib.lfm_hessian, lib.lfm_linear_change)
     for fn in (*entries, lib.lfm_rows):
         fn.restype = ctypes.c_int

@@ -45,6 +45,7 @@ import numpy as np
 from controllers.problem import ScenarioProblem
 from controllers.solvers.compiled import KernelUnavailable, address, build_kernel, ptr
 from controllers.solvers.lanes import LaneFunction
+from controllers.solvers.screening import screen_rows, worst_rows
 
 KERNEL_ENV = "LFM_KERNEL"
 KERNELS = ("auto", "c", "numpy", "vm")
@@ -217,6 +218,8 @@ class CondensedModel:
         # --- structure: constraints that are one exact linear row per step ---
         self.shared, self.shared_rows = shared_linear_constraints(problem)
         self.screened = np.array([j for j in range(ng) if j not in set(self.shared)], dtype=int)
+        self._screened_c = np.ascontiguousarray(self.screened, dtype=np.int64)
+        self._depends_c = np.ascontiguousarray(self.depends, dtype=np.uint8)
         self._screens_all = self.screened.size == ng
 
         # --- cost weights ---
@@ -513,6 +516,71 @@ class CondensedModel:
         else:
             jac = np.einsum("rm,rmn->rn", lin.Jg[k, i, j], lin.S[k, i])
         return jac, lin.ro.G[j, k, i]
+
+    def screen(self, ro: Rollout, margin: float, keep: int) -> np.ndarray:
+        """The scenario rows ``(r, 3)`` of ``(constraint, step from 0, scenario)`` a QP at
+        ``ro`` starts with (:func:`~controllers.solvers.screening.screen_rows` of the
+        screened constraints; ``margin`` in the constraints' unit, ``keep`` rows per group
+        by value)."""
+        nsc = self.screened.size
+        if self._lib is None or nsc == 0:
+            return screen_rows(ro.G, ro.X, self.screened, self.depends, margin, keep)
+        ns = ro.X.shape[2]
+        cap = nsc * self.n * min(ns, keep + 1 + 2 * self.nx)
+        out = np.empty((cap, 3), dtype=np.int64)
+        args = (ptr(ro.G), ptr(ro.X), address(self._depends_c), float(margin), int(keep))
+        r = self._lib.lfm_screen(
+            self.n, ns, nsc, address(self._screened_c), *args, address(out), cap
+        )
+        if r < 0:  # out of memory (or a bug): the reference gives the same rows
+            return screen_rows(ro.G, ro.X, self.screened, self.depends, margin, keep)
+        return out[:r]
+
+    def violated_rows(
+        self,
+        lin: Linearisation,
+        d: np.ndarray,
+        s_pos: np.ndarray,
+        pos: np.ndarray,
+        tol: float,
+        keep: int,
+    ) -> np.ndarray:
+        """Scenario rows ``(r, 3)`` not in ``pos`` that the QP step ``d`` violates to first
+        order by more than ``tol``, with the QP's slack ``s_pos`` ``(ng, N)`` of every
+        (constraint, step) group: up to ``keep`` of the largest per group
+        (:func:`~controllers.solvers.screening.worst_rows`)."""
+        nsc = self.screened.size
+        if nsc == 0:
+            return np.empty((0, 3), dtype=int)
+        if self._lib is None or not lin.packed:
+            viol = self.linearised_values(lin, d)
+            viol -= s_pos[self.screened][:, :, None]
+            return worst_rows(viol, self.screened, pos, tol, keep)
+        ns = lin.ro.X.shape[2]
+        cap = nsc * self.n * min(ns, keep)
+        out = np.empty((cap, 3), dtype=np.int64)
+        d = np.ascontiguousarray(d, dtype=float)
+        s_pos = np.ascontiguousarray(s_pos, dtype=float)
+        pos_c = np.ascontiguousarray(pos, dtype=np.int64)
+        data = (ptr(lin.S), ptr(lin.Jg), ptr(lin.ro.G), ptr(d), ptr(s_pos))
+        r = self._lib.lfm_violated(
+            self.n,
+            ns,
+            nsc,
+            address(self._screened_c),
+            *data,
+            pos_c.shape[0],
+            address(pos_c),
+            float(tol),
+            int(keep),
+            address(out),
+            cap,
+        )
+        if r < 0:  # out of memory (or a bug): the reference gives the same rows
+            viol = self.linearised_values(lin, d)
+            viol -= s_pos[self.screened][:, :, None]
+            return worst_rows(viol, self.screened, pos, tol, keep)
+        return out[:r]
 
     def linearised_values(self, lin: Linearisation, d: np.ndarray) -> np.ndarray:
         """``g + (dg/du) d`` of every screened scenario row, ``(n_screened, N, Ns)``."""

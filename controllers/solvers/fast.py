@@ -110,7 +110,6 @@ class FastScenarioSolver(SubproblemMixin):
         n_l = m.shared.size
         self._n_shared = n_l * n
         self._a_shared = m.shared_rows.transpose(1, 0, 2).reshape(n * n_l, m.n_u)
-        self._screened = m.screened
         self._n_groups = max(m.screened.size * n, 1)
         self._qps: dict[tuple[int, int], SlotQP] = {}
         self._prev_u: np.ndarray | None = None

@@ -57,7 +57,6 @@ class SubproblemMixin:
     _radius: float  # current trust radius (fraction of the range; 0: none)
     _n_shared: int  # shared rows, ordered (step, shared constraint)
     _a_shared: np.ndarray  # (n_shared, N nu) their Jacobian rows
-    _screened: np.ndarray  # constraints with scenario rows
     _n_groups: int  # (constraint, step) groups of scenario rows
     _qps: dict[tuple[int, int], SlotQP]
     _last_eig: Any  # diagnostics of the last convexification (for the trace)
@@ -158,34 +157,8 @@ class SubproblemMixin:
         state the constraint depends on (scenarios differ mostly in how far they get along
         similar paths, so a step can make the other end of that family the worst one).
         """
-        opt, m = self.options, self.model
-        screened = self._screened
-        if screened.size == 0:
-            return np.empty((0, 3), dtype=int)
-        n = self.problem.horizon
-        G = ro.G[screened].reshape(screened.size * n, -1)
-        ns = G.shape[1]
-        active = np.nonzero(G.max(axis=1) >= -opt.screen_margin)[0]
-        if active.size == 0:
-            return np.empty((0, 3), dtype=int)
-        Ga = G[active]
-        keep = min(opt.screen_rows, ns)
-        top = np.argpartition(Ga, ns - keep, axis=1)[:, ns - keep :]
-        near = np.take_along_axis(Ga, top, axis=1) >= -opt.screen_margin
-        sub, col = np.nonzero(near)
-        flat = [active[sub] * ns + top[sub, col], active * ns + Ga.argmin(axis=1)]
-        step = active % n
-        j_of = screened[active // n]
-        X = ro.X[1:]  # (N, nx, Ns)
-        for state in np.flatnonzero(m.depends[screened].any(axis=0)):
-            users = m.depends[j_of, state]
-            if users.any():
-                steps = step[users]
-                # the extreme scenarios of every step, then those of the groups' steps
-                flat.append(active[users] * ns + X[:, state].argmax(axis=1)[steps])
-                flat.append(active[users] * ns + X[:, state].argmin(axis=1)[steps])
-        group, scen = np.divmod(np.unique(np.concatenate(flat)), ns)
-        return np.column_stack([screened[group // n], group % n, scen])
+        opt = self.options
+        return self.model.screen(ro, opt.screen_margin, opt.screen_rows)
 
     def _missing_rows(
         self, lin: Linearisation, d: np.ndarray, s_pos: np.ndarray, pos: np.ndarray
@@ -195,24 +168,8 @@ class SubproblemMixin:
         Up to ``screen_rows`` of the worst per (constraint, step) group, so that rows that
         are close together enter in one round.
         """
-        screened, n = self._screened, self.problem.horizon
-        if screened.size == 0:  # every constraint is shared-linear: all rows are in the QP
-            return np.empty((0, 3), dtype=int)
-        viol = self.model.linearised_values(lin, d)  # (nP, N, Ns)
-        viol -= s_pos[screened][:, :, None]
-        where = np.searchsorted(screened, pos[:, 0])
-        viol[where, pos[:, 1], pos[:, 2]] = -np.inf
-        flat = viol.reshape(screened.size * n, -1)
-        bad = np.nonzero(flat.max(axis=1) > self.options.add_tol)[0]
-        if bad.size == 0:
-            return np.empty((0, 3), dtype=int)
-        flat = flat[bad]
-        ns = flat.shape[1]
-        keep = min(self.options.screen_rows, ns)
-        worst = np.argpartition(flat, ns - keep, axis=1)[:, ns - keep :]
-        sub, col = np.nonzero(np.take_along_axis(flat, worst, axis=1) > self.options.add_tol)
-        group = bad[sub]
-        return np.column_stack([screened[group // n], group % n, worst[sub, col]])
+        opt = self.options
+        return self.model.violated_rows(lin, d, s_pos, pos, opt.add_tol, opt.screen_rows)
 
     def _solve_qp(
         self,

@@ -4,7 +4,8 @@ System-independent C that loops over the steps and scenarios and calls the syste
 pointwise functions, which :func:`controllers.solvers.compiled.kernel_source` generates and
 puts in front of it (with the sizes ``NX``, ``NU``, ``NW``, ``NG``, ``NP_*`` as macros and the
 work-size queries at ``@WORK@``). Entry points: ``lfm_rollout``, ``lfm_linearise``,
-``lfm_linear_change``, ``lfm_rows`` and ``lfm_hessian``; their argument types are declared in
+``lfm_linear_change``, ``lfm_rows``, ``lfm_hessian`` and the row selection ``lfm_screen`` and
+``lfm_violated``; their argument types are declared in
 :func:`controllers.solvers.compiled._declare`. Both sweeps run step by step over all
 scenarios, in the (step, scenario) order of the arrays.
 """
@@ -19,6 +20,7 @@ scenarios, in the (step, scenario) order of the arrays.
 DRIVER = r"""
 #include <stdlib.h>
 #include <string.h>
+#include <math.h>
 #define NZ (NX + NU)
 #define S_OFF(k, ns) ((ns) * NX * NU * (k) * ((k) + 1) / 2)
 
@@ -222,6 +224,149 @@ CASADI_SYMBOL_EXPORT int lfm_rows(long n, long ns, const double* S, const double
     for (long c = width; c < nut; ++c) row[c] = 0.0;
   }
   return 0;
+}
+
+/* The row selection (the NumPy reference is controllers/solvers/screening.py): the keep
+   best values of a group, best first, ranked by larger value, then lower scenario index.
+   The scenarios come in ascending order, so a new value ranks after an equal one. */
+static void top_insert(double* tv, long* ti, long* cnt, long keep, double v, long i) {
+  long c = *cnt;
+  if (c == keep) {
+    if (!(v > tv[c - 1])) return;
+    --c;
+  }
+  long p = c;
+  while (p > 0 && v > tv[p - 1]) { tv[p] = tv[p - 1]; ti[p] = ti[p - 1]; --p; }
+  tv[p] = v;
+  ti[p] = i;
+  *cnt = c + 1;
+}
+
+/* Rows (constraint screened[a], step k, scenario) of the marks (nsc, N, Ns) into out (r, 3),
+   in that order; -2 if more than cap. */
+static long marked_rows(long n, long ns, long nsc, const long* screened,
+                        const unsigned char* mark, long* out, long cap) {
+  long r = 0;
+  for (long a = 0; a < nsc; ++a)
+    for (long k = 0; k < n; ++k) {
+      const unsigned char* mk = mark + (a * n + k) * ns;
+      for (long i = 0; i < ns; ++i)
+        if (mk[i]) {
+          if (r == cap) return -2;
+          out[3 * r] = screened[a];
+          out[3 * r + 1] = k;
+          out[3 * r + 2] = i;
+          ++r;
+        }
+    }
+  return r;
+}
+
+CASADI_SYMBOL_EXPORT long lfm_screen(long n, long ns, long nsc, const long* screened,
+    const double* G, const double* X, const unsigned char* depends, double margin, long keep,
+    long* out, long cap) {
+  /* The initial scenario rows of screened constraints (screening.screen_rows): in every
+     group (j, k) of G (NG, N, Ns) whose largest value is >= -margin (and has no NaN), the
+     keep largest values >= -margin, the first smallest, and the first largest and smallest
+     scenario of every state j depends on (depends (NG, NX)) in X (N+1, NX, Ns) at step
+     k + 1. Returns the number of rows written to out (r, 3), -1 if out of memory, -2 if
+     cap is too small. */
+  unsigned char* mark = calloc(nsc * n * ns + 1, 1);
+  double* tv = malloc((keep + 1) * sizeof(double));
+  long* ti = malloc((keep + 1) * sizeof(long));
+  long r = -1;
+  if (mark && tv && ti && keep > 0) {
+    for (long a = 0; a < nsc; ++a) {
+      const long j = screened[a];
+      for (long k = 0; k < n; ++k) {
+        const double* g = G + (j * n + k) * ns;
+        double mx = -INFINITY, vmin = g[0];
+        long imin = 0, cnt = 0;
+        int nan = 0;
+        for (long i = 0; i < ns; ++i) {
+          const double v = g[i];
+          nan |= v != v;
+          if (v > mx) mx = v;
+          if (v < vmin) { vmin = v; imin = i; }
+          if (v >= -margin) top_insert(tv, ti, &cnt, keep, v, i);
+        }
+        if (nan || !(mx >= -margin)) continue;
+        unsigned char* mk = mark + (a * n + k) * ns;
+        for (long c = 0; c < cnt; ++c) mk[ti[c]] = 1;
+        mk[imin] = 1;
+        for (int m = 0; m < NX; ++m) {
+          if (!depends[j * NX + m]) continue;
+          const double* xm = X + ((k + 1) * NX + m) * ns;
+          long ia = 0, ib = 0;
+          for (long i = 1; i < ns; ++i) {
+            if (xm[i] > xm[ia]) ia = i;
+            if (xm[i] < xm[ib]) ib = i;
+          }
+          mk[ia] = mk[ib] = 1;
+        }
+      }
+    }
+    r = marked_rows(n, ns, nsc, screened, mark, out, cap);
+  }
+  free(mark);
+  free(tv);
+  free(ti);
+  return r;
+}
+
+CASADI_SYMBOL_EXPORT long lfm_violated(long n, long ns, long nsc, const long* screened,
+    const double* S, const double* Jg, const double* G, const double* d, const double* s_pos,
+    long q, const long* pos, double tol, long keep, long* out, long cap) {
+  /* The rows a QP step d violates (screening.worst_rows): the linearised values
+     G + Jg_k S_k d - s_pos[j, k] (s_pos (NG, N), the QP's slack of each group) of the
+     screened constraints, rows pos (q, 3) excluded; in every group without NaN, the keep
+     largest above tol, by ascending scenario. Returns the number of rows written to out
+     (r, 3), -1 if out of memory, -2 if cap is too small. */
+  const long groups = nsc * n;
+  unsigned char* mark = calloc(groups * ns + 1, 1);
+  unsigned char* nan = calloc(groups + 1, 1);
+  double* tv = malloc((groups * keep + 1) * sizeof(double));
+  long* ti = malloc((groups * keep + 1) * sizeof(long));
+  long* cnt = calloc(groups + 1, sizeof(long));
+  long at[NG + 1], r = -1;
+  if (mark && nan && tv && ti && cnt && keep > 0) {
+    for (int j = 0; j < NG; ++j) at[j] = -1;
+    for (long a = 0; a < nsc; ++a) at[screened[a]] = a;
+    for (long p = 0; p < q; ++p) {
+      const long a = at[pos[3 * p]];
+      if (a >= 0) mark[(a * n + pos[3 * p + 1]) * ns + pos[3 * p + 2]] = 1;
+    }
+    for (long k = 0; k < n; ++k)
+      for (long i = 0; i < ns; ++i) {
+        const long width = (k + 1) * NU;
+        const double* Sk = S + S_OFF(k, ns) + i * NX * width;
+        double sd[NX];
+        for (int m = 0; m < NX; ++m) sd[m] = dot(Sk + m * width, d, width);
+        for (long a = 0; a < nsc; ++a) {
+          const long j = screened[a], grp = a * n + k;
+          if (mark[grp * ns + i]) continue;
+          const double* jg = Jg + ((k * ns + i) * NG + j) * NX;
+          double s = 0.0;
+          for (int m = 0; m < NX; ++m) s += jg[m] * sd[m];
+          const double v = (G[(j * n + k) * ns + i] + s) - s_pos[j * n + k];
+          if (v != v)
+            nan[grp] = 1;
+          else if (v > tol)
+            top_insert(tv + grp * keep, ti + grp * keep, cnt + grp, keep, v, i);
+        }
+      }
+    memset(mark, 0, groups * ns);
+    for (long grp = 0; grp < groups; ++grp)
+      if (!nan[grp])
+        for (long c = 0; c < cnt[grp]; ++c) mark[grp * ns + ti[grp * keep + c]] = 1;
+    r = marked_rows(n, ns, nsc, screened, mark, out, cap);
+  }
+  free(mark);
+  free(nan);
+  free(tv);
+  free(ti);
+  free(cnt);
+  return r;
 }
 
 /* Step k of scenario i in the backward sweep: its adjoint lambda_k = dl/dx_{k+1} + Jg' mu
