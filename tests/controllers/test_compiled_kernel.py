@@ -51,7 +51,10 @@ def paper() -> ScenarioProblem:
 
 @pytest.fixture(scope="module")
 def paper_models(paper: ScenarioProblem) -> dict[str, CondensedModel]:
-    return {k: CondensedModel(paper, kernel=k) for k in ("numpy", "c")}
+    models = {k: CondensedModel(paper, kernel=k) for k in ("numpy", "c")}
+    models["c_blas"] = CondensedModel(paper, kernel="c")
+    models["c_blas"].blas_products = True  # the Hessian's products by BLAS (C by size here)
+    return models
 
 
 def _layouts(problem: ScenarioProblem, x0: np.ndarray, W: np.ndarray) -> tuple:
@@ -120,7 +123,8 @@ def test_compiled_equals_numpy_on_the_recorded_problems(i, paper, paper_models) 
     backoff = None if i % 2 else np.full((paper.ng, paper.horizon, 1), 0.05)
     for u in (DATA["reference_u"][i].ravel(), DATA["u_guess"][i].ravel()):
         ref = _everything(paper_models["numpy"], paper, x0, W, u, mu, backoff)
-        _assert_same(ref, _everything(paper_models["c"], paper, x0, W, u, mu, backoff))
+        for name in ("c", "c_blas"):
+            _assert_same(ref, _everything(paper_models[name], paper, x0, W, u, mu, backoff))
 
 
 def test_array_addresses_are_numpys_for_views_read_only_and_empty_arrays() -> None:
@@ -161,8 +165,9 @@ def test_compiled_equals_numpy_on_the_second_system(variant) -> None:
     model = point_mass_model(point_mass(**VARIANTS[variant]))
     problem = ScenarioProblem(model, COST, horizon=N, n_scenarios=NS, slack_penalty=1.0e3)
     models = {k: CondensedModel(problem, kernel=k) for k in ("numpy", "vm", "c")}
-    models["c_products"] = CondensedModel(problem, kernel="c")
-    models["c_products"].blas_products = False  # the Hessian's products in C too
+    for name, blas in (("c_products", False), ("c_blas", True)):
+        models[name] = CondensedModel(problem, kernel="c")
+        models[name].blas_products = blas  # the Hessian's products in C / by BLAS, not by size
     assert models["c"].backend == "compiled-c"
     assert models["vm"].backend == "casadi-vm"
     rng = np.random.default_rng(3)
@@ -171,7 +176,7 @@ def test_compiled_equals_numpy_on_the_second_system(variant) -> None:
         u = rng.uniform(-2.0, 2.0, N * problem.nu)
         mu = _multipliers(problem, NS, seed)
         ref = _everything(models["numpy"], problem, x0, W, u, mu)
-        for name in ("vm", "c", "c_products"):
+        for name in ("vm", "c", "c_products", "c_blas"):
             _assert_same(ref, _everything(models[name], problem, x0, W, u, mu))
 
 
@@ -333,3 +338,23 @@ def test_the_fast_solver_reaches_the_same_plan_with_either_backend(paper, monkey
         assert b.status == a.status
         assert b.objective == pytest.approx(a.objective, rel=1e-9)
         np.testing.assert_allclose(b.u, a.u, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("horizon", "ns", "blas"), [(7, 150, False), (7, 300, True), (9, 150, True)]
+)
+def test_the_hessian_products_go_to_blas_by_size(horizon, ns, blas) -> None:
+    # C at the paper's size (N nu = 14, Ns = 150), BLAS above N nu = 16 or Ns = 256; the
+    # BLAS path keeps its blocks array between calls, the C path has none.
+    problem = problem_from_config(horizon=horizon, n_scenarios=ns)
+    model = CondensedModel(problem, kernel="c")
+    x0 = np.zeros((ns, problem.nx))
+    x0[:, 3] = 10.0
+    W = np.zeros((ns, horizon, problem.nw))
+    ro = model.evaluate(
+        np.ascontiguousarray(x0.T), W.transpose(1, 0, 2).copy(), np.zeros(problem.nu * horizon), 0.0
+    )
+    W_lanes = np.ascontiguousarray(W.transpose(2, 1, 0))
+    H = model.hessian(model.linearise(ro, W_lanes), np.zeros((problem.ng, horizon, ns)), W_lanes)
+    assert np.isfinite(H).all()
+    assert (model._blocks is not None) == blas
