@@ -34,7 +34,7 @@ import time
 from typing import Any
 
 import numpy as np
-from scipy import stats
+from scipy import special
 
 from controllers.config import (
     AgentConfig,
@@ -219,7 +219,7 @@ class _FilteringAgent(MPCAgent):
                 f"measurement_std={self.measurement_std.tolist()}: must be all > 0 for the "
                 f"{self.name!r} agent (its estimator weighs each measurement by this noise)"
             )
-        self._divergence_nis = float(stats.chi2.isf(DIVERGENCE_TAIL, nx))
+        self._divergence_nis = float(special.chdtri(nx, DIVERGENCE_TAIL))  # chi2 upper quantile
         s = self.settings
         where = "agents.robust.n_particles" if self.name == "robust" else "agents.n_particles"
         check_filter_memory(self.model, s.n_particles, s.estimator, where)

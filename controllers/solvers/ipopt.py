@@ -31,7 +31,7 @@ from typing import Any
 
 import casadi as ca
 import numpy as np
-from scipy import stats
+from scipy import special
 
 from controllers.problem import MPCSolution, ScenarioProblem
 
@@ -627,7 +627,7 @@ def solve_scenario_problem(
 
 def _binomial_tail(n_scenarios: int, epsilon: float, n_decision: int) -> float:
     """``sum_{i<d} C(Ns, i) eps^i (1 - eps)^(Ns - i)``, the Campi-Garatti confidence bound."""
-    return float(stats.binom.cdf(n_decision - 1, n_scenarios, epsilon))
+    return float(special.bdtr(n_decision - 1, n_scenarios, epsilon))
 
 
 def campi_garatti_scenarios(epsilon: float, beta: float, n_decision: int) -> int:
