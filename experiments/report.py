@@ -9,7 +9,7 @@ Reads a results folder written by the evaluation (it never re-runs an episode):
 * ``DIR/config.yaml``: the config of the run (``env_id``, ``env`` and ``agents``).
 
 Besides the per-agent and paired tables (with the tolerance-aware violation counts of
-:func:`~experiments.evaluation.row_columns`), it holds the estimators' calibration (2-sigma
+:func:`~experiments.columns.row_columns`), it holds the estimators' calibration (2-sigma
 coverage and RMSE per state and for the latent force, from the saved trajectories) and,
 when given a sweep folder of :mod:`experiments.sweep` (or when ``DIR`` holds one), the
 risk sweep's table and Pareto figure.
@@ -36,8 +36,8 @@ from typing import Any
 import numpy as np
 
 from experiments import plots
+from experiments.columns import tolerance_columns
 from experiments.document import GIF_EMBED_LIMIT, Document, embedded_image
-from experiments.evaluation import tolerance_columns
 from experiments.results import (
     KNOWN_AGENT_ORDER,
     Results,

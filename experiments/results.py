@@ -5,7 +5,7 @@ the evaluation (the report, the sweep's tables, a user's own analysis): it retur
 :class:`Results` with the rows of ``episodes.csv`` (parsed: numbers as floats, ``agent``
 and ``error`` as text), the world's config and system from ``config.yaml``, and the
 episodes' saved arrays on demand (:func:`load_trajectory`). The storage layer's own
-reader of the episode records is :func:`experiments.evaluation.saved_rows`.
+reader of the episode records is :func:`experiments.storage.saved_rows`.
 """
 
 from __future__ import annotations
@@ -20,7 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from experiments.evaluation import episode_stem, tolerance_columns, violation_counts
+from experiments.columns import tolerance_columns, violation_counts
+from experiments.storage import episode_stem
 from lfm_env.config import WorldConfig, load_env_config, load_yaml
 from lfm_env.system import ControlSystem
 
@@ -118,7 +119,7 @@ def load_results(results_dir: str | Path) -> Results:
     """Load ``episodes.csv`` and ``config.yaml`` of a results folder.
 
     A table written before the tolerance-aware columns existed
-    (``{g}_violation_steps_over_{t:g}``, see :func:`~experiments.evaluation.row_columns`)
+    (``{g}_violation_steps_over_{t:g}``, see :func:`~experiments.columns.row_columns`)
     gets them from the saved trajectories where those exist; episodes without one keep
     them missing (NaN), and the report leaves such metrics out.
 
@@ -168,7 +169,7 @@ def load_trajectory(results: Results, agent: str, seed: int) -> dict[str, np.nda
     path = results.trajectory_path(agent, seed)
     if not path.is_file():
         return None
-    from experiments.evaluation import load_trajectory as load_saved
+    from experiments.storage import load_trajectory as load_saved
 
     return load_saved(path.parent.parent, agent, seed)
 

@@ -4,7 +4,7 @@ At every step the scenario MPC draws ``Ns`` disturbance scenarios, plans one inp
 sequence shared by all of them and predicts each scenario's states over the horizon
 (``predicted``, ``(Ns, N+1, nx)``). The evaluation keeps a compact fan per step in the
 episode file (``predicted_scenarios``, ``(T, S, N+1, nx)``, the first
-:data:`~experiments.evaluation.SAVED_SCENARIOS` scenarios); older files keep only the
+:data:`~experiments.episode.SAVED_SCENARIOS` scenarios); older files keep only the
 first scenario (``predicted``, ``(T, N+1, nx)``), which is drawn as a fan of one.
 
 :func:`scenario_fan_figure` draws the fan at a few steps over the feasible region of the

@@ -2,7 +2,7 @@
 the estimators' calibration, computed from a loaded results folder
 (:func:`experiments.results.load_results`); :mod:`experiments.report` writes them down.
 
-The metrics are the columns of ``episodes.csv`` (:func:`~experiments.evaluation.row_columns`)
+The metrics are the columns of ``episodes.csv`` (:func:`~experiments.columns.row_columns`)
 as the report names them, per constraint group of the world's system with its unit.
 Every interval is a percentile bootstrap with a fixed resampling seed, so the same
 results give the same report.
@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from experiments.evaluation import tolerance_columns
+from experiments.columns import tolerance_columns
 from experiments.figures import force_unit, group_unit
 from experiments.results import Results, load_trajectory
 from lfm_env.system import ControlSystem, split_unit

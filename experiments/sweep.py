@@ -38,7 +38,7 @@ from typing import Any
 import yaml
 
 from controllers.config import ConfigError, ExperimentConfig, load_config
-from experiments import evaluation, plots
+from experiments import episode, evaluation, plots, storage
 from experiments.report import (
     Document,
     Estimate,
@@ -534,9 +534,9 @@ def run_sweep(
         ValueError: unknown agents, bad seeds, a bad setting (naming the key) or a folder
             that holds another sweep or another config, before any episode runs.
     """
-    (agent_name,) = evaluation._check_agents([agent])
-    (baseline_name,) = evaluation._check_agents([baseline])
-    seed_list = evaluation._check_seeds(seeds)
+    (agent_name,) = episode._check_agents([agent])
+    (baseline_name,) = episode._check_agents([baseline])
+    seed_list = episode._check_seeds(seeds)
     base = evaluation.resolve_config(config, [baseline_name])
     key, texts, configs = parse_setting(setting, base)
     for cfg in configs:
@@ -566,7 +566,7 @@ def run_sweep(
         for t, cfg in zip(texts, configs, strict=True)
     ]
     for _, cfg, folder, _ in runs:  # every folder checked before the first episode
-        evaluation._check_folder(folder, cfg)
+        storage._check_folder(folder, cfg)
     out_path.mkdir(parents=True, exist_ok=True)
     (out_path / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
     for name, cfg, folder, label in runs:

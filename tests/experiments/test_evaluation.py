@@ -17,7 +17,7 @@ import pytest
 import yaml
 
 from controllers.config import load_config
-from experiments import evaluation
+from experiments import episode, evaluation
 from experiments.cli import evaluate_main
 from experiments.evaluation import (
     HEAD_COLUMNS,
@@ -199,7 +199,7 @@ def test_recorder_and_metrics_of_any_system_come_from_its_groups():
     config = types.SimpleNamespace(
         make_system=lambda: system, agents=types.SimpleNamespace(horizon=3)
     )
-    rec = evaluation._EpisodeRecorder(config)
+    rec = episode._EpisodeRecorder(config)
     obs, info = env.reset(seed=0)
     rec.start(obs, info)
     infos, done = [], False
@@ -210,7 +210,7 @@ def test_recorder_and_metrics_of_any_system_come_from_its_groups():
         infos.append(info)
         done = terminated or truncated
     arrays = rec.arrays()
-    row = evaluation._episode_metrics(rec, arrays)
+    row = episode._episode_metrics(rec, arrays)
     assert list(row)[4:10] == list(row_columns(system))[6:12]
     corridor = np.array([i["corridor_excess"] for i in infos])
     speed = np.array([i["speed_excess"] for i in infos])
@@ -226,7 +226,7 @@ def test_recorder_and_metrics_of_any_system_come_from_its_groups():
     assert row["max_speed_excess"] == speed.max()
     assert "track_excess" not in arrays and math.isnan(row["latent_rmse"])
     # A failed episode of this system gets the same columns, with NaN metrics.
-    failed = evaluation._error_row("nominal", 0, "boom", 1.0, row_columns(system))
+    failed = episode._error_row("nominal", 0, "boom", 1.0, row_columns(system))
     assert tuple(failed) == row_columns(system) and math.isnan(failed["max_corridor_excess"])
 
 
@@ -442,7 +442,7 @@ def test_other_config_in_same_folder_is_refused(tmp_path, monkeypatch):
 
 
 def test_failing_episode_is_recorded_and_retried(tmp_path, monkeypatch):
-    real_make_agent = evaluation.make_agent
+    real_make_agent = episode.make_agent
 
     def make_flaky_agent(name, config=None, env=None):
         agent = real_make_agent(name, config, env=env)
@@ -458,7 +458,7 @@ def test_failing_episode_is_recorded_and_retried(tmp_path, monkeypatch):
             agent.act = act_then_fail
         return agent
 
-    monkeypatch.setattr(evaluation, "make_agent", make_flaky_agent)
+    monkeypatch.setattr(episode, "make_agent", make_flaky_agent)  # where episodes build agents
     rows = evaluate(["nominal", "pf"], [0, 1], TINY, out=tmp_path, progress=False)
     by_agent = {a: [r for r in rows if r["agent"] == a] for a in ("nominal", "pf")}
     assert all(r["error"] == "" for r in by_agent["nominal"])
@@ -474,7 +474,7 @@ def test_failing_episode_is_recorded_and_retried(tmp_path, monkeypatch):
     # Without retries the failure stays; by default a rerun retries it.
     kept = evaluate(["pf"], [0], TINY, out=tmp_path, progress=False, retry_failed=False)
     assert kept[0]["error"].startswith("RuntimeError")
-    monkeypatch.setattr(evaluation, "make_agent", real_make_agent)
+    monkeypatch.setattr(episode, "make_agent", real_make_agent)
     retried = evaluate(["nominal", "pf"], [0, 1], TINY, out=tmp_path, progress=False)
     assert all(r["error"] == "" for r in retried)
     assert comparable([r for r in retried if r["agent"] == "nominal"]) == comparable(

@@ -373,7 +373,7 @@ def test_report_figure_seed_skips_a_failed_zero_step_episode(tmp_path):
 
 
 def test_a_huge_seed_range_is_refused_at_once():
-    from experiments.evaluation import MAX_SEEDS, parse_seeds
+    from experiments.episode import MAX_SEEDS, parse_seeds
 
     with pytest.raises(ValueError, match=f"at most {MAX_SEEDS} seeds"):
         parse_seeds("0:1000000000000")

@@ -1363,9 +1363,9 @@ def test_library_code_loads_nothing_unsafely():
     sources = {p.name: p.read_text() for p in LIBRARY_FILES}
     config_source = sources["config.py"]
     assert "yaml.safe_load(fh)" in config_source or "yaml.SafeLoader(" in config_source
-    assert "np.load(path, allow_pickle=False)" in sources["evaluation.py"]
+    assert "np.load(path, allow_pickle=False)" in sources["storage.py"]
     # The report reads episodes (experiments.results) through the evaluation's checked loader.
-    assert "from experiments.evaluation import load_trajectory" in sources["results.py"]
+    assert "from experiments.storage import load_trajectory" in sources["results.py"]
 
 
 def test_the_scanner_finds_what_it_looks_for(tmp_path):

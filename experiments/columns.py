@@ -1,0 +1,210 @@
+"""The columns of the evaluation's episode table (``episodes.csv``), and how rows fill them.
+
+A row is :data:`HEAD_COLUMNS`, then the columns of the system's constraint groups
+(:func:`group_columns`: per group its largest excess and the steps it was violated, and
+the steps beyond each tolerance, :func:`tolerance_columns`), then :data:`TAIL_COLUMNS`;
+:func:`row_columns` gives them in order for a system, :func:`violation_counts` the group
+counts of a trajectory. :data:`TIMING_COLUMNS` differ between otherwise identical runs.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+import numpy as np
+
+#: Columns of every row before the constraint-group columns, in table order.
+HEAD_COLUMNS: tuple[str, ...] = (
+    "agent",  # agent name
+    "seed",  # env seed
+    "success",  # reached the goal
+    "steps",  # steps taken
+    "time_to_goal",  # [s], NaN without success
+    "cost",  # sum of the true stage cost (= -reward) over the episode
+)
+#: Columns of every row after the constraint-group columns, in table order.
+TAIL_COLUMNS: tuple[str, ...] = (
+    "failure",  # the env ended the episode as a failure (e.g. left the safety box)
+    "latent_rmse",  # [force unit] RMSE of the latent-force estimate; NaN without a filter
+    "latent_coverage",  # fraction of steps with the true force in the 2-sigma band
+    "solve_time_median",  # [s]
+    "solve_time_p95",  # [s]
+    "solve_time_max",  # [s]
+    "solver_failures",  # steps whose solve did not succeed
+    "fallback_steps",  # steps that applied a fallback action (previous plan or brake)
+    "filter_resets",  # particle-filter restarts after divergence (filter agents)
+    "slack_total",  # sum of the per-step constraint slack
+    "wall_time",  # [s] whole episode, including building the agent
+    "error",  # '' if the episode ran, else "ExceptionType: message"
+)
+
+#: Columns that measure time and so differ between otherwise identical runs.
+TIMING_COLUMNS: tuple[str, ...] = (
+    "solve_time_median",
+    "solve_time_p95",
+    "solve_time_max",
+    "wall_time",
+)
+
+_STR_COLUMNS = ("agent", "error")
+_INT_COLUMNS = ("seed", "steps", "solver_failures", "fallback_steps", "filter_resets")
+_BOOL_COLUMNS = ("success", "failure")
+_FIXED_COLUMNS = HEAD_COLUMNS + TAIL_COLUMNS
+_VIOLATION_SUFFIX = "_violation_steps"  # int columns of the constraint groups
+_OVER = "_over_"  # {g}_violation_steps_over_{t}: the steps beyond tolerance t
+
+
+def _group_names(system: Any) -> tuple[str, ...]:
+    """The constraint-group names of a system (or of a sequence of names), in order."""
+    groups = getattr(system, "constraint_groups", system)
+    if isinstance(groups, str) or not isinstance(groups, Iterable):
+        raise ValueError(
+            f"{groups!r}: give a ControlSystem or a sequence of constraint-group names"
+        )
+    return tuple(str(g) for g in groups)
+
+
+def tolerance_column(group: str, tolerance: float) -> str:
+    """The column of a group's violation steps beyond ``tolerance`` [group unit].
+
+    ``{group}_violation_steps_over_{tolerance:g}``, e.g. ``track_violation_steps_over_0.01``.
+    """
+    return f"{group}{_VIOLATION_SUFFIX}{_OVER}{float(tolerance):g}"
+
+
+def tolerance_columns(system: Any) -> tuple[tuple[str, float, str], ...]:
+    """``(group, tolerance, column)`` of every tolerance-aware violation count of a system.
+
+    From ``system.violation_tolerances`` (group -> excesses [group unit]), in the order
+    of the groups and of each group's tolerances; empty for a sequence of group names.
+    """
+    tolerances = getattr(system, "violation_tolerances", None) or {}
+    return tuple(
+        (g, float(t), tolerance_column(g, t))
+        for g in _group_names(system)
+        for t in tolerances.get(g, ())
+    )
+
+
+def group_columns(system: Any) -> tuple[str, ...]:
+    """The metric columns of a system's constraint groups, in the groups' order.
+
+    Per group ``g`` (a key of ``system.constraint_groups``): ``{g}_violation_steps``
+    (steps ending with the group's excess above 0), ``max_{g}_excess`` (its largest
+    excess over the episode, in the group's constraint unit), then per tolerance ``t`` of
+    ``system.violation_tolerances[g]`` ``{g}_violation_steps_over_{t:g}`` (steps ending
+    with the excess above ``t``: a millimetre over a bound is not a crash). For the sine
+    track: ``track_violation_steps, max_track_excess, track_violation_steps_over_0.01,
+    track_violation_steps_over_0.05``, the same for ``x``, then ``speed_violation_steps,
+    max_speed_excess, speed_violation_steps_over_0.05``.
+
+    Args:
+        system: a :class:`~lfm_env.system.ControlSystem`, or its group names (then
+            without tolerance columns).
+    """
+    over: dict[str, list[str]] = {}
+    for g, _, column in tolerance_columns(system):
+        over.setdefault(g, []).append(column)
+    return tuple(
+        c
+        for g in _group_names(system)
+        for c in (f"{g}{_VIOLATION_SUFFIX}", f"max_{g}_excess", *over.get(g, ()))
+    )
+
+
+def row_columns(system: Any) -> tuple[str, ...]:
+    """Columns of a row of an episode on ``system``, in table order.
+
+    :data:`HEAD_COLUMNS`, then :func:`group_columns` of the system's constraint groups
+    (with their tolerance-aware counts), then :data:`TAIL_COLUMNS`.
+
+    Args:
+        system: a :class:`~lfm_env.system.ControlSystem` (e.g. ``config.make_system()``),
+            or its constraint-group names.
+    """
+    return HEAD_COLUMNS + group_columns(system) + TAIL_COLUMNS
+
+
+_GROUP_COLUMN = re.compile(
+    rf"(?P<steps>.+){_VIOLATION_SUFFIX}|max_(?P<max>.+)_excess"
+    rf"|(?P<over>.+){_VIOLATION_SUFFIX}{_OVER}(?P<tol>[0-9.eE+-]+)"
+)
+
+
+def _table_columns(rows: Iterable[dict[str, Any]]) -> tuple[str, ...]:
+    """The columns of saved rows: the fixed ones around the group columns they hold.
+
+    Groups come in first-seen order, each with the columns of it that some row holds
+    (``{g}_violation_steps``, ``max_{g}_excess``, then its tolerance counts by
+    increasing tolerance); other keys follow them.
+    """
+    seen: dict[str, None] = {}
+    for row in rows:
+        seen.update((k, None) for k in row if k not in _FIXED_COLUMNS)
+    groups: dict[str, list[tuple[float, str]]] = {}
+    for key in seen:
+        m = _GROUP_COLUMN.fullmatch(key)
+        if m is None:
+            continue
+        if m.group("over") is not None:
+            try:
+                tol = float(m.group("tol"))
+            except ValueError:
+                continue
+            groups.setdefault(m.group("over"), []).append((tol, key))
+        else:
+            groups.setdefault(m.group("steps") or m.group("max"), [])
+    ordered = []
+    for g, over in groups.items():
+        raw = (f"{g}{_VIOLATION_SUFFIX}", f"max_{g}_excess")
+        ordered += [c for c in raw if c in seen] + [c for _, c in sorted(over)]
+    ordered += [c for c in seen if c not in ordered]
+    return HEAD_COLUMNS + tuple(ordered) + TAIL_COLUMNS
+
+
+def _is_count_column(column: str) -> bool:
+    """Integer columns of the constraint groups: raw and tolerance-aware violation steps."""
+    return column.endswith(_VIOLATION_SUFFIX) or (
+        (m := _GROUP_COLUMN.fullmatch(column)) is not None and m.group("over") is not None
+    )
+
+
+def violation_counts(trajectory: dict[str, np.ndarray], system: Any) -> dict[str, int]:
+    """The raw and tolerance-aware violation steps of a trajectory's ``<group>_excess``.
+
+    ``{g}_violation_steps`` counts the steps whose group excess is above 0 and
+    ``{g}_violation_steps_over_{t:g}`` those above ``t`` (:func:`tolerance_columns`).
+    Groups whose ``<group>_excess`` array the trajectory lacks are left out, so an older
+    saved episode gives what it can.
+
+    Args:
+        trajectory: arrays of one episode (:func:`run_episode`), ``<group>_excess (T,)``.
+        system: the episode's :class:`~lfm_env.system.ControlSystem`.
+    """
+    counts: dict[str, int] = {}
+    for g in _group_names(system):
+        if f"{g}_excess" in trajectory:
+            excess = np.asarray(trajectory[f"{g}_excess"], dtype=float)
+            counts[f"{g}{_VIOLATION_SUFFIX}"] = int(np.sum(excess > 0.0))
+    for g, t, column in tolerance_columns(system):
+        if f"{g}_excess" in trajectory:
+            counts[column] = int(np.sum(np.asarray(trajectory[f"{g}_excess"], float) > t))
+    return counts
+
+
+def _metric_columns(columns: Sequence[str]) -> tuple[str, ...]:
+    return tuple(c for c in columns if c not in ("agent", "seed", "wall_time", "error"))
+
+
+__all__ = [
+    "group_columns",
+    "HEAD_COLUMNS",
+    "row_columns",
+    "TAIL_COLUMNS",
+    "TIMING_COLUMNS",
+    "tolerance_column",
+    "tolerance_columns",
+    "violation_counts",
+]
