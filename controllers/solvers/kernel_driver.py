@@ -271,6 +271,7 @@ CASADI_SYMBOL_EXPORT long lfm_screen(long n, long ns, long nsc, const long* scre
      scenario of every state j depends on (depends (NG, NX)) in X (N+1, NX, Ns) at step
      k + 1. Returns the number of rows written to out (r, 3), -1 if out of memory, -2 if
      cap is too small. */
+  if (ns <= 0 || n <= 0) return 0;
   unsigned char* mark = calloc(nsc * n * ns + 1, 1);
   double* tv = malloc((keep + 1) * sizeof(double));
   long* ti = malloc((keep + 1) * sizeof(long));
@@ -332,9 +333,10 @@ CASADI_SYMBOL_EXPORT long lfm_violated(long n, long ns, long nsc, const long* sc
   if (mark && nan && tv && ti && cnt && keep > 0) {
     for (int j = 0; j < NG; ++j) at[j] = -1;
     for (long a = 0; a < nsc; ++a) at[screened[a]] = a;
-    for (long p = 0; p < q; ++p) {
-      const long a = at[pos[3 * p]];
-      if (a >= 0) mark[(a * n + pos[3 * p + 1]) * ns + pos[3 * p + 2]] = 1;
+    for (long p = 0; p < q; ++p) { /* rows outside the arrays are not rows of the QP */
+      const long j = pos[3 * p], k = pos[3 * p + 1], i = pos[3 * p + 2];
+      const long a = j >= 0 && j < NG ? at[j] : -1;
+      if (a >= 0 && k >= 0 && k < n && i >= 0 && i < ns) mark[(a * n + k) * ns + i] = 1;
     }
     for (long k = 0; k < n; ++k)
       for (long i = 0; i < ns; ++i) {
