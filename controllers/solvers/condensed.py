@@ -145,6 +145,9 @@ class CondensedModel:
             compilation unless cached; 0 for the other backends).
         cache_hit: the C kernel came from the disk cache or this process (no compiler run).
         kernel_error: why the C kernel is not used under ``"auto"`` (``None`` if it is).
+        blas_products: how the C kernel's Hessian products ``sum_j S_j' Mxx_j S_j`` are
+            formed: ``True`` by BLAS, ``False`` in C, ``None`` (default) by size
+            (:data:`BLAS_PRODUCTS_ABOVE`). The results agree to rounding.
 
     Raises:
         ValueError: on an unknown ``kernel``.
