@@ -16,7 +16,6 @@ from typing import Any
 
 import numpy as np
 import scipy.linalg
-import scipy.optimize
 
 from lfm_env.gp.kernels import (
     StateSpaceKernel,
@@ -608,6 +607,8 @@ def fit(
             k0, r_0 = unpack(theta0)
             _log_likelihood_and_grad(k0, t, y, r_0, names, learn_noise)
             raise ValueError("fit: the starting hyperparameters give a non-finite likelihood")
+        import scipy.optimize  # here, not at the top: 0.13 s of every import of the GP layer
+
         res = scipy.optimize.minimize(
             objective,
             theta0,

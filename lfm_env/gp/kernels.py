@@ -32,7 +32,6 @@ from typing import Any
 
 import numpy as np
 import scipy.linalg
-import scipy.optimize
 import scipy.special
 
 DISCRETIZATION_METHODS = ("exact", "euler_maruyama")
