@@ -536,18 +536,18 @@ class CondensedModel:
         screened constraints; ``margin`` in the constraints' unit, ``keep`` rows per group
         by value)."""
         nsc = self.screened.size
-        if self._lib is None or nsc == 0:
-            return screen_rows(ro.G, ro.X, self.screened, self.depends, margin, keep)
-        ns = ro.X.shape[2]
-        cap = nsc * self.n * min(ns, keep + 1 + 2 * self.nx)
-        out = np.empty((cap, 3), dtype=np.int64)
-        args = (ptr(ro.G), ptr(ro.X), address(self._depends_c), float(margin), int(keep))
-        r = self._lib.lfm_screen(
-            self.n, ns, nsc, address(self._screened_c), *args, address(out), cap
-        )
-        if r < 0:  # out of memory (or a bug): the reference gives the same rows
-            return screen_rows(ro.G, ro.X, self.screened, self.depends, margin, keep)
-        return out[:r]
+        if self._lib is not None and nsc:
+            ns = ro.X.shape[2]
+            cap = nsc * self.n * min(ns, keep + 1 + 2 * self.nx)
+            out = np.empty((cap, 3), dtype=np.int64)
+            args = (ptr(ro.G), ptr(ro.X), address(self._depends_c), float(margin), int(keep))
+            r = self._lib.lfm_screen(
+                self.n, ns, nsc, address(self._screened_c), *args, address(out), cap
+            )
+            if r >= 0:
+                return out[:r]
+        # No kernel, or it ran out of memory: the reference gives the same rows.
+        return screen_rows(ro.G, ro.X, self.screened, self.depends, margin, keep)
 
     def violated_rows(
         self,
@@ -565,35 +565,33 @@ class CondensedModel:
         nsc = self.screened.size
         if nsc == 0:
             return np.empty((0, 3), dtype=int)
-        if self._lib is None or not lin.packed:
-            viol = self.linearised_values(lin, d)
-            viol -= s_pos[self.screened][:, :, None]
-            return worst_rows(viol, self.screened, pos, tol, keep)
-        ns = lin.ro.X.shape[2]
-        cap = nsc * self.n * min(ns, keep)
-        out = np.empty((cap, 3), dtype=np.int64)
-        d = np.ascontiguousarray(d, dtype=float)
-        s_pos = np.ascontiguousarray(s_pos, dtype=float)
-        pos_c = np.ascontiguousarray(pos, dtype=np.int64)
-        data = (ptr(lin.S), ptr(lin.Jg), ptr(lin.ro.G), ptr(d), ptr(s_pos))
-        r = self._lib.lfm_violated(
-            self.n,
-            ns,
-            nsc,
-            address(self._screened_c),
-            *data,
-            pos_c.shape[0],
-            address(pos_c),
-            float(tol),
-            int(keep),
-            address(out),
-            cap,
-        )
-        if r < 0:  # out of memory (or a bug): the reference gives the same rows
-            viol = self.linearised_values(lin, d)
-            viol -= s_pos[self.screened][:, :, None]
-            return worst_rows(viol, self.screened, pos, tol, keep)
-        return out[:r]
+        if self._lib is not None and lin.packed:
+            ns = lin.ro.X.shape[2]
+            cap = nsc * self.n * min(ns, keep)
+            out = np.empty((cap, 3), dtype=np.int64)
+            d = np.ascontiguousarray(d, dtype=float)
+            s_pos = np.ascontiguousarray(s_pos, dtype=float)
+            pos_c = np.ascontiguousarray(pos, dtype=np.int64)
+            data = (ptr(lin.S), ptr(lin.Jg), ptr(lin.ro.G), ptr(d), ptr(s_pos))
+            r = self._lib.lfm_violated(
+                self.n,
+                ns,
+                nsc,
+                address(self._screened_c),
+                *data,
+                pos_c.shape[0],
+                address(pos_c),
+                float(tol),
+                int(keep),
+                address(out),
+                cap,
+            )
+            if r >= 0:
+                return out[:r]
+        # No kernel, or it ran out of memory: the reference gives the same rows.
+        viol = self.linearised_values(lin, d)
+        viol -= s_pos[self.screened][:, :, None]
+        return worst_rows(viol, self.screened, pos, tol, keep)
 
     def linearised_values(self, lin: Linearisation, d: np.ndarray) -> np.ndarray:
         """``g + (dg/du) d`` of every screened scenario row, ``(n_screened, N, Ns)``."""

@@ -185,23 +185,34 @@ CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const d
   return status;
 }
 
+/* S_k d of scenario i (step k from 0; causal: over the first (k + 1) NU inputs) into sd. */
+static inline void step_change(const double* S, long k, long ns, long i, const double* d,
+                               double* sd) {
+  const long width = (k + 1) * NU;
+  const double* Sk = S + S_OFF(k, ns) + i * NX * width;
+  for (int m = 0; m < NX; ++m) sd[m] = dot(Sk + m * width, d, width);
+}
+
+/* G + Jg_k[j] sd: the value of constraint j at step k of scenario i, changed to first
+   order by the state change sd. */
+static inline double linear_value(long n, long ns, const double* Jg, const double* G, long j,
+                                  long k, long i, const double* sd) {
+  const double* jg = Jg + ((k * ns + i) * NG + j) * NX;
+  double s = 0.0;
+  for (int m = 0; m < NX; ++m) s += jg[m] * sd[m];
+  return G[(j * n + k) * ns + i] + s;
+}
+
 CASADI_SYMBOL_EXPORT int lfm_linear_change(long n, long ns, const double* S,
     const double* Jg, const double* G, const double* d, double* out) {
   /* out (NG, N, Ns) = G + Jg_k S_k d: every constraint value changed to first order along
-     the input step d (causal: S_k d over the first k NU inputs only), in G's layout. */
+     the input step d, in G's layout. */
   for (long k = 0; k < n; ++k)
     for (long i = 0; i < ns; ++i) {
-      const long width = (k + 1) * NU;
-      const double* Sk = S + S_OFF(k, ns) + i * NX * width;
-      const double* Jk = Jg + (k * ns + i) * NG * NX;
       double sd[NX];
-      for (int m = 0; m < NX; ++m) sd[m] = dot(Sk + m * width, d, width);
-      for (int j = 0; j < NG; ++j) {
-        double s = 0.0;
-        for (int m = 0; m < NX; ++m) s += Jk[j * NX + m] * sd[m];
-        const long at = (j * n + k) * ns + i;
-        out[at] = G[at] + s;
-      }
+      step_change(S, k, ns, i, d, sd);
+      for (int j = 0; j < NG; ++j)
+        out[(j * n + k) * ns + i] = linear_value(n, ns, Jg, G, j, k, i, sd);
     }
   return 0;
 }
@@ -340,17 +351,12 @@ CASADI_SYMBOL_EXPORT long lfm_violated(long n, long ns, long nsc, const long* sc
     }
     for (long k = 0; k < n; ++k)
       for (long i = 0; i < ns; ++i) {
-        const long width = (k + 1) * NU;
-        const double* Sk = S + S_OFF(k, ns) + i * NX * width;
         double sd[NX];
-        for (int m = 0; m < NX; ++m) sd[m] = dot(Sk + m * width, d, width);
+        step_change(S, k, ns, i, d, sd);
         for (long a = 0; a < nsc; ++a) {
           const long j = screened[a], grp = a * n + k;
           if (mark[grp * ns + i]) continue;
-          const double* jg = Jg + ((k * ns + i) * NG + j) * NX;
-          double s = 0.0;
-          for (int m = 0; m < NX; ++m) s += jg[m] * sd[m];
-          const double v = (G[(j * n + k) * ns + i] + s) - s_pos[j * n + k];
+          const double v = linear_value(n, ns, Jg, G, j, k, i, sd) - s_pos[j * n + k];
           if (v != v)
             nan[grp] = 1;
           else if (v > tol)
