@@ -111,7 +111,7 @@ class FastScenarioSolver(SubproblemMixin):
         self._n_shared = n_l * n
         self._a_shared = m.shared_rows.transpose(1, 0, 2).reshape(n * n_l, m.n_u)
         self._n_groups = max(m.screened.size * n, 1)
-        self._qps: dict[tuple[int, int], SlotQP] = {}
+        self._qps: dict[tuple[int, int, bool], SlotQP] = {}
         self._prev_u: np.ndarray | None = None
         self._deadline = math.inf  # time.perf_counter() value ending the current solve
         # (N nu,) each input's range; inf where it has none (an unbounded input gets no
@@ -119,6 +119,7 @@ class FastScenarioSolver(SubproblemMixin):
         span = self._upper - self._lower
         self._range = np.where(np.isfinite(span) & (span > 0), span, np.inf)
         self._radius = 0.0  # current trust radius (fraction of the range; 0: none)
+        self._hard_first = False  # the next QP is tried without slacks first
         # A list to record one dict per SQP iteration into (diagnostics), or None.
         self.trace: list[dict[str, Any]] | None = None
 
@@ -168,7 +169,9 @@ class FastScenarioSolver(SubproblemMixin):
             ``predicted`` those of :class:`ScenarioProblem` (``objective``,
             ``minimal_slack`` summed, ``rollout``) for ``u``, computed by the solver's own
             vectorised rollout (equal up to rounding); ``solve_time`` the wall time of the
-            whole call; ``extra`` counts QP solves (``qp_solves``), the most QP rows
+            whole call; ``extra`` counts QP solves (``qp_solves``; of them without
+            slacks ``qp_hard``, and hard QPs rejected for the QP with slacks
+            ``qp_hard_rejected``: see ``FastSolverOptions.elastic_qp``), the most QP rows
             (``qp_rows``), QP calls retried after a failure (``qp_retries``), iterations
             whose check-and-add rounds ran out (``qp_rounds_exhausted``), merit
             evaluations and second-order corrections, names the derivative backend
@@ -234,6 +237,8 @@ class FastScenarioSolver(SubproblemMixin):
             iterations += iterations2
             for key in (
                 "qp_solves",
+                "qp_hard",
+                "qp_hard_rejected",
                 "qp_retries",
                 "qp_rounds_exhausted",
                 "soc_steps",
@@ -335,9 +340,7 @@ class FastScenarioSolver(SubproblemMixin):
         g_try = trial.G[pos[:, 0], pos[:, 1], pos[:, 2]]
         qp_step.qp.set_position_bounds(qp_step.row, g_try - a_pos @ d)
         z_soc, _, ok_soc = qp_step.qp.solve()
-        stats["qp_solves"] += 1
-        calls, used = stats["qp_calls"], qp_step.qp.solver
-        calls[used] = calls.get(used, 0) + 1
+        self._count(stats, qp_step.qp)
         if not ok_soc:
             return None
         stats["merit_evals"] += 1
@@ -375,6 +378,8 @@ class FastScenarioSolver(SubproblemMixin):
         active_shared = np.empty(0, dtype=int)
         stats: dict[str, Any] = {
             "qp_solves": 0,
+            "qp_hard": 0,
+            "qp_hard_rejected": 0,
             "qp_rows": 0,
             "qp_retries": 0,
             "qp_rounds_exhausted": 0,
@@ -396,6 +401,8 @@ class FastScenarioSolver(SubproblemMixin):
         damping = 0.0  # Levenberg-Marquardt term: grows while the quadratic model is poor
         self._radius = opt.trust_radius
         self._deadline = deadline
+        on_demand = opt.elastic_qp == "on_demand"
+        self._hard_first = on_demand
         lin = None  # the last iteration's linearisation (its arrays are reused)
         try:
             while iterations < opt.max_iter:
@@ -421,6 +428,9 @@ class FastScenarioSolver(SubproblemMixin):
                     status = "QP_Failed"
                     break
                 d, pos = qp_step.d, qp_step.pos
+                # Slack needed now: likely next time too (e.g. a problem infeasible for every
+                # input), so the next QP gets its slacks at once.
+                self._hard_first = on_demand and qp_step.slack_sum <= opt.add_tol
                 # Hard-active constraints of this QP: the prediction for the next convexification.
                 hard = (mu[pos[:, 0], pos[:, 1], pos[:, 2]] > 1e-9) & (
                     qp_step.s_pos[pos[:, 0], pos[:, 1]] <= 1e-9

@@ -13,6 +13,10 @@ RESTARTS = ("mirror", "straight")
 # "floor": negative eigenvalues raised to hessian_floor; "abs": replaced by their absolute
 # values (at least the floor); "augmented": the floor applied to the augmented Hessian.
 HESSIAN_MODIFICATIONS = ("floor", "abs", "augmented")
+# When the QP subproblem gets its slack variables (see SubproblemMixin._solve_qp):
+# "on_demand": the QP is solved without slacks first, and with them only when that QP is
+# infeasible or a multiplier (a group's sum) exceeds the slack penalty; "always": with them.
+ELASTIC_MODES = ("on_demand", "always")
 
 
 @dataclass(frozen=True)
@@ -60,6 +64,12 @@ class FastSolverOptions:
     # One of QP_SOLVERS; "auto": qpOASES on small QPs, PIQP on large ones (slot_qp).
     qp_solver: str = "auto"
     hessian_modification: str = "floor"  # one of HESSIAN_MODIFICATIONS
+    # One of ELASTIC_MODES. The exact-penalty QP needs one slack per shared row and per
+    # (constraint, step) group, which makes it several times as wide as the N nu inputs;
+    # while the linearised constraints can be met, the QP without slacks has the same step
+    # (its multipliers then certify it), so "on_demand" tries that one first, as long as
+    # the last QP step of the start needed no slack.
+    elastic_qp: str = "on_demand"
     # Expansion of a full step that decreased the merit by at least expand_ratio times the
     # linear prediction (the model's curvature along it is too high, e.g. after a negative
     # eigenvalue was raised): steps 2, 4, ... times as long while the merit keeps falling,
@@ -140,6 +150,7 @@ class FastSolverOptions:
         check("qp_solver", self.qp_solver in QP_SOLVERS, f"one of {QP_SOLVERS}")
         ok = self.hessian_modification in HESSIAN_MODIFICATIONS
         check("hessian_modification", ok, f"one of {HESSIAN_MODIFICATIONS}")
+        check("elastic_qp", self.elastic_qp in ELASTIC_MODES, f"one of {ELASTIC_MODES}")
         ok = isinstance(self.max_expand, int) and not isinstance(self.max_expand, bool)
         check("max_expand", ok and self.max_expand >= 0, "an int >= 0")
         check("expand_ratio", 0 < self.expand_ratio <= 1, "in (0, 1]")
@@ -155,4 +166,4 @@ class FastSolverOptions:
         check("restart_threshold", ok, "in (0, 1]")
 
 
-__all__ = ["HESSIAN_MODIFICATIONS", "RESTARTS", "FastSolverOptions"]
+__all__ = ["ELASTIC_MODES", "HESSIAN_MODIFICATIONS", "RESTARTS", "FastSolverOptions"]

@@ -58,7 +58,8 @@ class SubproblemMixin:
     _n_shared: int  # shared rows, ordered (step, shared constraint)
     _a_shared: np.ndarray  # (n_shared, N nu) their Jacobian rows
     _n_groups: int  # (constraint, step) groups of scenario rows
-    _qps: dict[tuple[int, int], SlotQP]
+    _qps: dict[tuple[int, int, bool], SlotQP]
+    _hard_first: bool  # try the QP without slacks first (elastic_qp="on_demand")
     _last_eig: Any  # diagnostics of the last convexification (for the trace)
     _last_sigma: float
 
@@ -123,15 +124,16 @@ class SubproblemMixin:
 
     # ------------------------------------------------------------------ QP subproblem
 
-    def _qp(self, rows: int, groups: int) -> SlotQP:
-        """The cached QP with room for ``rows`` scenario rows in ``groups`` groups.
+    def _qp(self, rows: int, groups: int, elastic: bool = True) -> SlotQP:
+        """The cached QP with room for ``rows`` scenario rows in ``groups`` groups (with
+        slacks; ``elastic=False``: the same rows without any slack).
 
         Capacities are rounded up to powers of two, so a few QP objects serve every solve
         and each keeps its own hot-start information and slot assignment.
         """
-        groups = min(max(4, 1 << (groups - 1).bit_length()), self._n_groups)
+        groups = min(max(4, 1 << (groups - 1).bit_length()), self._n_groups) if elastic else 0
         rows = max(8, 1 << (rows - 1).bit_length())
-        key = (rows, groups)
+        key = (rows, groups, elastic)
         qp = self._qps.get(key)
         if qp is None:
             p, opt = self.problem, self.options
@@ -144,6 +146,7 @@ class SubproblemMixin:
                 p.slack_penalty,
                 opt.slack_regularisation,
                 max_time=opt.max_time,
+                elastic=elastic,
             )
             self._qps[key] = qp
         return qp
@@ -183,32 +186,58 @@ class SubproblemMixin:
         """Step of the full QP by check-and-add over the scenario rows; None on failure.
 
         ``g_shared``: the shared rows' values, ordered (step, constraint).
+
+        With ``_hard_first`` each round first solves the QP without slacks. Its step is the
+        exact-penalty QP's step when it is feasible and no multiplier exceeds the slack
+        penalty ``rho`` (for the rows of a group, their sum): then ``s = 0`` with those
+        multipliers satisfies the elastic QP's optimality conditions (``rho - sum lambda >=
+        0`` is the multiplier of ``s >= 0``), and that QP is strictly convex in the step.
+        Otherwise this round and the rest of the iteration use the QP with slacks.
         """
-        p, nu = self.problem, self._n_u
+        p, nu, n_sh = self.problem, self._n_u, self._n_shared
         n, ng = p.horizon, p.ng
         n_scen = lin.ro.X.shape[2]
+        hard = self._hard_first
+        lo, hi = self._lower - u, self._upper - u
+        if self._radius > 0.0:
+            lo = np.maximum(lo, -self._radius * self._range)
+            hi = np.minimum(hi, self._radius * self._range)
         for round_ in range(self.options.max_qp_rounds):
             self._check_time()
             a_pos, g_pos = self.model.rows(lin, pos)
             group = pos[:, 0] * n + pos[:, 1]
-            n_groups = np.unique(group).size
-            qp = self._qp(max(pos.shape[0], 1), max(n_groups, 1))
-            row, column = qp.assign(group * n_scen + pos[:, 2], group)
-            lo, hi = self._lower - u, self._upper - u
-            if self._radius > 0.0:
-                lo = np.maximum(lo, -self._radius * self._range)
-                hi = np.minimum(hi, self._radius * self._range)
-            qp.set_problem(H, lin.grad, lo, hi, self._a_shared, g_shared)
-            qp.set_position_rows(row, column, a_pos, g_pos)
-            retried = qp.failures
-            z, lam_all, ok = qp.solve()
-            stats["qp_solves"] += 1
-            stats["qp_calls"][qp.solver] = stats["qp_calls"].get(qp.solver, 0) + 1
-            stats["qp_retries"] += qp.failures - retried
-            if not ok:
-                return None
             s_pos = np.zeros((ng, n))
-            s_pos.reshape(-1)[group] = z[nu + self._n_shared + column]
+            if hard:
+                qp = self._qp(max(pos.shape[0], 1), 1, elastic=False)
+                row, column = qp.assign(group * n_scen + pos[:, 2], group)
+                qp.set_problem(H, lin.grad, lo, hi, self._a_shared, g_shared)
+                qp.set_position_rows(row, column, a_pos, g_pos)
+                d, lam_all, ok = qp.solve()
+                self._count(stats, qp)
+                rho = p.slack_penalty
+                ok = (
+                    ok
+                    and bool(np.all(lam_all[:n_sh] <= rho))
+                    and float(np.bincount(group, lam_all[row], minlength=1).max(initial=0.0)) <= rho
+                )
+                if ok:
+                    z = np.concatenate([d, np.zeros(n_sh)])
+                else:
+                    hard = False
+                    stats["qp_hard_rejected"] += 1
+            if not hard:
+                n_groups = np.unique(group).size
+                qp = self._qp(max(pos.shape[0], 1), max(n_groups, 1))
+                row, column = qp.assign(group * n_scen + pos[:, 2], group)
+                qp.set_problem(H, lin.grad, lo, hi, self._a_shared, g_shared)
+                qp.set_position_rows(row, column, a_pos, g_pos)
+                retried = qp.failures
+                z, lam_all, ok = qp.solve()
+                self._count(stats, qp)
+                stats["qp_retries"] += qp.failures - retried
+                if not ok:
+                    return None
+                s_pos.reshape(-1)[group] = z[nu + n_sh + column]
             missing = self._missing_rows(lin, z[:nu], s_pos, pos)
             if missing.shape[0] == 0:
                 break
@@ -225,9 +254,17 @@ class SubproblemMixin:
             qp=qp,
             row=row,
             s_pos=s_pos,
-            s_shared=z[nu : nu + self._n_shared],
-            lam_shared=lam_all[: self._n_shared],
+            s_shared=z[nu : nu + n_sh],
+            lam_shared=lam_all[:n_sh],
         )
+
+    @staticmethod
+    def _count(stats: dict, qp: SlotQP) -> None:
+        """Count one QP solve (by solver; hard QPs also apart)."""
+        stats["qp_solves"] += 1
+        stats["qp_calls"][qp.solver] = stats["qp_calls"].get(qp.solver, 0) + 1
+        if not qp.elastic:
+            stats["qp_hard"] += 1
 
     def _newton_step(
         self,

@@ -126,6 +126,12 @@ class SlotQP:
     group made the QP at N = 30 up to eight times as tall as its rows in use). qpOASES is
     a CasADi conic evaluated through a ``FunctionBuffer`` on persistent NumPy arrays; DAQP
     gets the rows in use only.
+
+    ``elastic=False`` makes the same QP without any slack (``z = d``, rows ``J_r d <= -g_r``):
+    the fast SQP solves it first and falls back to the elastic QP only when it is infeasible
+    or its multipliers exceed the slack penalty (see
+    :meth:`~controllers.solvers.fast_subproblem.SubproblemMixin._solve_qp`). A failed call of
+    a hard QP is not retried (it is usually infeasibility, which the elastic QP handles).
     """
 
     def __init__(
@@ -138,10 +144,15 @@ class SlotQP:
         slack_penalty: float,
         slack_reg: float,
         max_time: float = math.inf,
+        elastic: bool = True,
     ) -> None:
         if solver not in QP_SOLVERS:
             raise ValueError(f"solver={solver!r}: must be one of {QP_SOLVERS}")
-        solver = resolve_qp_solver(solver, n_u + n_shared + group_capacity)
+        if not elastic:
+            group_capacity = 0
+        self.elastic = elastic
+        n_slack = n_shared + group_capacity if elastic else 0
+        solver = resolve_qp_solver(solver, n_u + n_slack)
         if solver in ("daqp", "piqp") and not _available(solver):
             raise ValueError(
                 f"qp_solver={solver!r} needs the {solver} package (pip install {solver})"
@@ -149,7 +160,7 @@ class SlotQP:
         self.solver = solver
         self.row_capacity, self.group_capacity = row_capacity, group_capacity
         self.n_u, self.n_speed = n_u, n_shared
-        self.n_var = n_u + n_shared + group_capacity
+        self.n_var = n_u + n_slack
         self.capacity = self.n_speed + row_capacity
         self.max_time = max_time
         nv, cap, nu = self.n_var, self.capacity, self.n_u
@@ -159,7 +170,8 @@ class SlotQP:
         self.H[np.arange(nu, nv), np.arange(nu, nv)] = slack_reg
         self._a = np.zeros(cap * nv)
         self.A = self._a.reshape(nv, cap).T
-        self.A[np.arange(self.n_speed), nu + np.arange(self.n_speed)] = -1.0
+        if elastic:
+            self.A[np.arange(self.n_speed), nu + np.arange(self.n_speed)] = -1.0
         self.g = np.zeros(nv)
         self.g[nu:] = slack_penalty
         self.lba = np.full(cap, -np.inf)
@@ -308,6 +320,8 @@ class SlotQP:
             ValueError: when the rows or groups exceed the capacities.
         """
         keys = np.asarray(keys, dtype=np.int64)
+        if not self.elastic:  # no slack columns
+            return self.n_speed + self._place(keys, self._slot_key), np.full(keys.size, -1)
         group_ids, inverse = np.unique(np.asarray(groups, dtype=np.int64), return_inverse=True)
         columns = self._place(group_ids, self._col_key)
         rows = self._place(keys, self._slot_key)
@@ -342,7 +356,8 @@ class SlotQP:
         self.A[ns:, :] = 0.0
         self.uba[ns:] = np.inf
         self.A[row, :nu] = a_pos
-        self.A[row, first + column] = -1.0
+        if self.elastic:
+            self.A[row, first + column] = -1.0
         self.uba[row] = -g_pos
 
     def set_position_bounds(self, row: np.ndarray, g_pos: np.ndarray) -> None:
@@ -358,7 +373,7 @@ class SlotQP:
         left as they were.
         """
         ok = self._attempt(self.solver)
-        if ok:
+        if ok or not self.elastic:  # (a hard QP may well be infeasible: no retries)
             return self.x.copy(), np.maximum(self.lam_a, 0.0), ok
         self.failures += 1
         nu = self.n_u

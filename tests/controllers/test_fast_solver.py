@@ -226,6 +226,39 @@ def test_screening_gives_the_unscreened_solution() -> None:
     np.testing.assert_allclose(screened.u, full.u, atol=1e-6)
 
 
+@pytest.mark.parametrize("case", ["feasible", "needs_slack", "low_penalty"])
+def test_qps_without_slacks_give_the_same_solution(case: str) -> None:
+    """``elastic_qp="on_demand"`` (QPs without slacks first) solves like ``"always"``: on a
+    feasible problem with QPs without slacks only, where slack is unavoidable (the hard QP
+    is infeasible) and where the slack penalty is so low that slack beats meeting the rows
+    (the hard QP is feasible, but its multipliers exceed the penalty: accepting its steps
+    anyway ends 0.5% higher, at the hard problem's optimum)."""
+    rng = np.random.default_rng(3)
+    narrow = latent_force_scenarios(rng, 30, 7, mean=0.5, spread=0.3, walk_std=0.1)
+    x0, W, problem = STARTS["mid_track"], narrow, PROBLEM_30
+    if case == "low_penalty":
+        problem = paper_problem(n_scenarios=30, slack_penalty=1.0)
+    elif case == "needs_slack":
+        x0, W = np.array([40.0, 3.0 * np.sin(8.0), 7.9, 0.0]), np.full((30, 7), 6.0)
+    hard = FastScenarioSolver(problem).solve(x0, W)
+    elastic = FastScenarioSolver(problem, elastic_qp="always").solve(x0, W)
+    assert hard.success and elastic.success
+    assert hard.objective == pytest.approx(elastic.objective, rel=1e-9)
+    np.testing.assert_allclose(hard.u, elastic.u, atol=1e-6)
+    assert elastic.extra["qp_hard"] == 0 and hard.extra["qp_hard"] > 0
+    if case == "feasible":
+        assert hard.slack <= VIOLATION_TOL
+        assert hard.extra["qp_hard_rejected"] == 0
+        assert hard.extra["qp_hard"] == hard.extra["qp_solves"]
+    else:
+        assert hard.extra["qp_hard_rejected"] >= 1 and hard.slack > 1.0
+
+
+def test_a_bad_elastic_mode_names_the_field_and_the_choices() -> None:
+    with pytest.raises(ValueError, match=r"elastic_qp='never': must be one of \('on_demand'"):
+        FastScenarioSolver(paper_problem(n_scenarios=5), elastic_qp="never")
+
+
 def test_the_stagnation_stop_counts_accepted_steps_in_a_row() -> None:
     """With a stagnation threshold every decrease meets, the start ends as acceptable after
     exactly acceptable_iter accepted steps; with the default one it runs on to convergence."""
@@ -405,6 +438,7 @@ def test_bad_input_raises_value_error(x0, W, u_guess) -> None:
         {"restart_margin": float("nan")},
         {"restart_probe": 0},
         {"hessian_modification": "clip"},
+        {"elastic_qp": "never"},
         {"max_expand": -1},
         {"expand_ratio": 0.0},
         {"damping_decrease": 1.0},

@@ -157,3 +157,26 @@ def test_after_reset_qpoases_starts_cold_however_many_problems_came_before() -> 
         np.testing.assert_array_equal(lam, expected[1])
         assert len(used._spent) <= MAX_SPENT_MEMORIES
         used.reset()
+
+
+@pytest.mark.parametrize("solver", QP_SOLVERS)
+def test_the_qp_without_slacks_has_the_elastic_qps_step_or_fails(solver: str) -> None:
+    """``elastic=False``: only the inputs are variables. Where the rows can be met it gives
+    the elastic QP's step and multipliers; where they cannot, it fails at once (no retries:
+    the SQP then takes the elastic QP)."""
+    hard = SlotQP(2, 0, 8, 4, solver, slack_penalty=100.0, slack_reg=1e-8, elastic=False)
+    assert hard.n_var == 2 and not hard.elastic
+    box = (np.full(2, -10.0), np.full(2, 10.0))
+    hard.set_problem(np.eye(2), np.array([-3.0, 0.0]), *box, np.empty((0, 2)), np.empty(0))
+    row, col = hard.assign(np.array([1, 2]), np.array([7, 9]))
+    assert (col == -1).all()  # no slack columns
+    hard.set_position_rows(row, col, np.array([[1.0, 0.0], [1.0, 1.0]]), np.array([-1.0, -5.0]))
+    z, lam, ok = hard.solve()
+    assert ok and z.shape == (2,)
+    np.testing.assert_allclose(z, [1.0, 0.0], atol=1e-8)
+    assert lam[row[0]] == pytest.approx(2.0, abs=1e-7)
+    assert lam[row[1]] == pytest.approx(0.0, abs=1e-7)
+    # d0 <= -20 cannot be met inside the box |d| <= 10.
+    hard.set_position_rows(row, col, np.array([[1.0, 0.0], [1.0, 1.0]]), np.array([20.0, -5.0]))
+    _, _, ok = hard.solve()
+    assert not ok and hard.failures == 0
