@@ -4,7 +4,10 @@ Used by :mod:`controllers.solvers.fast` and :mod:`controllers.solvers.fast_bicyc
 QP solvers (:data:`QP_SOLVERS`):
 
 * ``"auto"`` (the fast solvers' default): qpOASES for QPs with fewer than
-  :data:`AUTO_PIQP_VARIABLES` variables, PIQP for larger ones (:func:`resolve_qp_solver`).
+  :data:`AUTO_PIQP_VARIABLES` variables, PIQP for larger ones, and DAQP for the QPs without
+  slacks (:func:`resolve_qp_solver`): those are small (the inputs only) and often
+  infeasible, which a cold dual active set finds out fast, and a failure of theirs costs
+  only the QP with slacks.
 * ``"qpoases"``: qpOASES through CasADi on every row slot, hot-started from the
   previous active set of the same object; :meth:`SlotQP.reset` forgets it (the fast
   solvers reset at every solve, so nothing carries over from one problem to the next).
@@ -58,14 +61,17 @@ MAX_SPENT_MEMORIES = 32
 MAX_SPENT_BYTES = 4 << 20
 
 
-def resolve_qp_solver(solver: str, n_var: int) -> str:
+def resolve_qp_solver(solver: str, n_var: int, elastic: bool = True) -> str:
     """The QP solver that ``solver`` stands for on a QP with ``n_var`` variables.
 
-    ``"auto"`` is PIQP from :data:`AUTO_PIQP_VARIABLES` variables on (qpOASES if the piqp
-    package is missing), else qpOASES; other names stand for themselves.
+    ``"auto"``: on a QP without slacks (``elastic=False``) DAQP; else PIQP from
+    :data:`AUTO_PIQP_VARIABLES` variables on, qpOASES below (qpOASES wherever the package
+    named is missing). Other names stand for themselves.
     """
     if solver != "auto":
         return solver
+    if not elastic:
+        return "daqp" if _available("daqp") else "qpoases"
     return "piqp" if n_var >= AUTO_PIQP_VARIABLES and _available("piqp") else "qpoases"
 
 
@@ -152,7 +158,7 @@ class SlotQP:
             group_capacity = 0
         self.elastic = elastic
         n_slack = n_shared + group_capacity if elastic else 0
-        solver = resolve_qp_solver(solver, n_u + n_slack)
+        solver = resolve_qp_solver(solver, n_u + n_slack, elastic)
         if solver in ("daqp", "piqp") and not _available(solver):
             raise ValueError(
                 f"qp_solver={solver!r} needs the {solver} package (pip install {solver})"

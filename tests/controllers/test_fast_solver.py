@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import pickle
+import sys
 
 import casadi as ca
 import numpy as np
@@ -252,6 +253,21 @@ def test_qps_without_slacks_give_the_same_solution(case: str) -> None:
         assert hard.extra["qp_hard"] == hard.extra["qp_solves"]
     else:
         assert hard.extra["qp_hard_rejected"] >= 1 and hard.slack > 1.0
+
+
+def test_without_daqp_the_qps_without_slacks_go_to_qpoases(monkeypatch) -> None:
+    """The default's QPs without slacks are DAQP's; without the package, qpOASES's, with
+    the same plan."""
+    rng = np.random.default_rng(4)
+    W = latent_force_scenarios(rng, 30, 7, mean=0.5, spread=0.3, walk_std=0.1)
+    x0 = STARTS["mid_track"]
+    with_daqp = FastScenarioSolver(PROBLEM_30).solve(x0, W)
+    assert with_daqp.extra["qp_calls"].get("daqp", 0) == with_daqp.extra["qp_hard"] > 0
+    monkeypatch.setitem(sys.modules, "daqp", None)  # the package is not installed
+    without = FastScenarioSolver(PROBLEM_30).solve(x0, W)
+    assert "daqp" not in without.extra["qp_calls"] and without.extra["qp_hard"] > 0
+    assert without.objective == pytest.approx(with_daqp.objective, rel=1e-9)
+    np.testing.assert_allclose(without.u, with_daqp.u, atol=1e-6)
 
 
 def test_a_bad_elastic_mode_names_the_field_and_the_choices() -> None:

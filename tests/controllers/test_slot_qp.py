@@ -101,6 +101,12 @@ def test_auto_resolves_by_the_qp_size() -> None:
     assert resolve_qp_solver("daqp", 10_000) == "daqp"
     assert _qp(solver="auto").solver == "qpoases"
     assert _random_qp("auto")[0].solver == "piqp"
+    # QPs without slacks: DAQP at any size; a solver named is used for them too.
+    for n_var in (2, 10 * AUTO_PIQP_VARIABLES):
+        assert resolve_qp_solver("auto", n_var, elastic=False) == "daqp"
+    assert resolve_qp_solver("qpoases", 10, elastic=False) == "qpoases"
+    hard = SlotQP(2, 0, 8, 4, "auto", slack_penalty=1.0, slack_reg=1e-8, elastic=False)
+    assert hard.solver == "daqp"
 
 
 def test_piqp_and_qpoases_agree_on_a_large_qp() -> None:
@@ -117,6 +123,13 @@ def test_piqp_and_qpoases_agree_on_a_large_qp() -> None:
     np.testing.assert_allclose(z1, z0, atol=1e-6)
     np.testing.assert_allclose(lam1, lam0, atol=1e-5 * max(1.0, float(np.max(lam0))))
     assert np.max(z0[40:]) > 1e-3  # some rows really need slack
+
+
+def test_without_daqp_auto_takes_qpoases_for_the_qps_without_slacks(monkeypatch) -> None:
+    monkeypatch.setitem(sys.modules, "daqp", None)  # the package is not installed
+    assert resolve_qp_solver("auto", 14, elastic=False) == "qpoases"
+    with pytest.raises(ValueError, match="qp_solver='daqp' needs the daqp package"):
+        _qp(solver="daqp")
 
 
 def test_without_piqp_auto_falls_back_and_piqp_is_an_error(monkeypatch) -> None:
