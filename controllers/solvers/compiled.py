@@ -45,6 +45,9 @@ from controllers.solvers.kernel_driver import DRIVER
 
 CACHE_ENV = "LFM_CACHE_DIR"
 FLAGS = ("-O3", "-fPIC", "-shared")
+# Added when the compiler takes it (the kernel's scenario chunks then run in threads,
+# CondensedModel.threads); without it the chunks run one after another.
+OPENMP_FLAG = "-fopenmp"
 COMPILE_TIMEOUT = 120.0  # [s] a compile taking longer is abandoned (fallback)
 
 # Loaded libraries of this process, by source hash (a second build is free).
@@ -175,13 +178,16 @@ def _compile(source: str, target: Path, compiler: list[str]) -> None:
     tmp = target.with_name(f"{target.stem}.{tag}.so.tmp")
     try:
         c_file.write_text(source)
-        cmd = [*compiler, *FLAGS, str(c_file), "-o", str(tmp), "-lm"]
-        try:
-            out = subprocess.run(
-                cmd, capture_output=True, text=True, timeout=COMPILE_TIMEOUT, check=False
-            )
-        except (OSError, subprocess.TimeoutExpired) as err:
-            raise KernelUnavailable(f"compiler {compiler[0]!r} failed to run: {err}") from err
+        for flags in ((*FLAGS, OPENMP_FLAG), FLAGS):  # without OpenMP if it is not there
+            cmd = [*compiler, *flags, str(c_file), "-o", str(tmp), "-lm"]
+            try:
+                out = subprocess.run(
+                    cmd, capture_output=True, text=True, timeout=COMPILE_TIMEOUT, check=False
+                )
+            except (OSError, subprocess.TimeoutExpired) as err:
+                raise KernelUnavailable(f"compiler {compiler[0]!r} failed to run: {err}") from err
+            if out.returncode == 0:
+                break
         if out.returncode != 0:
             msg = (out.stderr or out.stdout).strip().splitlines()[:3]
             raise KernelUnavailable(f"compilation with {compiler[0]!r} failed: {msg}")
@@ -201,7 +207,9 @@ def build_kernel(system, dt: float) -> Kernel:
     start = time.perf_counter()
     source = kernel_source(system, dt)
     compiler_env = os.environ.get("CC", "")
-    key = hashlib.sha256((source + "\0" + " ".join(FLAGS)).encode()).hexdigest()[:24]
+    key = hashlib.sha256((source + "\0" + " ".join((*FLAGS, OPENMP_FLAG))).encode()).hexdigest()[
+        :24
+    ]
     lib = _LOADED.get(key)
     if lib is not None:
         path = Path(lib._name)
@@ -231,9 +239,11 @@ def forget_loaded() -> None:
 def _declare(lib: ctypes.CDLL) -> None:
     """Argument types of the driver's entry points."""
     L, P, D = ctypes.c_long, ctypes.c_void_p, ctypes.c_double
-    lib.lfm_rollout.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P]
-    lib.lfm_linearise.argtypes = [L, L, P, P, L, L, L, P, P, P, D, P, P, P, P]
-    lib.lfm_hessian.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, P, D, P, P]
+    lib.lfm_rollout.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, L]
+    lib.lfm_linearise.argtypes = [L, L, P, P, L, L, L, P, P, P, D, P, P, P, P, L]
+    lib.lfm_hessian.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, P, D, P, P, L]
+    lib.lfm_openmp.argtypes = []
+    lib.lfm_openmp.restype = ctypes.c_int
     lib.lfm_linear_change.argtypes = [L, L, P, P, P, P, P]
     lib.lfm_rows.argtypes = [L, L, P, P, L, P, P]
     lib.lfm_screen.argtypes = [L, L, L, P, P, P, P, D, L, P, L]

@@ -174,6 +174,10 @@ class CondensedModel:
         # product per step), False in C, None (default) by size: C for small problems, where
         # the per-step BLAS calls cost more than they save (see BLAS_PRODUCTS_ABOVE).
         self.blas_products: bool | None = None
+        # Threads of the kernel's rollout, linearisation and Hessian: the scenarios in this
+        # many contiguous chunks, one per thread (results equal to rounding for every
+        # count; 1 is the serial sweep). See kernel_driver.DRIVER.
+        self.threads = 1
         self.compile_time, self.cache_hit, self.kernel_error = 0.0, False, None
         own = all(
             getattr(type(self), name) is getattr(CondensedModel, name)
@@ -192,6 +196,8 @@ class CondensedModel:
                     built.build_time,
                     built.cache_hit,
                 )
+        # The kernel runs its chunks in threads (compiled with OpenMP).
+        self.openmp = self._lib is not None and bool(self._lib.lfm_openmp())
 
         # --- the generated derivative functions, evaluated on all points at once ---
         x, u, w = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("w", nw)
@@ -315,7 +321,8 @@ class CondensedModel:
             c_sum = np.zeros(1)  # the state cost summed over scenarios
             out = (ptr(X), ptr(G), ptr(c_sum))
             x0p, Wp = self._held(x0c), self._held(W)
-            if self._lib.lfm_rollout(n, ns, x0p, Wp, sa, sk, si, ptr(u), *self._weights_p, *out):
+            u_p, t = ptr(u), self.threads
+            if self._lib.lfm_rollout(n, ns, x0p, Wp, sa, sk, si, u_p, *self._weights_p, *out, t):
                 X[:], G[:], c_sum[:] = np.nan, np.nan, np.nan
         else:
             X[0] = x0T
@@ -472,7 +479,8 @@ class CondensedModel:
         args = (*self._weights_p, 2.0 / ns)
         out = (ptr(A), ptr(S), ptr(Jg), ptr(grad))
         Wp = self._held(W_lanes)
-        if self._lib.lfm_linearise(n, ns, ptr(X), Wp, sa, sk, si, ptr(u), *args, *out):
+        call = (n, ns, ptr(X), Wp, sa, sk, si, ptr(u), *args, *out, self.threads)
+        if self._lib.lfm_linearise(*call):
             grad[:] = np.nan
         grad += (u.reshape(n, nu) @ self._R2).ravel()  # d(u' R u)/du, R symmetric
         return Linearisation(ro=ro, A=A, S=S, Jg=Jg, grad=grad, packed=True)
@@ -490,8 +498,10 @@ class CondensedModel:
         # The kernel leaves sum_j S_j' (Mxx_j S_j) (stacked over scenarios) to BLAS.
         blocks = None
         blas = self.blas_products
-        if blas is None:
-            blas = n_u > BLAS_PRODUCTS_ABOVE[0] or ns > BLAS_PRODUCTS_ABOVE[1]
+        if blas is None:  # (BLAS runs on one thread: with kernel threads, C at every size)
+            blas = self.threads == 1 and (
+                n_u > BLAS_PRODUCTS_ABOVE[0] or ns > BLAS_PRODUCTS_ABOVE[1]
+            )
         if blas:
             shape = lin.S.shape  # Mxx_j S_j of steps 1..N, stacked over scenarios, packed
             if self._blocks is None or self._blocks.shape != shape:
@@ -499,7 +509,8 @@ class CondensedModel:
             blocks = self._blocks
         out = (ptr(H), ptr(blocks))
         Wp = self._held(W_lanes)
-        if self._lib.lfm_hessian(n, ns, ptr(X), Wp, sa, sk, si, *data, *weights, *out):
+        call = (n, ns, ptr(X), Wp, sa, sk, si, *data, *weights, *out, self.threads)
+        if self._lib.lfm_hessian(*call):
             H[:] = np.nan
         if blocks is not None:
             rows = ns * self.nx

@@ -103,6 +103,7 @@ class FastScenarioSolver(SubproblemMixin):
         self.problem = problem
         self.options = FastSolverOptions(**options)
         self.model = m = self.model_class(problem)
+        m.threads = self.options.kernel_threads
         n = problem.horizon
         self._n_u = m.n_u
         self._lower, self._upper = m.lower, m.upper
@@ -120,6 +121,9 @@ class FastScenarioSolver(SubproblemMixin):
         self._range = np.where(np.isfinite(span) & (span > 0), span, np.inf)
         self._radius = 0.0  # current trust radius (fraction of the range; 0: none)
         self._hard_first = False  # the next QP is tried without slacks first
+        # The last start's linearisation: its arrays (every entry rewritten) serve the next
+        # start's first one, so large problems do not fault in fresh pages at every start.
+        self._spare_lin: Linearisation | None = None
         # A list to record one dict per SQP iteration into (diagnostics), or None.
         self.trace: list[dict[str, Any]] | None = None
 
@@ -141,11 +145,13 @@ class FastScenarioSolver(SubproblemMixin):
         state = self.__dict__.copy()
         state["_qps"] = {}
         state["model"] = None
+        state["_spare_lin"] = None
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
         self.model = self.model_class(self.problem)
+        self.model.threads = self.options.kernel_threads
 
     def solve(
         self,
@@ -175,7 +181,8 @@ class FastScenarioSolver(SubproblemMixin):
             (``qp_rows``), QP calls retried after a failure (``qp_retries``), iterations
             whose check-and-add rounds ran out (``qp_rounds_exhausted``), merit
             evaluations and second-order corrections, names the derivative backend
-            (``backend``) and the QP solver option (``qp_solver``) with the QP calls
+            (``backend``) and the kernel's threads (``kernel_threads``: 1 without
+            OpenMP, whatever was asked), the QP solver option (``qp_solver``) with the QP calls
             per solver it resolved to (``qp_calls``, e.g. ``{"qpoases": 12}``), gives the
             first start's ``{"status", "iterations"}`` (``first_start``), and
             ``extra["restarts"]`` maps each extra start tried to ``"kept"`` or the status it
@@ -254,6 +261,7 @@ class FastScenarioSolver(SubproblemMixin):
             if keep:
                 ro, status, success = ro2, status2, success2
         extra["backend"] = self.backend
+        extra["kernel_threads"] = self.model.threads if self.model.openmp else 1
         extra["qp_solver"] = self.options.qp_solver
         extra["first_start"] = {"status": first_status, "iterations": first_iterations}
 
@@ -403,7 +411,8 @@ class FastScenarioSolver(SubproblemMixin):
         self._deadline = deadline
         on_demand = opt.elastic_qp == "on_demand"
         self._hard_first = on_demand
-        lin = None  # the last iteration's linearisation (its arrays are reused)
+        lin = self._spare_lin  # the last linearisation (its arrays are reused)
+        self._spare_lin = None
         try:
             while iterations < opt.max_iter:
                 if time.perf_counter() >= deadline:
@@ -576,6 +585,7 @@ class FastScenarioSolver(SubproblemMixin):
                     break
         except _OutOfTime:  # inside an iteration: keep the last accepted iterate
             status, success = "Maximum_WallTime_Exceeded", False
+        self._spare_lin = lin
         return ro, status, success, iterations, stats
 
 

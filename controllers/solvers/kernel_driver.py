@@ -22,6 +22,22 @@ DRIVER = r"""
 #include <string.h>
 #include <math.h>
 #define NZ (NX + NU)
+/* Threads: the scenarios are cut into T contiguous chunks, one per thread (OpenMP when the
+   library is compiled with it, else the chunks one after another). Chunk 0 accumulates its
+   sums into the outputs, the others into their own arrays, added in chunk order: the
+   results depend on T (rounding), not on the run, and T = 1 is the serial sweep itself. */
+#define CHUNK(ns, t, T) ((ns) * (t) / (T))
+static long chunks(long nthreads, long ns) {
+  long T = nthreads < 1 ? 1 : nthreads;
+  return ns < T ? (ns > 0 ? ns : 1) : T;
+}
+CASADI_SYMBOL_EXPORT int lfm_openmp(void) {
+#ifdef _OPENMP
+  return 1;
+#else
+  return 0;
+#endif
+}
 #define S_OFF(k, ns) ((ns) * NX * NU * (k) * ((k) + 1) / 2)
 
 typedef int (*cfun)(const casadi_real**, casadi_real**, casadi_int*, casadi_real*, int);
@@ -101,18 +117,14 @@ static double dot(const double* a, const double* b, long len) {
   return (s0 + s1) + (s2 + s3);
 }
 
-CASADI_SYMBOL_EXPORT int lfm_rollout(long n, long ns, const double* x0T, const double* W,
-    long sa, long sk, long si, const double* u, const double* goal, const double* Wq,
-    double* X, double* G, double* cost) {
-  /* The states X (N+1, NX, Ns), constraint values G (NG, N, Ns) of every scenario and the
-     state cost summed over them, sum_i sum_k (x_k - goal)' Wq_k (x_k - goal). */
-  work_t wk;
-  if (work_alloc(&wk)) return 1;
-  double* P = parametric(&wk, lfm_step_pre, NP_STEP, n, u);
-  if (!P) { work_free(&wk); return 1; }
+/* Scenarios i0 <= i < i1 of lfm_rollout; their state cost into *cost. */
+static int rollout_chunk(work_t* wkp, long n, long ns, long i0, long i1, const double* x0T,
+    const double* W, long sa, long sk, long si, const double* u, const double* P,
+    const double* goal, const double* Wq, double* X, double* G, double* cost) {
+  work_t wk = *wkp;
   double x[NX], xn[NX], wv[NW + 1], c = 0.0;
   int status = 0;
-  for (long i = 0; i < ns && !status; ++i) {
+  for (long i = i0; i < i1 && !status; ++i) {
     for (int m = 0; m < NX; ++m) X[m * ns + i] = x[m] = x0T[m * ns + i];
     for (long k = 0; k < n && !status; ++k) {
       gather(W, sa, sk, si, k, i, wv);
@@ -123,32 +135,61 @@ CASADI_SYMBOL_EXPORT int lfm_rollout(long n, long ns, const double* x0T, const d
       double g[NG];
       status |= CALL1(lfm_con, x, g);
       for (int j = 0; j < NG; ++j) G[(j * n + k) * ns + i] = g[j];
+#else
+      (void)G;
 #endif
     }
   }
   *cost = c;
+  return status;
+}
+
+CASADI_SYMBOL_EXPORT int lfm_rollout(long n, long ns, const double* x0T, const double* W,
+    long sa, long sk, long si, const double* u, const double* goal, const double* Wq,
+    double* X, double* G, double* cost, long nthreads) {
+  /* The states X (N+1, NX, Ns), constraint values G (NG, N, Ns) of every scenario and the
+     state cost summed over them, sum_i sum_k (x_k - goal)' Wq_k (x_k - goal). */
+  work_t wk;
+  if (work_alloc(&wk)) return 1;
+  double* P = parametric(&wk, lfm_step_pre, NP_STEP, n, u);
+  if (!P) { work_free(&wk); return 1; }
+  const long T = chunks(nthreads, ns);
+  int status = 0;
+  if (T == 1) {
+    status = rollout_chunk(&wk, n, ns, 0, ns, x0T, W, sa, sk, si, u, P, goal, Wq, X, G, cost);
+  } else {
+    double* part = malloc(T * sizeof(double));
+    int* st = malloc(T * sizeof(int));
+    if (!part || !st) { free(part); free(st); free(P); work_free(&wk); return 1; }
+#pragma omp parallel for num_threads(T) schedule(static, 1)
+    for (long t = 0; t < T; ++t) {
+      work_t own;
+      st[t] = work_alloc(&own) ? 1
+          : rollout_chunk(&own, n, ns, CHUNK(ns, t, T), CHUNK(ns, t + 1, T), x0T, W, sa, sk,
+                          si, u, P, goal, Wq, X, G, part + t);
+      work_free(&own);
+    }
+    double c = 0.0;
+    for (long t = 0; t < T; ++t) { c += part[t]; status |= st[t]; }
+    *cost = c;
+    free(part);
+    free(st);
+  }
   free(P);
   work_free(&wk);
   return status;
 }
 
-CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const double* W,
-    long sa, long sk, long si, const double* u, const double* goal, const double* Wq,
-    double scale, double* A, double* S, double* Jg, double* grad) {
-  /* A, S, Jg and the state part of the gradient, sum_k sum_i S_k' scale Wq_k (x_k - goal).
-     Step by step, all scenarios at each: S_{k+1} is written, and S_k read, in the arrays'
-     (step, scenario) order (a scenario-by-scenario sweep wrote N blocks at N distant places
-     per scenario, and took 1.6x as long at Ns = 5000). */
-  work_t wk;
-  if (work_alloc(&wk)) return 1;
-  double* P = parametric(&wk, lfm_step_jac_pre, NP_STEP_JAC, n, u);
-  if (!P) { work_free(&wk); return 1; }
-  const long nut = n * NU;
+/* Scenarios i0 <= i < i1 of lfm_linearise; their gradient terms added into grad. */
+static int linearise_chunk(work_t* wkp, long n, long ns, long i0, long i1, const double* X,
+    const double* W, long sa, long sk, long si, const double* u, const double* P,
+    const double* goal, const double* Wq, double scale, double* A, double* S, double* Jg,
+    double* grad) {
+  work_t wk = *wkp;
   double x[NX], J[NX * NZ], gx[NX], wv[NW + 1];
   int status = 0;
-  memset(grad, 0, nut * sizeof(double));
   for (long k = 0; k < n && !status; ++k) {
-    for (long i = 0; i < ns && !status; ++i) {
+    for (long i = i0; i < i1 && !status; ++i) {
       load_state(X, k, ns, i, x);
       gather(W, sa, sk, si, k, i, wv);
       status = CALL4(lfm_step_jac, x, u + k * NU, wv, P + k * NP_STEP_JAC, J);
@@ -174,11 +215,52 @@ CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const d
       double* Jk = Jg + (k * ns + i) * NG * NX;
       for (int j = 0; j < NG; ++j)
         for (int m = 0; m < NX; ++m) Jk[j * NX + m] = jg[j + m * NG];
+#else
+      (void)Jg;
 #endif
       weighted(x, goal, Wq + k * NX * NX, scale, gx);
       for (int r = 0; r < NX; ++r)
         for (long c = 0; c < width; ++c) grad[c] += gx[r] * Sk[r * width + c];
     }
+  }
+  return status;
+}
+
+CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const double* W,
+    long sa, long sk, long si, const double* u, const double* goal, const double* Wq,
+    double scale, double* A, double* S, double* Jg, double* grad, long nthreads) {
+  /* A, S, Jg and the state part of the gradient, sum_k sum_i S_k' scale Wq_k (x_k - goal).
+     Step by step, all scenarios (of a chunk) at each: S_{k+1} is written, and S_k read, in
+     the arrays' (step, scenario) order (a scenario-by-scenario sweep wrote N blocks at N
+     distant places per scenario, and took 1.6x as long at Ns = 5000). */
+  work_t wk;
+  if (work_alloc(&wk)) return 1;
+  double* P = parametric(&wk, lfm_step_jac_pre, NP_STEP_JAC, n, u);
+  if (!P) { work_free(&wk); return 1; }
+  const long nut = n * NU, T = chunks(nthreads, ns);
+  int status = 0;
+  memset(grad, 0, nut * sizeof(double));
+  if (T == 1) {
+    status = linearise_chunk(&wk, n, ns, 0, ns, X, W, sa, sk, si, u, P, goal, Wq, scale, A, S,
+                             Jg, grad);
+  } else {
+    double* part = calloc((T - 1) * nut + 1, sizeof(double)); /* chunks 1.. */
+    int* st = malloc(T * sizeof(int));
+    if (!part || !st) { free(part); free(st); free(P); work_free(&wk); return 1; }
+#pragma omp parallel for num_threads(T) schedule(static, 1)
+    for (long t = 0; t < T; ++t) {
+      work_t own;
+      st[t] = work_alloc(&own) ? 1
+          : linearise_chunk(&own, n, ns, CHUNK(ns, t, T), CHUNK(ns, t + 1, T), X, W, sa, sk,
+                            si, u, P, goal, Wq, scale, A, S, Jg,
+                            t ? part + (t - 1) * nut : grad);
+      work_free(&own);
+    }
+    for (long t = 0; t < T; ++t) status |= st[t];
+    for (long t = 1; t < T; ++t)
+      for (long c = 0; c < nut; ++c) grad[c] += part[(t - 1) * nut + c];
+    free(part);
+    free(st);
   }
   free(P);
   work_free(&wk);
@@ -476,65 +558,104 @@ static inline void state_products(long n, long ns, long j, long i, const double*
   }
 }
 
-CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const double* W,
-    long sa, long sk, long si, const double* u, const double* A, const double* S,
-    const double* Jg, const double* mu, const double* goal, const double* Wq, double scale,
+/* Scenarios i0 <= i < i1 of lfm_hessian (see there); their terms added into H (upper
+   triangle). lam_k, lam_next (Ns, NX) and St, Tt are the whole arrays: a chunk uses its
+   own scenarios' rows of them. */
+static int hessian_chunk(work_t* wkp, long n, long ns, long i0, long i1, const double* X,
+    const double* W, long sa, long sk, long si, const double* u, const double* P,
+    const double* A, const double* S, const double* Jg, const double* mu, const double* goal,
+    const double* Wq, double scale, double* lam_k, double* lam_next, double* St, double* Tt,
     double* H, double* blocks) {
-  /* sum over scenarios of the Hessian of (cost + mu' G) w.r.t. u, without the input cost:
-     sum_j S_j' Mxx_j S_j (S_j stacked over scenarios: one product of length Ns NX per
-     entry) + the cross terms S_k' M_k[x, u] + M_k[u, u]. Upper triangle, then mirrored.
-     With blocks given (packed as S), the products S_j' (Mxx_j S_j) are left to the caller
-     (one matrix product per step): the block of step j - 1 is Mxx_j S_j, (Ns NX, j NU).
-     One backward sweep over the steps, all scenarios at each: the adjoints lambda_k of
-     step k, its Hessian M_k (used at once, never stored) and every term of step k, so
-     the arrays are read in their (step, scenario) order. Each entry of H sums its terms
-     over the scenarios in ascending order, as a scenario-by-scenario sweep would. */
-  work_t wk;
-  if (work_alloc(&wk)) return 1;
-  const long nut = n * NU, rows = ns * NX;
-  double* P = parametric(&wk, lfm_step_hess_pre, NP_STEP_HESS, n, u);
-  const long own = blocks ? 0 : 2 * nut * rows;
-  double* lam = malloc((2 * rows + own + 1) * sizeof(double));
-  if (!P || !lam) { free(P); free(lam); work_free(&wk); return 1; }
-  double* lam_k = lam;         /* lambda_k (the adjoint of x_{k+1}), (Ns, NX) */
-  double* lam_next = lam + rows; /* lambda_{k+1} */
-  double* St = lam + 2 * rows; /* S_j' (cols, Ns NX) */
-  double* Tt = St + nut * rows; /* (Mxx_j S_j)' */
+  const long rows = ns * NX;
   double Mxx[NX * NX], M[NZ * NZ];
   int status = 0;
-  memset(H, 0, nut * nut * sizeof(double));
   for (long k = n; k >= 1 && !status; --k) {
     /* Step k (k < N): lambda_k and M_k of every scenario, their uu and cross terms; the
        products of state x_k. (k = N: the last state has no step after it.) */
     const long j = k;
     double* Tb = blocks ? blocks + S_OFF(j - 1, ns) : NULL;
-    for (long i = 0; i < ns && !status; ++i) {
+    for (long i = i0; i < i1 && !status; ++i) {
       const double* Mj = NULL;
       if (k < n) {
-        status = step_hessian(&wk, n, ns, k, i, X, W, sa, sk, si, u, P, A, Jg, mu, goal, Wq,
+        status = step_hessian(wkp, n, ns, k, i, X, W, sa, sk, si, u, P, A, Jg, mu, goal, Wq,
                               scale, lam_next, lam_k, M, H);
         Mj = M;
       }
-      if (!status) status = state_curvature(&wk, n, ns, j, i, X, Mj, mu, Wq, scale, Mxx);
+      if (!status) status = state_curvature(wkp, n, ns, j, i, X, Mj, mu, Wq, scale, Mxx);
       if (!status)
         state_products(n, ns, j, i, Mxx, S + S_OFF(j - 1, ns) + i * NX * j * NU, Mj, Tb, St, Tt,
                        H);
     }
     if (!blocks) {
-      const long cols = j * NU;
+      const long cols = j * NU, nut = n * NU, off = i0 * NX, len = (i1 - i0) * NX;
       for (long a = 0; a < cols; ++a)
-        for (long b = a; b < cols; ++b) H[a * nut + b] += dot(St + a * rows, Tt + b * rows, rows);
+        for (long b = a; b < cols; ++b)
+          H[a * nut + b] += dot(St + a * rows + off, Tt + b * rows + off, len);
     }
     if (k < n) { double* t = lam_next; lam_next = lam_k; lam_k = t; }
   }
   /* Step 0: its adjoint and Hessian (uu terms only: x_0 is fixed). */
-  for (long i = 0; i < ns && !status && n > 0; ++i)
-    status = step_hessian(&wk, n, ns, 0, i, X, W, sa, sk, si, u, P, A, Jg, mu, goal, Wq, scale,
+  for (long i = i0; i < i1 && !status && n > 0; ++i)
+    status = step_hessian(wkp, n, ns, 0, i, X, W, sa, sk, si, u, P, A, Jg, mu, goal, Wq, scale,
                           lam_next, lam_k, M, H);
+  return status;
+}
+
+CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const double* W,
+    long sa, long sk, long si, const double* u, const double* A, const double* S,
+    const double* Jg, const double* mu, const double* goal, const double* Wq, double scale,
+    double* H, double* blocks, long nthreads) {
+  /* sum over scenarios of the Hessian of (cost + mu' G) w.r.t. u, without the input cost:
+     sum_j S_j' Mxx_j S_j (S_j stacked over scenarios: one product of length Ns NX per
+     entry) + the cross terms S_k' M_k[x, u] + M_k[u, u]. Upper triangle, then mirrored.
+     With blocks given (packed as S), the products S_j' (Mxx_j S_j) are left to the caller
+     (one matrix product per step): the block of step j - 1 is Mxx_j S_j, (Ns NX, j NU).
+     One backward sweep over the steps, all scenarios (of a chunk) at each: the adjoints
+     lambda_k of step k, its Hessian M_k (used at once, never stored) and every term of
+     step k, so the arrays are read in their (step, scenario) order. Each entry of H sums
+     its terms over the scenarios in ascending order, as a scenario-by-scenario sweep
+     would (with T chunks: per chunk, then the chunks' sums in order). */
+  work_t wk;
+  if (work_alloc(&wk)) return 1;
+  const long nut = n * NU, rows = ns * NX, T = chunks(nthreads, ns);
+  double* P = parametric(&wk, lfm_step_hess_pre, NP_STEP_HESS, n, u);
+  const long own = blocks ? 0 : 2 * nut * rows;
+  double* lam = malloc((2 * rows + own + 1) * sizeof(double));
+  double* part = T > 1 ? calloc((T - 1) * nut * nut + 1, sizeof(double)) : NULL;
+  int* st = malloc(T * sizeof(int));
+  if (!P || !lam || !st || (T > 1 && !part)) {
+    free(P); free(lam); free(part); free(st); work_free(&wk);
+    return 1;
+  }
+  double* lam_k = lam;         /* lambda_k (the adjoint of x_{k+1}), (Ns, NX) */
+  double* lam_next = lam + rows; /* lambda_{k+1} */
+  double* St = lam + 2 * rows; /* S_j' (cols, Ns NX) */
+  double* Tt = St + nut * rows; /* (Mxx_j S_j)' */
+  int status = 0;
+  memset(H, 0, nut * nut * sizeof(double));
+  if (T == 1) {
+    status = hessian_chunk(&wk, n, ns, 0, ns, X, W, sa, sk, si, u, P, A, S, Jg, mu, goal, Wq,
+                           scale, lam_k, lam_next, St, Tt, H, blocks);
+  } else {
+#pragma omp parallel for num_threads(T) schedule(static, 1)
+    for (long t = 0; t < T; ++t) {
+      work_t mine;
+      st[t] = work_alloc(&mine) ? 1
+          : hessian_chunk(&mine, n, ns, CHUNK(ns, t, T), CHUNK(ns, t + 1, T), X, W, sa, sk, si,
+                          u, P, A, S, Jg, mu, goal, Wq, scale, lam_k, lam_next, St, Tt,
+                          t ? part + (t - 1) * nut * nut : H, blocks);
+      work_free(&mine);
+    }
+    for (long t = 0; t < T; ++t) status |= st[t];
+    for (long t = 1; t < T; ++t)
+      for (long e = 0; e < nut * nut; ++e) H[e] += part[(t - 1) * nut * nut + e];
+  }
   for (long a = 0; a < nut; ++a)
     for (long b = 0; b < a; ++b) H[a * nut + b] = H[b * nut + a];
   free(P);
   free(lam);
+  free(part);
+  free(st);
   work_free(&wk);
   return status;
 }

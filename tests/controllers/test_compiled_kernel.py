@@ -358,3 +358,60 @@ def test_the_hessian_products_go_to_blas_by_size(horizon, ns, blas) -> None:
     H = model.hessian(model.linearise(ro, W_lanes), np.zeros((problem.ng, horizon, ns)), W_lanes)
     assert np.isfinite(H).all()
     assert (model._blocks is not None) == blas
+
+
+# --------------------------------------------------------------------------- threads
+
+
+@pytest.mark.parametrize("threads", [2, 3, 200])
+def test_threaded_chunks_equal_the_serial_sweep(threads, paper, paper_models) -> None:
+    """The scenarios in 2, 3 (uneven) or more chunks than scenarios (one each): every output
+    equals the serial kernel's to rounding, with either Hessian product path (threads > 1
+    take C products by default: BLAS runs on one thread)."""
+    model = CondensedModel(paper, kernel="c")
+    assert model.openmp  # the test machines' compilers have OpenMP
+    model.threads = threads
+    for i in (0, 5):
+        x0, W = DATA["x0"][i], DATA["W"][i]
+        mu = _multipliers(paper, W.shape[0], i)
+        u = DATA["reference_u"][i].ravel()
+        ref = _everything(paper_models["c"], paper, x0, W, u, mu)
+        for blas in (None, True):
+            model.blas_products = blas
+            _assert_same(ref, _everything(model, paper, x0, W, u, mu))
+    assert model._blocks is not None  # (the BLAS path was taken once)
+
+
+def test_without_openmp_the_chunks_run_one_after_another(
+    paper, paper_models, fresh_cache, tmp_path, monkeypatch
+) -> None:
+    """A compiler that refuses -fopenmp (a real cc behind a script) still builds the kernel,
+    without threads; more chunks than one give the same outputs."""
+    cc = tmp_path / "cc-without-openmp"
+    cc.write_text(
+        '#!/bin/sh\nfor a in "$@"; do [ "$a" = -fopenmp ] && exit 1; done\nexec cc "$@"\n'
+    )
+    cc.chmod(0o755)
+    monkeypatch.setenv("CC", str(cc))
+    model = CondensedModel(paper, kernel="c")
+    assert model.backend == "compiled-c" and not model.openmp
+    model.threads = 3
+    i = 1
+    x0, W, u = DATA["x0"][i], DATA["W"][i], DATA["reference_u"][i].ravel()
+    mu = _multipliers(paper, W.shape[0], i)
+    ref = _everything(paper_models["c"], paper, x0, W, u, mu)
+    _assert_same(ref, _everything(model, paper, x0, W, u, mu))
+    solver = make_solver(paper, "fast", kernel_threads=2)
+    assert solver.solve(x0, W).extra["kernel_threads"] == 1  # (this process's kernel now)
+
+
+def test_the_fast_solver_with_kernel_threads_reaches_the_same_plan(paper) -> None:
+    i = 3
+    x0, W = DATA["x0"][i], DATA["W"][i]
+    one = make_solver(paper, "fast").solve(x0, W)
+    two = make_solver(paper, "fast", kernel_threads=2).solve(x0, W)
+    assert one.extra["kernel_threads"] == 1 and two.extra["kernel_threads"] == 2
+    assert two.objective == pytest.approx(one.objective, rel=1e-9)
+    np.testing.assert_allclose(two.u, one.u, atol=1e-6)
+    clone = pickle.loads(pickle.dumps(make_solver(paper, "fast", kernel_threads=2)))
+    assert clone.model.threads == 2
