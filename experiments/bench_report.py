@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from experiments.bench_solvers import GAP_TOL, NO_SLACK_TOL
+from experiments.bench_solvers import GAP_TOL, NO_SLACK_TOL, SOLVER_VARIANTS
 from experiments.bench_targets import (
     ANCHOR,
     LARGE_NS,
@@ -79,9 +79,10 @@ def speed_rows(results: dict[str, Any]) -> list[tuple[str, str, str, str, str]]:
                 "",
             )
         )
-    large = large_ns_median(results)
-    if large is not None:
-        rows.append((f"fast, Ns={LARGE_NS} (sweep)", _fmt(large, ".2f"), "", "", ""))
+    for name in ("fast", *SOLVER_VARIANTS):
+        large = large_ns_median(results, name)
+        if large is not None:
+            rows.append((f"{name}, Ns={LARGE_NS} (sweep)", _fmt(large, ".2f"), "", "", ""))
     return rows
 
 

@@ -40,6 +40,7 @@ from experiments.bench_problems import (
 )
 from experiments.bench_solvers import (
     GAP_TOL,
+    SOLVER_VARIANTS,
     accuracy_summary,
     build_solver,
     failures_of,
@@ -63,6 +64,10 @@ HORIZON_SOLVERS = ("fast", "ipopt")  # the second is the objective reference
 # that reaches its limit is a failed solve (kind wall_time).
 HORIZON_MAX_TIME_S = {"fast": 10.0, "ipopt": 30.0}
 SWEEP_SOLVERS = ("fast", "fast_bicycle")  # timed at every Ns
+# Timed from this Ns on, and at the largest Ns of a shorter sweep: the solver variants
+# (bench_solvers.SOLVER_VARIANTS; the fast solver's kernel on two threads, which pays for
+# many scenarios).
+SWEEP_VARIANTS_MIN_NS = 500
 SWEEP_REFERENCE = "ipopt"  # timed, and the objective reference, up to ipopt_max_ns
 SWEEP_IPOPT_MAX_NS = 150
 DEFAULT_PF_SIZES = (1000, 7000, 20000)
@@ -87,7 +92,9 @@ def sweep_scenarios(
     For each anchor (a recorded estimate: physical state ``x0``, latent state ``z``) the
     ``Ns`` scenarios are drawn by :func:`experiments.bench_problems.scenario_draws`. The
     anchors of each seed are solved in closed-loop order with warm starts (reset at each
-    seed). The fast solvers (:data:`SWEEP_SOLVERS`) run at every ``Ns``; IPOPT on the
+    seed). The fast solvers (:data:`SWEEP_SOLVERS`) run at every ``Ns``, their variants
+    (:data:`experiments.bench_solvers.SOLVER_VARIANTS`: the kernel on two threads) from
+    :data:`SWEEP_VARIANTS_MIN_NS` on and at the largest ``Ns`` of the list; IPOPT on the
     condensed NLP, the objective reference, only for ``Ns <= ipopt_max_ns``.
 
     Args:
@@ -115,9 +122,12 @@ def sweep_scenarios(
         problem = cfg.make_problem(n_scenarios=int(ns), horizon=horizon)
         problems = scenario_draws(problem, sequence, np.random.default_rng([rng_seed, int(ns)]))
         names = list(SWEEP_SOLVERS) + ([SWEEP_REFERENCE] if ns <= ipopt_max_ns else [])
+        if ns >= min(SWEEP_VARIANTS_MIN_NS, max(ns_list)):
+            names += list(SOLVER_VARIANTS)
         built, info = {}, {}
         for name in names:
-            solver, build_time, reason = build_solver(name, problem)
+            base, options = SOLVER_VARIANTS.get(name, (name, {}))
+            solver, build_time, reason = build_solver(base, problem, **options)
             info[name] = {"available": solver is not None, "reason": reason}
             info[name]["build_time_s"] = build_time
             if solver is not None:

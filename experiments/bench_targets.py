@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from experiments.bench_solvers import FAST_SOLVERS, GAP_TOL
+from experiments.bench_solvers import FAST_SOLVERS, GAP_TOL, SOLVER_VARIANTS
 
 TEXTBOOK = "ipopt_multiple_shooting"
 ANCHOR = "sqpmethod"  # CasADi sqpmethod + qpOASES, JIT-compiled
@@ -337,7 +337,8 @@ def _other_targets(results: dict[str, Any], th: Mapping[str, float]) -> list[dic
     qp = [
         f
         for f in results.get("failures", [])
-        if f["kind"] == "QP_Failed" and f["solver"] in FAST_SOLVERS
+        if f["kind"] == "QP_Failed"
+        and (f["solver"] in FAST_SOLVERS or f["solver"] in SOLVER_VARIANTS)
     ]
     others = sum(f["kind"] == "QP_Failed" for f in results.get("failures", [])) - len(qp)
     pf_rows = results.get("particle_filter", {}).get("results", [])
