@@ -341,7 +341,9 @@ class FastScenarioSolver(SubproblemMixin):
 
         The constraints' curvature made the full step infeasible: the QP's scenario rows
         are shifted by their second-order error at ``trial`` and the QP re-solved (against
-        the Maratos effect); returns the rollout of the corrected step.
+        the Maratos effect); returns the rollout of the corrected step. (When the step came
+        from the QP without slacks, so does the correction, without the multiplier test: it
+        is a candidate like any other, kept by the caller only if the merit falls.)
         """
         pos, d = qp_step.pos, qp_step.d
         a_pos, _ = self.model.rows(lin, pos)

@@ -207,11 +207,10 @@ class SubproblemMixin:
             a_pos, g_pos = self.model.rows(lin, pos)
             group = pos[:, 0] * n + pos[:, 1]
             s_pos = np.zeros((ng, n))
+            this_round = (H, lin.grad, lo, hi, g_shared, group * n_scen + pos[:, 2], group)
             if hard:
                 qp = self._qp(max(pos.shape[0], 1), 1, elastic=False)
-                row, column = qp.assign(group * n_scen + pos[:, 2], group)
-                qp.set_problem(H, lin.grad, lo, hi, self._a_shared, g_shared)
-                qp.set_position_rows(row, column, a_pos, g_pos)
+                row, _ = self._load(qp, *this_round, a_pos, g_pos)
                 d, lam_all, ok = qp.solve()
                 self._count(stats, qp)
                 rho = p.slack_penalty
@@ -228,9 +227,7 @@ class SubproblemMixin:
             if not hard:
                 n_groups = np.unique(group).size
                 qp = self._qp(max(pos.shape[0], 1), max(n_groups, 1))
-                row, column = qp.assign(group * n_scen + pos[:, 2], group)
-                qp.set_problem(H, lin.grad, lo, hi, self._a_shared, g_shared)
-                qp.set_position_rows(row, column, a_pos, g_pos)
+                row, column = self._load(qp, *this_round, a_pos, g_pos)
                 retried = qp.failures
                 z, lam_all, ok = qp.solve()
                 self._count(stats, qp)
@@ -257,6 +254,25 @@ class SubproblemMixin:
             s_shared=z[nu : nu + n_sh],
             lam_shared=lam_all[:n_sh],
         )
+
+    def _load(
+        self,
+        qp: SlotQP,
+        H: np.ndarray,
+        grad: np.ndarray,
+        lo: np.ndarray,
+        hi: np.ndarray,
+        g_shared: np.ndarray,
+        keys: np.ndarray,
+        group: np.ndarray,
+        a_pos: np.ndarray,
+        g_pos: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One round's QP into ``qp``; the rows' slots and slack columns (:meth:`SlotQP.assign`)."""
+        row, column = qp.assign(keys, group)
+        qp.set_problem(H, grad, lo, hi, self._a_shared, g_shared)
+        qp.set_position_rows(row, column, a_pos, g_pos)
+        return row, column
 
     @staticmethod
     def _count(stats: dict, qp: SlotQP) -> None:
