@@ -108,14 +108,21 @@ class SubproblemMixin:
             J = np.vstack(rows)
             G = J.T @ J
             sigma = float(np.max(np.abs(w))) / max(float(np.max(np.diag(G))), 1e-12)
+            shifted = np.eye(self._n_u) * floor
             for _ in range(4):
                 H_aug = H + sigma * G
-                w_aug, V_aug = np.linalg.eigh(H_aug)
-                if w_aug[0] >= floor:
+                # All eigenvalues above the floor: a Cholesky factor of H_aug - floor I exists
+                # (a fifth of an eigen-decomposition's time; only a yes or no is needed).
+                try:
+                    np.linalg.cholesky(H_aug - shifted)
+                except np.linalg.LinAlgError:
+                    pass
+                else:
                     return H_aug, sigma, j_pos
                 if self.options.hessian_modification == "augmented":
                     # Negative curvature left on the active constraints' null space: raise
                     # only those eigenvalues, keeping the constraints' own curvature.
+                    w_aug, V_aug = np.linalg.eigh(H_aug)
                     return (V_aug * np.maximum(w_aug, floor)) @ V_aug.T, sigma, j_pos
                 sigma *= 10.0
         if self.options.hessian_modification == "abs":

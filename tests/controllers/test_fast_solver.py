@@ -499,3 +499,36 @@ def test_the_trust_region_bounds_every_qp_step() -> None:
     span = problem.system.input_upper - problem.system.input_lower
     assert np.all(np.abs(sol.u) <= 0.01 * span + 1e-12)
     assert solver.trace and solver.trace[0]["d"] <= 0.01 * float(np.max(span)) + 1e-12
+
+
+@pytest.mark.parametrize("mode", ["floor", "abs", "augmented"])
+def test_the_convexified_hessian_keeps_the_step_on_the_active_set_when_it_can(mode) -> None:
+    """Negative curvature only along an active bound's direction: sigma e_0 e_0' fixes it
+    (the QP step on that active set is unchanged). Negative curvature in a free direction
+    too: the augmentation cannot fix it, and the mode decides (eigenvalues raised to the
+    floor, their absolute values, or the floor on the augmented matrix)."""
+    solver = FastScenarioSolver(paper_problem(n_scenarios=5), hessian_modification=mode)
+    n_u, floor = solver._n_u, solver.options.hessian_floor
+    none_pos, none_shared = np.empty((0, 3), dtype=int), np.empty(0, dtype=int)
+    rng = np.random.default_rng(0)
+    Q, _ = np.linalg.qr(rng.normal(size=(n_u - 1, n_u - 1)))
+    free = Q @ np.diag(np.linspace(1.0, 3.0, n_u - 1)) @ Q.T  # positive definite
+    H = np.zeros((n_u, n_u))
+    H[0, 0], H[1:, 1:] = -2.0, free
+    H_qp, sigma, _ = solver._convexify(H, None, none_pos, none_shared, np.array([0]))
+    assert sigma > 0.0
+    np.testing.assert_array_equal(H_qp - H, sigma * np.eye(n_u)[:, :1] @ np.eye(n_u)[:1])
+    assert np.linalg.eigvalsh(H_qp)[0] >= floor
+    # Negative curvature also in a free direction (input 1): no sigma helps.
+    H[1, 1] -= 10.0
+    H_qp, sigma, _ = solver._convexify(H, None, none_pos, none_shared, np.array([0]))
+    w = np.linalg.eigvalsh(H_qp)
+    assert w[0] >= floor * (1 - 1e-6)
+    if mode != "abs":
+        assert w[0] == pytest.approx(floor, rel=1e-6)  # negative curvature raised to it
+    if mode == "augmented":
+        assert sigma > 0.0  # the constraint's own curvature is kept
+    else:
+        assert sigma == 0.0
+        expected = np.abs(np.linalg.eigvalsh(H)) if mode == "abs" else np.linalg.eigvalsh(H)
+        np.testing.assert_allclose(w, np.sort(np.maximum(expected, floor)), atol=1e-9)
