@@ -207,9 +207,8 @@ def build_kernel(system, dt: float) -> Kernel:
     start = time.perf_counter()
     source = kernel_source(system, dt)
     compiler_env = os.environ.get("CC", "")
-    key = hashlib.sha256((source + "\0" + " ".join((*FLAGS, OPENMP_FLAG))).encode()).hexdigest()[
-        :24
-    ]
+    flags = " ".join((*FLAGS, OPENMP_FLAG))  # (a build without OpenMP keeps the same key)
+    key = hashlib.sha256((source + "\0" + flags).encode()).hexdigest()[:24]
     lib = _LOADED.get(key)
     if lib is not None:
         path = Path(lib._name)

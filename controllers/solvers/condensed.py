@@ -321,8 +321,8 @@ class CondensedModel:
             c_sum = np.zeros(1)  # the state cost summed over scenarios
             out = (ptr(X), ptr(G), ptr(c_sum))
             x0p, Wp = self._held(x0c), self._held(W)
-            u_p, t = ptr(u), self.threads
-            if self._lib.lfm_rollout(n, ns, x0p, Wp, sa, sk, si, u_p, *self._weights_p, *out, t):
+            call = (n, ns, x0p, Wp, sa, sk, si, ptr(u), *self._weights_p, *out, self.threads)
+            if self._lib.lfm_rollout(*call):
                 X[:], G[:], c_sum[:] = np.nan, np.nan, np.nan
         else:
             X[0] = x0T
