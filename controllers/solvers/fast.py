@@ -200,7 +200,8 @@ class FastScenarioSolver(SubproblemMixin):
         soon as its merit plus ``restart_optimism`` times the decrease its local model
         predicts still lies above the best plan so far; the plan with the lowest objective
         is returned (a failed start never replaces a successful one); an extra start that
-        comes within ``restart_same_tol`` of the best plan is stopped too.
+        comes within ``restart_same_tol`` of the best plan is stopped too, and so is one
+        within ``restart_near_tol`` that is still worse than it and drawing closer.
 
         Raises:
             ValueError: on wrongly shaped or non-finite ``x0``, ``W`` or ``u_guess``.
@@ -356,6 +357,19 @@ class FastScenarioSolver(SubproblemMixin):
         stats["merit_evals"] += 1
         return evaluate(np.clip(u + z_soc[: self._n_u], self._lower, self._upper))
 
+    def _bound_for(self, rival: np.ndarray, u_prev: np.ndarray, ro: Rollout, bar: float) -> bool:
+        """Whether an extra start, stepping from ``u_prev`` to ``ro``, heads for the plan
+        ``rival`` it has to beat (merit ``bar``): within ``restart_same_tol`` of it, or within
+        ``restart_near_tol`` and closer than before while still worse. (Steps that approach
+        a plan from afar and are still above its merit end in that plan; the extra starts
+        kept on the recorded problems ended 0.5 or more from the plan they beat.)"""
+        opt = self.options
+        gap = float(np.max(np.abs(ro.u - rival)))
+        if gap <= opt.restart_same_tol:
+            return True
+        closer = gap < float(np.max(np.abs(u_prev - rival)))
+        return gap <= opt.restart_near_tol and closer and ro.merit > bar
+
     def _check_time(self) -> None:
         """Raise :class:`_OutOfTime` once the current solve's deadline has passed."""
         if time.perf_counter() >= self._deadline:
@@ -375,7 +389,8 @@ class FastScenarioSolver(SubproblemMixin):
         ``"Abandoned"`` when the merit plus ``restart_optimism`` times the directional
         derivative along the QP step (the local model's promise) is above this value.
         ``rival``: the best plan so far; stop with status ``"Duplicate"`` when an iterate
-        comes within ``restart_same_tol`` of it (the same local optimum again).
+        comes within ``restart_same_tol`` of it (the same local optimum again), or within
+        ``restart_near_tol`` while still worse and closer than before (:meth:`_bound_for`).
         ``deadline``: a ``time.perf_counter()`` value; once past it, stop before the next
         QP solve or line-search trial with status ``"Maximum_WallTime_Exceeded"`` (not a
         success) and the last accepted iterate.
@@ -552,7 +567,7 @@ class FastScenarioSolver(SubproblemMixin):
                 if acceptable >= opt.acceptable_iter:
                     status, success = "Solved_To_Acceptable_Level", True
                     break
-                if rival is not None and np.max(np.abs(ro.u - rival)) <= opt.restart_same_tol:
+                if rival is not None and self._bound_for(rival, u, ro, abandon_above):
                     status = "Duplicate"
                     break
                 # A trust region (or, without one, Levenberg-Marquardt damping) keeps steps

@@ -86,6 +86,9 @@ class FastSolverOptions:
     restart_optimism: float = 2.0  # multiple of the model's predicted decrease it may still get
     restart_margin: float = 0.0  # relative margin added to the merit an extra start must beat
     restart_same_tol: float = 0.05  # [m/s^2, rad] an extra start this close to the best: same
+    # [m/s^2, rad] An extra start this close to the best plan, still worse than it and
+    # closer than at its last iterate, is on its way back to it: the same plan too.
+    restart_near_tol: float = 0.25
     # Initial box trust region on the QP step, |d_i| <= radius * (upper_i - lower_i) (a
     # fraction of each input's range): shrunk to half the accepted step (not below
     # min_trust_radius) after backtracking or when the merit fell by less than 1/4 of the
@@ -145,6 +148,9 @@ class FastSolverOptions:
             value = getattr(self, name)
             ok = isinstance(value, (int, float)) and math.isfinite(value) and value > 0
             check(name, ok, "finite and > 0")
+        value = self.restart_near_tol
+        ok = isinstance(value, (int, float)) and value >= self.restart_same_tol
+        check("restart_near_tol", ok and math.isfinite(value), ">= restart_same_tol, finite")
         check("armijo", 0 < self.armijo < 0.5, "in (0, 0.5)")
         check("soc_below_ratio", 0 <= self.soc_below_ratio <= 1, "in [0, 1]")
         check("backtrack", 0 < self.backtrack < 1, "in (0, 1)")

@@ -453,6 +453,8 @@ def test_bad_input_raises_value_error(x0, W, u_guess) -> None:
         {"restart_optimism": -1.0},
         {"restart_margin": float("nan")},
         {"restart_probe": 0},
+        {"restart_near_tol": 0.01},  # below restart_same_tol
+        {"restart_near_tol": float("inf")},
         {"hessian_modification": "clip"},
         {"elastic_qp": "never"},
         {"kernel_threads": 0},
@@ -470,6 +472,26 @@ def test_bad_input_raises_value_error(x0, W, u_guess) -> None:
 def test_bad_options_raise_value_error(options: dict) -> None:
     with pytest.raises(ValueError):
         FastScenarioSolver(paper_problem(n_scenarios=5), **options)
+
+
+def test_an_extra_start_is_the_best_plan_only_when_near_worse_and_closing_in() -> None:
+    from controllers.solvers.condensed import Rollout
+
+    solver = FastScenarioSolver(paper_problem(n_scenarios=5))
+    n_u = solver._n_u
+    rival, bar = np.zeros(n_u), 10.0  # the best plan and its merit
+
+    def at(gap: float, merit: float) -> Rollout:
+        return Rollout(u=np.full(n_u, gap), X=np.empty(0), G=np.empty(0), slack=0.0, merit=merit)
+
+    before = np.full(n_u, 0.4)
+    assert solver._bound_for(rival, before, at(0.04, 9.0), bar)  # within restart_same_tol
+    assert solver._bound_for(rival, before, at(0.2, 11.0), bar)  # near, worse, closer
+    assert not solver._bound_for(rival, before, at(0.2, 9.0), bar)  # near but better: go on
+    assert not solver._bound_for(rival, np.full(n_u, 0.1), at(0.2, 11.0), bar)  # moving away
+    assert not solver._bound_for(rival, before, at(0.3, 11.0), bar)  # beyond restart_near_tol
+    strict = FastScenarioSolver(paper_problem(n_scenarios=5), restart_near_tol=0.05)
+    assert not strict._bound_for(rival, before, at(0.2, 11.0), bar)
 
 
 def test_a_bad_trust_radius_names_the_field_and_the_range() -> None:

@@ -136,3 +136,20 @@ def test_extra_starts_only_ever_lower_the_objective(problem, trust_radius: float
         # clearly lower with them (with it, the first start already reaches those plans
         # here; on closed-loop problems the extra starts still lower some objectives).
         assert kept >= 1
+
+
+def test_an_extra_start_heading_back_to_the_best_plan_stops_early(problem) -> None:
+    """``restart_near_tol``: an extra start that draws near the best plan while still worse
+    than it is the same plan; stopped there, the solve ends with the same plan in fewer
+    iterations (the mirrored starts of two recorded problems take two iterations less)."""
+    saved = 0
+    for i in range(len(IDS)):
+        x0, W, guess, _ = _problem(i)
+        late = make_solver(problem, "fast", restart_near_tol=0.05).solve(x0, W, u_guess=guess)
+        early = make_solver(problem, "fast").solve(x0, W, u_guess=guess)
+        np.testing.assert_array_equal(early.u, late.u, err_msg=IDS[i])
+        assert early.iterations <= late.iterations, IDS[i]
+        if early.iterations < late.iterations:
+            assert "duplicate" in early.extra["restarts"].values(), IDS[i]
+            saved += 1
+    assert saved >= 1
