@@ -49,10 +49,6 @@ from controllers.solvers.screening import screen_rows, worst_rows
 
 KERNEL_ENV = "LFM_KERNEL"
 KERNELS = ("auto", "c", "numpy", "vm")
-# The compiled Hessian's products go to BLAS above N nu inputs or Ns scenarios (else C).
-# Per Hessian call, C against BLAS (N = 7, nu = 2): 0.93x at Ns = 150, 1.07x at 500, 1.12x
-# at 1000; (Ns = 150) 1.2x at N nu = 30, 1.4x at 60.
-BLAS_PRODUCTS_ABOVE = (16, 256)
 
 
 @dataclass
@@ -145,9 +141,6 @@ class CondensedModel:
             compilation unless cached; 0 for the other backends).
         cache_hit: the C kernel came from the disk cache or this process (no compiler run).
         kernel_error: why the C kernel is not used under ``"auto"`` (``None`` if it is).
-        blas_products: how the C kernel's Hessian products ``sum_j S_j' Mxx_j S_j`` are
-            formed: ``True`` by BLAS, ``False`` in C, ``None`` (default) by size
-            (:data:`BLAS_PRODUCTS_ABOVE`). The results agree to rounding.
 
     Raises:
         ValueError: on an unknown ``kernel``.
@@ -169,11 +162,7 @@ class CondensedModel:
         self.kernel = choice
 
         # --- the compiled kernel (a subclass with its own derivatives needs none) ---
-        self._lib, self._blocks = None, None
-        # The kernel's Hessian products sum_j S_j' Mxx_j S_j: True by BLAS (one matrix
-        # product per step), False in C, None (default) by size: C for small problems, where
-        # the per-step BLAS calls cost more than they save (see BLAS_PRODUCTS_ABOVE).
-        self.blas_products: bool | None = None
+        self._lib = None
         # Threads of the kernel's rollout, linearisation and Hessian: the scenarios in this
         # many contiguous chunks, one per thread (results equal to rounding for every
         # count; 1 is the serial sweep). See kernel_driver.DRIVER.
@@ -495,30 +484,10 @@ class CondensedModel:
         sa, sk, si = self._strides(W_lanes, (0, 1, 2))
         data = (ptr(lin.ro.u), ptr(lin.A), ptr(lin.S), ptr(lin.Jg), ptr(mu_c))
         weights = (*self._weights_p, 2.0 / ns)
-        # The kernel leaves sum_j S_j' (Mxx_j S_j) (stacked over scenarios) to BLAS.
-        blocks = None
-        blas = self.blas_products
-        if blas is None:  # (BLAS runs on one thread: with kernel threads, C at every size)
-            blas = self.threads == 1 and (
-                n_u > BLAS_PRODUCTS_ABOVE[0] or ns > BLAS_PRODUCTS_ABOVE[1]
-            )
-        if blas:
-            shape = lin.S.shape  # Mxx_j S_j of steps 1..N, stacked over scenarios, packed
-            if self._blocks is None or self._blocks.shape != shape:
-                self._blocks = np.empty(shape)
-            blocks = self._blocks
-        out = (ptr(H), ptr(blocks))
         Wp = self._held(W_lanes)
-        call = (n, ns, ptr(X), Wp, sa, sk, si, *data, *weights, *out, self.threads)
+        call = (n, ns, ptr(X), Wp, sa, sk, si, *data, *weights, ptr(H), self.threads)
         if self._lib.lfm_hessian(*call):
             H[:] = np.nan
-        if blocks is not None:
-            rows = ns * self.nx
-            for j in range(1, n + 1):
-                c = j * nu
-                Sj = packed_block(lin.S, j - 1, ns, self.nx, nu).reshape(rows, c)
-                H[:c, :c] += Sj.T @ packed_block(blocks, j - 1, ns, self.nx, nu).reshape(rows, c)
-            H = 0.5 * (H + H.T)
         for k in range(n):
             blk = slice(k * nu, (k + 1) * nu)
             H[blk, blk] += self._R2

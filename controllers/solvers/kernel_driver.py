@@ -460,25 +460,23 @@ CASADI_SYMBOL_EXPORT long lfm_violated(long n, long ns, long nsc, const long* sc
 }
 
 /* Step k of scenario i in the backward sweep: its adjoint lambda_k = dl/dx_{k+1} + Jg' mu
-   + A_{k+1}' lambda_{k+1} (lam_next; none at the last step) into lam_k, its Hessian
-   M = d2(lambda_k' F)/dz2 at (x_k, u_k) (NZ x NZ, column-major) and its uu terms into H. */
+   + A_{k+1}' lambda_{k+1} (lam_next; none at the last step) into lam, and the Hessian
+   M = d2(lambda_k' F)/dz2 at (x_k, u_k) (NZ x NZ, column-major) into M. */
 static inline int step_hessian(work_t* wkp, long n, long ns, long k, long i, const double* X,
     const double* W, long sa, long sk, long si, const double* u, const double* P,
     const double* A, const double* Jg, const double* mu, const double* goal, const double* Wq,
-    double scale, const double* lam_next, double* lam_k, double* M, double* H) {
+    double scale, const double* lam_next, double* lam, double* M) {
   work_t wk = *wkp;
-  const long nut = n * NU;
   double x[NX], wv[NW + 1];
-  double* lk = lam_k + i * NX;
   load_state(X, k + 1, ns, i, x);
-  weighted(x, goal, Wq + k * NX * NX, scale, lk);
+  weighted(x, goal, Wq + k * NX * NX, scale, lam);
 #if NG > 0
   if (mu) {
     const double* Jk = Jg + (k * ns + i) * NG * NX;
     for (int j = 0; j < NG; ++j) {
       const double mj = mu[(j * n + k) * ns + i];
       if (mj != 0.0)
-        for (int m = 0; m < NX; ++m) lk[m] += mj * Jk[j * NX + m];
+        for (int m = 0; m < NX; ++m) lam[m] += mj * Jk[j * NX + m];
     }
   }
 #else
@@ -486,31 +484,27 @@ static inline int step_hessian(work_t* wkp, long n, long ns, long k, long i, con
 #endif
   if (k < n - 1) {
     const double* Ak = A + ((k + 1) * ns + i) * NX * NX;
-    const double* ln = lam_next + i * NX;
     for (int m = 0; m < NX; ++m) {
       double s = 0.0;
-      for (int r = 0; r < NX; ++r) s += ln[r] * Ak[r * NX + m];
-      lk[m] += s;
+      for (int r = 0; r < NX; ++r) s += lam_next[r] * Ak[r * NX + m];
+      lam[m] += s;
     }
   }
   load_state(X, k, ns, i, x);
   gather(W, sa, sk, si, k, i, wv);
-  if (CALL5(lfm_step_hess, x, u + k * NU, wv, P + k * NP_STEP_HESS, lk, M)) return 1;
-  for (int a = 0; a < NU; ++a)
-    for (int b = a; b < NU; ++b) H[(k * NU + a) * nut + k * NU + b] += M[(NX + a) + (NX + b) * NZ];
-  return 0;
+  return CALL5(lfm_step_hess, x, u + k * NU, wv, P + k * NP_STEP_HESS, lam, M);
 }
 
 /* The curvature of state x_j (j = 1..N) of scenario i: Mxx = scale Wq_j + M_j[x, x] (the
-   Hessian of step j, when j < N: Mj not NULL) + the Hessian of mu' g at x_j. */
+   state block of step j's Hessian, (NX, NX), when j < N: Mj not NULL) + the Hessian of
+   mu' g at x_j. */
 static inline int state_curvature(work_t* wkp, long n, long ns, long j, long i, const double* X,
     const double* Mj, const double* mu, const double* Wq, double scale, double* Mxx) {
   work_t wk = *wkp;
   const double* Wk = Wq + (j - 1) * NX * NX;
   for (int a = 0; a < NX * NX; ++a) Mxx[a] = scale * Wk[a];
   if (Mj)
-    for (int r = 0; r < NX; ++r)
-      for (int c = 0; c < NX; ++c) Mxx[r * NX + c] += Mj[r + c * NZ];
+    for (int a = 0; a < NX * NX; ++a) Mxx[a] += Mj[a];
 #if NG > 0
   if (mu) {
     double mk[NG], hg[NX * NX], x[NX];
@@ -529,121 +523,141 @@ static inline int state_curvature(work_t* wkp, long n, long ns, long j, long i, 
   return 0;
 }
 
-/* The products of state x_j of scenario i (Mxx its curvature, Sj (NX, j NU) its
-   sensitivity): Mxx Sj into the BLAS blocks Tb (rows i NX.., packed as S) or into
-   St / Tt (transposed, for the C products), and, with the Hessian Mj of step j, the cross
-   terms Sj' Mj[x, u] into columns j NU.. of H. */
-static inline void state_products(long n, long ns, long j, long i, const double* Mxx,
-    const double* Sj, const double* Mj, double* Tb, double* St, double* Tt, double* H) {
-  const long nut = n * NU, rows = ns * NX, cols = j * NU;
+/* Rows c < cols of column block k of H (its entries H[c, k NU + q]) += Sk' Y: Sk (NX, cols)
+   row-major with row stride bs, Y (NX, NU). */
+static inline void add_columns(double* H, long nut, long k, long cols, const double* Sk,
+                               long bs, const double* Y) {
   for (long c = 0; c < cols; ++c) {
-    double sc[NX];
-    for (int r = 0; r < NX; ++r) sc[r] = Sj[r * cols + c];
-    for (int m = 0; m < NX; ++m) {
-      double t = 0.0;
-      for (int r = 0; r < NX; ++r) t += Mxx[m * NX + r] * sc[r];
-      if (Tb) {
-        Tb[(i * NX + m) * cols + c] = t;
-      } else {
-        St[c * rows + i * NX + m] = sc[m];
-        Tt[c * rows + i * NX + m] = t;
-      }
+    double s[NU] = {0.0};
+    for (int r = 0; r < NX; ++r) {
+      const double v = Sk[r * bs + c];
+      for (int q = 0; q < NU; ++q) s[q] += v * Y[r * NU + q];
     }
-    if (Mj)
-      for (int b = 0; b < NU; ++b) {
-        double x = 0.0;
-        for (int r = 0; r < NX; ++r) x += sc[r] * Mj[r + (NX + b) * NZ];
-        H[c * nut + j * NU + b] += x;
-      }
+    for (int q = 0; q < NU; ++q) H[c * nut + k * NU + q] += s[q];
   }
 }
 
 /* Scenarios i0 <= i < i1 of lfm_hessian (see there); their terms added into H (upper
-   triangle). lam_k, lam_next (Ns, NX) and St, Tt are the whole arrays: a chunk uses its
-   own scenarios' rows of them. */
+   triangle of blocks; the diagonal blocks whole). One backward sweep over the steps, all
+   scenarios (of the chunk) at each, so the arrays are read in their (step, scenario) order;
+   what a scenario carries from step k + 1 to step k (lambda, V and M[x, x]) is kept in
+   carry (whole arrays, (Ns, CARRY) twice: a chunk uses its own scenarios' rows). */
+#define CARRY (NX + 2 * NX * NX)
 static int hessian_chunk(work_t* wkp, long n, long ns, long i0, long i1, const double* X,
     const double* W, long sa, long sk, long si, const double* u, const double* P,
     const double* A, const double* S, const double* Jg, const double* mu, const double* goal,
-    const double* Wq, double scale, double* lam_k, double* lam_next, double* St, double* Tt,
-    double* H, double* blocks) {
-  const long rows = ns * NX;
-  double Mxx[NX * NX], M[NZ * NZ];
+    const double* Wq, double scale, double* carry, double* H) {
+  const long nut = n * NU;
+  double M[NZ * NZ], Q[NX * NX], T[NX * NX], VB[NX * NU], Y[NX * NU];
+  double* now = carry;              /* step k: lambda_k, V_{k+1}, M_k[x, x] */
+  double* next = carry + ns * CARRY; /* step k + 1 */
   int status = 0;
-  for (long k = n; k >= 1 && !status; --k) {
-    /* Step k (k < N): lambda_k and M_k of every scenario, their uu and cross terms; the
-       products of state x_k. (k = N: the last state has no step after it.) */
-    const long j = k;
-    double* Tb = blocks ? blocks + S_OFF(j - 1, ns) : NULL;
+  for (long k = n - 1; k >= 0 && !status; --k) {
+    const long width = (k + 1) * NU;
     for (long i = i0; i < i1 && !status; ++i) {
-      const double* Mj = NULL;
-      if (k < n) {
-        status = step_hessian(wkp, n, ns, k, i, X, W, sa, sk, si, u, P, A, Jg, mu, goal, Wq,
-                              scale, lam_next, lam_k, M, H);
-        Mj = M;
-      }
-      if (!status) status = state_curvature(wkp, n, ns, j, i, X, Mj, mu, Wq, scale, Mxx);
+      double* lam = now + i * CARRY;
+      double* V = lam + NX;
+      const double* lam_next = next + i * CARRY;
+      const double* V_next = lam_next + NX;
+      const double* Mxx_next = V_next + NX * NX;
+      /* lambda_k and M_k of step k */
+      status = step_hessian(wkp, n, ns, k, i, X, W, sa, sk, si, u, P, A, Jg, mu, goal, Wq,
+                            scale, lam_next, lam, M);
+      /* V_{k+1} = Mxx_{k+1} + A_{k+1}' V_{k+2} A_{k+1}: the curvature of everything after
+         x_{k+1} as a function of x_{k+1} */
       if (!status)
-        state_products(n, ns, j, i, Mxx, S + S_OFF(j - 1, ns) + i * NX * j * NU, Mj, Tb, St, Tt,
-                       H);
+        status = state_curvature(wkp, n, ns, k + 1, i, X, k + 1 < n ? Mxx_next : NULL, mu, Wq,
+                                 scale, Q);
+      if (status) break;
+      if (k + 1 < n) {
+        const double* Ak = A + ((k + 1) * ns + i) * NX * NX;
+        for (int r = 0; r < NX; ++r) /* T = V_{k+2} A_{k+1} */
+          for (int c = 0; c < NX; ++c) {
+            double s = 0.0;
+            for (int m = 0; m < NX; ++m) s += V_next[r * NX + m] * Ak[m * NX + c];
+            T[r * NX + c] = s;
+          }
+        for (int r = 0; r < NX; ++r)
+          for (int c = 0; c < NX; ++c) {
+            double s = 0.0;
+            for (int m = 0; m < NX; ++m) s += Ak[m * NX + r] * T[m * NX + c];
+            V[r * NX + c] = Q[r * NX + c] + s;
+          }
+      } else {
+        memcpy(V, Q, sizeof(Q));
+      }
+      double* Mxx = V + NX * NX; /* M_k[x, x], for state x_k at step k - 1 */
+      for (int r = 0; r < NX; ++r)
+        for (int c = 0; c < NX; ++c) Mxx[r * NX + c] = M[r + c * NZ];
+      /* B_k: the last NU columns of S_{k+1} */
+      const double* Bk = S + S_OFF(k, ns) + i * NX * width + k * NU;
+      for (int r = 0; r < NX; ++r) /* VB = V_{k+1} B_k */
+        for (int b = 0; b < NU; ++b) {
+          double s = 0.0;
+          for (int m = 0; m < NX; ++m) s += V[r * NX + m] * Bk[m * width + b];
+          VB[r * NU + b] = s;
+        }
+      /* diagonal block: B_k' V_{k+1} B_k + M_k[u, u] */
+      add_columns(H + k * NU * nut, nut, k, NU, Bk, width, VB);
+      for (int p = 0; p < NU; ++p)
+        for (int q = 0; q < NU; ++q)
+          H[(k * NU + p) * nut + k * NU + q] += M[(NX + p) + (NX + q) * NZ];
+      /* blocks (a, k), a < k: S_k' (A_k' V_{k+1} B_k + M_k[x, u]), S_k = dx_k/du_0..k-1
+         (column block a: A_{k-1} ... A_{a+1} B_a) */
+      if (k > 0) {
+        const double* Ak = A + (k * ns + i) * NX * NX;
+        for (int m = 0; m < NX; ++m)
+          for (int b = 0; b < NU; ++b) {
+            double s = M[m + (NX + b) * NZ];
+            for (int r = 0; r < NX; ++r) s += Ak[r * NX + m] * VB[r * NU + b];
+            Y[m * NU + b] = s;
+          }
+        add_columns(H, nut, k, k * NU, S + S_OFF(k - 1, ns) + i * NX * k * NU, k * NU, Y);
+      }
     }
-    if (!blocks) {
-      const long cols = j * NU, nut = n * NU, off = i0 * NX, len = (i1 - i0) * NX;
-      for (long a = 0; a < cols; ++a)
-        for (long b = a; b < cols; ++b)
-          H[a * nut + b] += dot(St + a * rows + off, Tt + b * rows + off, len);
-    }
-    if (k < n) { double* t = lam_next; lam_next = lam_k; lam_k = t; }
+    double* t = now; now = next; next = t;
   }
-  /* Step 0: its adjoint and Hessian (uu terms only: x_0 is fixed). */
-  for (long i = i0; i < i1 && !status && n > 0; ++i)
-    status = step_hessian(wkp, n, ns, 0, i, X, W, sa, sk, si, u, P, A, Jg, mu, goal, Wq, scale,
-                          lam_next, lam_k, M, H);
   return status;
 }
 
 CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const double* W,
     long sa, long sk, long si, const double* u, const double* A, const double* S,
     const double* Jg, const double* mu, const double* goal, const double* Wq, double scale,
-    double* H, double* blocks, long nthreads) {
-  /* sum over scenarios of the Hessian of (cost + mu' G) w.r.t. u, without the input cost:
-     sum_j S_j' Mxx_j S_j (S_j stacked over scenarios: one product of length Ns NX per
-     entry) + the cross terms S_k' M_k[x, u] + M_k[u, u]. Upper triangle, then mirrored.
-     With blocks given (packed as S), the products S_j' (Mxx_j S_j) are left to the caller
-     (one matrix product per step): the block of step j - 1 is Mxx_j S_j, (Ns NX, j NU).
-     One backward sweep over the steps, all scenarios (of a chunk) at each: the adjoints
-     lambda_k of step k, its Hessian M_k (used at once, never stored) and every term of
-     step k, so the arrays are read in their (step, scenario) order. Each entry of H sums
-     its terms over the scenarios in ascending order, as a scenario-by-scenario sweep
-     would (with T chunks: per chunk, then the chunks' sums in order). */
+    double* H, long nthreads) {
+  /* sum over scenarios of the Hessian of (cost + mu' G) w.r.t. u, without the input cost.
+     Per scenario a backward recursion (condensing, O(N^2) in the horizon where the sum
+     sum_j S_j' Mxx_j S_j is O(N^3)): with V_{k+1} the curvature of everything after x_{k+1}
+     w.r.t. x_{k+1} (V_N = Mxx_N, V_j = Mxx_j + A_j' V_{j+1} A_j), block (k, k) is
+     B_k' V_{k+1} B_k + M_k[u, u] and the blocks (a, k), a < k, are
+     S_k' (A_k' V_{k+1} B_k + M_k[x, u]) with the sensitivities S_k of x_k (column block a:
+     A_{k-1} ... A_{a+1} B_a). Mxx_j = scale Wq_j + M_j[x, x] + the Hessian of mu' g at x_j,
+     M_k the Hessian of lambda_k' F at (x_k, u_k) with the adjoints lambda_k. Upper
+     triangle, then mirrored. Each entry sums its terms over the scenarios in ascending
+     order (with T chunks: per chunk, then the chunks' sums in order). */
   work_t wk;
   if (work_alloc(&wk)) return 1;
-  const long nut = n * NU, rows = ns * NX, T = chunks(nthreads, ns);
+  const long nut = n * NU, T = chunks(nthreads, ns);
   double* P = parametric(&wk, lfm_step_hess_pre, NP_STEP_HESS, n, u);
-  const long own = blocks ? 0 : 2 * nut * rows;
-  double* lam = malloc((2 * rows + own + 1) * sizeof(double));
   double* part = T > 1 ? calloc((T - 1) * nut * nut + 1, sizeof(double)) : NULL;
+  double* carry = malloc((2 * ns * CARRY + 1) * sizeof(double));
   int* st = malloc(T * sizeof(int));
-  if (!P || !lam || !st || (T > 1 && !part)) {
-    free(P); free(lam); free(part); free(st); work_free(&wk);
+  if (!P || !st || !carry || (T > 1 && !part)) {
+    free(P); free(part); free(carry); free(st); work_free(&wk);
     return 1;
   }
-  double* lam_k = lam;         /* lambda_k (the adjoint of x_{k+1}), (Ns, NX) */
-  double* lam_next = lam + rows; /* lambda_{k+1} */
-  double* St = lam + 2 * rows; /* S_j' (cols, Ns NX) */
-  double* Tt = St + nut * rows; /* (Mxx_j S_j)' */
   int status = 0;
   memset(H, 0, nut * nut * sizeof(double));
   if (T == 1) {
     status = hessian_chunk(&wk, n, ns, 0, ns, X, W, sa, sk, si, u, P, A, S, Jg, mu, goal, Wq,
-                           scale, lam_k, lam_next, St, Tt, H, blocks);
+                           scale, carry, H);
   } else {
 #pragma omp parallel for num_threads(T) schedule(static, 1)
     for (long t = 0; t < T; ++t) {
       work_t mine;
       st[t] = work_alloc(&mine) ? 1
           : hessian_chunk(&mine, n, ns, CHUNK(ns, t, T), CHUNK(ns, t + 1, T), X, W, sa, sk, si,
-                          u, P, A, S, Jg, mu, goal, Wq, scale, lam_k, lam_next, St, Tt,
-                          t ? part + (t - 1) * nut * nut : H, blocks);
+                          u, P, A, S, Jg, mu, goal, Wq, scale, carry,
+                          t ? part + (t - 1) * nut * nut : H);
       work_free(&mine);
     }
     for (long t = 0; t < T; ++t) status |= st[t];
@@ -653,8 +667,8 @@ CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const dou
   for (long a = 0; a < nut; ++a)
     for (long b = 0; b < a; ++b) H[a * nut + b] = H[b * nut + a];
   free(P);
-  free(lam);
   free(part);
+  free(carry);
   free(st);
   work_free(&wk);
   return status;

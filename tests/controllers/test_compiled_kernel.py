@@ -51,10 +51,7 @@ def paper() -> ScenarioProblem:
 
 @pytest.fixture(scope="module")
 def paper_models(paper: ScenarioProblem) -> dict[str, CondensedModel]:
-    models = {k: CondensedModel(paper, kernel=k) for k in ("numpy", "c")}
-    models["c_blas"] = CondensedModel(paper, kernel="c")
-    models["c_blas"].blas_products = True  # the Hessian's products by BLAS (C by size here)
-    return models
+    return {k: CondensedModel(paper, kernel=k) for k in ("numpy", "c")}
 
 
 def _layouts(problem: ScenarioProblem, x0: np.ndarray, W: np.ndarray) -> tuple:
@@ -123,7 +120,7 @@ def test_compiled_equals_numpy_on_the_recorded_problems(i, paper, paper_models) 
     backoff = None if i % 2 else np.full((paper.ng, paper.horizon, 1), 0.05)
     for u in (DATA["reference_u"][i].ravel(), DATA["u_guess"][i].ravel()):
         ref = _everything(paper_models["numpy"], paper, x0, W, u, mu, backoff)
-        for name in ("c", "c_blas"):
+        for name in ("c",):
             _assert_same(ref, _everything(paper_models[name], paper, x0, W, u, mu, backoff))
 
 
@@ -165,9 +162,6 @@ def test_compiled_equals_numpy_on_the_second_system(variant) -> None:
     model = point_mass_model(point_mass(**VARIANTS[variant]))
     problem = ScenarioProblem(model, COST, horizon=N, n_scenarios=NS, slack_penalty=1.0e3)
     models = {k: CondensedModel(problem, kernel=k) for k in ("numpy", "vm", "c")}
-    for name, blas in (("c_products", False), ("c_blas", True)):
-        models[name] = CondensedModel(problem, kernel="c")
-        models[name].blas_products = blas  # the Hessian's products in C / by BLAS, not by size
     assert models["c"].backend == "compiled-c"
     assert models["vm"].backend == "casadi-vm"
     rng = np.random.default_rng(3)
@@ -176,7 +170,7 @@ def test_compiled_equals_numpy_on_the_second_system(variant) -> None:
         u = rng.uniform(-2.0, 2.0, N * problem.nu)
         mu = _multipliers(problem, NS, seed)
         ref = _everything(models["numpy"], problem, x0, W, u, mu)
-        for name in ("vm", "c", "c_products", "c_blas"):
+        for name in ("vm", "c"):
             _assert_same(ref, _everything(models[name], problem, x0, W, u, mu))
 
 
@@ -340,24 +334,20 @@ def test_the_fast_solver_reaches_the_same_plan_with_either_backend(paper, monkey
         np.testing.assert_allclose(b.u, a.u, atol=1e-6)
 
 
-@pytest.mark.parametrize(
-    ("horizon", "ns", "blas"), [(7, 150, False), (7, 300, True), (9, 150, True)]
-)
-def test_the_hessian_products_go_to_blas_by_size(horizon, ns, blas) -> None:
-    # C at the paper's size (N nu = 14, Ns = 150), BLAS above N nu = 16 or Ns = 256; the
-    # BLAS path keeps its blocks array between calls, the C path has none.
-    problem = problem_from_config(horizon=horizon, n_scenarios=ns)
-    model = CondensedModel(problem, kernel="c")
-    x0 = np.zeros((ns, problem.nx))
-    x0[:, 3] = 10.0
-    W = np.zeros((ns, horizon, problem.nw))
-    ro = model.evaluate(
-        np.ascontiguousarray(x0.T), W.transpose(1, 0, 2).copy(), np.zeros(problem.nu * horizon), 0.0
-    )
-    W_lanes = np.ascontiguousarray(W.transpose(2, 1, 0))
-    H = model.hessian(model.linearise(ro, W_lanes), np.zeros((problem.ng, horizon, ns)), W_lanes)
-    assert np.isfinite(H).all()
-    assert (model._blocks is not None) == blas
+@pytest.mark.parametrize("horizon", [1, 2, 15, 30])
+def test_the_compiled_hessian_equals_numpys_at_every_horizon(horizon) -> None:
+    """The kernel's Hessian (a backward recursion per scenario) against the NumPy reference
+    (sum_j S_j' Mxx_j S_j and the cross terms) from one step (no off-diagonal blocks) to
+    N = 30, with multipliers on scenario rows and inputs that drive the car hard."""
+    problem = problem_from_config(horizon=horizon, n_scenarios=40)
+    models = {k: CondensedModel(problem, kernel=k) for k in ("numpy", "c")}
+    rng = np.random.default_rng(horizon)
+    x0 = DATA["x0"][0]
+    W = DATA["W"][0][:40, :1].repeat(horizon, axis=1) * rng.uniform(0.5, 1.5, (40, horizon, 1))
+    u = rng.uniform(problem.input_lower, problem.input_upper, (horizon, problem.nu)).ravel()
+    mu = _multipliers(problem, 40, horizon)
+    ref = _everything(models["numpy"], problem, x0, W, u, mu)
+    _assert_same(ref, _everything(models["c"], problem, x0, W, u, mu))
 
 
 # --------------------------------------------------------------------------- threads
@@ -366,8 +356,7 @@ def test_the_hessian_products_go_to_blas_by_size(horizon, ns, blas) -> None:
 @pytest.mark.parametrize("threads", [2, 3, 200])
 def test_threaded_chunks_equal_the_serial_sweep(threads, paper, paper_models) -> None:
     """The scenarios in 2, 3 (uneven) or more chunks than scenarios (one each): every output
-    equals the serial kernel's to rounding, with either Hessian product path (threads > 1
-    take C products by default: BLAS runs on one thread)."""
+    equals the serial kernel's to rounding."""
     model = CondensedModel(paper, kernel="c")
     assert model.openmp  # the test machines' compilers have OpenMP
     model.threads = threads
@@ -376,10 +365,7 @@ def test_threaded_chunks_equal_the_serial_sweep(threads, paper, paper_models) ->
         mu = _multipliers(paper, W.shape[0], i)
         u = DATA["reference_u"][i].ravel()
         ref = _everything(paper_models["c"], paper, x0, W, u, mu)
-        for blas in (None, True):
-            model.blas_products = blas
-            _assert_same(ref, _everything(model, paper, x0, W, u, mu))
-    assert model._blocks is not None  # (the BLAS path was taken once)
+        _assert_same(ref, _everything(model, paper, x0, W, u, mu))
 
 
 def test_without_openmp_the_chunks_run_one_after_another(
