@@ -120,8 +120,7 @@ def test_compiled_equals_numpy_on_the_recorded_problems(i, paper, paper_models) 
     backoff = None if i % 2 else np.full((paper.ng, paper.horizon, 1), 0.05)
     for u in (DATA["reference_u"][i].ravel(), DATA["u_guess"][i].ravel()):
         ref = _everything(paper_models["numpy"], paper, x0, W, u, mu, backoff)
-        for name in ("c",):
-            _assert_same(ref, _everything(paper_models[name], paper, x0, W, u, mu, backoff))
+        _assert_same(ref, _everything(paper_models["c"], paper, x0, W, u, mu, backoff))
 
 
 def test_array_addresses_are_numpys_for_views_read_only_and_empty_arrays() -> None:
