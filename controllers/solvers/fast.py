@@ -54,7 +54,8 @@ IPOPT found, it stays there up to solver tolerances.
 
 Where things are: the options in :mod:`controllers.solvers.fast_options`; one
 iteration's subproblem (convexification, screening, check-and-add, the QP step) in
-:mod:`controllers.solvers.fast_subproblem`; the QP in :mod:`controllers.solvers.slot_qp`;
+:mod:`controllers.solvers.fast_subproblem`; the extra starts' choices in
+:mod:`controllers.solvers.fast_restarts`; the QP in :mod:`controllers.solvers.slot_qp`;
 the derivatives in :mod:`controllers.solvers.condensed` (and its compiled kernel,
 :mod:`controllers.solvers.compiled`); the SQP loop, line search, trust region and extra
 starts here.
@@ -72,11 +73,12 @@ import numpy as np
 from controllers.problem import MPCSolution, ScenarioProblem
 from controllers.solvers.condensed import CondensedModel, Linearisation, Rollout
 from controllers.solvers.fast_options import HESSIAN_MODIFICATIONS, RESTARTS, FastSolverOptions
+from controllers.solvers.fast_restarts import RestartMixin
 from controllers.solvers.fast_subproblem import QPStep, SubproblemMixin
 from controllers.solvers.slot_qp import SlotQP
 
 
-class FastScenarioSolver(SubproblemMixin):
+class FastScenarioSolver(SubproblemMixin, RestartMixin):
     """Condensed exact-Hessian SQP solver of any :class:`ScenarioProblem`.
 
     The model's derivatives come from :attr:`model_class` (generated from the system
@@ -280,36 +282,6 @@ class FastScenarioSolver(SubproblemMixin):
             extra=extra,
         )
 
-    # ------------------------------------------------------------------ extra starts
-
-    def _restart_names(self, ro: Rollout) -> list[str]:
-        """The extra starts worth trying after a first plan ``ro`` (see :meth:`solve`)."""
-        opt, system = self.options, self.problem.system
-        mirrored = list(system.mirror_inputs)
-        if not mirrored or not opt.restarts:
-            return []
-        nu = self.problem.nu
-        frac = opt.restart_threshold - 1e-6
-        u = ro.u.reshape(-1, nu)[:, mirrored]
-        lower, upper = frac * system.input_lower[mirrored], frac * system.input_upper[mirrored]
-        hard = bool(np.any((u <= lower) | (u >= upper)))
-        names = []
-        if "mirror" in opt.restarts and hard:
-            names.append("mirror")
-        if "straight" in opt.restarts and hard and ro.slack > opt.add_tol:
-            names.append("straight")
-        return names
-
-    def _restart_guess(self, name: str, u: np.ndarray) -> np.ndarray:
-        """Initial guess of the extra start ``name`` from the plan ``u`` ``(N nu,)``."""
-        guess = u.copy().reshape(-1, self.problem.nu)
-        mirrored = list(self.problem.system.mirror_inputs)
-        if name == "mirror":  # the same manoeuvre, the other way
-            guess[:, mirrored] *= -1.0
-        else:  # "straight": the other inputs kept, the mirrored ones at zero
-            guess[:, mirrored] = 0.0
-        return np.clip(guess.ravel(), self._lower, self._upper)
-
     # ------------------------------------------------------------------ SQP
 
     def _expand(
@@ -356,19 +328,6 @@ class FastScenarioSolver(SubproblemMixin):
             return None
         stats["merit_evals"] += 1
         return evaluate(np.clip(u + z_soc[: self._n_u], self._lower, self._upper))
-
-    def _bound_for(self, rival: np.ndarray, u_prev: np.ndarray, ro: Rollout, bar: float) -> bool:
-        """Whether an extra start, stepping from ``u_prev`` to ``ro``, heads for the plan
-        ``rival`` it has to beat (merit ``bar``): within ``restart_same_tol`` of it, or within
-        ``restart_near_tol`` and closer than before while still worse. (Steps that approach
-        a plan from afar and are still above its merit end in that plan; the extra starts
-        kept on the recorded problems ended 0.5 or more from the plan they beat.)"""
-        opt = self.options
-        gap = float(np.max(np.abs(ro.u - rival)))
-        if gap <= opt.restart_same_tol:
-            return True
-        closer = gap < float(np.max(np.abs(u_prev - rival)))
-        return gap <= opt.restart_near_tol and closer and ro.merit > bar
 
     def _check_time(self) -> None:
         """Raise :class:`_OutOfTime` once the current solve's deadline has passed."""
