@@ -5,10 +5,11 @@ rollout of all scenarios, the step Jacobians, the causal forward sensitivities, 
 constraint Jacobians, the cost gradient and the exact Hessian of the Lagrangian (second-order
 adjoint). This module generates that work as one C library:
 
-* the pointwise functions (Euler step, its Jacobian, the Hessian of ``lambda' F``, the
-  constraints, their Jacobian and the Hessian of ``mu' g``) are CasADi functions of the
-  system's own expressions (:meth:`ControlSystem.casadi_step`,
-  :meth:`ControlSystem.casadi_constraints`), written as C by CasADi's ``CodeGenerator``;
+* the pointwise functions (Euler step, its Jacobian, one step of the Hessian's backward
+  recursion with the Hessian of ``lambda' F`` inside, the constraints, their Jacobian and the
+  Hessian of ``mu' g``) are CasADi functions of the system's own expressions
+  (:meth:`ControlSystem.casadi_step`, :meth:`ControlSystem.casadi_constraints`), written as C
+  by CasADi's ``CodeGenerator``;
 * a fixed driver (:data:`controllers.solvers.kernel_driver.DRIVER`) loops over the steps
   and scenarios, with the horizon ``N`` and the scenario count ``Ns`` given at run time, and
   skips the structural zeros of the sensitivities (``S_k`` has nonzero columns only for
@@ -110,25 +111,46 @@ def pointwise_functions(system, dt: float) -> list[ca.Function]:
     """The pointwise CasADi functions of ``system`` the driver calls (dense outputs).
 
     ``lfm_step(x, u, w, p)``, ``lfm_step_jac(x, u, w, p)`` ``(nx, nx + nu)`` and
-    ``lfm_step_hess(x, u, w, p, lam)`` ``(nx + nu, nx + nu)``, each with ``*_pre(u) -> p``:
-    the parts of its expression that depend on the input alone (CasADi's
-    ``extract_parametric``), computed once per step instead of once per scenario. With
+    ``lfm_step_curv(x, u, w, p, lam, v)``, each with ``*_pre(u) -> p``: the parts of its
+    expression that depend on the input alone (CasADi's ``extract_parametric``), computed once
+    per step instead of once per scenario. ``lfm_step_curv`` is one step of the Hessian's
+    backward recursion: with ``A``, ``B`` the step's Jacobians, ``M`` the Hessian of
+    ``lam' F`` in ``(x, u)`` and ``V`` = ``v`` read row-major ``(nx, nx)``, it returns
+    ``[A' V A + M_xx, A' V B + M_xu, B' V B + M_uu, A' lam]`` flattened row-major
+    (``nx^2 + nx nu + nu^2 + nx`` values). Written symbolically, the generated code skips
+    the Jacobians' structural zeros and shares their subexpressions with ``M``. With
     constraints also ``lfm_con(x)``, ``lfm_con_jac(x)`` ``(ng, nx)`` and
     ``lfm_con_hess(x, mu)`` ``(nx, nx)``.
     """
     nx, nu, nw, ng = system.nx, system.nu, system.nw, system.ng
     x, u, w = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("w", nw)
-    lam = ca.SX.sym("lam", nx)
+    lam, v = ca.SX.sym("lam", nx), ca.SX.sym("v", nx * nx)
     F = system.casadi_step(dt)(x, u, w)
     z = ca.vertcat(x, u)
     d = ca.densify
+    J = ca.jacobian(F, z)
+    A, B = J[:, :nx], J[:, nx:]
+    M = ca.hessian(ca.dot(lam, F), z)[0]
+    V = ca.reshape(v, nx, nx).T  # row-major
+    AV, BV = ca.mtimes(A.T, V), ca.mtimes(B.T, V)
+
+    def rows(m: ca.SX) -> ca.SX:  # row-major flattening
+        return ca.vec(d(m).T)
+
+    curv = ca.vertcat(
+        rows(ca.mtimes(AV, A) + M[:nx, :nx]),
+        rows(ca.mtimes(AV, B) + M[:nx, nx:]),
+        rows(ca.mtimes(BV, B) + M[nx:, nx:]),
+        d(ca.mtimes(A.T, lam)),
+    )
     fns = []
     for name, expr, extra in (
         ("lfm_step", F, []),
-        ("lfm_step_jac", ca.jacobian(F, z), []),
-        ("lfm_step_hess", ca.hessian(ca.dot(lam, F), z)[0], [lam]),
+        ("lfm_step_jac", J, []),
+        ("lfm_step_curv", curv, [lam, v]),
     ):
-        expr, symbols, values = ca.extract_parametric(d(expr), u)
+        # (cse: the derivatives repeat subexpressions, e.g. sin and cos of one angle)
+        expr, symbols, values = ca.extract_parametric(ca.cse(d(expr)), u)
         p = ca.vertcat(*symbols) if symbols else ca.SX(0, 1)
         pre = ca.vertcat(*values) if values else ca.SX(0, 1)
         fns.append(ca.Function(f"{name}_pre", [u], [pre]))
@@ -137,11 +159,27 @@ def pointwise_functions(system, dt: float) -> list[ca.Function]:
         mu = ca.SX.sym("mu", ng)
         g = system.casadi_constraints()(x)
         fns += [
-            ca.Function("lfm_con", [x], [d(g)]),
-            ca.Function("lfm_con_jac", [x], [d(ca.jacobian(g, x))]),
-            ca.Function("lfm_con_hess", [x, mu], [d(ca.hessian(ca.dot(mu, g), x)[0])]),
+            ca.Function("lfm_con", [x], [ca.cse(d(g))]),
+            ca.Function("lfm_con_jac", [x], [ca.cse(d(ca.jacobian(g, x)))]),
+            ca.Function("lfm_con_hess", [x, mu], [ca.cse(d(ca.hessian(ca.dot(mu, g), x)[0]))]),
         ]
     return fns
+
+
+def step_jacobian_pattern(system, dt: float) -> str:
+    """C table ``A_NZ`` (``nx * nx``, row-major): 1 where the step's Jacobian ``dF/dx`` can be
+    nonzero (CasADi's structural sparsity), 0 where it is zero for every point.
+
+    The driver skips the zeros in its products with ``A`` (the bicycle's is 9 of 16 nonzeros);
+    the loops over ``NX`` are unrolled by the compiler, so the table costs nothing at run time.
+    """
+    nx = system.nx
+    x, u, w = ca.SX.sym("x", nx), ca.SX.sym("u", system.nu), ca.SX.sym("w", system.nw)
+    sp = ca.jacobian(system.casadi_step(dt)(x, u, w), x).sparsity()
+    flags = [0] * (nx * nx)
+    for r, c in zip(*sp.get_triplet(), strict=True):
+        flags[r * nx + c] = 1
+    return f"static const char A_NZ[{nx * nx}] = {{{', '.join(map(str, flags))}}};"
 
 
 def kernel_source(system, dt: float) -> str:
@@ -155,6 +193,7 @@ def kernel_source(system, dt: float) -> str:
         if f.name().endswith("_pre"):
             sizes["NP_" + f.name()[4:-4].upper()] = f.nnz_out(0)
     defines = "\n".join(f"#define {k} {v}" for k, v in sizes.items())
+    defines += "\n" + step_jacobian_pattern(system, dt)
     work = " ".join(f"W({f.name()});" for f in fns)
     return cg.dump() + "\n" + defines + "\n" + DRIVER.replace("@WORK@", work)
 
@@ -240,7 +279,7 @@ def _declare(lib: ctypes.CDLL) -> None:
     L, P, D = ctypes.c_long, ctypes.c_void_p, ctypes.c_double
     lib.lfm_rollout.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, L]
     lib.lfm_linearise.argtypes = [L, L, P, P, L, L, L, P, P, P, D, P, P, P, P, L]
-    lib.lfm_hessian.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, P, D, P, L]
+    lib.lfm_hessian.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, D, P, L]
     lib.lfm_openmp.argtypes = []
     lib.lfm_openmp.restype = ctypes.c_int
     lib.lfm_linear_change.argtypes = [L, L, P, P, P, P, P]

@@ -482,7 +482,7 @@ class CondensedModel:
         mu_c = np.ascontiguousarray(mu, dtype=float) if has_mu else None
         H = np.empty((n_u, n_u))
         sa, sk, si = self._strides(W_lanes, (0, 1, 2))
-        data = (ptr(lin.ro.u), ptr(lin.A), ptr(lin.S), ptr(lin.Jg), ptr(mu_c))
+        data = (ptr(lin.ro.u), ptr(lin.S), ptr(lin.Jg), ptr(mu_c))
         weights = (*self._weights_p, 2.0 / ns)
         Wp = self._held(W_lanes)
         call = (n, ns, ptr(X), Wp, sa, sk, si, *data, *weights, ptr(H), self.threads)

@@ -65,6 +65,7 @@ static void work_free(work_t* wk) { free(wk->arg); free(wk->res); free(wk->iw); 
 #define CALL3(f, a0, a1, a2, r0) (wk.arg[2] = (a2), CALL2(f, a0, a1, r0))
 #define CALL4(f, a0, a1, a2, a3, r0) (wk.arg[3] = (a3), CALL3(f, a0, a1, a2, r0))
 #define CALL5(f, a0, a1, a2, a3, a4, r0) (wk.arg[4] = (a4), CALL4(f, a0, a1, a2, a3, r0))
+#define CALL6(f, a0, a1, a2, a3, a4, a5, r0) (wk.arg[5] = (a5), CALL5(f, a0, a1, a2, a3, a4, r0))
 
 /* The input-only parts p of a step function for every step k: P (N, np); NULL on failure. */
 static double* parametric(work_t* wk, cfun f, long np, long n, const double* u) {
@@ -203,7 +204,8 @@ static int linearise_chunk(work_t* wkp, long n, long ns, long i0, long i1, const
         double* row = Sk + r * width;
         for (long c = 0; c < cols; ++c) {
           double s = 0.0;
-          for (int m = 0; m < NX; ++m) s += Ak[r * NX + m] * Sp[m * cols + c];
+          for (int m = 0; m < NX; ++m)
+            if (A_NZ[r * NX + m]) s += Ak[r * NX + m] * Sp[m * cols + c];
           row[c] = s;
         }
         for (int b = 0; b < NU; ++b) row[cols + b] = J[r + (NX + b) * NX];
@@ -459,15 +461,13 @@ CASADI_SYMBOL_EXPORT long lfm_violated(long n, long ns, long nsc, const long* sc
   return r;
 }
 
-/* Step k of scenario i in the backward sweep: its adjoint lambda_k = dl/dx_{k+1} + Jg' mu
-   + A_{k+1}' lambda_{k+1} (lam_next; none at the last step) into lam, and the Hessian
-   M = d2(lambda_k' F)/dz2 at (x_k, u_k) (NZ x NZ, column-major) into M. */
-static inline int step_hessian(work_t* wkp, long n, long ns, long k, long i, const double* X,
-    const double* W, long sa, long sk, long si, const double* u, const double* P,
-    const double* A, const double* Jg, const double* mu, const double* goal, const double* Wq,
-    double scale, const double* lam_next, double* lam, double* M) {
-  work_t wk = *wkp;
-  double x[NX], wv[NW + 1];
+/* The adjoint lambda_k = dl/dx_{k+1} + Jg_k' mu + A_{k+1}' lambda_{k+1} of step k of scenario
+   i (the last term ATl_next, from step k + 1's lfm_step_curv; none at the last step) into
+   lam. */
+static inline void step_adjoint(long n, long ns, long k, long i, const double* X,
+    const double* Jg, const double* mu, const double* goal, const double* Wq, double scale,
+    const double* ATl_next, double* lam) {
+  double x[NX];
   load_state(X, k + 1, ns, i, x);
   weighted(x, goal, Wq + k * NX * NX, scale, lam);
 #if NG > 0
@@ -480,31 +480,22 @@ static inline int step_hessian(work_t* wkp, long n, long ns, long k, long i, con
     }
   }
 #else
-  (void)Jg; (void)mu;
+  (void)Jg; (void)mu; (void)n;
 #endif
-  if (k < n - 1) {
-    const double* Ak = A + ((k + 1) * ns + i) * NX * NX;
-    for (int m = 0; m < NX; ++m) {
-      double s = 0.0;
-      for (int r = 0; r < NX; ++r) s += lam_next[r] * Ak[r * NX + m];
-      lam[m] += s;
-    }
-  }
-  load_state(X, k, ns, i, x);
-  gather(W, sa, sk, si, k, i, wv);
-  return CALL5(lfm_step_hess, x, u + k * NU, wv, P + k * NP_STEP_HESS, lam, M);
+  if (ATl_next)
+    for (int m = 0; m < NX; ++m) lam[m] += ATl_next[m];
 }
 
-/* The curvature of state x_j (j = 1..N) of scenario i: Mxx = scale Wq_j + M_j[x, x] (the
-   state block of step j's Hessian, (NX, NX), when j < N: Mj not NULL) + the Hessian of
-   mu' g at x_j. */
+/* The curvature V_j of everything from state x_j (j = 1..N) on, of scenario i, into V:
+   scale Wq_j + the Hessian of mu' g at x_j + Pj = A_j' V_{j+1} A_j + M_j[x, x] (step j's
+   lfm_step_curv, row-major (NX, NX); NULL at j = N). */
 static inline int state_curvature(work_t* wkp, long n, long ns, long j, long i, const double* X,
-    const double* Mj, const double* mu, const double* Wq, double scale, double* Mxx) {
+    const double* Pj, const double* mu, const double* Wq, double scale, double* Mxx) {
   work_t wk = *wkp;
   const double* Wk = Wq + (j - 1) * NX * NX;
   for (int a = 0; a < NX * NX; ++a) Mxx[a] = scale * Wk[a];
-  if (Mj)
-    for (int a = 0; a < NX * NX; ++a) Mxx[a] += Mj[a];
+  if (Pj)
+    for (int a = 0; a < NX * NX; ++a) Mxx[a] += Pj[a];
 #if NG > 0
   if (mu) {
     double mk[NG], hg[NX * NX], x[NX];
@@ -540,80 +531,48 @@ static inline void add_columns(double* H, long nut, long k, long cols, const dou
 /* Scenarios i0 <= i < i1 of lfm_hessian (see there); their terms added into H (upper
    triangle of blocks; the diagonal blocks whole). One backward sweep over the steps, all
    scenarios (of the chunk) at each, so the arrays are read in their (step, scenario) order;
-   what a scenario carries from step k + 1 to step k (lambda, V and M[x, x]) is kept in
-   carry (whole arrays, (Ns, CARRY) twice: a chunk uses its own scenarios' rows). */
-#define CARRY (NX + 2 * NX * NX)
+   what a scenario carries from step k + 1 to step k (A_{k+1}' lambda_{k+1} and
+   P_{k+1} = A_{k+1}' V_{k+2} A_{k+1} + M_{k+1}[x, x]) is kept in carry (whole arrays,
+   (Ns, CARRY) twice: a chunk uses its own scenarios' rows). */
+#define CARRY (NX + NX * NX)
+#define CURV_XU (NX * NX)                /* lfm_step_curv: offset of A' V B + M[x, u] */
+#define CURV_UU (CURV_XU + NX * NU)      /* of B' V B + M[u, u] */
+#define CURV_ATL (CURV_UU + NU * NU)     /* of A' lambda */
 static int hessian_chunk(work_t* wkp, long n, long ns, long i0, long i1, const double* X,
     const double* W, long sa, long sk, long si, const double* u, const double* P,
-    const double* A, const double* S, const double* Jg, const double* mu, const double* goal,
-    const double* Wq, double scale, double* carry, double* H) {
+    const double* S, const double* Jg, const double* mu, const double* goal, const double* Wq,
+    double scale, double* carry, double* H) {
+  work_t wk = *wkp;
   const long nut = n * NU;
-  double M[NZ * NZ], Q[NX * NX], T[NX * NX], VB[NX * NU], Y[NX * NU];
-  double* now = carry;              /* step k: lambda_k, V_{k+1}, M_k[x, x] */
+  double lam[NX], V[NX * NX], out[CURV_ATL + NX], x[NX], wv[NW + 1];
+  double* now = carry;               /* step k: A_k' lambda_k, P_k */
   double* next = carry + ns * CARRY; /* step k + 1 */
   int status = 0;
   for (long k = n - 1; k >= 0 && !status; --k) {
-    const long width = (k + 1) * NU;
     for (long i = i0; i < i1 && !status; ++i) {
-      double* lam = now + i * CARRY;
-      double* V = lam + NX;
-      const double* lam_next = next + i * CARRY;
-      const double* V_next = lam_next + NX;
-      const double* Mxx_next = V_next + NX * NX;
-      /* lambda_k and M_k of step k */
-      status = step_hessian(wkp, n, ns, k, i, X, W, sa, sk, si, u, P, A, Jg, mu, goal, Wq,
-                            scale, lam_next, lam, M);
-      /* V_{k+1} = Mxx_{k+1} + A_{k+1}' V_{k+2} A_{k+1}: the curvature of everything after
-         x_{k+1} as a function of x_{k+1} */
-      if (!status)
-        status = state_curvature(wkp, n, ns, k + 1, i, X, k + 1 < n ? Mxx_next : NULL, mu, Wq,
-                                 scale, Q);
+      const double* ATl_next = k + 1 < n ? next + i * CARRY : NULL;
+      step_adjoint(n, ns, k, i, X, Jg, mu, goal, Wq, scale, ATl_next, lam);
+      /* V_{k+1} = scale Wq + Hessian of mu' g at x_{k+1} + P_{k+1}: the curvature of
+         everything after x_{k+1} as a function of x_{k+1} */
+      status = state_curvature(wkp, n, ns, k + 1, i, X, ATl_next ? ATl_next + NX : NULL, mu,
+                               Wq, scale, V);
       if (status) break;
-      if (k + 1 < n) {
-        const double* Ak = A + ((k + 1) * ns + i) * NX * NX;
-        for (int r = 0; r < NX; ++r) /* T = V_{k+2} A_{k+1} */
-          for (int c = 0; c < NX; ++c) {
-            double s = 0.0;
-            for (int m = 0; m < NX; ++m) s += V_next[r * NX + m] * Ak[m * NX + c];
-            T[r * NX + c] = s;
-          }
-        for (int r = 0; r < NX; ++r)
-          for (int c = 0; c < NX; ++c) {
-            double s = 0.0;
-            for (int m = 0; m < NX; ++m) s += Ak[m * NX + r] * T[m * NX + c];
-            V[r * NX + c] = Q[r * NX + c] + s;
-          }
-      } else {
-        memcpy(V, Q, sizeof(Q));
-      }
-      double* Mxx = V + NX * NX; /* M_k[x, x], for state x_k at step k - 1 */
-      for (int r = 0; r < NX; ++r)
-        for (int c = 0; c < NX; ++c) Mxx[r * NX + c] = M[r + c * NZ];
-      /* B_k: the last NU columns of S_{k+1} */
-      const double* Bk = S + S_OFF(k, ns) + i * NX * width + k * NU;
-      for (int r = 0; r < NX; ++r) /* VB = V_{k+1} B_k */
-        for (int b = 0; b < NU; ++b) {
-          double s = 0.0;
-          for (int m = 0; m < NX; ++m) s += V[r * NX + m] * Bk[m * width + b];
-          VB[r * NU + b] = s;
-        }
+      load_state(X, k, ns, i, x);
+      gather(W, sa, sk, si, k, i, wv);
+      status = CALL6(lfm_step_curv, x, u + k * NU, wv, P + k * NP_STEP_CURV, lam, V, out);
+      if (status) break;
+      double* mine = now + i * CARRY;
+      memcpy(mine, out + CURV_ATL, NX * sizeof(double));
+      memcpy(mine + NX, out, NX * NX * sizeof(double));
       /* diagonal block: B_k' V_{k+1} B_k + M_k[u, u] */
-      add_columns(H + k * NU * nut, nut, k, NU, Bk, width, VB);
       for (int p = 0; p < NU; ++p)
         for (int q = 0; q < NU; ++q)
-          H[(k * NU + p) * nut + k * NU + q] += M[(NX + p) + (NX + q) * NZ];
+          H[(k * NU + p) * nut + k * NU + q] += out[CURV_UU + p * NU + q];
       /* blocks (a, k), a < k: S_k' (A_k' V_{k+1} B_k + M_k[x, u]), S_k = dx_k/du_0..k-1
          (column block a: A_{k-1} ... A_{a+1} B_a) */
-      if (k > 0) {
-        const double* Ak = A + (k * ns + i) * NX * NX;
-        for (int m = 0; m < NX; ++m)
-          for (int b = 0; b < NU; ++b) {
-            double s = M[m + (NX + b) * NZ];
-            for (int r = 0; r < NX; ++r) s += Ak[r * NX + m] * VB[r * NU + b];
-            Y[m * NU + b] = s;
-          }
-        add_columns(H, nut, k, k * NU, S + S_OFF(k - 1, ns) + i * NX * k * NU, k * NU, Y);
-      }
+      if (k > 0)
+        add_columns(H, nut, k, k * NU, S + S_OFF(k - 1, ns) + i * NX * k * NU, k * NU,
+                    out + CURV_XU);
     }
     double* t = now; now = next; next = t;
   }
@@ -621,7 +580,7 @@ static int hessian_chunk(work_t* wkp, long n, long ns, long i0, long i1, const d
 }
 
 CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const double* W,
-    long sa, long sk, long si, const double* u, const double* A, const double* S,
+    long sa, long sk, long si, const double* u, const double* S,
     const double* Jg, const double* mu, const double* goal, const double* Wq, double scale,
     double* H, long nthreads) {
   /* sum over scenarios of the Hessian of (cost + mu' G) w.r.t. u, without the input cost.
@@ -631,13 +590,15 @@ CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const dou
      B_k' V_{k+1} B_k + M_k[u, u] and the blocks (a, k), a < k, are
      S_k' (A_k' V_{k+1} B_k + M_k[x, u]) with the sensitivities S_k of x_k (column block a:
      A_{k-1} ... A_{a+1} B_a). Mxx_j = scale Wq_j + M_j[x, x] + the Hessian of mu' g at x_j,
-     M_k the Hessian of lambda_k' F at (x_k, u_k) with the adjoints lambda_k. Upper
+     M_k the Hessian of lambda_k' F at (x_k, u_k) with the adjoints lambda_k. The products
+     with A_k and B_k and M_k come from one generated function per point, lfm_step_curv
+     (the Jacobians' structural zeros skipped, their subexpressions shared). Upper
      triangle, then mirrored. Each entry sums its terms over the scenarios in ascending
      order (with T chunks: per chunk, then the chunks' sums in order). */
   work_t wk;
   if (work_alloc(&wk)) return 1;
   const long nut = n * NU, T = chunks(nthreads, ns);
-  double* P = parametric(&wk, lfm_step_hess_pre, NP_STEP_HESS, n, u);
+  double* P = parametric(&wk, lfm_step_curv_pre, NP_STEP_CURV, n, u);
   double* part = T > 1 ? calloc((T - 1) * nut * nut + 1, sizeof(double)) : NULL;
   double* carry = malloc((2 * ns * CARRY + 1) * sizeof(double));
   int* st = malloc(T * sizeof(int));
@@ -648,7 +609,7 @@ CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const dou
   int status = 0;
   memset(H, 0, nut * nut * sizeof(double));
   if (T == 1) {
-    status = hessian_chunk(&wk, n, ns, 0, ns, X, W, sa, sk, si, u, P, A, S, Jg, mu, goal, Wq,
+    status = hessian_chunk(&wk, n, ns, 0, ns, X, W, sa, sk, si, u, P, S, Jg, mu, goal, Wq,
                            scale, carry, H);
   } else {
 #pragma omp parallel for num_threads(T) schedule(static, 1)
@@ -656,7 +617,7 @@ CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const dou
       work_t mine;
       st[t] = work_alloc(&mine) ? 1
           : hessian_chunk(&mine, n, ns, CHUNK(ns, t, T), CHUNK(ns, t + 1, T), X, W, sa, sk, si,
-                          u, P, A, S, Jg, mu, goal, Wq, scale, carry,
+                          u, P, S, Jg, mu, goal, Wq, scale, carry,
                           t ? part + (t - 1) * nut * nut : H);
       work_free(&mine);
     }
