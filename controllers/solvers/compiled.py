@@ -110,7 +110,8 @@ def find_compiler() -> list[str]:
 def pointwise_functions(system, dt: float) -> list[ca.Function]:
     """The pointwise CasADi functions of ``system`` the driver calls (dense outputs).
 
-    ``lfm_step(x, u, w, p)``, ``lfm_step_jac(x, u, w, p)`` ``(nx, nx + nu)`` and
+    ``lfm_step(x, u, w, p)``, ``lfm_step_jac(x, u, w, p)`` (``A`` then ``B``, each
+    flattened row-major) and
     ``lfm_step_curv(x, u, w, p, lam, v)``, each with ``*_pre(u) -> p``: the parts of its
     expression that depend on the input alone (CasADi's ``extract_parametric``), computed once
     per step instead of once per scenario. ``lfm_step_curv`` is one step of the Hessian's
@@ -119,7 +120,7 @@ def pointwise_functions(system, dt: float) -> list[ca.Function]:
     ``[A' V A + M_xx, A' V B + M_xu, B' V B + M_uu, A' lam]`` flattened row-major
     (``nx^2 + nx nu + nu^2 + nx`` values). Written symbolically, the generated code skips
     the Jacobians' structural zeros and shares their subexpressions with ``M``. With
-    constraints also ``lfm_con(x)``, ``lfm_con_jac(x)`` ``(ng, nx)`` and
+    constraints also ``lfm_con(x)``, ``lfm_con_jac(x)`` ``(ng, nx)`` row-major and
     ``lfm_con_hess(x, mu)`` ``(nx, nx)``.
     """
     nx, nu, nw, ng = system.nx, system.nu, system.nw, system.ng
@@ -146,7 +147,7 @@ def pointwise_functions(system, dt: float) -> list[ca.Function]:
     fns = []
     for name, expr, extra in (
         ("lfm_step", F, []),
-        ("lfm_step_jac", J, []),
+        ("lfm_step_jac", ca.vertcat(rows(A), rows(B)), []),
         ("lfm_step_curv", curv, [lam, v]),
     ):
         # (cse: the derivatives repeat subexpressions, e.g. sin and cos of one angle)
@@ -160,7 +161,7 @@ def pointwise_functions(system, dt: float) -> list[ca.Function]:
         g = system.casadi_constraints()(x)
         fns += [
             ca.Function("lfm_con", [x], [ca.cse(d(g))]),
-            ca.Function("lfm_con_jac", [x], [ca.cse(d(ca.jacobian(g, x)))]),
+            ca.Function("lfm_con_jac", [x], [ca.cse(rows(ca.jacobian(g, x)))]),
             ca.Function("lfm_con_hess", [x, mu], [ca.cse(d(ca.hessian(ca.dot(mu, g), x)[0]))]),
         ]
     return fns
@@ -278,7 +279,7 @@ def _declare(lib: ctypes.CDLL) -> None:
     """Argument types of the driver's entry points."""
     L, P, D = ctypes.c_long, ctypes.c_void_p, ctypes.c_double
     lib.lfm_rollout.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, L]
-    lib.lfm_linearise.argtypes = [L, L, P, P, L, L, L, P, P, P, D, P, P, P, P, L]
+    lib.lfm_linearise.argtypes = [L, L, P, P, L, L, L, P, P, P, D, P, P, P, L]
     lib.lfm_hessian.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, D, P, L]
     lib.lfm_openmp.argtypes = []
     lib.lfm_openmp.restype = ctypes.c_int

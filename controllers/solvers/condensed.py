@@ -67,7 +67,9 @@ class Linearisation:
     """First-order information at a rollout, w.r.t. the flattened inputs ``u``."""
 
     ro: Rollout
-    A: np.ndarray  # (N, Ns, nx, nx) step Jacobians d x_{k+1} / d x_k
+    # (N, Ns, nx, nx) step Jacobians d x_{k+1} / d x_k; None from the compiled kernel, which
+    # uses each where it computes it (in S and the Hessian's recursion) and stores none
+    A: np.ndarray | None
     S: np.ndarray  # (N, Ns, nx, N nu) sensitivities d x_k / d u of steps 1..N, or packed
     Jg: np.ndarray  # (N, Ns, ng, nx) constraint Jacobians at steps 1..N
     grad: np.ndarray  # (N nu,) gradient of the cost
@@ -80,7 +82,8 @@ class Linearisation:
         """``S`` as ``(N, Ns, nx, N nu)`` (a new array if it is packed)."""
         if not self.packed:
             return self.S
-        n, ns, nx, _ = self.A.shape
+        n, nx, ns = self.ro.X.shape
+        n -= 1
         nu = self.grad.size // n
         full = np.zeros((n, ns, nx, n * nu))
         for k in range(n):
@@ -457,22 +460,22 @@ class CondensedModel:
         X = np.ascontiguousarray(ro.X, dtype=float)
         u = np.ascontiguousarray(ro.u, dtype=float)
         ns = X.shape[2]
-        if recycle is not None and recycle.packed and recycle.A.shape == (n, ns, nx, nx):
-            A, S, Jg = recycle.A, recycle.S, recycle.Jg  # every entry is written below
+        size = ns * nx * nu * n * (n + 1) // 2  # of S, causally packed
+        if recycle is not None and recycle.packed and recycle.S.size == size:
+            S, Jg = recycle.S, recycle.Jg  # every entry is written below
         else:
-            A = np.empty((n, ns, nx, nx))
-            S = np.empty(ns * nx * nu * n * (n + 1) // 2)  # causally packed
+            S = np.empty(size)
             Jg = np.empty((n, ns, ng, nx))
         grad = np.empty(n_u)
         sa, sk, si = self._strides(W_lanes, (0, 1, 2))
         args = (*self._weights_p, 2.0 / ns)
-        out = (ptr(A), ptr(S), ptr(Jg), ptr(grad))
+        out = (ptr(S), ptr(Jg), ptr(grad))
         Wp = self._held(W_lanes)
         call = (n, ns, ptr(X), Wp, sa, sk, si, ptr(u), *args, *out, self.threads)
         if self._lib.lfm_linearise(*call):
             grad[:] = np.nan
         grad += (u.reshape(n, nu) @ self._R2).ravel()  # d(u' R u)/du, R symmetric
-        return Linearisation(ro=ro, A=A, S=S, Jg=Jg, grad=grad, packed=True)
+        return Linearisation(ro=ro, A=None, S=S, Jg=Jg, grad=grad, packed=True)
 
     def _hessian_c(self, lin: Linearisation, mu: np.ndarray, W_lanes: np.ndarray) -> np.ndarray:
         """:meth:`hessian` by the compiled kernel."""

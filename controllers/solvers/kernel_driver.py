@@ -13,7 +13,7 @@ scenarios, in the (step, scenario) order of the arrays.
 # The driver. Layouts (C order): x0T (NX, Ns); W any (strides sa, sk, si of force
 # component, step, scenario, in elements); u (N NU); goal (NX);
 # Wq (N, NX, NX) state weights of steps 1..N; X (N+1, NX, Ns); G (NG, N, Ns);
-# A (N, Ns, NX, NX); Jg (N, Ns, NG, NX); mu (NG, N, Ns); H (N NU, N NU).
+# Jg (N, Ns, NG, NX); mu (NG, N, Ns); H (N NU, N NU).
 # S causally packed: x_{k+1} depends on u_0..u_k only, so step k (from 0) is stored as
 # (Ns, NX, (k + 1) NU) from S_OFF(k), the steps one after another (N (N + 1) / 2 NU NX Ns
 # values instead of N^2 NU NX Ns; the zeros are never written or read).
@@ -184,19 +184,17 @@ CASADI_SYMBOL_EXPORT int lfm_rollout(long n, long ns, const double* x0T, const d
 /* Scenarios i0 <= i < i1 of lfm_linearise; their gradient terms added into grad. */
 static int linearise_chunk(work_t* wkp, long n, long ns, long i0, long i1, const double* X,
     const double* W, long sa, long sk, long si, const double* u, const double* P,
-    const double* goal, const double* Wq, double scale, double* A, double* S, double* Jg,
-    double* grad) {
+    const double* goal, const double* Wq, double scale, double* S, double* Jg, double* grad) {
   work_t wk = *wkp;
   double x[NX], J[NX * NZ], gx[NX], wv[NW + 1];
+  const double* Ak = J;           /* lfm_step_jac: A_k (NX, NX) row-major, */
+  const double* Bk = J + NX * NX; /* then B_k (NX, NU) row-major */
   int status = 0;
   for (long k = 0; k < n && !status; ++k) {
     for (long i = i0; i < i1 && !status; ++i) {
       load_state(X, k, ns, i, x);
       gather(W, sa, sk, si, k, i, wv);
       status = CALL4(lfm_step_jac, x, u + k * NU, wv, P + k * NP_STEP_JAC, J);
-      double* Ak = A + (k * ns + i) * NX * NX;
-      for (int r = 0; r < NX; ++r)
-        for (int c = 0; c < NX; ++c) Ak[r * NX + c] = J[r + c * NX];
       const long cols = k * NU, width = cols + NU; /* S_{k+1} = [A_k S_k, B_k] */
       double* Sk = S + S_OFF(k, ns) + i * NX * width;
       const double* Sp = k ? S + S_OFF(k - 1, ns) + i * NX * cols : NULL;
@@ -208,15 +206,11 @@ static int linearise_chunk(work_t* wkp, long n, long ns, long i0, long i1, const
             if (A_NZ[r * NX + m]) s += Ak[r * NX + m] * Sp[m * cols + c];
           row[c] = s;
         }
-        for (int b = 0; b < NU; ++b) row[cols + b] = J[r + (NX + b) * NX];
+        for (int b = 0; b < NU; ++b) row[cols + b] = Bk[r * NU + b];
       }
       load_state(X, k + 1, ns, i, x);
 #if NG > 0
-      double jg[NG * NX];
-      status |= CALL1(lfm_con_jac, x, jg);
-      double* Jk = Jg + (k * ns + i) * NG * NX;
-      for (int j = 0; j < NG; ++j)
-        for (int m = 0; m < NX; ++m) Jk[j * NX + m] = jg[j + m * NG];
+      status |= CALL1(lfm_con_jac, x, Jg + (k * ns + i) * NG * NX); /* (NG, NX) row-major */
 #else
       (void)Jg;
 #endif
@@ -230,8 +224,9 @@ static int linearise_chunk(work_t* wkp, long n, long ns, long i0, long i1, const
 
 CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const double* W,
     long sa, long sk, long si, const double* u, const double* goal, const double* Wq,
-    double scale, double* A, double* S, double* Jg, double* grad, long nthreads) {
-  /* A, S, Jg and the state part of the gradient, sum_k sum_i S_k' scale Wq_k (x_k - goal).
+    double scale, double* S, double* Jg, double* grad, long nthreads) {
+  /* S, Jg and the state part of the gradient, sum_k sum_i S_k' scale Wq_k (x_k - goal) (the
+     step Jacobians A_k are used where they are computed and not stored).
      Step by step, all scenarios (of a chunk) at each: S_{k+1} is written, and S_k read, in
      the arrays' (step, scenario) order (a scenario-by-scenario sweep wrote N blocks at N
      distant places per scenario, and took 1.6x as long at Ns = 5000). */
@@ -243,8 +238,8 @@ CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const d
   int status = 0;
   memset(grad, 0, nut * sizeof(double));
   if (T == 1) {
-    status = linearise_chunk(&wk, n, ns, 0, ns, X, W, sa, sk, si, u, P, goal, Wq, scale, A, S,
-                             Jg, grad);
+    status = linearise_chunk(&wk, n, ns, 0, ns, X, W, sa, sk, si, u, P, goal, Wq, scale, S, Jg,
+                             grad);
   } else {
     double* part = calloc((T - 1) * nut + 1, sizeof(double)); /* chunks 1.. */
     int* st = malloc(T * sizeof(int));
@@ -254,7 +249,7 @@ CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const d
       work_t own;
       st[t] = work_alloc(&own) ? 1
           : linearise_chunk(&own, n, ns, CHUNK(ns, t, T), CHUNK(ns, t + 1, T), X, W, sa, sk,
-                            si, u, P, goal, Wq, scale, A, S, Jg,
+                            si, u, P, goal, Wq, scale, S, Jg,
                             t ? part + (t - 1) * nut : grad);
       work_free(&own);
     }
