@@ -79,14 +79,25 @@ static double* parametric(work_t* wk, cfun f, long np, long n, const double* u) 
   return P;
 }
 
-/* Weighted state error: out = scale Wk (x - goal); returns (x - goal)' Wk (x - goal). */
-static double weighted(const double* x, const double* goal, const double* Wk, double scale,
-                       double* out) {
+/* 1 if every Wq_k (N of them) is diagonal: weighted() then skips the zeros (same result). */
+static int diagonal(const double* Wq, long n) {
+  for (long a = 0; a < n * NX * NX; ++a)
+    if ((a % (NX * NX)) % (NX + 1) && Wq[a] != 0.0) return 0;
+  return 1;
+}
+
+/* Weighted state error: out = scale Wk (x - goal); returns (x - goal)' Wk (x - goal). diag:
+   Wk is diagonal (diagonal()). */
+static double weighted(const double* x, const double* goal, const double* Wk, int diag,
+                       double scale, double* out) {
   double e[NX], c = 0.0;
   for (int m = 0; m < NX; ++m) e[m] = x[m] - goal[m];
   for (int m = 0; m < NX; ++m) {
     double s = 0.0;
-    for (int r = 0; r < NX; ++r) s += Wk[m * NX + r] * e[r];
+    if (diag)
+      s = Wk[m * NX + m] * e[m];
+    else
+      for (int r = 0; r < NX; ++r) s += Wk[m * NX + r] * e[r];
     if (out) out[m] = scale * s;
     c += e[m] * s;
   }
@@ -121,7 +132,7 @@ static double dot(const double* a, const double* b, long len) {
 /* Scenarios i0 <= i < i1 of lfm_rollout; their state cost into *cost. */
 static int rollout_chunk(work_t* wkp, long n, long ns, long i0, long i1, const double* x0T,
     const double* W, long sa, long sk, long si, const double* u, const double* P,
-    const double* goal, const double* Wq, double* X, double* G, double* cost) {
+    const double* goal, const double* Wq, int diag, double* X, double* G, double* cost) {
   work_t wk = *wkp;
   double x[NX], xn[NX], wv[NW + 1], c = 0.0;
   int status = 0;
@@ -131,7 +142,7 @@ static int rollout_chunk(work_t* wkp, long n, long ns, long i0, long i1, const d
       gather(W, sa, sk, si, k, i, wv);
       status = CALL4(lfm_step, x, u + k * NU, wv, P + k * NP_STEP, xn);
       for (int m = 0; m < NX; ++m) X[((k + 1) * NX + m) * ns + i] = x[m] = xn[m];
-      c += weighted(x, goal, Wq + k * NX * NX, 1.0, NULL);
+      c += weighted(x, goal, Wq + k * NX * NX, diag, 1.0, NULL);
 #if NG > 0
       double g[NG];
       status |= CALL1(lfm_con, x, g);
@@ -155,9 +166,11 @@ CASADI_SYMBOL_EXPORT int lfm_rollout(long n, long ns, const double* x0T, const d
   double* P = parametric(&wk, lfm_step_pre, NP_STEP, n, u);
   if (!P) { work_free(&wk); return 1; }
   const long T = chunks(nthreads, ns);
+  const int diag = diagonal(Wq, n);
   int status = 0;
   if (T == 1) {
-    status = rollout_chunk(&wk, n, ns, 0, ns, x0T, W, sa, sk, si, u, P, goal, Wq, X, G, cost);
+    status = rollout_chunk(&wk, n, ns, 0, ns, x0T, W, sa, sk, si, u, P, goal, Wq, diag, X, G,
+                           cost);
   } else {
     double* part = malloc(T * sizeof(double));
     int* st = malloc(T * sizeof(int));
@@ -167,7 +180,7 @@ CASADI_SYMBOL_EXPORT int lfm_rollout(long n, long ns, const double* x0T, const d
       work_t own;
       st[t] = work_alloc(&own) ? 1
           : rollout_chunk(&own, n, ns, CHUNK(ns, t, T), CHUNK(ns, t + 1, T), x0T, W, sa, sk,
-                          si, u, P, goal, Wq, X, G, part + t);
+                          si, u, P, goal, Wq, diag, X, G, part + t);
       work_free(&own);
     }
     double c = 0.0;
@@ -184,7 +197,8 @@ CASADI_SYMBOL_EXPORT int lfm_rollout(long n, long ns, const double* x0T, const d
 /* Scenarios i0 <= i < i1 of lfm_linearise; their gradient terms added into grad. */
 static int linearise_chunk(work_t* wkp, long n, long ns, long i0, long i1, const double* X,
     const double* W, long sa, long sk, long si, const double* u, const double* P,
-    const double* goal, const double* Wq, double scale, double* S, double* Jg, double* grad) {
+    const double* goal, const double* Wq, int diag, double scale, double* S, double* Jg,
+    double* grad) {
   work_t wk = *wkp;
   double x[NX], J[NX * NZ], gx[NX], wv[NW + 1];
   const double* Ak = J;           /* lfm_step_jac: A_k (NX, NX) row-major, */
@@ -214,7 +228,7 @@ static int linearise_chunk(work_t* wkp, long n, long ns, long i0, long i1, const
 #else
       (void)Jg;
 #endif
-      weighted(x, goal, Wq + k * NX * NX, scale, gx);
+      weighted(x, goal, Wq + k * NX * NX, diag, scale, gx);
       for (int r = 0; r < NX; ++r)
         for (long c = 0; c < width; ++c) grad[c] += gx[r] * Sk[r * width + c];
     }
@@ -235,11 +249,12 @@ CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const d
   double* P = parametric(&wk, lfm_step_jac_pre, NP_STEP_JAC, n, u);
   if (!P) { work_free(&wk); return 1; }
   const long nut = n * NU, T = chunks(nthreads, ns);
+  const int diag = diagonal(Wq, n);
   int status = 0;
   memset(grad, 0, nut * sizeof(double));
   if (T == 1) {
-    status = linearise_chunk(&wk, n, ns, 0, ns, X, W, sa, sk, si, u, P, goal, Wq, scale, S, Jg,
-                             grad);
+    status = linearise_chunk(&wk, n, ns, 0, ns, X, W, sa, sk, si, u, P, goal, Wq, diag, scale, S,
+                             Jg, grad);
   } else {
     double* part = calloc((T - 1) * nut + 1, sizeof(double)); /* chunks 1.. */
     int* st = malloc(T * sizeof(int));
@@ -249,7 +264,7 @@ CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const d
       work_t own;
       st[t] = work_alloc(&own) ? 1
           : linearise_chunk(&own, n, ns, CHUNK(ns, t, T), CHUNK(ns, t + 1, T), X, W, sa, sk,
-                            si, u, P, goal, Wq, scale, S, Jg,
+                            si, u, P, goal, Wq, diag, scale, S, Jg,
                             t ? part + (t - 1) * nut : grad);
       work_free(&own);
     }
@@ -460,11 +475,11 @@ CASADI_SYMBOL_EXPORT long lfm_violated(long n, long ns, long nsc, const long* sc
    i (the last term ATl_next, from step k + 1's lfm_step_curv; none at the last step) into
    lam. */
 static inline void step_adjoint(long n, long ns, long k, long i, const double* X,
-    const double* Jg, const double* mu, const double* goal, const double* Wq, double scale,
-    const double* ATl_next, double* lam) {
+    const double* Jg, const double* mu, const double* goal, const double* Wq, int diag,
+    double scale, const double* ATl_next, double* lam) {
   double x[NX];
   load_state(X, k + 1, ns, i, x);
-  weighted(x, goal, Wq + k * NX * NX, scale, lam);
+  weighted(x, goal, Wq + k * NX * NX, diag, scale, lam);
 #if NG > 0
   if (mu) {
     const double* Jk = Jg + (k * ns + i) * NG * NX;
@@ -536,7 +551,7 @@ static inline void add_columns(double* H, long nut, long k, long cols, const dou
 static int hessian_chunk(work_t* wkp, long n, long ns, long i0, long i1, const double* X,
     const double* W, long sa, long sk, long si, const double* u, const double* P,
     const double* S, const double* Jg, const double* mu, const double* goal, const double* Wq,
-    double scale, double* carry, double* H) {
+    int diag, double scale, double* carry, double* H) {
   work_t wk = *wkp;
   const long nut = n * NU;
   double lam[NX], V[NX * NX], out[CURV_ATL + NX], x[NX], wv[NW + 1];
@@ -546,7 +561,7 @@ static int hessian_chunk(work_t* wkp, long n, long ns, long i0, long i1, const d
   for (long k = n - 1; k >= 0 && !status; --k) {
     for (long i = i0; i < i1 && !status; ++i) {
       const double* ATl_next = k + 1 < n ? next + i * CARRY : NULL;
-      step_adjoint(n, ns, k, i, X, Jg, mu, goal, Wq, scale, ATl_next, lam);
+      step_adjoint(n, ns, k, i, X, Jg, mu, goal, Wq, diag, scale, ATl_next, lam);
       /* V_{k+1} = scale Wq + Hessian of mu' g at x_{k+1} + P_{k+1}: the curvature of
          everything after x_{k+1} as a function of x_{k+1} */
       status = state_curvature(wkp, n, ns, k + 1, i, X, ATl_next ? ATl_next + NX : NULL, mu,
@@ -593,6 +608,7 @@ CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const dou
   work_t wk;
   if (work_alloc(&wk)) return 1;
   const long nut = n * NU, T = chunks(nthreads, ns);
+  const int diag = diagonal(Wq, n);
   double* P = parametric(&wk, lfm_step_curv_pre, NP_STEP_CURV, n, u);
   double* part = T > 1 ? calloc((T - 1) * nut * nut + 1, sizeof(double)) : NULL;
   double* carry = malloc((2 * ns * CARRY + 1) * sizeof(double));
@@ -605,14 +621,14 @@ CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const dou
   memset(H, 0, nut * nut * sizeof(double));
   if (T == 1) {
     status = hessian_chunk(&wk, n, ns, 0, ns, X, W, sa, sk, si, u, P, S, Jg, mu, goal, Wq,
-                           scale, carry, H);
+                           diag, scale, carry, H);
   } else {
 #pragma omp parallel for num_threads(T) schedule(static, 1)
     for (long t = 0; t < T; ++t) {
       work_t mine;
       st[t] = work_alloc(&mine) ? 1
           : hessian_chunk(&mine, n, ns, CHUNK(ns, t, T), CHUNK(ns, t + 1, T), X, W, sa, sk, si,
-                          u, P, S, Jg, mu, goal, Wq, scale, carry,
+                          u, P, S, Jg, mu, goal, Wq, diag, scale, carry,
                           t ? part + (t - 1) * nut * nut : H);
       work_free(&mine);
     }

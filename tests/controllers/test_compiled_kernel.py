@@ -27,6 +27,7 @@ from controllers.solvers.compiled import KernelUnavailable, forget_loaded
 from controllers.solvers.condensed import CondensedModel
 from controllers.solvers.fast_bicycle import BicycleCondensedModel
 from experiments.bench_problems import problem_from_config
+from lfm_env.system import QuadraticCost
 from tests.controllers.test_second_system import (
     COST,
     NS,
@@ -179,6 +180,25 @@ def test_compiled_equals_numpy_on_the_second_system(variant) -> None:
         ref = _everything(models["numpy"], problem, x0, W, u, mu)
         for name in ("vm", "c"):
             _assert_same(ref, _everything(models[name], problem, x0, W, u, mu))
+
+
+def test_compiled_equals_numpy_with_coupled_state_weights() -> None:
+    """The kernel skips the zeros of diagonal state weights; a full ``Q`` (with a diagonal
+    ``Qf``: every step's matrix counts) takes the general path, equal to NumPy's."""
+    model = point_mass_model(point_mass(**VARIANTS[sorted(VARIANTS)[0]]))
+    q = np.diag([1.0, 1.0, 0.1, 0.1])
+    q[0, 2] = q[2, 0] = 0.2  # position and velocity coupled (still positive definite)
+    cost = QuadraticCost(Q=q, Qf=COST.Qf, R=COST.R, x_goal=COST.x_goal)
+    assert not cost.diagonal
+    problem = ScenarioProblem(model, cost, horizon=N, n_scenarios=NS, slack_penalty=1.0e3)
+    models = {k: CondensedModel(problem, kernel=k) for k in ("numpy", "c")}
+    assert models["c"].backend == "compiled-c"
+    x0 = next(iter(STARTS.values()))
+    W = sample_forces(model, 0)
+    u = np.random.default_rng(4).uniform(-2.0, 2.0, N * problem.nu)
+    mu = _multipliers(problem, NS, 0)
+    ref = _everything(models["numpy"], problem, x0, W, u, mu)
+    _assert_same(ref, _everything(models["c"], problem, x0, W, u, mu))
 
 
 # ----------------------------------------------------------------------------- fallback
