@@ -280,7 +280,9 @@ def _declare(lib: ctypes.CDLL) -> None:
     L, P, D = ctypes.c_long, ctypes.c_void_p, ctypes.c_double
     lib.lfm_rollout.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, L]
     lib.lfm_linearise.argtypes = [L, L, P, P, L, L, L, P, P, P, D, P, P, P, L]
-    lib.lfm_hessian.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, D, P, L]
+    lib.lfm_hessian.argtypes = [L, L, P, P, L, L, L, P, P, P, P, P, P, D, P, P, L]
+    lib.lfm_hessian_scratch.argtypes = [L]
+    lib.lfm_hessian_scratch.restype = L
     lib.lfm_openmp.argtypes = []
     lib.lfm_openmp.restype = ctypes.c_int
     lib.lfm_linear_change.argtypes = [L, L, P, P, P, P, P]

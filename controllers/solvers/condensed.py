@@ -37,6 +37,8 @@ from __future__ import annotations
 
 import math
 import os
+import sys
+from collections import deque
 from dataclasses import dataclass
 
 import casadi as ca
@@ -49,6 +51,16 @@ from controllers.solvers.screening import screen_rows, worst_rows
 
 KERNEL_ENV = "LFM_KERNEL"
 KERNELS = ("auto", "c", "numpy", "vm")
+
+
+def _references(arrays: tuple[np.ndarray, ...]) -> int:
+    """The largest ``sys.getrefcount`` of ``arrays``' members, seen from here."""
+    return max(sys.getrefcount(a) for a in arrays)
+
+
+# _references of a pair that only its tuple refers to (measured: interpreters count
+# differently): a pooled rollout pair at this count is free for reuse.
+_POOLED = _references((np.empty(0), np.empty(0)))
 
 
 @dataclass
@@ -239,6 +251,8 @@ class CondensedModel:
         # every call (its x0 and forces; :meth:`_held`).
         self._weights_p = (ptr(self._goal), ptr(self._w_state))
         self._held_ptrs: dict[int, tuple[np.ndarray, int]] = {}
+        self._scratch = np.empty(0)  # the compiled Hessian's (_hessian_scratch)
+        self._rollouts: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=8)
         self._w_diag = np.stack([np.diag(m) for m in weights])  # (N, nx)
         self._R2 = 2.0 * cost.R
         self._r_diag = np.tile(np.diag(cost.R), n)
@@ -259,6 +273,28 @@ class CondensedModel:
         if W.dtype != np.float64:
             raise ValueError(f"W: must be float64, got {W.dtype}")
         return tuple(W.strides[a] // W.itemsize for a in axes)
+
+    def _rollout_arrays(self, ns: int) -> tuple[np.ndarray, np.ndarray]:
+        """``X`` ``(N + 1, nx, Ns)`` and ``G`` ``(ng, N, Ns)`` for a compiled rollout.
+
+        A pair of the last few is reused once nothing else refers to either array any more
+        (no rollout, view or caller holds them: CPython's reference count), so their pages
+        are mapped already; fresh ones cost about 230 page faults per rollout at Ns = 5000.
+        """
+        for pair in self._rollouts:
+            if pair[0].shape[2] == ns and _references(pair) <= _POOLED:
+                return pair[0], pair[1]  # (a new tuple: holding it holds the arrays)
+        pair = (np.empty((self.n + 1, self.nx, ns)), np.empty((self.ng, self.n, ns)))
+        self._rollouts.append(pair)
+        return pair[0], pair[1]
+
+    def _hessian_scratch(self, ns: int) -> int:
+        """The address of the compiled Hessian's scratch for ``ns`` scenarios (kept, so its
+        pages are not faulted in again at every call)."""
+        size = int(self._lib.lfm_hessian_scratch(ns))
+        if self._scratch.size < size:
+            self._scratch = np.empty(size)
+        return ptr(self._scratch)
 
     def _held(self, a: np.ndarray) -> int:
         """``ptr(a)`` of an array passed again and again (a solve's initial states and
@@ -304,10 +340,9 @@ class CondensedModel:
         """
         p, model = self.problem, self.problem.model
         n, nu, ns = self.n, self.nu, x0T.shape[1]
-        X = np.empty((n + 1, self.nx, ns))
         if self._lib is not None:
+            X, G = self._rollout_arrays(ns)
             u = np.ascontiguousarray(u, dtype=float)
-            G = np.empty((self.ng, n, ns))
             sa, sk, si = self._strides(W, (2, 0, 1))
             x0c = np.ascontiguousarray(x0T, dtype=float)
             c_sum = np.zeros(1)  # the state cost summed over scenarios
@@ -317,6 +352,7 @@ class CondensedModel:
             if self._lib.lfm_rollout(*call):
                 X[:], G[:], c_sum[:] = np.nan, np.nan, np.nan
         else:
+            X = np.empty((n + 1, self.nx, ns))
             X[0] = x0T
             uk = u.reshape(n, nu)
             for k in range(n):
@@ -488,7 +524,8 @@ class CondensedModel:
         data = (ptr(lin.ro.u), ptr(lin.S), ptr(lin.Jg), ptr(mu_c))
         weights = (*self._weights_p, 2.0 / ns)
         Wp = self._held(W_lanes)
-        call = (n, ns, ptr(X), Wp, sa, sk, si, *data, *weights, ptr(H), self.threads)
+        carry = self._hessian_scratch(ns)
+        call = (n, ns, ptr(X), Wp, sa, sk, si, *data, *weights, ptr(H), carry, self.threads)
         if self._lib.lfm_hessian(*call):
             H[:] = np.nan
         for k in range(n):

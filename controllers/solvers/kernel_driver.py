@@ -589,10 +589,13 @@ static int hessian_chunk(work_t* wkp, long n, long ns, long i0, long i1, const d
   return status;
 }
 
+/* The scratch lfm_hessian needs for Ns scenarios, in doubles. */
+CASADI_SYMBOL_EXPORT long lfm_hessian_scratch(long ns) { return 2 * ns * CARRY + 1; }
+
 CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const double* W,
     long sa, long sk, long si, const double* u, const double* S,
     const double* Jg, const double* mu, const double* goal, const double* Wq, double scale,
-    double* H, long nthreads) {
+    double* H, double* carry, long nthreads) {
   /* sum over scenarios of the Hessian of (cost + mu' G) w.r.t. u, without the input cost.
      Per scenario a backward recursion (condensing, O(N^2) in the horizon where the sum
      sum_j S_j' Mxx_j S_j is O(N^3)): with V_{k+1} the curvature of everything after x_{k+1}
@@ -604,17 +607,18 @@ CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const dou
      with A_k and B_k and M_k come from one generated function per point, lfm_step_curv
      (the Jacobians' structural zeros skipped, their subexpressions shared). Upper
      triangle, then mirrored. Each entry sums its terms over the scenarios in ascending
-     order (with T chunks: per chunk, then the chunks' sums in order). */
+     order (with T chunks: per chunk, then the chunks' sums in order). carry: the caller's
+     scratch of lfm_hessian_scratch(ns) doubles (kept by the caller: a fresh 1.6 MB block
+     per call at Ns = 5000 cost ~80 page faults). */
   work_t wk;
   if (work_alloc(&wk)) return 1;
   const long nut = n * NU, T = chunks(nthreads, ns);
   const int diag = diagonal(Wq, n);
   double* P = parametric(&wk, lfm_step_curv_pre, NP_STEP_CURV, n, u);
   double* part = T > 1 ? calloc((T - 1) * nut * nut + 1, sizeof(double)) : NULL;
-  double* carry = malloc((2 * ns * CARRY + 1) * sizeof(double));
   int* st = malloc(T * sizeof(int));
-  if (!P || !st || !carry || (T > 1 && !part)) {
-    free(P); free(part); free(carry); free(st); work_free(&wk);
+  if (!P || !st || (T > 1 && !part)) {
+    free(P); free(part); free(st); work_free(&wk);
     return 1;
   }
   int status = 0;
@@ -640,7 +644,6 @@ CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const dou
     for (long b = 0; b < a; ++b) H[a * nut + b] = H[b * nut + a];
   free(P);
   free(part);
-  free(carry);
   free(st);
   work_free(&wk);
   return status;

@@ -165,6 +165,31 @@ def test_a_recycled_linearisation_equals_a_fresh_one(paper, paper_models) -> Non
     assert new.S.size * 2 * n == new.sensitivities().size * (n + 1)
 
 
+def test_rollout_arrays_are_reused_only_once_nothing_refers_to_them(paper) -> None:
+    """The compiled rollout takes its X and G from a pool, and an array goes back into use
+    only when no rollout, view or caller holds it any more."""
+    model = CondensedModel(paper, kernel="c")  # (an empty pool)
+    _, x0T, W_steps, _ = _layouts(paper, DATA["x0"][0], DATA["W"][0])
+    u_a, u_b = DATA["reference_u"][0].ravel(), DATA["u_guess"][0].ravel()
+    first = model.evaluate(x0T, W_steps, u_a, 0.0, None)
+    kept_X, kept_G = first.X.copy(), first.G.copy()
+    second = model.evaluate(x0T, W_steps, u_b, 0.0, None)
+    assert not np.shares_memory(first.X, second.X) and not np.shares_memory(first.G, second.G)
+    assert np.array_equal(first.X, kept_X) and np.array_equal(first.G, kept_G)
+    # A view of X holds it; G alone free does not free the pair.
+    view, address = first.X[1:], first.X.ctypes.data
+    del first
+    third = model.evaluate(x0T, W_steps, u_b, 0.0, None)
+    assert not np.shares_memory(third.X, view) and np.array_equal(view, kept_X[1:])
+    # Once nothing refers to the pair, the next rollout writes into it, with the same result
+    # as into fresh arrays.
+    del view
+    fourth = model.evaluate(x0T, W_steps, u_a, 0.0, None)
+    assert fourth.X.ctypes.data == address
+    assert np.array_equal(fourth.X, kept_X) and np.array_equal(fourth.G, kept_G)
+    assert np.array_equal(third.X, second.X)
+
+
 @pytest.mark.parametrize("variant", sorted(VARIANTS))
 def test_compiled_equals_numpy_on_the_second_system(variant) -> None:
     model = point_mass_model(point_mass(**VARIANTS[variant]))
