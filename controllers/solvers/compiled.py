@@ -110,8 +110,8 @@ def find_compiler() -> list[str]:
 def pointwise_functions(system, dt: float) -> list[ca.Function]:
     """The pointwise CasADi functions of ``system`` the driver calls (dense outputs).
 
-    ``lfm_step(x, u, w, p)``, ``lfm_step_jac(x, u, w, p)`` (``A`` then ``B``, each
-    flattened row-major) and
+    ``lfm_step(x, u, w, p)`` (the next state ``F`` and, with constraints, ``g(F)`` after
+    it), ``lfm_step_jac(x, u, w, p)`` (``A`` then ``B``, each flattened row-major) and
     ``lfm_step_curv(x, u, w, p, lam, v)``, each with ``*_pre(u) -> p``: the parts of its
     expression that depend on the input alone (CasADi's ``extract_parametric``), computed once
     per step instead of once per scenario. ``lfm_step_curv`` is one step of the Hessian's
@@ -120,13 +120,14 @@ def pointwise_functions(system, dt: float) -> list[ca.Function]:
     ``[A' V A + M_xx, A' V B + M_xu, B' V B + M_uu, A' lam]`` flattened row-major
     (``nx^2 + nx nu + nu^2 + nx`` values). Written symbolically, the generated code skips
     the Jacobians' structural zeros and shares their subexpressions with ``M``. With
-    constraints also ``lfm_con(x)``, ``lfm_con_jac(x)`` ``(ng, nx)`` row-major and
-    ``lfm_con_hess(x, mu)`` ``(nx, nx)``.
+    constraints also ``lfm_con_jac(x)`` ``(ng, nx)`` row-major and ``lfm_con_hess(x, mu)``
+    ``(nx, nx)``.
     """
     nx, nu, nw, ng = system.nx, system.nu, system.nw, system.ng
     x, u, w = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("w", nw)
     lam, v = ca.SX.sym("lam", nx), ca.SX.sym("v", nx * nx)
     F = system.casadi_step(dt)(x, u, w)
+    constraints = system.casadi_constraints() if ng else None
     z = ca.vertcat(x, u)
     d = ca.densify
     J = ca.jacobian(F, z)
@@ -146,7 +147,7 @@ def pointwise_functions(system, dt: float) -> list[ca.Function]:
     )
     fns = []
     for name, expr, extra in (
-        ("lfm_step", F, []),
+        ("lfm_step", ca.vertcat(F, constraints(F)) if ng else F, []),
         ("lfm_step_jac", ca.vertcat(rows(A), rows(B)), []),
         ("lfm_step_curv", curv, [lam, v]),
     ):
@@ -158,9 +159,8 @@ def pointwise_functions(system, dt: float) -> list[ca.Function]:
         fns.append(ca.Function(name, [x, u, w, p, *extra], [d(expr)]))
     if ng:
         mu = ca.SX.sym("mu", ng)
-        g = system.casadi_constraints()(x)
+        g = constraints(x)
         fns += [
-            ca.Function("lfm_con", [x], [ca.cse(d(g))]),
             ca.Function("lfm_con_jac", [x], [ca.cse(rows(ca.jacobian(g, x)))]),
             ca.Function("lfm_con_hess", [x, mu], [ca.cse(d(ca.hessian(ca.dot(mu, g), x)[0]))]),
         ]

@@ -134,7 +134,7 @@ static int rollout_chunk(work_t* wkp, long n, long ns, long i0, long i1, const d
     const double* W, long sa, long sk, long si, const double* u, const double* P,
     const double* goal, const double* Wq, int diag, double* X, double* G, double* cost) {
   work_t wk = *wkp;
-  double x[NX], xn[NX], wv[NW + 1], c = 0.0;
+  double x[NX], xn[NX + NG], wv[NW + 1], c = 0.0; /* xn: the next state, its constraints */
   int status = 0;
   for (long i = i0; i < i1 && !status; ++i) {
     for (int m = 0; m < NX; ++m) X[m * ns + i] = x[m] = x0T[m * ns + i];
@@ -144,9 +144,7 @@ static int rollout_chunk(work_t* wkp, long n, long ns, long i0, long i1, const d
       for (int m = 0; m < NX; ++m) X[((k + 1) * NX + m) * ns + i] = x[m] = xn[m];
       c += weighted(x, goal, Wq + k * NX * NX, diag, 1.0, NULL);
 #if NG > 0
-      double g[NG];
-      status |= CALL1(lfm_con, x, g);
-      for (int j = 0; j < NG; ++j) G[(j * n + k) * ns + i] = g[j];
+      for (int j = 0; j < NG; ++j) G[(j * n + k) * ns + i] = xn[NX + j];
 #else
       (void)G;
 #endif
