@@ -558,12 +558,13 @@ static int hessian_chunk(work_t* wkp, long n, long ns, long i0, long i1, const d
   int status = 0;
   for (long k = n - 1; k >= 0 && !status; --k) {
     for (long i = i0; i < i1 && !status; ++i) {
-      const double* ATl_next = k + 1 < n ? next + i * CARRY : NULL;
+      const double* carried = k + 1 < n ? next + i * CARRY : NULL; /* none at the last step */
+      const double* ATl_next = carried;                     /* A_{k+1}' lambda_{k+1} */
+      const double* P_next = carried ? carried + NX : NULL; /* P_{k+1} */
       step_adjoint(n, ns, k, i, X, Jg, mu, goal, Wq, diag, scale, ATl_next, lam);
       /* V_{k+1} = scale Wq + Hessian of mu' g at x_{k+1} + P_{k+1}: the curvature of
          everything after x_{k+1} as a function of x_{k+1} */
-      status = state_curvature(wkp, n, ns, k + 1, i, X, ATl_next ? ATl_next + NX : NULL, mu,
-                               Wq, scale, V);
+      status = state_curvature(wkp, n, ns, k + 1, i, X, P_next, mu, Wq, scale, V);
       if (status) break;
       load_state(X, k, ns, i, x);
       gather(W, sa, sk, si, k, i, wv);
