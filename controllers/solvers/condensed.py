@@ -150,6 +150,9 @@ class CondensedModel:
             NumPy lanes), ``"c"`` (compiled C or :class:`KernelUnavailable`), ``"numpy"``
             or ``"vm"``; ``None`` reads ``$LFM_KERNEL`` (default ``"auto"``).
 
+    A model serves one call at a time: its rollout arrays and the Hessian's scratch are its
+    own and reused between calls (like the solver that holds it, give each thread its own).
+
     Attributes:
         backend: ``"compiled-c"``, ``"numpy-lanes"`` or ``"casadi-vm"``.
         compile_time: [s] building the C kernel in this constructor (generation, and
