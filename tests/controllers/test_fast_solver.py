@@ -554,3 +554,41 @@ def test_the_convexified_hessian_keeps_the_step_on_the_active_set_when_it_can(mo
         assert sigma == 0.0
         expected = np.abs(np.linalg.eigvalsh(H)) if mode == "abs" else np.linalg.eigvalsh(H)
         np.testing.assert_allclose(w, np.sort(np.maximum(expected, floor)), atol=1e-9)
+
+
+@pytest.mark.parametrize("traced", [False, True])
+def test_a_hessian_above_the_floor_is_the_qp_hessian_itself(traced: bool) -> None:
+    """Positive definite above the floor: returned as it is, whether the check is the quick
+    Cholesky one (no trace) or the eigen-decomposition (traced); just below the floor: not."""
+    solver = FastScenarioSolver(paper_problem(n_scenarios=5))
+    solver.trace = [] if traced else None
+    n_u, floor = solver._n_u, solver.options.hessian_floor
+    none_pos, none_shared = np.empty((0, 3), dtype=int), np.empty(0, dtype=int)
+    Q, _ = np.linalg.qr(np.random.default_rng(1).normal(size=(n_u, n_u)))
+    eig = np.linspace(floor * (1 + 1e-6), 5.0, n_u)
+    H = Q @ np.diag(eig) @ Q.T
+    H = 0.5 * (H + H.T)
+    H_qp, sigma, _ = solver._convexify(H, None, none_pos, none_shared, np.empty(0, dtype=int))
+    assert H_qp is H and sigma == 0.0
+    eig[0] = floor * (1 - 1e-3)
+    H = Q @ np.diag(eig) @ Q.T
+    H = 0.5 * (H + H.T)
+    H_qp, sigma, _ = solver._convexify(H, None, none_pos, none_shared, np.empty(0, dtype=int))
+    assert H_qp is not H
+    assert np.linalg.eigvalsh(H_qp)[0] == pytest.approx(floor, rel=1e-6)
+
+
+def test_the_augmentation_is_tried_when_as_many_rows_as_negative_eigenvalues() -> None:
+    """Two active bounds, negative curvature along both: sigma J'J can fix it (and must be
+    used); one active bound for the same two negative eigenvalues: it cannot, the floor."""
+    solver = FastScenarioSolver(paper_problem(n_scenarios=5))
+    n_u, floor = solver._n_u, solver.options.hessian_floor
+    none_pos, none_shared = np.empty((0, 3), dtype=int), np.empty(0, dtype=int)
+    H = np.diag(np.linspace(1.0, 2.0, n_u))
+    H[0, 0], H[1, 1] = -2.0, -3.0
+    H_qp, sigma, _ = solver._convexify(H, None, none_pos, none_shared, np.array([0, 1]))
+    assert sigma > 0.0
+    np.testing.assert_array_equal(H_qp - H, sigma * np.diag((np.arange(n_u) < 2).astype(float)))
+    H_qp, sigma, _ = solver._convexify(H, None, none_pos, none_shared, np.array([0]))
+    assert sigma == 0.0
+    np.testing.assert_allclose(np.diag(H_qp), np.maximum(np.diag(H), floor), atol=1e-12)
