@@ -43,12 +43,27 @@ import casadi as ca
 import numpy as np
 
 from controllers.solvers.kernel_driver import DRIVER
+from controllers.solvers.kernel_inline import VECTOR_MATH_DECLARATIONS, NotInlinable, inline_step
 
 CACHE_ENV = "LFM_CACHE_DIR"
 FLAGS = ("-O3", "-fPIC", "-shared")
 # Added when the compiler takes it (the kernel's scenario chunks then run in threads,
 # CondensedModel.threads); without it the chunks run one after another.
 OPENMP_FLAG = "-fopenmp"
+# Without OpenMP, its simd pragmas alone (the rollout's vectorised scenario loop).
+SIMD_FLAG = "-fopenmp-simd"
+# glibc's vector math library for the rollout's vectorised loop (kernel_inline); the link
+# must resolve every symbol, so a system without libmvec fails here and builds without it.
+VECTOR_MATH_FLAGS = ("-DLFM_VECTOR_MATH",)
+VECTOR_MATH_LIBS = ("-lmvec", "-Wl,-z,defs")
+# The builds tried in turn, (flags, libraries): the first that compiles is kept.
+BUILDS = (
+    ((*FLAGS, OPENMP_FLAG, *VECTOR_MATH_FLAGS), VECTOR_MATH_LIBS),
+    ((*FLAGS, SIMD_FLAG, *VECTOR_MATH_FLAGS), VECTOR_MATH_LIBS),
+    ((*FLAGS, OPENMP_FLAG), ()),
+    ((*FLAGS, SIMD_FLAG), ()),
+    (FLAGS, ()),
+)
 COMPILE_TIMEOUT = 120.0  # [s] a compile taking longer is abandoned (fallback)
 
 # Loaded libraries of this process, by source hash (a second build is free).
@@ -197,7 +212,13 @@ def kernel_source(system, dt: float) -> str:
     defines = "\n".join(f"#define {k} {v}" for k, v in sizes.items())
     defines += "\n" + step_jacobian_pattern(system, dt)
     work = " ".join(f"W({f.name()});" for f in fns)
-    return cg.dump() + "\n" + defines + "\n" + DRIVER.replace("@WORK@", work)
+    code = cg.dump()
+    step = next(f for f in fns if f.name() == "lfm_step")
+    try:  # the rollout's vectorisable path (else one call per scenario)
+        inline = VECTOR_MATH_DECLARATIONS + "\n" + inline_step(code, step, system.nx)
+    except NotInlinable:
+        inline = ""
+    return code + "\n" + defines + "\n" + inline + DRIVER.replace("@WORK@", work)
 
 
 @dataclass
@@ -219,8 +240,8 @@ def _compile(source: str, target: Path, compiler: list[str]) -> None:
     tmp = target.with_name(f"{target.stem}.{tag}.so.tmp")
     try:
         c_file.write_text(source)
-        for flags in ((*FLAGS, OPENMP_FLAG), FLAGS):  # without OpenMP if it is not there
-            cmd = [*compiler, *flags, str(c_file), "-o", str(tmp), "-lm"]
+        for flags, libs in BUILDS:  # (without what the compiler or system does not have)
+            cmd = [*compiler, *flags, str(c_file), "-o", str(tmp), *libs, "-lm"]
             try:
                 out = subprocess.run(
                     cmd, capture_output=True, text=True, timeout=COMPILE_TIMEOUT, check=False
@@ -286,6 +307,8 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.lfm_hessian_scratch.restype = L
     lib.lfm_openmp.argtypes = []
     lib.lfm_openmp.restype = ctypes.c_int
+    lib.lfm_vector_math.argtypes = []
+    lib.lfm_vector_math.restype = ctypes.c_int
     lib.lfm_linear_change.argtypes = [L, L, P, P, P, P, P]
     lib.lfm_rows.argtypes = [L, L, P, P, L, P, P]
     lib.lfm_screen.argtypes = [L, L, L, P, P, P, P, D, L, P, L]

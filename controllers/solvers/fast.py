@@ -183,12 +183,14 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
             (``qp_rows``), QP calls retried after a failure (``qp_retries``), iterations
             whose check-and-add rounds ran out (``qp_rounds_exhausted``), merit
             evaluations and second-order corrections, names the derivative backend
-            (``backend``) and the kernel's threads (``kernel_threads``: 1 without
-            OpenMP, whatever was asked), the QP solver option (``qp_solver``) with the QP calls
-            per solver it resolved to (``qp_calls``, e.g. ``{"qpoases": 12}``), gives the
-            first start's ``{"status", "iterations"}`` (``first_start``), and
-            ``extra["restarts"]`` maps each extra start tried to ``"kept"`` or the status it
-            ended with; ``iterations`` counts the iterations of every start. A solve
+            (``backend``), the kernel's threads (``kernel_threads``: 1 without
+            OpenMP, whatever was asked) and its rollout's vectorisation
+            (``kernel_vector_math``: ``CondensedModel.vector_math``), the QP solver option
+            (``qp_solver``) with the QP calls per solver it resolved to (``qp_calls``, e.g.
+            ``{"qpoases": 12}``), gives the first start's ``{"status", "iterations"}``
+            (``first_start``), and ``extra["restarts"]`` maps each extra start tried to
+            ``"kept"`` or the status it ended with; ``iterations`` counts the iterations of
+            every start. A solve
             that does not converge does not raise: it returns the best iterate (the merit
             decreases monotonically) with ``success=False``. A start whose merit stagnates
             (``acceptable_iter`` steps in a row, each lowering it by at most
@@ -265,6 +267,7 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
                 ro, status, success = ro2, status2, success2
         extra["backend"] = self.backend
         extra["kernel_threads"] = self.model.threads if self.model.openmp else 1
+        extra["kernel_vector_math"] = getattr(self.model, "vector_math", 0)
         extra["qp_solver"] = self.options.qp_solver
         extra["first_start"] = {"status": first_status, "iterations": first_iterations}
 

@@ -31,6 +31,17 @@ static long chunks(long nthreads, long ns) {
   long T = nthreads < 1 ? 1 : nthreads;
   return ns < T ? (ns > 0 ? ns : 1) : T;
 }
+CASADI_SYMBOL_EXPORT int lfm_vector_math(void) {
+  /* 2: the rollout's scenario loop inlined and with libmvec's vector math, 1: inlined, 0:
+     one call of the generated step per scenario. */
+#if defined(LFM_STEP_INLINE) && defined(LFM_VECTOR_MATH_USED)
+  return 2;
+#elif defined(LFM_STEP_INLINE)
+  return 1;
+#else
+  return 0;
+#endif
+}
 CASADI_SYMBOL_EXPORT int lfm_openmp(void) {
 #ifdef _OPENMP
   return 1;
@@ -129,6 +140,59 @@ static double dot(const double* a, const double* b, long len) {
   return (s0 + s1) + (s2 + s3);
 }
 
+#ifdef LFM_STEP_INLINE
+/* Scenarios i0 <= i < i1 of lfm_rollout; their state cost into *cost. Step by step, each
+   step's scenarios in one vectorisable loop over the step's inlined body (lfm_step_inline);
+   each scenario's cost summed over the steps, then the scenarios' sums in order. */
+static int rollout_chunk(work_t* wkp, long n, long ns, long i0, long i1, const double* x0T,
+    const double* W, long sa, long sk, long si, const double* u, const double* P,
+    const double* goal, const double* Wq, int diag, double* X, double* G, double* cost) {
+  (void)wkp;
+  double* ci = calloc(i1 - i0 + 1, sizeof(double));
+  if (!ci) return 1;
+  for (int m = 0; m < NX; ++m)
+    memcpy(X + m * ns + i0, x0T + m * ns + i0, (i1 - i0) * sizeof(double));
+  for (long k = 0; k < n; ++k) {
+    const double* xk = X + k * NX * ns;
+    double* xn = X + (k + 1) * NX * ns;
+    double* gk = G + k * ns; /* (G is unused without constraints) */
+    const double* uk = u + k * NU;
+    const double* pk = P + k * NP_STEP;
+    const double* Wk = Wq + k * NX * NX;
+    const double* wk = W + k * sk;
+    /* (two loops: a branch on diag inside would stop the vectorisation) */
+    if (diag) {
+#pragma omp simd
+      for (long i = i0; i < i1; ++i) {
+        lfm_step_inline(xk + i, ns, uk, wk + i * si, sa, pk, xn + i, gk + i, n * ns);
+        double c = 0.0;
+        for (int m = 0; m < NX; ++m) {
+          const double e = xn[m * ns + i] - goal[m];
+          c += e * (Wk[m * NX + m] * e);
+        }
+        ci[i - i0] += c;
+      }
+    } else {
+#pragma omp simd
+      for (long i = i0; i < i1; ++i) {
+        lfm_step_inline(xk + i, ns, uk, wk + i * si, sa, pk, xn + i, gk + i, n * ns);
+        double c = 0.0;
+        for (int m = 0; m < NX; ++m) {
+          double s = 0.0;
+          for (int r = 0; r < NX; ++r) s += Wk[m * NX + r] * (xn[r * ns + i] - goal[r]);
+          c += (xn[m * ns + i] - goal[m]) * s;
+        }
+        ci[i - i0] += c;
+      }
+    }
+  }
+  double c = 0.0;
+  for (long i = 0; i < i1 - i0; ++i) c += ci[i];
+  free(ci);
+  *cost = c;
+  return 0;
+}
+#else
 /* Scenarios i0 <= i < i1 of lfm_rollout; their state cost into *cost. */
 static int rollout_chunk(work_t* wkp, long n, long ns, long i0, long i1, const double* x0T,
     const double* W, long sa, long sk, long si, const double* u, const double* P,
@@ -153,6 +217,7 @@ static int rollout_chunk(work_t* wkp, long n, long ns, long i0, long i1, const d
   *cost = c;
   return status;
 }
+#endif
 
 CASADI_SYMBOL_EXPORT int lfm_rollout(long n, long ns, const double* x0T, const double* W,
     long sa, long sk, long si, const double* u, const double* goal, const double* Wq,

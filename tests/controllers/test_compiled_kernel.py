@@ -12,6 +12,7 @@ and the solver pickle.
 
 from __future__ import annotations
 
+import ctypes.util
 import os
 import pickle
 import subprocess
@@ -22,7 +23,7 @@ import numpy as np
 import pytest
 
 from controllers.problem import ScenarioProblem
-from controllers.solvers import compiled, make_solver
+from controllers.solvers import compiled, kernel_inline, make_solver
 from controllers.solvers.compiled import KernelUnavailable, forget_loaded
 from controllers.solvers.condensed import CondensedModel
 from controllers.solvers.fast_bicycle import BicycleCondensedModel
@@ -453,3 +454,71 @@ def test_the_fast_solver_with_kernel_threads_reaches_the_same_plan(paper) -> Non
     np.testing.assert_allclose(two.u, one.u, atol=1e-6)
     clone = pickle.loads(pickle.dumps(make_solver(paper, "fast", kernel_threads=2)))
     assert clone.model.threads == 2
+
+
+# --------------------------------------------------------------------------- vectorised rollout
+
+
+def test_the_rollout_is_vectorised_with_vector_math_where_glibc_has_it(paper_models) -> None:
+    """The bicycle's step is inlined into the rollout's scenario loop; with glibc's libmvec
+    on the machine (as on the test machines) its sines and cosines are the vector ones."""
+    model = paper_models["c"]
+    expected = 2 if ctypes.util.find_library("mvec") else 1
+    assert model.vector_math == expected
+    source = compiled.kernel_source(model.problem.system, model.problem.dt)
+    assert "lfm_vsin(" in source and "lfm_vcos(" in source  # the inlined body's names
+
+
+def test_without_libmvec_the_rollout_is_vectorisable_and_the_same(
+    paper, paper_models, fresh_cache, tmp_path, monkeypatch
+) -> None:
+    """A system without libmvec (a real cc behind a script that refuses -lmvec) still builds
+    the kernel with the inlined rollout and plain math; every output equals the reference."""
+    cc = tmp_path / "cc-without-libmvec"
+    cc.write_text('#!/bin/sh\nfor a in "$@"; do [ "$a" = -lmvec ] && exit 1; done\nexec cc "$@"\n')
+    cc.chmod(0o755)
+    monkeypatch.setenv("CC", str(cc))
+    model = CondensedModel(paper, kernel="c")
+    assert model.backend == "compiled-c" and model.vector_math == 1
+    for i in (0, 4):
+        x0, W, u = DATA["x0"][i], DATA["W"][i], DATA["reference_u"][i].ravel()
+        mu = _multipliers(paper, W.shape[0], i)
+        ref = _everything(paper_models["numpy"], paper, x0, W, u, mu)
+        _assert_same(ref, _everything(model, paper, x0, W, u, mu))
+
+
+def test_a_step_that_cannot_be_inlined_keeps_the_call_per_scenario(
+    paper, paper_models, fresh_cache, monkeypatch
+) -> None:
+    """When the rewrite of the generated step fails (kernel_inline.NotInlinable), the kernel
+    calls the generated step once per scenario, with the same outputs."""
+
+    def refuse(*_args, **_kwargs):
+        raise kernel_inline.NotInlinable("refused by the test")
+
+    monkeypatch.setattr(compiled, "inline_step", refuse)
+    assert "#define LFM_STEP_INLINE" not in compiled.kernel_source(paper.system, paper.dt)
+    model = CondensedModel(paper, kernel="c")
+    assert model.backend == "compiled-c" and model.vector_math == 0
+    i = 2
+    x0, W, u = DATA["x0"][i], DATA["W"][i], DATA["reference_u"][i].ravel()
+    mu = _multipliers(paper, W.shape[0], i)
+    ref = _everything(paper_models["numpy"], paper, x0, W, u, mu)
+    _assert_same(ref, _everything(model, paper, x0, W, u, mu))
+
+
+def test_the_inline_rewrite_reads_and_writes_plain_strided_pointers(paper) -> None:
+    """The rewritten step has no pointer-array access left and renames the vector-math
+    functions; a function of another shape is refused."""
+    fns = compiled.pointwise_functions(paper.system, paper.dt)
+    code = compiled.kernel_source(paper.system, paper.dt)
+    step = next(f for f in fns if f.name() == "lfm_step")
+    text = kernel_inline.inline_step(code, step, paper.system.nx)
+    assert "arg[" not in text and "res[" not in text and "return" not in text
+    assert "lfm_vsin(" in text and " sin(" not in text
+    nx, ng = paper.system.nx, paper.system.ng
+    assert all(f"xo_[{j}*xs]=" in text for j in range(nx))
+    assert all(f"go_[{j}*gs]=" in text for j in range(ng))
+    jac = next(f for f in fns if f.name() == "lfm_step_curv")  # six inputs
+    with pytest.raises(kernel_inline.NotInlinable, match="4 inputs"):
+        kernel_inline.inline_step(code, jac, nx)

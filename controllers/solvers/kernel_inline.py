@@ -1,0 +1,113 @@
+"""The step's generated C as an inline function the rollout can vectorise across scenarios.
+
+CasADi writes a function as C that reads its inputs through ``const casadi_real** arg`` and
+writes through ``casadi_real** res`` (each checked for NULL). Called once per scenario, it
+keeps the compiler from vectorising the scenario loop: it cannot see through the pointer
+arrays. :func:`inline_step` rewrites the generated body of ``lfm_step`` (straight-line code
+of an SX function: scalar temporaries, arithmetic and math calls) into a ``static inline``
+function of plain strided pointers, which the driver calls inside a ``#pragma omp simd``
+loop over the scenarios of one step (the driver's ``LFM_STEP_INLINE`` path).
+
+The math functions glibc's vector math library (libmvec) has had since 2.22 (``sin``,
+``cos``, ``exp``, ``log``, ``pow``) are renamed ``lfm_v*``: with ``LFM_VECTOR_MATH`` defined
+(the kernel is built with ``-lmvec``) these are declared as the same C functions under the
+same symbols, with GCC's ``simd`` attribute, so the vectorised loop calls libmvec's variants
+(``_ZGVbN2v_sin`` and so on); else they are the plain functions. (Under their own names the
+compiler would also merge ``sin(a)`` and ``cos(a)`` into one scalar ``sincos``, which has no
+such variant and stops the vectorisation.)
+"""
+
+from __future__ import annotations
+
+import re
+
+import casadi as ca
+
+# glibc's libmvec functions (x86_64, since 2.22) that the inlined body calls by vector name.
+VECTOR_MATH = ("sin", "cos", "exp", "log", "pow")
+
+VECTOR_MATH_DECLARATIONS = "\n".join(
+    [
+        "#if defined(LFM_VECTOR_MATH) && defined(__GNUC__) && !defined(__clang__)",
+        "#define LFM_VECTOR_MATH_USED 1",
+        '#define LFM_VECTOR_FN __attribute__((const, __simd__("notinbranch")))',
+        *(
+            f"extern double lfm_v{name}({'double, double' if name == 'pow' else 'double'})"
+            f' __asm__("{name}") LFM_VECTOR_FN;'
+            for name in VECTOR_MATH
+        ),
+        "#else",
+        *(f"#define lfm_v{name} {name}" for name in VECTOR_MATH),
+        "#endif",
+    ]
+)
+
+_ARG = re.compile(r"arg\[(\d+)\]\s*\?\s*arg\[\1\]\[(\d+)\]\s*:\s*0")
+_RES = re.compile(r"if \(res\[0\]!=0\) res\[0\]\[(\d+)\]=")
+_MATH = re.compile(r"\b(" + "|".join(VECTOR_MATH) + r")\(")
+
+
+class NotInlinable(ValueError):
+    """The generated body uses something the inline rewrite does not handle."""
+
+
+def function_body(source: str, name: str) -> str:
+    """The statements of the generated function that the exported ``name`` calls."""
+    wrapper = re.search(
+        rf"int {re.escape(name)}\(const casadi_real\*\* arg[^{{]*\{{\s*return (casadi_f\d+)\(",
+        source,
+    )
+    if wrapper is None:
+        raise NotInlinable(f"no exported function {name!r} in the generated code")
+    inner = wrapper.group(1)
+    start = source.find(f"static int {inner}(")
+    if start < 0:
+        raise NotInlinable(f"no body of {inner} ({name})")
+    open_ = source.index("{", start)
+    end = source.index("\n}\n", open_)
+    body = re.sub(r"\n\s*return 0;\s*$", "", source[open_ + 1 : end])
+    return body.strip("\n") + "\n"
+
+
+def inline_step(source: str, fn: ca.Function, nx: int) -> str:
+    """``lfm_step_inline``: the body of ``fn`` (``lfm_step(x, u, w, p) -> [F; g(F)]``, as
+    generated in ``source``) on strided pointers.
+
+    Its arguments: ``x_`` (stride ``xs``), ``u_``, ``w_`` (stride ``ws``), ``p_``; the
+    outputs ``F`` to ``xo_`` (stride ``xs``) and ``g(F)`` to ``go_`` (stride ``gs``).
+
+    Raises:
+        NotInlinable: the body reads or writes other than element by element (work arrays,
+            calls of other generated functions), or has more than the four inputs.
+    """
+    if fn.n_in() != 4 or fn.n_out() != 1:
+        raise NotInlinable(f"{fn.name()}: expected 4 inputs and 1 output")
+    body = function_body(source, fn.name())
+    reads = {0: "x_[{}*xs]", 1: "u_[{}]", 2: "w_[{}*ws]", 3: "p_[{}]"}
+    body = _ARG.sub(lambda m: reads[int(m.group(1))].format(m.group(2)), body)
+
+    def write(m: re.Match) -> str:
+        j = int(m.group(1))
+        return f"xo_[{j}*xs]=" if j < nx else f"go_[{j - nx}*gs]="
+
+    body = _RES.sub(write, body)
+    body = _MATH.sub(lambda m: f"lfm_v{m.group(1)}(", body)
+    leftover = re.search(r"\b(arg|res|iw|w)\[|casadi_f\d+\(", body)
+    if leftover:
+        raise NotInlinable(f"{fn.name()}: cannot rewrite {leftover.group(0)!r}")
+    return (
+        "#define LFM_STEP_INLINE 1\n"
+        "static inline __attribute__((always_inline)) void lfm_step_inline(\n"
+        "    const casadi_real* x_, long xs, const casadi_real* u_, const casadi_real* w_,\n"
+        "    long ws, const casadi_real* p_, casadi_real* xo_, casadi_real* go_, long gs) {\n"
+        "  (void)u_; (void)w_; (void)ws; (void)p_; (void)go_; (void)gs;\n" + body + "}\n"
+    )
+
+
+__all__ = [
+    "NotInlinable",
+    "VECTOR_MATH",
+    "VECTOR_MATH_DECLARATIONS",
+    "function_body",
+    "inline_step",
+]
