@@ -141,11 +141,21 @@ static double dot(const double* a, const double* b, long len) {
 }
 
 #ifdef LFM_STEP_INLINE
+/* Two versions of the vectorised loops where GCC (>= 11) and glibc can dispatch at load time:
+   one for x86-64-v3 (AVX2 and FMA: four scenarios per instruction, libmvec's AVX2 functions)
+   and the baseline; the running CPU picks (so a cached kernel stays portable). Compiled
+   with -DLFM_NO_CLONES: the baseline only (the tests check it on AVX2 machines). */
+#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11 && defined(__x86_64__) \
+    && defined(__linux__) && !defined(LFM_NO_CLONES)
+#define LFM_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
+#else
+#define LFM_CLONES
+#endif
 /* Scenarios i0 <= i < i1 of lfm_rollout; their state cost into *cost. Step by step, each
    step's scenarios in one vectorisable loop over the step's inlined body (lfm_step_inline);
    each scenario's cost summed over the steps, then the scenarios' sums in order. */
-static int rollout_chunk(work_t* wkp, long n, long ns, long i0, long i1, const double* x0T,
-    const double* W, long sa, long sk, long si, const double* u, const double* P,
+LFM_CLONES static int rollout_chunk(work_t* wkp, long n, long ns, long i0, long i1,
+    const double* x0T, const double* W, long sa, long sk, long si, const double* u, const double* P,
     const double* goal, const double* Wq, int diag, double* X, double* G, double* cost) {
   (void)wkp;
   double* ci = calloc(i1 - i0 + 1, sizeof(double));

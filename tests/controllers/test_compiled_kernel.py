@@ -487,6 +487,25 @@ def test_without_libmvec_the_rollout_is_vectorisable_and_the_same(
         _assert_same(ref, _everything(model, paper, x0, W, u, mu))
 
 
+def test_the_baseline_version_of_the_vectorised_rollout_is_the_same(
+    paper, paper_models, fresh_cache, tmp_path, monkeypatch
+) -> None:
+    """The vectorised rollout also has an x86-64-v3 (AVX2, FMA) version that the CPU picks
+    at load time where it can (the test machines): built without it (-DLFM_NO_CLONES, a real
+    cc behind a script), the baseline version's outputs equal the reference too."""
+    cc = tmp_path / "cc-without-clones"
+    cc.write_text('#!/bin/sh\nexec cc -DLFM_NO_CLONES "$@"\n')
+    cc.chmod(0o755)
+    monkeypatch.setenv("CC", str(cc))
+    model = CondensedModel(paper, kernel="c")
+    assert model.backend == "compiled-c" and model.vector_math >= 1
+    for i in (1, 3):
+        x0, W, u = DATA["x0"][i], DATA["W"][i], DATA["reference_u"][i].ravel()
+        mu = _multipliers(paper, W.shape[0], i)
+        ref = _everything(paper_models["numpy"], paper, x0, W, u, mu)
+        _assert_same(ref, _everything(model, paper, x0, W, u, mu))
+
+
 def test_a_step_that_cannot_be_inlined_keeps_the_call_per_scenario(
     paper, paper_models, fresh_cache, monkeypatch
 ) -> None:
