@@ -43,7 +43,12 @@ import casadi as ca
 import numpy as np
 
 from controllers.solvers.kernel_driver import DRIVER
-from controllers.solvers.kernel_inline import VECTOR_MATH_DECLARATIONS, NotInlinable, inline_step
+from controllers.solvers.kernel_inline import (
+    VECTOR_MATH_DECLARATIONS,
+    NotInlinable,
+    inline_step,
+    inline_step_curv,
+)
 
 CACHE_ENV = "LFM_CACHE_DIR"
 FLAGS = ("-O3", "-fPIC", "-shared")
@@ -213,11 +218,13 @@ def kernel_source(system, dt: float) -> str:
     defines += "\n" + step_jacobian_pattern(system, dt)
     work = " ".join(f"W({f.name()});" for f in fns)
     code = cg.dump()
-    step = next(f for f in fns if f.name() == "lfm_step")
-    try:  # the rollout's vectorisable path (else one call per scenario)
-        inline = VECTOR_MATH_DECLARATIONS + "\n" + inline_step(code, step, system.nx)
-    except NotInlinable:
-        inline = ""
+    by_name = {f.name(): f for f in fns}
+    # The rollout's and the Hessian's vectorisable paths (else a call per scenario).
+    inline = VECTOR_MATH_DECLARATIONS + "\n"
+    with contextlib.suppress(NotInlinable):
+        inline += inline_step(code, by_name["lfm_step"], system.nx)
+    with contextlib.suppress(NotInlinable):
+        inline += inline_step_curv(code, by_name["lfm_step_curv"])
     return code + "\n" + defines + "\n" + inline + DRIVER.replace("@WORK@", work)
 
 

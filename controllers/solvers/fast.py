@@ -184,7 +184,7 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
             whose check-and-add rounds ran out (``qp_rounds_exhausted``), merit
             evaluations and second-order corrections, names the derivative backend
             (``backend``), the kernel's threads (``kernel_threads``: 1 without
-            OpenMP, whatever was asked) and its rollout's vectorisation
+            OpenMP, whatever was asked) and its loops' vectorisation
             (``kernel_vector_math``: ``CondensedModel.vector_math``), the QP solver option
             (``qp_solver``) with the QP calls per solver it resolved to (``qp_calls``, e.g.
             ``{"qpoases": 12}``), gives the first start's ``{"status", "iterations"}``

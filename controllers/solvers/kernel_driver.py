@@ -32,11 +32,13 @@ static long chunks(long nthreads, long ns) {
   return ns < T ? (ns > 0 ? ns : 1) : T;
 }
 CASADI_SYMBOL_EXPORT int lfm_vector_math(void) {
-  /* 2: the rollout's scenario loop inlined and with libmvec's vector math, 1: inlined, 0:
-     one call of the generated step per scenario. */
-#if defined(LFM_STEP_INLINE) && defined(LFM_VECTOR_MATH_USED)
+  /* 2: the rollout's and the Hessian's loops over scenarios call the generated step
+     functions inlined (vectorisable) and with libmvec's vector math, 1: inlined, 0: one call
+     of a generated function per scenario (for either when 1 or 2: see LFM_STEP_INLINE,
+     LFM_STEP_CURV_INLINE). */
+#if (defined(LFM_STEP_INLINE) || defined(LFM_STEP_CURV_INLINE)) && defined(LFM_VECTOR_MATH_USED)
   return 2;
-#elif defined(LFM_STEP_INLINE)
+#elif defined(LFM_STEP_INLINE) || defined(LFM_STEP_CURV_INLINE)
   return 1;
 #else
   return 0;
@@ -50,6 +52,17 @@ CASADI_SYMBOL_EXPORT int lfm_openmp(void) {
 #endif
 }
 #define S_OFF(k, ns) ((ns) * NX * NU * (k) * ((k) + 1) / 2)
+
+/* Two versions of the vectorised loops where GCC (>= 11) and glibc can dispatch at load time:
+   one for x86-64-v3 (AVX2 and FMA: four scenarios per instruction, libmvec's AVX2 functions)
+   and the baseline; the running CPU picks (so a cached kernel stays portable). Compiled
+   with -DLFM_NO_CLONES: the baseline only (the tests check it on AVX2 machines). */
+#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11 && defined(__x86_64__) \
+    && defined(__linux__) && !defined(LFM_NO_CLONES)
+#define LFM_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
+#else
+#define LFM_CLONES
+#endif
 
 typedef int (*cfun)(const casadi_real**, casadi_real**, casadi_int*, casadi_real*, int);
 typedef struct {
@@ -99,7 +112,8 @@ static int diagonal(const double* Wq, long n) {
 
 /* Weighted state error: out = scale Wk (x - goal); returns (x - goal)' Wk (x - goal). diag:
    Wk is diagonal (diagonal()). */
-static double weighted(const double* x, const double* goal, const double* Wk, int diag,
+static inline __attribute__((always_inline)) double weighted(const double* x,
+                       const double* goal, const double* Wk, int diag,
                        double scale, double* out) {
   double e[NX], c = 0.0;
   for (int m = 0; m < NX; ++m) e[m] = x[m] - goal[m];
@@ -141,16 +155,6 @@ static double dot(const double* a, const double* b, long len) {
 }
 
 #ifdef LFM_STEP_INLINE
-/* Two versions of the vectorised loops where GCC (>= 11) and glibc can dispatch at load time:
-   one for x86-64-v3 (AVX2 and FMA: four scenarios per instruction, libmvec's AVX2 functions)
-   and the baseline; the running CPU picks (so a cached kernel stays portable). Compiled
-   with -DLFM_NO_CLONES: the baseline only (the tests check it on AVX2 machines). */
-#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11 && defined(__x86_64__) \
-    && defined(__linux__) && !defined(LFM_NO_CLONES)
-#define LFM_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
-#else
-#define LFM_CLONES
-#endif
 /* Scenarios i0 <= i < i1 of lfm_rollout; their state cost into *cost. Step by step, each
    step's scenarios in one vectorisable loop over the step's inlined body (lfm_step_inline);
    each scenario's cost summed over the steps, then the scenarios' sums in order. */
@@ -571,14 +575,14 @@ static inline void step_adjoint(long n, long ns, long k, long i, const double* X
 
 /* The curvature V_j of everything from state x_j (j = 1..N) on, of scenario i, into V:
    scale Wq_j + the Hessian of mu' g at x_j + Pj = A_j' V_{j+1} A_j + M_j[x, x] (step j's
-   lfm_step_curv, row-major (NX, NX); NULL at j = N). */
+   lfm_step_curv, row-major (NX, NX); NULL at j = N); entry a at Mxx[a ms]. */
 static inline int state_curvature(work_t* wkp, long n, long ns, long j, long i, const double* X,
-    const double* Pj, const double* mu, const double* Wq, double scale, double* Mxx) {
+    const double* Pj, const double* mu, const double* Wq, double scale, double* Mxx, long ms) {
   work_t wk = *wkp;
   const double* Wk = Wq + (j - 1) * NX * NX;
-  for (int a = 0; a < NX * NX; ++a) Mxx[a] = scale * Wk[a];
+  for (int a = 0; a < NX * NX; ++a) Mxx[a * ms] = scale * Wk[a];
   if (Pj)
-    for (int a = 0; a < NX * NX; ++a) Mxx[a] += Pj[a];
+    for (int a = 0; a < NX * NX; ++a) Mxx[a * ms] += Pj[a];
 #if NG > 0
   if (mu) {
     double mk[NG], hg[NX * NX], x[NX];
@@ -588,7 +592,7 @@ static inline int state_curvature(work_t* wkp, long n, long ns, long j, long i, 
       load_state(X, j, ns, i, x);
       if (CALL2(lfm_con_hess, x, mk, hg)) return 1;
       for (int r = 0; r < NX; ++r)
-        for (int c = 0; c < NX; ++c) Mxx[r * NX + c] += hg[r + c * NX];
+        for (int c = 0; c < NX; ++c) Mxx[(r * NX + c) * ms] += hg[r + c * NX];
     }
   }
 #else
@@ -621,47 +625,109 @@ static inline void add_columns(double* H, long nut, long k, long cols, const dou
 #define CURV_XU (NX * NX)                /* lfm_step_curv: offset of A' V B + M[x, u] */
 #define CURV_UU (CURV_XU + NX * NU)      /* of B' V B + M[u, u] */
 #define CURV_ATL (CURV_UU + NU * NU)     /* of A' lambda */
+#define CURV_OUT (CURV_ATL + NX)         /* lfm_step_curv's values */
+
+/* Scenario i at step k: its adjoint lambda_k and the curvature V_{k+1} (entry a at V[a vs];
+   from what it carried from step k + 1, in next). */
+static inline int hessian_point_in(work_t* wkp, long n, long ns, long k, long i,
+    const double* X, const double* Jg, const double* mu, const double* goal, const double* Wq,
+    int diag, double scale, const double* next, double* lam, double* V, long vs) {
+  const double* carried = k + 1 < n ? next + i * CARRY : NULL; /* none at the last step */
+  const double* ATl_next = carried;                     /* A_{k+1}' lambda_{k+1} */
+  const double* P_next = carried ? carried + NX : NULL; /* P_{k+1} */
+  step_adjoint(n, ns, k, i, X, Jg, mu, goal, Wq, diag, scale, ATl_next, lam);
+  /* V_{k+1} = scale Wq + Hessian of mu' g at x_{k+1} + P_{k+1}: the curvature of
+     everything after x_{k+1} as a function of x_{k+1} */
+  return state_curvature(wkp, n, ns, k + 1, i, X, P_next, mu, Wq, scale, V, vs);
+}
+
+/* Scenario i at step k, given lfm_step_curv's values (entry e at o[e os]): what it carries
+   to step k - 1 (into now) and its terms of H. */
+static inline void hessian_point_out(long n, long ns, long k, long i, const double* S,
+    const double* o, long os, double* now, double* H) {
+  const long nut = n * NU;
+  double* mine = now + i * CARRY;
+  double xu[NX * NU];
+  for (int e = 0; e < NX; ++e) mine[e] = o[(CURV_ATL + e) * os];
+  for (int e = 0; e < NX * NX; ++e) mine[NX + e] = o[e * os];
+  for (int e = 0; e < NX * NU; ++e) xu[e] = o[(CURV_XU + e) * os];
+  /* diagonal block: B_k' V_{k+1} B_k + M_k[u, u] */
+  for (int p = 0; p < NU; ++p)
+    for (int q = 0; q < NU; ++q)
+      H[(k * NU + p) * nut + k * NU + q] += o[(CURV_UU + p * NU + q) * os];
+  /* blocks (a, k), a < k: S_k' (A_k' V_{k+1} B_k + M_k[x, u]), S_k = dx_k/du_0..k-1
+     (column block a: A_{k-1} ... A_{a+1} B_a) */
+  if (k > 0)
+    add_columns(H, nut, k, k * NU, S + S_OFF(k - 1, ns) + i * NX * k * NU, k * NU, xu);
+}
+
+#ifdef LFM_STEP_CURV_INLINE
+#define CURV_BLOCK 32 /* scenarios whose lfm_step_curv is evaluated together */
+/* lfm_step_curv of nb (<= CURV_BLOCK) scenarios of one step in one vectorisable loop: their
+   states x (stride ns), forces w (scenario stride si, component stride sa), adjoints and
+   curvatures from Lb and Vb and the values into Ob (entry e of scenario b at e CURV_BLOCK +
+   b). On its own, so that only this loop has the x86-64-v3 version (LFM_CLONES). */
+LFM_CLONES static void curv_block(long nb, const double* x, long ns, const double* u,
+    const double* w, long sa, long si, const double* p, const double* Lb, const double* Vb,
+    double* Ob) {
+#pragma omp simd
+  for (long b = 0; b < nb; ++b)
+    lfm_step_curv_inline(x + b, ns, u, w + b * si, sa, p, Lb + b, Vb + b, CURV_BLOCK, Ob + b);
+}
+
 static int hessian_chunk(work_t* wkp, long n, long ns, long i0, long i1, const double* X,
     const double* W, long sa, long sk, long si, const double* u, const double* P,
     const double* S, const double* Jg, const double* mu, const double* goal, const double* Wq,
     int diag, double scale, double* carry, double* H) {
-  work_t wk = *wkp;
-  const long nut = n * NU;
-  double lam[NX], V[NX * NX], out[CURV_ATL + NX], x[NX], wv[NW + 1];
+  double lam[NX];
+  double Lb[NX * CURV_BLOCK], Vb[NX * NX * CURV_BLOCK], Ob[CURV_OUT * CURV_BLOCK];
   double* now = carry;               /* step k: A_k' lambda_k, P_k */
   double* next = carry + ns * CARRY; /* step k + 1 */
   int status = 0;
   for (long k = n - 1; k >= 0 && !status; --k) {
-    for (long i = i0; i < i1 && !status; ++i) {
-      const double* carried = k + 1 < n ? next + i * CARRY : NULL; /* none at the last step */
-      const double* ATl_next = carried;                     /* A_{k+1}' lambda_{k+1} */
-      const double* P_next = carried ? carried + NX : NULL; /* P_{k+1} */
-      step_adjoint(n, ns, k, i, X, Jg, mu, goal, Wq, diag, scale, ATl_next, lam);
-      /* V_{k+1} = scale Wq + Hessian of mu' g at x_{k+1} + P_{k+1}: the curvature of
-         everything after x_{k+1} as a function of x_{k+1} */
-      status = state_curvature(wkp, n, ns, k + 1, i, X, P_next, mu, Wq, scale, V);
+    for (long b0 = i0; b0 < i1 && !status; b0 += CURV_BLOCK) {
+      const long nb = b0 + CURV_BLOCK < i1 ? CURV_BLOCK : i1 - b0;
+      for (long b = 0; b < nb && !status; ++b) {
+        status = hessian_point_in(wkp, n, ns, k, b0 + b, X, Jg, mu, goal, Wq, diag, scale,
+                                  next, lam, Vb + b, CURV_BLOCK);
+        for (int e = 0; e < NX; ++e) Lb[e * CURV_BLOCK + b] = lam[e];
+      }
       if (status) break;
-      load_state(X, k, ns, i, x);
-      gather(W, sa, sk, si, k, i, wv);
-      status = CALL6(lfm_step_curv, x, u + k * NU, wv, P + k * NP_STEP_CURV, lam, V, out);
-      if (status) break;
-      double* mine = now + i * CARRY;
-      memcpy(mine, out + CURV_ATL, NX * sizeof(double));
-      memcpy(mine + NX, out, NX * NX * sizeof(double));
-      /* diagonal block: B_k' V_{k+1} B_k + M_k[u, u] */
-      for (int p = 0; p < NU; ++p)
-        for (int q = 0; q < NU; ++q)
-          H[(k * NU + p) * nut + k * NU + q] += out[CURV_UU + p * NU + q];
-      /* blocks (a, k), a < k: S_k' (A_k' V_{k+1} B_k + M_k[x, u]), S_k = dx_k/du_0..k-1
-         (column block a: A_{k-1} ... A_{a+1} B_a) */
-      if (k > 0)
-        add_columns(H, nut, k, k * NU, S + S_OFF(k - 1, ns) + i * NX * k * NU, k * NU,
-                    out + CURV_XU);
+      curv_block(nb, X + k * NX * ns + b0, ns, u + k * NU, W + k * sk + b0 * si, sa, si,
+                 P + k * NP_STEP_CURV, Lb, Vb, Ob);
+      for (long b = 0; b < nb; ++b)
+        hessian_point_out(n, ns, k, b0 + b, S, Ob + b, CURV_BLOCK, now, H);
     }
     double* t = now; now = next; next = t;
   }
   return status;
 }
+#else
+static int hessian_chunk(work_t* wkp, long n, long ns, long i0, long i1, const double* X,
+    const double* W, long sa, long sk, long si, const double* u, const double* P,
+    const double* S, const double* Jg, const double* mu, const double* goal, const double* Wq,
+    int diag, double scale, double* carry, double* H) {
+  work_t wk = *wkp;
+  double lam[NX], V[NX * NX], out[CURV_OUT], x[NX], wv[NW + 1];
+  double* now = carry;               /* step k: A_k' lambda_k, P_k */
+  double* next = carry + ns * CARRY; /* step k + 1 */
+  int status = 0;
+  for (long k = n - 1; k >= 0 && !status; --k) {
+    for (long i = i0; i < i1 && !status; ++i) {
+      status = hessian_point_in(wkp, n, ns, k, i, X, Jg, mu, goal, Wq, diag, scale, next, lam,
+                                V, 1);
+      if (status) break;
+      load_state(X, k, ns, i, x);
+      gather(W, sa, sk, si, k, i, wv);
+      status = CALL6(lfm_step_curv, x, u + k * NU, wv, P + k * NP_STEP_CURV, lam, V, out);
+      if (status) break;
+      hessian_point_out(n, ns, k, i, S, out, 1, now, H);
+    }
+    double* t = now; now = next; next = t;
+  }
+  return status;
+}
+#endif
 
 /* The scratch lfm_hessian needs for Ns scenarios, in doubles. */
 CASADI_SYMBOL_EXPORT long lfm_hessian_scratch(long ns) { return 2 * ns * CARRY + 1; }

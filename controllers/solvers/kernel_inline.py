@@ -69,6 +69,42 @@ def function_body(source: str, name: str) -> str:
     return body.strip("\n") + "\n"
 
 
+# The point functions' inputs (x, u, w, p) on strided pointers: x by the state stride xs,
+# w by the force component stride ws.
+_POINT_READS = {0: "x_[{}*xs]", 1: "u_[{}]", 2: "w_[{}*ws]", 3: "p_[{}]"}
+_POINT_PARAMS = (
+    "const casadi_real* x_, long xs, const casadi_real* u_, const casadi_real* w_,\n"
+    "    long ws, const casadi_real* p_"
+)
+
+
+def _inline(source: str, fn: ca.Function, name: str, reads: dict, params: str, write) -> str:
+    """``static inline void name(params)``: the generated body of ``fn`` with its input
+    ``i``'s ``j``-th value read as ``reads[i].format(j)`` and its ``j``-th output value
+    written as ``write(j)``; and ``#define`` of ``name`` in capitals (the driver's switch).
+
+    Raises:
+        NotInlinable: ``fn`` has other inputs than ``reads`` or more than one output, or its
+            body reads or writes other than element by element (work arrays, calls of other
+            generated functions).
+    """
+    if fn.n_in() != len(reads) or fn.n_out() != 1:
+        raise NotInlinable(f"{fn.name()}: expected {len(reads)} inputs and 1 output")
+    body = function_body(source, fn.name())
+    body = _ARG.sub(lambda m: reads[int(m.group(1))].format(m.group(2)), body)
+    body = _RES.sub(lambda m: write(int(m.group(1))), body)
+    body = _MATH.sub(lambda m: f"lfm_v{m.group(1)}(", body)
+    leftover = re.search(r"\b(arg|res|iw|w)\[|casadi_f\d+\(", body)
+    if leftover:
+        raise NotInlinable(f"{fn.name()}: cannot rewrite {leftover.group(0)!r}")
+    unused = " ".join(f"(void){p.split()[-1].lstrip('*')};" for p in params.split(","))
+    return (
+        f"#define {name.upper()} 1\n"
+        f"static inline __attribute__((always_inline)) void {name}(\n"
+        f"    {params}) {{\n  {unused}\n" + body + "}\n"
+    )
+
+
 def inline_step(source: str, fn: ca.Function, nx: int) -> str:
     """``lfm_step_inline``: the body of ``fn`` (``lfm_step(x, u, w, p) -> [F; g(F)]``, as
     generated in ``source``) on strided pointers.
@@ -77,31 +113,31 @@ def inline_step(source: str, fn: ca.Function, nx: int) -> str:
     outputs ``F`` to ``xo_`` (stride ``xs``) and ``g(F)`` to ``go_`` (stride ``gs``).
 
     Raises:
-        NotInlinable: the body reads or writes other than element by element (work arrays,
-            calls of other generated functions), or has more than the four inputs.
+        NotInlinable: as :func:`_inline` (four inputs).
     """
-    if fn.n_in() != 4 or fn.n_out() != 1:
-        raise NotInlinable(f"{fn.name()}: expected 4 inputs and 1 output")
-    body = function_body(source, fn.name())
-    reads = {0: "x_[{}*xs]", 1: "u_[{}]", 2: "w_[{}*ws]", 3: "p_[{}]"}
-    body = _ARG.sub(lambda m: reads[int(m.group(1))].format(m.group(2)), body)
 
-    def write(m: re.Match) -> str:
-        j = int(m.group(1))
+    def write(j: int) -> str:
         return f"xo_[{j}*xs]=" if j < nx else f"go_[{j - nx}*gs]="
 
-    body = _RES.sub(write, body)
-    body = _MATH.sub(lambda m: f"lfm_v{m.group(1)}(", body)
-    leftover = re.search(r"\b(arg|res|iw|w)\[|casadi_f\d+\(", body)
-    if leftover:
-        raise NotInlinable(f"{fn.name()}: cannot rewrite {leftover.group(0)!r}")
-    return (
-        "#define LFM_STEP_INLINE 1\n"
-        "static inline __attribute__((always_inline)) void lfm_step_inline(\n"
-        "    const casadi_real* x_, long xs, const casadi_real* u_, const casadi_real* w_,\n"
-        "    long ws, const casadi_real* p_, casadi_real* xo_, casadi_real* go_, long gs) {\n"
-        "  (void)u_; (void)w_; (void)ws; (void)p_; (void)go_; (void)gs;\n" + body + "}\n"
+    params = _POINT_PARAMS + ", casadi_real* xo_, casadi_real* go_, long gs"
+    return _inline(source, fn, "lfm_step_inline", _POINT_READS, params, write)
+
+
+def inline_step_curv(source: str, fn: ca.Function) -> str:
+    """``lfm_step_curv_inline``: the body of ``fn`` (``lfm_step_curv(x, u, w, p, lam, v)``,
+    one step of the Hessian's backward recursion) on strided pointers: ``x_``, ``u_``,
+    ``w_``, ``p_`` as in :func:`inline_step`, ``l_`` and ``v_`` (``lam`` and ``v``) by the
+    block stride ``bs``, its ``j``-th value written to ``o_[j * bs]``.
+
+    Raises:
+        NotInlinable: as :func:`_inline` (six inputs).
+    """
+    reads = {**_POINT_READS, 4: "l_[{}*bs]", 5: "v_[{}*bs]"}
+    params = (
+        _POINT_PARAMS
+        + ",\n    const casadi_real* l_, const casadi_real* v_, long bs, casadi_real* o_"
     )
+    return _inline(source, fn, "lfm_step_curv_inline", reads, params, lambda j: f"o_[{j}*bs]=")
 
 
 __all__ = [
@@ -110,4 +146,5 @@ __all__ = [
     "VECTOR_MATH_DECLARATIONS",
     "function_body",
     "inline_step",
+    "inline_step_curv",
 ]

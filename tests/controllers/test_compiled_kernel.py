@@ -460,8 +460,9 @@ def test_the_fast_solver_with_kernel_threads_reaches_the_same_plan(paper) -> Non
 
 
 def test_the_rollout_is_vectorised_with_vector_math_where_glibc_has_it(paper_models) -> None:
-    """The bicycle's step is inlined into the rollout's scenario loop; with glibc's libmvec
-    on the machine (as on the test machines) its sines and cosines are the vector ones."""
+    """The bicycle's step (and the Hessian's recursion step) are inlined into the scenario
+    loops; with glibc's libmvec on the machine (as on the test machines) their sines and
+    cosines are the vector ones."""
     model = paper_models["c"]
     expected = 2 if ctypes.util.find_library("mvec") else 1
     assert model.vector_math == expected
@@ -506,19 +507,26 @@ def test_the_baseline_version_of_the_vectorised_rollout_is_the_same(
         _assert_same(ref, _everything(model, paper, x0, W, u, mu))
 
 
+@pytest.mark.parametrize("refused", ["inline_step", "inline_step_curv", "both"])
 def test_a_step_that_cannot_be_inlined_keeps_the_call_per_scenario(
-    paper, paper_models, fresh_cache, monkeypatch
+    refused, paper, paper_models, fresh_cache, monkeypatch
 ) -> None:
-    """When the rewrite of the generated step fails (kernel_inline.NotInlinable), the kernel
-    calls the generated step once per scenario, with the same outputs."""
+    """When the rewrite of a generated step function fails (kernel_inline.NotInlinable), the
+    kernel calls it once per scenario (the rollout's step, the Hessian's recursion step, or
+    both), with the same outputs."""
 
     def refuse(*_args, **_kwargs):
         raise kernel_inline.NotInlinable("refused by the test")
 
-    monkeypatch.setattr(compiled, "inline_step", refuse)
-    assert "#define LFM_STEP_INLINE" not in compiled.kernel_source(paper.system, paper.dt)
+    names = ["inline_step", "inline_step_curv"] if refused == "both" else [refused]
+    for name in names:
+        monkeypatch.setattr(compiled, name, refuse)
+    source = compiled.kernel_source(paper.system, paper.dt)
+    assert ("#define LFM_STEP_INLINE" in source) == ("inline_step" not in names)
+    assert ("#define LFM_STEP_CURV_INLINE" in source) == ("inline_step_curv" not in names)
     model = CondensedModel(paper, kernel="c")
-    assert model.backend == "compiled-c" and model.vector_math == 0
+    assert model.backend == "compiled-c"
+    assert (model.vector_math == 0) == (refused == "both")
     i = 2
     x0, W, u = DATA["x0"][i], DATA["W"][i], DATA["reference_u"][i].ravel()
     mu = _multipliers(paper, W.shape[0], i)
@@ -538,6 +546,8 @@ def test_the_inline_rewrite_reads_and_writes_plain_strided_pointers(paper) -> No
     nx, ng = paper.system.nx, paper.system.ng
     assert all(f"xo_[{j}*xs]=" in text for j in range(nx))
     assert all(f"go_[{j}*gs]=" in text for j in range(ng))
-    jac = next(f for f in fns if f.name() == "lfm_step_curv")  # six inputs
+    curv = next(f for f in fns if f.name() == "lfm_step_curv")  # six inputs
     with pytest.raises(kernel_inline.NotInlinable, match="4 inputs"):
-        kernel_inline.inline_step(code, jac, nx)
+        kernel_inline.inline_step(code, curv, nx)
+    text = kernel_inline.inline_step_curv(code, curv)
+    assert "arg[" not in text and "res[" not in text and "l_[0*bs]" in text
