@@ -46,8 +46,10 @@ from controllers.solvers.kernel_driver import DRIVER
 from controllers.solvers.kernel_inline import (
     VECTOR_MATH_DECLARATIONS,
     NotInlinable,
+    inline_con_jac,
     inline_step,
     inline_step_curv,
+    inline_step_jac,
 )
 
 CACHE_ENV = "LFM_CACHE_DIR"
@@ -219,12 +221,18 @@ def kernel_source(system, dt: float) -> str:
     work = " ".join(f"W({f.name()});" for f in fns)
     code = cg.dump()
     by_name = {f.name(): f for f in fns}
-    # The rollout's and the Hessian's vectorisable paths (else a call per scenario).
+    # The vectorisable paths of the rollout, the Hessian and the linearisation (else a call
+    # per scenario).
     inline = VECTOR_MATH_DECLARATIONS + "\n"
     with contextlib.suppress(NotInlinable):
         inline += inline_step(code, by_name["lfm_step"], system.nx)
     with contextlib.suppress(NotInlinable):
         inline += inline_step_curv(code, by_name["lfm_step_curv"])
+    with contextlib.suppress(NotInlinable):
+        inline += inline_step_jac(code, by_name["lfm_step_jac"])
+    if "lfm_con_jac" in by_name:
+        with contextlib.suppress(NotInlinable):
+            inline += inline_con_jac(code, by_name["lfm_con_jac"])
     return code + "\n" + defines + "\n" + inline + DRIVER.replace("@WORK@", work)
 
 

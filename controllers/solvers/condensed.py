@@ -158,7 +158,8 @@ class CondensedModel:
         compile_time: [s] building the C kernel in this constructor (generation, and
             compilation unless cached; 0 for the other backends).
         cache_hit: the C kernel came from the disk cache or this process (no compiler run).
-        vector_math: how the C kernel's rollout and Hessian run over the scenarios: 2 in
+        vector_math: how the C kernel's rollout, linearisation and Hessian evaluate the
+            system's functions over the scenarios: 2 in
             vectorised loops with libmvec's vector sine, cosine, exp, log and pow; 1
             vectorised loops with scalar math; 0 one call per scenario (``kernel_inline``;
             0 without a kernel).
@@ -209,8 +210,8 @@ class CondensedModel:
                 )
         # The kernel runs its chunks in threads (compiled with OpenMP).
         self.openmp = self._lib is not None and bool(self._lib.lfm_openmp())
-        # Its rollout's and Hessian's loops over scenarios: 2 vectorised with glibc's vector
-        # math (libmvec), 1 vectorisable without it, 0 one generated call per scenario.
+        # Its loops over scenarios (rollout, linearisation, Hessian): 2 vectorised with
+        # glibc's vector math (libmvec), 1 vectorisable without it, 0 one call per scenario.
         self.vector_math = int(self._lib.lfm_vector_math()) if self._lib is not None else 0
 
         # --- the generated derivative functions, evaluated on all points at once ---

@@ -32,13 +32,16 @@ static long chunks(long nthreads, long ns) {
   return ns < T ? (ns > 0 ? ns : 1) : T;
 }
 CASADI_SYMBOL_EXPORT int lfm_vector_math(void) {
-  /* 2: the rollout's and the Hessian's loops over scenarios call the generated step
-     functions inlined (vectorisable) and with libmvec's vector math, 1: inlined, 0: one call
-     of a generated function per scenario (for either when 1 or 2: see LFM_STEP_INLINE,
-     LFM_STEP_CURV_INLINE). */
-#if (defined(LFM_STEP_INLINE) || defined(LFM_STEP_CURV_INLINE)) && defined(LFM_VECTOR_MATH_USED)
+  /* 2: loops over scenarios call the generated point functions inlined (vectorisable) and
+     with libmvec's vector math, 1: inlined, 0: one call of a generated function per scenario
+     everywhere (which are inlined: LFM_STEP_INLINE, LFM_STEP_CURV_INLINE,
+     LFM_STEP_JAC_INLINE, LFM_CON_JAC_INLINE). */
+#if defined(LFM_STEP_INLINE) || defined(LFM_STEP_CURV_INLINE) || defined(LFM_STEP_JAC_INLINE)
+#define LFM_ANY_INLINE 1
+#endif
+#if defined(LFM_ANY_INLINE) && defined(LFM_VECTOR_MATH_USED)
   return 2;
-#elif defined(LFM_STEP_INLINE) || defined(LFM_STEP_CURV_INLINE)
+#elif defined(LFM_ANY_INLINE)
   return 1;
 #else
   return 0;
@@ -271,45 +274,97 @@ CASADI_SYMBOL_EXPORT int lfm_rollout(long n, long ns, const double* x0T, const d
   return status;
 }
 
-/* Scenarios i0 <= i < i1 of lfm_linearise; their gradient terms added into grad. */
+#ifdef LFM_STEP_JAC_INLINE
+#define JAC_BLOCK 32 /* scenarios whose Jacobians are evaluated together */
+/* The step Jacobians (into Jb) and, with constraints, the constraint Jacobians at the next
+   states (into Cb) of nb (<= JAC_BLOCK) scenarios of one step, each in one vectorisable loop
+   (entry e of scenario b at e JAC_BLOCK + b). On its own, so that only these loops have the
+   x86-64-v3 version (LFM_CLONES). */
+LFM_CLONES static void jac_block(long nb, const double* x, long ns, const double* u,
+    const double* w, long sa, long si, const double* p, double* Jb, double* Cb) {
+#pragma omp simd
+  for (long b = 0; b < nb; ++b)
+    lfm_step_jac_inline(x + b, ns, u, w + b * si, sa, p, JAC_BLOCK, Jb + b);
+#if NG > 0 && defined(LFM_CON_JAC_INLINE)
+#pragma omp simd
+  for (long b = 0; b < nb; ++b) lfm_con_jac_inline(x + NX * ns + b, ns, JAC_BLOCK, Cb + b);
+#else
+  (void)Cb;
+#endif
+}
+#endif
+
+/* Scenarios i0 <= i < i1 of lfm_linearise; their gradient terms added into grad. With the
+   Jacobians inlined (LFM_STEP_JAC_INLINE), a step's scenarios in blocks: their Jacobians
+   first (jac_block), then each one's products. */
 static int linearise_chunk(work_t* wkp, long n, long ns, long i0, long i1, const double* X,
     const double* W, long sa, long sk, long si, const double* u, const double* P,
     const double* goal, const double* Wq, int diag, double scale, double* S, double* Jg,
     double* grad) {
   work_t wk = *wkp;
-  double x[NX], J[NX * NZ], gx[NX], wv[NW + 1];
-  const double* Ak = J;           /* lfm_step_jac: A_k (NX, NX) row-major, */
-  const double* Bk = J + NX * NX; /* then B_k (NX, NU) row-major */
+  double x[NX], gx[NX], wv[NW + 1];
+  /* The step Jacobian of scenario i: A_k (NX, NX) then B_k (NX, NU), row-major, entry e at
+     Jp[e js] (from lfm_step_jac's call, or a column of the block's values) */
+#ifdef LFM_STEP_JAC_INLINE
+  double Jb[NX * NZ * JAC_BLOCK], Cb[NG * NX * JAC_BLOCK + 1];
+  const long js = JAC_BLOCK;
+  (void)wv;
+#else
+  double J[NX * NZ];
+  const double* Jp = J;
+  const long js = 1;
+#endif
   int status = 0;
   for (long k = 0; k < n && !status; ++k) {
     for (long i = i0; i < i1 && !status; ++i) {
+#ifdef LFM_STEP_JAC_INLINE
+      const long b = (i - i0) % JAC_BLOCK;
+      if (b == 0)
+        jac_block(i1 - i < JAC_BLOCK ? i1 - i : JAC_BLOCK, X + k * NX * ns + i, ns, u + k * NU,
+                  W + k * sk + i * si, sa, si, P + k * NP_STEP_JAC, Jb, Cb);
+      const double* Jp = Jb + b;
+#else
       load_state(X, k, ns, i, x);
       gather(W, sa, sk, si, k, i, wv);
       status = CALL4(lfm_step_jac, x, u + k * NU, wv, P + k * NP_STEP_JAC, J);
+#endif
       const long cols = k * NU, width = cols + NU; /* S_{k+1} = [A_k S_k, B_k] */
       double* Sk = S + S_OFF(k, ns) + i * NX * width;
       const double* Sp = k ? S + S_OFF(k - 1, ns) + i * NX * cols : NULL;
       for (int r = 0; r < NX; ++r) {
         double* row = Sk + r * width;
+        double a[NX];
+        for (int m = 0; m < NX; ++m) a[m] = Jp[(r * NX + m) * js];
         for (long c = 0; c < cols; ++c) {
           double s = 0.0;
           for (int m = 0; m < NX; ++m)
-            if (A_NZ[r * NX + m]) s += Ak[r * NX + m] * Sp[m * cols + c];
+            if (A_NZ[r * NX + m]) s += a[m] * Sp[m * cols + c];
           row[c] = s;
         }
-        for (int b = 0; b < NU; ++b) row[cols + b] = Bk[r * NU + b];
+        for (int q = 0; q < NU; ++q) row[cols + q] = Jp[(NX * NX + r * NU + q) * js];
       }
       load_state(X, k + 1, ns, i, x);
 #if NG > 0
-      status |= CALL1(lfm_con_jac, x, Jg + (k * ns + i) * NG * NX); /* (NG, NX) row-major */
+      double* Jgi = Jg + (k * ns + i) * NG * NX; /* (NG, NX) row-major */
+#if defined(LFM_STEP_JAC_INLINE) && defined(LFM_CON_JAC_INLINE)
+      for (int e = 0; e < NG * NX; ++e) Jgi[e] = Cb[e * JAC_BLOCK + b];
+#else
+      status |= CALL1(lfm_con_jac, x, Jgi);
+#endif
 #else
       (void)Jg;
 #endif
       weighted(x, goal, Wq + k * NX * NX, diag, scale, gx);
-      for (int r = 0; r < NX; ++r)
-        for (long c = 0; c < width; ++c) grad[c] += gx[r] * Sk[r * width + c];
+      /* (each entry of grad once per scenario: its updates are one long chain through
+         memory, and NX updates per entry made that chain the call's bottleneck) */
+      for (long c = 0; c < width; ++c) {
+        double t = 0.0;
+        for (int r = 0; r < NX; ++r) t += gx[r] * Sk[r * width + c];
+        grad[c] += t;
+      }
     }
   }
+  (void)wk;
   return status;
 }
 

@@ -137,7 +137,36 @@ def inline_step_curv(source: str, fn: ca.Function) -> str:
         _POINT_PARAMS
         + ",\n    const casadi_real* l_, const casadi_real* v_, long bs, casadi_real* o_"
     )
-    return _inline(source, fn, "lfm_step_curv_inline", reads, params, lambda j: f"o_[{j}*bs]=")
+    return _inline(source, fn, "lfm_step_curv_inline", reads, params, _block_write)
+
+
+def inline_step_jac(source: str, fn: ca.Function) -> str:
+    """``lfm_step_jac_inline``: the body of ``fn`` (``lfm_step_jac(x, u, w, p)``: ``A`` then
+    ``B``, row-major) with the inputs of :func:`inline_step` and its ``j``-th value written
+    to ``o_[j * bs]``.
+
+    Raises:
+        NotInlinable: as :func:`_inline` (four inputs).
+    """
+    params = _POINT_PARAMS + ", long bs, casadi_real* o_"
+    return _inline(source, fn, "lfm_step_jac_inline", _POINT_READS, params, _block_write)
+
+
+def inline_con_jac(source: str, fn: ca.Function) -> str:
+    """``lfm_con_jac_inline``: the body of ``fn`` (``lfm_con_jac(x)``, the constraints'
+    Jacobian ``(ng, nx)`` row-major) with ``x`` read as ``x_[j * xs]`` and its ``j``-th value
+    written to ``o_[j * bs]``.
+
+    Raises:
+        NotInlinable: as :func:`_inline` (one input).
+    """
+    params = "const casadi_real* x_, long xs, long bs, casadi_real* o_"
+    return _inline(source, fn, "lfm_con_jac_inline", {0: "x_[{}*xs]"}, params, _block_write)
+
+
+def _block_write(j: int) -> str:
+    """The ``j``-th output value into a block of scenarios (stride ``bs``)."""
+    return f"o_[{j}*bs]="
 
 
 __all__ = [
@@ -145,6 +174,8 @@ __all__ = [
     "VECTOR_MATH",
     "VECTOR_MATH_DECLARATIONS",
     "function_body",
+    "inline_con_jac",
     "inline_step",
     "inline_step_curv",
+    "inline_step_jac",
 ]

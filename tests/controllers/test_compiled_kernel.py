@@ -507,26 +507,30 @@ def test_the_baseline_version_of_the_vectorised_rollout_is_the_same(
         _assert_same(ref, _everything(model, paper, x0, W, u, mu))
 
 
-@pytest.mark.parametrize("refused", ["inline_step", "inline_step_curv", "both"])
+INLINERS = ("inline_step", "inline_step_curv", "inline_step_jac", "inline_con_jac")
+
+
+@pytest.mark.parametrize("refused", [*INLINERS, "all"])
 def test_a_step_that_cannot_be_inlined_keeps_the_call_per_scenario(
     refused, paper, paper_models, fresh_cache, monkeypatch
 ) -> None:
-    """When the rewrite of a generated step function fails (kernel_inline.NotInlinable), the
-    kernel calls it once per scenario (the rollout's step, the Hessian's recursion step, or
-    both), with the same outputs."""
+    """When the rewrite of a generated point function fails (kernel_inline.NotInlinable),
+    the kernel calls it once per scenario (the rollout's step, the Hessian's recursion step,
+    the linearisation's step or constraint Jacobian, or all), with the same outputs."""
 
     def refuse(*_args, **_kwargs):
         raise kernel_inline.NotInlinable("refused by the test")
 
-    names = ["inline_step", "inline_step_curv"] if refused == "both" else [refused]
+    names = list(INLINERS) if refused == "all" else [refused]
     for name in names:
         monkeypatch.setattr(compiled, name, refuse)
     source = compiled.kernel_source(paper.system, paper.dt)
-    assert ("#define LFM_STEP_INLINE" in source) == ("inline_step" not in names)
-    assert ("#define LFM_STEP_CURV_INLINE" in source) == ("inline_step_curv" not in names)
+    for name in INLINERS:
+        define = "#define LFM_" + name.removeprefix("inline_").upper() + "_INLINE"
+        assert (define in source) == (name not in names), define
     model = CondensedModel(paper, kernel="c")
     assert model.backend == "compiled-c"
-    assert (model.vector_math == 0) == (refused == "both")
+    assert (model.vector_math == 0) == (refused == "all")
     i = 2
     x0, W, u = DATA["x0"][i], DATA["W"][i], DATA["reference_u"][i].ravel()
     mu = _multipliers(paper, W.shape[0], i)
@@ -551,3 +555,11 @@ def test_the_inline_rewrite_reads_and_writes_plain_strided_pointers(paper) -> No
         kernel_inline.inline_step(code, curv, nx)
     text = kernel_inline.inline_step_curv(code, curv)
     assert "arg[" not in text and "res[" not in text and "l_[0*bs]" in text
+    jac = next(f for f in fns if f.name() == "lfm_step_jac")
+    text = kernel_inline.inline_step_jac(code, jac)
+    assert all(f"o_[{j}*bs]=" in text for j in range(nx * (nx + paper.system.nu)))
+    con = next(f for f in fns if f.name() == "lfm_con_jac")
+    text = kernel_inline.inline_con_jac(code, con)
+    assert "arg[" not in text and all(f"o_[{j}*bs]=" in text for j in range(ng * nx))
+    with pytest.raises(kernel_inline.NotInlinable, match="1 inputs"):
+        kernel_inline.inline_con_jac(code, jac)
