@@ -1,17 +1,22 @@
-"""The step's generated C as an inline function the rollout can vectorise across scenarios.
+"""The system's generated point functions as inline C the kernel's scenario loops vectorise.
 
 CasADi writes a function as C that reads its inputs through ``const casadi_real** arg`` and
 writes through ``casadi_real** res`` (each checked for NULL). Called once per scenario, it
-keeps the compiler from vectorising the scenario loop: it cannot see through the pointer
-arrays. :func:`inline_step` rewrites the generated body of ``lfm_step`` (straight-line code
-of an SX function: scalar temporaries, arithmetic and math calls) into a ``static inline``
-function of plain strided pointers, which the driver calls inside a ``#pragma omp simd``
-loop over the scenarios of one step (the driver's ``LFM_STEP_INLINE`` path).
+keeps the compiler from vectorising the loop over the scenarios: it cannot see through the
+pointer arrays. The functions here rewrite the generated body of a point function (straight-
+line code of an SX function: scalar temporaries, arithmetic and math calls) into a ``static
+inline`` function of plain strided pointers, which the driver
+(:data:`controllers.solvers.kernel_driver.DRIVER`) calls inside ``#pragma omp simd`` loops over
+the scenarios of one step: the rollout's step (:func:`inline_step`), the Hessian's recursion
+step (:func:`inline_step_curv`) and the linearisation's step and constraint Jacobians
+(:func:`inline_step_jac`, :func:`inline_con_jac`). Each defines a macro (``LFM_STEP_INLINE``,
+...) that switches the driver to its vectorisable path; a body the rewrite does not handle
+raises :class:`NotInlinable` and the driver keeps one call per scenario there.
 
 The math functions glibc's vector math library (libmvec) has had since 2.22 (``sin``,
 ``cos``, ``exp``, ``log``, ``pow``) are renamed ``lfm_v*``: with ``LFM_VECTOR_MATH`` defined
 (the kernel is built with ``-lmvec``) these are declared as the same C functions under the
-same symbols, with GCC's ``simd`` attribute, so the vectorised loop calls libmvec's variants
+same symbols, with GCC's ``simd`` attribute, so the vectorised loops call libmvec's variants
 (``_ZGVbN2v_sin`` and so on); else they are the plain functions. (Under their own names the
 compiler would also merge ``sin(a)`` and ``cos(a)`` into one scalar ``sincos``, which has no
 such variant and stops the vectorisation.)
