@@ -113,13 +113,13 @@ static int diagonal(const double* Wq, long n) {
   return 1;
 }
 
-/* Weighted state error: out = scale Wk (x - goal); returns (x - goal)' Wk (x - goal). diag:
-   Wk is diagonal (diagonal()). */
-static inline __attribute__((always_inline)) double weighted(const double* x,
-                       const double* goal, const double* Wk, int diag,
-                       double scale, double* out) {
+/* Weighted state error of the state x[m xs] (m < NX): out = scale Wk (x - goal); returns
+   (x - goal)' Wk (x - goal). diag: Wk is diagonal (diagonal()). Always inlined: with diag
+   and out constants at a call, the branches on them fold away (the vectorised rollout). */
+static inline __attribute__((always_inline)) double weighted_at(const double* x, long xs,
+    const double* goal, const double* Wk, int diag, double scale, double* out) {
   double e[NX], c = 0.0;
-  for (int m = 0; m < NX; ++m) e[m] = x[m] - goal[m];
+  for (int m = 0; m < NX; ++m) e[m] = x[m * xs] - goal[m];
   for (int m = 0; m < NX; ++m) {
     double s = 0.0;
     if (diag)
@@ -130,6 +130,12 @@ static inline __attribute__((always_inline)) double weighted(const double* x,
     c += e[m] * s;
   }
   return c;
+}
+
+/* weighted_at of a contiguous state. */
+static inline __attribute__((always_inline)) double weighted(const double* x,
+    const double* goal, const double* Wk, int diag, double scale, double* out) {
+  return weighted_at(x, 1, goal, Wk, diag, scale, out);
 }
 
 /* The force of step k, scenario i: W[a sa + k sk + i si] (strides in elements). */
@@ -177,29 +183,19 @@ LFM_CLONES static int rollout_chunk(work_t* wkp, long n, long ns, long i0, long 
     const double* pk = P + k * NP_STEP;
     const double* Wk = Wq + k * NX * NX;
     const double* wk = W + k * sk;
-    /* (two loops: a branch on diag inside would stop the vectorisation) */
+    /* (two loops, each with diag a constant: a branch on it inside would stop the
+       vectorisation) */
     if (diag) {
 #pragma omp simd
       for (long i = i0; i < i1; ++i) {
         lfm_step_inline(xk + i, ns, uk, wk + i * si, sa, pk, xn + i, gk + i, n * ns);
-        double c = 0.0;
-        for (int m = 0; m < NX; ++m) {
-          const double e = xn[m * ns + i] - goal[m];
-          c += e * (Wk[m * NX + m] * e);
-        }
-        ci[i - i0] += c;
+        ci[i - i0] += weighted_at(xn + i, ns, goal, Wk, 1, 1.0, NULL);
       }
     } else {
 #pragma omp simd
       for (long i = i0; i < i1; ++i) {
         lfm_step_inline(xk + i, ns, uk, wk + i * si, sa, pk, xn + i, gk + i, n * ns);
-        double c = 0.0;
-        for (int m = 0; m < NX; ++m) {
-          double s = 0.0;
-          for (int r = 0; r < NX; ++r) s += Wk[m * NX + r] * (xn[r * ns + i] - goal[r]);
-          c += (xn[m * ns + i] - goal[m]) * s;
-        }
-        ci[i - i0] += c;
+        ci[i - i0] += weighted_at(xn + i, ns, goal, Wk, 0, 1.0, NULL);
       }
     }
   }
