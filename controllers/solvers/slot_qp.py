@@ -319,13 +319,25 @@ class SlotQP:
 
         Returns:
             ``(row, column)``: each row's index in ``A`` (after the shared rows) and the
-            index of its group's slack column among the group columns. Rows and groups that
-            were in the previous call keep their slots.
+            index of its group's slack column among the group columns. For qpOASES, rows
+            and groups that were in the previous call keep their slots (its hot start);
+            the cold-started solvers (DAQP, PIQP) take the rows in the order given and the
+            groups in ascending order.
 
         Raises:
             ValueError: when the rows or groups exceed the capacities.
         """
         keys = np.asarray(keys, dtype=np.int64)
+        if self.solver != "qpoases":  # nothing to keep between calls: no slot bookkeeping
+            if keys.size > self.row_capacity:
+                raise ValueError(f"{keys.size} keys do not fit {self.row_capacity} slots")
+            rows = self.n_speed + np.arange(keys.size)
+            if not self.elastic:
+                return rows, np.full(keys.size, -1)
+            group_ids, inverse = np.unique(np.asarray(groups, dtype=np.int64), return_inverse=True)
+            if group_ids.size > self.group_capacity:
+                raise ValueError(f"{group_ids.size} keys do not fit {self.group_capacity} slots")
+            return rows, inverse
         if not self.elastic:  # no slack columns
             return self.n_speed + self._place(keys, self._slot_key), np.full(keys.size, -1)
         group_ids, inverse = np.unique(np.asarray(groups, dtype=np.int64), return_inverse=True)
