@@ -282,7 +282,21 @@ def build_kernel(system, dt: float) -> Kernel:
         KernelUnavailable: no compiler found, compilation failed or the library did not load.
     """
     start = time.perf_counter()
-    source = kernel_source(system, dt)
+    kernel = load_library(kernel_source(system, dt), "lfm_kernel")
+    _declare(kernel.lib)
+    kernel.build_time = time.perf_counter() - start
+    return kernel
+
+
+def load_library(source: str, stem: str) -> Kernel:
+    """The shared library of the C ``source``, compiled with the kernel's compiler and
+    flags (:data:`BUILDS`) and cached under :func:`cache_dir` as ``<stem>_<hash>.so``
+    (loaded once per process).
+
+    Raises:
+        KernelUnavailable: no compiler found, compilation failed or the library did not load.
+    """
+    start = time.perf_counter()
     compiler_env = os.environ.get("CC", "")
     flags = " ".join((*FLAGS, OPENMP_FLAG))  # (a build without OpenMP keeps the same key)
     key = hashlib.sha256((source + "\0" + flags).encode()).hexdigest()[:24]
@@ -290,7 +304,7 @@ def build_kernel(system, dt: float) -> Kernel:
     if lib is not None:
         path = Path(lib._name)
         return Kernel(lib, path, key, True, time.perf_counter() - start)
-    path = cache_dir() / f"lfm_kernel_{key}.so"
+    path = cache_dir() / f"{stem}_{key}.so"
     hit = path.is_file()
     if not hit:
         try:
@@ -302,7 +316,6 @@ def build_kernel(system, dt: float) -> Kernel:
         lib = ctypes.CDLL(str(path))
     except OSError as err:
         raise KernelUnavailable(f"cannot load {path}: {err} (CC={compiler_env!r})") from err
-    _declare(lib)
     _LOADED[key] = lib
     return Kernel(lib, path, key, hit, time.perf_counter() - start)
 
@@ -364,5 +377,6 @@ __all__ = [
     "forget_loaded",
     "fresh_cache",
     "kernel_source",
+    "load_library",
     "pointwise_functions",
 ]

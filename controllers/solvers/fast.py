@@ -29,7 +29,8 @@ the problem. Everything it knows about the system comes from the system definiti
 * **Exact penalty inside the QP.** One slack per (constraint, step), shared by its rows,
   as in the NLP; a dense QP whose rows keep their slots while they stay in it
   (:class:`~controllers.solvers.slot_qp.SlotQP`), solved by qpOASES with hot starts
-  while it is small and by PIQP when it is large (``qp_solver="auto"``).
+  while it is small and by the project's interior point with the slacks eliminated
+  (:mod:`~controllers.solvers.elastic_ipm`) when it is large (``qp_solver="auto"``).
 * **Globalisation.** A box trust region on the QP step (a fraction of each input's
   range: shrunk to half the accepted step after backtracking or when the merit falls by
   less than a quarter of what the QP model predicted, doubled after a full step that

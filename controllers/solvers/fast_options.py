@@ -62,7 +62,8 @@ class FastSolverOptions:
     damping_init: float = 1.0  # first Levenberg-Marquardt damping (trust_radius=0 only)
     damping_threshold: float = 0.1  # line-search step below which the damping grows
     damping_decrease: float = 0.1  # factor on the damping after a full step
-    # One of QP_SOLVERS; "auto": qpOASES on small QPs, PIQP on large ones (slot_qp).
+    # One of QP_SOLVERS; "auto": qpOASES on small QPs, the elastic interior point on large
+    # ones (slot_qp).
     qp_solver: str = "auto"
     hessian_modification: str = "floor"  # one of HESSIAN_MODIFICATIONS
     # One of ELASTIC_MODES. The exact-penalty QP needs one slack per shared row and per

@@ -4,10 +4,16 @@ Used by :mod:`controllers.solvers.fast` and :mod:`controllers.solvers.fast_bicyc
 QP solvers (:data:`QP_SOLVERS`):
 
 * ``"auto"`` (the fast solvers' default): qpOASES for QPs with fewer than
-  :data:`AUTO_PIQP_VARIABLES` variables, PIQP for larger ones, and DAQP for the QPs without
-  slacks (:func:`resolve_qp_solver`): those are small (the inputs only) and often
+  :data:`AUTO_IPM_VARIABLES` variables, the elastic interior point for larger ones (PIQP
+  from :data:`AUTO_PIQP_VARIABLES` on where no C compiler works), and DAQP for the QPs
+  without slacks (:func:`resolve_qp_solver`): those are small (the inputs only) and often
   infeasible, which a cold dual active set finds out fast, and a failure of theirs costs
   only the QP with slacks.
+* ``"elastic_ipm"``: the project's interior point for this QP
+  (:mod:`~controllers.solvers.elastic_ipm`, compiled C), cold started on the rows in use.
+  It eliminates the slack columns (each row has exactly one), so it factorises an
+  ``n_u x n_u`` matrix per iteration where PIQP factorises all variables. For the QPs
+  with slacks only; those without go as with ``"auto"``.
 * ``"qpoases"``: qpOASES through CasADi on every row slot, hot-started from the
   previous active set of the same object; :meth:`SlotQP.reset` forgets it (the fast
   solvers reset at every solve, so nothing carries over from one problem to the next).
@@ -35,7 +41,9 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-QP_SOLVERS = ("auto", "daqp", "piqp", "qpoases")
+from controllers.solvers import elastic_ipm
+
+QP_SOLVERS = ("auto", "daqp", "elastic_ipm", "piqp", "qpoases")
 # Proximal terms on the step (relative to the largest Hessian diagonal entry) of the
 # retries of a failed QP: none first.
 PROXIMAL_STEPS = (0.0, 1e-8, 1e-4)
@@ -46,12 +54,19 @@ INF_BOUND = 1e30
 DAQP_PRIMAL_TOL = 1e-10
 PIQP_EPS_ABS = 1e-9  # PIQP's absolute tolerance on the KKT residuals
 PIQP_EPS_REL = 1e-12
-# "auto": QPs with at least this many variables (inputs of the horizon, shared slacks,
-# group slack columns) go to PIQP, smaller ones to qpOASES. Measured per QP inside the SQP
-# on the paper's closed-loop problems (median time per call, qpOASES hot-started / PIQP):
-# 32-44 variables (N = 7) 0.11-0.23 / 0.25-0.44 ms; 76 (N = 15) 0.53 / 1.18 ms; 92 (N = 15)
-# 2.8 / 1.8 ms; 181 (N = 30, ~400 rows, cold, offline) 124 / 9.2 ms.
+# "auto" without the compiled elastic interior point: QPs with at least this many variables
+# (inputs of the horizon, shared slacks, group slack columns) go to PIQP, smaller ones to
+# qpOASES. Measured per QP inside the SQP on the paper's closed-loop problems (median time
+# per call, qpOASES hot-started / PIQP): 32-44 variables (N = 7) 0.11-0.23 / 0.25-0.44 ms;
+# 76 (N = 15) 0.53 / 1.18 ms; 92 (N = 15) 2.8 / 1.8 ms; 181 (N = 30, ~400 rows, cold,
+# offline) 124 / 9.2 ms.
 AUTO_PIQP_VARIABLES = 80
+# "auto" with it: QPs with slacks and at least this many variables go to the elastic
+# interior point (elastic_ipm). On the recorded elastic QPs of the paper's closed loop
+# (median per call, offline, against PIQP on the same QP): N = 7 (36-53 variables) 0.19 ms
+# against qpOASES's 0.14 ms hot-started in the SQP (whole solves 1.03x with it); N = 15
+# (76-109) 0.61 against PIQP's 1.28 ms and qpOASES's ~1.7 ms; N = 30 (184) 2.7 against 6.6 ms.
+AUTO_IPM_VARIABLES = 64
 # qpOASES memories a QP object keeps checked out (each has solved a QP) before it builds a
 # new conic that frees them: a cold start needs a memory no QP has touched (SlotQP._fresh_memory).
 # At most this many, and at most about MAX_SPENT_BYTES of them: one memory of a dense QP with
@@ -64,19 +79,26 @@ MAX_SPENT_BYTES = 4 << 20
 def resolve_qp_solver(solver: str, n_var: int, elastic: bool = True) -> str:
     """The QP solver that ``solver`` stands for on a QP with ``n_var`` variables.
 
-    ``"auto"``: on a QP without slacks (``elastic=False``) DAQP; else PIQP from
-    :data:`AUTO_PIQP_VARIABLES` variables on, qpOASES below (qpOASES wherever the package
-    named is missing). Other names stand for themselves.
+    ``"auto"``: on a QP without slacks (``elastic=False``) DAQP; else the project's
+    elastic interior point from :data:`AUTO_IPM_VARIABLES` variables on where a C compiler
+    works, PIQP from :data:`AUTO_PIQP_VARIABLES` on, qpOASES below (qpOASES wherever the
+    package named is missing). ``"elastic_ipm"`` is only for QPs with slacks: those without
+    go as with ``"auto"``. Other names stand for themselves.
     """
-    if solver != "auto":
+    if solver not in ("auto", "elastic_ipm"):
         return solver
     if not elastic:
         return "daqp" if _available("daqp") else "qpoases"
+    if solver == "elastic_ipm" or (n_var >= AUTO_IPM_VARIABLES and _available("elastic_ipm")):
+        return "elastic_ipm"
     return "piqp" if n_var >= AUTO_PIQP_VARIABLES and _available("piqp") else "qpoases"
 
 
 def _available(package: str) -> bool:
-    """Whether the optional QP package ``"daqp"`` or ``"piqp"`` imports."""
+    """Whether the optional QP package ``"daqp"`` or ``"piqp"`` imports, or (for
+    ``"elastic_ipm"``) the compiled elastic QP solver builds."""
+    if package == "elastic_ipm":
+        return elastic_ipm.available()
     try:
         if package == "daqp":
             import daqp  # noqa: F401
@@ -163,6 +185,8 @@ class SlotQP:
             raise ValueError(
                 f"qp_solver={solver!r} needs the {solver} package (pip install {solver})"
             )
+        if solver == "elastic_ipm" and not _available(solver):
+            raise ValueError("qp_solver='elastic_ipm' needs a working C compiler ($CC, cc or gcc)")
         self.solver = solver
         self.row_capacity, self.group_capacity = row_capacity, group_capacity
         self.n_u, self.n_speed = n_u, n_shared
@@ -191,6 +215,10 @@ class SlotQP:
         # column (-1: free).
         self._slot_key = np.full(row_capacity, -1, dtype=np.int64)
         self._col_key = np.full(group_capacity, -1, dtype=np.int64)
+        # The slack column (among all slack columns) of each row: the shared rows' own,
+        # then the scenario rows' group columns (set_position_rows).
+        self._slack_of_row = np.zeros(cap, dtype=np.int64)
+        self._slack_of_row[: self.n_speed] = np.arange(self.n_speed)
         self._conic: Any = None
         self._buffer: Any = None
         self._spent: list[tuple[Any, Any]] = []  # used memories, kept checked out
@@ -376,6 +404,7 @@ class SlotQP:
         self.A[row, :nu] = a_pos
         if self.elastic:
             self.A[row, first + column] = -1.0
+            self._slack_of_row[row] = ns + column
         self.uba[row] = -g_pos
 
     def set_position_bounds(self, row: np.ndarray, g_pos: np.ndarray) -> None:
@@ -414,6 +443,8 @@ class SlotQP:
             return self._solve_daqp()
         if solver == "piqp":
             return self._solve_piqp()
+        if solver == "elastic_ipm":
+            return self._solve_elastic_ipm()
         if solver == "qrqp":
             return self._solve_qrqp()
         if self._stale and self._hot:
@@ -489,6 +520,32 @@ class SlotQP:
         )
         solved = qp.solve() == piqp.PIQP_SOLVED
         return self._store(solved, qp.result.x, rows, qp.result.z_u)
+
+    def _solve_elastic_ipm(self) -> bool:
+        """The project's structured interior point (:mod:`~controllers.solvers.elastic_ipm`)
+        on the rows in use, cold started: the slacks eliminated, an ``n_u x n_u`` system
+        per iteration."""
+        rows = np.flatnonzero(self.uba < np.inf)
+        nu = self.n_u
+        used, col = np.unique(self._slack_of_row[rows], return_inverse=True)
+        slack = nu + used
+        res = elastic_ipm.solve_elastic_qp(
+            self.H[:nu, :nu],
+            self.g[:nu],
+            self.lbx[:nu],
+            self.ubx[:nu],
+            self.A[rows, :nu],
+            self.uba[rows],
+            col,
+            self.g[slack],
+            self.H[slack, slack],
+            eps_abs=PIQP_EPS_ABS,
+            eps_rel=PIQP_EPS_REL,
+        )
+        x = np.zeros(self.n_var)
+        x[:nu] = res.d
+        x[slack] = res.s
+        return self._store(res.solved, x, rows, res.z)
 
     def _rows_and_bounds(self) -> np.ndarray:
         """The rows in use (finite ``uba``); the simple bounds, clipped to

@@ -7,7 +7,9 @@ import sys
 import numpy as np
 import pytest
 
+from controllers.solvers import slot_qp
 from controllers.solvers.slot_qp import (
+    AUTO_IPM_VARIABLES,
     AUTO_PIQP_VARIABLES,
     MAX_SPENT_MEMORIES,
     QP_SOLVERS,
@@ -96,33 +98,54 @@ def _random_qp(solver: str, seed: int = 0) -> tuple[SlotQP, np.ndarray]:
 
 
 def test_auto_resolves_by_the_qp_size() -> None:
-    assert resolve_qp_solver("auto", AUTO_PIQP_VARIABLES - 1) == "qpoases"
-    assert resolve_qp_solver("auto", AUTO_PIQP_VARIABLES) == "piqp"
+    # (a C compiler is there: the elastic interior point builds)
+    assert AUTO_IPM_VARIABLES < AUTO_PIQP_VARIABLES
+    assert resolve_qp_solver("auto", AUTO_IPM_VARIABLES - 1) == "qpoases"
+    assert resolve_qp_solver("auto", AUTO_IPM_VARIABLES) == "elastic_ipm"
+    assert resolve_qp_solver("auto", 10 * AUTO_PIQP_VARIABLES) == "elastic_ipm"
+    assert resolve_qp_solver("elastic_ipm", 2) == "elastic_ipm"
     assert resolve_qp_solver("daqp", 10_000) == "daqp"
     assert _qp(solver="auto").solver == "qpoases"
-    assert _random_qp("auto")[0].solver == "piqp"
-    # QPs without slacks: DAQP at any size; a solver named is used for them too.
+    assert _random_qp("auto")[0].solver == "elastic_ipm"
+    # QPs without slacks: DAQP at any size; a solver named is used for them too, except
+    # the elastic interior point, which is for QPs with slacks only.
     for n_var in (2, 10 * AUTO_PIQP_VARIABLES):
         assert resolve_qp_solver("auto", n_var, elastic=False) == "daqp"
+        assert resolve_qp_solver("elastic_ipm", n_var, elastic=False) == "daqp"
     assert resolve_qp_solver("qpoases", 10, elastic=False) == "qpoases"
     hard = SlotQP(2, 0, 8, 4, "auto", slack_penalty=1.0, slack_reg=1e-8, elastic=False)
     assert hard.solver == "daqp"
 
 
-def test_piqp_and_qpoases_agree_on_a_large_qp() -> None:
-    """The interior point's step, slacks and multipliers equal the active set's (a QP
+@pytest.mark.parametrize("solver", ["piqp", "elastic_ipm"])
+def test_the_interior_points_agree_with_qpoases_on_a_large_qp(solver: str) -> None:
+    """The interior points' step, slacks and multipliers equal the active set's (a QP
     whose rows partly need slack)."""
     results = {}
-    for solver in ("qpoases", "piqp"):
-        qp, H = _random_qp(solver)
+    for name in ("qpoases", solver):
+        qp, H = _random_qp(name)
         z, lam, ok = qp.solve()
-        assert ok, solver
-        results[solver] = (z, lam, 0.5 * z @ qp.H @ z + qp.g @ z)
-    (z0, lam0, f0), (z1, lam1, f1) = results["qpoases"], results["piqp"]
+        assert ok, name
+        results[name] = (z, lam, 0.5 * z @ qp.H @ z + qp.g @ z)
+    (z0, lam0, f0), (z1, lam1, f1) = results["qpoases"], results[solver]
     assert f1 == pytest.approx(f0, rel=1e-9)
     np.testing.assert_allclose(z1, z0, atol=1e-6)
     np.testing.assert_allclose(lam1, lam0, atol=1e-5 * max(1.0, float(np.max(lam0))))
     assert np.max(z0[40:]) > 1e-3  # some rows really need slack
+
+
+def test_cold_started_solvers_take_the_rows_in_order() -> None:
+    """DAQP, PIQP and the elastic interior point keep nothing between calls: rows go to
+    the slots in the order given and the groups to the columns in ascending order."""
+    for solver in ("piqp", "elastic_ipm"):
+        qp = _qp(solver=solver)
+        qp.assign(np.array([10, 11, 20]), np.array([1, 1, 2]))
+        row, col = qp.assign(np.array([20, 10, 30, 12]), np.array([2, 1, 3, 1]))
+        assert row.tolist() == [0, 1, 2, 3] and col.tolist() == [1, 0, 2, 0]
+        with pytest.raises(ValueError, match="9 keys do not fit 8 slots"):
+            qp.assign(np.arange(9), np.zeros(9, dtype=int))
+        with pytest.raises(ValueError, match="5 keys do not fit 4 slots"):
+            qp.assign(np.arange(5), np.arange(5))
 
 
 def test_without_daqp_auto_takes_qpoases_for_the_qps_without_slacks(monkeypatch) -> None:
@@ -134,6 +157,8 @@ def test_without_daqp_auto_takes_qpoases_for_the_qps_without_slacks(monkeypatch)
 
 def test_without_piqp_auto_falls_back_and_piqp_is_an_error(monkeypatch) -> None:
     monkeypatch.setitem(sys.modules, "piqp", None)  # the package is not installed
+    assert resolve_qp_solver("auto", 10 * AUTO_PIQP_VARIABLES) == "elastic_ipm"
+    monkeypatch.setattr(slot_qp, "AUTO_IPM_VARIABLES", 10**9)  # (the interior point not taken)
     assert resolve_qp_solver("auto", 10 * AUTO_PIQP_VARIABLES) == "qpoases"
     with pytest.raises(ValueError, match="qp_solver='piqp' needs the piqp package"):
         _qp(solver="piqp")
