@@ -349,8 +349,8 @@ class SlotQP:
             ``(row, column)``: each row's index in ``A`` (after the shared rows) and the
             index of its group's slack column among the group columns. For qpOASES, rows
             and groups that were in the previous call keep their slots (its hot start);
-            the cold-started solvers (DAQP, PIQP) take the rows in the order given and the
-            groups in ascending order.
+            the cold-started solvers (DAQP, PIQP, the elastic interior point) take the rows
+            in the order given and the groups in ascending order.
 
         Raises:
             ValueError: when the rows or groups exceed the capacities.
@@ -524,7 +524,9 @@ class SlotQP:
     def _solve_elastic_ipm(self) -> bool:
         """The project's structured interior point (:mod:`~controllers.solvers.elastic_ipm`)
         on the rows in use, cold started: the slacks eliminated, an ``n_u x n_u`` system
-        per iteration."""
+        per iteration. It has no time limit of its own (``max_time``): at most
+        :data:`~controllers.solvers.elastic_ipm.MAX_ITERATIONS` iterations (~0.1 ms each
+        at N = 30)."""
         rows = np.flatnonzero(self.uba < np.inf)
         nu = self.n_u
         used, col = np.unique(self._slack_of_row[rows], return_inverse=True)
