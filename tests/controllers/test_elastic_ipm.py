@@ -180,3 +180,23 @@ def test_the_recorded_long_horizon_qps_solve_without_a_retry(n: int) -> None:
         retries += sol.extra["qp_retries"]
     assert calls > 10
     assert retries == 0
+
+
+def test_auto_gives_the_long_horizons_qps_to_it_and_keeps_qpoases_at_the_papers() -> None:
+    """``qp_solver="auto"``: the QPs with slacks of the paper's N = 7 (at most 53 variables)
+    stay with hot-started qpOASES, those of N = 15 (76 and more) go to the interior point."""
+    data = Path(__file__).resolve().parents[1] / "data"
+    calls = {}
+    for n, name in ((7, "recorded_problems.npz"), (15, "long_horizon_problems.npz")):
+        rec = np.load(data / name)
+        suffix = "" if n == 7 else f"_{n}"
+        W = rec[f"W{suffix}"]
+        solver = FastScenarioSolver(problem_from_config(n_scenarios=W.shape[1], horizon=n))
+        calls[n] = {}
+        for i in range(W.shape[0]):
+            guess = rec[f"u_guess{suffix}"][i]
+            sol = solver.solve(rec[f"x0{suffix}"][i], W[i], u_guess=guess)
+            for key, count in sol.extra["qp_calls"].items():
+                calls[n][key] = calls[n].get(key, 0) + count
+    assert calls[7].get("qpoases", 0) > 0 and "elastic_ipm" not in calls[7]
+    assert calls[15].get("elastic_ipm", 0) > 0 and "piqp" not in calls[15]
