@@ -49,6 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers.solvers.compiled import KernelUnavailable, address, load_library
+from controllers.solvers.kernel_driver import CLONES
 
 # Dual regularisation delta: row scalings z / (v + delta z) stay below 1 / delta. On the
 # recorded elastic QPs of N = 15 (138): 0 left 38 unsolved (the dual residual grew in the
@@ -59,20 +60,15 @@ MAX_ITERATIONS = 100
 # Fraction of the distance to the boundary a step may go.
 STEP_FRACTION = 0.995
 
-SOURCE = r"""
+SOURCE = (
+    r"""
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
 
-/* An x86-64-v3 (AVX2 + FMA) version next to the baseline, picked at load time (as the
-   kernel's loops; only with GCC >= 11 and glibc). */
-#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11 && defined(__x86_64__) \
-    && defined(__GLIBC__) && !defined(LFM_NO_CLONES)
-#define EQP_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
-#else
-#define EQP_CLONES
-#endif
-
+"""
+    + CLONES
+    + r"""
 static inline double dotn(long n, const double* a, const double* b) {
   double s = 0.0;
 #pragma omp simd reduction(+ : s)
@@ -224,7 +220,7 @@ static double max_step(long len, const double* x, const double* dx) {
    s (G), the rows' multipliers z_rows (m) and the iterations. Returns 0 when solved, -1 at
    the iteration limit, -2 if the reduced matrix is not positive definite, -3 if out of
    memory, -4 on a non-finite residual. */
-EQP_CLONES __attribute__((flatten)) int lfm_elastic_qp(long n, long m, long G,
+LFM_CLONES __attribute__((flatten)) int lfm_elastic_qp(long n, long m, long G,
     const double* H, const double* g, const double* lo, const double* hi, const double* A,
     const double* b, const long* col, const double* rho, const double* reg, double eps_abs,
     double eps_rel, double delta, double fraction, long max_iter, double* d, double* s,
@@ -429,6 +425,7 @@ EQP_CLONES __attribute__((flatten)) int lfm_elastic_qp(long n, long m, long G,
   return status;
 }
 """
+)
 
 _STATUS = {
     0: "solved",

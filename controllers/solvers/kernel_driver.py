@@ -17,7 +17,25 @@ scenarios, in the (step, scenario) order of the arrays.
 # S causally packed: x_{k+1} depends on u_0..u_k only, so step k (from 0) is stored as
 # (Ns, NX, (k + 1) NU) from S_OFF(k), the steps one after another (N (N + 1) / 2 NU NX Ns
 # values instead of N^2 NU NX Ns; the zeros are never written or read).
-DRIVER = r"""
+# LFM_CLONES, the attribute of the functions with a second, x86-64-v3 version (the kernel's
+# vectorised loops; controllers.solvers.elastic_ipm's solver).
+CLONES = (
+    "/* Two versions of the vectorised loops where GCC (>= 11) and glibc (IFUNC) can"
+    r""" dispatch at
+   load time: one for x86-64-v3 (AVX2 and FMA: four scenarios per instruction, libmvec's AVX2
+   functions) and the baseline; the running CPU picks (so a cached kernel stays portable).
+   Compiled with -DLFM_NO_CLONES: the baseline only (the tests check it on AVX2 machines). */
+#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11 && defined(__x86_64__) \
+    && defined(__GLIBC__) && !defined(LFM_NO_CLONES)
+#define LFM_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
+#else
+#define LFM_CLONES
+#endif
+"""
+)
+
+DRIVER = (
+    r"""
 #include <stdlib.h>
 #include <string.h>
 #include <math.h>
@@ -56,17 +74,9 @@ CASADI_SYMBOL_EXPORT int lfm_openmp(void) {
 }
 #define S_OFF(k, ns) ((ns) * NX * NU * (k) * ((k) + 1) / 2)
 
-/* Two versions of the vectorised loops where GCC (>= 11) and glibc (IFUNC) can dispatch at
-   load time: one for x86-64-v3 (AVX2 and FMA: four scenarios per instruction, libmvec's AVX2
-   functions) and the baseline; the running CPU picks (so a cached kernel stays portable).
-   Compiled with -DLFM_NO_CLONES: the baseline only (the tests check it on AVX2 machines). */
-#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11 && defined(__x86_64__) \
-    && defined(__GLIBC__) && !defined(LFM_NO_CLONES)
-#define LFM_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
-#else
-#define LFM_CLONES
-#endif
-
+"""
+    + CLONES
+    + r"""
 typedef int (*cfun)(const casadi_real**, casadi_real**, casadi_int*, casadi_real*, int);
 typedef struct {
   const casadi_real** arg; casadi_real** res; casadi_int* iw; casadi_real* w;
@@ -840,5 +850,6 @@ CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const dou
   return status;
 }
 """
+)
 
 __all__ = ["DRIVER"]
