@@ -206,6 +206,43 @@ def step_jacobian_pattern(system, dt: float) -> str:
     return f"static const char A_NZ[{nx * nx}] = {{{', '.join(map(str, flags))}}};"
 
 
+def constraint_jacobian_pattern(system) -> np.ndarray:
+    """``(ng, nx)`` bool: where the constraints' Jacobian ``dg/dx`` can be nonzero (CasADi's
+    structural sparsity), i.e. which states each constraint depends on.
+
+    The compiled kernel stores only these entries of each point's constraint Jacobian
+    (:func:`constraint_jacobian_table`); the bicycle's six constraints have 8 of 24.
+    """
+    nx, ng = system.nx, system.ng
+    pattern = np.zeros((ng, nx), dtype=bool)
+    if ng:
+        x = ca.SX.sym("x", nx)
+        rows, cols = ca.jacobian(system.casadi_constraints()(x), x).sparsity().get_triplet()
+        pattern[rows, cols] = True
+    return pattern
+
+
+def constraint_jacobian_table(system) -> str:
+    """C tables of the constraint Jacobian entries the kernel stores per point, row by row.
+
+    ``G_NNZ`` entries (those of :func:`constraint_jacobian_pattern`, row-major), constraint
+    ``j``'s from ``G_PTR[j]`` to ``G_PTR[j + 1]`` (``G_PTR[NG] = G_NNZ``), each at state
+    ``G_COL[e]`` and at ``G_IDX[e]`` of the dense row-major ``(NG, NX)`` matrix (these two
+    with one unused entry more, so that neither is empty).
+    """
+    pattern = constraint_jacobian_pattern(system)
+    index = np.flatnonzero(pattern)
+    ptr = np.concatenate([[0], np.cumsum(pattern.sum(axis=1))])
+
+    def table(name: str, values) -> str:
+        items = ", ".join(str(int(v)) for v in values)
+        return f"static const int {name}[{len(values)}] = {{{items}}};"
+
+    lines = [f"#define G_NNZ {index.size}", table("G_PTR", ptr)]
+    lines += [table("G_COL", [*(index % system.nx), 0]), table("G_IDX", [*index, 0])]
+    return "\n".join(lines)
+
+
 def kernel_source(system, dt: float) -> str:
     """The complete C source of ``system``'s kernel at time step ``dt`` [s]."""
     cg = ca.CodeGenerator("lfm_kernel.c", {"with_header": False, "casadi_real": "double"})
@@ -218,6 +255,7 @@ def kernel_source(system, dt: float) -> str:
             sizes["NP_" + f.name()[4:-4].upper()] = f.nnz_out(0)
     defines = "\n".join(f"#define {k} {v}" for k, v in sizes.items())
     defines += "\n" + step_jacobian_pattern(system, dt)
+    defines += "\n" + constraint_jacobian_table(system)
     work = " ".join(f"W({f.name()});" for f in fns)
     code = cg.dump()
     by_name = {f.name(): f for f in fns}

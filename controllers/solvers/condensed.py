@@ -45,7 +45,13 @@ import casadi as ca
 import numpy as np
 
 from controllers.problem import ScenarioProblem
-from controllers.solvers.compiled import KernelUnavailable, address, build_kernel, ptr
+from controllers.solvers.compiled import (
+    KernelUnavailable,
+    address,
+    build_kernel,
+    constraint_jacobian_pattern,
+    ptr,
+)
 from controllers.solvers.lanes import LaneFunction
 from controllers.solvers.screening import screen_rows, worst_rows
 
@@ -83,12 +89,24 @@ class Linearisation:
     # uses each where it computes it (in S and the Hessian's recursion) and stores none
     A: np.ndarray | None
     S: np.ndarray  # (N, Ns, nx, N nu) sensitivities d x_k / d u of steps 1..N, or packed
-    Jg: np.ndarray  # (N, Ns, ng, nx) constraint Jacobians at steps 1..N
+    Jg: np.ndarray  # (N, Ns, ng, nx) constraint Jacobians at steps 1..N, or packed
     grad: np.ndarray  # (N nu,) gradient of the cost
-    # S causally packed (the compiled kernel): the state of step k + 1 (k from 0) depends on
+    # Packed (the compiled kernel): S causally, the state of step k + 1 (k from 0) depends on
     # u_0..u_k only, so its block is stored as (Ns, nx, (k + 1) nu), the steps one after
-    # another in one flat array.
+    # another in one flat array; Jg as (N, Ns, nnz), the entries at jg_index of each
+    # (ng, nx) Jacobian read row-major (those that can be nonzero).
     packed: bool = False
+    jg_index: np.ndarray | None = None
+
+    def constraint_jacobians(self) -> np.ndarray:
+        """``Jg`` as ``(N, Ns, ng, nx)`` (a new array if it is packed)."""
+        if not self.packed:
+            return self.Jg
+        n, nx, ns = self.ro.X.shape
+        ng = self.ro.G.shape[0]
+        full = np.zeros((n - 1, ns, ng * nx))
+        full[:, :, self.jg_index] = self.Jg
+        return full.reshape(n - 1, ns, ng, nx)
 
     def sensitivities(self) -> np.ndarray:
         """``S`` as ``(N, Ns, nx, N nu)`` (a new array if it is packed)."""
@@ -232,13 +250,10 @@ class CondensedModel:
             hess_g = ca.hessian(ca.dot(mu, g), x)[0]
             self._con_hess = LaneFunction(ca.Function("con_hess", [x, mu], [hess_g]), vm=vm)
             lanes += [self._con_jac, self._con_hess]
-            # The states each constraint depends on (for picking extreme scenarios).
-            pattern = ca.jacobian(g, x).sparsity()
-            self.depends = np.zeros((ng, nx), dtype=bool)  # constraint j depends on state m
-            rows, cols = pattern.get_triplet()
-            self.depends[rows, cols] = True
-        else:
-            self.depends = np.zeros((0, nx), dtype=bool)
+        # The states each constraint depends on (for picking extreme scenarios; the compiled
+        # kernel stores these entries of the constraint Jacobians, at _jg_index row-major).
+        self.depends = constraint_jacobian_pattern(system)  # constraint j depends on state m
+        self._jg_index = np.flatnonzero(self.depends)
         if self._lib is not None:
             self.backend = "compiled-c"
         elif all(f.backend == "numpy" for f in lanes):
@@ -454,7 +469,7 @@ class CondensedModel:
         if self._lib is not None:
             return self._hessian_c(lin, mu, W_lanes)
         n, nx, nu, n_u = self.n, self.nx, self.nu, self.n_u
-        X, S, A, Jg = lin.ro.X, lin.sensitivities(), lin.A, lin.Jg
+        X, S, A, Jg = lin.ro.X, lin.sensitivities(), lin.A, lin.constraint_jacobians()
         ns = X.shape[2]
         # --- adjoint sweep: lambda_k = dl_k/dx_k + Jg_k' mu_k + A_k' lambda_{k+1} ---
         lam = self.state_gradient(X)  # (N, Ns, nx): dl/dx of steps 1..N
@@ -503,7 +518,7 @@ class CondensedModel:
         self, ro: Rollout, W_lanes: np.ndarray, recycle: Linearisation | None
     ) -> Linearisation:
         """:meth:`linearise` by the compiled kernel."""
-        n, nx, nu, n_u, ng = self.n, self.nx, self.nu, self.n_u, self.ng
+        n, nx, nu, n_u = self.n, self.nx, self.nu, self.n_u
         X = np.ascontiguousarray(ro.X, dtype=float)
         u = np.ascontiguousarray(ro.u, dtype=float)
         ns = X.shape[2]
@@ -512,7 +527,7 @@ class CondensedModel:
             S, Jg = recycle.S, recycle.Jg  # every entry is written below
         else:
             S = np.empty(size)
-            Jg = np.empty((n, ns, ng, nx))
+            Jg = np.empty((n, ns, self._jg_index.size))
         grad = np.empty(n_u)
         sa, sk, si = self._strides(W_lanes, (0, 1, 2))
         args = (*self._weights_p, 2.0 / ns)
@@ -522,7 +537,9 @@ class CondensedModel:
         if self._lib.lfm_linearise(*call):
             grad[:] = np.nan
         grad += (u.reshape(n, nu) @ self._R2).ravel()  # d(u' R u)/du, R symmetric
-        return Linearisation(ro=ro, A=None, S=S, Jg=Jg, grad=grad, packed=True)
+        return Linearisation(
+            ro=ro, A=None, S=S, Jg=Jg, grad=grad, packed=True, jg_index=self._jg_index
+        )
 
     def _hessian_c(self, lin: Linearisation, mu: np.ndarray, W_lanes: np.ndarray) -> np.ndarray:
         """:meth:`hessian` by the compiled kernel."""
@@ -635,7 +652,7 @@ class CondensedModel:
             return values if self._screens_all else values[self.screened]
         S = lin.sensitivities()
         Sd = (S.reshape(-1, self.n_u) @ d).reshape(S.shape[:3] + (1,))  # (N, Ns, nx, 1)
-        change = np.matmul(lin.Jg, Sd)[..., 0]  # (N, Ns, ng)
+        change = np.matmul(lin.constraint_jacobians(), Sd)[..., 0]  # (N, Ns, ng)
         return lin.ro.G[self.screened] + change[:, :, self.screened].transpose(2, 0, 1)
 
 

@@ -13,7 +13,9 @@ scenarios, in the (step, scenario) order of the arrays.
 # The driver. Layouts (C order): x0T (NX, Ns); W any (strides sa, sk, si of force
 # component, step, scenario, in elements); u (N NU); goal (NX);
 # Wq (N, NX, NX) state weights of steps 1..N; X (N+1, NX, Ns); G (NG, N, Ns);
-# Jg (N, Ns, NG, NX); mu (NG, N, Ns); H (N NU, N NU).
+# Jg (N, Ns, G_NNZ): of each point's constraint Jacobian (NG, NX) only the entries that can
+# be nonzero, row by row (constraint j's from G_PTR[j], each at state G_COL[e]; the tables
+# of compiled.constraint_jacobian_table); mu (NG, N, Ns); H (N NU, N NU).
 # S causally packed: x_{k+1} depends on u_0..u_k only, so step k (from 0) is stored as
 # (Ns, NX, (k + 1) NU) from S_OFF(k), the steps one after another (N (N + 1) / 2 NU NX Ns
 # values instead of N^2 NU NX Ns; the zeros are never written or read).
@@ -351,11 +353,13 @@ static int linearise_chunk(work_t* wkp, long n, long ns, long i0, long i1, const
       }
       load_state(X, k + 1, ns, i, x);
 #if NG > 0
-      double* Jgi = Jg + (k * ns + i) * NG * NX; /* (NG, NX) row-major */
+      double* Jgi = Jg + (k * ns + i) * G_NNZ; /* its entries that can be nonzero */
 #if defined(LFM_STEP_JAC_INLINE) && defined(LFM_CON_JAC_INLINE)
-      for (int e = 0; e < NG * NX; ++e) Jgi[e] = Cb[e * JAC_BLOCK + b];
+      for (int e = 0; e < G_NNZ; ++e) Jgi[e] = Cb[G_IDX[e] * JAC_BLOCK + b];
 #else
-      status |= CALL1(lfm_con_jac, x, Jgi);
+      double Jd[NG * NX]; /* (NG, NX) row-major */
+      status |= CALL1(lfm_con_jac, x, Jd);
+      for (int e = 0; e < G_NNZ; ++e) Jgi[e] = Jd[G_IDX[e]];
 #endif
 #else
       (void)Jg;
@@ -429,9 +433,9 @@ static inline void step_change(const double* S, long k, long ns, long i, const d
    order by the state change sd. */
 static inline double linear_value(long n, long ns, const double* Jg, const double* G, long j,
                                   long k, long i, const double* sd) {
-  const double* jg = Jg + ((k * ns + i) * NG + j) * NX;
+  const double* jg = Jg + (k * ns + i) * G_NNZ;
   double s = 0.0;
-  for (int m = 0; m < NX; ++m) s += jg[m] * sd[m];
+  for (int e = G_PTR[j]; e < G_PTR[j + 1]; ++e) s += jg[e] * sd[G_COL[e]];
   return G[(j * n + k) * ns + i] + s;
 }
 
@@ -457,11 +461,11 @@ CASADI_SYMBOL_EXPORT int lfm_rows(long n, long ns, const double* S, const double
   for (long q = 0; q < r; ++q) {
     const long j = pos[3 * q], k = pos[3 * q + 1], i = pos[3 * q + 2], width = (k + 1) * NU;
     const double* Sk = S + S_OFF(k, ns) + i * NX * width;
-    const double* jg = Jg + ((k * ns + i) * NG + j) * NX;
+    const double* jg = Jg + (k * ns + i) * G_NNZ;
     double* row = out + q * nut;
     for (long c = 0; c < width; ++c) {
       double s = 0.0;
-      for (int m = 0; m < NX; ++m) s += jg[m] * Sk[m * width + c];
+      for (int e = G_PTR[j]; e < G_PTR[j + 1]; ++e) s += jg[e] * Sk[G_COL[e] * width + c];
       row[c] = s;
     }
     for (long c = width; c < nut; ++c) row[c] = 0.0;
@@ -620,11 +624,11 @@ static inline void step_adjoint(long n, long ns, long k, long i, const double* X
   weighted(x, goal, Wq + k * NX * NX, diag, scale, lam);
 #if NG > 0
   if (mu) {
-    const double* Jk = Jg + (k * ns + i) * NG * NX;
+    const double* Jk = Jg + (k * ns + i) * G_NNZ;
     for (int j = 0; j < NG; ++j) {
       const double mj = mu[(j * n + k) * ns + i];
       if (mj != 0.0)
-        for (int m = 0; m < NX; ++m) lam[m] += mj * Jk[j * NX + m];
+        for (int e = G_PTR[j]; e < G_PTR[j + 1]; ++e) lam[G_COL[e]] += mj * Jk[e];
     }
   }
 #else

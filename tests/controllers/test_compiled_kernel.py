@@ -76,7 +76,7 @@ def _everything(model: CondensedModel, problem, x0, W, u, mu, backoff=None) -> d
         "X": ro.X,
         "G": ro.G,
         "S": lin.sensitivities(),
-        "Jg": lin.Jg,
+        "Jg": lin.constraint_jacobians(),
         "grad": lin.grad,
         "H0": model.hessian(lin, np.zeros_like(mu), W_lanes),
         "H": model.hessian(lin, mu, W_lanes),
@@ -206,6 +206,29 @@ def test_compiled_equals_numpy_on_the_second_system(variant) -> None:
         ref = _everything(models["numpy"], problem, x0, W, u, mu)
         for name in ("vm", "c"):
             _assert_same(ref, _everything(models[name], problem, x0, W, u, mu))
+
+
+def test_the_kernel_stores_only_the_constraint_jacobian_entries_that_can_be_nonzero(
+    paper, paper_models
+) -> None:
+    """Per point the kernel keeps the structurally nonzero entries of ``dg/dx`` (the
+    bicycle: 8 of 24); NumPy's dense Jacobians are zero everywhere else, and the packed ones
+    expand to them."""
+    _, x0T, W_steps, W_lanes = _layouts(paper, DATA["x0"][0], DATA["W"][0])
+    lins = {}
+    for name, model in paper_models.items():
+        ro = model.evaluate(x0T, W_steps, DATA["u_guess"][0].ravel(), 0.0, None)
+        lins[name] = model.linearise(ro, W_lanes)
+    pattern = paper_models["c"].depends
+    assert pattern.shape == (paper.ng, paper.nx) and pattern.sum() == 8
+    packed, dense = lins["c"], lins["numpy"]
+    n, ns = paper.horizon, x0T.shape[1]
+    assert packed.Jg.shape == (n, ns, 8) and dense.Jg.shape == (n, ns, paper.ng, paper.nx)
+    assert not np.any(dense.Jg[:, :, ~pattern])
+    assert np.all(np.any(dense.Jg[:, :, pattern] != 0.0, axis=(0, 1)))  # each entry is used
+    full = packed.constraint_jacobians()
+    assert np.allclose(full, dense.Jg, rtol=0.0, atol=RTOL * np.abs(dense.Jg).max())
+    assert not np.any(full[:, :, ~pattern])
 
 
 def test_compiled_equals_numpy_with_coupled_state_weights() -> None:
