@@ -75,6 +75,8 @@ def _check_both(model: CondensedModel, ro, lin, rng) -> int:
         count += got.shape[0]
     p = model.problem
     pos = model.screen(ro, 0.5, KEEP)[::3]  # some rows already in the QP
+    # (in any order, some twice: the QP's rows come in the order they were added)
+    pos = rng.permutation(np.concatenate([pos, pos[: pos.shape[0] // 2]]))
     for scale in (0.05, 0.5):
         d = rng.uniform(-scale, scale, p.horizon * p.nu)
         s_pos = rng.uniform(0.0, 0.1, (p.ng, p.horizon))
