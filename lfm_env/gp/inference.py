@@ -17,10 +17,7 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-from lfm_env.gp.kernels import (
-    StateSpaceKernel,
-    _check_positive,
-)
+from lfm_env.gp.kernels.base import StateSpaceKernel, _check_positive
 
 #: Step in log-hyperparameters for the central differences of the kernel matrices.
 _MATRIX_FD_STEP = 1e-5

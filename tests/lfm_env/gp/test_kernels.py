@@ -24,11 +24,11 @@ from lfm_env.gp.kernels import (
     SquaredExponential,
     StateSpaceKernel,
     SumKernel,
-    _stable_spectral_factor,
     matern,
     periodic,
     squared_exponential,
 )
+from lfm_env.gp.kernels.squared_exponential_kernel import _stable_spectral_factor
 
 # max |k_ss - k| / sigma^2 over tau in [0, 5 l], measured for this implementation
 # (the maximum sits at tau = 0). The tests allow 20 % on top of these.
