@@ -115,6 +115,8 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
         self._n_shared = n_l * n
         self._a_shared = m.shared_rows.transpose(1, 0, 2).reshape(n * n_l, m.n_u)
         self._n_groups = max(m.screened.size * n, 1)
+        self._eye = np.eye(m.n_u)
+        self._floor_eye = self._eye * self.options.hessian_floor
         self._qps: dict[tuple[int, int, bool], SlotQP] = {}
         self._prev_u: np.ndarray | None = None
         self._deadline = math.inf  # time.perf_counter() value ending the current solve

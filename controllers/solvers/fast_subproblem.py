@@ -59,6 +59,8 @@ class SubproblemMixin:
     _n_shared: int  # shared rows, ordered (step, shared constraint)
     _a_shared: np.ndarray  # (n_shared, N nu) their Jacobian rows
     _n_groups: int  # (constraint, step) groups of scenario rows
+    _eye: np.ndarray  # (N nu, N nu) identity
+    _floor_eye: np.ndarray  # hessian_floor times it
     _qps: dict[tuple[int, int, bool], SlotQP]
     _hard_first: bool  # try the QP without slacks first (elastic_qp="on_demand")
     _last_eig: Any  # diagnostics of the last convexification (for the trace)
@@ -94,7 +96,7 @@ class SubproblemMixin:
         """
         floor = self.options.hessian_floor
         j_pos = np.empty((0, self._n_u))
-        shifted = np.eye(self._n_u) * floor
+        shifted = self._floor_eye
         if self.trace is None:
             # Every eigenvalue at or above the floor: a Cholesky factor of H - floor I exists
             # (the common case at N = 7; an eighth of an eigen-decomposition's time).
@@ -111,7 +113,7 @@ class SubproblemMixin:
         if active_shared.size:
             rows.append(self._a_shared[active_shared])
         if active_bounds.size:
-            rows.append(np.eye(self._n_u)[active_bounds])
+            rows.append(self._eye[active_bounds])
         # Adding sigma J'J of rank r moves at most r eigenvalues above the floor (interlacing):
         # with fewer rows than eigenvalues below it no sigma does it, and only "augmented"
         # uses the augmented matrix all the same.
@@ -216,9 +218,10 @@ class SubproblemMixin:
         if self._radius > 0.0:
             lo = np.maximum(lo, -self._radius * self._range)
             hi = np.minimum(hi, self._radius * self._range)
+        # The rows' Jacobians and values, extended by each round's new rows only.
+        a_pos, g_pos = self.model.rows(lin, pos)
         for round_ in range(self.options.max_qp_rounds):
             self._check_time()
-            a_pos, g_pos = self.model.rows(lin, pos)
             group = pos[:, 0] * n + pos[:, 1]
             s_pos = np.zeros((ng, n))
             this_round = (H, lin.grad, lo, hi, g_shared, group * n_scen + pos[:, 2], group)
@@ -256,6 +259,8 @@ class SubproblemMixin:
                 stats["qp_rounds_exhausted"] += 1
                 break
             pos = np.concatenate([pos, missing])
+            a_new, g_new = self.model.rows(lin, missing)
+            a_pos, g_pos = np.concatenate([a_pos, a_new]), np.concatenate([g_pos, g_new])
         stats["qp_rows"] = max(stats["qp_rows"], pos.shape[0])
         return QPStep(
             d=z[:nu],
@@ -323,7 +328,7 @@ class SubproblemMixin:
             H_qp, sigma, j_pos = self._convexify(H, lin, active_pos, active_shared, bounds)
             self._last_sigma = sigma if sigma > 0 else (-1.0 if H_qp is not H else 0.0)
             if damping > 0.0:
-                H_qp = H_qp + damping * np.eye(self._n_u)
+                H_qp = H_qp + damping * self._eye
             step = self._solve_qp(lin, H_qp, u, screened, g_shared, stats)
             if step is None:
                 return None, mu
