@@ -287,7 +287,7 @@ class AgentConfig:
         """``n_scenarios``, or the Campi-Garatti count for ``n_inputs N`` decision variables."""
         if self.n_scenarios is not None:
             return self.n_scenarios
-        from controllers.solvers.ipopt import campi_garatti_scenarios
+        from controllers.scenario_count import campi_garatti_scenarios
 
         return campi_garatti_scenarios(
             self.violation_level, self.confidence, n_inputs * self.horizon

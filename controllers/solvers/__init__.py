@@ -54,7 +54,7 @@ def make_solver(problem: ScenarioProblem, name: str = "fast", **options: Any):
 
         return CsnlpScenarioSolver(problem, **_ipopt_options(options))
     if name == "sqpmethod":
-        from controllers.solvers.ipopt import SqpMethodScenarioSolver
+        from controllers.solvers.sqpmethod import SqpMethodScenarioSolver
 
         return SqpMethodScenarioSolver(problem, **_ipopt_options(options, "sqp_options"))
     from controllers.solvers.ipopt import IpoptScenarioSolver

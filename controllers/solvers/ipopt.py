@@ -1,39 +1,24 @@
 """CasADi + IPOPT solvers of the scenario MPC problem (paper eq. MPCScen), for any system.
 
-Both formulations minimise exactly :meth:`controllers.problem.ScenarioProblem.objective`
-(the scenario-averaged quadratic cost plus an exact L1 penalty on ``ng N`` shared slacks)
-and differ only in how the predicted states enter the NLP:
-
-* ``"multiple_shooting"``: the textbook formulation. The states of every scenario are
-  decision variables, the Euler dynamics are equality constraints and every scenario
-  constraint is explicit. Large but very sparse; it is the reference.
-* ``"condensed"`` (default): single shooting. The only decision variables are the shared
-  inputs (``nu N``) and the slacks (``ng N``); each scenario's states are SX expressions
-  of the inputs, so the NLP has ``(nu + ng) N`` variables whatever ``Ns`` is.
-
-The NLPs are built from the problem's model alone: the Euler step
-(:meth:`ControlSystem.casadi_step`), the state constraints
-(:meth:`ControlSystem.casadi_constraints`, possibly none) and the cost
-(:class:`~lfm_env.system.QuadraticCost`, any PSD weights), with the dimensions
-``nx, nu, nw, ng`` of the system. Each solver builds its NLP once, with the initial states
-``x0`` (``Ns x nx``) and the latent forces ``W`` (``Ns x N x nw``) as parameters, and
-re-solves it at every step with a warm start. The module also gives
-:func:`campi_garatti_scenarios`, the scenario count of Campi & Garatti (2008).
+:class:`IpoptScenarioSolver` solves either NLP of :mod:`controllers.solvers.nlp`: the
+condensed one (single shooting, the default: the shared inputs and slacks are the only
+variables) or the textbook multiple-shooting one (every scenario's states are variables; the
+reference of the benchmark). It builds its NLP once, with the initial states, the latent
+forces and the back-off as parameters, and re-solves it at every step with a warm start.
+:func:`solve_scenario_problem` solves one problem from a cold start (solvers cached).
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
-from numbers import Integral, Real
 from typing import Any
 
 import casadi as ca
 import numpy as np
-from scipy import special
 
 from controllers.problem import MPCSolution, ScenarioProblem
+from controllers.solvers.nlp import build_condensed, build_multiple_shooting, shift_blocks
 
 FORMULATIONS = ("condensed", "multiple_shooting")
 
@@ -55,194 +40,6 @@ WARM_START_IPOPT_OPTIONS: dict[str, Any] = {
     "warm_start_mult_bound_push": 1e-6,
     "mu_init": 1e-4,
 }
-
-
-@dataclass
-class _NLP:
-    """A built scenario NLP: its symbolic definition, bounds, and the layout of its vectors.
-
-    The decision vector is ``[vec(u) (nu N), vec(s) (ng N), states]`` where ``states``
-    holds ``x_1..x_N`` of every scenario ordered (step, scenario, component) in the
-    multiple-shooting formulation and is empty in the condensed one. The parameter vector
-    is ``[x0.ravel() (Ns nx), W.ravel() (Ns N nw)]`` with ``x0`` ``(Ns, nx)`` and ``W``
-    ``(Ns, N, nw)`` as :meth:`ScenarioProblem.check_data` returns them. ``x_blocks`` and
-    ``g_blocks`` give, for each block of the decision and constraint vectors, its size per
-    prediction step; every block is ordered step-major, which is what the warm-start
-    shift uses.
-    """
-
-    nlp: dict[str, ca.SX]
-    lbx: np.ndarray
-    ubx: np.ndarray
-    lbg: np.ndarray
-    ubg: np.ndarray
-    x_blocks: tuple[int, ...]
-    g_blocks: tuple[int, ...]
-
-
-@dataclass
-class _Symbols:
-    """The symbols and per-scenario functions both formulations are written with."""
-
-    U: ca.SX  # (nu, N) shared inputs
-    S: ca.SX  # (ng, N) shared slacks (0 rows without state constraints)
-    X0: ca.SX  # (nx, Ns) initial states, column i for scenario i
-    W: ca.SX  # (nw N, Ns) latent forces; rows k nw .. (k+1) nw - 1 act during step k
-    B: ca.SX  # (ng, N) constraint back-off (a parameter; zero when not used)
-    step: ca.Function  # (nx, Ns), (nu, 1), (nw, Ns) -> (nx, Ns): one Euler step
-    constraints: ca.Function | None  # (nx, Ns) -> (ng, Ns); None when ng == 0
-    state_cost: ca.Function  # (nx, Ns) -> (1, Ns)
-    terminal_cost: ca.Function  # (nx, Ns) -> (1, Ns)
-
-    def forces(self, k: int) -> ca.SX:
-        """The forces ``(nw, Ns)`` of every scenario acting during step ``k``."""
-        nw = self.W.shape[0] // self.U.shape[1]
-        return self.W[k * nw : (k + 1) * nw, :]
-
-    def scenario_constraints(self, X: ca.SX, k: int) -> ca.SX:
-        """``g_j(x_k^(i)) + b[k, j] - s[k, j]`` for states ``X`` ``(nx, Ns)`` of step ``k``
-        (1-based).
-
-        Column ``i`` is scenario ``i``, so ``vec`` orders the rows (scenario, constraint).
-        """
-        shift = self.B[:, k - 1] - self.S[:, k - 1]
-        return self.constraints(X) + ca.repmat(shift, 1, X.shape[1])
-
-
-def _symbols(problem: ScenarioProblem, kind: type = ca.SX) -> _Symbols:
-    """Symbols of both formulations and the per-scenario functions mapped over ``Ns``.
-
-    ``Function.map`` evaluates the one-scenario step, constraints and costs on all columns
-    at once (the shared input column is broadcast), so building the NLP costs ``N`` Python
-    iterations, not ``N Ns``. With ``kind=ca.MX`` the mapped calls stay calls (a loop in
-    generated C code) instead of being expanded into ``Ns`` copies of every expression.
-    """
-    system, cost = problem.system, problem.cost
-    n, ns = problem.horizon, problem.n_scenarios
-    nx, nu, nw, ng = problem.nx, problem.nu, problem.nw, problem.ng
-    x = ca.SX.sym("x", nx)
-    return _Symbols(
-        U=kind.sym("u", nu, n),
-        S=kind.sym("s", ng, n) if ng else kind(0, n),
-        X0=kind.sym("x0", nx, ns),
-        W=kind.sym("W", nw * n, ns),
-        B=kind.sym("b", ng, n) if ng else kind(0, n),
-        step=system.casadi_step(problem.dt).map(ns),
-        constraints=system.casadi_constraints().map(ns) if ng else None,
-        state_cost=ca.Function("state_cost", [x], [cost.state_cost(x)]).map(ns),
-        terminal_cost=ca.Function("terminal_cost", [x], [cost.terminal_cost(x)]).map(ns),
-    )
-
-
-def _objective(problem: ScenarioProblem, sym: _Symbols, state_costs: ca.SX) -> ca.SX:
-    """Scenario average of ``state_costs`` ``(1, Ns)``, plus input cost and slack penalty."""
-    inputs = sum(problem.cost.input_cost(sym.U[:, k]) for k in range(problem.horizon))
-    f = ca.sum2(state_costs) / problem.n_scenarios + inputs
-    if problem.ng:
-        f += problem.slack_penalty * ca.sum1(ca.sum2(sym.S))
-    return f
-
-
-def _build_condensed(problem: ScenarioProblem, kind: type = ca.SX) -> _NLP:
-    """Single shooting: inputs and slacks are the only decision variables.
-
-    ``kind``: the symbols' type, ``ca.SX`` (expanded expressions, for IPOPT) or ``ca.MX``
-    (mapped per-scenario calls kept, compact when compiled).
-    """
-    n, ns, nu, ng = problem.horizon, problem.n_scenarios, problem.nu, problem.ng
-    sym = _symbols(problem, kind)
-
-    # --- dynamics ---
-    X = sym.X0
-    costs = sym.state_cost(X)
-    g = []
-    for k in range(n):
-        X = sym.step(X, sym.U[:, k], sym.forces(k))
-        costs += (sym.terminal_cost if k == n - 1 else sym.state_cost)(X)
-
-        # --- constraints ---
-        # g_j(x_k^(i)) - s[k, j] <= 0 for every scenario i.
-        if ng:
-            g.append(ca.vec(sym.scenario_constraints(X, k + 1)))
-
-    nlp = {
-        "x": ca.vertcat(ca.vec(sym.U), ca.vec(sym.S)),
-        "p": ca.vertcat(ca.vec(sym.X0), ca.vec(sym.W), ca.vec(sym.B)),
-        "f": _objective(problem, sym, costs),
-        "g": ca.vertcat(*g) if g else kind(0, 1),
-    }
-    lbx, ubx = _input_and_slack_bounds(problem)
-    n_g = n * ns * ng
-    return _NLP(
-        nlp=nlp,
-        lbx=lbx,
-        ubx=ubx,
-        lbg=np.full(n_g, -np.inf),
-        ubg=np.zeros(n_g),
-        x_blocks=(nu, ng),
-        g_blocks=(ns * ng,),
-    )
-
-
-def _build_multiple_shooting(problem: ScenarioProblem) -> _NLP:
-    """Textbook multiple shooting: all scenario states are variables, dynamics are equalities."""
-    n, ns, nx, nu, ng = problem.horizon, problem.n_scenarios, problem.nx, problem.nu, problem.ng
-    sym = _symbols(problem)
-    # Column k * Ns + i holds x_{k+1} of scenario i.
-    X = ca.SX.sym("X", nx, n * ns)
-
-    costs = sym.state_cost(sym.X0)
-    g_dyn, g_ineq = [], []
-    X_prev = sym.X0
-    for k in range(n):
-        Xk = X[:, k * ns : (k + 1) * ns]
-
-        # --- dynamics ---
-        g_dyn.append(ca.vec(Xk - sym.step(X_prev, sym.U[:, k], sym.forces(k))))
-
-        # --- constraints ---
-        if ng:
-            g_ineq.append(ca.vec(sym.scenario_constraints(Xk, k + 1)))
-
-        costs += (sym.terminal_cost if k == n - 1 else sym.state_cost)(Xk)
-        X_prev = Xk
-
-    nlp = {
-        "x": ca.vertcat(ca.vec(sym.U), ca.vec(sym.S), ca.vec(X)),
-        "p": ca.vertcat(ca.vec(sym.X0), ca.vec(sym.W), ca.vec(sym.B)),
-        "f": _objective(problem, sym, costs),
-        "g": ca.vertcat(*g_dyn, *g_ineq),
-    }
-    lbu, ubu = _input_and_slack_bounds(problem)
-    n_x = nx * n * ns
-    n_dyn, n_ineq = nx * n * ns, ng * n * ns
-    return _NLP(
-        nlp=nlp,
-        lbx=np.concatenate([lbu, np.full(n_x, -np.inf)]),
-        ubx=np.concatenate([ubu, np.full(n_x, np.inf)]),
-        lbg=np.concatenate([np.zeros(n_dyn), np.full(n_ineq, -np.inf)]),
-        ubg=np.zeros(n_dyn + n_ineq),
-        x_blocks=(nu, ng, nx * ns),
-        g_blocks=(nx * ns, ng * ns),
-    )
-
-
-def _input_and_slack_bounds(problem: ScenarioProblem) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds of ``[vec(u), vec(s)]``: hard input bounds, slacks in ``[0, inf)``."""
-    n, ng = problem.horizon, problem.ng
-    lbx = np.concatenate([np.tile(problem.input_lower, n), np.zeros(ng * n)])
-    ubx = np.concatenate([np.tile(problem.input_upper, n), np.full(ng * n, np.inf)])
-    return lbx, ubx
-
-
-def _shift_blocks(v: np.ndarray, blocks: tuple[int, ...], horizon: int) -> np.ndarray:
-    """Shift every step-major block of ``v`` by one prediction step, repeating the last step."""
-    out, start = [], 0
-    for size in blocks:
-        b = v[start : start + size * horizon].reshape(horizon, size)
-        out.append(np.concatenate([b[1:], b[-1:]]).ravel())
-        start += size * horizon
-    return np.concatenate(out)
 
 
 class IpoptScenarioSolver:
@@ -291,7 +88,7 @@ class IpoptScenarioSolver:
             user.setdefault("max_wall_time", check_max_time(max_time))
         self.ipopt_options = {**DEFAULT_IPOPT_OPTIONS, **user}
         t0 = time.perf_counter()
-        build = _build_condensed if formulation == "condensed" else _build_multiple_shooting
+        build = build_condensed if formulation == "condensed" else build_multiple_shooting
         self._nlp = build(problem)
         self._cold = self._make_solver("cold", self.ipopt_options)
         self._warm = None
@@ -373,7 +170,7 @@ class IpoptScenarioSolver:
         if self._warm is not None and mode != "cold" and prev["lam_x"] is not None:
             for key, blocks in (("lam_x", nlp.x_blocks), ("lam_g", nlp.g_blocks)):
                 lam = prev[key]
-                duals[key + "0"] = _shift_blocks(lam, blocks, n) if mode == "shift" else lam
+                duals[key + "0"] = shift_blocks(lam, blocks, n) if mode == "shift" else lam
 
         X = problem.rollout(x0, W, u0)
         parts = [u0.ravel(), problem.minimal_slack(X, backoff).ravel()]
@@ -479,100 +276,6 @@ class IpoptScenarioSolver:
         )
 
 
-# CasADi's sqpmethod with qpOASES: the compiled SQP anchor of the benchmark.
-DEFAULT_SQP_OPTIONS: dict[str, Any] = {
-    "qpsol": "qpoases",
-    "qpsol_options": {"printLevel": "none", "error_on_fail": False},
-    "max_iter": 100,
-    "tol_pr": 1e-8,
-    "tol_du": 1e-8,
-    "print_header": False,
-    "print_iteration": False,
-    "print_status": False,
-}
-# JIT: CasADi writes the NLP's functions (objective, constraints, their derivatives and the
-# Lagrangian's Hessian) as C and compiles them with the system's compiler.
-JIT_OPTIONS: dict[str, Any] = {
-    "jit": True,
-    "compiler": "shell",
-    "jit_options": {"flags": ["-O2"], "verbose": False},
-}
-WALL_TIME_STATUS = "Maximum_WallTime_Exceeded"
-
-
-class SqpMethodScenarioSolver(IpoptScenarioSolver):
-    """CasADi's ``sqpmethod`` + qpOASES on the condensed NLP, JIT-compiled: the SQP anchor.
-
-    The NLP is the condensed one of :class:`IpoptScenarioSolver` (built by the same
-    function), solved by CasADi's exact-Hessian SQP with qpOASES for the QPs, the
-    generated derivatives compiled to C (:data:`JIT_OPTIONS`; needs a C compiler, and the
-    build then takes seconds to minutes). Warm starts as for IPOPT: the previous plan
-    shifted, and its multipliers when it succeeded without slack; a failed warm-started
-    solve is retried once without multipliers.
-
-    Args:
-        problem: the scenario problem.
-        sqp_options: ``sqpmethod`` options merged over :data:`DEFAULT_SQP_OPTIONS`.
-        jit: compile the NLP's functions (default); False evaluates them in CasADi's
-            virtual machine.
-        warm_start_duals: pass the previous multipliers.
-        max_time: wall-clock limit of one solve [s], ``None`` for none. ``sqpmethod`` has no
-            time limit of its own, so it is judged after the solve: a solve that took longer
-            fails with status ``Maximum_WallTime_Exceeded`` (its plan came too late).
-    """
-
-    def __init__(
-        self,
-        problem: ScenarioProblem,
-        sqp_options: dict[str, Any] | None = None,
-        jit: bool = True,
-        warm_start_duals: bool = True,
-        max_time: float | None = None,
-    ) -> None:
-        # Not IpoptScenarioSolver.__init__: one sqpmethod instance serves cold and warm
-        # solves (multipliers are inputs of the call); solve() is inherited.
-        self.problem = problem
-        self.formulation = "condensed"
-        self.warm_start_duals = warm_start_duals
-        self.max_time = None if max_time is None else check_max_time(max_time)
-        self.jit = bool(jit)
-        self.ipopt_options = {**DEFAULT_SQP_OPTIONS, **(sqp_options or {})}  # read by solve()
-        t0 = time.perf_counter()
-        # MX symbols: the compiled code loops over the scenarios instead of spelling out
-        # every scenario's derivatives (the SX form took gcc minutes and gigabytes).
-        self._nlp = _build_condensed(problem, ca.MX)
-        self._cold = self._make_solver("sqp", self.ipopt_options)
-        self._warm = self._cold if warm_start_duals else None
-        self.build_time = time.perf_counter() - t0  # [s], including the compilation
-        self._prev = None
-
-    def _make_solver(self, name: str, options: dict[str, Any]) -> ca.Function:
-        opts = {**options, "print_time": False, "error_on_fail": False}
-        if self.jit:
-            opts.update(JIT_OPTIONS)
-        return ca.nlpsol(f"scenario_mpc_sqpmethod_{name}", "sqpmethod", self._nlp.nlp, opts)
-
-    def solve(
-        self,
-        x0: np.ndarray,
-        W: np.ndarray,
-        u_guess: np.ndarray | None = None,
-        backoff: np.ndarray | None = None,
-    ) -> MPCSolution:
-        """Solve as :meth:`IpoptScenarioSolver.solve` does, with ``sqpmethod``.
-
-        ``extra["method"]`` is ``"sqpmethod"``; a solve longer than ``max_time`` fails with
-        status ``Maximum_WallTime_Exceeded``.
-        """
-        sol = super().solve(x0, W, u_guess=u_guess, backoff=backoff)
-        sol.extra["method"] = "sqpmethod"
-        if self.max_time is not None and sol.solve_time > self.max_time:
-            sol.extra["sqpmethod_status"] = sol.status
-            sol.status, sol.success = WALL_TIME_STATUS, False
-            self._prev = {**self._prev, "lam_x": None, "lam_g": None}
-        return sol
-
-
 def check_max_time(max_time: Any) -> float:
     """A solve's wall-clock limit [s] as a float, or ``ValueError`` naming ``max_time``."""
     ok = isinstance(max_time, (int, float)) and not isinstance(max_time, bool)
@@ -625,46 +328,12 @@ def solve_scenario_problem(
     return ipopt.solve(x0, W, u_guess=u_guess)
 
 
-def _binomial_tail(n_scenarios: int, epsilon: float, n_decision: int) -> float:
-    """``sum_{i<d} C(Ns, i) eps^i (1 - eps)^(Ns - i)``, the Campi-Garatti confidence bound."""
-    return float(special.bdtr(n_decision - 1, n_scenarios, epsilon))
-
-
-def campi_garatti_scenarios(epsilon: float, beta: float, n_decision: int) -> int:
-    """Smallest scenario count ``Ns`` meeting the Campi & Garatti (2008) bound.
-
-    For a convex scenario program with ``d`` decision variables, ``Ns`` scenarios give a
-    solution whose violation probability exceeds ``epsilon`` with probability at most
-    ``beta`` when ``sum_{i=0}^{d-1} C(Ns, i) eps^i (1-eps)^(Ns-i) <= beta``.
-
-    Args:
-        epsilon: admissible violation probability, in (0, 1).
-        beta: confidence parameter, in (0, 1).
-        n_decision: number ``d`` of decision variables, an integer >= 1.
-
-    Returns:
-        The smallest ``Ns`` satisfying the bound. The guarantee is for convex programs; the
-        nonlinear MPC is in general not convex, so for it this is a heuristic (paper, Remark 2).
-
-    Raises:
-        ValueError: when an argument is out of range.
-    """
-    if isinstance(epsilon, bool) or not isinstance(epsilon, Real) or not 0.0 < epsilon < 1.0:
-        raise ValueError(f"epsilon={epsilon!r}: must be a number in (0, 1)")
-    if isinstance(beta, bool) or not isinstance(beta, Real) or not 0.0 < beta < 1.0:
-        raise ValueError(f"beta={beta!r}: must be a number in (0, 1)")
-    if isinstance(n_decision, bool) or not isinstance(n_decision, Integral) or n_decision < 1:
-        raise ValueError(f"n_decision={n_decision!r}: must be an integer >= 1")
-    d = int(n_decision)
-    # The tail equals 1 for Ns < d and decreases strictly in Ns, so bracket by doubling and
-    # then bisect: lo always fails the bound, hi always meets it.
-    lo, hi = d - 1, d
-    while _binomial_tail(hi, epsilon, d) > beta:
-        lo, hi = hi, 2 * hi
-    while hi - lo > 1:
-        mid = (lo + hi) // 2
-        if _binomial_tail(mid, epsilon, d) <= beta:
-            hi = mid
-        else:
-            lo = mid
-    return hi
+__all__ = [
+    "DEFAULT_IPOPT_OPTIONS",
+    "FORMULATIONS",
+    "WARM_DUALS_MAX_SLACK",
+    "WARM_START_IPOPT_OPTIONS",
+    "IpoptScenarioSolver",
+    "check_max_time",
+    "solve_scenario_problem",
+]

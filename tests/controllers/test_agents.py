@@ -9,8 +9,8 @@ import pytest
 import lfm_env  # noqa: F401  (registers the env)
 from controllers.agents import AGENTS, ScenarioMPCAgent, make_agent
 from controllers.config import AgentConfig, load_config
+from controllers.scenario_count import campi_garatti_scenarios
 from controllers.solvers import SOLVERS
-from controllers.solvers.ipopt import campi_garatti_scenarios
 from lfm_env import gp
 from lfm_env.config import ConfigError
 from lfm_env.env import LatentForceEnv

@@ -1,4 +1,5 @@
-"""Tests of the CasADi + IPOPT scenario MPC solvers and of the Campi-Garatti scenario count."""
+"""Tests of the CasADi + IPOPT scenario MPC solvers and of the Campi-Garatti scenario count
+(:mod:`controllers.scenario_count`)."""
 
 from __future__ import annotations
 
@@ -14,13 +15,9 @@ from scipy.optimize._numdiff import approx_derivative
 from controllers import problem as mp
 from controllers.config import load_config
 from controllers.problem import ScenarioProblem
+from controllers.scenario_count import campi_garatti_scenarios
 from controllers.solvers import make_solver
-from controllers.solvers.ipopt import (
-    FORMULATIONS,
-    IpoptScenarioSolver,
-    campi_garatti_scenarios,
-    solve_scenario_problem,
-)
+from controllers.solvers.ipopt import FORMULATIONS, IpoptScenarioSolver, solve_scenario_problem
 from lfm_env.system import QuadraticCost
 from lfm_env.systems.sine_track import track_of
 
