@@ -75,8 +75,8 @@ from controllers.problem import MPCSolution, ScenarioProblem
 from controllers.solvers.condensed import CondensedModel, Linearisation, Rollout
 from controllers.solvers.fast_options import HESSIAN_MODIFICATIONS, RESTARTS, FastSolverOptions
 from controllers.solvers.fast_restarts import RestartMixin
-from controllers.solvers.fast_subproblem import QPStep, SubproblemMixin
-from controllers.solvers.slot_qp import SlotQP
+from controllers.solvers.fast_subproblem import QP, QPStep, SubproblemMixin
+from controllers.solvers.slot_qp import resolve_qp_solver
 
 
 class FastScenarioSolver(SubproblemMixin, RestartMixin):
@@ -117,7 +117,8 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
         self._n_groups = max(m.screened.size * n, 1)
         self._eye = np.eye(m.n_u)
         self._floor_eye = self._eye * self.options.hessian_floor
-        self._qps: dict[tuple[int, int, bool], SlotQP] = {}
+        self._qps: dict[tuple[int, int, bool], QP] = {}
+        self._hard_solver = resolve_qp_solver(self.options.qp_solver, m.n_u, elastic=False)
         self._prev_u: np.ndarray | None = None
         self._deadline = math.inf  # time.perf_counter() value ending the current solve
         # (N nu,) each input's range; inf where it has none (an unbounded input gets no

@@ -21,7 +21,10 @@ import scipy.linalg.lapack
 from controllers.problem import ScenarioProblem
 from controllers.solvers.condensed import CondensedModel, Linearisation, Rollout
 from controllers.solvers.fast_options import FastSolverOptions
+from controllers.solvers.hard_qp import DaqpHardQP
 from controllers.solvers.slot_qp import SlotQP
+
+QP = SlotQP | DaqpHardQP  # a QP object of one check-and-add round
 
 
 @dataclass
@@ -32,7 +35,7 @@ class QPStep:
     slack_sum: float  # sum of the QP's slacks
     pos: np.ndarray  # (r, 3) scenario rows (constraint, step, scenario) in the QP
     lam: np.ndarray  # (r,) their multipliers
-    qp: SlotQP  # the QP object (for a second-order correction)
+    qp: QP  # the QP object (for a second-order correction)
     row: np.ndarray  # (r,) their row slots in it
     s_pos: np.ndarray  # (ng, N) slack of each (constraint, step) group
     s_shared: np.ndarray  # (n_shared,) slack of each shared row, ordered (step, constraint)
@@ -60,8 +63,9 @@ class SubproblemMixin:
     _a_shared: np.ndarray  # (n_shared, N nu) their Jacobian rows
     _n_groups: int  # (constraint, step) groups of scenario rows
     _eye: np.ndarray  # (N nu, N nu) identity
+    _hard_solver: str  # the solver of the QPs without slacks (resolve_qp_solver)
     _floor_eye: np.ndarray  # hessian_floor times it
-    _qps: dict[tuple[int, int, bool], SlotQP]
+    _qps: dict[tuple[int, int, bool], QP]
     _hard_first: bool  # try the QP without slacks first (elastic_qp="on_demand")
     _last_eig: Any  # diagnostics of the last convexification (for the trace)
     trace: list[dict[str, Any]] | None  # per-iteration diagnostics, when asked for
@@ -140,19 +144,26 @@ class SubproblemMixin:
 
     # ------------------------------------------------------------------ QP subproblem
 
-    def _qp(self, rows: int, groups: int, elastic: bool = True) -> SlotQP:
+    def _qp(self, rows: int, groups: int, elastic: bool = True) -> QP:
         """The cached QP with room for ``rows`` scenario rows in ``groups`` groups (with
         slacks; ``elastic=False``: the same rows without any slack).
 
         Capacities are rounded up to powers of two, so a few QP objects serve every solve
-        and each keeps its own hot-start information and slot assignment.
+        and each keeps its own hot-start information and slot assignment. The QP without
+        slacks on DAQP (``"auto"``'s choice) is one :class:`DaqpHardQP` for every size: DAQP
+        is cold-started at every call, so it needs no slots.
         """
+        p, opt = self.problem, self.options
+        if not elastic and self._hard_solver == "daqp":
+            qp = self._qps.get((0, 0, False))
+            if qp is None:
+                qp = self._qps[0, 0, False] = DaqpHardQP(self._n_u, self._n_shared, opt.max_time)
+            return qp
         groups = min(max(4, 1 << (groups - 1).bit_length()), self._n_groups) if elastic else 0
         rows = max(8, 1 << (rows - 1).bit_length())
         key = (rows, groups, elastic)
         qp = self._qps.get(key)
         if qp is None:
-            p, opt = self.problem, self.options
             qp = SlotQP(
                 self._n_u,
                 self._n_shared,
@@ -276,7 +287,7 @@ class SubproblemMixin:
 
     def _load(
         self,
-        qp: SlotQP,
+        qp: QP,
         H: np.ndarray,
         grad: np.ndarray,
         lo: np.ndarray,
@@ -294,7 +305,7 @@ class SubproblemMixin:
         return row, column
 
     @staticmethod
-    def _count(stats: dict, qp: SlotQP) -> None:
+    def _count(stats: dict, qp: QP) -> None:
         """Count one QP solve (by solver; hard QPs also apart)."""
         stats["qp_solves"] += 1
         stats["qp_calls"][qp.solver] = stats["qp_calls"].get(qp.solver, 0) + 1
