@@ -63,8 +63,8 @@ class SubproblemMixin:
     _a_shared: np.ndarray  # (n_shared, N nu) their Jacobian rows
     _n_groups: int  # (constraint, step) groups of scenario rows
     _eye: np.ndarray  # (N nu, N nu) identity
-    _hard_solver: str  # the solver of the QPs without slacks (resolve_qp_solver)
     _floor_eye: np.ndarray  # hessian_floor times it
+    _hard_solver: str  # the solver of the QPs without slacks (resolve_qp_solver)
     _qps: dict[tuple[int, int, bool], QP]
     _hard_first: bool  # try the QP without slacks first (elastic_qp="on_demand")
     _last_eig: Any  # diagnostics of the last convexification (for the trace)
