@@ -35,7 +35,12 @@ import numpy as np
 import lfm_env  # noqa: F401  (registers the envs)
 from controllers.config import ExperimentConfig, load_config
 from controllers.rl_agent import policy_features
-from experiments.cli import _add_config_argument, _config_path, check_writable, one_line_errors
+from experiments.cli import (
+    add_config_argument,
+    check_writable,
+    config_argument_path,
+    one_line_errors,
+)
 
 ALGOS = ("ppo", "sac")
 MAX_TIMESTEPS = 10**9
@@ -281,7 +286,7 @@ def _parser() -> argparse.ArgumentParser:
         epilog="example: lfm-train --config configs/paper.yaml --algo ppo --minutes 25 "
         "--out results/rl/ppo",
     )
-    _add_config_argument(parser)
+    add_config_argument(parser)
     parser.add_argument("--algo", choices=ALGOS, default="ppo", help="algorithm (default ppo)")
     parser.add_argument(
         "--timesteps", type=int, default=1_000_000, help="env steps at most (default 1e6)"
@@ -307,7 +312,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """``lfm-train``: train and save a policy; prints the run's summary as JSON."""
     parser = _parser()
     args = parser.parse_args(argv)
-    path = _config_path(parser, args.config)
+    path = config_argument_path(parser, args.config)
     try:
         _check_args(args.algo, args.timesteps, args.minutes, args.n_envs, args.cost_weight)
         config = load_config(path)

@@ -1,0 +1,54 @@
+"""Command lines of the project: thin layers that parse arguments and call library functions.
+
+Each command is a ``<name>_main(argv=None) -> int`` function registered as a console
+script in ``pyproject.toml`` (``lfm-evaluate = "experiments.cli:evaluate_main"``) and
+wrapped by a one-line script in ``scripts/``. Bad arguments exit with code 2 and a
+one-line message (``argparse``'s ``parser.error``); so do operating-system errors (disk
+full, a read-only or impossible output path) and running out of memory
+(:func:`~experiments.cli.common.one_line_errors`). Ctrl-C prints one line and exits with
+code 130.
+
+One module per command: :mod:`~experiments.cli.evaluate` (``lfm-evaluate``),
+:mod:`~experiments.cli.report` (``lfm-report``), :mod:`~experiments.cli.sweep`
+(``lfm-sweep``), :mod:`~experiments.cli.render` (``lfm-render``); what they share (and the
+other command lines, ``lfm-benchmark``, ``lfm-calibrate``, ``lfm-train``, use) in
+:mod:`~experiments.cli.common`. This package gives the entry points and the shared helpers.
+"""
+
+from experiments.cli.common import (
+    DEFAULT_PRESET,
+    PRESETS_PACKAGE,
+    add_config_argument,
+    check_writable,
+    config_argument_path,
+    config_file,
+    one_line_errors,
+    os_error_text,
+    positive_int,
+    preset_names,
+    seeds_and_executor,
+)
+from experiments.cli.evaluate import evaluate_main
+from experiments.cli.render import MAX_RENDER_SIDE, RENDER_MEMORY_BUDGET, render_main
+from experiments.cli.report import report_main
+from experiments.cli.sweep import sweep_main
+
+__all__ = [
+    "DEFAULT_PRESET",
+    "MAX_RENDER_SIDE",
+    "PRESETS_PACKAGE",
+    "RENDER_MEMORY_BUDGET",
+    "add_config_argument",
+    "check_writable",
+    "config_argument_path",
+    "config_file",
+    "evaluate_main",
+    "one_line_errors",
+    "os_error_text",
+    "positive_int",
+    "preset_names",
+    "render_main",
+    "report_main",
+    "seeds_and_executor",
+    "sweep_main",
+]

@@ -1,0 +1,184 @@
+"""What the command lines share: one-line errors, writable outputs, the configs by name or path,
+the seeds and executor options."""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import os
+import sys
+import tempfile
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from experiments.interrupts import remember_interrupts
+
+PRESETS_PACKAGE = "experiments.presets"  # the configs/ folder, shipped in the package
+DEFAULT_PRESET = "paper"
+
+
+def os_error_text(exc: OSError) -> str:
+    """One line for an operating-system error: its reason and the path it concerns."""
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    paths = [str(p) for p in (exc.filename, exc.filename2) if p is not None]
+    return " ".join(f"{reason}: {' -> '.join(paths)}".split()) if paths else reason
+
+
+def one_line_errors(prog: str) -> Callable:
+    """Decorate a ``main(argv) -> int``: an ``OSError`` or ``MemoryError`` escaping it is
+    printed as one line ``<prog>: error: ...`` on stderr and gives exit code 2, and
+    Ctrl-C (``KeyboardInterrupt``) one line ``<prog>: interrupted`` and exit code 130,
+    instead of a traceback. ``main`` runs under
+    :func:`experiments.interrupts.remember_interrupts` (SIGTERM ends it like Ctrl-C)."""
+
+    def decorate(main: Callable[..., int]) -> Callable[..., int]:
+        @functools.wraps(main)
+        def wrapped(argv: Sequence[str] | None = None) -> int:
+            try:
+                with remember_interrupts():  # a Ctrl-C a library swallows still stops
+                    return main(argv)
+            except OSError as exc:
+                print(f"{prog}: error: {os_error_text(exc)}", file=sys.stderr)
+                return 2
+            except MemoryError:
+                print(
+                    f"{prog}: error: out of memory; use smaller settings (see README, Limits)",
+                    file=sys.stderr,
+                )
+                return 2
+            except KeyboardInterrupt:
+                print(f"\n{prog}: interrupted", file=sys.stderr)
+                return 130
+
+        return wrapped
+
+    return decorate
+
+
+def check_writable(path: str | os.PathLike, what: str) -> str | None:
+    """Why the file ``path`` cannot be written (one line naming ``what``), else ``None``.
+
+    Creates the missing parent folders and a temporary file beside ``path`` (removed at
+    once), so an unwritable, read-only or impossible path is found before any work.
+    """
+    target = Path(path)
+    if target.is_dir():
+        return f"{what} {path}: is a folder, expected a file name"
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as exc:
+        return f"{what} {path}: cannot be written ({os_error_text(exc)})"
+    return None
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} must be >= 1")
+    return value
+
+
+def _presets_folder() -> Path:
+    """The folder of the presets: the installed package's, else a checkout's ``configs/``.
+
+    A wheel ships ``configs/`` as the package ``experiments.presets``; an editable install
+    maps it there too. A source tree used without installing it (``PYTHONPATH=.``) has
+    no such package, and its ``configs/`` folder beside ``experiments/`` is used instead.
+    """
+    from importlib import resources
+
+    try:
+        return Path(str(resources.files(PRESETS_PACKAGE)))
+    except ModuleNotFoundError:
+        return Path(__file__).resolve().parent.parent / "configs"
+
+
+def preset_names() -> list[str]:
+    """The names of the shipped presets (``paper``, ``quick``, ``quadrotor``, ...), sorted."""
+    return sorted(p.stem for p in _presets_folder().glob("*.yaml"))
+
+
+def config_file(given: str | os.PathLike | None) -> Path:
+    """The config file of a ``--config`` value: a path to a YAML file, or a preset's name.
+
+    Every command with ``--config`` resolves it here. A path that names an existing file
+    wins; otherwise ``given`` is looked up among the presets shipped in the package
+    (``paper``, ``quick``, ``quadrotor``, with or without ``.yaml``), from any folder.
+
+    Args:
+        given: the option's value; ``None`` for the default preset (``paper``).
+
+    Raises:
+        ValueError: naming ``given`` and the preset names, if it is neither.
+    """
+    if given is None:
+        given = DEFAULT_PRESET
+    path = Path(given)
+    if path.is_file():
+        return path
+    name = path.name[: -len(".yaml")] if path.name.endswith(".yaml") else path.name
+    if path.parent == Path(".") and name in preset_names():
+        return _presets_folder() / f"{name}.yaml"
+    raise ValueError(
+        f"--config {str(given)[:200]}: no such file and no preset of that name; presets: "
+        f"{', '.join(preset_names())} (or a path to a YAML file)"
+    )
+
+
+def add_config_argument(parser: argparse.ArgumentParser) -> None:
+    """The ``--config`` option shared by the commands that run episodes."""
+    parser.add_argument(
+        "--config",
+        metavar="NAME|YAML",
+        default=None,
+        help=(
+            "a preset's name (" + ", ".join(preset_names()) + ") or a config file with "
+            f"env_id, env and agents sections; env_id picks the world (default: "
+            f"{DEFAULT_PRESET})"
+        ),
+    )
+
+
+def config_argument_path(parser: argparse.ArgumentParser, given: str | None) -> Path:
+    """The config file of ``--config`` (:func:`config_file`); exits 2 if there is none."""
+    try:
+        return config_file(given)
+    except ValueError as exc:
+        parser.error(str(exc))
+
+
+def seeds_and_executor(parser: argparse.ArgumentParser, args: argparse.Namespace) -> list[int]:
+    """The parsed ``--seeds``, after checking that the executor options fit together
+    (exits 2 through ``parser.error`` naming the option otherwise)."""
+    from experiments.evaluation import parse_seeds
+
+    try:
+        seeds = parse_seeds(args.seeds)
+    except ValueError as exc:
+        parser.error(f"--seeds: {exc}")
+    if args.scheduler is not None and args.dask_workers is not None:
+        parser.error("--scheduler and --dask-workers exclude each other")
+    if args.jobs > 1 and (args.scheduler is not None or args.dask_workers is not None):
+        parser.error("--jobs runs local processes; do not combine it with Dask options")
+    return seeds
+
+
+__all__ = [
+    "DEFAULT_PRESET",
+    "PRESETS_PACKAGE",
+    "add_config_argument",
+    "check_writable",
+    "config_argument_path",
+    "config_file",
+    "one_line_errors",
+    "os_error_text",
+    "positive_int",
+    "preset_names",
+    "seeds_and_executor",
+]

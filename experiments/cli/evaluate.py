@@ -1,0 +1,208 @@
+"""``lfm-evaluate``: agents over seeds on one config, into a resumable results folder."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from experiments.cli.common import (
+    add_config_argument,
+    config_argument_path,
+    one_line_errors,
+    positive_int,
+    seeds_and_executor,
+)
+
+_EVALUATE_EPILOG = """\
+files written (DIR is --out):
+  DIR/config.yaml                       the resolved config of every episode in DIR
+  DIR/episodes/<agent>__seed<S>.npz     trajectory of one episode
+  DIR/episodes/<agent>__seed<S>.json    its row of metrics (written last: marks it done)
+  DIR/episodes.csv                      all rows, sorted by agent and seed
+
+Rerunning the same command resumes an interrupted run: finished episodes are
+skipped and episodes that raised an error are retried. A folder holds one config;
+resuming with another config is refused. Exit code 0 when every episode ran, 1 when
+some raised (they are in the table with their error), 2 on bad arguments.
+
+Metrics (columns of episodes.csv): success, steps, time_to_goal [s], cost (sum of
+the true stage cost), then per constraint group G of the world's system
+<G>_violation_steps and max_<G>_excess [the group's unit] (sine track: track [m],
+x [m], speed [m/s]; quadrotor: corridor [m], x [m]) and <G>_violation_steps_over_<T>
+per tolerance T of the group (steps with the excess above T; sine track: track and x
+0.01, 0.05 m, speed 0.05 m/s), failure (the env ended the
+episode as a failure), latent_rmse [force unit] and latent_coverage (2-sigma band;
+filter agents only), solve_time_median/p95/max [s], solver_failures,
+fallback_steps, filter_resets, slack_total, wall_time [s], error.
+
+examples:
+  lfm-evaluate                                   paper config, seeds 0:20, 3 agents
+  lfm-evaluate --config quick --seeds 0:5 --jobs 2      a preset, by name
+  lfm-evaluate --config quadrotor --agents nominal,scenario,oracle
+  lfm-evaluate --config my/config.yaml --seeds 0:5      a config file, by path
+  lfm-evaluate --agents scenario,oracle --seeds 0:10,20:25 --out results/sweep
+  lfm-evaluate --agents nominal,mypkg.agents:MyAgent   your own agent next to nominal
+  lfm-evaluate --dask-workers 2                  local Dask cluster on 127.0.0.1
+  lfm-evaluate --scheduler tcp://10.0.0.5:8786   existing Dask cluster (DIR shared)
+"""
+
+
+def _evaluate_parser() -> argparse.ArgumentParser:
+    from controllers.agents import AGENT_LABELS
+
+    agents_help = "; ".join(f"{k} = {v}" for k, v in AGENT_LABELS.items())
+    parser = argparse.ArgumentParser(
+        prog="lfm-evaluate",
+        description=(
+            "Run MPC agents on the world of the config (its env_id, e.g. lfm_env/SineTrack-v0\n"
+            "for configs/paper.yaml) over env seeds and save one row of metrics and one\n"
+            "trajectory per episode. For one env seed every agent faces the same hidden\n"
+            "disturbance and noise (paired design)."
+        ),
+        epilog=_EVALUATE_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_config_argument(parser)
+    parser.add_argument(
+        "--agents",
+        default="nominal,pf,scenario",
+        metavar="A,B,...",
+        help=(
+            "comma-separated agents (default: nominal,pf,scenario): registered names, or "
+            "your own agent as module:attribute, a factory called with the resolved config "
+            "(or an agent class taking it) returning an object with reset(seed=None) and "
+            "act(obs) (README, 'Your own agent'; the module is looked up from the current "
+            f"folder too). {agents_help}"
+        ),
+    )
+    parser.add_argument(
+        "--seeds",
+        default="0:20",
+        metavar="SEEDS",
+        help=(
+            "env seeds: a range start:end (end exclusive), single seeds and lists, "
+            "e.g. 0:20, 3, 1,5,9, 0:10,20:25 (default: 0:20)"
+        ),
+    )
+    parser.add_argument(
+        "--jobs",
+        type=positive_int,
+        default=1,
+        metavar="N",
+        help="local worker processes (default: 1, serial)",
+    )
+    parser.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        default=None,
+        help="run on an existing Dask cluster, e.g. tcp://127.0.0.1:8786 (DIR must be shared)",
+    )
+    parser.add_argument(
+        "--dask-workers",
+        type=positive_int,
+        default=None,
+        metavar="N",
+        help="start a local Dask cluster of N single-threaded workers on 127.0.0.1",
+    )
+    parser.add_argument(
+        "--out",
+        metavar="DIR",
+        default=None,
+        help="results folder (default: results/<config file stem>, e.g. results/paper)",
+    )
+    parser.add_argument(
+        "--no-report",
+        action="store_true",
+        help="do not write the report after the run (default: experiments.report.write_report)",
+    )
+    parser.add_argument(
+        "--quiet", action="store_true", help="no progress bar and no per-agent summary"
+    )
+    return parser
+
+
+def _print_summary(rows: list[dict]) -> None:
+    """One line per agent: episodes, successes, failures, errors."""
+    agents = list(dict.fromkeys(r["agent"] for r in rows))
+    width = max((len(a) for a in agents), default=0)
+    for agent in agents:
+        mine = [r for r in rows if r["agent"] == agent]
+        ok = [r for r in mine if r["error"] == ""]
+        print(
+            f"  {agent:>{width}}: {len(mine)} episodes, "
+            f"{sum(r['success'] for r in ok)} reached the goal, "
+            f"{sum(r['failure'] for r in ok)} left the safety box, "
+            f"{len(mine) - len(ok)} raised an error"
+        )
+
+
+@one_line_errors("lfm-evaluate")
+def evaluate_main(argv: Sequence[str] | None = None) -> int:
+    """``lfm-evaluate``: evaluate agents over seeds and write the results (see ``--help``).
+
+    Returns:
+        The exit code: 0 if every episode ran, 1 if some raised an error.
+    """
+    from experiments.evaluation import evaluate
+
+    parser = _evaluate_parser()
+    args = parser.parse_args(argv)
+
+    config_path = config_argument_path(parser, args.config)
+    seeds = seeds_and_executor(parser, args)
+    agents = [a.strip() for a in args.agents.split(",")]
+    if any(":" in a for a in agents) and os.getcwd() not in sys.path:
+        # As `python -m` does: `module:attribute` agents import from the current folder.
+        sys.path.insert(0, os.getcwd())
+    out = (
+        Path(args.out)
+        if args.out
+        else Path("results") / (config_path.stem if config_path is not None else "defaults")
+    )
+
+    try:
+        rows = evaluate(
+            agents,
+            seeds,
+            config=config_path,
+            out=out,
+            jobs=args.jobs,
+            scheduler=args.scheduler,
+            dask_workers=args.dask_workers,
+            progress=not args.quiet,
+        )
+    except (ValueError, ConnectionError) as exc:  # raised before any episode runs
+        parser.error(" ".join(str(exc).split()))
+    except KeyboardInterrupt:
+        print(f"\ninterrupted; finished episodes are in {out}; rerun to resume", file=sys.stderr)
+        return 130
+
+    n_errors = sum(r["error"] != "" for r in rows)
+    if not args.quiet:
+        _print_summary(rows)
+    print(f"results: {out / 'episodes.csv'} ({len(rows)} episodes, {n_errors} with errors)")
+    if n_errors:
+        print(f"rerun the same command to retry the {n_errors} episodes that raised an error")
+
+    if not args.no_report:
+        try:
+            from experiments.report import write_report
+        except ImportError as exc:
+            print(f"report: skipped, experiments.report is not available ({exc})")
+        else:
+            try:
+                where = write_report(out)
+            except Exception as exc:  # the results are safe; only the report failed
+                print(f"report: failed ({type(exc).__name__}: {exc}); results are kept")
+                return 1
+            print(f"report: {where if where is not None else out}")
+    return 1 if n_errors else 0
+
+
+# --------------------------------------------------------------------------- lfm-report
+
+
+__all__ = ["evaluate_main"]
