@@ -153,6 +153,31 @@ def config_argument_path(parser: argparse.ArgumentParser, given: str | None) -> 
         parser.error(str(exc))
 
 
+def add_executor_arguments(parser: argparse.ArgumentParser, jobs_help: str) -> None:
+    """``--jobs``, ``--scheduler`` and ``--dask-workers``: where the episodes run (checked
+    together by :func:`seeds_and_executor`)."""
+    parser.add_argument(
+        "--jobs",
+        type=positive_int,
+        default=1,
+        metavar="N",
+        help=jobs_help,
+    )
+    parser.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        default=None,
+        help="run on an existing Dask cluster, e.g. tcp://127.0.0.1:8786 (DIR must be shared)",
+    )
+    parser.add_argument(
+        "--dask-workers",
+        type=positive_int,
+        default=None,
+        metavar="N",
+        help="start a local Dask cluster of N single-threaded workers on 127.0.0.1",
+    )
+
+
 def seeds_and_executor(parser: argparse.ArgumentParser, args: argparse.Namespace) -> list[int]:
     """The parsed ``--seeds``, after checking that the executor options fit together
     (exits 2 through ``parser.error`` naming the option otherwise)."""
@@ -173,6 +198,7 @@ __all__ = [
     "DEFAULT_PRESET",
     "PRESETS_PACKAGE",
     "add_config_argument",
+    "add_executor_arguments",
     "check_writable",
     "config_argument_path",
     "config_file",

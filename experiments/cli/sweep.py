@@ -9,9 +9,9 @@ from pathlib import Path
 
 from experiments.cli.common import (
     add_config_argument,
+    add_executor_arguments,
     config_argument_path,
     one_line_errors,
-    positive_int,
     seeds_and_executor,
 )
 
@@ -76,26 +76,7 @@ def _sweep_parser() -> argparse.ArgumentParser:
         metavar="SEEDS",
         help="env seeds, e.g. 0:100, 3, 1,5,9 (end exclusive; default: 0:20)",
     )
-    parser.add_argument(
-        "--jobs",
-        type=positive_int,
-        default=1,
-        metavar="N",
-        help="local worker processes per evaluation (default: 1, serial)",
-    )
-    parser.add_argument(
-        "--scheduler",
-        metavar="ADDRESS",
-        default=None,
-        help="run on an existing Dask cluster, e.g. tcp://127.0.0.1:8786 (DIR must be shared)",
-    )
-    parser.add_argument(
-        "--dask-workers",
-        type=positive_int,
-        default=None,
-        metavar="N",
-        help="start a local Dask cluster of N single-threaded workers on 127.0.0.1",
-    )
+    add_executor_arguments(parser, "local worker processes per evaluation (default: 1, serial)")
     parser.add_argument(
         "--out",
         metavar="DIR",
