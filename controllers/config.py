@@ -16,7 +16,7 @@ import numpy as np
 
 from controllers.estimators.estimator import ESTIMATORS
 from controllers.solvers import SOLVERS
-from controllers.solvers.fast_options import MAX_THREADS
+from controllers.solvers.fast.options import MAX_THREADS
 from lfm_env.config import (
     ConfigError,
     DisturbanceConfig,

@@ -24,7 +24,7 @@ Conventions (shared by every solver), with the dimensions of the model's system:
 * ``backoff`` (optional, per solve): constraint tightening ``b[k, j] >= 0`` in the
   constraints' units, ``(N, ng)`` or ``(ng,)`` for every step; the constraints become
   ``g_j(x_k^(i)) + b[k, j] <= s[k, j]``. Agents use it to keep a margin of ``k`` times the
-  estimate's spread along each constraint (:mod:`controllers.agents`).
+  estimate's spread along each constraint (:mod:`controllers.agents.mpc`).
 """
 
 from __future__ import annotations

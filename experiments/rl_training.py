@@ -9,12 +9,12 @@ violated constraint groups), and on a failure the current step's penalty once fo
 step the time limit had left, so that leaving the safety box never pays. Observations are
 normalised by running statistics (``VecNormalize``), which are saved with the policy.
 
-The policy observes :func:`~controllers.rl_agent.policy_features` of the observation (the
+The policy observes :func:`~controllers.agents.rl.policy_features` of the observation (the
 noisy state and the known system's signed constraint values), as the ``rl`` agent does.
 The run writes ``OUT/policy.zip`` (the SB3 model), ``OUT/policy.npz`` (the observation
 normalisation) and ``OUT/policy.json`` (algorithm, world, steps, wall time, seed, the
 training reward's settings and the last episodes' statistics). The ``rl`` agent
-(:class:`controllers.rl_agent.RLAgent`) loads them from ``agents.rl_policy: OUT/policy.zip``.
+(:class:`controllers.agents.rl.RLAgent`) loads them from ``agents.rl_policy: OUT/policy.zip``.
 The evaluation tables use the env's own reward, not the training reward.
 """
 
@@ -34,7 +34,7 @@ import numpy as np
 
 import lfm_env  # noqa: F401  (registers the envs)
 from controllers.config import ExperimentConfig, load_config
-from controllers.rl_agent import policy_features
+from controllers.agents.rl import policy_features
 from experiments.cli import (
     add_config_argument,
     check_writable,
@@ -96,7 +96,7 @@ def reward_scale(config: ExperimentConfig) -> float:
 
 def make_training_env(config: ExperimentConfig, cost_weight: float = 1.0) -> gym.Env:
     """One training env: ``gym.make`` of the config's world, observed through
-    :func:`~controllers.rl_agent.policy_features` of the agents' known system, actions in
+    :func:`~controllers.agents.rl.policy_features` of the agents' known system, actions in
     ``[-1, 1]``, the :class:`TrainingReward`, and SB3's ``Monitor`` (returns, lengths)."""
     from stable_baselines3.common.monitor import Monitor
 

@@ -3,7 +3,7 @@
 A sweep answers "what does this knob buy, and what does it cost?": for each value of one
 setting of the ``agents`` section (the back-off ``agents.backoff``, ``agents.n_scenarios``,
 ``agents.estimator``, ``agents.n_particles``, ``agents.robust.backoff``, ...), it runs the
-evaluation of one agent over env seeds (:func:`experiments.evaluation.evaluate`) and
+evaluation of one agent over env seeds (:func:`experiments.evaluation.run.evaluate`) and
 compares it with a baseline agent on the same seeds (same hidden disturbance and noise):
 violation steps beyond each tolerance of the system, zero-violation episodes and time to
 goal, each with the paired bootstrap interval of the difference to the baseline.
@@ -38,8 +38,11 @@ from typing import Any
 import yaml
 
 from controllers.config import ConfigError, ExperimentConfig, load_config
-from experiments import episode, evaluation, plots, storage
-from experiments.report import (
+from experiments.evaluation import episode
+from experiments.evaluation import run as evaluation
+from experiments.plots import episode as plots
+from experiments.evaluation import storage
+from experiments.report.write import (
     Document,
     Estimate,
     Metric,
@@ -523,7 +526,7 @@ def run_sweep(
         out: the sweep folder (see the module docstring).
         baseline: the agent every value is compared with, run once on the base config.
         jobs, scheduler, dask_workers: how each evaluation runs
-            (:func:`experiments.evaluation.evaluate`).
+            (:func:`experiments.evaluation.run.evaluate`).
         progress: progress bars (one per evaluation, labelled with its value).
         retry_failed: re-run saved episodes that raised an error.
 

@@ -17,13 +17,13 @@ _CONFIG_TIME_LIMIT = WrapperSpec(
 
 register(
     id="lfm_env/SineTrack-v0",
-    entry_point="lfm_env.envs.sine_track:SineTrackEnv",
+    entry_point="lfm_env.worlds.sine_track.env:SineTrackEnv",
     max_episode_steps=None,  # the config's max_steps, through ConfigTimeLimit
     additional_wrappers=(_CONFIG_TIME_LIMIT,),
 )
 register(
     id="lfm_env/QuadrotorGust-v0",
-    entry_point="lfm_env.envs.quadrotor_gust:QuadrotorGustEnv",
+    entry_point="lfm_env.worlds.quadrotor.env:QuadrotorGustEnv",
     max_episode_steps=None,  # the config's max_steps, through ConfigTimeLimit
     additional_wrappers=(_CONFIG_TIME_LIMIT,),
 )

@@ -24,7 +24,7 @@ from typing import Any, TypeVar
 import numpy as np
 import yaml
 
-from lfm_env.systems.sine_track import SineTrack
+from lfm_env.worlds.sine_track.system import SineTrack
 
 T = TypeVar("T")
 
@@ -577,7 +577,7 @@ class EnvConfig(WorldConfig):
 
     @property
     def track(self) -> SineTrack:
-        """The track geometry as a :class:`~lfm_env.systems.sine_track.SineTrack`."""
+        """The track geometry as a :class:`~lfm_env.worlds.sine_track.system.SineTrack`."""
         return SineTrack(
             amplitude=self.track_amplitude,
             pulsation=self.track_pulsation,
@@ -592,8 +592,8 @@ class EnvConfig(WorldConfig):
         return math.radians(self.steer_max_deg)
 
     def make_system(self):
-        """The bicycle on this track (:func:`lfm_env.systems.sine_track.sine_track_system`)."""
-        from lfm_env.systems.sine_track import sine_track_system
+        """The bicycle on this track (:func:`lfm_env.worlds.sine_track.system.sine_track_system`)."""
+        from lfm_env.worlds.sine_track.system import sine_track_system
 
         return sine_track_system(
             track=self.track,
@@ -744,7 +744,7 @@ class QuadrotorGustConfig(WorldConfig):
     disturbance: GustConfig = field(default_factory=GustConfig)
 
     def __post_init__(self) -> None:
-        from lfm_env.systems.quadrotor import attitude_euler_radius, attitude_frequency_bound
+        from lfm_env.worlds.quadrotor.system import attitude_euler_radius, attitude_frequency_bound
 
         c = _Checker(self)
         c.positive("dt", "mass", "gravity", "thrust_max", "pitch_max", "attitude_frequency")
@@ -781,8 +781,8 @@ class QuadrotorGustConfig(WorldConfig):
 
     @property
     def corridor(self):
-        """The tunnel geometry as a :class:`~lfm_env.systems.quadrotor.Corridor`."""
-        from lfm_env.systems.quadrotor import Corridor
+        """The tunnel geometry as a :class:`~lfm_env.worlds.quadrotor.system.Corridor`."""
+        from lfm_env.worlds.quadrotor.system import Corridor
 
         return Corridor(
             centre=self.corridor_centre,
@@ -799,8 +799,8 @@ class QuadrotorGustConfig(WorldConfig):
         return self.mass * self.gravity
 
     def make_system(self):
-        """The quadrotor in this tunnel (:mod:`lfm_env.systems.quadrotor`)."""
-        from lfm_env.systems.quadrotor import quadrotor_gust_system
+        """The quadrotor in this tunnel (:mod:`lfm_env.worlds.quadrotor.system`)."""
+        from lfm_env.worlds.quadrotor.system import quadrotor_gust_system
 
         return quadrotor_gust_system(
             corridor=self.corridor,

@@ -5,7 +5,7 @@ hidden Gaussian-process force (a :class:`~lfm_env.model.LatentForceModel`, the t
 rewards a :class:`~lfm_env.system.QuadraticCost`. It holds the state, the randomness and
 the Gymnasium protocol only: the physics, the constraints and the cost come from the
 model and the cost objects. A case study subclasses it to say when an episode succeeds or
-fails and how to draw the scene (:class:`lfm_env.envs.sine_track.SineTrackEnv`).
+fails and how to draw the scene (:class:`lfm_env.worlds.sine_track.env.SineTrackEnv`).
 """
 
 from __future__ import annotations

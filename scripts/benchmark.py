@@ -1,6 +1,6 @@
 """Solver, particle-filter and episode benchmark: ``python scripts/benchmark.py --help``.
 
-A thin command line over :func:`experiments.benchmark.main` (also installed as
+A thin command line over :func:`experiments.benchmark.run.main` (also installed as
 ``lfm-benchmark``).
 """
 

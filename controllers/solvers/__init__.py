@@ -5,7 +5,7 @@
 :meth:`controllers.problem.ScenarioProblem.objective`:
 
 * ``"fast"``: the condensed exact-Hessian SQP whose derivatives CasADi generates from the
-  system definition (:mod:`controllers.solvers.fast`), the default;
+  system definition (:mod:`controllers.solvers.fast.solver`), the default;
 * ``"fast_bicycle"``: the same SQP with the bicycle's derivatives written by hand
   (:mod:`controllers.solvers.fast_bicycle`; sine-track problems only);
 * ``"ipopt"``: IPOPT on the condensed NLP (inputs and slacks only);
@@ -30,7 +30,7 @@ def make_solver(problem: ScenarioProblem, name: str = "fast", **options: Any):
     Args:
         problem: the scenario problem.
         name: one of :data:`SOLVERS`.
-        **options: the solver's own settings: :class:`~controllers.solvers.fast.FastSolverOptions`
+        **options: the solver's own settings: :class:`~controllers.solvers.fast.solver.FastSolverOptions`
             fields for ``"fast"``; ``ipopt_options`` / ``warm_start_duals`` for the IPOPT
             solvers; ``sqp_options`` / ``jit`` / ``warm_start_duals`` for ``"sqpmethod"``;
             ``shooting`` / ``ipopt_options`` for ``"csnlp"``. ``max_iter`` is understood
@@ -42,7 +42,7 @@ def make_solver(problem: ScenarioProblem, name: str = "fast", **options: Any):
     if name not in SOLVERS:
         raise ValueError(f"unknown solver {name!r}; choose one of {SOLVERS}")
     if name == "fast":
-        from controllers.solvers.fast import FastScenarioSolver
+        from controllers.solvers.fast.solver import FastScenarioSolver
 
         return FastScenarioSolver(problem, **options)
     if name == "fast_bicycle":
@@ -50,14 +50,14 @@ def make_solver(problem: ScenarioProblem, name: str = "fast", **options: Any):
 
         return BicycleFastSolver(problem, **options)
     if name == "csnlp":
-        from controllers.solvers.csnlp import CsnlpScenarioSolver
+        from controllers.solvers.casadi.csnlp import CsnlpScenarioSolver
 
         return CsnlpScenarioSolver(problem, **_ipopt_options(options))
     if name == "sqpmethod":
-        from controllers.solvers.sqpmethod import SqpMethodScenarioSolver
+        from controllers.solvers.casadi.sqpmethod import SqpMethodScenarioSolver
 
         return SqpMethodScenarioSolver(problem, **_ipopt_options(options, "sqp_options"))
-    from controllers.solvers.ipopt import IpoptScenarioSolver
+    from controllers.solvers.casadi.ipopt import IpoptScenarioSolver
 
     formulation = "multiple_shooting" if name == "ipopt_multiple_shooting" else "condensed"
     return IpoptScenarioSolver(problem, formulation, **_ipopt_options(options))

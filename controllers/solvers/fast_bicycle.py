@@ -1,10 +1,10 @@
 """The bicycle's derivatives written by hand: an optional cache of the generic fast solver.
 
-:class:`BicycleFastSolver` is :class:`~controllers.solvers.fast.FastScenarioSolver` (the
+:class:`BicycleFastSolver` is :class:`~controllers.solvers.fast.solver.FastScenarioSolver` (the
 same SQP, QP, screening, globalisation and extra starts) with the rollout, sensitivities,
 gradient and Lagrangian Hessian of the sine-track bicycle written out by hand
 (:class:`BicycleCondensedModel`) instead of generated from the system definition. It
-solves only problems of :func:`lfm_env.systems.sine_track.sine_track_system` with diagonal
+solves only problems of :func:`lfm_env.worlds.sine_track.system.sine_track_system` with diagonal
 cost weights. ``lfm-benchmark`` times it beside the generic solver; it stays only while it
 is measurably faster. Registered as ``"fast_bicycle"``.
 
@@ -24,9 +24,9 @@ from typing import Any
 import numpy as np
 
 from controllers.problem import ScenarioProblem
-from controllers.solvers.condensed import CondensedModel, Rollout
-from controllers.solvers.fast import FastScenarioSolver
-from lfm_env.systems.sine_track import track_of
+from controllers.solvers.fast.condensed import CondensedModel, Rollout
+from controllers.solvers.fast.solver import FastScenarioSolver
+from lfm_env.worlds.sine_track.system import track_of
 
 N_POSITION_KINDS = 4  # track left/right, x lower/upper: the constraints with scenario rows
 # Sign of d g / d(track-left or p_x) of the position kinds: track right is -(track left),
@@ -131,7 +131,7 @@ class BicycleCondensedModel(CondensedModel):
         """Rollout of all scenarios and the exact-penalty merit, by hand.
 
         Same arguments as :meth:`CondensedModel.evaluate`; the Euler steps are the
-        bicycle's (:func:`lfm_env.systems.sine_track.bicycle_rhs`), equal up to rounding.
+        bicycle's (:func:`lfm_env.worlds.sine_track.system.bicycle_rhs`), equal up to rounding.
         """
         p = self.bicycle
         n, ns, dt = p.horizon, x0T.shape[1], p.dt

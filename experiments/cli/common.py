@@ -11,7 +11,7 @@ import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from experiments.interrupts import remember_interrupts
+from experiments.evaluation.interrupts import remember_interrupts
 
 PRESETS_PACKAGE = "experiments.presets"  # the configs/ folder, shipped in the package
 DEFAULT_PRESET = "paper"
@@ -29,7 +29,7 @@ def one_line_errors(prog: str) -> Callable:
     printed as one line ``<prog>: error: ...`` on stderr and gives exit code 2, and
     Ctrl-C (``KeyboardInterrupt``) one line ``<prog>: interrupted`` and exit code 130,
     instead of a traceback. ``main`` runs under
-    :func:`experiments.interrupts.remember_interrupts` (SIGTERM ends it like Ctrl-C)."""
+    :func:`experiments.evaluation.interrupts.remember_interrupts` (SIGTERM ends it like Ctrl-C)."""
 
     def decorate(main: Callable[..., int]) -> Callable[..., int]:
         @functools.wraps(main)

@@ -51,7 +51,7 @@ examples:
 
 
 def _evaluate_parser() -> argparse.ArgumentParser:
-    from controllers.agents import AGENT_LABELS
+    from controllers.agents.mpc import AGENT_LABELS
 
     agents_help = "; ".join(f"{k} = {v}" for k, v in AGENT_LABELS.items())
     parser = argparse.ArgumentParser(

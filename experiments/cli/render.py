@@ -29,7 +29,7 @@ examples:
 
 
 def _render_parser() -> argparse.ArgumentParser:
-    from controllers.agents import AGENT_LABELS
+    from controllers.agents.mpc import AGENT_LABELS
 
     agents_help = "; ".join(f"{k} = {v}" for k, v in AGENT_LABELS.items())
     parser = argparse.ArgumentParser(
@@ -72,12 +72,12 @@ def _render_episode(
     config: object, agent_name: str, seed: int, max_steps: int | None, size: tuple[int, int]
 ) -> tuple[list, float]:
     """Frames ``(H, W, 3)`` of one episode rendered step by step, and ``dt`` [s]."""
-    from controllers.agents import make_agent
-    from experiments.evaluation import agent_seed, resolve_config
-    from experiments.plots import annotate_frame, make_render_env
+    from controllers.agents.mpc import make_agent
+    from experiments.evaluation.run import agent_seed, resolve_config
+    from experiments.plots.episode import annotate_frame, make_render_env
 
     cfg = resolve_config(config, [agent_name])
-    # The same drawing options as the report's replay (experiments.plots.replay_frames).
+    # The same drawing options as the report's replay (experiments.plots.episode.replay_frames).
     env = make_render_env(cfg, screen_size=size)  # each world's own view
     try:
         agent = make_agent(agent_name, cfg, env=env if agent_name == "oracle" else None)
@@ -115,7 +115,7 @@ def render_main(argv: Sequence[str] | None = None) -> int:
     Returns:
         The exit code: 0 when the file was written.
     """
-    from controllers.agents import AGENTS
+    from controllers.agents.mpc import AGENTS
     from experiments.plots import write_gif
 
     parser = _render_parser()

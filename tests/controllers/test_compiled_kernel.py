@@ -23,11 +23,13 @@ import numpy as np
 import pytest
 
 from controllers.problem import ScenarioProblem
-from controllers.solvers import compiled, kernel_inline, make_solver
-from controllers.solvers.compiled import KernelUnavailable, forget_loaded
-from controllers.solvers.condensed import CondensedModel
+from controllers.solvers import make_solver
+from controllers.solvers.fast.codegen import build as compiled
+from controllers.solvers.fast.codegen import inline as kernel_inline
+from controllers.solvers.fast.codegen.build import KernelUnavailable, forget_loaded
+from controllers.solvers.fast.condensed import CondensedModel
 from controllers.solvers.fast_bicycle import BicycleCondensedModel
-from experiments.bench_problems import problem_from_config
+from experiments.benchmark.problems import problem_from_config
 from lfm_env.system import QuadraticCost
 from tests.controllers.test_second_system import (
     COST,
@@ -337,9 +339,9 @@ def test_a_fresh_cache_compiles_anew_and_leaves_the_real_one(paper, paper_models
 _BUILD = """
 import sys
 import numpy as np
-from controllers.solvers.condensed import CondensedModel
+from controllers.solvers.fast.condensed import CondensedModel
 from controllers.solvers.fast_bicycle import BicycleCondensedModel
-from experiments.bench_problems import problem_from_config
+from experiments.benchmark.problems import problem_from_config
 data = dict(np.load(sys.argv[1]))
 p = problem_from_config(n_scenarios=150)
 m = CondensedModel(p, kernel="c")

@@ -17,7 +17,7 @@ from controllers.solvers import make_solver
 
 pytest.importorskip("csnlp")
 
-from controllers.solvers.csnlp import SHOOTINGS, CsnlpScenarioSolver  # noqa: E402
+from controllers.solvers.casadi.csnlp import SHOOTINGS, CsnlpScenarioSolver  # noqa: E402
 
 N, NS = 5, 15
 MID_TRACK = np.array([20.0, 3.0 * np.sin(4.0), 5.0, 0.1])  # [m, m, m/s, rad]

@@ -13,9 +13,9 @@ import pytest
 from controllers import problem as mpc_problem
 from controllers.problem import MPCSolution, ScenarioProblem
 from controllers.solvers import make_solver
-from controllers.solvers.condensed import CondensedModel
-from controllers.solvers.fast import FastScenarioSolver
-from experiments.solver_timing import latent_force_scenarios
+from controllers.solvers.fast.condensed import CondensedModel
+from controllers.solvers.fast.solver import FastScenarioSolver
+from experiments.benchmark.timing import latent_force_scenarios
 from lfm_env.config import EnvConfig
 
 RTOL = 1e-4  # objective agreement with the reference
@@ -475,7 +475,7 @@ def test_bad_options_raise_value_error(options: dict) -> None:
 
 
 def test_an_extra_start_is_the_best_plan_only_when_near_worse_and_closing_in() -> None:
-    from controllers.solvers.condensed import Rollout
+    from controllers.solvers.fast.condensed import Rollout
 
     solver = FastScenarioSolver(paper_problem(n_scenarios=5))
     n_u = solver._n_u

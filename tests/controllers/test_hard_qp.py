@@ -1,4 +1,4 @@
-"""The QP without slacks on DAQP straight from the caller's rows (controllers.solvers.hard_qp):
+"""The QP without slacks on DAQP straight from the caller's rows (controllers.solvers.fast.qp.hard_qp):
 the same QP as through the row slots of SlotQP, so the same step bit for bit."""
 
 from __future__ import annotations
@@ -8,10 +8,10 @@ import sys
 import numpy as np
 import pytest
 
-from controllers.solvers.fast import FastScenarioSolver
-from controllers.solvers.hard_qp import DaqpHardQP
-from controllers.solvers.slot_qp import SlotQP
-from experiments.bench_problems import problem_from_config
+from controllers.solvers.fast.solver import FastScenarioSolver
+from controllers.solvers.fast.qp.hard_qp import DaqpHardQP
+from controllers.solvers.fast.qp.slot_qp import SlotQP
+from experiments.benchmark.problems import problem_from_config
 
 pytest.importorskip("daqp")
 

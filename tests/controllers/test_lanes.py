@@ -1,4 +1,4 @@
-"""Tests of :mod:`controllers.solvers.lanes`: CasADi functions evaluated on many points at once."""
+"""Tests of :mod:`controllers.solvers.fast.lanes`: CasADi functions evaluated on many points at once."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from controllers.solvers.lanes import LaneFunction
+from controllers.solvers.fast.lanes import LaneFunction
 
 
 def reference(fn: ca.Function, inputs: list[np.ndarray], lanes: int) -> list[np.ndarray]:
@@ -76,7 +76,7 @@ def test_repeated_operations_are_computed_once():
     x = ca.SX.sym("x")
     # CasADi keeps both sin(x) nodes; value numbering emits one.
     fn = ca.Function("f", [x], [ca.sin(x) * ca.sin(x) + ca.sin(x)])
-    from controllers.solvers.lanes import _source
+    from controllers.solvers.fast.lanes import _source
 
     assert _source(fn).count("np.sin(") == 1
     (out,) = LaneFunction(fn)(np.array([[0.3, -1.2]]))

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from controllers.problem import ScenarioProblem
-from controllers.solvers.fast import FastScenarioSolver
-from controllers.solvers.slot_qp import QP_SOLVERS
-from experiments.bench_problems import problem_from_config
+from controllers.solvers.fast.solver import FastScenarioSolver
+from controllers.solvers.fast.qp.slot_qp import QP_SOLVERS
+from experiments.benchmark.problems import problem_from_config
 
 DATA_DIR = Path(__file__).resolve().parents[1] / "data"
 LONG = dict(np.load(DATA_DIR / "long_horizon_problems.npz"))

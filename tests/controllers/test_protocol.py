@@ -1,4 +1,4 @@
-"""The agent protocol (``controllers.protocol``): the Agent check, last_info, and
+"""The agent protocol (``controllers.agents.protocol``): the Agent check, last_info, and
 stable-baselines3's ``predict`` on the MPC agents."""
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ import pytest
 import yaml
 
 import lfm_env  # noqa: F401  (registers the envs)
-from controllers.agents import AGENTS, make_agent
+from controllers.agents.mpc import AGENTS, make_agent
 from controllers.config import load_config
-from controllers.protocol import (
+from controllers.agents.protocol import (
     INFO_DEFAULTS,
     Agent,
     AgentInfo,
@@ -129,7 +129,7 @@ def test_sb3_evaluate_policy_runs_the_scenario_agent_as_our_evaluation_does():
     from stable_baselines3.common.monitor import Monitor
     from stable_baselines3.common.vec_env import DummyVecEnv
 
-    from experiments.evaluation import agent_seed, run_episode
+    from experiments.evaluation.run import agent_seed, run_episode
 
     cfg = load_config(quick_config(max_steps=12))
     vec_env = DummyVecEnv([lambda: Monitor(gym.make(cfg.env_id, config=cfg.env))])
@@ -149,7 +149,7 @@ def test_sb3_evaluate_policy_runs_the_scenario_agent_as_our_evaluation_does():
 
 
 def test_every_agent_with_an_estimator_refuses_zero_measurement_noise():
-    from controllers.agents import check_agent_config, needs_measurement_noise
+    from controllers.agents.mpc import check_agent_config, needs_measurement_noise
 
     config = {"env": {"measurement_noise_std": [0.15, 0.0, 0.15, 0.5]}}
     needing = sorted(n for n in AGENTS if needs_measurement_noise(n))

@@ -24,7 +24,7 @@ import pytest
 
 from controllers.problem import ScenarioProblem
 from controllers.solvers import make_solver
-from experiments.bench_problems import problem_from_config
+from experiments.benchmark.problems import problem_from_config
 
 DATA = dict(np.load(Path(__file__).resolve().parents[1] / "data" / "recorded_problems.npz"))
 IDS = [f"seed{s}-step{k}" for s, k in zip(DATA["seed"], DATA["step"], strict=True)]

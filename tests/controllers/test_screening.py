@@ -3,7 +3,7 @@
 :meth:`CondensedModel.screen` (the rows a QP starts with) and
 :meth:`CondensedModel.violated_rows` (the rows a QP step violates, added by check-and-add)
 run in the compiled kernel (``lfm_screen``, ``lfm_violated``) when there is one, else as
-:mod:`controllers.solvers.screening`. Checked here: both give the same rows, in the same
+:mod:`controllers.solvers.fast.screening`. Checked here: both give the same rows, in the same
 order, on the recorded paper problems and on the point mass of ``test_second_system.py``;
 the rule on ties (larger value, then lower scenario) and on NaN groups; the selection's
 own promises (at most ``keep`` per group by value, nothing already in the QP, nothing at
@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 from controllers.problem import ScenarioProblem
-from controllers.solvers.condensed import CondensedModel
-from controllers.solvers.screening import screen_rows, worst_rows
-from experiments.bench_problems import problem_from_config
+from controllers.solvers.fast.condensed import CondensedModel
+from controllers.solvers.fast.screening import screen_rows, worst_rows
+from experiments.benchmark.problems import problem_from_config
 from tests.controllers.test_second_system import (
     COST,
     NS,

@@ -7,8 +7,8 @@ import sys
 import numpy as np
 import pytest
 
-from controllers.solvers import slot_qp
-from controllers.solvers.slot_qp import (
+from controllers.solvers.fast.qp import slot_qp
+from controllers.solvers.fast.qp.slot_qp import (
     AUTO_IPM_VARIABLES,
     AUTO_PIQP_VARIABLES,
     MAX_SPENT_MEMORIES,

@@ -4,10 +4,10 @@ Run from the repository root: ``.venv/bin/python tests/data/make_long_horizon_pr
 
 The scenario agent (fast solver, paper config, N = 7) drives paper episodes for env seeds
 0..5 (at most :data:`MAX_STEPS` steps each) and its estimates are recorded
-(:func:`experiments.bench_problems.record_closed_loop`). At the fixed (horizon, seed, step)
+(:func:`experiments.benchmark.problems.record_closed_loop`). At the fixed (horizon, seed, step)
 points of :data:`CHOSEN`, ``Ns`` = :data:`N_SCENARIOS` latent-force scenarios of the longer
 horizon are drawn around that estimate as the agent draws them
-(:func:`experiments.bench_problems.scenario_draws`, one generator per horizon seeded with
+(:func:`experiments.benchmark.problems.scenario_draws`, one generator per horizon seeded with
 :data:`DRAW_SEED` and the horizon). The points were chosen where the SQP used to need many
 iterations (mid-manoeuvre and near the goal, where the plan brakes hard and turns). The
 warm start ``u_guess`` is the solver's own first guess (zeros clipped into the bounds).
@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from controllers.solvers import make_solver
-from experiments import bench_problems
+from experiments.benchmark import problems as bench_problems
 
 SEEDS = range(6)
 MAX_STEPS = 45

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from controllers.solvers import make_solver
-from experiments import bench_problems
+from experiments.benchmark import problems as bench_problems
 
 SEEDS = range(6)
 MAX_STEPS = 120

@@ -1,4 +1,4 @@
-"""Tests of the benchmark (``experiments.benchmark`` and its ``bench_*`` modules).
+"""Tests of the benchmark (``experiments.benchmark.run`` and its ``bench_*`` modules).
 
 A quick run (``--quick``) checks that every part runs and that its JSON and Markdown are
 complete; the verdicts are checked on given numbers. No timing is asserted (speed is a
@@ -14,14 +14,12 @@ import numpy as np
 import pytest
 
 from controllers.solvers import SOLVERS, make_solver
-from experiments import (
-    bench_problems,
-    bench_report,
-    bench_solvers,
-    bench_suites,
-    bench_targets,
-    benchmark,
-)
+from experiments.benchmark import problems as bench_problems
+from experiments.benchmark import report as bench_report
+from experiments.benchmark import run as benchmark
+from experiments.benchmark import solvers as bench_solvers
+from experiments.benchmark import suites as bench_suites
+from experiments.benchmark import targets as bench_targets
 
 TIMING_KEYS = ("solve_ms_median", "solve_ms_p95", "solve_ms_max", "wall_ms_median")
 # The textbook and csnlp are slow; sqpmethod (the anchor) is in, JIT compilation included.

@@ -1,4 +1,4 @@
-"""Tests of the evaluation library (``experiments.evaluation``) and its command line."""
+"""Tests of the evaluation library (``experiments.evaluation.run``) and its command line."""
 
 from __future__ import annotations
 
@@ -17,9 +17,10 @@ import pytest
 import yaml
 
 from controllers.config import load_config
-from experiments import episode, evaluation
+from experiments.evaluation import episode
+from experiments.evaluation import run as evaluation
 from experiments.cli import evaluate_main
-from experiments.evaluation import (
+from experiments.evaluation.run import (
     HEAD_COLUMNS,
     TAIL_COLUMNS,
     TIMING_COLUMNS,
@@ -592,9 +593,13 @@ def test_cli_runs_and_calls_the_report(tmp_path, capsys, monkeypatch):
     config = write_tiny_yaml(tmp_path)
     out = tmp_path / "res"
     reported = []
-    fake = types.ModuleType("experiments.report")
-    fake.write_report = lambda d: reported.append(Path(d)) or Path(d) / "report.md"
-    monkeypatch.setitem(sys.modules, "experiments.report", fake)
+    import experiments.report
+
+    def write_report(directory):
+        reported.append(Path(directory))
+        return Path(directory) / "report.md"
+
+    monkeypatch.setattr(experiments.report, "write_report", write_report)
     argv = ["--config", str(config), "--agents", "nominal", "--seeds", "0,1", "--out", str(out)]
     assert evaluate_main([*argv, "--quiet"]) == 0
     text = capsys.readouterr().out

@@ -22,7 +22,7 @@ import yaml
 import controllers.config as agents_config
 import lfm_env.config as env_config
 from controllers.config import load_config
-from experiments.evaluation import _error_row, evaluate, row_columns, save_episode, write_table
+from experiments.evaluation.run import _error_row, evaluate, row_columns, save_episode, write_table
 from experiments.report import write_report
 from lfm_env.config import ConfigError, EnvConfig, from_dict, load_env_config
 
@@ -227,7 +227,7 @@ def test_scenario_problem_over_the_memory_budget_is_refused_up_front():
 
 def test_agent_built_from_settings_checks_its_filter_memory():
     """An agent built directly (not through load_config) refuses too, before its filter."""
-    from controllers.agents import ScenarioMPCAgent
+    from controllers.agents.mpc import ScenarioMPCAgent
     from controllers.config import AgentConfig
 
     cfg = load_config(None)
@@ -373,7 +373,7 @@ def test_report_figure_seed_skips_a_failed_zero_step_episode(tmp_path):
 
 
 def test_a_huge_seed_range_is_refused_at_once():
-    from experiments.episode import MAX_SEEDS, parse_seeds
+    from experiments.evaluation.episode import MAX_SEEDS, parse_seeds
 
     with pytest.raises(ValueError, match=f"at most {MAX_SEEDS} seeds"):
         parse_seeds("0:1000000000000")

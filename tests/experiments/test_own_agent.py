@@ -1,5 +1,5 @@
 """Evaluating agents that are not registered: factories, agent objects, 'module:attribute'
-(``experiments.agent_specs``, through ``experiments.evaluation`` and ``lfm-evaluate``)."""
+(``experiments.evaluation.agent_lookup``, through ``experiments.evaluation.run`` and ``lfm-evaluate``)."""
 
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 from controllers.config import ExperimentConfig
-from controllers.protocol import Agent
-from experiments import evaluation
-from experiments.agent_specs import AgentSpec, AgentSpecError, resolve_agent
-from experiments.evaluation import (
+from controllers.agents.protocol import Agent
+from experiments.evaluation import run as evaluation
+from experiments.evaluation.agent_lookup import AgentSpec, AgentSpecError, resolve_agent
+from experiments.evaluation.run import (
     TIMING_COLUMNS,
     agent_seed,
     evaluate,

@@ -1,4 +1,4 @@
-"""Tests of the generic episode figures (``experiments.plots``) on a system of their own.
+"""Tests of the generic episode figures (``experiments.plots.episode``) on a system of their own.
 
 The figures must come from the system definition alone: a point mass in the plane with
 two force components, a wall and a round obstacle in the plane of its position, and a
@@ -13,7 +13,11 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from experiments import plots, scenario_fan, summary_plots
+from experiments.plots import episode as plots
+
+from experiments.plots import scenario_fan
+
+from experiments.plots import summary as summary_plots
 from lfm_env import gp
 from lfm_env.env import LatentForceEnv
 from lfm_env.model import LatentForceModel

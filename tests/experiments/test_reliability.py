@@ -25,10 +25,10 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from experiments import evaluation
-from experiments.bench_problems import problem_from_config
-from experiments.bench_solvers import build_solver, solve_record
-from experiments.evaluation import (
+from experiments.evaluation import run as evaluation
+from experiments.benchmark.problems import problem_from_config
+from experiments.benchmark.solvers import build_solver, solve_record
+from experiments.evaluation.run import (
     DamagedEpisodeError,
     FolderLock,
     ResultsFolderError,
@@ -38,7 +38,7 @@ from experiments.evaluation import (
     saved_rows,
     write_table,
 )
-from experiments.interrupts import raise_if_interrupted, remember_interrupts
+from experiments.evaluation.interrupts import raise_if_interrupted, remember_interrupts
 
 REPO = Path(__file__).resolve().parents[2]
 LFM_EVALUATE = Path(sys.executable).with_name("lfm-evaluate")
@@ -485,7 +485,7 @@ def test_local_dask_cluster_refuses_foreign_clients_and_serves_no_http(tmp_path)
     """Case 9: TLS with a temporary certificate, and no HTTP endpoint at all."""
     pytest.importorskip("distributed")
     psutil = pytest.importorskip("psutil")
-    from experiments import executors
+    from experiments.evaluation import executors
 
     with ExitStack() as stack:
         client = evaluation._connect_dask(None, 1, stack)

@@ -1,4 +1,4 @@
-"""Tests of the report (``experiments.report``), its figures and the lfm-report/render CLIs."""
+"""Tests of the report (``experiments.report.write``), its figures and the lfm-report/render CLIs."""
 
 from __future__ import annotations
 
@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 import yaml
 
-from experiments import plots
+from experiments.plots import episode as plots
 from experiments.cli import render_main, report_main
 from experiments.evaluation import evaluate
-from experiments.report import (
+from experiments.report.write import (
     Results,
     bootstrap_ci,
     calibration,
@@ -595,7 +595,7 @@ def test_html_alone_shows_every_figure(report_path, tmp_path):
 
 
 def test_a_gif_over_the_limit_is_embedded_as_a_labelled_still(results_copy, monkeypatch):
-    from experiments import document
+    from experiments.report import document
 
     monkeypatch.setattr(document, "GIF_EMBED_LIMIT", 1000)
     path = write_report(results_copy)
@@ -669,7 +669,10 @@ def test_default_baseline_without_the_scenario_agent_and_agents_of_any_name(resu
 
 
 def test_one_load_results_for_every_reader(results_dir):
-    from experiments import evaluation, report, results, sweep
+    from experiments import sweep
+    from experiments.evaluation import run as evaluation
+    from experiments.report import write as report
+    from experiments.report import results
 
     assert report.load_results is results.load_results is load_results
     for module in (evaluation, sweep):

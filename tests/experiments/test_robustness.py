@@ -31,15 +31,16 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 import lfm_env  # noqa: F401  (registers the env id)
-from controllers import agents as agents_module
-from controllers.agents import AGENTS, make_agent
+from controllers.agents import mpc as agents_module
+from controllers.agents.mpc import AGENTS, make_agent
 from controllers.config import AgentConfig, load_agent_config, load_config
 from controllers.estimators.particle_filter import ParticleFilter, gaussian_log_likelihood
 from controllers.problem import ScenarioProblem
 from controllers.solvers import make_solver
-from experiments import evaluation, report
+from experiments.evaluation import run as evaluation
+from experiments.report import write as report
 from experiments.cli import evaluate_main, render_main, report_main
-from experiments.evaluation import (
+from experiments.evaluation.run import (
     TIMING_COLUMNS,
     ResultsFolderError,
     evaluate,
@@ -1347,7 +1348,7 @@ def unsafe_calls(path: Path, root: Path = REPO) -> list[str]:
 #: Code generation that runs source the library wrote itself, never text from a file or a
 #: user: the fast solver's lane evaluator prints a CasADi SX algorithm (built from the
 #: system's own Python functions) as NumPy statements and compiles them once.
-GENERATED_CODE = {"controllers/solvers/lanes.py": {"compile", "exec"}}
+GENERATED_CODE = {"controllers/solvers/fast/lanes.py": {"compile", "exec"}}
 
 
 def test_library_code_loads_nothing_unsafely():
@@ -1364,8 +1365,8 @@ def test_library_code_loads_nothing_unsafely():
     config_source = sources["config.py"]
     assert "yaml.safe_load(fh)" in config_source or "yaml.SafeLoader(" in config_source
     assert "np.load(path, allow_pickle=False)" in sources["storage.py"]
-    # The report reads episodes (experiments.results) through the evaluation's checked loader.
-    assert "from experiments.storage import load_trajectory" in sources["results.py"]
+    # The report reads episodes (experiments.report.results) through the evaluation's checked loader.
+    assert "from experiments.evaluation.storage import load_trajectory" in sources["results.py"]
 
 
 def test_the_scanner_finds_what_it_looks_for(tmp_path):

@@ -32,12 +32,12 @@ import numpy as np
 import pytest
 import yaml
 
-from controllers.agents import MPCAgent
+from controllers.agents.mpc import MPCAgent
 from controllers.estimators.particle_filter import ParticleFilter
-from controllers.solvers.fast import FastScenarioSolver
-from controllers.solvers.ipopt import IpoptScenarioSolver
-from experiments.evaluation import TIMING_COLUMNS, evaluate, resolve_config, run_episode
-from lfm_env.envs import SineTrackEnv
+from controllers.solvers.fast.solver import FastScenarioSolver
+from controllers.solvers.casadi.ipopt import IpoptScenarioSolver
+from experiments.evaluation.run import TIMING_COLUMNS, evaluate, resolve_config, run_episode
+from lfm_env.worlds import SineTrackEnv
 
 REPO = Path(__file__).resolve().parents[2]
 AGENT_CYCLE = ("nominal", "pf", "scenario", "oracle")

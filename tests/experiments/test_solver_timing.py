@@ -1,4 +1,4 @@
-"""Tests of the solver timing harness (``experiments.solver_timing``); no timing is asserted."""
+"""Tests of the solver timing harness (``experiments.benchmark.timing``); no timing is asserted."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from controllers.solvers import make_solver
-from experiments import solver_timing
-from experiments.bench_problems import env_start, experiment_config
+from experiments.benchmark import timing as solver_timing
+from experiments.benchmark.problems import env_start, experiment_config
 
 
 @pytest.fixture(scope="module")

@@ -11,9 +11,11 @@ import numpy as np
 import pytest
 
 from controllers.config import ConfigError
-from experiments import evaluation, plots, sweep
+from experiments import sweep
+from experiments.evaluation import run as evaluation
+from experiments.plots import episode as plots
 from experiments.cli import report_main, sweep_main
-from experiments.report import Metric, bootstrap_ci, fmt_estimate, write_report
+from experiments.report.write import Metric, bootstrap_ci, fmt_estimate, write_report
 from lfm_env.system import ControlSystem, xp
 
 REPO = Path(__file__).resolve().parents[2]

@@ -20,7 +20,7 @@ from lfm_env.config import (
     load_env_config,
     to_dict,
 )
-from lfm_env.systems.sine_track import track_of
+from lfm_env.worlds.sine_track.system import track_of
 
 
 def assert_names_key(exc: pytest.ExceptionInfo, key: str) -> None:

@@ -1,6 +1,6 @@
 """Tests of the Gymnasium envs: the generic ``lfm_env.env.LatentForceEnv`` and its
-instances ``lfm_env.envs.sine_track.SineTrackEnv`` and
-``lfm_env.envs.quadrotor_gust.QuadrotorGustEnv`` (through ``gym.make``).
+instances ``lfm_env.worlds.sine_track.env.SineTrackEnv`` and
+``lfm_env.worlds.quadrotor.env.QuadrotorGustEnv`` (through ``gym.make``).
 
 The generic contract (check_env, determinism, seeding, pickling, actions, reward, info) runs
 on the sine track, the quadrotor in its tunnel and a small planar point mass with a
@@ -25,7 +25,7 @@ from gymnasium.utils.env_checker import check_env
 import lfm_env  # noqa: F401  (registers lfm_env/SineTrack-v0 and lfm_env/QuadrotorGust-v0)
 from lfm_env.config import EnvConfig, QuadrotorGustConfig
 from lfm_env.env import LatentForceEnv
-from lfm_env.envs import QuadrotorGustEnv, SineTrackEnv
+from lfm_env.worlds import QuadrotorGustEnv, SineTrackEnv
 from lfm_env.gp import matern
 from lfm_env.model import LatentForceModel
 from lfm_env.system import ControlSystem, QuadraticCost, xp
@@ -275,10 +275,10 @@ def test_gym_make_in_a_subprocess(env_id):
 def test_the_generic_module_does_not_import_the_case_studies():
     code = (
         "import sys, lfm_env.env; "
-        "assert 'lfm_env.envs.sine_track' not in sys.modules, 'sine track imported'; "
-        "assert 'lfm_env.systems.sine_track' not in sys.modules, 'sine track system imported'; "
-        "assert 'lfm_env.envs.quadrotor_gust' not in sys.modules, 'quadrotor imported'; "
-        "assert 'lfm_env.systems.quadrotor' not in sys.modules, 'quadrotor system imported'"
+        "assert 'lfm_env.worlds.sine_track.env' not in sys.modules, 'sine track imported'; "
+        "assert 'lfm_env.worlds.sine_track.system' not in sys.modules, 'sine track system imported'; "
+        "assert 'lfm_env.worlds.quadrotor.env' not in sys.modules, 'quadrotor imported'; "
+        "assert 'lfm_env.worlds.quadrotor.system' not in sys.modules, 'quadrotor system imported'"
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
@@ -288,7 +288,7 @@ def test_registered_entry_point_and_attributes():
     env = make()
     assert isinstance(env.unwrapped, SineTrackEnv)
     assert isinstance(env.unwrapped, LatentForceEnv)
-    assert env.spec.entry_point == "lfm_env.envs.sine_track:SineTrackEnv"
+    assert env.spec.entry_point == "lfm_env.worlds.sine_track.env:SineTrackEnv"
     u = env.unwrapped
     assert u.system is u.model.system and u.system.name == "sine_track"
     assert u.config == EnvConfig()
@@ -298,7 +298,7 @@ def test_registered_entry_point_and_attributes():
 def test_registered_entry_point_and_attributes_of_the_quadrotor():
     env = make_quadrotor()
     assert isinstance(env.unwrapped, QuadrotorGustEnv)
-    assert env.spec.entry_point == "lfm_env.envs.quadrotor_gust:QuadrotorGustEnv"
+    assert env.spec.entry_point == "lfm_env.worlds.quadrotor.env:QuadrotorGustEnv"
     u = env.unwrapped
     assert u.system is u.model.system and u.system.name == "quadrotor_gust"
     assert u.config == QuadrotorGustConfig()

@@ -1,5 +1,5 @@
 """Tests of the second case study as a system and a world config: the attitude-controlled
-planar quadrotor in a bending tunnel (``lfm_env.systems.quadrotor``) and
+planar quadrotor in a bending tunnel (``lfm_env.worlds.quadrotor.system``) and
 :class:`~lfm_env.config.QuadrotorGustConfig` (``configs/quadrotor.yaml``)."""
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from lfm_env.config import (
     world_config_class,
 )
 from lfm_env.system import ControlSystem
-from lfm_env.systems.quadrotor import (
+from lfm_env.worlds.quadrotor.system import (
     CONSTRAINT_NAMES,
     GRAVITY,
     MASS,
@@ -38,7 +38,7 @@ from lfm_env.systems.quadrotor import (
     quadrotor_gust_system,
     quadrotor_rhs,
 )
-from lfm_env.systems.sine_track import sine_track_system
+from lfm_env.worlds.sine_track.system import sine_track_system
 
 DT = 0.1  # [s] the default sampling time
 SYSTEM = quadrotor_gust_system()

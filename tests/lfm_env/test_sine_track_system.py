@@ -1,4 +1,4 @@
-"""Tests of the paper's case study as a system (``lfm_env.systems.sine_track``): the
+"""Tests of the paper's case study as a system (``lfm_env.worlds.sine_track.system``): the
 kinematic bicycle, the sine track and their :class:`~lfm_env.system.ControlSystem`."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 from highway_env.vehicle.kinematics import Vehicle
 
 from lfm_env.system import ControlSystem
-from lfm_env.systems.sine_track import (
+from lfm_env.worlds.sine_track.system import (
     CONSTRAINT_NAMES,
     SineTrack,
     bicycle_rhs,

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from lfm_env.system import ControlSystem, QuadraticCost, is_symbolic, split_unit, xp
-from lfm_env.systems.sine_track import sine_track_system
+from lfm_env.worlds.sine_track.system import sine_track_system
 
 # ----------------------------------------------------------------------------- a second system
 

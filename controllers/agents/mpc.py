@@ -1,0 +1,520 @@
+"""MPC agents over any latent-force model, all with the same face.
+
+Every agent has ``reset(seed=None)``, ``act(obs) -> action`` and ``last_info`` (a dict:
+solve time [s], solver status, iterations, slack, state estimate and its standard
+deviation, latent-force estimate, the plan and the predicted trajectories). An agent is
+built from a :class:`~lfm_env.model.LatentForceModel` (its belief about the world: the
+system, the latent force's kernel, the noise), a :class:`~lfm_env.system.QuadraticCost`,
+its :class:`~controllers.config.AgentConfig` and the std of the measurement noise of the
+full-state observation ``y = x + e``; every dimension is read from the model.
+
+* :class:`NominalMPCAgent` (``"nominal"``): the observation taken as the state, no latent
+  force in its model (``w = 0``), one deterministic prediction.
+* :class:`CertaintyEquivalentMPCAgent` (``"pf"``): particle-filter estimate; predicts the
+  latent force by its mean ``H A^k z``; one noise-free scenario.
+* :class:`ScenarioMPCAgent` (``"scenario"``): particle filter plus the scenario MPC of the
+  paper: ``Ns`` draws of the latent process noise over the horizon, all from the
+  estimate's mean, one shared input sequence.
+* :class:`ParticleScenarioMPCAgent` (``"scenario_particles"``): the same, with each
+  scenario starting from a particle (the paper's remark): the plan also carries the
+  estimate's uncertainty.
+* :class:`OracleMPCAgent` (``"oracle"``): an upper bound, NOT a controller one can build:
+  it reads the true state and the true future disturbance from the env.
+
+Agents draw their randomness from their own seed, independent of the env's, so the
+same env seed gives every agent the same disturbance and noise. Every agent here follows
+:class:`controllers.agents.protocol.Agent` and has stable-baselines3's ``predict``
+(:class:`controllers.agents.protocol.SB3Predict`); an agent of one's own needs only the protocol.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any
+
+import numpy as np
+from scipy import special
+
+from controllers.config import (
+    AgentConfig,
+    ExperimentConfig,
+    check_filter_memory,
+    check_problem_memory,
+    load_config,
+)
+from controllers.estimators.estimator import make_estimator
+from controllers.problem import MPCSolution, ScenarioProblem
+from controllers.agents.protocol import SB3Predict
+from controllers.agents.rl import RLAgent, check_rl_policy
+from controllers.solvers import make_solver
+from lfm_env.config import ConfigError
+from lfm_env.model import LatentForceModel
+from lfm_env.system import QuadraticCost
+from lfm_env.validation import real_vector
+
+# Tail probability of the filter's divergence test: a measurement whose normalised
+# innovation to the closest particle exceeds the chi^2 (nx degrees of freedom) quantile
+# at 1 - 1e-6 means the filter has lost the state.
+DIVERGENCE_TAIL = 1.0e-6
+
+
+class MPCAgent(SB3Predict):
+    """Common receding-horizon loop: estimate, build scenarios, solve, apply ``u_0``.
+
+    An :class:`~controllers.agents.protocol.Agent` with every ``last_info`` key, and with
+    stable-baselines3's ``predict`` (:class:`~controllers.agents.protocol.SB3Predict`), so
+    ``evaluate_policy(agent, env)`` runs it. Subclasses implement :meth:`_estimate` (the
+    state estimate from the observation) and :meth:`_scenarios` (``x0`` and ``W`` for the
+    solver).
+
+    Args:
+        model: the agent's latent-force model of the world.
+        cost: the control objective (stage, terminal and input weights, goal state).
+        settings: horizon, scenario count, particle count, solver, ... (paper values by
+            default).
+        measurement_std: std of the noise of each observed state, in the states' units
+            ``(nx,)``; used by the filtering agents' likelihood and prior.
+    """
+
+    name = "mpc"
+    uses_scenarios = False  # True: Ns scenarios from settings; False: one scenario
+    needs_measurement_noise = False  # True: its estimator needs every noise std > 0
+
+    def __init__(
+        self,
+        model: LatentForceModel,
+        cost: QuadraticCost,
+        settings: AgentConfig | None = None,
+        measurement_std: Any = None,
+    ) -> None:
+        self.model = model
+        self.system = model.system
+        self.cost = cost
+        self.settings = AgentConfig() if settings is None else settings
+        nx = self.system.nx
+        std = np.zeros(nx) if measurement_std is None else measurement_std
+        self.measurement_std = real_vector(
+            std, nx, "measurement_std", f"one per state {list(self.system.state_names)}"
+        )
+        n_scenarios = self.settings.scenario_count(self.system.nu) if self.uses_scenarios else 1
+        check_problem_memory(model, self.settings.horizon, n_scenarios)
+        self.problem = ScenarioProblem(
+            model,
+            cost,
+            horizon=self.settings.horizon,
+            n_scenarios=n_scenarios,
+            slack_penalty=self.settings.slack_penalty,
+        )
+        # A solve that reaches max_solve_time fails, and _choose_action falls back.
+        threads = self.settings.kernel_threads
+        self.mpc = make_solver(
+            self.problem,
+            self.settings.solver,
+            max_iter=self.settings.max_iter,
+            max_time=self.settings.max_solve_time,
+            **({"kernel_threads": threads} if threads > 1 else {}),
+        )
+        self.last_info: dict[str, Any] = {}
+        self.rng = np.random.default_rng()
+        self._u_prev: np.ndarray | None = None
+        self._plan: np.ndarray | None = None  # remaining planned inputs (fallback)
+
+    # ------------------------------------------------------------------ public face
+
+    def reset(self, seed: int | None = None) -> None:
+        """Start a new episode; ``seed`` fixes the agent's own randomness."""
+        self.rng = np.random.default_rng(seed)
+        self.mpc.reset()
+        self._u_prev = None
+        self._plan = None
+        self.last_info = {}
+
+    def act(self, obs: Any) -> np.ndarray:
+        """The action ``(nu,)`` in the inputs' units for an observation ``(nx,)`` of the state."""
+        y = real_vector(obs, self.system.nx, "obs", f"{list(self.system.state_names)}")
+        t0 = time.perf_counter()
+        info = self._estimate(y)
+        t_est = time.perf_counter() - t0
+        self._x_hat = np.asarray(info["estimate"][: self.system.nx], dtype=float)
+        x0, W = self._scenarios()
+        backoff = self._backoff()
+        sol = self.mpc.solve(x0, W) if backoff is None else self.mpc.solve(x0, W, backoff=backoff)
+        u, fallback = self._choose_action(sol)
+        self._u_prev = u
+        info.update(
+            solve_time=sol.solve_time,
+            estimate_time=t_est,
+            status=sol.status,
+            success=bool(sol.success),
+            iterations=int(sol.iterations),
+            solver_extra=dict(sol.extra or {}),
+            slack=float(sol.slack),
+            objective=float(sol.objective),
+            fallback=fallback,
+            plan=sol.u.copy(),
+            predicted=None if sol.predicted is None else sol.predicted.copy(),
+            x0=np.asarray(x0, dtype=float).copy(),
+            W=np.asarray(W).copy(),
+            backoff=None if backoff is None else backoff.copy(),
+        )
+        self.last_info = info
+        return u
+
+    # ------------------------------------------------------------------ internals
+
+    def _choose_action(self, sol: MPCSolution) -> tuple[np.ndarray, str]:
+        """First input of a good plan; otherwise the previous plan shifted, or the system's
+        fallback at the state estimate (the bicycle brakes to a standstill)."""
+        if sol.success and np.all(np.isfinite(sol.u)):
+            self._plan = self.system.clip_input(sol.u)
+            return self._plan[0].copy(), ""
+        if self._plan is not None and len(self._plan) > 1:
+            self._plan = self._plan[1:]
+            return self._plan[0].copy(), "previous_plan"
+        self._plan = None
+        return self.system.fallback(self._x_hat, self.model.dt), "fallback"
+
+    def _backoff(self) -> np.ndarray | None:
+        """Constraint tightening ``(ng,)`` for this solve; ``None`` for none (the default)."""
+        return None
+
+    def _no_force(self) -> np.ndarray:
+        """``W = 0`` for one scenario ``(1, N, nw)``."""
+        return np.zeros((1, self.problem.horizon, self.system.nw))
+
+    def _estimate(self, y: np.ndarray) -> dict[str, Any]:
+        raise NotImplementedError
+
+    def _scenarios(self) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+
+class NominalMPCAgent(MPCAgent):
+    """Classical MPC: the observation is the state, the latent force is ignored (``w = 0``)."""
+
+    name = "nominal"
+
+    def _estimate(self, y: np.ndarray) -> dict[str, Any]:
+        self._x = y
+        return {"estimate": y.copy(), "estimate_std": np.zeros(self.system.nx)}
+
+    def _scenarios(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._x, self._no_force()
+
+
+class _FilteringAgent(MPCAgent):
+    """An agent that estimates physical and latent states with ``settings.estimator``.
+
+    Built like :class:`MPCAgent`; ``measurement_std`` must be all > 0. The estimator is one
+    of :data:`controllers.estimators.estimator.ESTIMATORS` (the paper's bootstrap particle
+    filter by default).
+    """
+
+    needs_measurement_noise = True
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        nx = self.system.nx
+        if not np.all(self.measurement_std > 0.0):
+            raise ValueError(
+                f"measurement_std={self.measurement_std.tolist()}: must be all > 0 for the "
+                f"{self.name!r} agent (its estimator weighs each measurement by this noise)"
+            )
+        self._divergence_nis = float(special.chdtri(nx, DIVERGENCE_TAIL))  # chi2 upper quantile
+        s = self.settings
+        where = "agents.robust.n_particles" if self.name == "robust" else "agents.n_particles"
+        check_filter_memory(self.model, s.n_particles, s.estimator, where)
+        self.estimator = make_estimator(
+            s.estimator,
+            self.model,
+            self.measurement_std,
+            n_particles=s.n_particles,
+            resampling=s.resampling,
+            ess_threshold=s.ess_threshold,
+        )
+        self._started = False
+        self.n_filter_resets = 0
+
+    def reset(self, seed: int | None = None) -> None:
+        super().reset(seed)
+        self._started = False
+        self.n_filter_resets = 0
+
+    def _estimate(self, y: np.ndarray) -> dict[str, Any]:
+        est = self.estimator
+        if not self._started:
+            rec = est.start(y, self.rng)
+            self._started = True
+        else:
+            rec = est.step(self._u_prev, y)
+        # Divergence check: if the measurement is a 1e-6 tail event even for the closest
+        # particle (or the UKF's innovation), the estimate has lost the state (a bootstrap
+        # filter's cloud can collapse far from the truth); restart around y and say so.
+        diverged = rec.degenerate or rec.nis > self._divergence_nis
+        if diverged:
+            est.start(y, self.rng)
+            self.n_filter_resets += 1
+        nx = self.system.nx
+        mean, cov = est.mean, est.covariance
+        H = self.model.H  # (nw, p)
+        self._mean, self._cov = mean, cov
+        return {
+            "estimate": mean.copy(),
+            "estimate_std": np.sqrt(np.maximum(np.diag(cov), 0.0)),
+            "latent_force": H @ mean[nx:],
+            "latent_force_std": np.sqrt(np.maximum(np.diag(H @ cov[nx:, nx:] @ H.T), 0.0)),
+            "estimator": est.name,
+            "filter_degenerate": bool(rec.degenerate),
+            "filter_reset": diverged,
+            "filter_resets": self.n_filter_resets,
+        }
+
+    def _mean_forecast_scenario(self) -> tuple[np.ndarray, np.ndarray]:
+        """One scenario: the estimate's mean, the force's mean forecast ``H A^k z_hat``."""
+        nx = self.system.nx
+        W = self.model.mean_latent_forecast(self._mean[nx:], self.problem.horizon)
+        return self._mean[:nx], W[None]
+
+    def _backoff(self) -> np.ndarray | None:
+        """``settings.backoff`` times the estimate's std along each constraint's gradient.
+
+        ``b_j = k_j sqrt(dg_j(x_hat)' Sigma_x dg_j(x_hat))`` with the physical block
+        ``Sigma_x`` of the estimate's covariance, the same at every step of the horizon;
+        ``k_j`` is the one value of ``settings.backoff`` or that of ``g_j``'s constraint group.
+        """
+        k = self._backoff_factors
+        if k is None:
+            return None
+        nx = self.system.nx
+        J = self.system.constraint_jacobian(self._mean[:nx])  # (ng, nx)
+        spread = np.einsum("ji,ik,jk->j", J, self._cov[:nx, :nx], J)
+        return k * np.sqrt(np.maximum(spread, 0.0))
+
+    @property
+    def _backoff_factors(self) -> np.ndarray | None:
+        """``k_j`` per constraint ``(ng,)``, or ``None`` when no constraint is backed off."""
+        factors = tuple(self.settings.backoff)
+        system = self.system
+        if system.ng == 0 or not any(f > 0.0 for f in factors):
+            return None
+        if len(factors) == 1:
+            return np.full(system.ng, factors[0])
+        groups = system.constraint_groups
+        if len(factors) != len(groups):
+            raise ValueError(
+                f"backoff={list(factors)}: one number or {len(groups)}, one per constraint "
+                f"group {list(groups)}"
+            )
+        k = np.zeros(system.ng)
+        for f, members in zip(factors, groups.values(), strict=True):
+            k[list(members)] = f
+        return k
+
+
+class CertaintyEquivalentMPCAgent(_FilteringAgent):
+    """PF + MPC: the latent force predicted by its mean ``H A^k z_hat``; one scenario."""
+
+    name = "pf"
+
+    def _scenarios(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._mean_forecast_scenario()
+
+
+class ScenarioMPCAgent(_FilteringAgent):
+    """The paper's method: PF estimate plus scenario MPC over sampled latent-force paths.
+
+    With ``settings.scenario_initial_states == "particles"`` every scenario starts from a
+    particle drawn by weight (the paper's remark); by default all start from the mean.
+    """
+
+    name = "scenario"
+    uses_scenarios = True
+    initial_states: str | None = None  # None: settings.scenario_initial_states
+
+    def _scenarios(self) -> tuple[np.ndarray, np.ndarray]:
+        ns, nx = self.problem.n_scenarios, self.system.nx
+        if (self.initial_states or self.settings.scenario_initial_states) == "particles":
+            start = self.estimator.sample(ns, self.rng)
+            x0, z0 = start[:, :nx], start[:, nx:]
+        else:
+            x0 = self._mean[:nx]
+            z0 = np.broadcast_to(self._mean[nx:], (ns, self.model.latent_dim))
+        W = self.model.sample_latent_forecasts(z0, self.problem.horizon, self.rng)
+        return x0, W
+
+
+class ParticleScenarioMPCAgent(ScenarioMPCAgent):
+    """Scenario MPC whose scenarios also start from the filter's particles (paper's remark).
+
+    Each scenario's initial physical and latent state is a particle drawn by weight, so
+    the plan also respects the estimate's uncertainty, not only the future noise.
+    """
+
+    name = "scenario_particles"
+    initial_states = "particles"
+
+
+class RobustMPCAgent(ScenarioMPCAgent):
+    """The uncertainty-aware agent: ``settings.robust`` (:class:`RobustConfig`) chooses its
+    estimator, constraint back-off and forecast, the rest is the ``agents`` section's.
+
+    With ``forecast="mean"`` it plans one scenario with the force's mean forecast (as the
+    ``pf`` agent) inside constraints backed off by the estimate's spread; with
+    ``"sampled"`` it is the scenario agent with the same back-off.
+    """
+
+    name = "robust"
+
+    def __init__(
+        self,
+        model: LatentForceModel,
+        cost: QuadraticCost,
+        settings: AgentConfig | None = None,
+        measurement_std: Any = None,
+    ) -> None:
+        base = AgentConfig() if settings is None else settings
+        r = base.robust
+        n_scenarios = 1 if r.forecast == "mean" else (r.n_scenarios or base.n_scenarios)
+        merged = dataclasses.replace(
+            base,
+            estimator=r.estimator,
+            n_particles=r.n_particles,
+            backoff=r.backoff,
+            n_scenarios=n_scenarios,
+            scenario_initial_states=r.scenario_initial_states,
+        )
+        super().__init__(model, cost, merged, measurement_std)
+
+    def _scenarios(self) -> tuple[np.ndarray, np.ndarray]:
+        if self.settings.robust.forecast == "mean":
+            return self._mean_forecast_scenario()
+        return super()._scenarios()
+
+
+class OracleMPCAgent(MPCAgent):
+    """UPPER BOUND, not a realisable controller: reads the true state and future force.
+
+    It gets the env (``make_agent("oracle", env=env)``) and reads
+    ``env.unwrapped.true_state`` and ``env.unwrapped.preview_disturbance(N)``, which do
+    not change the episode. The observation passed to :meth:`act` is ignored.
+    """
+
+    name = "oracle"
+
+    def __init__(
+        self,
+        model: LatentForceModel,
+        cost: QuadraticCost,
+        settings: AgentConfig | None = None,
+        measurement_std: Any = None,
+        env: Any = None,
+    ) -> None:
+        if env is None:
+            raise ValueError("the oracle agent needs env=... (it reads the hidden truth)")
+        super().__init__(model, cost, settings, measurement_std)
+        self.env = env
+
+    def _estimate(self, y: np.ndarray) -> dict[str, Any]:
+        truth = self.env.unwrapped
+        self._x = np.asarray(truth.true_state, dtype=float)
+        self._W = np.asarray(truth.preview_disturbance(self.problem.horizon), dtype=float)[None]
+        return {"estimate": self._x.copy(), "estimate_std": np.zeros(self.system.nx)}
+
+    def _scenarios(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._x, self._W
+
+
+AGENTS = {
+    "nominal": NominalMPCAgent,
+    "pf": CertaintyEquivalentMPCAgent,
+    "scenario": ScenarioMPCAgent,
+    "scenario_particles": ParticleScenarioMPCAgent,
+    "robust": RobustMPCAgent,
+    "oracle": OracleMPCAgent,
+    "rl": RLAgent,
+}
+
+AGENT_LABELS = {
+    "nominal": "nominal MPC (w = 0)",
+    "pf": "PF + certainty-equivalent MPC",
+    "scenario": "PF + scenario MPC (paper)",
+    "scenario_particles": "PF + scenario MPC, scenarios start from particles (paper's remark)",
+    "robust": "robust: calibrated estimator + MPC with constraint back-off",
+    "oracle": "oracle MPC (upper bound, reads hidden truth)",
+    "rl": "RL baseline (a policy trained by lfm-train, agents.rl_policy)",
+}
+
+FILTERING_AGENTS = tuple(k for k, v in AGENTS.items() if issubclass(v, _FilteringAgent))
+
+
+def needs_measurement_noise(name: str) -> bool:
+    """Whether the registered agent ``name`` weighs measurements by their noise (its
+    estimator's likelihood), so every ``env.measurement_noise_std`` must be > 0."""
+    return bool(getattr(AGENTS[name], "needs_measurement_noise", False))
+
+
+def check_agent_config(name: str, config: Any = None) -> ExperimentConfig:
+    """Raise ``ConfigError`` if agent ``name`` cannot run on this config; returns it resolved.
+
+    Cheap (builds no solver), so :func:`experiments.evaluation.run.evaluate` calls it for every
+    agent before the first episode. Every agent with an estimator (``pf``, ``scenario``,
+    ``scenario_particles``, ``robust``: :func:`needs_measurement_noise`) weighs
+    measurements by their noise, which must not be zero.
+    """
+    if name not in AGENTS:
+        raise ValueError(f"unknown agent {name!r}; choose one of {sorted(AGENTS)}")
+    config = load_config(config)
+    std = tuple(config.env.measurement_noise_std)
+    if needs_measurement_noise(name) and not all(s > 0.0 for s in std):
+        states = config.make_system().state_names
+        zero = [n for n, s in zip(states, std, strict=False) if not s > 0.0]
+        raise ConfigError(
+            f"env.measurement_noise_std={list(std)}: must be all > 0 (each in (0, inf)) "
+            f"for the {name!r} agent (its estimator weighs each measurement by this noise); "
+            f"zero for {zero}"
+        )
+    if name == "rl":  # the policy file must be there before the first episode
+        check_rl_policy(config.agents.rl_policy)
+    return config
+
+
+def make_agent(name: str, config: Any = None, env: Any = None) -> MPCAgent:
+    """Build an agent by name from a config.
+
+    Args:
+        name: one of :data:`AGENTS` (``"nominal"``, ``"pf"``, ``"scenario"``,
+            ``"scenario_particles"``, ``"oracle"``).
+        config: an :class:`~controllers.config.ExperimentConfig`, a YAML path, a dict
+            (whole file), or ``None`` for the paper's values; the ``env`` section is the
+            agents' known model, the ``agents`` section their settings.
+        env: the environment, only for the oracle (which reads the hidden truth).
+
+    To use an agent on another system, build it directly:
+    ``ScenarioMPCAgent(model, cost, AgentConfig(...), measurement_std=...)``.
+    """
+    if name not in AGENTS:
+        raise ValueError(f"unknown agent {name!r}; choose one of {sorted(AGENTS)}")
+    if env is not None and name != "oracle":
+        raise ValueError(f"agent {name!r} must not get env= (only the oracle reads the truth)")
+    config = check_agent_config(name, config)
+    args = (config.make_model(), config.make_cost(), config.agents, config.measurement_std)
+    if name == "oracle":
+        return OracleMPCAgent(*args, env=env)
+    return AGENTS[name](*args)
+
+
+__all__ = [
+    "AGENTS",
+    "AGENT_LABELS",
+    "CertaintyEquivalentMPCAgent",
+    "MPCAgent",
+    "NominalMPCAgent",
+    "OracleMPCAgent",
+    "ParticleScenarioMPCAgent",
+    "RobustMPCAgent",
+    "ScenarioMPCAgent",
+    "check_agent_config",
+    "make_agent",
+    "needs_measurement_noise",
+]

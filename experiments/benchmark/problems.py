@@ -1,0 +1,235 @@
+"""The problems the benchmark solves: closed-loop scenario problems recorded from an agent.
+
+:func:`record_closed_loop` runs episodes of the config's env with the scenario agent and
+keeps, at every step, the scenario problem the agent met (its ``last_info["x0"]`` and
+``["W"]``) and its estimate (physical and latent state), from which
+:func:`scenario_draws` makes problems of other scenario counts. Everything is read from
+the config (:func:`experiment_config`): the model, the cost, the problem
+(:meth:`~controllers.config.ExperimentConfig.make_problem`); nothing here knows the system.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from controllers.config import ExperimentConfig, load_config
+from controllers.problem import ScenarioProblem
+
+ENV_ID = "lfm_env/SineTrack-v0"  # the env whose episodes the benchmark records
+DEFAULT_CONFIG = "configs/paper.yaml"
+DEFAULT_SEEDS = (0, 1, 2, 3, 4, 5)  # the issue's closed-loop problems: seeds 0..5
+RECORDING_SOLVER = "fast"  # the agent's solver while recording (the default controller)
+
+
+class RecordedProblem(NamedTuple):
+    """A scenario problem met in closed loop: ``(seed, step, x0, W)``."""
+
+    seed: int  # env seed of the episode
+    step: int  # step index within the episode
+    x0: np.ndarray  # (nx,) or (Ns, nx) initial state(s), in the states' units
+    W: np.ndarray  # (Ns, N, nw) latent forces, in the force's units
+
+
+class SweepAnchor(NamedTuple):
+    """A recorded estimate around which scenarios are drawn: ``(seed, step, x0, z)``."""
+
+    seed: int  # env seed of the episode
+    step: int  # step index within the episode
+    x0: np.ndarray  # (nx,) estimated physical state
+    z: np.ndarray  # (p,) estimated latent state of the GP
+
+
+# --------------------------------------------------------------------------- configuration
+
+
+def config_path(config: Any) -> Any:
+    """A relative config path that is missing here is looked up from the repository root."""
+    if isinstance(config, (str, os.PathLike)) and not Path(config).is_file():
+        candidate = Path(__file__).resolve().parents[1] / config
+        if candidate.is_file():
+            return str(candidate)
+    return config
+
+
+def experiment_config(
+    config: Any = DEFAULT_CONFIG, solver: str | None = None, horizon: int | None = None
+) -> ExperimentConfig:
+    """The resolved, validated config, optionally with another ``agents.solver`` or horizon.
+
+    Args:
+        config: a YAML path (relative paths also from the repository root), a dict (whole
+            file), an :class:`~controllers.config.ExperimentConfig` or ``None`` (paper values).
+        solver: if given, replaces ``agents.solver`` (one of ``controllers.solvers.SOLVERS``;
+            checked like a config value).
+        horizon: if given, replaces ``agents.horizon`` (prediction steps ``N``; checked like
+            a config value).
+    """
+    cfg = load_config(config_path(config))
+    changes: dict[str, Any] = {}
+    if solver is not None and solver != cfg.agents.solver:
+        changes["solver"] = solver
+    if horizon is not None and int(horizon) != cfg.agents.horizon:
+        changes["horizon"] = int(horizon)
+    if changes:
+        # AgentConfig checks its fields on construction, so replace() checks the new values.
+        cfg = dataclasses.replace(cfg, agents=dataclasses.replace(cfg.agents, **changes))
+    return cfg
+
+
+def problem_from_config(
+    config: Any = DEFAULT_CONFIG, n_scenarios: int | None = None, horizon: int | None = None
+) -> ScenarioProblem:
+    """The scenario problem the agents of ``config`` solve, with ``Ns`` or ``N`` changed.
+
+    Args:
+        config: as for :func:`experiment_config`.
+        n_scenarios: scenario count ``Ns``; by default the config's.
+        horizon: prediction steps ``N``; by default the config's.
+    """
+    return experiment_config(config).make_problem(n_scenarios=n_scenarios, horizon=horizon)
+
+
+# --------------------------------------------------------------------------- recording
+
+
+def env_start(config: Any = DEFAULT_CONFIG, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The env's initial physical state ``(nx,)`` and latent state ``(p,)`` for ``seed``.
+
+    Read from the ``info`` of the env's reset (``true_state``, ``latent_state``).
+    """
+    import gymnasium as gym
+
+    import lfm_env  # noqa: F401  (registers the env id)
+
+    env = gym.make(ENV_ID, config=experiment_config(config).env)
+    try:
+        _, info = env.reset(seed=int(seed))
+    finally:
+        env.close()
+    x = np.asarray(info["true_state"], dtype=float)
+    return x, np.asarray(info["latent_state"], dtype=float)
+
+
+def record_closed_loop(
+    config: Any = DEFAULT_CONFIG,
+    seeds: Sequence[int] = DEFAULT_SEEDS,
+    max_steps: int | None = None,
+    progress: bool = False,
+    solver: str = RECORDING_SOLVER,
+    horizon: int | None = None,
+) -> tuple[list[RecordedProblem], list[SweepAnchor]]:
+    """Scenario-agent episodes: every step's scenario problem and state estimate.
+
+    The agent's own randomness is seeded with the env seed, so a recording is repeatable.
+
+    Args:
+        config: as for :func:`experiment_config`.
+        seeds: env seeds, one episode each.
+        max_steps: record (and run) at most this many steps per episode; ``None``: whole
+            episodes.
+        progress: show a progress bar.
+        solver: the agent's solver while recording.
+        horizon: the agent's horizon ``N`` (``agents.horizon``); by default the config's.
+
+    Returns:
+        ``(problems, anchors)``, seed by seed in closed-loop order: the problems the agent
+        solved (``last_info["x0"]``, ``["W"]``) and its estimates split into physical and
+        latent state (``last_info["estimate"]``).
+    """
+    import gymnasium as gym
+
+    import lfm_env  # noqa: F401  (registers the env id)
+    from controllers.agents.mpc import make_agent
+
+    cfg = experiment_config(config, solver=solver, horizon=horizon)
+    nx = cfg.make_system().nx
+    problems: list[RecordedProblem] = []
+    anchors: list[SweepAnchor] = []
+    for seed in tqdm(list(seeds), desc="record episodes", disable=not progress):
+        env = gym.make(ENV_ID, config=cfg.env)
+        try:
+            obs, _ = env.reset(seed=int(seed))
+            agent = make_agent("scenario", cfg)
+            agent.reset(seed=int(seed))
+            step, done = 0, False
+            while not done and (max_steps is None or step < max_steps):
+                action = agent.act(obs)
+                info = agent.last_info
+                x0 = np.array(info["x0"], dtype=float)
+                W = np.array(info["W"], dtype=float)
+                problems.append(RecordedProblem(int(seed), step, x0, W))
+                estimate = np.asarray(info["estimate"], dtype=float)
+                anchors.append(
+                    SweepAnchor(int(seed), step, estimate[:nx].copy(), estimate[nx:].copy())
+                )
+                obs, _, terminated, truncated, _ = env.step(action)
+                done = terminated or truncated
+                step += 1
+        finally:
+            env.close()
+    return problems, anchors
+
+
+def record_problems(
+    config: Any = DEFAULT_CONFIG,
+    seeds: Sequence[int] = DEFAULT_SEEDS,
+    max_steps: int | None = None,
+    progress: bool = False,
+) -> list[RecordedProblem]:
+    """The closed-loop scenario problems of :func:`record_closed_loop` (without estimates)."""
+    problems, _ = record_closed_loop(config, seeds, max_steps, progress)
+    return problems
+
+
+def anchors_per_seed(anchors: Sequence[SweepAnchor], steps_per_seed: int | None) -> list:
+    """The first ``steps_per_seed`` anchors of every seed (``None``: all), in order."""
+    counts: dict[int, int] = {}
+    out = []
+    for a in anchors:
+        counts[a.seed] = counts.get(a.seed, 0) + 1
+        if steps_per_seed is None or counts[a.seed] <= steps_per_seed:
+            out.append(a)
+    return out
+
+
+def scenario_draws(
+    problem: ScenarioProblem, anchors: Sequence[SweepAnchor], rng: np.random.Generator
+) -> list[RecordedProblem]:
+    """Problems of ``problem``'s size around recorded estimates, drawn as the agent draws.
+
+    For each anchor the ``Ns`` latent-force scenarios are
+    :meth:`~lfm_env.model.LatentForceModel.sample_latent_forecasts` of the problem's model,
+    all started from the anchor's latent estimate ``z``; the initial state is the anchor's
+    physical estimate.
+    """
+    model, ns = problem.model, problem.n_scenarios
+    out = []
+    for a in anchors:
+        z0 = np.broadcast_to(a.z, (ns, a.z.size))
+        W = model.sample_latent_forecasts(z0, problem.horizon, rng)
+        out.append(RecordedProblem(a.seed, a.step, a.x0, W))
+    return out
+
+
+__all__ = [
+    "DEFAULT_CONFIG",
+    "DEFAULT_SEEDS",
+    "ENV_ID",
+    "RecordedProblem",
+    "SweepAnchor",
+    "anchors_per_seed",
+    "config_path",
+    "env_start",
+    "experiment_config",
+    "problem_from_config",
+    "record_closed_loop",
+    "record_problems",
+    "scenario_draws",
+]

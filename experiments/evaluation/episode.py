@@ -1,0 +1,465 @@
+"""One closed-loop episode of an agent, and the inputs every run checks first.
+
+:func:`run_episode` runs one (agent, env seed) episode on the config's world and returns its
+row of metrics (the columns of :mod:`experiments.evaluation.columns`) and its trajectory. The agent's
+own randomness is seeded by :func:`agent_seed` (paired design: see
+:mod:`experiments.evaluation.run`). :func:`resolve_config` reads and validates a config once,
+:func:`parse_seeds` reads seeds from text.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import re
+import time
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+import lfm_env  # noqa: F401  (registers the envs, also in spawned workers)
+from controllers.agents.mpc import AGENTS, check_agent_config, make_agent
+from controllers.config import ExperimentConfig, load_config
+from controllers.agents.protocol import INFO_DEFAULTS, last_info
+from experiments.evaluation.agent_lookup import (
+    AgentSpec,
+    resolve_agents,
+)
+from experiments.evaluation.agent_lookup import agent_name as name_of
+from experiments.evaluation.columns import (
+    _metric_columns,
+    group_columns,
+    row_columns,
+    violation_counts,
+)
+from experiments.evaluation.interrupts import raise_if_interrupted
+
+# --------------------------------------------------------------------------- small helpers
+
+
+def agent_seed(seed: int, agent_name: str) -> int:
+    """The seed of an agent's own randomness in the episode with env seed ``seed``.
+
+    Derived from the env seed and a stable hash of the agent's name (``hash()`` of a str
+    changes between processes), so it is the same in every worker and independent of the
+    env's streams and of the other agents'.
+    """
+    name_key = int.from_bytes(hashlib.sha256(agent_name.encode()).digest()[:8], "little")
+    state = np.random.SeedSequence([int(seed), name_key]).generate_state(1, dtype=np.uint64)
+    return int(state[0])
+
+
+def resolve_config(
+    config: Any = None, agent_names: Iterable[str | AgentSpec] = ()
+) -> ExperimentConfig:
+    """The full config, read and validated once: workers get this object, not a path.
+
+    Args:
+        config: a YAML path, a dict (whole file), an
+            :class:`~controllers.config.ExperimentConfig`, or ``None`` for the built-in
+            defaults (the paper's values). Missing keys take their defaults.
+        agent_names: agents that will run on it; what each registered agent needs is
+            checked too (user agents, :class:`~experiments.evaluation.agent_lookup.AgentSpec`, are
+            checked by building one: :func:`~experiments.evaluation.agent_lookup.check_agent`).
+
+    Raises:
+        ConfigError: (a ``ValueError``) for unknown keys or out-of-range values.
+    """
+    resolved = load_config(config)
+    for name in agent_names:
+        if isinstance(name, str):
+            check_agent_config(name, resolved)
+    return resolved
+
+
+MAX_SEEDS = 1_000_000  # seeds of one run (a larger range is a typo, not a plan)
+
+
+def parse_seeds(text: str) -> list[int]:
+    """Seeds from text: ``"0:20"`` (end exclusive), ``"3"``, ``"1,5,9"``, ``"0:10,20:25"``.
+
+    Returns:
+        The seeds in the order given, duplicates removed.
+
+    Raises:
+        ValueError: naming ``text`` for empty or reversed ranges, negative numbers or
+            anything else that is not a list of non-negative integers and ranges.
+    """
+    if not isinstance(text, str) or not text.strip():
+        raise ValueError(f"seeds {text!r}: expected e.g. '0:20', '3', '1,5,9' or '0:10,20:25'")
+    seeds: list[int] = []
+    for part in text.split(","):
+        part = part.strip()
+        m = re.fullmatch(r"(-?\d+)(?:\s*:\s*(-?\d+))?", part)
+        if m is None:
+            raise ValueError(
+                f"seeds {text!r}: {part!r} is not a seed or a range start:end "
+                "(e.g. '0:20', '3', '1,5,9')"
+            )
+        start = int(m.group(1))
+        stop = start + 1 if m.group(2) is None else int(m.group(2))
+        if start < 0 or stop < 0:
+            raise ValueError(f"seeds {text!r}: seeds must be >= 0")
+        if stop <= start:
+            raise ValueError(
+                f"seeds {text!r}: range {part!r} is empty or reversed (the end is exclusive)"
+            )
+        if len(seeds) + (stop - start) > MAX_SEEDS:
+            raise ValueError(f"seeds {text!r}: at most {MAX_SEEDS} seeds in one run")
+        seeds.extend(range(start, stop))
+    return list(dict.fromkeys(seeds))
+
+
+def _check_agents(agents: Any) -> list[str]:
+    """Registered agent names only (for callers that store names, e.g. the sweep)."""
+    specs = resolve_agents(agents)
+    own = [s.text for s in specs if isinstance(s, AgentSpec)]
+    if own:
+        raise ValueError(f"agents {own}: only registered agents here; choose from {_known()}")
+    return specs
+
+
+def _known() -> list[str]:
+    return sorted(AGENTS)
+
+
+def _check_seeds(seeds: int | Iterable[int]) -> list[int]:
+    if isinstance(seeds, str):
+        return parse_seeds(seeds)
+    if not isinstance(seeds, (int, np.integer, Iterable)):
+        raise ValueError(f"seeds {seeds!r}: give integers >= 0, e.g. [0, 1, 2] or '0:20'")
+    if isinstance(seeds, range) and len(seeds) > MAX_SEEDS:
+        raise ValueError(f"seeds: {len(seeds)} of them; at most {MAX_SEEDS} in one run")
+    values = [seeds] if isinstance(seeds, (int, np.integer)) else list(seeds)
+    if len(values) > MAX_SEEDS:
+        raise ValueError(f"seeds: {len(values)} of them; at most {MAX_SEEDS} in one run")
+    if not values:
+        raise ValueError("seeds: the list is empty; give at least one seed >= 0")
+    out = []
+    for s in values:
+        if isinstance(s, (bool, np.bool_)) or not isinstance(s, (int, np.integer)) or s < 0:
+            raise ValueError(f"seeds: {s!r} is not an integer >= 0")
+        out.append(int(s))
+    if len(set(out)) != len(out):
+        raise ValueError(f"seeds: {out} holds duplicates")
+    return out
+
+
+def _one_line(exc: BaseException) -> str:
+    """``"Type: message"`` on one line, so the error fits a CSV cell and a log line."""
+    msg = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__
+
+
+# --------------------------------------------------------------------------- one episode
+
+
+#: Scenarios of the plan kept per step in ``predicted_scenarios`` (the first ones: the
+#: scenarios are independent draws, so these are a random subset of the fan).
+SAVED_SCENARIOS = 20
+
+
+class _EpisodeRecorder:
+    """Collects one episode step by step; a step is appended whole, so a partial record
+    (after an exception) is still consistent.
+
+    Every key of the agent's ``last_info`` is optional, read with the default of
+    :data:`controllers.agents.protocol.INFO_DEFAULTS`: an agent with only ``reset`` and ``act``
+    has no solver failures, no fallbacks and NaN estimates.
+    """
+
+    def __init__(self, config: ExperimentConfig) -> None:
+        system = config.make_system()
+        self.horizon = config.agents.horizon
+        self.nx, self.nu, self.nw = system.nx, system.nu, system.nw
+        self.system = system
+        self.groups = tuple(system.constraint_groups)
+        self.columns = row_columns(system)
+        self.lists: dict[str, list] = {
+            k: []
+            for k in (
+                "true_state",
+                "obs",
+                "time",
+                "action",
+                "disturbance",
+                "reward",
+                "estimate",
+                "estimate_std",
+                "latent_force_est",
+                "latent_force_std",
+                "predicted",
+                "predicted_scenarios",
+                "solve_time",
+                "slack",
+                "solver_success",
+                "fallback",
+                "filter_reset",
+                "estimator",
+                *self._excess_keys(),
+            )
+        }
+        self.has_filter = False
+        self.slack_reported: list[bool] = []  # per step: the agent gave its slack
+        self.final_info: dict[str, Any] = {}
+
+    def start(self, obs: np.ndarray, info: dict[str, Any]) -> None:
+        self.lists["true_state"].append(np.asarray(info["true_state"], dtype=float))
+        self.lists["obs"].append(np.asarray(obs, dtype=float))
+        self.lists["time"].append(float(info["time"]))
+
+    def step(
+        self, agent_info: dict[str, Any], obs: np.ndarray, reward: float, info: dict[str, Any]
+    ) -> None:
+        nan_pred = np.full((self.horizon + 1, self.nx), np.nan)
+        no_force = np.full(self.nw, np.nan)
+        predicted = agent_info.get("predicted")
+        self.has_filter = self.has_filter or agent_info.get("latent_force") is not None
+        estimate, estimate_std = self._estimate(agent_info)
+        values = {
+            "true_state": np.asarray(info["true_state"], dtype=float),
+            "obs": np.asarray(obs, dtype=float),
+            "time": float(info["time"]),
+            "action": np.asarray(info["applied_action"], dtype=float),
+            # w acting during this step: the quantity the agent estimated before it.
+            "disturbance": self._force(info["disturbance"]),
+            "reward": float(reward),
+            "estimate": estimate,
+            "estimate_std": estimate_std,
+            "latent_force_est": self._force(self._get(agent_info, "latent_force", no_force)),
+            "latent_force_std": self._force(self._get(agent_info, "latent_force_std", no_force)),
+            "predicted": nan_pred if predicted is None else np.array(predicted, dtype=float)[0],
+            # A compact fan: the first SAVED_SCENARIOS predicted trajectories, float32.
+            "predicted_scenarios": (
+                nan_pred[None] if predicted is None else np.asarray(predicted)[:SAVED_SCENARIOS]
+            ).astype(np.float32),
+            "solve_time": float(self._get(agent_info, "solve_time")),
+            "slack": float(self._get(agent_info, "slack")),
+            "solver_success": bool(self._get(agent_info, "success")),
+            "fallback": str(self._get(agent_info, "fallback")),
+            "filter_reset": bool(self._get(agent_info, "filter_reset")),
+            # The estimator's name, from agents that say which one they run (it may differ
+            # from agents.estimator: the robust agent has its own).
+            "estimator": str(self._get(agent_info, "estimator")),
+        }
+        # The largest excess of each constraint group after the step, in its unit.
+        values.update((k, float(info[k])) for k in self._excess_keys())
+        for k, v in values.items():
+            self.lists[k].append(v)
+        self.slack_reported.append(agent_info.get("slack") is not None)
+        self.final_info = info
+
+    @staticmethod
+    def _get(agent_info: dict[str, Any], key: str, default: Any = None) -> Any:
+        """``agent_info[key]``, or its documented default when absent or ``None``."""
+        value = agent_info.get(key)
+        if value is not None:
+            return value
+        return INFO_DEFAULTS[key] if default is None else default
+
+    def _estimate(self, agent_info: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+        """The step's estimate and its std, copied; NaN (of the episode's width) if absent."""
+        previous = self.lists["estimate"]
+        width = len(previous[0]) if previous else self.nx
+        est = agent_info.get("estimate")
+        est = np.full(width, np.nan) if est is None else np.array(est, dtype=float)
+        std = agent_info.get("estimate_std")
+        std = np.full(est.shape, np.nan) if std is None else np.array(std, dtype=float)
+        return est, std
+
+    def _fan(self) -> np.ndarray:
+        """``(T, S, N+1, nx)`` float32 saved scenario predictions, NaN-padded to the widest
+        step's ``S`` (an agent's scenario count may change, e.g. after a fallback)."""
+        fans = self.lists["predicted_scenarios"]
+        width = max((len(f) for f in fans), default=1)
+        out = np.full((len(fans), width, self.horizon + 1, self.nx), np.nan, dtype=np.float32)
+        for k, f in enumerate(fans):
+            out[k, : len(f)] = f
+        return out
+
+    def _excess_keys(self) -> tuple[str, ...]:
+        """``info`` keys (and trajectory arrays) of the groups' excess: ``<group>_excess``."""
+        return tuple(f"{g}_excess" for g in self.groups)
+
+    def _force(self, w: Any) -> float | np.ndarray:
+        """A latent force as a float (one component) or an ``(nw,)`` array."""
+        w = np.asarray(w, dtype=float).reshape(self.nw)
+        return float(w[0]) if self.nw == 1 else w
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The trajectory; ``T`` steps give ``(T+1, ...)`` states and ``(T, ...)`` the rest."""
+        lst = self.lists
+        T = len(lst["reward"])
+        d = len(lst["estimate"][0]) if T else self.nx
+        force = (0,) if self.nw == 1 else (0, self.nw)
+
+        def stack(key: str, shape: tuple[int, ...], dtype: Any = float) -> np.ndarray:
+            if lst[key]:
+                return np.asarray(lst[key], dtype=dtype)
+            return np.zeros(shape, dtype=dtype)
+
+        return {
+            "true_state": stack("true_state", (0, self.nx)),
+            "obs": stack("obs", (0, self.nx)),
+            "time": stack("time", (0,)),
+            "action": stack("action", (0, self.nu)),
+            "disturbance": stack("disturbance", force),
+            "reward": stack("reward", (0,)),
+            "estimate": stack("estimate", (0, d)),
+            "estimate_std": stack("estimate_std", (0, d)),
+            "latent_force_est": stack("latent_force_est", force),
+            "latent_force_std": stack("latent_force_std", force),
+            "predicted": stack("predicted", (0, self.horizon + 1, self.nx)),
+            "predicted_scenarios": self._fan(),
+            "solve_time": stack("solve_time", (0,)),
+            "slack": stack("slack", (0,)),
+            "solver_success": stack("solver_success", (0,), bool),
+            "fallback": stack("fallback", (0,), str),
+            "filter_reset": stack("filter_reset", (0,), bool),
+            "estimator": stack("estimator", (0,), str),
+            **{k: stack(k, (0,)) for k in self._excess_keys()},
+        }
+
+
+def _simulate(
+    agent_spec: str | AgentSpec, config: ExperimentConfig, seed: int, rec: _EpisodeRecorder
+) -> None:
+    """Run one episode into ``rec``; exceptions propagate with ``rec`` holding the steps done."""
+    name = name_of(agent_spec)
+    env = gym.make(config.env_id, config=config.env)
+    try:
+        obs, info = env.reset(seed=seed)
+        if isinstance(agent_spec, AgentSpec):
+            agent = agent_spec.build(config)
+        else:
+            agent = make_agent(name, config, env=env if name == "oracle" else None)
+        agent.reset(seed=agent_seed(seed, name))
+        rec.start(obs, info)
+        terminated = truncated = False
+        while not (terminated or truncated):
+            raise_if_interrupted()  # a Ctrl-C that a library swallowed
+            # The agent's estimate made with obs k is compared with the w of step k.
+            action = agent.act(obs)
+            agent_info = last_info(agent)
+            obs, reward, terminated, truncated, info = env.step(action)
+            rec.step(agent_info, obs, reward, info)
+    finally:
+        env.close()
+
+
+def _episode_metrics(rec: _EpisodeRecorder, arrays: dict[str, np.ndarray]) -> dict[str, Any]:
+    """The metric columns of a finished episode."""
+    T = len(arrays["reward"])
+    info = rec.final_info
+    success = bool(info.get("is_success", False))
+    solve = arrays["solve_time"]
+    solve = solve[np.isfinite(solve)]  # steps without a solve time are not counted
+    slack = arrays["slack"][np.asarray(rec.slack_reported[:T], dtype=bool)]
+    if rec.has_filter and T:
+        err = arrays["latent_force_est"] - arrays["disturbance"]
+        latent_rmse = float(np.sqrt(np.mean(err**2)))
+        latent_coverage = float(np.mean(np.abs(err) <= 2.0 * arrays["latent_force_std"]))
+    else:
+        latent_rmse = latent_coverage = math.nan
+
+    def stat(fn: Callable[[np.ndarray], Any], x: np.ndarray) -> float:
+        return float(fn(x)) if len(x) else math.nan
+
+    metrics: dict[str, Any] = {
+        "success": success,
+        "steps": int(T),
+        "time_to_goal": float(info["time"]) if success else math.nan,
+        "cost": float(-np.sum(arrays["reward"])),
+    }
+    counts = violation_counts(arrays, rec.system)
+    for c in group_columns(rec.system):  # in the row's order
+        metrics[c] = stat(np.max, arrays[c[4:]]) if c.startswith("max_") else counts[c]
+    return {
+        **metrics,
+        "failure": bool(info.get("failure", False)),
+        "latent_rmse": latent_rmse,
+        "latent_coverage": latent_coverage,
+        "solve_time_median": stat(np.median, solve),
+        "solve_time_p95": stat(lambda x: np.percentile(x, 95), solve),
+        "solve_time_max": stat(np.max, solve),
+        "solver_failures": int(np.sum(~arrays["solver_success"])),
+        "fallback_steps": int(np.sum(arrays["fallback"] != "")),
+        "filter_resets": int(np.sum(arrays["filter_reset"])) if rec.has_filter else 0,
+        "slack_total": float(np.sum(slack)) if len(slack) else math.nan,
+    }
+
+
+def _error_row(
+    agent_name: str, seed: int, error: str, wall_time: float, columns: Sequence[str]
+) -> dict[str, Any]:
+    """The row of an episode that raised: NaN metrics, the error text, ``columns`` order."""
+    row: dict[str, Any] = {"agent": agent_name, "seed": int(seed)}
+    row.update({c: math.nan for c in _metric_columns(columns)})
+    row.update(wall_time=float(wall_time), error=error)
+    return {c: row[c] for c in columns}
+
+
+def run_episode(
+    agent: Any, config: Any, seed: int, record: bool = True
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Run one closed-loop episode of ``agent`` on the env with seed ``seed``.
+
+    The env is the config's world, ``gym.make(cfg.env_id, config=cfg.env)``, reset with
+    ``seed``; the agent's own randomness is seeded with :func:`agent_seed` (paired
+    design). The oracle (an upper bound that reads the hidden truth) is given the env.
+
+    Args:
+        agent: a registered name (``"nominal"``, ``"pf"``, ``"scenario"``, ``"oracle"``,
+            ...), an agent factory called as ``factory(config)``, an agent, or
+            ``"module:attribute"`` (:mod:`experiments.evaluation.agent_lookup`; the row's ``agent``
+            is the agent's name there).
+        config: a YAML path, a dict (whole file), an ``ExperimentConfig`` or ``None``
+            (paper defaults).
+        seed: env seed, an integer >= 0.
+        record: return the trajectory; ``False`` gives an empty dict.
+
+    Returns:
+        ``(row, trajectory)``. ``row`` maps :func:`row_columns` of the config's system to
+        values. With ``T`` steps, ``nx`` states, ``nu`` inputs and ``nw`` force components
+        (in the units of the system's ``state_names``, ``input_names`` and
+        ``force_names``), the trajectory holds ``true_state (T+1, nx)``, ``obs (T+1, nx)``
+        (noisy measurement of ``true_state``), ``time (T+1,)`` [s], ``action (T, nu)``
+        (applied), ``disturbance`` (the force acting during step k: ``(T,)`` when
+        ``nw == 1``, else ``(T, nw)``), ``reward (T,)``, ``estimate (T, d)`` and
+        ``estimate_std (T, d)`` (the agent's state estimate from ``obs[k]``; ``d`` = nx,
+        or nx + latent states for filter agents), ``latent_force_est`` and
+        ``latent_force_std`` (its estimate of ``disturbance[k]``, shaped like it; NaN
+        without a filter), ``predicted (T, N+1, nx)`` (first scenario's predicted
+        states), ``solve_time (T,)`` [s], ``slack (T,)``, ``solver_success (T,)``,
+        ``fallback (T,)`` ('' or the fallback used), ``estimator (T,)`` (the name the
+        agent gives its estimator in ``last_info["estimator"]``, '' when it gives none),
+        and ``<group>_excess (T,)`` per constraint group of the system (its largest
+        excess after step k, in its unit; ``track_excess``, ``x_excess``, ``speed_excess``
+        on the sine track).
+
+    Raises:
+        ValueError: unknown agent or bad agent spec (naming it) or negative seed; any
+            error of the episode itself propagates (:func:`evaluate` records it instead).
+    """
+    (spec,) = resolve_agents([agent])
+    (seed,) = _check_seeds([seed])
+    cfg = resolve_config(config, [spec])
+    t0 = time.perf_counter()
+    rec = _EpisodeRecorder(cfg)
+    _simulate(spec, cfg, seed, rec)
+    arrays = rec.arrays()
+    row = {"agent": name_of(spec), "seed": seed, **_episode_metrics(rec, arrays)}
+    row.update(wall_time=time.perf_counter() - t0, error="")
+    return {c: row[c] for c in rec.columns}, (arrays if record else {})
+
+
+__all__ = [
+    "agent_seed",
+    "MAX_SEEDS",
+    "parse_seeds",
+    "resolve_config",
+    "run_episode",
+    "SAVED_SCENARIOS",
+]

@@ -1,0 +1,170 @@
+"""Dask executors of :func:`experiments.evaluation.run.evaluate`: a checked connection to an
+existing scheduler, and a private local cluster.
+
+The local cluster listens on 127.0.0.1 only, speaks TLS with a temporary self-signed
+certificate that only this run holds (Dask's mutual TLS: a client without the certificate
+is refused), and starts no HTTP server (no dashboard, no ``/info`` or ``/health`` pages).
+This module imports ``distributed``; :mod:`experiments.evaluation.run` imports it only for a
+Dask run.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import shutil
+import signal
+import subprocess
+import tempfile
+import threading
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any
+
+import distributed
+from distributed.http.routing import RoutingApplication
+from tornado.httpserver import HTTPServer
+
+
+class _NoHttpServer:
+    """Mixin: a Dask server whose HTTP application is built but never listens."""
+
+    def start_http_server(
+        self, routes: Any, dashboard_address: Any, default_port: int = 0, ssl_options: Any = None
+    ) -> None:
+        self.http_application = RoutingApplication(routes)
+        self.http_server = HTTPServer(self.http_application)  # never bound to a port
+
+
+class QuietScheduler(_NoHttpServer, distributed.Scheduler):
+    """A Dask scheduler without any HTTP endpoint."""
+
+
+class QuietWorker(_NoHttpServer, distributed.Worker):
+    """A Dask worker without any HTTP endpoint that leaves Ctrl-C to the run's main process.
+
+    Ctrl-C in a terminal reaches the whole process group; the main process then closes
+    the cluster, which ends this worker. Without this, every worker process would print
+    a ``KeyboardInterrupt`` traceback.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+        super().__init__(*args, **kwargs)
+
+
+def _one_line(exc: BaseException) -> str:
+    msg = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__
+
+
+def check_scheduler(
+    address: str, timeout: float, security: distributed.Security | None = None
+) -> None:
+    """Check that ``address`` answers as a Dask scheduler within ``timeout`` [s].
+
+    ``distributed.Client(timeout=...)`` bounds only the TCP connect; a listener that
+    accepts and never answers (or an HTTP server) would keep it waiting forever. This
+    sends Dask's ``identity`` request and waits at most ``timeout`` for the reply.
+
+    Args:
+        address: the scheduler's address, e.g. ``"tcp://10.0.0.5:8786"``.
+        timeout: [s] for connecting and for the answer together.
+        security: the client's Dask security (TLS certificates), if the scheduler needs it.
+
+    Raises:
+        ConnectionError: one line naming the address, if nothing answers as a Dask
+            scheduler in time.
+    """
+
+    async def probe() -> Any:
+        args = {} if security is None else security.get_connection_args("client")
+        comm = await distributed.comm.connect(address, timeout=timeout, **args)
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    try:
+        reply = asyncio.run(asyncio.wait_for(probe(), timeout))
+    except (asyncio.TimeoutError, TimeoutError) as exc:
+        raise ConnectionError(
+            f"Dask scheduler {address!r}: no answer as a Dask scheduler within {timeout:g} s"
+        ) from exc
+    except Exception as exc:
+        raise ConnectionError(
+            f"cannot reach the Dask scheduler at {address!r} within {timeout:g} s "
+            f"({_one_line(exc)})"
+        ) from exc
+    if not isinstance(reply, dict) or not str(reply.get("type", "")).endswith("Scheduler"):
+        raise ConnectionError(f"{address!r} answers, but not as a Dask scheduler")
+
+
+def temporary_security(stack: ExitStack) -> distributed.Security:
+    """Dask TLS security from a new self-signed certificate in a private temporary folder.
+
+    The certificate is its own CA, the key never leaves the folder (mode 0700, removed
+    when ``stack`` closes), and Dask requires it of both ends of every connection.
+    Uses the ``openssl`` command, or the ``cryptography`` package if installed.
+    """
+    try:
+        return distributed.Security.temporary()  # needs the cryptography package
+    except ImportError:
+        pass
+    openssl = shutil.which("openssl")
+    if openssl is None:
+        raise RuntimeError(
+            "a local Dask cluster needs the 'openssl' command or the 'cryptography' package "
+            "for its temporary TLS certificate"
+        )
+    folder = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="lfm-dask-")))
+    key, cert = folder / "key.pem", folder / "cert.pem"
+    subprocess.run(
+        [openssl, "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1"]
+        + ["-nodes", "-keyout", str(key), "-out", str(cert), "-days", "7"]
+        + ["-subj", "/CN=lfm-evaluate"],
+        check=True,
+        capture_output=True,
+        timeout=60,
+    )
+    pem = {"tls_ca_file": str(cert)}
+    for who in ("client", "scheduler", "worker"):
+        pem[f"tls_{who}_cert"] = str(cert)
+        pem[f"tls_{who}_key"] = str(key)
+    return distributed.Security(require_encryption=True, **pem)
+
+
+def local_client(n_workers: int, stack: ExitStack) -> distributed.Client:
+    """A client of a new private Dask cluster of ``n_workers`` single-threaded processes.
+
+    On 127.0.0.1, TLS with :func:`temporary_security`, no HTTP endpoint; closed (workers
+    ended) when ``stack`` closes.
+    """
+    security = temporary_security(stack)
+    common = {"host": "127.0.0.1", "protocol": "tls://", "security": security}
+    scheduler = {
+        "cls": QuietScheduler,
+        "options": {**common, "dashboard_address": None, "dashboard": False},
+    }
+    worker = {
+        "cls": distributed.Nanny,
+        "options": {
+            **common,
+            "nthreads": 1,  # CasADi and the episode loop are single-threaded
+            "worker_class": QuietWorker,
+            "dashboard": False,
+            "silence_logs": logging.ERROR,
+        },
+    }
+    cluster = stack.enter_context(
+        distributed.SpecCluster(
+            scheduler=scheduler,
+            workers={i: worker for i in range(n_workers)},
+            security=security,
+            silence_logs=logging.ERROR,
+            name="lfm-evaluate",
+        )
+    )
+    return stack.enter_context(distributed.Client(cluster, security=security))

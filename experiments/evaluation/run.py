@@ -1,0 +1,527 @@
+"""Evaluation of agents over env seeds, saved episode by episode so no result is lost.
+
+The shape follows stable-baselines3's ``evaluate_policy``: one library function,
+:func:`evaluate`, runs every (agent, seed) episode and returns one row of metrics per
+episode; command lines (:mod:`experiments.cli`) only parse arguments and call it.
+
+Paired design: for a given env seed every agent faces the same hidden disturbance and
+the same measurement and process noise (the env draws them from its own seed), while
+each agent's own randomness (particle filter, scenario draws) comes from a seed derived
+from the env seed and the agent's name (:func:`agent_seed`). Differences between agents
+on one seed are therefore due to the agents alone.
+
+Results folder (``out``)::
+
+    out/config.yaml                         the resolved config (env and agents sections)
+    out/episodes/<agent>__seed<seed>.npz    the trajectory (np.savez_compressed)
+    out/episodes/<agent>__seed<seed>.json   the row, plus agent_seed and traceback
+    out/episodes.csv                        every json row, sorted by (agent, seed)
+
+Every file is written atomically (a temporary file in the same folder, then
+``os.replace``), the npz before the json: a json marks a finished episode, so a killed
+run loses at most the episodes in flight, and rerunning the same call resumes it. An
+episode that raises is saved as a row whose ``error`` holds the exception (its json also
+holds the traceback, its npz the steps done before the error); such rows are kept in the
+table but, with ``retry_failed=True`` (the default), re-run by the next call. A folder
+holds the results of one config only: :func:`evaluate` refuses to resume into a folder
+whose ``config.yaml`` differs or whose episodes carry another :func:`config_hash`. A
+folder is owned by one run at a time (``out/.lock`` holds its pid and host; a second run
+is refused naming it; the lock of a dead process is taken over). Every saved episode is
+verified before it is skipped on resume (its json names its own agent and seed, its npz
+loads with one step per row step); a damaged one is named on stderr and run again.
+
+An interrupt (Ctrl-C, or SIGTERM while :func:`evaluate` runs in the main thread) ends the
+workers at once, removes temporary files and rebuilds ``episodes.csv`` before
+``KeyboardInterrupt`` propagates; pool and Dask workers ignore Ctrl-C themselves. An
+interrupt is also remembered and checked at every step (:mod:`experiments.evaluation.interrupts`), so
+one that a library swallowed (CasADi clears errors raised inside its type conversions)
+still stops the run.
+
+Agents are registered names, or a user's own agents (:class:`controllers.agents.protocol.Agent`)
+given as factories, agent objects or ``"module:attribute"`` (:mod:`experiments.evaluation.agent_lookup`);
+an agent's ``last_info`` keys are all optional, read with their documented defaults.
+
+Runs are serial (``jobs=1``), on local processes (``jobs > 1``) or on a Dask cluster
+(``scheduler=`` an existing one, checked to answer as Dask within 5 s, or
+``dask_workers=`` a private local one: loopback, TLS, no HTTP endpoint,
+:mod:`experiments.evaluation.executors`). Every worker writes its own episode files, so the folder
+must be visible to all workers (any single machine; a shared file system for a
+multi-machine cluster, whose workers must also have this package installed). Serial,
+parallel and distributed runs give identical rows apart from the timing columns
+:data:`TIMING_COLUMNS`.
+
+This module runs the episodes (serially, on a process pool or on Dask) and keeps the folder
+up to date; one episode is :mod:`experiments.evaluation.episode`, the table's columns
+:mod:`experiments.evaluation.columns`, the folder's files and lock :mod:`experiments.evaluation.storage`. Their
+public names are also importable from here.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+import traceback
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import lfm_env  # noqa: F401  (registers the envs, also in spawned workers)
+from controllers.config import ExperimentConfig
+from experiments.evaluation.agent_lookup import (
+    AgentSpec,
+    check_agent,
+    check_picklable,
+    resolve_agents,
+)
+from experiments.evaluation.agent_lookup import agent_name as name_of
+from experiments.evaluation.columns import (
+    HEAD_COLUMNS,
+    TAIL_COLUMNS,
+    TIMING_COLUMNS,
+    group_columns,
+    row_columns,
+    tolerance_column,
+    tolerance_columns,
+    violation_counts,
+)
+from experiments.evaluation.episode import (
+    MAX_SEEDS,
+    SAVED_SCENARIOS,
+    _check_seeds,
+    _episode_metrics,
+    _EpisodeRecorder,
+    _error_row,
+    _one_line,
+    _simulate,
+    agent_seed,
+    parse_seeds,
+    resolve_config,
+    run_episode,
+)
+from experiments.evaluation.interrupts import raise_if_interrupted, remember_interrupts
+from experiments.evaluation.storage import (
+    _EPISODES,
+    _JSON_EXTRAS,
+    DamagedEpisodeError,
+    FolderLock,
+    ResultsFolderError,
+    _check_folder,
+    _prepare_folder,
+    _read_record,
+    _remove_stale_temp_files,
+    _warn,
+    config_hash,
+    episode_stem,
+    load_trajectory,
+    save_episode,
+    saved_rows,
+    write_table,
+)
+
+_SCHEDULER_TIMEOUT = 5.0  # [s] to connect to a Dask scheduler AND hear it answer as one
+_STOP_TIMEOUT = 5.0  # [s] for interrupted pool workers to end before they are killed
+_TABLE_REFRESH = 10.0  # [s] least time between rebuilds of episodes.csv during a run
+_POOL_RESTARTS = 3  # new process pools after a worker died, before lost episodes count as errors
+
+
+# --------------------------------------------------------------------------- evaluate
+
+
+def _episode_task(
+    agent: str | AgentSpec,
+    config: ExperimentConfig,
+    seed: int,
+    out: str | None,
+    record: bool,
+    digest: str = "",
+) -> dict[str, Any]:
+    """Run and save one episode; never raises for an error of the episode itself.
+
+    Top-level (picklable by reference) so process pools and Dask workers can run it; the
+    resolved config travels with the task, so workers parse nothing. ``agent`` is a
+    registered name or a user agent's :class:`~experiments.evaluation.agent_lookup.AgentSpec`.
+    """
+    name = name_of(agent)
+    t0 = time.perf_counter()
+    rec = _EpisodeRecorder(config)
+    tb = ""
+    try:
+        _simulate(agent, config, seed, rec)
+        arrays = rec.arrays()
+        row = {"agent": name, "seed": seed, **_episode_metrics(rec, arrays)}
+        row.update(wall_time=time.perf_counter() - t0, error="")
+        row = {c: row[c] for c in rec.columns}
+    except Exception as exc:  # one bad episode must not stop the others
+        raise_if_interrupted()  # a Ctrl-C a library turned into another error: no error row
+        tb = traceback.format_exc()
+        wall_time = time.perf_counter() - t0
+        row = _error_row(name, seed, _one_line(exc), wall_time, rec.columns)
+        try:
+            arrays = rec.arrays()  # the steps done before the error, for debugging
+        except Exception:
+            arrays = {}
+    if out is not None:
+        save_episode(out, row, arrays if record else None, tb, digest)
+    return row
+
+
+def _exit_with_parent() -> None:
+    """Process-pool initializer: end this worker as soon as the parent process ends.
+
+    Pool workers otherwise outlive a parent killed with SIGKILL (or by the OOM killer),
+    blocked forever on the task queue. A worker ended mid-write leaves only a temporary
+    file, which the next run removes.
+    """
+    import multiprocessing
+    import signal
+    import threading
+
+    # Ctrl-C goes to the whole process group: the parent alone handles it (and ends the
+    # workers), so workers print no KeyboardInterrupt tracebacks.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    parent = multiprocessing.parent_process()
+    if parent is None:
+        return
+
+    def watch() -> None:
+        parent.join()  # returns when the parent's end of the spawn pipe closes
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
+def _finished_row(
+    out: Path, agent_name: str, seed: int, record: bool, digest: str = ""
+) -> dict | None:
+    """The saved and verified row of a finished episode, or ``None`` if it must (re-)run.
+
+    The json must be an episode record of this (agent, seed) and of this config (when
+    it carries a config hash); with ``record`` the npz must exist and, for an episode
+    that ran, load with one reward per step. A damaged file is named on stderr.
+    """
+    stem = out / _EPISODES / episode_stem(agent_name, seed)
+    json_path, npz_path = stem.with_name(stem.name + ".json"), stem.with_name(stem.name + ".npz")
+    if not json_path.exists():
+        return None
+    try:
+        record_ = _read_record(json_path)
+        if digest and record_["config_hash"] not in (None, "", digest):
+            raise DamagedEpisodeError(f"episode file {str(json_path)!r} is of another config")
+        if record and not npz_path.exists():
+            return None
+        if record and record_["error"] == "":
+            steps = len(load_trajectory(out, agent_name, seed)["reward"])
+            if steps != record_["steps"]:
+                raise DamagedEpisodeError(
+                    f"episode file {str(npz_path)!r} holds {steps} steps, its row "
+                    f"{record_['steps']}"
+                )
+    except (DamagedEpisodeError, KeyError) as exc:
+        _warn(f"{exc}; running the episode again")
+        return None
+    return {k: v for k, v in record_.items() if k not in _JSON_EXTRAS}
+
+
+def _connect_dask(scheduler: str | None, dask_workers: int | None, stack: Any):
+    """A ``distributed.Client`` on an existing scheduler or on a new loopback cluster."""
+    try:
+        import distributed
+    except ImportError as exc:
+        raise ImportError(
+            "Dask runs need the 'distributed' package: pip install 'lfm-scenario-mpc[dist]'"
+        ) from exc
+    import logging
+
+    from experiments.evaluation import executors
+
+    if scheduler is not None:
+        # Client's own timeout bounds only the TCP connect: check the answer first.
+        executors.check_scheduler(scheduler, _SCHEDULER_TIMEOUT)
+        try:
+            client = distributed.Client(scheduler, timeout=f"{_SCHEDULER_TIMEOUT:g}s")
+        except Exception as exc:  # OSError or TimeoutError, depending on the failure
+            raise ConnectionError(
+                f"cannot reach the Dask scheduler at {scheduler!r} within "
+                f"{_SCHEDULER_TIMEOUT:g} s ({_one_line(exc)})"
+            ) from exc
+        return stack.enter_context(client)
+    # Loopback only, mutual TLS with a temporary certificate, no HTTP endpoint.
+    logging.getLogger("distributed").setLevel(logging.ERROR)
+    return executors.local_client(dask_workers, stack)
+
+
+def evaluate(
+    agents: Sequence[Any] | str,
+    seeds: Iterable[int] | str,
+    config: Any = None,
+    out: str | os.PathLike | None = None,
+    jobs: int = 1,
+    scheduler: str | None = None,
+    dask_workers: int | None = None,
+    progress: bool = True,
+    record: bool = True,
+    retry_failed: bool = True,
+    progress_label: str | None = None,
+) -> list[dict[str, Any]]:
+    """Run every (agent, env seed) episode and return one row of metrics per episode.
+
+    Args:
+        agents: the agents, each a registered name (``"nominal"``, ``"pf"``,
+            ``"scenario"``, ``"oracle"``; the oracle is an upper bound that reads the
+            hidden truth), an agent factory called as ``factory(config)`` with the
+            resolved :class:`~controllers.config.ExperimentConfig`, an agent object, or
+            ``"module:attribute"`` of a factory (:mod:`experiments.evaluation.agent_lookup`: how
+            they are named, and what ``jobs > 1`` and Dask need); or one comma list of
+            names and ``module:attribute`` texts. A user agent follows
+            :class:`controllers.agents.protocol.Agent`; it is built once before any episode,
+            so a bad factory fails early.
+        seeds: env seeds (integers >= 0), or a text for :func:`parse_seeds`.
+        config: a YAML path, a dict (whole file) or ``None`` (paper defaults).
+        out: results folder (see the module docstring); ``None`` keeps nothing on disk.
+            Episodes already saved there are not re-run.
+        jobs: local worker processes (``spawn`` context, safe with CasADi); 1 is serial.
+            A script that uses ``jobs > 1`` needs the ``if __name__ == "__main__":``
+            guard, as with any spawned process.
+        scheduler: address of an existing Dask scheduler (``"tcp://host:8786"``).
+        dask_workers: start a local Dask cluster of this many single-threaded worker
+            processes on 127.0.0.1 for this call.
+        progress: show a tqdm progress bar over episodes.
+        record: save each episode's trajectory (npz) next to its row.
+        retry_failed: re-run saved episodes whose ``error`` is not empty.
+        progress_label: text before the progress bar (e.g. the sweep's value).
+
+    Returns:
+        The rows (:func:`row_columns` of the config's system) of the requested episodes,
+        sorted by (agent, seed), including those loaded from ``out``. Trajectories are not
+        kept in memory; read them with :func:`load_trajectory`, all rows with
+        :func:`saved_rows`.
+
+    Raises:
+        ValueError: unknown agents or a bad agent spec (naming it), empty or negative
+            seeds, a bad config, conflicting run modes or a results folder of another
+            config, before any episode runs.
+        ConnectionError: the Dask scheduler cannot be reached.
+    """
+    specs = resolve_agents(agents)
+    names = [name_of(a) for a in specs]
+    spec_of = dict(zip(names, specs, strict=True))
+    seed_list = _check_seeds(seeds)
+    cfg = resolve_config(config, specs)
+    columns = row_columns(cfg.make_system())
+    modes = sum([jobs != 1, scheduler is not None, dask_workers is not None])
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ValueError(f"jobs={jobs!r}: must be an integer >= 1")
+    if dask_workers is not None and (
+        isinstance(dask_workers, bool) or not isinstance(dask_workers, int) or dask_workers < 1
+    ):
+        raise ValueError(f"dask_workers={dask_workers!r}: must be an integer >= 1")
+    if modes > 1:
+        raise ValueError("choose one of jobs > 1, scheduler and dask_workers")
+    for spec in specs:
+        if jobs > 1 or scheduler is not None or dask_workers is not None:
+            check_picklable(spec, "pool" if jobs > 1 else "dask")
+        check_agent(spec, cfg)
+
+    out_path = None if out is None else Path(out).resolve()
+    digest = config_hash(cfg)
+    if out_path is not None:
+        _check_folder(out_path, cfg)
+
+    # Seed-major order: an interrupted run leaves complete pairs of agents per seed.
+    pairs = [(a, s) for s in seed_list for a in names]
+    rows: dict[tuple[str, int], dict[str, Any]] = {}
+
+    def load_finished() -> None:
+        rows.clear()
+        for a, s in pairs:
+            row = _finished_row(out_path, a, s, record, digest)
+            if row is not None and (row["error"] == "" or not retry_failed):
+                rows[(a, s)] = row
+
+    out_str = None if out_path is None else str(out_path)
+
+    from contextlib import ExitStack
+
+    from tqdm.auto import tqdm
+
+    with ExitStack() as stack:
+        stack.enter_context(remember_interrupts())
+        # Closed after the executor below (last in, first out): the folder is finished
+        # and unlocked only once no worker writes into it any more.
+        folder_stack = stack.enter_context(ExitStack())
+        if out_path is not None:
+            load_finished()  # read only: whether a Dask cluster is needed at all
+        # Connect before the first episode: an unreachable scheduler fails fast.
+        client = None
+        if len(rows) < len(pairs) and (scheduler is not None or dask_workers is not None):
+            client = _connect_dask(scheduler, dask_workers, stack)
+        if out_path is not None:
+            out_path.mkdir(parents=True, exist_ok=True)
+            lock = FolderLock(out_path).acquire()
+            folder_stack.callback(lock.release)
+            folder_stack.callback(_finish_folder, out_path, columns)  # runs before release
+            _check_folder(out_path, cfg)  # again: another run may have written meanwhile
+            _prepare_folder(out_path, cfg)
+            load_finished()
+        todo = [p for p in pairs if p not in rows]
+        bar = stack.enter_context(
+            tqdm(
+                total=len(pairs),
+                initial=len(rows),
+                disable=not progress,
+                unit="episode",
+                desc=progress_label,
+            )
+        )
+        last_table = time.monotonic()
+        n_errors = 0
+
+        def done(pair: tuple[str, int], row: dict[str, Any]) -> None:
+            nonlocal last_table, n_errors
+            rows[pair] = row
+            n_errors += row["error"] != ""
+            bar.update(1)
+            if n_errors:
+                bar.set_postfix(errors=n_errors)
+            if out_path is not None and time.monotonic() - last_table > _TABLE_REFRESH:
+                write_table(out_path, columns)
+                last_table = time.monotonic()
+
+        def lost(pair: tuple[str, int], exc: BaseException) -> dict[str, Any]:
+            # The worker died (or the task was lost): record it so the rerun retries it,
+            # unless the episode was saved before the loss.
+            if out_path is not None:
+                saved = _finished_row(out_path, pair[0], pair[1], record, digest)
+                if saved is not None and saved["error"] == "":
+                    return saved
+            row = _error_row(pair[0], pair[1], _one_line(exc), math.nan, columns)
+            if out_path is not None:
+                tb = "".join(traceback.format_exception(exc))
+                save_episode(out_path, row, None, tb, digest)
+            return row
+
+        def task_args(a: str, s: int) -> tuple:
+            return spec_of[a], cfg, s, out_str, record, digest
+
+        if client is not None and todo:
+            import distributed
+
+            futures = {
+                client.submit(
+                    _episode_task,
+                    spec_of[a],
+                    cfg,
+                    s,
+                    out_str,
+                    record,
+                    digest,
+                    pure=False,
+                    key=f"episode-{a}-{s}",
+                ): (a, s)
+                for a, s in todo
+            }
+            try:
+                for fut in distributed.as_completed(futures):
+                    try:
+                        row = fut.result()
+                    except Exception as exc:
+                        row = lost(futures[fut], exc)
+                    done(futures[fut], row)
+            except BaseException:
+                client.cancel(list(futures), force=True)
+                raise
+        elif jobs > 1 and len(todo) > 1:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+            from concurrent.futures.process import BrokenProcessPool
+
+            # A worker that dies (OOM killer, a crash in native code) breaks the whole pool
+            # and fails every unfinished episode; rerun those on a new pool, a few times.
+            pending = todo
+            for restart in range(_POOL_RESTARTS + 1):
+                broken = []
+                pool = ProcessPoolExecutor(
+                    max_workers=min(jobs, len(pending)),
+                    mp_context=multiprocessing.get_context("spawn"),  # no forked CasADi state
+                    initializer=_exit_with_parent,
+                )
+                try:
+                    futs = {
+                        pool.submit(_episode_task, *task_args(a, s)): (a, s) for a, s in pending
+                    }
+                    for fut in as_completed(futs):
+                        try:
+                            row = fut.result()
+                        except BrokenProcessPool as exc:
+                            if restart < _POOL_RESTARTS:
+                                broken.append(futs[fut])
+                                continue
+                            row = lost(futs[fut], exc)
+                        except Exception as exc:
+                            row = lost(futs[fut], exc)
+                        done(futs[fut], row)
+                except BaseException:
+                    _stop_pool(pool)  # Ctrl-C or SIGTERM: end the workers now
+                    raise
+                pool.shutdown(wait=True, cancel_futures=True)
+                if not broken:
+                    break
+                pending = sorted(broken, key=pairs.index)
+        else:
+            for a, s in todo:
+                raise_if_interrupted()
+                done((a, s), _episode_task(*task_args(a, s)))
+
+    return sorted((rows[p] for p in pairs), key=lambda r: (r["agent"], r["seed"]))
+
+
+def _finish_folder(out: Path, columns: Sequence[str]) -> None:
+    """End of a run, also an interrupted one: no temporary file, an up-to-date table."""
+    # A worker killed mid-write (then rerun elsewhere) leaves its temporary file; the
+    # folder is locked, so every temporary file in it is of this run.
+    _remove_stale_temp_files(out)
+    write_table(out, columns)
+
+
+def _stop_pool(pool: Any) -> None:
+    """End a process pool's workers at once (SIGTERM, then SIGKILL after a grace time)."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in processes:
+        if p.is_alive():
+            p.terminate()
+    deadline = time.monotonic() + _STOP_TIMEOUT
+    for p in processes:
+        p.join(max(0.0, deadline - time.monotonic()))
+        if p.is_alive():
+            p.kill()
+            p.join()
+
+
+__all__ = [
+    "MAX_SEEDS",
+    "SAVED_SCENARIOS",
+    "DamagedEpisodeError",
+    "FolderLock",
+    "HEAD_COLUMNS",
+    "TAIL_COLUMNS",
+    "TIMING_COLUMNS",
+    "ResultsFolderError",
+    "agent_seed",
+    "config_hash",
+    "evaluate",
+    "episode_stem",
+    "group_columns",
+    "saved_rows",
+    "load_trajectory",
+    "parse_seeds",
+    "resolve_config",
+    "row_columns",
+    "run_episode",
+    "save_episode",
+    "tolerance_column",
+    "tolerance_columns",
+    "violation_counts",
+    "write_table",
+]

@@ -1,0 +1,812 @@
+"""A report of saved evaluation results: tables with bootstrap CIs, paired differences,
+one episode's figures, across-seed plots, an episode GIF and, for the paper's sine
+track, "paper vs measured".
+
+Reads a results folder written by the evaluation (it never re-runs an episode):
+
+* ``DIR/episodes.csv``: one row per (agent, seed) with the episode metrics;
+* ``DIR/episodes/<agent>__seed<seed>.npz``: the arrays of that episode;
+* ``DIR/config.yaml``: the config of the run (``env_id``, ``env`` and ``agents``).
+
+Besides the per-agent and paired tables (with the tolerance-aware violation counts of
+:func:`~experiments.evaluation.columns.row_columns`), it holds the estimators' calibration (2-sigma
+coverage and RMSE per state and for the latent force, from the saved trajectories) and,
+when given a sweep folder of :mod:`experiments.sweep` (or when ``DIR`` holds one), the
+risk sweep's table and Pareto figure.
+
+Everything world-specific comes from the config's system
+(:class:`~lfm_env.system.ControlSystem`): the constraint-group metrics and their units in
+the tables, and the figures (:mod:`experiments.plots.episode`). Only the "paper vs measured"
+section is the sine track's own, and it is left out for other worlds.
+
+:func:`write_report` writes ``report.md`` and ``report.html`` (the same content) into the
+folder and the figures into ``DIR/figures/``; ``report.html`` embeds every figure, so it can
+be sent alone. Its pieces: :mod:`experiments.report.results` reads the folder,
+:mod:`experiments.report.stats` computes the metrics and intervals, :mod:`experiments.report.document`
+renders Markdown and HTML, :mod:`experiments.plots.episode` draws.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from experiments.plots import episode as plots
+from experiments.evaluation.columns import tolerance_columns
+from experiments.report.document import GIF_EMBED_LIMIT, Document, embedded_image
+from experiments.report.results import (
+    KNOWN_AGENT_ORDER,
+    Results,
+    load_results,
+    load_trajectory,
+    read_episodes_csv,
+)
+from experiments.report.stats import (
+    BOOTSTRAP_RESAMPLES,
+    BOOTSTRAP_SEED,
+    REFERENCE_AGENT,
+    TWO_SIGMA_COVERAGE,
+    Calibration,
+    Estimate,
+    Metric,
+    PairedDifference,
+    _beyond,
+    _key,
+    bootstrap_ci,
+    calibration,
+    group_metrics,
+    paired_differences,
+    paired_metrics,
+    paired_rows_difference,
+    pooled_ratio_ci,
+    summarize,
+    summary_metrics,
+    tolerance_metrics,
+    zero_violation_metrics,
+)
+from lfm_env.system import split_unit
+
+# Short labels for tables and axes; the oracle is an upper bound everywhere it appears.
+AGENT_SHORT_LABELS = {
+    "nominal": "nominal MPC",
+    "pf": "PF + CE MPC",
+    "scenario": "scenario MPC (paper)",
+    "scenario_particles": "scenario MPC, particle starts",
+    "robust": "robust MPC (back-off)",
+    "oracle": "oracle (upper bound)",
+}
+
+PAPER_ENV_ID = "lfm_env/SineTrack-v0"  # the paper's world: "paper vs measured" only there
+PAPER_SPEED_EXCESS = 0.35  # [m/s] largest speed excess over the bound reported in the paper
+
+
+def agent_label(name: str, wrap: bool = False) -> str:
+    """Short display label of an agent (the oracle is marked as an upper bound).
+
+    ``wrap`` puts a parenthesised remark on its own line, for axis tick labels.
+    """
+    label = AGENT_SHORT_LABELS.get(name, name)
+    return label.replace(" (", "\n(").replace(", ", ",\n") if wrap else label
+
+
+def _long_label(name: str) -> str:
+    from controllers.agents.mpc import AGENT_LABELS
+
+    return AGENT_LABELS.get(name, name)
+
+
+def _seeds(n: int) -> str:
+    return f"{n} seed" if n == 1 else f"{n} seeds"
+
+
+def _quantiles(values: Iterable[float], qs: Sequence[float]) -> list[float]:
+    x = np.asarray(list(values), dtype=float)
+    x = x[np.isfinite(x)]
+    if len(x) == 0:
+        return [math.nan] * len(qs)
+    return [float(v) for v in np.quantile(x, qs)]
+
+
+# --------------------------------------------------------------------------- document
+
+
+def fmt(value: float, digits: int = 3) -> str:
+    """A number for a table: ``digits`` significant digits, thousands separated, "n/a"."""
+    if value is None or not np.isfinite(value):
+        return "n/a"
+    if abs(value) >= 10**digits:
+        return f"{value:,.0f}"
+    return f"{value:.{digits}g}"
+
+
+def fmt_estimate(e: Estimate, n_total: int | None = None) -> str:
+    """``mean [low, high]``, with ``(n=k)`` when fewer values than episodes were usable."""
+    if e.n == 0:
+        return "n/a"
+    text = f"{fmt(e.mean)} [{fmt(e.low)}, {fmt(e.high)}]"
+    if n_total is not None and e.n < n_total:
+        text += f" (n={e.n})"
+    return text
+
+
+# --------------------------------------------------------------------------- sections
+
+
+def _settings_text(results: Results) -> str:
+    cfg = results.config
+    parts = [f"dt = {cfg.dt:g} s", f"max_steps = {cfg.max_steps}"]
+    for key in ("horizon", "n_scenarios", "n_particles", "solver"):
+        if key in results.agent_settings:
+            parts.append(f"{key} = {results.agent_settings[key]}")
+    return ", ".join(parts)
+
+
+def _model_section(doc: Document, results: Results) -> None:
+    """The hidden force's kernel beside the agents' belief (learned or given)."""
+    true = results.config.disturbance
+    belief = results.agent_settings.get("disturbance")
+    doc.heading("Latent force: hidden truth and the agents' model")
+    fields = ("kernel", "nu", "variance", "lengthscale", "discretization")
+    if not belief:
+        unit = plots.force_unit(results.system)
+        variance = f"variance {true.variance:g}" + (f" ({unit})^2" if unit else "")
+        scale = f"lengthscale {true.lengthscale:g}" + ("" if true.kernel == "periodic" else " s")
+        doc.paragraph(
+            f"The agents know the hidden force's hyperparameters a priori, as in the paper: "
+            f"{true.kernel} kernel, {variance}, {scale}."
+        )
+        return
+    doc.paragraph(
+        "The agents model the force with their own hyperparameters (`agents.disturbance`, "
+        "e.g. learned by `lfm-calibrate`), not the env's hidden ones:"
+    )
+    rows = []
+    for f in fields:
+        b = belief.get(f, "")
+        rows.append([f, str(getattr(true, f)), fmt(b) if isinstance(b, float) else str(b)])
+    doc.table(["hyperparameter", "hidden truth (env)", "agents' model"], rows)
+
+
+def _summary_section(doc: Document, results: Results, stats: dict) -> None:
+    agents = results.agents
+    doc.heading("Results per agent")
+    doc.paragraph(
+        f"Mean over episodes with a 95% percentile-bootstrap interval "
+        f"({BOOTSTRAP_RESAMPLES} resamples, fixed seed {BOOTSTRAP_SEED}), in brackets. "
+        "Episodes that ended with an error are counted in the last row and listed below, "
+        "but left out of the statistics; `(n=k)` marks a metric defined on fewer episodes "
+        "(e.g. time to goal only where the goal was reached). The oracle reads the hidden "
+        "true state and future disturbance: it is an upper bound, not a controller one "
+        "could build. Violation steps `> t` count only the steps whose excess over the "
+        "group's bounds is above the tolerance t (a millimetre over a bound is not a crash); "
+        "zero-violation episodes are the fraction of episodes with no such step."
+    )
+    header = ["metric"] + [agent_label(a) for a in agents]
+    rows = []
+    n_ok = {a: len(results.rows_of(a)) for a in agents}
+    for m in _reported(results, summary_metrics(results.system)):
+        rows.append([m.title] + [fmt_estimate(stats[a][_key(m)], n_ok[a]) for a in agents])
+    rows.append(["episodes (error-free)"] + [str(n_ok[a]) for a in agents])
+    rows.append(
+        ["episodes with errors"]
+        + [str(len(results.rows_of(a, include_errors=True)) - n_ok[a]) for a in agents]
+    )
+    doc.table(header, rows)
+
+
+def _errors_section(doc: Document, results: Results) -> None:
+    doc.heading("Episodes with errors")
+    errors = results.error_rows
+    if not errors:
+        doc.paragraph("None: every episode ran to its end.")
+        return
+    doc.paragraph(
+        f"{len(errors)} episode(s) ended with an error; they are left out of the statistics."
+    )
+    doc.table(
+        ["agent", "seed", "error"],
+        [[agent_label(r["agent"]), str(r["seed"]), r["error"][:300]] for r in errors],
+    )
+
+
+def _reported(results: Results, metrics: Sequence[Metric]) -> list[Metric]:
+    """``metrics`` without the tolerance-aware ones that no error-free episode holds (an
+    older table whose episodes have no saved trajectory to count them from)."""
+    tolerance = {c for _, _, c in tolerance_columns(results.system)}
+    return [
+        m
+        for m in metrics
+        if m.column not in tolerance
+        or any(np.isfinite(r.get(m.column, math.nan)) for r in results.rows if not r["error"])
+    ]
+
+
+def choose_baseline(results: Results, baseline: str | None = None) -> str:
+    """The agent of the paired differences: ``baseline``, else the paper's scenario agent
+    when the results hold it, else the first agent.
+
+    Raises:
+        ValueError: naming ``baseline`` and the results' agents, if it is not among them.
+    """
+    if baseline is None:
+        return REFERENCE_AGENT if REFERENCE_AGENT in results.agents else results.agents[0]
+    if baseline not in results.agents:
+        raise ValueError(
+            f"baseline {baseline!r} is not an agent of {results.directory}; choose one of "
+            + ", ".join(results.agents)
+        )
+    return baseline
+
+
+def _paired_section(
+    doc: Document, results: Results, baseline: str = REFERENCE_AGENT
+) -> list[PairedDifference]:
+    doc.heading(f"Paired differences against {agent_label(baseline)}")
+    others = [a for a in results.agents if a != baseline]
+    if baseline not in results.agents or not others:
+        doc.paragraph(
+            f"Not available: the results need the `{baseline}` agent and at least one other agent."
+        )
+        return []
+    doc.paragraph(
+        f"Difference `agent - {baseline}` on the same env seeds (same disturbance and "
+        "noise), mean with a 95% bootstrap interval over seeds. Negative: the agent's value "
+        f"is lower than {baseline}'s. Only seeds where both episodes are error-free "
+        "and the metric is defined count. The baseline is chosen with "
+        "`lfm-report --baseline NAME`."
+    )
+    metrics = _reported(results, paired_metrics(results.system))
+    found = {
+        (a, m.column): paired_differences(results, m, a, baseline) for a in others for m in metrics
+    }
+    rows = []
+    for m in metrics:
+        cells = []
+        for agent in others:
+            d = found[(agent, m.column)]
+            n = len(d.seeds)
+            cells.append(fmt_estimate(d.estimate) + (f" ({_seeds(n)})" if n else ""))
+        rows.append([m.title, *cells])
+    doc.table(["metric"] + [agent_label(a) for a in others], rows)
+    reading = []
+    for agent in others:
+        for m in metrics:
+            d = found[(agent, m.column)]
+            n = len(d.seeds)
+            if n == 0:
+                reading.append(f"{m.label}: no common seeds of {baseline} and {agent}.")
+                continue
+            reading.append(
+                f"{baseline} has {m.fewer} than {agent_label(agent)} in "
+                f"{d.reference_lower} of {_seeds(n)} (the opposite in {d.agent_lower}, "
+                f"equal in {d.ties})."
+            )
+    doc.paragraph("In plain words:")
+    doc.bullets(reading)
+    return list(found.values())
+
+
+def _paper_vs_measured_section(doc: Document, results: Results, solve_times: np.ndarray) -> None:
+    """The paper's reported results beside the measured distribution (sine track only)."""
+    doc.heading("Paper vs measured")
+    agent = REFERENCE_AGENT
+    rows = results.rows_of(agent)
+    if not rows:
+        doc.paragraph(f"Not available: no error-free episodes of the `{agent}` agent.")
+        return
+    n = len(rows)
+    dt = results.config.dt
+    track_steps = np.array([r.get("track_violation_steps", math.nan) for r in rows])
+    zero_track = int(np.sum(track_steps == 0))
+    speed = np.array([r.get("max_speed_excess", math.nan) for r in rows])
+    med, p05, p95 = _quantiles(speed, (0.5, 0.05, 0.95))
+    within = int(np.sum(speed <= PAPER_SPEED_EXCESS))
+    if len(solve_times):
+        st_med, st_p95 = np.quantile(solve_times, [0.5, 0.95])
+        over = float(np.mean(solve_times > dt))
+        st_source = f"{len(solve_times)} solves pooled over {n} episodes"
+    else:  # no saved arrays: fall back to the per-episode statistics of the table
+        st_med = _quantiles([r.get("solve_time_median") for r in rows], (0.5,))[0]
+        st_p95 = _quantiles([r.get("solve_time_p95") for r in rows], (0.5,))[0]
+        over = math.nan
+        st_source = f"median over {n} episodes of the per-episode median / p95"
+    doc.paragraph(
+        f"The paper reports one run (MATLAB, fmincon, 150 scenarios, 7000 particles); here "
+        f"{n} seeds of `{agent}` with {_settings_text(results)}. The tolerance-aware counts "
+        "take a step as a violation only when the excess is above the tolerance, so that "
+        "millimetre crossings, which even the oracle makes, do not hide the real ones."
+    )
+    doc.table(
+        ["quantity", "paper (one run)", f"measured ({n} episodes)"],
+        [
+            [
+                "track (position) constraints",
+                "met at every step",
+                f"zero track violations in {zero_track} of {n} episodes "
+                f"({100.0 * zero_track / n:.0f}%)" + _tolerance_aware_text(results, rows, "track"),
+            ],
+            [
+                "largest speed excess over the bounds [m/s]",
+                f"{PAPER_SPEED_EXCESS:g}",
+                f"median {fmt(med)}, 90% range [{fmt(p05)}, {fmt(p95)}]; "
+                f"<= {PAPER_SPEED_EXCESS:g} in {within} of {n} episodes"
+                + _tolerance_aware_text(results, rows, "speed"),
+            ],
+            [
+                f"solve time per step vs sampling time {dt:g} s",
+                "much slower than the sampling time",
+                f"median {fmt(st_med)} s, p95 {fmt(st_p95)} s "
+                f"({fmt(st_med / dt)}x / {fmt(st_p95 / dt)}x the sampling time"
+                + (
+                    f"; {100.0 * over:.0f}% of solves slower than {dt:g} s"
+                    if np.isfinite(over)
+                    else ""
+                )
+                + f"; {st_source})",
+            ],
+        ],
+    )
+
+
+def _calibration_section(doc: Document, results: Results) -> None:
+    """The estimators' 2-sigma coverage and RMSE per state and force, table and figure."""
+    doc.heading("Estimator calibration")
+    cals = calibration(results)
+    if not cals:
+        doc.paragraph("No agent with a filter has saved trajectories: nothing to calibrate.")
+        return
+    doc.paragraph(
+        "How well each filtering agent's estimator knows the state and the latent force it "
+        "does not see: the fraction of steps with the truth inside the estimate's 2-sigma "
+        f"band (a calibrated Gaussian band covers {TWO_SIGMA_COVERAGE:g}; less is "
+        "overconfident) and the root-mean-square error, both pooled over steps and "
+        f"episodes, with a 95% bootstrap interval over episodes ({BOOTSTRAP_RESAMPLES} "
+        "resamples). The estimate made from the measurement at step k is compared with the "
+        "true state at step k, the force estimate with the force acting during step k."
+    )
+    header = ["quantity"] + [f"{agent_label(c.agent)}: `{c.estimator}`" for c in cals]
+    rows = []
+    for i, q in enumerate(cals[0].quantities):
+        cells = [fmt_estimate(c.coverage[i]) for c in cals]
+        rows.append([f"2-sigma coverage, {split_unit(q)[0]}", *cells])
+    for i, q in enumerate(cals[0].quantities):
+        rows.append([f"RMSE, {q}", *(fmt_estimate(c.rmse[i]) for c in cals)])
+    rows.append(["episodes / steps"] + [f"{c.episodes} / {c.steps}" for c in cals])
+    doc.table(header, rows)
+    from_config = [agent_label(c.agent) for c in cals if c.estimator_source != "recorded"]
+    if from_config:
+        doc.paragraph(
+            "The estimator of " + ", ".join(from_config) + " is the `agents.estimator` of "
+            "config.yaml (its episodes did not record one); the others recorded theirs."
+        )
+    coverage = np.array([[[e.mean, e.low, e.high] for e in c.coverage] for c in cals])
+    rmse = np.array([[[e.mean, e.low, e.high] for e in c.rmse] for c in cals])
+    agents = {f"{agent_label(c.agent)} ({c.estimator})": plots.agent_colour(c.agent) for c in cals}
+    fig = plots.calibration_figure(cals[0].quantities, agents, coverage, rmse, TWO_SIGMA_COVERAGE)
+    rel = "figures/estimator_calibration.png"
+    plots.save_figure(fig, results.directory / rel)
+    doc.image(
+        rel,
+        "Estimator calibration side by side: 2-sigma coverage (top, dashed: a calibrated "
+        "band) and RMSE (bottom) per state and for the latent force.",
+    )
+
+
+def _tolerance_aware_text(results: Results, rows: Sequence[dict], group: str) -> str:
+    """``"; tolerance-aware: ..."``: per tolerance of ``group``, the zero-violation episodes
+    and the mean violation steps beyond it; ``""`` when the rows hold none."""
+    parts = []
+    for g, t, column in tolerance_columns(results.system):
+        steps = np.array([r.get(column, math.nan) for r in rows], dtype=float)
+        steps = steps[np.isfinite(steps)]
+        if g != group or not len(steps):
+            continue
+        zero = int(np.sum(steps == 0))
+        parts.append(
+            f"beyond {_beyond(results.system, g, t)[2:]}: zero in {zero} of {len(steps)} "
+            f"episodes ({100.0 * zero / len(steps):.0f}%), {fmt(float(steps.mean()))} "
+            "violation steps per episode"
+        )
+    return "; tolerance-aware, " + "; ".join(parts) if parts else ""
+
+
+# --------------------------------------------------------------------------- figures
+
+
+def _main_agent(results: Results) -> str:
+    """The agent of the episode figures: the paper's, else the first one."""
+    return REFERENCE_AGENT if REFERENCE_AGENT in results.agents else results.agents[0]
+
+
+def _check_figure_seed(results: Results, figure_seed: int | None) -> None:
+    """Raise ``ValueError`` if ``figure_seed`` has no saved trajectory to draw."""
+    if figure_seed is None:
+        return
+    agent = _main_agent(results)
+    path = results.trajectory_path(agent, figure_seed)
+    if not path.is_file():
+        raise ValueError(
+            f"no saved trajectory of agent {agent!r} for seed {figure_seed}: {path} does not exist"
+        )
+
+
+def _steps(row: dict) -> float:
+    """The ``steps`` of an episode row as a number (NaN when missing or unreadable)."""
+    try:
+        return float(row.get("steps", math.nan))
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _default_figure_seed(results: Results, agent: str) -> tuple[int | None, str]:
+    """The seed of the episode figures and why it was chosen (a sentence for the report).
+
+    The smallest seed whose ``agent`` episode ran without error for at least one step and
+    has a saved trajectory; a failed or 0-step episode draws empty figures, so it is
+    chosen only when no other has a trajectory, and the sentence says so.
+    """
+    rows = results.rows_of(agent, include_errors=True)
+    saved = [r for r in rows if results.trajectory_path(agent, r["seed"]).is_file()]
+    good = [r for r in saved if not r.get("error") and _steps(r) > 0]
+    skipped = sorted({int(r["seed"]) for r in saved if r not in good})
+    if good:
+        seed = int(good[0]["seed"])
+        why = f"the smallest seed whose `{agent}` episode ran without error for at least one step"
+        earlier = [s for s in skipped if s < seed]
+        if earlier:
+            shown = ", ".join(str(s) for s in earlier[:10]) + (", ..." if len(earlier) > 10 else "")
+            why += f"; seeds {shown} skipped: their episodes failed or have no step"
+        return seed, why
+    if saved:
+        seed = int(saved[0]["seed"])
+        return seed, (
+            f"no `{agent}` episode ran without error for a step, so this failed episode is "
+            "drawn: its figures may be empty"
+        )
+    return None, ""
+
+
+def _metric_values(results: Results, column: str) -> dict[str, np.ndarray]:
+    return {
+        agent_label(a): np.array([r.get(column, math.nan) for r in results.rows_of(a)])
+        for a in results.agents
+    }
+
+
+def _goal(results: Results) -> tuple[np.ndarray, float | None]:
+    """The task's goal state (SI units) and, if the world has one, its goal radius.
+
+    A world whose success is reaching a disc (a ``goal`` position in the plane of the
+    first two states and a ``goal_radius``, as both the sine track and the quadrotor
+    have) gets that disc drawn; otherwise the cost's goal state is marked.
+    """
+    cfg = results.config
+    goal_state = np.array(cfg.goal_state_rad, dtype=float)
+    goal, radius = getattr(cfg, "goal", None), getattr(cfg, "goal_radius", None)
+    if goal is not None and np.shape(goal) == (2,) and radius is not None:
+        goal_state[:2] = goal
+        return goal_state, float(radius)
+    return goal_state, None
+
+
+def _figures_section(doc: Document, results: Results, figure_seed: int | None, gif: bool) -> None:
+    fig_dir = results.directory / "figures"
+    fig_dir.mkdir(exist_ok=True)
+    cfg = results.config
+    system = results.system
+    agents = results.agents
+    main_agent = _main_agent(results)
+
+    doc.heading("Across seeds")
+    dists = {}
+    for g in system.constraint_groups:
+        unit = plots.group_unit(system, g)
+        dists[f"max {g} excess" + (f" [{unit}]" if unit else "")] = _metric_values(
+            results, f"max_{g}_excess"
+        )
+        dists[f"{g} violation steps"] = _metric_values(results, f"{g}_violation_steps")
+    dists["cost (log scale)"] = _metric_values(results, "cost")
+    dists["time to goal [s] (successes)"] = _metric_values(results, "time_to_goal")
+    fig = plots.metric_distributions_figure(dists, agents, log_scale=["cost (log scale)"])
+    plots.save_figure(fig, fig_dir / "metrics_by_agent.png")
+    doc.image(
+        "figures/metrics_by_agent.png",
+        "Per-episode metrics by agent: box (quartiles, median) and one point per seed.",
+    )
+    fig = plots.solve_time_figure(
+        _metric_values(results, "solve_time_median"),
+        _metric_values(results, "solve_time_p95"),
+        agents,
+        cfg.dt,
+    )
+    plots.save_figure(fig, fig_dir / "solve_time.png")
+    doc.image(
+        "figures/solve_time.png",
+        f"Solve time per MPC step (log scale) against the sampling time {cfg.dt:g} s.",
+    )
+
+    doc.heading("One episode")
+    if figure_seed is None:
+        figure_seed, why = _default_figure_seed(results, main_agent)
+    else:
+        why = "chosen with --seed"
+        row = next((r for r in results.rows_of(main_agent, True) if r["seed"] == figure_seed), {})
+        if row.get("error") or not _steps(row) > 0:
+            why += "; this episode failed or has no step, so its figures may be empty"
+    if figure_seed is None:
+        doc.paragraph(f"No saved trajectory of `{main_agent}`: no episode figures.")
+        return
+    traj = load_trajectory(results, main_agent, figure_seed)
+    if traj is None:
+        raise ValueError(
+            f"no saved trajectory of agent {main_agent!r} for seed {figure_seed}: "
+            f"{results.trajectory_path(main_agent, figure_seed)} does not exist"
+        )
+    # Every agent on the same seed, the main one first, each in its own colour.
+    same_seed = {main_agent: traj}
+    for a in agents:
+        if a != main_agent:
+            t = load_trajectory(results, a, figure_seed)
+            if t is not None:
+                same_seed[a] = t
+    label = agent_label(main_agent)
+    goal_state, goal_radius = _goal(results)
+    names = system.state_labels
+    doc.paragraph(
+        f"Env seed {figure_seed} ({why}), agent {label}, on the `{system.name}` system. "
+        "Time in seconds, "
+        f"dt = {cfg.dt:g} s. The figures are drawn from the system's definition: its state, "
+        "input and force names, its input bounds and its constraint functions."
+    )
+    region = (
+        "infeasible region of the constraints on these two states shaded, their bounds "
+        "dashed (evaluated with the other states at the goal state)"
+    )
+    captions = {
+        "trajectory": f"Trajectory in the plane {names[0]} / {names[1]}: true path (green "
+        f"dashed), estimate (red) with 2-sigma ellipses, goal; {region}.",
+        "latent_force": "Latent force: true (dashed) and estimated with its 2-sigma band.",
+        "inputs": "Inputs with their bounds (dash-dotted); a force in an input's unit is "
+        "drawn beside it with its negative: an input on -w would cancel the force exactly.",
+        "states": "The other states: true (dashed) and estimated with the 2-sigma band; "
+        "bounds on a state alone dashed, their infeasible side shaded.",
+        "constraints": "Largest excess of each constraint group over time (0: inside).",
+    }
+    figures = plots.episode_figures(
+        traj, system, cfg.dt, goal_state=goal_state, goal_radius=goal_radius, label=label
+    )
+    for name, fig in figures.items():
+        rel = f"figures/seed{figure_seed}_{main_agent}_{name}.png"
+        plots.save_figure(fig, results.directory / rel)
+        doc.image(rel, captions.get(name, name))
+
+    if len(same_seed) > 1:
+        doc.paragraph("All agents on the same seed (same disturbance and noise):")
+        fig = plots.paths_figure(
+            system,
+            {
+                agent_label(a): (t["true_state"], plots.agent_colour(a))
+                for a, t in same_seed.items()
+            },
+            goal_state=goal_state,
+            goal_radius=goal_radius,
+            title=f"True paths of all agents, seed {figure_seed}",
+        )
+        rel = f"figures/seed{figure_seed}_agents_trajectory.png"
+        plots.save_figure(fig, results.directory / rel)
+        doc.image(rel, "True paths of all agents on the same seed (x: end of the episode).")
+        fig = plots.constraint_excess_figure(
+            system,
+            cfg.dt,
+            {
+                agent_label(a): (plots.group_excess_of(t, system), plots.agent_colour(a))
+                for a, t in same_seed.items()
+            },
+            title=f"Constraint excess of all agents, seed {figure_seed}",
+        )
+        if fig is not None:
+            rel = f"figures/seed{figure_seed}_agents_constraints.png"
+            plots.save_figure(fig, results.directory / rel)
+            doc.image(rel, "Constraint-group excess of all agents on the same seed.")
+
+    _fan_figure(doc, results, traj, main_agent, figure_seed, goal_state, goal_radius)
+    if gif:
+        frames = plots.replay_frames(traj["true_state"], cfg, caption=label)
+        width = frames[0].shape[1] if frames else 480
+        panels = plots.plan_panel_frames(
+            system, traj, size=(width, max(160, width // 3)), goal_state=goal_state,
+            goal_radius=goal_radius,
+        )  # fmt: skip
+        rel = "figures/episode.gif"
+        plots.write_gif(plots.stack_frames(frames, panels), results.directory / rel, 1.0 / cfg.dt)
+        doc.image(
+            rel,
+            f"The episode replayed from its saved true states ({len(frames)} frames, "
+            f"{1.0 / cfg.dt:g} frames/s): above, the world's own scene; below, a camera "
+            "following the true state (green square) in the plane of the first two states, "
+            "with the estimate and its 2-sigma ellipse (red), the plan's scenario "
+            "predictions (blue) and their mean (navy) at each step.",
+        )
+
+
+def _fan_figure(
+    doc: Document,
+    results: Results,
+    traj: dict[str, np.ndarray],
+    agent: str,
+    seed: int,
+    goal_state: np.ndarray,
+    goal_radius: float | None,
+) -> None:
+    """What the scenario MPC plans: the fan of scenario predictions at four steps."""
+    fig = plots.scenario_fan_figure(
+        results.system,
+        traj,
+        results.config.dt,
+        goal_state=goal_state,
+        goal_radius=goal_radius,
+        title=f"The plan's scenario fan - {agent_label(agent)}, seed {seed}",
+    )
+    if fig is None:
+        doc.paragraph(f"`{agent}` saved no predicted trajectories: no scenario-fan figure.")
+        return
+    fans, compact = plots.saved_fans(traj)
+    rel = f"figures/seed{seed}_{agent}_scenario_fan.png"
+    plots.save_figure(fig, results.directory / rel)
+    shown = (
+        f"up to {fans.shape[1]} of the plan's scenarios (the first ones saved per step)"
+        if compact
+        else "only the first scenario (this episode file predates the saved fans)"
+    )
+    doc.image(
+        rel,
+        f"What the MPC of {agent_label(agent)} plans, at four steps of the episode (for the "
+        "scenario MPC, its scenario fan): from the estimate (red, "
+        "2-sigma ellipse) one input sequence is planned for all scenarios of the latent "
+        f"force; each thin blue line is one scenario's predicted path ({shown}), the navy "
+        "line their mean; the true path so far (grey) and over the next horizon (green "
+        "dashed) with the infeasible region shaded. Equal axes: lengths to scale.",
+    )
+
+
+def _pooled_solve_times(results: Results, agent: str) -> np.ndarray:
+    """All per-step solve times [s] of an agent's saved episodes (empty if any is missing)."""
+    chunks = []
+    for row in results.rows_of(agent):
+        traj = load_trajectory(results, agent, row["seed"])
+        if traj is None or "solve_time" not in traj:
+            return np.zeros(0)
+        chunks.append(np.asarray(traj["solve_time"], dtype=float))
+    st = np.concatenate(chunks) if chunks else np.zeros(0)
+    return st[np.isfinite(st)]
+
+
+def _load_sweep(directory: Path, sweep_dir: str | Path | None):
+    """The risk sweep to include: ``sweep_dir``'s, else the folder's own if it has one."""
+    from experiments import sweep
+
+    if sweep_dir is None:
+        if not (directory / sweep.SWEEP_TABLE).is_file():
+            return None
+        sweep_dir = directory
+    return sweep.load_sweep(sweep_dir)
+
+
+def _sweep_section(doc: Document, results: Results, summary: Any) -> None:
+    """The risk sweep's table and Pareto figure (see :mod:`experiments.sweep`)."""
+    from experiments import sweep
+
+    doc.heading(f"Risk trade-off: `{summary.key}` of `{summary.agent}`")
+    world = summary.system.name
+    doc.paragraph(
+        f"From the sweep folder `{summary.directory}` (`lfm-sweep`, on the `{world}` system"
+        + ("" if world == results.system.name else ", not this report's world")
+        + "). "
+        + sweep.sweep_description(summary)
+    )
+    header, rows = sweep.sweep_table(summary)
+    doc.table(header, rows)
+    rel = "figures/sweep.png"
+    plots.save_figure(sweep.sweep_figure(summary), results.directory / rel)
+    doc.image(rel, sweep.FIGURE_CAPTION)
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def write_report(
+    results_dir: str | Path,
+    figure_seed: int | None = None,
+    gif: bool = True,
+    sweep_dir: str | Path | None = None,
+    baseline: str | None = None,
+) -> Path:
+    """Write ``report.md`` and ``report.html`` (same content) for a results folder.
+
+    Args:
+        results_dir: folder with ``episodes.csv``, ``episodes/`` and ``config.yaml``.
+        figure_seed: env seed of the episode figures and GIF; by default the smallest seed
+            with a saved trajectory of the scenario agent.
+        gif: also write ``figures/episode.gif`` (a replay of the saved true states).
+        sweep_dir: a folder of the risk sweep (:mod:`experiments.sweep`) whose table and
+            Pareto figure the report includes; by default ``results_dir`` itself when it
+            holds a ``sweep.md``.
+        baseline: the agent every other one is compared with in the paired differences;
+            ``None`` for the scenario agent when the results hold it, else the first agent.
+
+    Returns:
+        Path of ``report.md`` (figures linked from ``figures/``); ``report.html`` beside
+        it holds every figure embedded, so it can be sent alone.
+
+    Raises:
+        FileNotFoundError: if the folder, ``episodes.csv`` or ``config.yaml`` is missing.
+        ValueError: if there are no episodes, ``figure_seed`` has no saved trajectory, or
+            ``baseline`` is not an agent of the results (the message lists them).
+    """
+    results = load_results(results_dir)
+    baseline = choose_baseline(results, baseline)
+    _check_figure_seed(results, figure_seed)  # before writing any file
+    sweep = _load_sweep(results.directory, sweep_dir)
+    stats = summarize(results)
+    doc = Document()
+    title = f"Evaluation report: {results.directory.name}"
+    doc.heading(title, 1)
+    n_eps = len(results.rows)
+    seeds = sorted({r["seed"] for r in results.rows})
+    doc.paragraph(
+        f"{n_eps} episodes of {len(results.agents)} agents on {len(seeds)} env seeds "
+        f"({seeds[0]}..{seeds[-1]}) of the world `{results.config.ENV_ID}` (system "
+        f"`{results.system.name}`); {_settings_text(results)}. On one env seed every agent "
+        "faces the same hidden disturbance and noise. Agents:"
+    )
+    doc.bullets([f"`{a}`: {_long_label(a)}" for a in results.agents])
+    _model_section(doc, results)
+    _summary_section(doc, results, stats)
+    _errors_section(doc, results)
+    _paired_section(doc, results, baseline)
+    if results.config.ENV_ID == PAPER_ENV_ID:
+        _paper_vs_measured_section(doc, results, _pooled_solve_times(results, REFERENCE_AGENT))
+    _calibration_section(doc, results)
+    if sweep is not None:
+        _sweep_section(doc, results, sweep)
+    _figures_section(doc, results, figure_seed, gif)
+
+    md_path = results.directory / "report.md"
+    md_path.write_text(doc.markdown())
+    (results.directory / "report.html").write_text(doc.html(title, results.directory))
+    return md_path
+
+
+__all__ = [
+    "AGENT_SHORT_LABELS",
+    "Document",
+    "GIF_EMBED_LIMIT",
+    "embedded_image",
+    "KNOWN_AGENT_ORDER",
+    "Metric",
+    "Estimate",
+    "PairedDifference",
+    "Results",
+    "Calibration",
+    "agent_label",
+    "bootstrap_ci",
+    "calibration",
+    "choose_baseline",
+    "load_results",
+    "load_trajectory",
+    "group_metrics",
+    "paired_differences",
+    "paired_metrics",
+    "paired_rows_difference",
+    "pooled_ratio_ci",
+    "read_episodes_csv",
+    "summarize",
+    "summary_metrics",
+    "tolerance_metrics",
+    "write_report",
+    "zero_violation_metrics",
+]

@@ -1,0 +1,1 @@
+"""The planar quadrotor in a gust: its system, env and scene."""
