@@ -20,16 +20,15 @@ from controllers.solvers.fast.options import MAX_THREADS
 from lfm_env.config import (
     ConfigError,
     DisturbanceConfig,
-    EnvConfig,
+    FieldChecker,
     WorldConfig,
-    _Checker,
     check_latent_step,
     from_dict,
-    load_env_config,
     load_yaml,
     read_section,
     to_dict,
 )
+from lfm_env.worlds.registry import load_env_config
 
 RESAMPLING = ("systematic", "stratified", "residual", "multinomial")
 SCENARIO_INITIAL_STATES = ("estimate", "particles")
@@ -107,7 +106,7 @@ def check_problem_memory(model: Any, horizon: int, n_scenarios: int) -> None:
         )
 
 
-def check_backoff(c: _Checker, backoff: tuple[float, ...]) -> None:
+def check_backoff(c: FieldChecker, backoff: tuple[float, ...]) -> None:
     c("backoff", len(backoff) >= 1, "one number, or one per constraint group")
     c("backoff", all(0.0 <= k <= 10.0 for k in backoff), "in [0, 10] standard deviations")
 
@@ -132,7 +131,7 @@ class RobustConfig:
     scenario_initial_states: str = "estimate"  # with "sampled": "estimate" or "particles"
 
     def __post_init__(self) -> None:
-        c = _Checker(self)
+        c = FieldChecker(self)
         c("estimator", self.estimator in ESTIMATORS, f"one of {ESTIMATORS}")
         c("n_particles", 1 <= self.n_particles <= 10_000_000, "an integer in [1, 1e7]")
         check_backoff(c, self.backoff)
@@ -201,7 +200,7 @@ class AgentConfig:
     rl_policy: str | None = None
 
     def __post_init__(self) -> None:
-        c = _Checker(self)
+        c = FieldChecker(self)
         c("rl_policy", self.rl_policy is None or self.rl_policy != "", "null or a file path")
         c("horizon", self.horizon >= 1, "an integer >= 1")
         c("horizon", self.horizon <= 200, "<= 200")
@@ -298,14 +297,14 @@ class AgentConfig:
 class ExperimentConfig:
     """A whole config (``env_id``, ``env`` and ``agents``), resolved and validated once.
 
-    ``env`` is the world's config (:class:`~lfm_env.config.EnvConfig` for the sine track,
-    or another world's, chosen by the file's top-level ``env_id``). The builders below are
-    what every agent, solver benchmark and worker process uses, so a config file is read
-    and checked in one place; the object pickles, so workers get it instead of a path or a
+    ``env`` is the world's config (the paper's sine track by default, or another world's,
+    chosen by the file's top-level ``env_id``: :mod:`lfm_env.worlds.registry`). The builders
+    below are what every agent, solver benchmark and worker process uses, so a config file is
+    read and checked in one place; the object pickles, so workers get it instead of a path or a
     dict to parse again.
     """
 
-    env: WorldConfig = field(default_factory=EnvConfig)
+    env: WorldConfig = field(default_factory=lambda: load_env_config(None))  # default world
     agents: AgentConfig = field(default_factory=AgentConfig)
 
     @property
@@ -357,7 +356,7 @@ class ExperimentConfig:
 
     def make_cost(self):
         """The agents' :class:`~lfm_env.system.QuadraticCost` (``Q``, ``R``, ``Qf``, goal)."""
-        from lfm_env.system import QuadraticCost
+        from lfm_env.cost import QuadraticCost
 
         system = self.make_system()
         a = self.agents

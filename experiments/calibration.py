@@ -25,7 +25,7 @@ import scipy.linalg
 import scipy.optimize
 
 from experiments.cli import check_writable, config_file, one_line_errors, preset_names
-from lfm_env.config import DisturbanceConfig, EnvConfig, load_env_config
+from lfm_env.config import DisturbanceConfig, SineTrackConfig, load_env_config
 from lfm_env.gp import StateSpaceKernel
 
 LEARNABLE = ("variance", "lengthscale")
@@ -142,7 +142,7 @@ def record_calibration_episodes(
 
 def fit_disturbance(
     records: list[SpeedRecord],
-    env_config: EnvConfig,
+    env_config: SineTrackConfig,
     initial: DisturbanceConfig | None = None,
 ) -> CalibrationResult:
     """Maximum-likelihood ``variance`` and ``lengthscale`` of the latent force.

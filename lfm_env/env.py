@@ -17,8 +17,9 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from lfm_env.cost import QuadraticCost
 from lfm_env.model import LatentForceModel, psd_factor
-from lfm_env.system import QuadraticCost, split_unit
+from lfm_env.system import split_unit
 from lfm_env.validation import real_vector
 
 LATENT_STARTS = ("stationary", "zero")
@@ -128,7 +129,7 @@ class LatentForceEnv(gym.Env):
     """
 
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 5}
-    #: The case study's settings (e.g. an :class:`~lfm_env.config.EnvConfig`); ``None`` here.
+    #: The case study's settings (e.g. an :class:`~lfm_env.config.SineTrackConfig`); ``None`` here.
     config: Any = None
 
     def __init__(

@@ -8,9 +8,9 @@ scenario problem and every solver read these two objects; nothing else writes th
 dynamics, a constraint or the cost again.
 
 The functions a system is made of are written once and work on both kinds of data. Write
-them with the array namespace :data:`xp`::
+them with the array namespace :data:`lfm_env.xp.xp` (also importable from here)::
 
-    from lfm_env.system import xp
+    from lfm_env.xp import xp
 
     def rhs(x, u, w):
         p, v = xp.unstack(x)          # components of the state
@@ -36,92 +36,11 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-_FLOAT_DTYPES = (np.dtype(np.float64), np.dtype(np.float32))
+from lfm_env.cost import QuadraticCost
+from lfm_env.validation import frozen_vector
+from lfm_env.xp import is_symbolic, xp
 
 _UNIT = re.compile(r"^\s*(?P<name>[^\[]+?)\s*(\[(?P<unit>[^\]]*)\])?\s*$")
-
-
-def is_symbolic(value: Any) -> bool:
-    """True for CasADi types (``SX``, ``MX``, ``DM``), False for NumPy data."""
-    return isinstance(value, (ca.SX, ca.MX, ca.DM))
-
-
-def _any_symbolic(values: Sequence[Any]) -> bool:
-    return any(is_symbolic(v) for v in values)
-
-
-_CASADI_TYPES = (ca.SX, ca.MX, ca.DM)
-
-
-def _unary(np_fun: Callable, ca_fun: Callable) -> Callable:
-    def fun(a: Any) -> Any:
-        return ca_fun(a) if isinstance(a, _CASADI_TYPES) else np_fun(a)
-
-    fun.__name__ = np_fun.__name__
-    fun.__doc__ = f"``{np_fun.__name__}`` of NumPy data or a CasADi expression."
-    return fun
-
-
-class _ArrayNamespace:
-    """Element-wise math and component access that work on NumPy arrays and CasADi vectors.
-
-    NumPy data carries its components on the *last* axis; CasADi data is a column vector.
-    """
-
-    sin = staticmethod(_unary(np.sin, ca.sin))
-    cos = staticmethod(_unary(np.cos, ca.cos))
-    tan = staticmethod(_unary(np.tan, ca.tan))
-    arctan = staticmethod(_unary(np.arctan, ca.atan))
-    arcsin = staticmethod(_unary(np.arcsin, ca.asin))
-    arccos = staticmethod(_unary(np.arccos, ca.acos))
-    tanh = staticmethod(_unary(np.tanh, ca.tanh))
-    sqrt = staticmethod(_unary(np.sqrt, ca.sqrt))
-    exp = staticmethod(_unary(np.exp, ca.exp))
-    log = staticmethod(_unary(np.log, ca.log))
-    abs = staticmethod(_unary(np.abs, ca.fabs))
-
-    @staticmethod
-    def arctan2(y: Any, x: Any) -> Any:
-        """``arctan2(y, x)`` [rad]."""
-        return ca.atan2(y, x) if _any_symbolic((y, x)) else np.arctan2(y, x)
-
-    @staticmethod
-    def unstack(x: Any) -> list[Any]:
-        """The components of ``x``: ``x[..., i]`` (NumPy) or ``x[i]`` (CasADi).
-
-        NumPy data stays in double or single precision (the particle transition evaluates
-        the drift in single precision, :meth:`lfm_env.model.LatentForceModel.transition`);
-        anything else becomes double.
-        """
-        if isinstance(x, _CASADI_TYPES):
-            return [x[i] for i in range(x.shape[0])]
-        if not isinstance(x, np.ndarray) or x.dtype not in _FLOAT_DTYPES:
-            x = np.asarray(x, dtype=float)
-        if x.ndim == 1:
-            return list(x)
-        # Components-first view: x.T[i] is x[..., i] without an ellipsis index per part.
-        return list(np.moveaxis(x, -1, 0)) if x.ndim > 2 else list(x.T)
-
-    @staticmethod
-    def stack(parts: Sequence[Any]) -> Any:
-        """Components back into one value: a CasADi column, or NumPy ``(..., len(parts))``.
-
-        The NumPy result is a view of a component-major buffer (components first), so
-        callers that work on component-major data (``(n, particles)``) read it back
-        contiguously with ``.T``.
-        """
-        if _any_symbolic(parts):
-            return ca.vertcat(*parts)
-        shapes = {np.shape(p) for p in parts}
-        shape = shapes.pop() if len(shapes) == 1 else np.broadcast_shapes(*shapes)
-        out = np.empty((len(parts),) + shape)
-        for i, part in enumerate(parts):
-            out[i] = part
-        return out.transpose(tuple(range(1, out.ndim)) + (0,))
-
-
-#: The array namespace system definitions are written with (see the module docstring).
-xp = _ArrayNamespace()
 
 
 def split_unit(label: str) -> tuple[str, str]:
@@ -142,15 +61,6 @@ def _names(value: Any, field_name: str) -> tuple[str, ...]:
     if len(set(bare)) != len(bare):
         raise ValueError(f"ControlSystem.{field_name}={value!r}: names must be unique")
     return names
-
-
-def _vector(value: Any, n: int, name: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=float).reshape(-1) if value is not None else None
-    if arr is None or arr.shape != (n,):
-        raise ValueError(f"{name}={value!r}: must be {n} numbers")
-    arr = arr.copy()
-    arr.flags.writeable = False
-    return arr
 
 
 @dataclass(frozen=True, eq=False)
@@ -215,8 +125,8 @@ class ControlSystem:
         if not callable(self.rhs):
             raise ValueError("ControlSystem.rhs must be callable: f(x, u, w) -> dx/dt")
         nu = len(self.input_names)
-        lo = _vector(self.input_lower, nu, "ControlSystem.input_lower")
-        hi = _vector(self.input_upper, nu, "ControlSystem.input_upper")
+        lo = frozen_vector(self.input_lower, nu, "ControlSystem.input_lower")
+        hi = frozen_vector(self.input_upper, nu, "ControlSystem.input_upper")
         if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo < hi)):
             raise ValueError(
                 f"ControlSystem input bounds {lo.tolist()} .. {hi.tolist()}: must be finite "
@@ -230,7 +140,7 @@ class ControlSystem:
         object.__setattr__(self, "mirror_inputs", mirror)
         fallback = np.clip(np.zeros(nu), lo, hi) if self.fallback_input is None else None
         if fallback is None:
-            fallback = _vector(self.fallback_input, nu, "ControlSystem.fallback_input")
+            fallback = frozen_vector(self.fallback_input, nu, "ControlSystem.fallback_input")
             if np.any(fallback < lo) or np.any(fallback > hi):
                 raise ValueError("ControlSystem.fallback_input must lie inside the input bounds")
         fallback.flags.writeable = False
@@ -408,102 +318,5 @@ class ControlSystem:
         self.__dict__.update(state)
 
 
-def _weight(value: Any, n: int, name: str) -> np.ndarray:
-    """A PSD weight matrix from a diagonal (``n`` numbers) or a full ``(n, n)`` matrix."""
-    arr = np.asarray(value, dtype=float)
-    if arr.shape == (n,):
-        arr = np.diag(arr)
-    if arr.shape != (n, n) or not np.all(np.isfinite(arr)):
-        raise ValueError(
-            f"QuadraticCost.{name}: must be {n} finite numbers or an ({n}, {n}) matrix"
-        )
-    if not np.allclose(arr, arr.T, rtol=0.0, atol=1e-12 * (1.0 + np.abs(arr).max())):
-        raise ValueError(f"QuadraticCost.{name}: must be symmetric")
-    if np.linalg.eigvalsh(arr)[0] < -1e-12 * (1.0 + np.abs(arr).max()):
-        raise ValueError(f"QuadraticCost.{name}: must be positive semi-definite")
-    arr = arr.copy()
-    arr.flags.writeable = False
-    return arr
-
-
-@dataclass(frozen=True, eq=False)
-class QuadraticCost:
-    """Stage cost ``(x - x_g)' Q (x - x_g) + u' R u`` and terminal ``(x - x_g)' Qf (x - x_g)``.
-
-    Args:
-        Q: state weights, a diagonal (``nx`` numbers) or an ``(nx, nx)`` PSD matrix, in
-            1/(state unit)^2.
-        R: input weights, a diagonal or an ``(nu, nu)`` PSD matrix.
-        Qf: terminal state weights; ``None`` for ``Q``.
-        x_goal: the goal state ``(nx,)`` in the states' units; ``None`` for zeros.
-    """
-
-    Q: Any
-    R: Any
-    Qf: Any = None
-    x_goal: Any = None
-
-    def __post_init__(self) -> None:
-        q = np.asarray(self.Q, dtype=float)
-        nx = q.shape[0] if q.ndim >= 1 else -1
-        nu = np.asarray(self.R, dtype=float).shape[0] if np.ndim(self.R) >= 1 else -1
-        if nx < 1 or nu < 1:
-            raise ValueError("QuadraticCost: Q and R must be vectors or square matrices")
-        object.__setattr__(self, "Q", _weight(self.Q, nx, "Q"))
-        object.__setattr__(self, "R", _weight(self.R, nu, "R"))
-        object.__setattr__(self, "Qf", _weight(self.Q if self.Qf is None else self.Qf, nx, "Qf"))
-        goal = np.zeros(nx) if self.x_goal is None else self.x_goal
-        object.__setattr__(self, "x_goal", _vector(goal, nx, "QuadraticCost.x_goal"))
-        if not np.all(np.isfinite(self.x_goal)):
-            raise ValueError("QuadraticCost.x_goal must be finite")
-
-    @property
-    def nx(self) -> int:
-        return int(self.Q.shape[0])
-
-    @property
-    def nu(self) -> int:
-        return int(self.R.shape[0])
-
-    @property
-    def diagonal(self) -> bool:
-        """True when ``Q``, ``R`` and ``Qf`` are diagonal (solvers take a cheaper path)."""
-        return all(
-            np.count_nonzero(m - np.diag(np.diag(m))) == 0 for m in (self.Q, self.R, self.Qf)
-        )
-
-    def check_system(self, system: ControlSystem) -> None:
-        """Raise ``ValueError`` unless the dimensions fit ``system``."""
-        if (self.nx, self.nu) != (system.nx, system.nu):
-            raise ValueError(
-                f"QuadraticCost has nx={self.nx}, nu={self.nu}; system {system.name!r} has "
-                f"nx={system.nx} states {system.state_labels} and nu={system.nu} inputs"
-            )
-
-    def _form(self, M: np.ndarray, e: Any) -> Any:
-        if is_symbolic(e):
-            return ca.bilin(ca.DM(M), e, e)
-        e = np.asarray(e, dtype=float)
-        if np.count_nonzero(M - np.diag(np.diag(M))) == 0:
-            d = np.diag(M)
-            return e @ (d * e) if e.ndim == 1 else np.einsum("...i,i,...i->...", e, d, e)
-        return np.einsum("...i,ij,...j->...", e, M, e)
-
-    def state_cost(self, x: Any) -> Any:
-        """``(x - x_g)' Q (x - x_g)`` (NumPy ``(...)`` or a CasADi scalar)."""
-        return self._form(self.Q, x - (ca.DM(self.x_goal) if is_symbolic(x) else self.x_goal))
-
-    def terminal_cost(self, x: Any) -> Any:
-        """``(x - x_g)' Qf (x - x_g)``."""
-        return self._form(self.Qf, x - (ca.DM(self.x_goal) if is_symbolic(x) else self.x_goal))
-
-    def input_cost(self, u: Any) -> Any:
-        """``u' R u``."""
-        return self._form(self.R, u)
-
-    def stage_cost(self, x: Any, u: Any) -> Any:
-        """``(x - x_g)' Q (x - x_g) + u' R u``: minus the env's reward."""
-        return self.state_cost(x) + self.input_cost(u)
-
-
+# QuadraticCost (lfm_env.cost) and xp (lfm_env.xp) are re-exported for old imports.
 __all__ = ["ControlSystem", "QuadraticCost", "is_symbolic", "split_unit", "xp"]

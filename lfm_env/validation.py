@@ -34,3 +34,13 @@ def real_vector(value: Any, size: int, name: str, layout: str) -> np.ndarray:
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name}={arr.tolist()}: must be finite (no NaN or inf)")
     return arr
+
+
+def frozen_vector(value: Any, n: int, name: str) -> np.ndarray:
+    """``value`` as a read-only float vector of ``n`` entries; a ``ValueError`` names ``name``."""
+    arr = np.asarray(value, dtype=float).reshape(-1) if value is not None else None
+    if arr is None or arr.shape != (n,):
+        raise ValueError(f"{name}={value!r}: must be {n} numbers")
+    arr = arr.copy()
+    arr.flags.writeable = False
+    return arr

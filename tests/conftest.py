@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from lfm_env.config import EnvConfig, load_env_config
+from lfm_env.config import SineTrackConfig, load_env_config
 from lfm_env.model import LatentForceModel
 from lfm_env.system import ControlSystem
 
@@ -18,18 +18,20 @@ PAPER_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "paper.yaml"
 
 
 @pytest.fixture(scope="session")
-def paper_config() -> EnvConfig:
+def paper_config() -> SineTrackConfig:
     """The ``env`` section of ``configs/paper.yaml``."""
     return load_env_config(PAPER_CONFIG)
 
 
 @pytest.fixture(scope="session")
-def sine_track_system(paper_config: EnvConfig) -> ControlSystem:
+def sine_track_system(paper_config: SineTrackConfig) -> ControlSystem:
     """The bicycle on the paper's sine track."""
     return paper_config.make_system()
 
 
 @pytest.fixture(scope="session")
-def paper_model(paper_config: EnvConfig, sine_track_system: ControlSystem) -> LatentForceModel:
+def paper_model(
+    paper_config: SineTrackConfig, sine_track_system: ControlSystem
+) -> LatentForceModel:
     """The paper's latent-force model (the env's truth): Matern 5/2 force, exact steps."""
     return paper_config.make_model(system=sine_track_system)

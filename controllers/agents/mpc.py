@@ -36,6 +36,8 @@ from typing import Any
 import numpy as np
 from scipy import special
 
+from controllers.agents.protocol import SB3Predict
+from controllers.agents.rl import RLAgent, check_rl_policy
 from controllers.config import (
     AgentConfig,
     ExperimentConfig,
@@ -45,12 +47,10 @@ from controllers.config import (
 )
 from controllers.estimators.estimator import make_estimator
 from controllers.problem import MPCSolution, ScenarioProblem
-from controllers.agents.protocol import SB3Predict
-from controllers.agents.rl import RLAgent, check_rl_policy
 from controllers.solvers import make_solver
 from lfm_env.config import ConfigError
+from lfm_env.cost import QuadraticCost
 from lfm_env.model import LatentForceModel
-from lfm_env.system import QuadraticCost
 from lfm_env.validation import real_vector
 
 # Tail probability of the filter's divergence test: a measurement whose normalised

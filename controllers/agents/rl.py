@@ -24,8 +24,9 @@ import numpy as np
 
 from controllers.config import AgentConfig
 from lfm_env.config import ConfigError
+from lfm_env.cost import QuadraticCost
 from lfm_env.model import LatentForceModel
-from lfm_env.system import ControlSystem, QuadraticCost
+from lfm_env.system import ControlSystem
 from lfm_env.validation import real_vector
 
 ALGOS = ("ppo", "sac")

@@ -42,8 +42,8 @@ from collections.abc import Iterable
 from typing import Any
 
 from controllers.agents.mpc import AGENTS
-from controllers.config import ExperimentConfig
 from controllers.agents.protocol import Agent, is_agent
+from controllers.config import ExperimentConfig
 
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._+-]{0,99}")
 _SPEC_TEXT = re.compile(r"[A-Za-z_][\w.]*:[A-Za-z_][\w.]*")

@@ -21,8 +21,8 @@ import numpy as np
 
 import lfm_env  # noqa: F401  (registers the envs, also in spawned workers)
 from controllers.agents.mpc import AGENTS, check_agent_config, make_agent
-from controllers.config import ExperimentConfig, load_config
 from controllers.agents.protocol import INFO_DEFAULTS, last_info
+from controllers.config import ExperimentConfig, load_config
 from experiments.evaluation.agent_lookup import (
     AgentSpec,
     resolve_agents,

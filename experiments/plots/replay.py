@@ -39,7 +39,7 @@ def _world(config: Any) -> tuple[str, Any]:
     if not env_id:
         raise ValueError(
             f"config of type {type(config).__name__}: expected an ExperimentConfig or a world "
-            "config (e.g. lfm_env.config.EnvConfig) that names its env (ENV_ID)"
+            "config (e.g. lfm_env.config.SineTrackConfig) that names its env (ENV_ID)"
         )
     return env_id, config
 

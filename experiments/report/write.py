@@ -35,8 +35,8 @@ from typing import Any
 
 import numpy as np
 
-from experiments.plots import episode as plots
 from experiments.evaluation.columns import tolerance_columns
+from experiments.plots import episode as plots
 from experiments.report.document import GIF_EMBED_LIMIT, Document, embedded_image
 from experiments.report.results import (
     KNOWN_AGENT_ORDER,

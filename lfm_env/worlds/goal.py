@@ -15,8 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from lfm_env.config import WorldConfig, check_latent_step, load_env_config
+from lfm_env.config import WorldConfig, check_latent_step
 from lfm_env.env import LatentForceEnv
+from lfm_env.worlds.registry import load_env_config
 
 
 def segment_point_distance(p0: np.ndarray, p1: np.ndarray, q: np.ndarray) -> float:

@@ -13,9 +13,11 @@ from controllers.scenario_count import campi_garatti_scenarios
 from controllers.solvers import SOLVERS
 from lfm_env import gp
 from lfm_env.config import ConfigError
+from lfm_env.cost import QuadraticCost
 from lfm_env.env import LatentForceEnv
 from lfm_env.model import LatentForceModel
-from lfm_env.system import ControlSystem, QuadraticCost, xp
+from lfm_env.system import ControlSystem
+from lfm_env.xp import xp
 
 QUICK = "configs/quick.yaml"
 

@@ -30,7 +30,7 @@ from controllers.solvers.fast.codegen.build import KernelUnavailable, forget_loa
 from controllers.solvers.fast.condensed import CondensedModel
 from controllers.solvers.fast_bicycle import BicycleCondensedModel
 from experiments.benchmark.problems import problem_from_config
-from lfm_env.system import QuadraticCost
+from lfm_env.cost import QuadraticCost
 from tests.controllers.test_second_system import (
     COST,
     NS,

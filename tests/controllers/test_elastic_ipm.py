@@ -9,10 +9,7 @@ import numpy as np
 import pytest
 
 from controllers.solvers.fast.codegen import build as compiled
-
-from controllers.solvers.fast.qp import elastic_ipm
-
-from controllers.solvers.fast.qp import slot_qp
+from controllers.solvers.fast.qp import elastic_ipm, slot_qp
 from controllers.solvers.fast.qp.elastic_ipm import solve_elastic_qp
 from controllers.solvers.fast.solver import FastScenarioSolver
 from experiments.benchmark.problems import problem_from_config

@@ -12,7 +12,8 @@ from controllers.estimators.rbpf import RaoBlackwellisedParticleFilter
 from controllers.estimators.ukf import UnscentedKalmanFilter
 from lfm_env import gp
 from lfm_env.model import LatentForceModel
-from lfm_env.system import ControlSystem, xp
+from lfm_env.system import ControlSystem
+from lfm_env.xp import xp
 
 DT = 0.1
 DAMPING = 0.3  # [1/s]

@@ -16,7 +16,7 @@ from controllers.solvers import make_solver
 from controllers.solvers.fast.condensed import CondensedModel
 from controllers.solvers.fast.solver import FastScenarioSolver
 from experiments.benchmark.timing import latent_force_scenarios
-from lfm_env.config import EnvConfig
+from lfm_env.config import SineTrackConfig
 
 RTOL = 1e-4  # objective agreement with the reference
 VIOLATION_TOL = 1e-6  # [m or m/s] allowed constraint violation where the reference has none
@@ -35,7 +35,7 @@ FAST_SOLVERS = ("fast", "fast_bicycle")  # generic, and the bicycle's hand-writt
 
 def paper_problem(**changes) -> ScenarioProblem:
     """The paper's problem (sine-track model and cost) with some fields changed."""
-    config = EnvConfig()
+    config = SineTrackConfig()
     return ScenarioProblem(config.make_model(), config.make_cost(), **changes)
 
 
@@ -340,7 +340,7 @@ def test_iteration_limit_returns_best_iterate_without_raising() -> None:
 def test_derivatives_match_casadi(cost_kind: str) -> None:
     """Gradient, exact Lagrangian Hessian and row Jacobians against CasADi's AD of the
     whole condensed problem (the model's own CasADi step, unrolled)."""
-    config = EnvConfig()
+    config = SineTrackConfig()
     cost = config.make_cost()
     if cost_kind == "full":  # a coupled, non-diagonal weight exercises the general path
         Q = np.diag([2.0, 2.0, 1.0, 0.1]) + 0.3 * (np.eye(4, k=1) + np.eye(4, k=-1))

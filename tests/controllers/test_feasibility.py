@@ -7,14 +7,14 @@ import pytest
 
 from controllers.feasibility import SharedConstraints, shared_slack_bound
 from controllers.problem import ScenarioProblem
-from lfm_env.config import EnvConfig
+from lfm_env.config import SineTrackConfig
 
 N = 10
 SPEED = 2  # the bicycle's speed state
 
 
 def _problem(n_scenarios: int) -> ScenarioProblem:
-    config = EnvConfig()
+    config = SineTrackConfig()
     return ScenarioProblem(
         config.make_model(), config.make_cost(), horizon=N, n_scenarios=n_scenarios
     )

@@ -8,9 +8,9 @@ import sys
 import numpy as np
 import pytest
 
-from controllers.solvers.fast.solver import FastScenarioSolver
 from controllers.solvers.fast.qp.hard_qp import DaqpHardQP
 from controllers.solvers.fast.qp.slot_qp import SlotQP
+from controllers.solvers.fast.solver import FastScenarioSolver
 from experiments.benchmark.problems import problem_from_config
 
 pytest.importorskip("daqp")

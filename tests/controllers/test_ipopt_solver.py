@@ -17,8 +17,12 @@ from controllers.config import load_config
 from controllers.problem import ScenarioProblem
 from controllers.scenario_count import campi_garatti_scenarios
 from controllers.solvers import make_solver
-from controllers.solvers.casadi.ipopt import FORMULATIONS, IpoptScenarioSolver, solve_scenario_problem
-from lfm_env.system import QuadraticCost
+from controllers.solvers.casadi.ipopt import (
+    FORMULATIONS,
+    IpoptScenarioSolver,
+    solve_scenario_problem,
+)
+from lfm_env.cost import QuadraticCost
 from lfm_env.worlds.sine_track.system import track_of
 
 N = 5

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from controllers.problem import ScenarioProblem
-from controllers.solvers.fast.solver import FastScenarioSolver
 from controllers.solvers.fast.qp.slot_qp import QP_SOLVERS
+from controllers.solvers.fast.solver import FastScenarioSolver
 from experiments.benchmark.problems import problem_from_config
 
 DATA_DIR = Path(__file__).resolve().parents[1] / "data"

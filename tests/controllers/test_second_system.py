@@ -17,10 +17,12 @@ from gymnasium.wrappers import TimeLimit
 from controllers.estimators.particle_filter import ParticleFilter, gaussian_log_likelihood
 from controllers.problem import ScenarioProblem, largest_local_descent
 from controllers.solvers import make_solver
+from lfm_env.cost import QuadraticCost
 from lfm_env.env import LatentForceEnv
 from lfm_env.gp import matern
 from lfm_env.model import LatentForceModel, psd_factor
-from lfm_env.system import ControlSystem, QuadraticCost, xp
+from lfm_env.system import ControlSystem
+from lfm_env.xp import xp
 
 try:
     import csnlp  # noqa: F401

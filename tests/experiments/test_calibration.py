@@ -12,7 +12,7 @@ from experiments.calibration import (
     main,
     speed_log_likelihood,
 )
-from lfm_env.config import EnvConfig, load_env_config
+from lfm_env.config import SineTrackConfig, load_env_config
 from lfm_env.gp import matern
 from lfm_env.model import LatentForceModel
 
@@ -34,7 +34,7 @@ def dense_speed_log_likelihood(kernel, rec, dt, r_std, q_std):
 
 def simulate(model: LatentForceModel, n_steps: int, rng: np.random.Generator) -> SpeedRecord:
     """Speeds of the augmented model under random accelerations, measured with noise."""
-    cfg = EnvConfig()
+    cfg = SineTrackConfig()
     z = np.linalg.cholesky(model.stationary_latent_covariance()) @ rng.standard_normal(
         model.latent_dim
     )
@@ -53,7 +53,7 @@ def simulate(model: LatentForceModel, n_steps: int, rng: np.random.Generator) ->
 
 @pytest.mark.parametrize("nu, variance, lengthscale", [(2.5, 4.0, 4.0), (1.5, 0.7, 1.3)])
 def test_kalman_likelihood_equals_the_dense_gaussian(nu, variance, lengthscale):
-    cfg = EnvConfig()
+    cfg = SineTrackConfig()
     model = cfg.make_model()
     rec = simulate(model, 40, np.random.default_rng(1))
     kernel = matern(nu, variance, lengthscale)
@@ -64,7 +64,7 @@ def test_kalman_likelihood_equals_the_dense_gaussian(nu, variance, lengthscale):
 
 
 def test_fit_recovers_the_hyperparameters_within_their_standard_errors():
-    cfg = EnvConfig()
+    cfg = SineTrackConfig()
     model = cfg.make_model()
     rng = np.random.default_rng(7)
     records = [simulate(model, 150, rng) for _ in range(12)]
@@ -79,7 +79,7 @@ def test_fit_recovers_the_hyperparameters_within_their_standard_errors():
 
 def test_fit_needs_records():
     with pytest.raises(ValueError, match="records"):
-        fit_disturbance([], EnvConfig())
+        fit_disturbance([], SineTrackConfig())
 
 
 def test_cli_writes_a_config_whose_agents_model_the_learned_force(tmp_path, capsys):

@@ -17,9 +17,9 @@ import pytest
 import yaml
 
 from controllers.config import load_config
+from experiments.cli import evaluate_main
 from experiments.evaluation import episode
 from experiments.evaluation import run as evaluation
-from experiments.cli import evaluate_main
 from experiments.evaluation.run import (
     HEAD_COLUMNS,
     TAIL_COLUMNS,
@@ -39,9 +39,11 @@ from experiments.evaluation.run import (
     write_table,
 )
 from lfm_env import gp
+from lfm_env.cost import QuadraticCost
 from lfm_env.env import LatentForceEnv
 from lfm_env.model import LatentForceModel
-from lfm_env.system import ControlSystem, QuadraticCost, xp
+from lfm_env.system import ControlSystem
+from lfm_env.xp import xp
 
 REPO = Path(__file__).resolve().parents[2]
 # The quick world with short episodes and small agents: about 0.3 s per episode.

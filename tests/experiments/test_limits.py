@@ -24,7 +24,7 @@ import lfm_env.config as env_config
 from controllers.config import load_config
 from experiments.evaluation.run import _error_row, evaluate, row_columns, save_episode, write_table
 from experiments.report import write_report
-from lfm_env.config import ConfigError, EnvConfig, from_dict, load_env_config
+from lfm_env.config import ConfigError, SineTrackConfig, from_dict, load_env_config
 
 REPO = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
@@ -121,12 +121,12 @@ def test_show_of_a_shared_huge_value_is_bounded():
     YAML involved) shows a short repr instead of expanding it."""
     proc = run_python(
         """
-        from lfm_env.config import ConfigError, EnvConfig, from_dict
+        from lfm_env.config import ConfigError, SineTrackConfig, from_dict
         v = ["lol"] * 9
         for _ in range(8):
             v = [v] * 9
         try:
-            from_dict(EnvConfig, {"dt": v})
+            from_dict(SineTrackConfig, {"dt": v})
         except ConfigError as exc:
             print(len(str(exc)), str(exc)[:40])
         """,
@@ -186,7 +186,7 @@ def test_float_hint_names_the_exponent_sign(tmp_path):
         load_env_config(path)
     assert yaml.safe_load("v: 1.0e+6")["v"] == 1.0e6  # the advice works
     with pytest.raises(ConfigError, match=r"with a dot") as exc:
-        from_dict(EnvConfig, {"dt": "fast"})
+        from_dict(SineTrackConfig, {"dt": "fast"})
     assert "exponent" not in str(exc.value)
 
 

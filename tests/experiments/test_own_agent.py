@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from controllers.config import ExperimentConfig
 from controllers.agents.protocol import Agent
+from controllers.config import ExperimentConfig
 from experiments.evaluation import run as evaluation
 from experiments.evaluation.agent_lookup import AgentSpec, AgentSpecError, resolve_agent
 from experiments.evaluation.run import (

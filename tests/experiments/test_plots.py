@@ -14,14 +14,14 @@ import numpy as np
 import pytest
 
 from experiments.plots import episode as plots
-
 from experiments.plots import scenario_fan
-
 from experiments.plots import summary as summary_plots
 from lfm_env import gp
+from lfm_env.cost import QuadraticCost
 from lfm_env.env import LatentForceEnv
 from lfm_env.model import LatentForceModel
-from lfm_env.system import ControlSystem, QuadraticCost, xp
+from lfm_env.system import ControlSystem
+from lfm_env.xp import xp
 
 WALL_Y = 2.0  # [m] the wall: y <= 2
 OBSTACLE = (2.0, 1.6, 0.4)  # [m] centre x, centre y and radius of the round obstacle

@@ -37,9 +37,8 @@ from controllers.config import AgentConfig, load_agent_config, load_config
 from controllers.estimators.particle_filter import ParticleFilter, gaussian_log_likelihood
 from controllers.problem import ScenarioProblem
 from controllers.solvers import make_solver
-from experiments.evaluation import run as evaluation
-from experiments.report import write as report
 from experiments.cli import evaluate_main, render_main, report_main
+from experiments.evaluation import run as evaluation
 from experiments.evaluation.run import (
     TIMING_COLUMNS,
     ResultsFolderError,
@@ -49,18 +48,19 @@ from experiments.evaluation.run import (
     run_episode,
     saved_rows,
 )
+from experiments.report import write as report
 from lfm_env.config import (
     DEFAULT_ENV_ID as ENV_ID,
 )
 from lfm_env.config import (
     ConfigError,
     DisturbanceConfig,
-    EnvConfig,
+    SineTrackConfig,
     load_env_config,
     load_yaml,
 )
+from lfm_env.cost import QuadraticCost
 from lfm_env.model import psd_factor
-from lfm_env.system import QuadraticCost
 
 REPO = Path(__file__).resolve().parents[2]
 TINY_AGENTS = {"horizon": 5, "n_scenarios": 5, "n_particles": 300}
@@ -824,7 +824,7 @@ def test_the_bad_input_tables_are_well_formed():
 
 # ================================================================= config loader, properties
 
-ENV_KEYS = [f"env.{f.name}" for f in fields(EnvConfig) if f.name != "disturbance"]
+ENV_KEYS = [f"env.{f.name}" for f in fields(SineTrackConfig) if f.name != "disturbance"]
 DISTURBANCE_KEYS = [f"env.disturbance.{f.name}" for f in fields(DisturbanceConfig)]
 AGENT_KEYS = [f"agents.{f.name}" for f in fields(AgentConfig)]
 BELIEF_KEYS = [f"agents.disturbance.{f.name}" for f in fields(DisturbanceConfig)]
@@ -903,7 +903,7 @@ def test_junk_value_for_any_key_gives_config_error_naming_it(tmp_path, key, valu
     via_yaml=st.booleans(),
 )
 def test_unknown_key_anywhere_gives_config_error_naming_it(tmp_path, where, key, via_yaml):
-    known = {f.name for cls in (EnvConfig, DisturbanceConfig, AgentConfig) for f in fields(cls)}
+    known = {f.name for cls in (SineTrackConfig, DisturbanceConfig, AgentConfig) for f in fields(cls)}
     assume(key not in known | {"env", "agents"})
     if where == "top":
         source: Any = {"env": {}, key: {}}
@@ -1400,7 +1400,7 @@ def test_results_loaders_refuse_pickled_arrays(tmp_path):
     np.savez(folder / "episodes" / "nominal__seed0.npz", action=payload)
     with pytest.raises(ValueError, match="allow_pickle"):
         load_trajectory(folder, "nominal", 0)
-    results = report.Results(folder, [], EnvConfig())
+    results = report.Results(folder, [], SineTrackConfig())
     with pytest.raises(ValueError, match="allow_pickle"):
         report.load_trajectory(results, "nominal", 0)
     assert not marker.exists()

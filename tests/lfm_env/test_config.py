@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from lfm_env.config import (
     ConfigError,
     DisturbanceConfig,
-    EnvConfig,
+    SineTrackConfig,
     from_dict,
     load_env_config,
     to_dict,
@@ -45,7 +45,7 @@ def test_config_error_is_a_value_error():
 @pytest.mark.parametrize("source", [None, {}, {"env": {}}, {"env": None}, {"agents": {}}])
 def test_defaults_are_the_papers_case_study(source):
     cfg = load_env_config(source)
-    assert cfg == EnvConfig()
+    assert cfg == SineTrackConfig()
     # REFERENCE.md: vehicle, track, start, goal, bounds, noise, disturbance, MPC weights.
     assert cfg.dt == 0.2
     assert cfg.vehicle_length == 0.5
@@ -92,7 +92,7 @@ def test_yaml_round_trip(tmp_path):
             }
         }
     )
-    assert cfg != EnvConfig()
+    assert cfg != SineTrackConfig()
     path = tmp_path / "round_trip.yaml"
     path.write_text(yaml.safe_dump({"env": to_dict(cfg)}))
     loaded = load_env_config(path)
@@ -222,10 +222,10 @@ def test_invalid_value_in_yaml_names_the_key(tmp_path):
 
 
 def test_replace_validates():
-    cfg = EnvConfig().replace(dt=0.1)
+    cfg = SineTrackConfig().replace(dt=0.1)
     assert cfg.dt == 0.1
     with pytest.raises(ConfigError) as exc:
-        EnvConfig().replace(dt=-1.0)
+        SineTrackConfig().replace(dt=-1.0)
     assert_names_key(exc, "env.dt")
 
 
@@ -322,9 +322,9 @@ def test_random_valid_configs_load(env, via_yaml):
     for name in set(env) - {"max_steps", "disturbance"}:
         value = getattr(cfg, name)
         assert all(type(v) is float for v in (value if isinstance(value, tuple) else (value,)))
-    untouched = set(f.name for f in dataclasses.fields(EnvConfig)) - set(env)
+    untouched = set(f.name for f in dataclasses.fields(SineTrackConfig)) - set(env)
     for name in untouched:
-        assert getattr(cfg, name) == getattr(EnvConfig(), name)
+        assert getattr(cfg, name) == getattr(SineTrackConfig(), name)
 
 
 # Any value that is not a number: a string (with or without a float look), bool, None, list, dict.
@@ -489,7 +489,7 @@ def test_make_system_model_and_cost_read_the_config():
 
 
 def test_state_from_config_converts_the_heading_only():
-    cfg = EnvConfig()
+    cfg = SineTrackConfig()
     np.testing.assert_allclose(cfg.state_from_config([1.0, 2.0, 3.0, 180.0]), [1, 2, 3, math.pi])
     np.testing.assert_array_equal(cfg.state_from_config(cfg.initial_state), cfg.initial_state_rad)
 

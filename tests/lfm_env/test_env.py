@@ -23,12 +23,14 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import lfm_env  # noqa: F401  (registers lfm_env/SineTrack-v0 and lfm_env/QuadrotorGust-v0)
-from lfm_env.config import EnvConfig, QuadrotorGustConfig
+from lfm_env.config import QuadrotorGustConfig, SineTrackConfig
+from lfm_env.cost import QuadraticCost
 from lfm_env.env import LatentForceEnv
-from lfm_env.worlds import QuadrotorGustEnv, SineTrackEnv
 from lfm_env.gp import matern
 from lfm_env.model import LatentForceModel
-from lfm_env.system import ControlSystem, QuadraticCost, xp
+from lfm_env.system import ControlSystem
+from lfm_env.worlds import QuadrotorGustEnv, SineTrackEnv
+from lfm_env.xp import xp
 
 ENV_ID = "lfm_env/SineTrack-v0"
 QUADROTOR_ID = "lfm_env/QuadrotorGust-v0"
@@ -276,7 +278,7 @@ def test_the_generic_module_does_not_import_the_case_studies():
     code = (
         "import sys, lfm_env.env; "
         "assert 'lfm_env.worlds.sine_track.env' not in sys.modules, 'sine track imported'; "
-        "assert 'lfm_env.worlds.sine_track.system' not in sys.modules, 'sine track system imported'; "
+        "assert 'lfm_env.worlds.sine_track.system' not in sys.modules, 'sine track system'; "
         "assert 'lfm_env.worlds.quadrotor.env' not in sys.modules, 'quadrotor imported'; "
         "assert 'lfm_env.worlds.quadrotor.system' not in sys.modules, 'quadrotor system imported'"
     )
@@ -291,8 +293,8 @@ def test_registered_entry_point_and_attributes():
     assert env.spec.entry_point == "lfm_env.worlds.sine_track.env:SineTrackEnv"
     u = env.unwrapped
     assert u.system is u.model.system and u.system.name == "sine_track"
-    assert u.config == EnvConfig()
-    np.testing.assert_array_equal(u.cost.x_goal, EnvConfig().goal_state_rad)
+    assert u.config == SineTrackConfig()
+    np.testing.assert_array_equal(u.cost.x_goal, SineTrackConfig().goal_state_rad)
 
 
 def test_registered_entry_point_and_attributes_of_the_quadrotor():
@@ -632,7 +634,7 @@ def test_passing_beside_the_goal(offset, success):
 
 def test_leaving_the_safety_box_is_a_failure():
     env = make()
-    track = EnvConfig().track
+    track = SineTrackConfig().track
     y_far = float(track.centre_y(10.0)) + 1.0 + 9.5  # 9.5 m outside the band: inside the box
     _, info = reset_at(env, [10.0, y_far, 0.0, 0.0])
     assert info["track_excess"] == pytest.approx(9.5)
@@ -717,7 +719,7 @@ def test_quadrotor_constraint_excesses_are_recorded():
 
 def test_constraint_excesses_are_recorded():
     env = make()
-    _, info = reset_at(env, [20.0, float(EnvConfig().track.centre_y(20.0)) + 1.4, 9.0, 0.0])
+    _, info = reset_at(env, [20.0, float(SineTrackConfig().track.centre_y(20.0)) + 1.4, 9.0, 0.0])
     assert info["track_excess"] == pytest.approx(0.4)
     assert info["speed_excess"] == pytest.approx(1.0)
     assert info["x_excess"] == 0.0

@@ -9,7 +9,8 @@ import scipy.linalg
 
 from lfm_env.gp import matern
 from lfm_env.model import LatentForceModel
-from lfm_env.system import ControlSystem, xp
+from lfm_env.system import ControlSystem
+from lfm_env.xp import xp
 
 
 def planar_rhs(x, u, w):

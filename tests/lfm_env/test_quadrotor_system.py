@@ -17,9 +17,9 @@ import yaml
 from lfm_env.config import (
     WORLDS,
     ConfigError,
-    EnvConfig,
     GustConfig,
     QuadrotorGustConfig,
+    SineTrackConfig,
     load_env_config,
     to_dict,
     world_config_class,
@@ -309,7 +309,7 @@ def test_helpers_refuse_other_systems():
 
 def test_defaults_are_valid_and_describe_the_case_study():
     cfg = QuadrotorGustConfig()
-    assert cfg.ENV_ID == ENV_ID and WORLDS[ENV_ID] == "QuadrotorGustConfig"
+    assert cfg.ENV_ID == ENV_ID and WORLDS[ENV_ID].config_class is QuadrotorGustConfig
     assert world_config_class(ENV_ID) is QuadrotorGustConfig
     assert cfg.thrust_max == pytest.approx(2.0 * cfg.mass * cfg.gravity)
     system = cfg.make_system()
@@ -387,7 +387,7 @@ def test_a_partial_disturbance_keeps_the_gust_defaults():
 
 def test_the_world_follows_the_env_id():
     assert isinstance(load_env_config({"env_id": ENV_ID}), QuadrotorGustConfig)
-    assert isinstance(load_env_config({"env": {}}), EnvConfig)  # the paper's by default
+    assert isinstance(load_env_config({"env": {}}), SineTrackConfig)  # the paper's by default
     assert isinstance(load_env_config({"dt": 0.05}, env_id=ENV_ID), QuadrotorGustConfig)
     with pytest.raises(ConfigError, match="for another env"):
         load_env_config(CONFIG_FILE, env_id="lfm_env/SineTrack-v0")

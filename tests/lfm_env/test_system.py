@@ -11,8 +11,10 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from lfm_env.system import ControlSystem, QuadraticCost, is_symbolic, split_unit, xp
+from lfm_env.cost import QuadraticCost
+from lfm_env.system import ControlSystem, split_unit
 from lfm_env.worlds.sine_track.system import sine_track_system
+from lfm_env.xp import is_symbolic, xp
 
 # ----------------------------------------------------------------------------- a second system
 

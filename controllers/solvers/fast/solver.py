@@ -74,9 +74,9 @@ import numpy as np
 from controllers.problem import MPCSolution, ScenarioProblem
 from controllers.solvers.fast.condensed import CondensedModel, Linearisation, Rollout
 from controllers.solvers.fast.options import HESSIAN_MODIFICATIONS, RESTARTS, FastSolverOptions
+from controllers.solvers.fast.qp.slot_qp import resolve_qp_solver
 from controllers.solvers.fast.restarts import RestartMixin
 from controllers.solvers.fast.subproblem import QP, QPStep, SubproblemMixin
-from controllers.solvers.fast.qp.slot_qp import resolve_qp_solver
 
 
 class FastScenarioSolver(SubproblemMixin, RestartMixin):

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from lfm_env.config import EnvConfig
 from lfm_env.worlds.goal import GoalReachingEnv, segment_point_distance
+from lfm_env.worlds.sine_track.config import SineTrackConfig
 
 
 class SineTrackEnv(GoalReachingEnv):
@@ -44,7 +44,7 @@ class SineTrackEnv(GoalReachingEnv):
     ## Rewards
     Minus the paper's stage cost on the true state before the step and the applied
     action: ``-[(x - x_g)^T Q (x - x_g) + u^T R u]`` with ``Q = diag(2, 2, 1, 0)``,
-    ``R = diag(0.5, 10)``, ``x_g = [62.83, 0, 4 m/s, 0]`` (``EnvConfig.make_cost``).
+    ``R = diag(0.5, 10)``, ``x_g = [62.83, 0, 4 m/s, 0]`` (``SineTrackConfig.make_cost``).
 
     ## Starting State
     True state ``[0, 0, 1 m/s, 45 deg]``; the latent state is drawn from the GP's
@@ -74,7 +74,7 @@ class SineTrackEnv(GoalReachingEnv):
     ## Arguments
     ``gym.make("lfm_env/SineTrack-v0", config=None, render_mode=None,
     screen_size=(600, 300), scaling=25.0, follow=True)``: ``config`` is a YAML path, a
-    dict (whole file or its ``env`` section) or an :class:`~lfm_env.config.EnvConfig`;
+    dict (whole file or its ``env`` section) or an :class:`~lfm_env.config.SineTrackConfig`;
     ``scaling`` is pixels per metre; ``follow`` centres the view on the car (else the
     whole track is shown). ``reset(options=...)`` accepts ``initial_state``
     (``[m, m, m/s, rad]``) and ``latent_state`` overrides. The env exposes ``config``,
@@ -87,7 +87,7 @@ class SineTrackEnv(GoalReachingEnv):
       limit as a ``TimeLimit`` wrapper (same episodes).
     """
 
-    CONFIG = EnvConfig
+    CONFIG = SineTrackConfig
     SAFETY_GROUPS = ("track", "x")
 
     def __init__(

@@ -15,7 +15,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from lfm_env.config import EnvConfig
+from lfm_env.worlds.sine_track.config import SineTrackConfig
 from lfm_env.worlds.sine_track.system import SineTrack
 
 
@@ -61,7 +61,7 @@ class TrackScene:
     def __init__(
         self,
         track: SineTrack,
-        config: EnvConfig,
+        config: SineTrackConfig,
         screen_size: tuple[int, int] = (600, 300),
         scaling: float = 25.0,
         follow: bool = True,

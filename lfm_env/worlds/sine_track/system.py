@@ -23,7 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from lfm_env.system import ControlSystem, xp
+from lfm_env.system import ControlSystem
+from lfm_env.xp import xp
 
 STATE_NAMES = ("p_x [m]", "p_y [m]", "v [m/s]", "psi [rad]")
 INPUT_NAMES = ("a [m/s^2]", "delta [rad]")
