@@ -44,7 +44,7 @@ DT = 0.1  # [s] the default sampling time
 SYSTEM = quadrotor_gust_system()
 HOVER = MASS * GRAVITY  # [N]
 ENV_ID = "lfm_env/QuadrotorGust-v0"
-CONFIG_FILE = Path(__file__).resolve().parents[2] / "configs" / "quadrotor.yaml"
+CONFIG_FILE = Path(__file__).resolve().parents[3] / "configs" / "quadrotor.yaml"
 
 
 def random_states(rng: np.random.Generator, n: int) -> np.ndarray:
