@@ -35,7 +35,7 @@ RESAMPLING = ("systematic", "stratified", "residual", "multinomial")
 SCENARIO_INITIAL_STATES = ("estimate", "particles")
 MAX_SCENARIOS = 100_000
 MAX_ITER = 2**31 - 1
-FAST_MAX_HORIZON = 40  # longest horizon of the fast solvers (see AgentConfig)
+FAST_MAX_HORIZON = 40  # longest horizon of the fast solver (see AgentConfig)
 MAX_SOLVE_TIME = 3600.0  # [s] largest agents.max_solve_time
 
 #: Memory budget [bytes] of an agent's filter and, separately, of its scenario problem:
@@ -181,7 +181,7 @@ class AgentConfig:
     # Wall-clock limit of one solve [s]: a solve that reaches it fails and the agent falls
     # back (the previous plan, else the system's fallback input), as on any failed solve.
     max_solve_time: float = 10.0
-    # Threads of the fast solvers' compiled kernel (FastSolverOptions.kernel_threads): it pays
+    # Threads of the fast solver's compiled kernel (FastSolverOptions.kernel_threads): it pays
     # for many scenarios (Ns >= 500; 0.6x the solve time at Ns = 5000 with two) when the
     # agent has the cores to itself; keep 1 under lfm-evaluate --jobs, whose processes take
     # the cores already.
@@ -211,7 +211,7 @@ class AgentConfig:
         # overruns any solve limit, so such horizons are refused up front.
         c(
             "horizon",
-            self.solver not in ("fast", "fast_bicycle") or self.horizon <= FAST_MAX_HORIZON,
+            self.solver != "fast" or self.horizon <= FAST_MAX_HORIZON,
             f"<= {FAST_MAX_HORIZON} with solver {self.solver!r} (its iterations outgrow any "
             "solve-time limit beyond); use solver 'ipopt' for longer horizons",
         )
@@ -252,8 +252,8 @@ class AgentConfig:
         )
         c(
             "kernel_threads",
-            self.kernel_threads == 1 or self.solver in ("fast", "fast_bicycle"),
-            f"1 with solver {self.solver!r} (only the fast solvers' kernel has threads)",
+            self.kernel_threads == 1 or self.solver == "fast",
+            f"1 with solver {self.solver!r} (only the fast solver's kernel has threads)",
         )
         c(
             "scenario_initial_states",

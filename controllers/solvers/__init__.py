@@ -6,8 +6,6 @@
 
 * ``"fast"``: the condensed exact-Hessian SQP whose derivatives CasADi generates from the
   system definition (:mod:`controllers.solvers.fast.solver`), the default;
-* ``"fast_bicycle"``: the same SQP with the bicycle's derivatives written by hand
-  (:mod:`controllers.solvers.fast_bicycle`; sine-track problems only);
 * ``"ipopt"``: IPOPT on the condensed NLP (inputs and slacks only);
 * ``"ipopt_multiple_shooting"``: IPOPT on the textbook multiple-shooting NLP (the reference);
 * ``"sqpmethod"``: CasADi's ``sqpmethod`` + qpOASES on the condensed NLP, JIT-compiled
@@ -21,7 +19,7 @@ from typing import Any
 
 from controllers.problem import ScenarioProblem
 
-SOLVERS = ("fast", "fast_bicycle", "ipopt", "ipopt_multiple_shooting", "sqpmethod", "csnlp")
+SOLVERS = ("fast", "ipopt", "ipopt_multiple_shooting", "sqpmethod", "csnlp")
 
 
 def make_solver(problem: ScenarioProblem, name: str = "fast", **options: Any):
@@ -45,10 +43,6 @@ def make_solver(problem: ScenarioProblem, name: str = "fast", **options: Any):
         from controllers.solvers.fast.solver import FastScenarioSolver
 
         return FastScenarioSolver(problem, **options)
-    if name == "fast_bicycle":
-        from controllers.solvers.fast_bicycle import BicycleFastSolver
-
-        return BicycleFastSolver(problem, **options)
     if name == "csnlp":
         from controllers.solvers.casadi.csnlp import CsnlpScenarioSolver
 

@@ -7,11 +7,11 @@ The benchmark answers the solver issues' questions with measurements, never with
   scenario agent (seeds 0..5), recording the ``(x0, W)`` it met at every step.
 * **Solvers side by side** (:mod:`experiments.benchmark.solvers`): the solvers of the registry
   (:data:`controllers.solvers.SOLVERS`; by default all but ``csnlp``: ``fast``,
-  ``fast_bicycle``, ``ipopt``, ``ipopt_multiple_shooting`` (the textbook reference),
+  ``ipopt``, ``ipopt_multiple_shooting`` (the textbook reference),
   ``sqpmethod`` (CasADi's SQP + qpOASES, JIT-compiled: the anchor)) solve these problems in
   closed-loop order, warm-started from their own past, interleaved problem by problem;
   times, iterations, objectives (:meth:`~controllers.problem.ScenarioProblem.objective` of
-  the returned inputs) and violations; then the fast solvers again alone.
+  the returned inputs) and violations; then the fast solver again alone.
 * **Horizons, scenario counts, first solve, particle filter, whole episode**
   (:mod:`experiments.benchmark.suites`): fast and IPOPT at ``N`` = 7, 15, 30; ``Ns`` up to
   5000; a fresh fast solver's build and first solve (compilation included); the filter

@@ -63,7 +63,7 @@ HORIZON_SOLVERS = ("fast", "ipopt")  # the second is the objective reference
 # (about 10 s on a busy 2-core machine) and can spend minutes on a hard problem; a solve
 # that reaches its limit is a failed solve (kind wall_time).
 HORIZON_MAX_TIME_S = {"fast": 10.0, "ipopt": 30.0}
-SWEEP_SOLVERS = ("fast", "fast_bicycle")  # timed at every Ns
+SWEEP_SOLVERS = ("fast",)  # timed at every Ns
 # Timed from this Ns on, and at the largest Ns of a shorter sweep: the solver variants
 # (bench_solvers.SOLVER_VARIANTS; the fast solver's kernel on two threads, which pays for
 # many scenarios).
@@ -92,7 +92,7 @@ def sweep_scenarios(
     For each anchor (a recorded estimate: physical state ``x0``, latent state ``z``) the
     ``Ns`` scenarios are drawn by :func:`experiments.benchmark.problems.scenario_draws`. The
     anchors of each seed are solved in closed-loop order with warm starts (reset at each
-    seed). The fast solvers (:data:`SWEEP_SOLVERS`) run at every ``Ns``, their variants
+    seed). The fast solver (:data:`SWEEP_SOLVERS`) runs at every ``Ns``, its variants
     (:data:`experiments.benchmark.solvers.SOLVER_VARIANTS`: the kernel on two threads) from
     :data:`SWEEP_VARIANTS_MIN_NS` on and at the largest ``Ns`` of the list; IPOPT on the
     condensed NLP, the objective reference, only for ``Ns <= ipopt_max_ns``.

@@ -29,7 +29,6 @@ DEFAULT_THRESHOLDS: dict[str, float] = {
     "fast_p95_ms": 5.0,  # fast p95 solve [ms]
     "anchor_over_fast": 10.0,  # sqpmethod median / fast median
     "textbook_over_fast": 300.0,  # textbook IPOPT median / fast median
-    "generic_over_hand": 1.5,  # fast median / fast_bicycle median
     "worse_share_pct": 2.0,  # [%] problems where fast ends > GAP_TOL above the textbook
     "violation_no_slack": 1e-6,  # fast's largest violation where the reference needs none
     "csnlp_over_fast": 1.0,  # csnlp median / fast median (strictly above)
@@ -149,9 +148,8 @@ def speed_targets(
         where: the problem size, for the texts.
 
     Returns:
-        Six :func:`target` dicts: fast median, fast p95, sqpmethod / fast,
-        textbook / fast, generic / hand-written, the share where fast ends above the
-        textbook.
+        Five :func:`target` dicts: fast median, fast p95, sqpmethod / fast,
+        textbook / fast, the share where fast ends above the textbook.
     """
     th = check_thresholds(thresholds)
     fast = medians.get("fast")
@@ -194,16 +192,6 @@ def speed_targets(
         ),
         ratio("anchor_over_fast", ANCHOR, "sqpmethod + qpOASES (JIT)"),
         ratio("textbook_over_fast", TEXTBOOK, f"textbook ({TEXTBOOK})"),
-        target(
-            f"generic fast / fast_bicycle median solve time <= {th['generic_over_hand']:g} "
-            f"({where}, side by side)",
-            _ratio(fast, medians.get("fast_bicycle")),
-            th["generic_over_hand"],
-            "<=",
-            "x",
-            f"{measured}, fast_bicycle {_fmt(medians.get('fast_bicycle'), '.2f')} ms",
-            "generic_over_hand",
-        ),
         target(
             f"problems where fast ends > {GAP_TOL:g} (relative) above the textbook "
             f"<= {th['worse_share_pct']:g}%",

@@ -251,7 +251,7 @@ RECIPES: dict[str, dict[str, Any]] = {
     # spread: on the sine track the vehicle drives to the goal.
     "redraw": {"spread": 0.25, "walk_std": 0.15, "redraw": True, "n_steps": 60},
 }
-TIMED_SOLVERS = ("fast", "fast_bicycle", "ipopt", "ipopt_multiple_shooting")
+TIMED_SOLVERS = ("fast", "ipopt", "ipopt_multiple_shooting")
 IPOPT_SOLVERS = ("ipopt", "ipopt_multiple_shooting", "csnlp")  # about 1 s per solve at Ns=150
 
 

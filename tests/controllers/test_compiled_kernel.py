@@ -28,7 +28,6 @@ from controllers.solvers.fast.codegen import build as compiled
 from controllers.solvers.fast.codegen import inline as kernel_inline
 from controllers.solvers.fast.codegen.build import KernelUnavailable, forget_loaded
 from controllers.solvers.fast.condensed import CondensedModel
-from controllers.solvers.fast_bicycle import BicycleCondensedModel
 from experiments.benchmark.problems import problem_from_config
 from lfm_env.system import QuadraticCost
 from tests.controllers.test_second_system import (
@@ -340,7 +339,6 @@ _BUILD = """
 import sys
 import numpy as np
 from controllers.solvers.fast.condensed import CondensedModel
-from controllers.solvers.fast_bicycle import BicycleCondensedModel
 from experiments.benchmark.problems import problem_from_config
 data = dict(np.load(sys.argv[1]))
 p = problem_from_config(n_scenarios=150)
@@ -389,8 +387,6 @@ def test_the_model_and_the_solver_pickle_with_their_kernel(paper, paper_models) 
     u = DATA["reference_u"][i].ravel()
     ref = _everything(paper_models["c"], paper, DATA["x0"][i], DATA["W"][i], u, mu)
     _assert_same(ref, _everything(model, paper, DATA["x0"][i], DATA["W"][i], u, mu))
-    bicycle = pickle.loads(pickle.dumps(BicycleCondensedModel(paper)))
-    assert bicycle.backend == "hand_written"  # its own derivatives: no kernel built
     solver = pickle.loads(pickle.dumps(make_solver(paper, "fast")))
     sol = solver.solve(DATA["x0"][i], DATA["W"][i], u_guess=DATA["u_guess"][i])
     assert sol.extra["backend"] == "compiled-c"

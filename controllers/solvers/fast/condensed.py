@@ -202,18 +202,14 @@ class CondensedModel:
             raise ValueError(f"CondensedModel {source}={choice!r}: must be one of {KERNELS}")
         self.kernel = choice
 
-        # --- the compiled kernel (a subclass with its own derivatives needs none) ---
+        # --- the compiled kernel ---
         self._lib = None
         # Threads of the kernel's rollout, linearisation and Hessian: the scenarios in this
         # many contiguous chunks, one per thread (results equal to rounding for every
         # count; 1 is the serial sweep). See kernel_driver.DRIVER.
         self.threads = 1
         self.compile_time, self.cache_hit, self.kernel_error = 0.0, False, None
-        own = all(
-            getattr(type(self), name) is getattr(CondensedModel, name)
-            for name in ("evaluate", "linearise", "hessian")
-        )
-        if choice in ("auto", "c") and own:
+        if choice in ("auto", "c"):
             try:
                 built = build_kernel(system, problem.dt)
             except KernelUnavailable as err:
@@ -288,10 +284,7 @@ class CondensedModel:
         return {"problem": self.problem, "kernel": self.kernel}
 
     def __setstate__(self, state: dict) -> None:
-        if type(self).__init__ is CondensedModel.__init__:
-            CondensedModel.__init__(self, state["problem"], kernel=state["kernel"])
-        else:  # a subclass with its own derivatives (and constructor)
-            type(self).__init__(self, state["problem"])
+        CondensedModel.__init__(self, state["problem"], kernel=state["kernel"])
 
     @staticmethod
     def _strides(W: np.ndarray, axes: tuple[int, int, int]) -> tuple[int, int, int]:

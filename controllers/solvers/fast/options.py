@@ -1,4 +1,4 @@
-"""Settings of the fast SQP solvers (:mod:`controllers.solvers.fast.solver`)."""
+"""Settings of the fast SQP solver (:mod:`controllers.solvers.fast.solver`)."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ MAX_THREADS = 256  # kernel_threads above this is surely a mistake
 
 @dataclass(frozen=True)
 class FastSolverOptions:
-    """Settings of the fast SQP solvers; the defaults suit the paper's problem.
+    """Settings of the fast SQP solver; the defaults suit the paper's problem.
 
     Tolerances are in the units of the inputs and constraints (the paper's problem: m/s^2,
     rad, m, m/s).

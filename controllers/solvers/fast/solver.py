@@ -82,9 +82,6 @@ from controllers.solvers.fast.qp.slot_qp import resolve_qp_solver
 class FastScenarioSolver(SubproblemMixin, RestartMixin):
     """Condensed exact-Hessian SQP solver of any :class:`ScenarioProblem`.
 
-    The model's derivatives come from :attr:`model_class` (generated from the system
-    definition by default; :mod:`controllers.solvers.fast_bicycle` swaps in hand-written ones).
-
     Same interface and result semantics as :class:`controllers.solvers.casadi.ipopt.IpoptScenarioSolver`:
     build once, call :meth:`solve` at every step; the previous solution shifted by one
     step is the default initial guess.
@@ -97,15 +94,13 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
         ValueError: on an unknown or out-of-range option.
     """
 
-    model_class: type[CondensedModel] = CondensedModel
-
     def __init__(self, problem: ScenarioProblem, **options: Any) -> None:
         unknown = set(options) - set(FastSolverOptions.__dataclass_fields__)
         if unknown:
             raise ValueError(f"unknown {type(self).__name__} options: {sorted(unknown)}")
         self.problem = problem
         self.options = FastSolverOptions(**options)
-        self.model = m = self.model_class(problem)
+        self.model = m = CondensedModel(problem)
         m.threads = self.options.kernel_threads
         n = problem.horizon
         self._n_u = m.n_u
@@ -135,8 +130,7 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
 
     @property
     def backend(self) -> str:
-        """How the derivatives are evaluated: ``"numpy"`` lanes, ``"casadi_map"`` or
-        ``"hand_written"`` (the bicycle's cache)."""
+        """How the derivatives are evaluated: :attr:`CondensedModel.backend`."""
         return self.model.backend
 
     # ------------------------------------------------------------------ public API
@@ -156,7 +150,7 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
-        self.model = self.model_class(self.problem)
+        self.model = CondensedModel(self.problem)
         self.model.threads = self.options.kernel_threads
 
     def solve(
