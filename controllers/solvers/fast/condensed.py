@@ -206,7 +206,7 @@ class CondensedModel:
         self._lib = None
         # Threads of the kernel's rollout, linearisation and Hessian: the scenarios in this
         # many contiguous chunks, one per thread (results equal to rounding for every
-        # count; 1 is the serial sweep). See kernel_driver.DRIVER.
+        # count; 1 is the serial sweep). See codegen/c/driver.c.
         self.threads = 1
         self.compile_time, self.cache_hit, self.kernel_error = 0.0, False, None
         if choice in ("auto", "c"):

@@ -10,9 +10,10 @@ adjoint). This module generates that work as one C library:
   Hessian of ``mu' g``) are CasADi functions of the system's own expressions
   (:meth:`ControlSystem.casadi_step`, :meth:`ControlSystem.casadi_constraints`), written as C
   by CasADi's ``CodeGenerator``;
-* a fixed driver (:data:`controllers.solvers.fast.codegen.driver.DRIVER`) loops over the steps
-  and scenarios, with the horizon ``N`` and the scenario count ``Ns`` given at run time, and
-  skips the structural zeros of the sensitivities (``S_k`` has nonzero columns only for
+* a fixed driver (the C files of ``codegen/c/``: ``driver.c`` with the row selection
+  ``selection.c`` and the Hessian ``hessian.c``, read with :func:`c_source`) loops over the
+  steps and scenarios, with the horizon ``N`` and the scenario count ``Ns`` given at run time,
+  and skips the structural zeros of the sensitivities (``S_k`` has nonzero columns only for
   inputs before step ``k``).
 
 So one library serves a system and time step at every ``N`` and ``Ns``. It is compiled with
@@ -30,6 +31,7 @@ import contextlib
 import ctypes
 import hashlib
 import os
+import re
 import shlex
 import shutil
 import subprocess
@@ -37,12 +39,12 @@ import tempfile
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
 
-from controllers.solvers.fast.codegen.driver import DRIVER
 from controllers.solvers.fast.codegen.inline import (
     VECTOR_MATH_DECLARATIONS,
     NotInlinable,
@@ -72,6 +74,9 @@ BUILDS = (
     (FLAGS, ()),
 )
 COMPILE_TIMEOUT = 120.0  # [s] a compile taking longer is abandoned (fallback)
+
+# A line of a C file of c/ that stands for another file of that folder (c_source).
+_INCLUDE = re.compile(r'^#include "([\w.]+)"\n', re.MULTILINE)
 
 # Loaded libraries of this process, by source hash (a second build is free).
 _LOADED: dict[str, ctypes.CDLL] = {}
@@ -127,6 +132,13 @@ def find_compiler() -> list[str]:
     raise KernelUnavailable(
         f"no C compiler found (CC={cc!r})" if cc else "no C compiler found (cc, gcc on PATH)"
     )
+
+
+def c_source(name: str) -> str:
+    """The text of the C file ``c/<name>`` beside this module, each of its ``#include "..."``
+    lines replaced by the text of that file of the folder (a whole translation unit)."""
+    text = (resources.files(__package__) / "c" / name).read_text(encoding="utf-8")
+    return _INCLUDE.sub(lambda m: c_source(m.group(1)), text)
 
 
 def pointwise_functions(system, dt: float) -> list[ca.Function]:
@@ -271,7 +283,8 @@ def kernel_source(system, dt: float) -> str:
     if "lfm_con_jac" in by_name:
         with contextlib.suppress(NotInlinable):
             inline += inline_con_jac(code, by_name["lfm_con_jac"])
-    return code + "\n" + defines + "\n" + inline + DRIVER.replace("@WORK@", work)
+    driver = c_source("driver.c").replace("@WORK@", work)  # (the work-size queries)
+    return code + "\n" + defines + "\n" + inline + "\n" + driver
 
 
 @dataclass
@@ -363,6 +376,15 @@ def forget_loaded() -> None:
     _LOADED.clear()
 
 
+# The driver's arrays (C order): x0T (NX, Ns); W any (strides sa, sk, si of force
+# component, step, scenario, in elements); u (N NU); goal (NX);
+# Wq (N, NX, NX) state weights of steps 1..N; X (N+1, NX, Ns); G (NG, N, Ns);
+# Jg (N, Ns, G_NNZ): of each point's constraint Jacobian (NG, NX) only the entries that can
+# be nonzero, row by row (constraint j's from G_PTR[j], each at state G_COL[e]; the tables
+# of constraint_jacobian_table); mu (NG, N, Ns); H (N NU, N NU).
+# S causally packed: x_{k+1} depends on u_0..u_k only, so step k (from 0) is stored as
+# (Ns, NX, (k + 1) NU) from S_OFF(k), the steps one after another (N (N + 1) / 2 NU NX Ns
+# values instead of N^2 NU NX Ns; the zeros are never written or read).
 def _declare(lib: ctypes.CDLL) -> None:
     """Argument types of the driver's entry points."""
     L, P, D = ctypes.c_long, ctypes.c_void_p, ctypes.c_double
@@ -410,6 +432,7 @@ __all__ = [
     "KernelUnavailable",
     "address",
     "build_kernel",
+    "c_source",
     "cache_dir",
     "find_compiler",
     "forget_loaded",

@@ -5,11 +5,11 @@ writes through ``casadi_real** res`` (each checked for NULL). Called once per sc
 keeps the compiler from vectorising the loop over the scenarios: it cannot see through the
 pointer arrays. The functions here rewrite the generated body of a point function (straight-
 line code of an SX function: scalar temporaries, arithmetic and math calls) into a ``static
-inline`` function of plain strided pointers, which the driver
-(:data:`controllers.solvers.fast.codegen.driver.DRIVER`) calls inside ``#pragma omp simd`` loops over
-the scenarios of one step: the rollout's step (:func:`inline_step`), the Hessian's recursion
-step (:func:`inline_step_curv`) and the linearisation's step and constraint Jacobians
-(:func:`inline_step_jac`, :func:`inline_con_jac`). Each defines a macro (``LFM_STEP_INLINE``,
+inline`` function of plain strided pointers, which the driver (``codegen/c/driver.c``) calls
+inside ``#pragma omp simd`` loops over the scenarios of one step: the rollout's step
+(:func:`inline_step`), the Hessian's recursion step (:func:`inline_step_curv`) and the
+linearisation's step and constraint Jacobians (:func:`inline_step_jac`,
+:func:`inline_con_jac`). Each defines a macro (``LFM_STEP_INLINE``,
 ...) that switches the driver to its vectorisable path; a body the rewrite does not handle
 raises :class:`NotInlinable` and the driver keeps one call per scenario there.
 
