@@ -181,11 +181,11 @@ class AgentConfig:
     # Wall-clock limit of one solve [s]: a solve that reaches it fails and the agent falls
     # back (the previous plan, else the system's fallback input), as on any failed solve.
     max_solve_time: float = 10.0
-    # Threads of the fast solver's compiled kernel (FastSolverOptions.kernel_threads): it pays
+    # Threads of the fast solver's C library (FastSolverOptions.threads): it pays
     # for many scenarios (Ns >= 500; 0.6x the solve time at Ns = 5000 with two) when the
     # agent has the cores to itself; keep 1 under lfm-evaluate --jobs, whose processes take
     # the cores already.
-    kernel_threads: int = 1
+    solver_threads: int = 1
     scenario_initial_states: str = "estimate"  # "estimate" (paper) or "particles" (its remark)
     # Constraint back-off of the filtering agents: each state constraint g_j is tightened
     # by k * sqrt(dg_j' Sigma_x dg_j), k estimate stds along its gradient: one k for all,
@@ -246,14 +246,14 @@ class AgentConfig:
             f"in (0, {MAX_SOLVE_TIME:g}] s",
         )
         c(
-            "kernel_threads",
-            1 <= self.kernel_threads <= MAX_THREADS,
+            "solver_threads",
+            1 <= self.solver_threads <= MAX_THREADS,
             f"an integer in [1, {MAX_THREADS}]",
         )
         c(
-            "kernel_threads",
-            self.kernel_threads == 1 or self.solver == "fast",
-            f"1 with solver {self.solver!r} (only the fast solver's kernel has threads)",
+            "solver_threads",
+            self.solver_threads == 1 or self.solver == "fast",
+            f"1 with solver {self.solver!r} (only the fast solver's C library has threads)",
         )
         c(
             "scenario_initial_states",

@@ -28,7 +28,7 @@ from experiments.evaluation.interrupts import raise_if_interrupted
 
 SOLVER_LABELS = {
     "fast": "fast SQP, derivatives generated from the system (FastScenarioSolver)",
-    "fast_2threads": "fast SQP, its compiled kernel on two threads (kernel_threads=2)",
+    "fast_2threads": "fast SQP, its C library on two threads (threads=2)",
     "ipopt": "IPOPT, condensed (single shooting)",
     "ipopt_multiple_shooting": "IPOPT, multiple shooting, exact Hessian (textbook reference)",
     "sqpmethod": "CasADi sqpmethod + qpOASES, condensed, JIT-compiled (the SQP anchor)",
@@ -36,10 +36,10 @@ SOLVER_LABELS = {
 }
 FAST_SOLVERS = ("fast",)  # timed again alone, without IPOPT in between
 # Variants of a registered solver with options, by the name the tables give them: the fast
-# solver with its kernel on two threads (FastSolverOptions.kernel_threads), timed in the
+# solver with its C library on two threads (FastSolverOptions.threads), timed in the
 # scenario sweep (bench_suites.sweep_scenarios).
 SOLVER_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
-    "fast_2threads": ("fast", {"kernel_threads": 2}),
+    "fast_2threads": ("fast", {"threads": 2}),
 }
 # The objective reference: the first of these that is available.
 REFERENCES = ("ipopt_multiple_shooting", "ipopt", "csnlp")

@@ -39,7 +39,7 @@ DEFAULT_THRESHOLDS: dict[str, float] = {
     "large_ns_median_ms": 30.0,  # fast median at Ns = LARGE_NS [ms]
     "qp_failed": 0.0,  # QP_Failed of the fast solvers over the whole run
     "pf_step_ms": 0.6,  # particle-filter step at PF_PARTICLES [ms]
-    "cold_build_s": 5.0,  # fast solver built with an empty kernel cache + first solve [s]
+    "cold_build_s": 5.0,  # fast solver built with an empty C library cache + first solve [s]
     "episode_s": 3.0,  # a whole paper episode [s]
 }
 _OPS = {"<=": np.less_equal, ">=": np.greater_equal, ">": np.greater}
@@ -337,7 +337,7 @@ def _other_targets(results: dict[str, Any], th: Mapping[str, float]) -> list[dic
         (
             r
             for r in first.get("results", [])
-            if r.get("kernel_cache") == "fresh" and "total_s" in r
+            if r.get("codegen_cache") == "fresh" and "total_s" in r
         ),
         None,
     )
@@ -375,14 +375,14 @@ def _other_targets(results: dict[str, Any], th: Mapping[str, float]) -> list[dic
             "pf_step_ms",
         ),
         target(
-            f"fast solver built with an empty kernel cache, build + first solve "
+            f"fast solver built with an empty C library cache, build + first solve "
             f"<= {th['cold_build_s']:g} s",
             _get(cold, "total_s"),
             th["cold_build_s"],
             "<=",
             "s",
             (
-                f"kernel compile {_fmt(cold.get('kernel_compile_time_s'), '.2f')} s, first solve "
+                f"C library compile {_fmt(cold.get('codegen_compile_time_s'), '.2f')} s, first solve "
                 f"{_fmt(cold.get('first_solve_ms'), '.1f')} ms, backend {cold.get('backend')}"
                 if cold
                 else "first-solve part not run"

@@ -102,7 +102,7 @@ def test_quick_run_writes_complete_json(quick_run: tuple[dict, str]) -> None:
 
     rows = data["sweep"]["results"]
     for row in rows:
-        # The kernel on two threads at the sweep's largest Ns (here 50; from 500 on in full).
+        # The C library on two threads at the sweep's largest Ns (here 50; from 500 on in full).
         extra = {"fast_2threads"} if row is rows[-1] else set()
         assert set(row["summary"]) == {"fast", "ipopt"} | extra
         for name, summary in row["summary"].items():
@@ -122,10 +122,10 @@ def test_quick_run_writes_complete_json(quick_run: tuple[dict, str]) -> None:
     for row in first:
         assert row["build_s"] > 0 and row["first_solve_ms"] > 0 and row["success"]
         assert row["backend"]
-    # The first build compiles its kernel in an empty cache, the second finds it.
-    assert [row["kernel_cache"] for row in first] == ["fresh", "as found"]
+    # The first build compiles its C library in an empty cache, the second finds it.
+    assert [row["codegen_cache"] for row in first] == ["fresh", "as found"]
     if first[0]["backend"] == "compiled-c":
-        assert not first[0]["cache_hit"] and first[0]["kernel_compile_time_s"] > 0
+        assert not first[0]["cache_hit"] and first[0]["codegen_compile_time_s"] > 0
         assert first[1]["cache_hit"]
 
 
@@ -255,7 +255,7 @@ def test_targets_of_the_run_follow_from_its_figures(quick_run: tuple[dict, str])
     pf = next(r for r in data["particle_filter"]["results"] if r["n_particles"] == 7000)
     assert by_key["pf_step_ms"]["value"] == pf["step_ms_median"]
     cold = data["first_solve"]["results"][0]
-    assert cold["kernel_cache"] == "fresh"
+    assert cold["codegen_cache"] == "fresh"
     assert by_key["cold_build_s"]["value"] == cold["total_s"] > 0
     # The textbook and csnlp were skipped, and the quick sweep has no Ns = 5000.
     skipped = {t["key"] for t in targets if t["passed"] is None}

@@ -9,8 +9,8 @@ the rest by check-and-add. Two selections decide which:
 
 Both pick "the ``keep`` largest values of a group" with a fixed rule for ties (the larger
 value first, then the lower scenario index) and return the rows sorted by (constraint
-position, step, scenario), so the result is a function of the values alone. The compiled
-kernel (``lfm_screen``, ``lfm_violated`` in ``controllers/solvers/fast/codegen/c/selection.c``)
+position, step, scenario), so the result is a function of the values alone. The C
+library (``lfm_screen``, ``lfm_violated`` in ``controllers/solvers/fast/codegen/c/selection.c``)
 implements the same rule and must return the same rows;
 :class:`~controllers.solvers.fast.condensed.CondensedModel` picks the implementation.
 """

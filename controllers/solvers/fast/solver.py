@@ -57,7 +57,7 @@ Where things are: the options in :mod:`controllers.solvers.fast.options`; one
 iteration's subproblem (convexification, screening, check-and-add, the QP step) in
 :mod:`controllers.solvers.fast.subproblem`; the extra starts' choices in
 :mod:`controllers.solvers.fast.restarts`; the QP in :mod:`controllers.solvers.fast.qp.slot_qp`;
-the derivatives in :mod:`controllers.solvers.fast.condensed` (and its compiled kernel,
+the derivatives in :mod:`controllers.solvers.fast.condensed` (and its C library,
 :mod:`controllers.solvers.fast.codegen.build`); the SQP loop, line search, trust region and extra
 starts here.
 """
@@ -101,7 +101,7 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
         self.problem = problem
         self.options = FastSolverOptions(**options)
         self.model = m = CondensedModel(problem)
-        m.threads = self.options.kernel_threads
+        m.threads = self.options.threads
         n = problem.horizon
         self._n_u = m.n_u
         self._lower, self._upper = m.lower, m.upper
@@ -151,7 +151,7 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
         self.model = CondensedModel(self.problem)
-        self.model.threads = self.options.kernel_threads
+        self.model.threads = self.options.threads
 
     def solve(
         self,
@@ -181,9 +181,9 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
             (``qp_rows``), QP calls retried after a failure (``qp_retries``), iterations
             whose check-and-add rounds ran out (``qp_rounds_exhausted``), merit
             evaluations and second-order corrections, names the derivative backend
-            (``backend``), the kernel's threads (``kernel_threads``: 1 without
+            (``backend``), the C library's threads (``threads``: 1 without
             OpenMP, whatever was asked) and its loops' vectorisation
-            (``kernel_vector_math``: ``CondensedModel.vector_math``), the QP solver option
+            (``vector_math``: ``CondensedModel.vector_math``), the QP solver option
             (``qp_solver``) with the QP calls per solver it resolved to (``qp_calls``, e.g.
             ``{"qpoases": 12}``), gives the first start's ``{"status", "iterations"}``
             (``first_start``), and ``extra["restarts"]`` maps each extra start tried to
@@ -264,8 +264,8 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
             if keep:
                 ro, status, success = ro2, status2, success2
         extra["backend"] = self.backend
-        extra["kernel_threads"] = self.model.threads if self.model.openmp else 1
-        extra["kernel_vector_math"] = getattr(self.model, "vector_math", 0)
+        extra["threads"] = self.model.threads if self.model.openmp else 1
+        extra["vector_math"] = getattr(self.model, "vector_math", 0)
         extra["qp_solver"] = self.options.qp_solver
         extra["first_start"] = {"status": first_status, "iterations": first_iterations}
 

@@ -19,9 +19,9 @@ adjoint). This module generates that work as one C library:
 So one library serves a system and time step at every ``N`` and ``Ns``. It is compiled with
 the system C compiler (``$CC``, else ``cc``, else ``gcc``; ``-O3 -fPIC -shared``), cached on
 disk under ``$LFM_CACHE_DIR`` (default ``~/.cache/lfm-scenario-mpc``) by a hash of its C
-source and compile command, written atomically (two processes compiling the same kernel at
+source and compile command, written atomically (two processes compiling the same library at
 once both end with a valid library), and called through ``ctypes`` on the NumPy arrays
-directly (no copies). :func:`build_kernel` raises :class:`KernelUnavailable` when no
+directly (no copies). :func:`build_library` raises :class:`CodegenUnavailable` when no
 compiler is found or compilation fails; the caller then falls back to NumPy.
 """
 
@@ -56,12 +56,12 @@ from controllers.solvers.fast.codegen.inline import (
 
 CACHE_ENV = "LFM_CACHE_DIR"
 FLAGS = ("-O3", "-fPIC", "-shared")
-# Added when the compiler takes it (the kernel's scenario chunks then run in threads,
+# Added when the compiler takes it (the C library's scenario chunks then run in threads,
 # CondensedModel.threads); without it the chunks run one after another.
 OPENMP_FLAG = "-fopenmp"
 # Without OpenMP, its simd pragmas alone (the rollout's vectorised scenario loop).
 SIMD_FLAG = "-fopenmp-simd"
-# glibc's vector math library for the rollout's vectorised loop (kernel_inline); the link
+# glibc's vector math library for the rollout's vectorised loop (codegen.inline); the link
 # must resolve every symbol, so a system without libmvec fails here and builds without it.
 VECTOR_MATH_FLAGS = ("-DLFM_VECTOR_MATH",)
 VECTOR_MATH_LIBS = ("-lmvec", "-Wl,-z,defs")
@@ -84,12 +84,12 @@ _LOADED: dict[str, ctypes.CDLL] = {}
 _CACHE_OVERRIDE: list[Path] = []
 
 
-class KernelUnavailable(RuntimeError):
-    """No compiled kernel: no compiler found, compilation failed or the library did not load."""
+class CodegenUnavailable(RuntimeError):
+    """No C library: no compiler found, compilation failed or the library did not load."""
 
 
 def cache_dir() -> Path:
-    """The kernel cache directory: ``$LFM_CACHE_DIR`` or ``~/.cache/lfm-scenario-mpc``
+    """The C library cache directory: ``$LFM_CACHE_DIR`` or ``~/.cache/lfm-scenario-mpc``
     (inside :func:`fresh_cache`, its temporary directory)."""
     if _CACHE_OVERRIDE:
         return _CACHE_OVERRIDE[-1]
@@ -99,16 +99,16 @@ def cache_dir() -> Path:
 
 @contextlib.contextmanager
 def fresh_cache() -> Iterator[Path]:
-    """An empty, temporary kernel cache for the duration, yielded as a path.
+    """An empty, temporary C library cache for the duration, yielded as a path.
 
-    A kernel built inside is compiled anew (the libraries this process has loaded are set
+    A library built inside is compiled anew (the libraries this process has loaded are set
     aside meanwhile, and restored after), so its ``compile_time`` is a cold build's: the
     benchmark measures compilation this way without touching the real cache. Solvers
     built inside keep their loaded library after the directory is removed.
     """
     saved = dict(_LOADED)
     _LOADED.clear()
-    with tempfile.TemporaryDirectory(prefix="lfm-kernel-cache-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="lfm-codegen-cache-") as tmp:
         _CACHE_OVERRIDE.append(Path(tmp))
         try:
             yield Path(tmp)
@@ -122,14 +122,14 @@ def find_compiler() -> list[str]:
     """The C compiler command: ``$CC`` if set (only it), else ``cc`` or ``gcc`` on ``PATH``.
 
     Raises:
-        KernelUnavailable: when that compiler is not found.
+        CodegenUnavailable: when that compiler is not found.
     """
     cc = os.environ.get("CC")
     candidates = [shlex.split(cc)] if cc else [["cc"], ["gcc"]]
     for cmd in candidates:
         if cmd and shutil.which(cmd[0]):
             return [shutil.which(cmd[0]) or cmd[0], *cmd[1:]]
-    raise KernelUnavailable(
+    raise CodegenUnavailable(
         f"no C compiler found (CC={cc!r})" if cc else "no C compiler found (cc, gcc on PATH)"
     )
 
@@ -222,7 +222,7 @@ def constraint_jacobian_pattern(system) -> np.ndarray:
     """``(ng, nx)`` bool: where the constraints' Jacobian ``dg/dx`` can be nonzero (CasADi's
     structural sparsity), i.e. which states each constraint depends on.
 
-    The compiled kernel stores only these entries of each point's constraint Jacobian
+    The C library stores only these entries of each point's constraint Jacobian
     (:func:`constraint_jacobian_table`); the bicycle's six constraints have 8 of 24.
     """
     nx, ng = system.nx, system.ng
@@ -235,7 +235,7 @@ def constraint_jacobian_pattern(system) -> np.ndarray:
 
 
 def constraint_jacobian_table(system) -> str:
-    """C tables of the constraint Jacobian entries the kernel stores per point, row by row.
+    """C tables of the constraint Jacobian entries the C library stores per point, row by row.
 
     ``G_NNZ`` entries (those of :func:`constraint_jacobian_pattern`, row-major), constraint
     ``j``'s from ``G_PTR[j]`` to ``G_PTR[j + 1]`` (``G_PTR[NG] = G_NNZ``), each at state
@@ -255,8 +255,10 @@ def constraint_jacobian_table(system) -> str:
     return "\n".join(lines)
 
 
-def kernel_source(system, dt: float) -> str:
-    """The complete C source of ``system``'s kernel at time step ``dt`` [s]."""
+def library_source(system, dt: float) -> str:
+    """The complete C source of ``system``'s C library at time step ``dt`` [s]."""
+    # (The generator's name prefixes the generated symbols: part of the source, so of the
+    # cache key; kept as it was.)
     cg = ca.CodeGenerator("lfm_kernel.c", {"with_header": False, "casadi_real": "double"})
     fns = pointwise_functions(system, dt)
     for f in fns:
@@ -288,8 +290,8 @@ def kernel_source(system, dt: float) -> str:
 
 
 @dataclass
-class Kernel:
-    """A loaded kernel library and how it was obtained."""
+class CompiledLibrary:
+    """A loaded C library and how it was obtained."""
 
     lib: ctypes.CDLL
     path: Path
@@ -313,12 +315,12 @@ def _compile(source: str, target: Path, compiler: list[str]) -> None:
                     cmd, capture_output=True, text=True, timeout=COMPILE_TIMEOUT, check=False
                 )
             except (OSError, subprocess.TimeoutExpired) as err:
-                raise KernelUnavailable(f"compiler {compiler[0]!r} failed to run: {err}") from err
+                raise CodegenUnavailable(f"compiler {compiler[0]!r} failed to run: {err}") from err
             if out.returncode == 0:
                 break
         if out.returncode != 0:
             msg = (out.stderr or out.stdout).strip().splitlines()[:3]
-            raise KernelUnavailable(f"compilation with {compiler[0]!r} failed: {msg}")
+            raise CodegenUnavailable(f"compilation with {compiler[0]!r} failed: {msg}")
         os.replace(tmp, target)  # atomic: a concurrent build replaces an equal file
         os.replace(c_file, target.with_suffix(".c"))
     finally:
@@ -326,26 +328,26 @@ def _compile(source: str, target: Path, compiler: list[str]) -> None:
             leftover.unlink(missing_ok=True)
 
 
-def build_kernel(system, dt: float) -> Kernel:
-    """The compiled kernel of ``system`` at time step ``dt`` [s], from the cache if there.
+def build_library(system, dt: float) -> CompiledLibrary:
+    """The C library of ``system`` at time step ``dt`` [s], from the cache if there.
 
     Raises:
-        KernelUnavailable: no compiler found, compilation failed or the library did not load.
+        CodegenUnavailable: no compiler found, compilation failed or the library did not load.
     """
     start = time.perf_counter()
-    kernel = load_library(kernel_source(system, dt), "lfm_kernel")
-    _declare(kernel.lib)
-    kernel.build_time = time.perf_counter() - start
-    return kernel
+    library = load_library(library_source(system, dt), "lfm_codegen")
+    _declare(library.lib)
+    library.build_time = time.perf_counter() - start
+    return library
 
 
-def load_library(source: str, stem: str) -> Kernel:
-    """The shared library of the C ``source``, compiled with the kernel's compiler and
+def load_library(source: str, stem: str) -> CompiledLibrary:
+    """The shared library of the C ``source``, compiled with the C library's compiler and
     flags (:data:`BUILDS`) and cached under :func:`cache_dir` as ``<stem>_<hash>.so``
     (loaded once per process).
 
     Raises:
-        KernelUnavailable: no compiler found, compilation failed or the library did not load.
+        CodegenUnavailable: no compiler found, compilation failed or the library did not load.
     """
     start = time.perf_counter()
     compiler_env = os.environ.get("CC", "")
@@ -354,21 +356,21 @@ def load_library(source: str, stem: str) -> Kernel:
     lib = _LOADED.get(key)
     if lib is not None:
         path = Path(lib._name)
-        return Kernel(lib, path, key, True, time.perf_counter() - start)
+        return CompiledLibrary(lib, path, key, True, time.perf_counter() - start)
     path = cache_dir() / f"{stem}_{key}.so"
     hit = path.is_file()
     if not hit:
         try:
             _compile(source, path, find_compiler())
         except OSError:  # the cache is not writable: compile into a private directory
-            path = Path(tempfile.mkdtemp(prefix="lfm-kernel-")) / path.name
+            path = Path(tempfile.mkdtemp(prefix="lfm-codegen-")) / path.name
             _compile(source, path, find_compiler())
     try:
         lib = ctypes.CDLL(str(path))
     except OSError as err:
-        raise KernelUnavailable(f"cannot load {path}: {err} (CC={compiler_env!r})") from err
+        raise CodegenUnavailable(f"cannot load {path}: {err} (CC={compiler_env!r})") from err
     _LOADED[key] = lib
-    return Kernel(lib, path, key, hit, time.perf_counter() - start)
+    return CompiledLibrary(lib, path, key, hit, time.perf_counter() - start)
 
 
 def forget_loaded() -> None:
@@ -412,7 +414,7 @@ def ptr(a: np.ndarray | None) -> int | None:
     if a is None:
         return None
     if a.dtype != np.float64 or not a.flags.c_contiguous:
-        raise ValueError(f"kernel array: must be C-contiguous float64, got {a.dtype}")
+        raise ValueError(f"C library array: must be C-contiguous float64, got {a.dtype}")
     return address(a)
 
 
@@ -428,16 +430,16 @@ def address(a: np.ndarray) -> int:
 
 __all__ = [
     "CACHE_ENV",
-    "Kernel",
-    "KernelUnavailable",
+    "CodegenUnavailable",
+    "CompiledLibrary",
     "address",
-    "build_kernel",
+    "build_library",
     "c_source",
     "cache_dir",
     "find_compiler",
     "forget_loaded",
     "fresh_cache",
-    "kernel_source",
+    "library_source",
     "load_library",
     "pointwise_functions",
 ]

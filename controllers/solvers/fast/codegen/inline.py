@@ -1,4 +1,4 @@
-"""The system's generated point functions as inline C the kernel's scenario loops vectorise.
+"""The system's generated point functions as inline C the C library's scenario loops vectorise.
 
 CasADi writes a function as C that reads its inputs through ``const casadi_real** arg`` and
 writes through ``casadi_real** res`` (each checked for NULL). Called once per scenario, it
@@ -15,7 +15,7 @@ raises :class:`NotInlinable` and the driver keeps one call per scenario there.
 
 The math functions glibc's vector math library (libmvec) has had since 2.22 (``sin``,
 ``cos``, ``exp``, ``log``, ``pow``) are renamed ``lfm_v*``: with ``LFM_VECTOR_MATH`` defined
-(the kernel is built with ``-lmvec``) these are declared as the same C functions under the
+(the C library is built with ``-lmvec``) these are declared as the same C functions under the
 same symbols, with GCC's ``simd`` attribute, so the vectorised loops call libmvec's variants
 (``_ZGVbN2v_sin`` and so on); else they are the plain functions. (Under their own names the
 compiler would also merge ``sin(a)`` and ``cos(a)`` into one scalar ``sincos``, which has no

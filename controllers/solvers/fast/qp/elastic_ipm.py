@@ -36,7 +36,7 @@ terms (their rounding scale) and the duality gap ``sum v z`` below ``1e-8 + 1e-9
 the objective's terms (PIQP's default gap test).
 
 The C source (``controllers/solvers/fast/codegen/c/elastic_ipm.c``) is compiled once with the
-kernel's compiler and cached like it
+C library's compiler and cached like it
 (:func:`controllers.solvers.fast.codegen.build.load_library`); without a compiler the SQP uses
 PIQP and qpOASES as before (:func:`available`).
 """
@@ -50,7 +50,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers.solvers.fast.codegen.build import (
-    KernelUnavailable,
+    CodegenUnavailable,
     address,
     c_source,
     load_library,
@@ -96,7 +96,7 @@ def _library() -> ctypes.CDLL | None:
     try:
         # (after a newline, as the library's cache key, a hash of the text, always had it)
         lib = load_library("\n" + c_source("elastic_ipm.c"), "lfm_elastic_qp").lib
-    except KernelUnavailable:
+    except CodegenUnavailable:
         return None
     L, P, D = ctypes.c_long, ctypes.c_void_p, ctypes.c_double
     lib.lfm_elastic_qp.argtypes = [L, L, L, P, P, P, P, P, P, P, P, P, D, D, D, D, L, P, P, P, P]
@@ -145,11 +145,11 @@ def solve_elastic_qp(
 
     Raises:
         ValueError: on arrays of the wrong shape or a column outside ``[0, G)``.
-        KernelUnavailable: when no C compiler is there (see :func:`available`).
+        CodegenUnavailable: when no C compiler is there (see :func:`available`).
     """
     lib = _library()
     if lib is None:
-        raise KernelUnavailable("the elastic QP solver needs a C compiler (see available())")
+        raise CodegenUnavailable("the elastic QP solver needs a C compiler (see available())")
     H = np.ascontiguousarray(H, dtype=float)
     n = H.shape[0]
     if H.shape != (n, n):
