@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from controllers.estimators.estimator import ESTIMATORS
-from controllers.solvers import SOLVERS
+from controllers.solvers import SOLVER_SPECS, SOLVERS
 from controllers.solvers.fast.options import MAX_THREADS
 from lfm_env.config import (
     ConfigError,
@@ -35,7 +35,7 @@ RESAMPLING = ("systematic", "stratified", "residual", "multinomial")
 SCENARIO_INITIAL_STATES = ("estimate", "particles")
 MAX_SCENARIOS = 100_000
 MAX_ITER = 2**31 - 1
-FAST_MAX_HORIZON = 40  # longest horizon of the fast solver (see AgentConfig)
+FAST_MAX_HORIZON = SOLVER_SPECS["fast"].max_horizon  # longest horizon of the fast solver
 MAX_SOLVE_TIME = 3600.0  # [s] largest agents.max_solve_time
 
 #: Memory budget [bytes] of an agent's filter and, separately, of its scenario problem:
@@ -205,14 +205,14 @@ class AgentConfig:
         c("rl_policy", self.rl_policy is None or self.rl_policy != "", "null or a file path")
         c("horizon", self.horizon >= 1, "an integer >= 1")
         c("horizon", self.horizon <= 200, "<= 200")
-        # The fast SQP's work per iteration grows steeply with N (measured with 150
-        # scenarios: one step 1.2 s at N = 20, 11 s at N = 40 against the 10 s solve limit,
-        # 21 s at N = 60 and 84 s at N = 100): beyond FAST_MAX_HORIZON a single iteration
-        # overruns any solve limit, so such horizons are refused up front.
+        # A solver's practical horizon (SolverSpec.max_horizon; the fast SQP's iterations
+        # outgrow any solve limit beyond 40) is enforced up front.
+        spec = SOLVER_SPECS.get(self.solver)
+        longest = spec.max_horizon if spec is not None else None
         c(
             "horizon",
-            self.solver != "fast" or self.horizon <= FAST_MAX_HORIZON,
-            f"<= {FAST_MAX_HORIZON} with solver {self.solver!r} (its iterations outgrow any "
+            longest is None or self.horizon <= longest,
+            f"<= {longest} with solver {self.solver!r} (its iterations outgrow any "
             "solve-time limit beyond); use solver 'ipopt' for longer horizons",
         )
         if self.n_scenarios is None:
@@ -252,7 +252,7 @@ class AgentConfig:
         )
         c(
             "solver_threads",
-            self.solver_threads == 1 or self.solver == "fast",
+            self.solver_threads == 1 or (spec is not None and spec.threaded),
             f"1 with solver {self.solver!r} (only the fast solver's C library has threads)",
         )
         c(

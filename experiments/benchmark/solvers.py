@@ -22,7 +22,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from controllers.problem import ScenarioProblem
-from controllers.solvers import SOLVERS, make_solver
+from controllers.solvers import SOLVERS, make_solver, solver_spec
 from experiments.benchmark.problems import DEFAULT_CONFIG, problem_from_config
 from experiments.evaluation.interrupts import raise_if_interrupted
 
@@ -67,8 +67,7 @@ def build_solver(
     Raises:
         ValueError: for a name not in :data:`controllers.solvers.SOLVERS`.
     """
-    if name not in SOLVERS:
-        raise ValueError(f"unknown solver {name!r}; choose one of {SOLVERS}")
+    solver_spec(name)  # (an unknown name raises)
     raise_if_interrupted()
     t0 = time.perf_counter()
     try:
@@ -530,8 +529,7 @@ def time_solvers(
     """
     problems = list(problems)
     for name in solvers:
-        if name not in SOLVERS:
-            raise ValueError(f"unknown solver {name!r}; choose one of {SOLVERS}")
+        solver_spec(name)  # (an unknown name raises)
     if problem is None:
         if not problems:
             raise ValueError("problems is empty: cannot infer the problem size")
