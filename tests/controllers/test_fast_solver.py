@@ -458,7 +458,7 @@ def test_bad_options_raise_value_error(options: dict) -> None:
 
 
 def test_an_extra_start_is_the_best_plan_only_when_near_worse_and_closing_in() -> None:
-    from controllers.solvers.fast.condensed import Rollout
+    from controllers.solvers.fast.iterate import Rollout
 
     solver = FastScenarioSolver(paper_problem(n_scenarios=5))
     n_u = solver._n_u

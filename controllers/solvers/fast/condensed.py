@@ -30,7 +30,9 @@ environment variable ``LFM_BACKEND`` = ``auto`` (default), ``c``, ``numpy`` or `
 It also finds structure the solver exploits: constraints whose condensed Jacobian
 ``d g_j(x_k) / d u`` is the same constant for every scenario, step input and force (the
 bicycle's speed bounds: ``v_k = v_0 + dt sum (a_j + w_j)``). For those only the extreme
-scenario matters at every step, whatever ``u`` is: one exact linear row per step.
+scenario matters at every step, whatever ``u`` is: one exact linear row per step
+(:func:`~controllers.solvers.fast.screening.shared_linear_constraints`). Its results are the
+containers of :mod:`controllers.solvers.fast.iterate`.
 """
 
 from __future__ import annotations
@@ -39,7 +41,6 @@ import math
 import os
 import sys
 from collections import deque
-from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
@@ -52,8 +53,13 @@ from controllers.solvers.fast.codegen.build import (
     constraint_jacobian_pattern,
     ptr,
 )
+from controllers.solvers.fast.iterate import Linearisation, Rollout
 from controllers.solvers.fast.lanes import LaneFunction
-from controllers.solvers.fast.screening import screen_rows, worst_rows
+from controllers.solvers.fast.screening import (
+    screen_rows,
+    shared_linear_constraints,
+    worst_rows,
+)
 
 BACKEND_ENV = "LFM_BACKEND"
 BACKENDS = ("auto", "c", "numpy", "vm")
@@ -67,96 +73,6 @@ def _references(arrays: tuple[np.ndarray, ...]) -> int:
 # _references of a pair that only its tuple refers to (measured: interpreters count
 # differently): a pooled rollout pair at this count is free for reuse.
 _POOLED = _references((np.empty(0), np.empty(0)))
-
-
-@dataclass
-class Rollout:
-    """States, constraint values and merit of all scenarios under one input sequence."""
-
-    u: np.ndarray  # (N nu,) flattened inputs [u_0, u_1, ...]
-    X: np.ndarray  # (N+1, nx, Ns) states, component-major per step
-    G: np.ndarray  # (ng, N, Ns) constraint values of steps 1..N
-    slack: float  # sum of the minimal slacks
-    merit: float  # exact-penalty objective (inf if not finite)
-
-
-@dataclass
-class Linearisation:
-    """First-order information at a rollout, w.r.t. the flattened inputs ``u``."""
-
-    ro: Rollout
-    # (N, Ns, nx, nx) step Jacobians d x_{k+1} / d x_k; None from the C library, which
-    # uses each where it computes it (in S and the Hessian's recursion) and stores none
-    A: np.ndarray | None
-    S: np.ndarray  # (N, Ns, nx, N nu) sensitivities d x_k / d u of steps 1..N, or packed
-    Jg: np.ndarray  # (N, Ns, ng, nx) constraint Jacobians at steps 1..N, or packed
-    grad: np.ndarray  # (N nu,) gradient of the cost
-    # Packed (the C library): S causally, the state of step k + 1 (k from 0) depends on
-    # u_0..u_k only, so its block is stored as (Ns, nx, (k + 1) nu), the steps one after
-    # another in one flat array; Jg as (N, Ns, nnz), the entries at jg_index of each
-    # (ng, nx) Jacobian read row-major (those that can be nonzero).
-    packed: bool = False
-    jg_index: np.ndarray | None = None
-
-    def constraint_jacobians(self) -> np.ndarray:
-        """``Jg`` as ``(N, Ns, ng, nx)`` (a new array if it is packed)."""
-        if not self.packed:
-            return self.Jg
-        n, nx, ns = self.ro.X.shape
-        ng = self.ro.G.shape[0]
-        full = np.zeros((n - 1, ns, ng * nx))
-        full[:, :, self.jg_index] = self.Jg
-        return full.reshape(n - 1, ns, ng, nx)
-
-    def sensitivities(self) -> np.ndarray:
-        """``S`` as ``(N, Ns, nx, N nu)`` (a new array if it is packed)."""
-        if not self.packed:
-            return self.S
-        n, nx, ns = self.ro.X.shape
-        n -= 1
-        nu = self.grad.size // n
-        full = np.zeros((n, ns, nx, n * nu))
-        for k in range(n):
-            width = (k + 1) * nu
-            full[k, :, :, :width] = packed_block(self.S, k, ns, nx, nu)
-        return full
-
-
-def packed_block(S: np.ndarray, k: int, ns: int, nx: int, nu: int) -> np.ndarray:
-    """Step ``k`` (from 0) of a causally packed ``S``: a view ``(Ns, nx, (k + 1) nu)``."""
-    start = ns * nx * nu * k * (k + 1) // 2
-    width = (k + 1) * nu
-    return S[start : start + ns * nx * width].reshape(ns, nx, width)
-
-
-def shared_linear_constraints(problem: ScenarioProblem) -> tuple[np.ndarray, np.ndarray]:
-    """Constraints whose condensed Jacobian is one constant row per step, and those rows.
-
-    Returns ``(indices (nL,), rows (nL, N, N nu))``: ``d g_j(x_k) / d u`` does not depend
-    on the initial state, the force or ``u`` for ``j`` in ``indices``.
-    """
-    system, n, dt = problem.system, problem.horizon, problem.dt
-    nx, nu, nw, ng = problem.nx, problem.nu, problem.nw, problem.ng
-    if ng == 0:
-        return np.zeros(0, dtype=int), np.zeros((0, n, n * nu))
-    x0, w, U = ca.SX.sym("x0", nx), ca.SX.sym("w", nw, n), ca.SX.sym("u", nu * n)
-    step, cons = system.casadi_step(dt), system.casadi_constraints()
-    x, G = x0, []
-    for k in range(n):
-        x = step(x, U[k * nu : (k + 1) * nu], w[:, k])
-        G.append(cons(x))
-    G = ca.horzcat(*G)  # (ng, N)
-    data = ca.vertcat(x0, ca.vec(w), U)
-    indices, rows = [], []
-    for j in range(ng):
-        J = ca.jacobian(ca.vec(G[j, :]), U)  # (N, N nu)
-        if not ca.depends_on(J, data):
-            indices.append(j)
-            zero = ca.Function("J", [data], [J])(np.zeros(data.shape[0]))
-            rows.append(np.asarray(ca.densify(zero), dtype=float))
-    if not indices:
-        return np.zeros(0, dtype=int), np.zeros((0, n, n * nu))
-    return np.array(indices), np.stack(rows)
 
 
 class CondensedModel:
@@ -650,10 +566,4 @@ class CondensedModel:
         return lin.ro.G[self.screened] + change[:, :, self.screened].transpose(2, 0, 1)
 
 
-__all__ = [
-    "CondensedModel",
-    "Linearisation",
-    "Rollout",
-    "packed_block",
-    "shared_linear_constraints",
-]
+__all__ = ["BACKENDS", "BACKEND_ENV", "CondensedModel"]

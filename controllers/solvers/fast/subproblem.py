@@ -6,8 +6,9 @@ constraints predicted active, which leaves the QP step on that active set unchan
 else by raising eigenvalues to a floor), screens the scenario rows that can become
 active, and solves the dense QP (:class:`~controllers.solvers.fast.qp.slot_qp.SlotQP`) with
 check-and-add over every scenario row, so the step is the full QP's. The SQP loop
-around it (line search, trust region, extra starts) is
-:class:`controllers.solvers.fast.solver.FastScenarioSolver`.
+around it is :class:`controllers.solvers.fast.solver.FastScenarioSolver` (the line search and
+trust region: :mod:`controllers.solvers.fast.globalisation`; the extra starts:
+:mod:`controllers.solvers.fast.restarts`).
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ import numpy as np
 import scipy.linalg.lapack
 
 from controllers.problem import ScenarioProblem
-from controllers.solvers.fast.condensed import CondensedModel, Linearisation, Rollout
+from controllers.solvers.fast.condensed import CondensedModel
+from controllers.solvers.fast.iterate import Linearisation, Rollout
 from controllers.solvers.fast.options import FastSolverOptions
 from controllers.solvers.fast.qp.hard_qp import DaqpHardQP
 from controllers.solvers.fast.qp.slot_qp import SlotQP
