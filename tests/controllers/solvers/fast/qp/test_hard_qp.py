@@ -1,5 +1,6 @@
-"""The QP without slacks on DAQP straight from the caller's rows (controllers.solvers.fast.qp.hard_qp):
-the same QP as through the row slots of SlotQP, so the same step bit for bit."""
+"""The QP without slacks on DAQP straight from the caller's rows
+(controllers.solvers.fast.qp.hard_qp): the same QP as through the row slots of SlotQP, so the
+same step bit for bit."""
 
 from __future__ import annotations
 
@@ -8,9 +9,9 @@ import sys
 import numpy as np
 import pytest
 
-from controllers.solvers.fast.solver import FastScenarioSolver
 from controllers.solvers.fast.qp.hard_qp import DaqpHardQP
 from controllers.solvers.fast.qp.slot_qp import SlotQP
+from controllers.solvers.fast.solver import FastScenarioSolver
 from experiments.benchmark.problems import problem_from_config
 
 pytest.importorskip("daqp")

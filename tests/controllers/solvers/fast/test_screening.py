@@ -31,7 +31,7 @@ from tests.controllers.test_second_system import (
     sample_forces,
 )
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[4]
 DATA = dict(np.load(ROOT / "tests" / "data" / "recorded_problems.npz"))
 KEEP = 4
 

@@ -41,7 +41,7 @@ from tests.controllers.test_second_system import (
     sample_forces,
 )
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[4]
 DATA = dict(np.load(ROOT / "tests" / "data" / "recorded_problems.npz"))
 IDS = [f"seed{s}-step{k}" for s, k in zip(DATA["seed"], DATA["step"], strict=True)]
 RTOL = 1e-12  # relative to the largest entry of each compared array
