@@ -17,11 +17,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from controllers.problem import ScenarioProblem
-from controllers.solvers.fast.condensed import CondensedModel
 from controllers.solvers.fast.iterate import Linearisation, Rollout
-from controllers.solvers.fast.options import FastSolverOptions
-from controllers.solvers.fast.subproblem import QP, QPStep
+from controllers.solvers.fast.subproblem import QP, QPStep, SolverAttributes
 
 Evaluate = Callable[[np.ndarray], Rollout]  # the rollout and merit of inputs (N nu,)
 
@@ -35,23 +32,13 @@ class ModelStep(NamedTuple):
     cut: bool  # the trust region cut the step
 
 
-class GlobalisationMixin:
+class GlobalisationMixin(SolverAttributes):
     """Line search, second-order correction, expansion and trust region of
     :class:`~controllers.solvers.fast.solver.FastScenarioSolver` (a base class of it: reads
-    its problem, options, model and input bounds, and keeps the trust radius)."""
+    its attributes, :class:`~controllers.solvers.fast.subproblem.SolverAttributes`, and
+    keeps the trust radius)."""
 
-    problem: ScenarioProblem
-    options: FastSolverOptions
-    model: CondensedModel
-    _n_u: int  # inputs of the horizon, N nu
-    _lower: np.ndarray  # (N nu,) input bounds
-    _upper: np.ndarray
-    _range: np.ndarray  # (N nu,) each input's range (inf: none)
-    _radius: float  # current trust radius (fraction of the range; 0: none)
     _count: Callable[[dict, QP], None]  # counts a QP call in the stats (the subproblem's)
-
-    def _check_time(self) -> None:  # the solver's deadline check
-        raise NotImplementedError
 
     def _measure(self, ro: Rollout, lin: Linearisation, qp_step: QPStep) -> ModelStep:
         """What the QP model says of its step from ``ro``: the merit's directional
