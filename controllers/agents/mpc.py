@@ -36,6 +36,8 @@ from typing import Any
 import numpy as np
 from scipy import special
 
+from controllers.agents.protocol import SB3Predict
+from controllers.agents.rl import RLAgent, check_rl_policy
 from controllers.config import (
     AgentConfig,
     ExperimentConfig,
@@ -45,8 +47,6 @@ from controllers.config import (
 )
 from controllers.estimators.estimator import make_estimator
 from controllers.problem import MPCSolution, ScenarioProblem
-from controllers.agents.protocol import SB3Predict
-from controllers.agents.rl import RLAgent, check_rl_policy
 from controllers.solvers import make_solver
 from lfm_env.config import ConfigError
 from lfm_env.model import LatentForceModel

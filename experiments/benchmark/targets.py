@@ -382,8 +382,9 @@ def _other_targets(results: dict[str, Any], th: Mapping[str, float]) -> list[dic
             "<=",
             "s",
             (
-                f"C library compile {_fmt(cold.get('codegen_compile_time_s'), '.2f')} s, first solve "
-                f"{_fmt(cold.get('first_solve_ms'), '.1f')} ms, backend {cold.get('backend')}"
+                f"C library compile {_fmt(cold.get('codegen_compile_time_s'), '.2f')} s, "
+                f"first solve {_fmt(cold.get('first_solve_ms'), '.1f')} ms, "
+                f"backend {cold.get('backend')}"
                 if cold
                 else "first-solve part not run"
             ),
