@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from controllers.estimators.estimator import ESTIMATORS
-from controllers.solvers import SOLVERS
+from controllers.solvers import SOLVER_SPECS, SOLVERS
 from controllers.solvers.fast.options import MAX_THREADS
 from lfm_env.config import (
     ConfigError,
@@ -34,7 +34,7 @@ RESAMPLING = ("systematic", "stratified", "residual", "multinomial")
 SCENARIO_INITIAL_STATES = ("estimate", "particles")
 MAX_SCENARIOS = 100_000
 MAX_ITER = 2**31 - 1
-FAST_MAX_HORIZON = 40  # longest horizon of the fast solvers (see AgentConfig)
+FAST_MAX_HORIZON = SOLVER_SPECS["fast"].max_horizon  # longest horizon of the fast solver
 MAX_SOLVE_TIME = 3600.0  # [s] largest agents.max_solve_time
 
 #: Memory budget [bytes] of an agent's filter and, separately, of its scenario problem:
@@ -180,11 +180,11 @@ class AgentConfig:
     # Wall-clock limit of one solve [s]: a solve that reaches it fails and the agent falls
     # back (the previous plan, else the system's fallback input), as on any failed solve.
     max_solve_time: float = 10.0
-    # Threads of the fast solvers' compiled kernel (FastSolverOptions.kernel_threads): it pays
+    # Threads of the fast solver's C library (FastSolverOptions.threads): it pays
     # for many scenarios (Ns >= 500; 0.6x the solve time at Ns = 5000 with two) when the
     # agent has the cores to itself; keep 1 under lfm-evaluate --jobs, whose processes take
     # the cores already.
-    kernel_threads: int = 1
+    solver_threads: int = 1
     scenario_initial_states: str = "estimate"  # "estimate" (paper) or "particles" (its remark)
     # Constraint back-off of the filtering agents: each state constraint g_j is tightened
     # by k * sqrt(dg_j' Sigma_x dg_j), k estimate stds along its gradient: one k for all,
@@ -204,14 +204,14 @@ class AgentConfig:
         c("rl_policy", self.rl_policy is None or self.rl_policy != "", "null or a file path")
         c("horizon", self.horizon >= 1, "an integer >= 1")
         c("horizon", self.horizon <= 200, "<= 200")
-        # The fast SQP's work per iteration grows steeply with N (measured with 150
-        # scenarios: one step 1.2 s at N = 20, 11 s at N = 40 against the 10 s solve limit,
-        # 21 s at N = 60 and 84 s at N = 100): beyond FAST_MAX_HORIZON a single iteration
-        # overruns any solve limit, so such horizons are refused up front.
+        # A solver's practical horizon (SolverSpec.max_horizon; the fast SQP's iterations
+        # outgrow any solve limit beyond 40) is enforced up front.
+        spec = SOLVER_SPECS.get(self.solver)
+        longest = spec.max_horizon if spec is not None else None
         c(
             "horizon",
-            self.solver not in ("fast", "fast_bicycle") or self.horizon <= FAST_MAX_HORIZON,
-            f"<= {FAST_MAX_HORIZON} with solver {self.solver!r} (its iterations outgrow any "
+            longest is None or self.horizon <= longest,
+            f"<= {longest} with solver {self.solver!r} (its iterations outgrow any "
             "solve-time limit beyond); use solver 'ipopt' for longer horizons",
         )
         if self.n_scenarios is None:
@@ -245,14 +245,14 @@ class AgentConfig:
             f"in (0, {MAX_SOLVE_TIME:g}] s",
         )
         c(
-            "kernel_threads",
-            1 <= self.kernel_threads <= MAX_THREADS,
+            "solver_threads",
+            1 <= self.solver_threads <= MAX_THREADS,
             f"an integer in [1, {MAX_THREADS}]",
         )
         c(
-            "kernel_threads",
-            self.kernel_threads == 1 or self.solver in ("fast", "fast_bicycle"),
-            f"1 with solver {self.solver!r} (only the fast solvers' kernel has threads)",
+            "solver_threads",
+            self.solver_threads == 1 or (spec is not None and spec.threaded),
+            f"1 with solver {self.solver!r} (only the fast solver's C library has threads)",
         )
         c(
             "scenario_initial_states",

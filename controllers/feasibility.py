@@ -28,7 +28,7 @@ import numpy as np
 from scipy.optimize import linprog
 
 from controllers.problem import ScenarioProblem
-from controllers.solvers.fast.condensed import shared_linear_constraints
+from controllers.solvers.fast.screening import shared_linear_constraints
 
 # Least slack [constraint units] above which a problem counts as infeasible for every
 # input (the LP's feasibility tolerance is 1e-7).

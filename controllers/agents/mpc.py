@@ -107,13 +107,13 @@ class MPCAgent(SB3Predict):
             slack_penalty=self.settings.slack_penalty,
         )
         # A solve that reaches max_solve_time fails, and _choose_action falls back.
-        threads = self.settings.kernel_threads
+        threads = self.settings.solver_threads
         self.mpc = make_solver(
             self.problem,
             self.settings.solver,
             max_iter=self.settings.max_iter,
             max_time=self.settings.max_solve_time,
-            **({"kernel_threads": threads} if threads > 1 else {}),
+            **({"threads": threads} if threads > 1 else {}),
         )
         self.last_info: dict[str, Any] = {}
         self.rng = np.random.default_rng()

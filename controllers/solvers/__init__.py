@@ -1,76 +1,161 @@
 """Solvers of the scenario MPC problem, under one vocabulary.
 
-``make_solver(problem, name, **options)`` builds any of :data:`SOLVERS`; each has
-``solve(x0, W, u_guess=None) -> MPCSolution`` and ``reset()``, and minimises the same
-:meth:`controllers.problem.ScenarioProblem.objective`:
-
-* ``"fast"``: the condensed exact-Hessian SQP whose derivatives CasADi generates from the
-  system definition (:mod:`controllers.solvers.fast.solver`), the default;
-* ``"fast_bicycle"``: the same SQP with the bicycle's derivatives written by hand
-  (:mod:`controllers.solvers.fast_bicycle`; sine-track problems only);
-* ``"ipopt"``: IPOPT on the condensed NLP (inputs and slacks only);
-* ``"ipopt_multiple_shooting"``: IPOPT on the textbook multiple-shooting NLP (the reference);
-* ``"sqpmethod"``: CasADi's ``sqpmethod`` + qpOASES on the condensed NLP, JIT-compiled
-  (the compiled SQP anchor; building it runs the C compiler);
-* ``"csnlp"``: csnlp's ``ScenarioBasedMpc`` (multiple shooting; needs the ``bench`` extra).
+:data:`SOLVER_SPECS` is the registry: one :class:`SolverSpec` per solver (its name, where its
+class lives, what it is, how the common options reach it and what it can do).
+``make_solver(problem, name, **options)`` builds any of them; each is a
+:class:`ScenarioSolver` (``solve(x0, W, u_guess=None, backoff=None) -> MPCSolution`` and
+``reset()``) and minimises the same :meth:`controllers.problem.ScenarioProblem.objective`.
+``"fast"``, the project's condensed SQP (:mod:`controllers.solvers.fast`), is the default;
+the others are built on CasADi's plugins (:mod:`controllers.solvers.casadi`).
 """
 
 from __future__ import annotations
 
-from typing import Any
+import importlib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol
 
-from controllers.problem import ScenarioProblem
+import numpy as np
 
-SOLVERS = ("fast", "fast_bicycle", "ipopt", "ipopt_multiple_shooting", "sqpmethod", "csnlp")
+from controllers.problem import MPCSolution, ScenarioProblem
 
 
-def make_solver(problem: ScenarioProblem, name: str = "fast", **options: Any):
+class ScenarioSolver(Protocol):
+    """What every solver of the registry is: built once for a problem, then solved at every
+    step, warm-started from its previous solution until :meth:`reset`."""
+
+    def solve(
+        self,
+        x0: np.ndarray,
+        W: np.ndarray,
+        u_guess: np.ndarray | None = None,
+        backoff: np.ndarray | None = None,
+    ) -> MPCSolution:
+        """The plan for initial state(s) ``x0`` and latent forces ``W`` (``u_guess``: the
+        initial inputs; ``backoff``: the constraint tightening, as for
+        :meth:`ScenarioProblem.check_backoff`)."""
+        ...
+
+    def reset(self) -> None:
+        """Forget the warm start: the next solve starts afresh."""
+        ...
+
+
+@dataclass(frozen=True)
+class SolverSpec:
+    """One solver of the registry.
+
+    Attributes:
+        name: the name ``make_solver``, the config (``agents.solver``) and the benchmark use.
+        entry_point: ``"module:Class"``, imported when the solver is built.
+        description: what it is, in one line.
+        arguments: keyword arguments of the class fixed by this name.
+        max_iter_option: the options dict that ``max_iter=`` goes into (e.g.
+            ``"ipopt_options"``); ``None``: the class takes ``max_iter`` itself.
+        max_horizon: the longest horizon ``N`` it is practical at (the config refuses
+            longer ones up front); ``None``: no such limit.
+        threaded: it takes ``threads=T`` (its C library's threads; ``agents.solver_threads``).
+    """
+
+    name: str
+    entry_point: str
+    description: str
+    arguments: Mapping[str, Any] = field(default_factory=dict)
+    max_iter_option: str | None = None
+    max_horizon: int | None = None
+    threaded: bool = False
+
+    def build(self, problem: ScenarioProblem, **options: Any) -> ScenarioSolver:
+        """The solver for ``problem`` with ``options`` (see :func:`make_solver`)."""
+        module, _, name = self.entry_point.partition(":")
+        cls = getattr(importlib.import_module(module), name)
+        key = self.max_iter_option
+        if key is not None and "max_iter" in options:  # (the one option every solver takes)
+            options = dict(options)
+            inner = dict(options.get(key) or {})
+            inner.setdefault("max_iter", options.pop("max_iter"))
+            options[key] = inner
+        return cls(problem, **self.arguments, **options)
+
+
+_IPOPT = "controllers.solvers.casadi.ipopt:IpoptScenarioSolver"
+SOLVER_SPECS: dict[str, SolverSpec] = {
+    spec.name: spec
+    for spec in (
+        SolverSpec(
+            "fast",
+            "controllers.solvers.fast.solver:FastScenarioSolver",
+            "the condensed exact-Hessian SQP whose derivatives CasADi generates from the "
+            "system definition (the default)",
+            # Its work per iteration grows steeply with N (measured with 150 scenarios: one
+            # step 1.2 s at N = 20, 11 s at N = 40 against the 10 s solve limit, 21 s at
+            # N = 60 and 84 s at N = 100): beyond this a single iteration overruns any solve
+            # limit.
+            max_horizon=40,
+            threaded=True,
+        ),
+        SolverSpec(
+            "ipopt",
+            _IPOPT,
+            "IPOPT on the condensed NLP (inputs and slacks only)",
+            {"formulation": "condensed"},
+            max_iter_option="ipopt_options",
+        ),
+        SolverSpec(
+            "ipopt_multiple_shooting",
+            _IPOPT,
+            "IPOPT on the textbook multiple-shooting NLP (the reference)",
+            {"formulation": "multiple_shooting"},
+            max_iter_option="ipopt_options",
+        ),
+        SolverSpec(
+            "sqpmethod",
+            "controllers.solvers.casadi.sqpmethod:SqpMethodScenarioSolver",
+            "CasADi's sqpmethod + qpOASES on the condensed NLP, JIT-compiled (the compiled SQP "
+            "anchor; building it runs the C compiler)",
+            max_iter_option="sqp_options",
+        ),
+        SolverSpec(
+            "csnlp",
+            "controllers.solvers.casadi.csnlp:CsnlpScenarioSolver",
+            "csnlp's ScenarioBasedMpc + IPOPT (multiple shooting; needs the bench extra)",
+            max_iter_option="ipopt_options",
+        ),
+    )
+}
+SOLVERS = tuple(SOLVER_SPECS)  # the names, in the registry's order
+
+
+def solver_spec(name: str) -> SolverSpec:
+    """The registry's record of solver ``name``.
+
+    Raises:
+        ValueError: for an unknown name (one line, listing the choices).
+    """
+    try:
+        return SOLVER_SPECS[name]
+    except (KeyError, TypeError):
+        raise ValueError(f"unknown solver {name!r}; choose one of {SOLVERS}") from None
+
+
+def make_solver(problem: ScenarioProblem, name: str = "fast", **options: Any) -> ScenarioSolver:
     """Build the solver ``name`` for ``problem`` (once; re-solve it every step).
 
     Args:
         problem: the scenario problem.
         name: one of :data:`SOLVERS`.
-        **options: the solver's own settings: :class:`~controllers.solvers.fast.solver.FastSolverOptions`
-            fields for ``"fast"``; ``ipopt_options`` / ``warm_start_duals`` for the IPOPT
-            solvers; ``sqp_options`` / ``jit`` / ``warm_start_duals`` for ``"sqpmethod"``;
-            ``shooting`` / ``ipopt_options`` for ``"csnlp"``. ``max_iter`` is understood
-            by every solver (SQP or IPOPT iterations).
+        **options: the solver's own settings:
+            :class:`~controllers.solvers.fast.options.FastSolverOptions` fields for
+            ``"fast"``; ``ipopt_options`` / ``warm_start_duals`` for the IPOPT solvers;
+            ``sqp_options`` / ``jit`` / ``warm_start_duals`` for ``"sqpmethod"``;
+            ``shooting`` / ``ipopt_options`` for ``"csnlp"``. ``max_iter`` and ``max_time``
+            are understood by every solver (SQP or IPOPT iterations; seconds per solve).
 
     Raises:
         ValueError: for an unknown name or option.
     """
-    if name not in SOLVERS:
-        raise ValueError(f"unknown solver {name!r}; choose one of {SOLVERS}")
-    if name == "fast":
-        from controllers.solvers.fast.solver import FastScenarioSolver
-
-        return FastScenarioSolver(problem, **options)
-    if name == "fast_bicycle":
-        from controllers.solvers.fast_bicycle import BicycleFastSolver
-
-        return BicycleFastSolver(problem, **options)
-    if name == "csnlp":
-        from controllers.solvers.casadi.csnlp import CsnlpScenarioSolver
-
-        return CsnlpScenarioSolver(problem, **_ipopt_options(options))
-    if name == "sqpmethod":
-        from controllers.solvers.casadi.sqpmethod import SqpMethodScenarioSolver
-
-        return SqpMethodScenarioSolver(problem, **_ipopt_options(options, "sqp_options"))
-    from controllers.solvers.casadi.ipopt import IpoptScenarioSolver
-
-    formulation = "multiple_shooting" if name == "ipopt_multiple_shooting" else "condensed"
-    return IpoptScenarioSolver(problem, formulation, **_ipopt_options(options))
+    return solver_spec(name).build(problem, **options)
 
 
-def _ipopt_options(options: dict[str, Any], key: str = "ipopt_options") -> dict[str, Any]:
-    """``max_iter=`` folded into ``options[key]`` (the one option every solver takes)."""
-    options = dict(options)
-    if "max_iter" in options:
-        inner = dict(options.get(key) or {})
-        inner.setdefault("max_iter", options.pop("max_iter"))
-        options[key] = inner
-    return options
-
-
-__all__ = ["SOLVERS", "make_solver"]
+__all__ = ["SOLVERS", "SOLVER_SPECS", "ScenarioSolver", "SolverSpec", "make_solver", "solver_spec"]

@@ -27,7 +27,7 @@ from experiments.benchmark.targets import (
     target,
 )
 
-SPEED_TABLE_SOLVERS = ("fast", "fast_bicycle", ANCHOR, "ipopt", TEXTBOOK, "csnlp")
+SPEED_TABLE_SOLVERS = ("fast", ANCHOR, "ipopt", TEXTBOOK, "csnlp")
 
 
 # --------------------------------------------------------------------------- text
@@ -99,11 +99,9 @@ def _speed_title(results: dict[str, Any]) -> str:
 def _ratio_line(results: dict[str, Any]) -> str:
     summary = results.get("closed_loop", {}).get("summary", {})
     med = {name: _get(s, "solve_ms_median") for name, s in summary.items()}
-    generic = _ratio(med.get("fast"), med.get("fast_bicycle"))
     textbook = _ratio(med.get(TEXTBOOK), med.get("fast"))
     anchor = _ratio(med.get(ANCHOR), med.get("fast"))
     return (
-        f"generic fast / fast_bicycle: {_fmt(generic, '.2f')}x; "
         f"{ANCHOR} / fast: {_fmt(anchor, '.1f')}x; "
         f"textbook / fast: {_fmt(textbook, '.0f')}x (medians)"
     )

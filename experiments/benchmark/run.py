@@ -7,19 +7,20 @@ The benchmark answers the solver issues' questions with measurements, never with
   scenario agent (seeds 0..5), recording the ``(x0, W)`` it met at every step.
 * **Solvers side by side** (:mod:`experiments.benchmark.solvers`): the solvers of the registry
   (:data:`controllers.solvers.SOLVERS`; by default all but ``csnlp``: ``fast``,
-  ``fast_bicycle``, ``ipopt``, ``ipopt_multiple_shooting`` (the textbook reference),
+  ``ipopt``, ``ipopt_multiple_shooting`` (the textbook reference),
   ``sqpmethod`` (CasADi's SQP + qpOASES, JIT-compiled: the anchor)) solve these problems in
   closed-loop order, warm-started from their own past, interleaved problem by problem;
   times, iterations, objectives (:meth:`~controllers.problem.ScenarioProblem.objective` of
-  the returned inputs) and violations; then the fast solvers again alone.
+  the returned inputs) and violations; then the fast solver again alone.
 * **Horizons, scenario counts, first solve, particle filter, whole episode**
   (:mod:`experiments.benchmark.suites`): fast and IPOPT at ``N`` = 7, 15, 30; ``Ns`` up to
   5000; a fresh fast solver's build and first solve (compilation included); the filter
   with 7000 particles; one episode.
 * **Failures**: every failed solve of every solver and part, with its problem's id.
-* **Verdicts and report** (:mod:`experiments.benchmark.targets`, :mod:`experiments.benchmark.report`):
-  PASS/FAIL per target with the measured figure, JSON (``--out``) and the speed table and
-  targets as Markdown (beside it, ``.md``). ``--check`` exits 1 when a target fails.
+* **Verdicts and report** (:mod:`experiments.benchmark.targets`,
+  :mod:`experiments.benchmark.report`): PASS/FAIL per target with the measured figure, JSON
+  (``--out``) and the speed table and targets as Markdown (beside it, ``.md``). ``--check``
+  exits 1 when a target fails.
 
 Timing is noisy on a shared machine: the figures are medians and percentiles of one run.
 A solver that cannot be built (an optional package missing) is listed as unavailable with

@@ -22,25 +22,24 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from controllers.problem import ScenarioProblem
-from controllers.solvers import SOLVERS, make_solver
+from controllers.solvers import SOLVERS, make_solver, solver_spec
 from experiments.benchmark.problems import DEFAULT_CONFIG, problem_from_config
 from experiments.evaluation.interrupts import raise_if_interrupted
 
 SOLVER_LABELS = {
     "fast": "fast SQP, derivatives generated from the system (FastScenarioSolver)",
-    "fast_bicycle": "fast SQP, the bicycle's hand-written derivatives (BicycleFastSolver)",
-    "fast_2threads": "fast SQP, its compiled kernel on two threads (kernel_threads=2)",
+    "fast_2threads": "fast SQP, its C library on two threads (threads=2)",
     "ipopt": "IPOPT, condensed (single shooting)",
     "ipopt_multiple_shooting": "IPOPT, multiple shooting, exact Hessian (textbook reference)",
     "sqpmethod": "CasADi sqpmethod + qpOASES, condensed, JIT-compiled (the SQP anchor)",
     "csnlp": "csnlp ScenarioBasedMpc + IPOPT",
 }
-FAST_SOLVERS = ("fast", "fast_bicycle")  # timed again alone, without IPOPT in between
+FAST_SOLVERS = ("fast",)  # timed again alone, without IPOPT in between
 # Variants of a registered solver with options, by the name the tables give them: the fast
-# solver with its kernel on two threads (FastSolverOptions.kernel_threads), timed in the
+# solver with its C library on two threads (FastSolverOptions.threads), timed in the
 # scenario sweep (bench_suites.sweep_scenarios).
 SOLVER_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
-    "fast_2threads": ("fast", {"kernel_threads": 2}),
+    "fast_2threads": ("fast", {"threads": 2}),
 }
 # The objective reference: the first of these that is available.
 REFERENCES = ("ipopt_multiple_shooting", "ipopt", "csnlp")
@@ -68,8 +67,7 @@ def build_solver(
     Raises:
         ValueError: for a name not in :data:`controllers.solvers.SOLVERS`.
     """
-    if name not in SOLVERS:
-        raise ValueError(f"unknown solver {name!r}; choose one of {SOLVERS}")
+    solver_spec(name)  # (an unknown name raises)
     raise_if_interrupted()
     t0 = time.perf_counter()
     try:
@@ -462,7 +460,7 @@ def _alone(
     warmup: bool,
     progress: bool,
 ) -> tuple[dict[str, dict[str, Any]], list[dict[str, Any]]]:
-    """The fast solvers' closed loop again, without IPOPT or csnlp solves in between.
+    """The fast solver's closed loop again, without IPOPT or csnlp solves in between.
 
     Side by side, every fast solve follows an IPOPT or csnlp solve that has evicted its
     data from the caches; this is the loop as a controller runs it. ``plan_difference_max``
@@ -506,7 +504,7 @@ def time_solvers(
     (in a rotating order). After the timed loop, problems whose objective differs from the
     reference's by more than :data:`GAP_TOL` are re-solved from the reference's solution
     (untimed) to tell a different local optimum from an inaccurate one, lower plans are
-    probed for local optimality, and the fast solvers run the closed loop again alone.
+    probed for local optimality, and the fast solver runs the closed loop again alone.
 
     Args:
         problems: ``(seed, step, x0, W)`` tuples, e.g. from
@@ -531,8 +529,7 @@ def time_solvers(
     """
     problems = list(problems)
     for name in solvers:
-        if name not in SOLVERS:
-            raise ValueError(f"unknown solver {name!r}; choose one of {SOLVERS}")
+        solver_spec(name)  # (an unknown name raises)
     if problem is None:
         if not problems:
             raise ValueError("problems is empty: cannot infer the problem size")

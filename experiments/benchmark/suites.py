@@ -5,7 +5,7 @@
 * :func:`sweep_scenarios`: solve time against the scenario count ``Ns`` on problems drawn
   around recorded closed-loop estimates, as the scenario agent draws them.
 * :func:`first_solve`: building the fast solver and its first solve, twice: first in an
-  empty kernel cache (a compiled kernel's cold compile included), then with it warm.
+  empty C library cache (the C library's cold compile included), then with it warm.
 * :func:`time_particle_filter`: one filter step (model transition + update) and the update
   alone, for several particle counts.
 * :func:`time_episode`: the wall time of a whole scenario-agent episode.
@@ -63,9 +63,9 @@ HORIZON_SOLVERS = ("fast", "ipopt")  # the second is the objective reference
 # (about 10 s on a busy 2-core machine) and can spend minutes on a hard problem; a solve
 # that reaches its limit is a failed solve (kind wall_time).
 HORIZON_MAX_TIME_S = {"fast": 10.0, "ipopt": 30.0}
-SWEEP_SOLVERS = ("fast", "fast_bicycle")  # timed at every Ns
+SWEEP_SOLVERS = ("fast",)  # timed at every Ns
 # Timed from this Ns on, and at the largest Ns of a shorter sweep: the solver variants
-# (bench_solvers.SOLVER_VARIANTS; the fast solver's kernel on two threads, which pays for
+# (bench_solvers.SOLVER_VARIANTS; the fast solver's C library on two threads, which pays for
 # many scenarios).
 SWEEP_VARIANTS_MIN_NS = 500
 SWEEP_REFERENCE = "ipopt"  # timed, and the objective reference, up to ipopt_max_ns
@@ -92,8 +92,8 @@ def sweep_scenarios(
     For each anchor (a recorded estimate: physical state ``x0``, latent state ``z``) the
     ``Ns`` scenarios are drawn by :func:`experiments.benchmark.problems.scenario_draws`. The
     anchors of each seed are solved in closed-loop order with warm starts (reset at each
-    seed). The fast solvers (:data:`SWEEP_SOLVERS`) run at every ``Ns``, their variants
-    (:data:`experiments.benchmark.solvers.SOLVER_VARIANTS`: the kernel on two threads) from
+    seed). The fast solver (:data:`SWEEP_SOLVERS`) runs at every ``Ns``, its variants
+    (:data:`experiments.benchmark.solvers.SOLVER_VARIANTS`: the C library on two threads) from
     :data:`SWEEP_VARIANTS_MIN_NS` on and at the largest ``Ns`` of the list; IPOPT on the
     condensed NLP, the objective reference, only for ``Ns <= ipopt_max_ns``.
 
@@ -342,13 +342,13 @@ def sweep_horizons(
 
 
 def _compile_info(solver: Any) -> dict[str, Any]:
-    """What a fast solver says about its derivative kernel (read defensively)."""
+    """What a fast solver says about its C library (read defensively)."""
     model = getattr(solver, "model", None)
     info: dict[str, Any] = {"backend": getattr(solver, "backend", None)}
     for key in ("compile_time", "build_time"):
         value = getattr(model, key, None)
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            info[f"kernel_{key}_s"] = float(value)
+            info[f"codegen_{key}_s"] = float(value)
     for key in dir(model) if model is not None else ():
         if "cache" in key.lower() and not key.startswith("__"):
             value = getattr(model, key, None)
@@ -367,12 +367,12 @@ def first_solve(
 ) -> dict[str, Any]:
     """Build a solver and time its first solve, ``builds`` times in a row.
 
-    With ``cold`` the first build runs in an empty, temporary kernel cache
+    With ``cold`` the first build runs in an empty, temporary C library cache
     (:func:`controllers.solvers.fast.codegen.build.fresh_cache`), so it pays the compilation of a
-    compiled kernel whatever was built before (the real cache is left alone); without it,
+    C library whatever was built before (the real cache is left alone); without it,
     the first build finds whatever the cache holds. Later builds show the warm cache. Each
     row reads the solver's ``backend`` and its model's ``compile_time`` and cache-hit flag
-    where they exist, and says which cache it used (``kernel_cache``: ``"fresh"`` or
+    where they exist, and says which cache it used (``codegen_cache``: ``"fresh"`` or
     ``"as found"``).
 
     Args:
@@ -403,7 +403,7 @@ def first_solve(
             t1 = time.perf_counter()
         cache = "fresh" if fresh else "as found"
         if built is None:
-            rows.append({"build_s": math.nan, "error": reason, "kernel_cache": cache})
+            rows.append({"build_s": math.nan, "error": reason, "codegen_cache": cache})
             continue
         sol = built.solve(x0, W)
         t2 = time.perf_counter()
@@ -414,7 +414,7 @@ def first_solve(
                 "total_s": t2 - t0,
                 "success": bool(sol.success),
                 **_compile_info(built),
-                "kernel_cache": cache,
+                "codegen_cache": cache,
             }
         )
     return {"solver": solver, "results": rows}

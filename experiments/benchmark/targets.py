@@ -29,7 +29,6 @@ DEFAULT_THRESHOLDS: dict[str, float] = {
     "fast_p95_ms": 5.0,  # fast p95 solve [ms]
     "anchor_over_fast": 10.0,  # sqpmethod median / fast median
     "textbook_over_fast": 300.0,  # textbook IPOPT median / fast median
-    "generic_over_hand": 1.5,  # fast median / fast_bicycle median
     "worse_share_pct": 2.0,  # [%] problems where fast ends > GAP_TOL above the textbook
     "violation_no_slack": 1e-6,  # fast's largest violation where the reference needs none
     "csnlp_over_fast": 1.0,  # csnlp median / fast median (strictly above)
@@ -40,7 +39,7 @@ DEFAULT_THRESHOLDS: dict[str, float] = {
     "large_ns_median_ms": 30.0,  # fast median at Ns = LARGE_NS [ms]
     "qp_failed": 0.0,  # QP_Failed of the fast solvers over the whole run
     "pf_step_ms": 0.6,  # particle-filter step at PF_PARTICLES [ms]
-    "cold_build_s": 5.0,  # fast solver built with an empty kernel cache + first solve [s]
+    "cold_build_s": 5.0,  # fast solver built with an empty C library cache + first solve [s]
     "episode_s": 3.0,  # a whole paper episode [s]
 }
 _OPS = {"<=": np.less_equal, ">=": np.greater_equal, ">": np.greater}
@@ -149,9 +148,8 @@ def speed_targets(
         where: the problem size, for the texts.
 
     Returns:
-        Six :func:`target` dicts: fast median, fast p95, sqpmethod / fast,
-        textbook / fast, generic / hand-written, the share where fast ends above the
-        textbook.
+        Five :func:`target` dicts: fast median, fast p95, sqpmethod / fast,
+        textbook / fast, the share where fast ends above the textbook.
     """
     th = check_thresholds(thresholds)
     fast = medians.get("fast")
@@ -194,16 +192,6 @@ def speed_targets(
         ),
         ratio("anchor_over_fast", ANCHOR, "sqpmethod + qpOASES (JIT)"),
         ratio("textbook_over_fast", TEXTBOOK, f"textbook ({TEXTBOOK})"),
-        target(
-            f"generic fast / fast_bicycle median solve time <= {th['generic_over_hand']:g} "
-            f"({where}, side by side)",
-            _ratio(fast, medians.get("fast_bicycle")),
-            th["generic_over_hand"],
-            "<=",
-            "x",
-            f"{measured}, fast_bicycle {_fmt(medians.get('fast_bicycle'), '.2f')} ms",
-            "generic_over_hand",
-        ),
         target(
             f"problems where fast ends > {GAP_TOL:g} (relative) above the textbook "
             f"<= {th['worse_share_pct']:g}%",
@@ -349,7 +337,7 @@ def _other_targets(results: dict[str, Any], th: Mapping[str, float]) -> list[dic
         (
             r
             for r in first.get("results", [])
-            if r.get("kernel_cache") == "fresh" and "total_s" in r
+            if r.get("codegen_cache") == "fresh" and "total_s" in r
         ),
         None,
     )
@@ -387,15 +375,16 @@ def _other_targets(results: dict[str, Any], th: Mapping[str, float]) -> list[dic
             "pf_step_ms",
         ),
         target(
-            f"fast solver built with an empty kernel cache, build + first solve "
+            f"fast solver built with an empty C library cache, build + first solve "
             f"<= {th['cold_build_s']:g} s",
             _get(cold, "total_s"),
             th["cold_build_s"],
             "<=",
             "s",
             (
-                f"kernel compile {_fmt(cold.get('kernel_compile_time_s'), '.2f')} s, first solve "
-                f"{_fmt(cold.get('first_solve_ms'), '.1f')} ms, backend {cold.get('backend')}"
+                f"C library compile {_fmt(cold.get('codegen_compile_time_s'), '.2f')} s, "
+                f"first solve {_fmt(cold.get('first_solve_ms'), '.1f')} ms, "
+                f"backend {cold.get('backend')}"
                 if cold
                 else "first-solve part not run"
             ),

@@ -19,25 +19,15 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
-from controllers.problem import MPCSolution, ScenarioProblem
-from controllers.solvers import make_solver
+from controllers.problem import ScenarioProblem
+from controllers.solvers import ScenarioSolver, make_solver
 from experiments.benchmark.problems import DEFAULT_CONFIG, experiment_config
 
 Problem = tuple[np.ndarray, np.ndarray]  # (x0 (nx,) or (Ns, nx), W (Ns, N, nw) or (Ns, N))
-
-
-class ScenarioSolver(Protocol):
-    """What :func:`time_solvers` needs of a solver."""
-
-    def solve(
-        self, x0: np.ndarray, W: np.ndarray, u_guess: np.ndarray | None = None
-    ) -> MPCSolution: ...
-
-    def reset(self) -> None: ...
 
 
 def latent_force_scenarios(
@@ -251,7 +241,7 @@ RECIPES: dict[str, dict[str, Any]] = {
     # spread: on the sine track the vehicle drives to the goal.
     "redraw": {"spread": 0.25, "walk_std": 0.15, "redraw": True, "n_steps": 60},
 }
-TIMED_SOLVERS = ("fast", "fast_bicycle", "ipopt", "ipopt_multiple_shooting")
+TIMED_SOLVERS = ("fast", "ipopt", "ipopt_multiple_shooting")
 IPOPT_SOLVERS = ("ipopt", "ipopt_multiple_shooting", "csnlp")  # about 1 s per solve at Ns=150
 
 

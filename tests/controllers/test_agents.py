@@ -308,14 +308,14 @@ def test_max_solve_time_out_of_range_is_refused(value):
         load_config({"agents": {"max_solve_time": value}})
 
 
-def test_agents_kernel_threads_reach_the_fast_solver_with_the_same_actions():
-    """agents.kernel_threads gives the fast solver's kernel that many threads; the closed
+def test_agents_solver_threads_reach_the_fast_solver_with_the_same_actions():
+    """agents.solver_threads gives the fast solver's C library that many threads; the closed
     loop acts as with one (plans equal to rounding)."""
     cfg = {"env": {"max_steps": 4}, "agents": {"n_scenarios": 300}}
     one, _, _ = run("scenario", cfg, max_steps=4)
-    cfg["agents"]["kernel_threads"] = 2
+    cfg["agents"]["solver_threads"] = 2
     agent = make_agent("scenario", cfg)
-    assert agent.mpc.options.kernel_threads == 2 and agent.mpc.model.threads == 2
+    assert agent.mpc.options.threads == 2 and agent.mpc.model.threads == 2
     two, _, est = run("scenario", cfg, max_steps=4)
     assert all(rec["success"] for rec in est)
     np.testing.assert_allclose(two, one, atol=1e-7)
@@ -324,12 +324,12 @@ def test_agents_kernel_threads_reach_the_fast_solver_with_the_same_actions():
 @pytest.mark.parametrize(
     ("agents", "message"),
     [
-        ({"kernel_threads": 0}, r"kernel_threads=0: must be an integer in \[1, 256\]"),
-        ({"kernel_threads": 1.5}, r"kernel_threads=1.5: expected an integer"),
-        ({"kernel_threads": 2, "solver": "ipopt"}, r"must be 1 with solver 'ipopt'"),
+        ({"solver_threads": 0}, r"solver_threads=0: must be an integer in \[1, 256\]"),
+        ({"solver_threads": 1.5}, r"solver_threads=1.5: expected an integer"),
+        ({"solver_threads": 2, "solver": "ipopt"}, r"must be 1 with solver 'ipopt'"),
     ],
 )
-def test_bad_kernel_threads_are_refused_naming_the_field(agents, message):
+def test_bad_solver_threads_are_refused_naming_the_field(agents, message):
     with pytest.raises(ConfigError, match=message):
         load_config({"agents": agents})
 
@@ -339,11 +339,8 @@ def test_a_fast_solver_horizon_beyond_its_practical_bound_is_refused_up_front():
     (one step took 84 s against a 10 s limit), so such horizons are refused when read."""
     from controllers.config import FAST_MAX_HORIZON
 
-    for solver in ("fast", "fast_bicycle"):
-        with pytest.raises(
-            ConfigError, match=rf"agents.horizon=100: must be <= {FAST_MAX_HORIZON}"
-        ):
-            load_config({"agents": {"horizon": 100, "solver": solver}})
+    with pytest.raises(ConfigError, match=rf"agents.horizon=100: must be <= {FAST_MAX_HORIZON}"):
+        load_config({"agents": {"horizon": 100, "solver": "fast"}})
     assert load_config({"agents": {"horizon": FAST_MAX_HORIZON}}).agents.horizon == 40
 
 

@@ -23,7 +23,7 @@ from experiments.benchmark import targets as bench_targets
 
 TIMING_KEYS = ("solve_ms_median", "solve_ms_p95", "solve_ms_max", "wall_ms_median")
 # The textbook and csnlp are slow; sqpmethod (the anchor) is in, JIT compilation included.
-QUICK_SOLVERS = ("fast", "fast_bicycle", "ipopt", "sqpmethod")
+QUICK_SOLVERS = ("fast", "ipopt", "sqpmethod")
 # A threshold no run can meet: the quick run must still exit 0 (no --check) and say FAIL.
 IMPOSSIBLE = "fast_median_ms=1e-9"
 # Thresholds every measured figure meets: with --check such a run exits 0.
@@ -92,20 +92,19 @@ def test_quick_run_writes_complete_json(quick_run: tuple[dict, str]) -> None:
     # The anchor: compiled at build, its solves timed like the others'.
     assert closed["solvers"]["sqpmethod"]["build_time_s"] > 0
     assert _finite(closed["speedup"]["sqpmethod"]["median_ratio"])
-    # The fast solvers' closed loop again, alone: same problems, the same plans.
-    assert set(closed["alone"]) == {"fast", "fast_bicycle"}
+    # The fast solver's closed loop again, alone: same problems, the same plans.
+    assert set(closed["alone"]) == {"fast"}
     for alone in closed["alone"].values():
         assert alone["n_problems"] == closed["n_problems"]
         assert alone["plan_difference_max"] <= 1e-6
         assert _finite(alone["solve_ms_p95"]) and alone["solve_ms_p95"] > 0
     assert _finite(closed["speedup"]["ipopt"]["median_ratio"])
-    assert _finite(closed["speedup"]["fast_bicycle"]["median_ratio"])
 
     rows = data["sweep"]["results"]
     for row in rows:
-        # The kernel on two threads at the sweep's largest Ns (here 50; from 500 on in full).
+        # The C library on two threads at the sweep's largest Ns (here 50; from 500 on in full).
         extra = {"fast_2threads"} if row is rows[-1] else set()
-        assert set(row["summary"]) == {"fast", "fast_bicycle", "ipopt"} | extra
+        assert set(row["summary"]) == {"fast", "ipopt"} | extra
         for name, summary in row["summary"].items():
             assert _finite(summary["solve_ms_median"]), (row["n_scenarios"], name)
     threaded, fast = rows[-1]["summary"]["fast_2threads"], rows[-1]["summary"]["fast"]
@@ -123,10 +122,10 @@ def test_quick_run_writes_complete_json(quick_run: tuple[dict, str]) -> None:
     for row in first:
         assert row["build_s"] > 0 and row["first_solve_ms"] > 0 and row["success"]
         assert row["backend"]
-    # The first build compiles its kernel in an empty cache, the second finds it.
-    assert [row["kernel_cache"] for row in first] == ["fresh", "as found"]
+    # The first build compiles its C library in an empty cache, the second finds it.
+    assert [row["codegen_cache"] for row in first] == ["fresh", "as found"]
     if first[0]["backend"] == "compiled-c":
-        assert not first[0]["cache_hit"] and first[0]["kernel_compile_time_s"] > 0
+        assert not first[0]["cache_hit"] and first[0]["codegen_compile_time_s"] > 0
         assert first[1]["cache_hit"]
 
 
@@ -256,7 +255,7 @@ def test_targets_of_the_run_follow_from_its_figures(quick_run: tuple[dict, str])
     pf = next(r for r in data["particle_filter"]["results"] if r["n_particles"] == 7000)
     assert by_key["pf_step_ms"]["value"] == pf["step_ms_median"]
     cold = data["first_solve"]["results"][0]
-    assert cold["kernel_cache"] == "fresh"
+    assert cold["codegen_cache"] == "fresh"
     assert by_key["cold_build_s"]["value"] == cold["total_s"] > 0
     # The textbook and csnlp were skipped, and the quick sweep has no Ns = 5000.
     skipped = {t["key"] for t in targets if t["passed"] is None}
@@ -303,7 +302,7 @@ def test_json_is_strict_and_the_markdown_has_the_speed_table(quick_run) -> None:
     markdown = open(path.removesuffix(".json") + ".md").read()
     for name in QUICK_SOLVERS:
         assert f"| {name} |" in markdown
-    assert "generic fast / fast_bicycle:" in markdown
+    assert "sqpmethod / fast:" in markdown
     assert markdown.count("- PASS") + markdown.count("- FAIL") + markdown.count("- SKIP") == len(
         data["targets"]
     )
@@ -328,29 +327,25 @@ def _verdicts(targets: list[dict]) -> list[bool | None]:
 
 def test_speed_targets_are_judged_from_the_given_figures() -> None:
     worse = [{"seed": 1, "step": 7, "rel_gap": 3e-4}]
-    # fast 1.2 ms (p95 4), sqpmethod 15x, textbook 400x, generic 1.2x, 1 of 50 problems (2%).
+    # fast 1.2 ms (p95 4), sqpmethod 15x, textbook 400x, 1 of 50 problems (2%).
     medians = {"fast": 1.2, "sqpmethod": 18.0, "ipopt_multiple_shooting": 480.0}
-    medians["fast_bicycle"] = 1.0
     targets = bench_report.speed_targets(medians, 4.0, worse, 50)
     assert [t["key"] for t in targets] == [
         "fast_median_ms",
         "fast_p95_ms",
         "anchor_over_fast",
         "textbook_over_fast",
-        "generic_over_hand",
         "worse_share_pct",
     ]
-    assert [t["value"] for t in targets] == pytest.approx([1.2, 4.0, 15.0, 400.0, 1.2, 2.0])
-    assert _verdicts(targets) == [True] * 6
-    assert "seed 1 step 7 (+3.0e-04)" in targets[5]["note"]
+    assert [t["value"] for t in targets] == pytest.approx([1.2, 4.0, 15.0, 400.0, 2.0])
+    assert _verdicts(targets) == [True] * 5
+    assert "seed 1 step 7 (+3.0e-04)" in targets[4]["note"]
     # The limits themselves pass; just past them fails.
     at_limits = {"fast": 1.5, "sqpmethod": 15.0, "ipopt_multiple_shooting": 450.0}
-    at_limits["fast_bicycle"] = 1.0
-    assert _verdicts(bench_report.speed_targets(at_limits, 5.0, [], 10)) == [True] * 6
+    assert _verdicts(bench_report.speed_targets(at_limits, 5.0, [], 10)) == [True] * 5
     past = {"fast": 1.6, "sqpmethod": 15.9, "ipopt_multiple_shooting": 479.0}
-    past["fast_bicycle"] = 1.0
     failing = bench_report.speed_targets(past, 5.1, worse * 2, 50)
-    assert _verdicts(failing) == [False] * 6
+    assert _verdicts(failing) == [False] * 5
     # Other thresholds, by key.
     relaxed = bench_report.speed_targets(past, 5.1, worse * 2, 50, {"fast_median_ms": 2.0})
     assert _verdicts(relaxed)[0] is True and relaxed[0]["threshold"] == 2.0
@@ -358,10 +353,10 @@ def test_speed_targets_are_judged_from_the_given_figures() -> None:
 
 def test_speed_targets_skip_what_was_not_measured() -> None:
     targets = bench_report.speed_targets({"fast": 6.0, "sqpmethod": math.nan}, None, None, None)
-    assert _verdicts(targets) == [False, None, None, None, None, None]
-    assert "not run" in targets[5]["note"]
+    assert _verdicts(targets) == [False, None, None, None, None]
+    assert "not run" in targets[4]["note"]
     # No problem compared: no share, even with an empty list.
-    assert bench_report.speed_targets({"fast": 1.0}, 1.0, [], 0)[5]["passed"] is None
+    assert bench_report.speed_targets({"fast": 1.0}, 1.0, [], 0)[4]["passed"] is None
 
 
 def test_thresholds_are_checked_by_key() -> None:

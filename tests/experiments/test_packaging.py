@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from fnmatch import fnmatch
 from pathlib import Path
 
 import pytest
@@ -101,9 +102,26 @@ def test_the_package_list_holds_every_package_of_the_source_tree():
         for p in (REPO / top).rglob("__init__.py")
     }
     assert found <= listed, f"add to [tool.setuptools] packages: {sorted(found - listed)}"
-    assert listed - found == {"experiments.presets"}
+    assert listed - found == {"experiments.presets", "controllers.solvers.fast.codegen.c"}
     assert setuptools["package-dir"] == {"experiments.presets": "configs"}
     assert setuptools["package-data"]["experiments.presets"] == ["*.yaml"]
+
+
+def test_the_c_files_are_package_data():
+    """The fast solver's C files, read with importlib.resources, ship with their package."""
+    setuptools = pyproject()["tool"]["setuptools"]
+    data = setuptools["package-data"]
+    sources = [
+        p for top in ("lfm_env", "controllers", "experiments") for p in (REPO / top).rglob("*.[ch]")
+    ]
+    assert {p.name for p in sources} >= {"driver.c", "elastic_ipm.c"}
+    for path in sources:
+        package = ".".join(path.parent.relative_to(REPO).parts)
+        assert package in setuptools["packages"], f"add {package} to [tool.setuptools] packages"
+        patterns = data.get(package, [])
+        assert any(fnmatch(path.name, p) for p in patterns), (
+            f"{package}: {path.name} not in {patterns}"
+        )
 
 
 def test_licence_and_citation():

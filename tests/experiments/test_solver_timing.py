@@ -96,8 +96,8 @@ def test_default_benchmark_uses_registry_names() -> None:
     with pytest.raises(ValueError, match="recipe="):
         solver_timing.default_benchmark(recipe="textbook")
     out = solver_timing.default_benchmark(
-        n_scenarios=(4,), seeds=(0,), solvers=("fast", "fast_bicycle"), recipe="shift"
+        n_scenarios=(4,), seeds=(0,), solvers=("fast", "ipopt"), recipe="shift"
     )
     assert list(out) == [4]
-    assert list(out[4]) == ["fast", "fast_bicycle"]
+    assert list(out[4]) == ["fast", "ipopt"]
     assert out[4]["fast"].summary()["solves"] == solver_timing.RECIPES["shift"]["n_steps"]

@@ -14,8 +14,8 @@ all scenarios at once:
 
 Every derivative comes from the system's CasADi expressions (step Jacobian, Hessian of
 ``lambda' F``, constraint Jacobian and Hessian). Three backends evaluate them (the
-attribute :attr:`CondensedModel.backend`; chosen by the ``kernel`` argument or the
-environment variable ``LFM_KERNEL`` = ``auto`` (default), ``c``, ``numpy`` or ``vm``):
+attribute :attr:`CondensedModel.backend`; chosen by the ``backend`` argument or the
+environment variable ``LFM_BACKEND`` = ``auto`` (default), ``c``, ``numpy`` or ``vm``):
 
 * ``"compiled-c"``: the whole per-iteration work (rollout, sensitivities, gradient,
   Hessian) in one C library generated from those expressions, compiled once per system
@@ -23,14 +23,16 @@ environment variable ``LFM_KERNEL`` = ``auto`` (default), ``c``, ``numpy`` or ``
   compiler is found (or the library is cached);
 * ``"numpy-lanes"``: NumPy condensing, the pointwise derivatives generated as NumPy code
   evaluated on all ``Ns N`` points per call (:mod:`controllers.solvers.fast.lanes`); the
-  fallback when no compiler is found or compilation fails (:attr:`kernel_error` says why);
+  fallback when no compiler is found or compilation fails (:attr:`backend_error` says why);
 * ``"casadi-vm"``: the same NumPy condensing with the pointwise functions in CasADi's
   virtual machine (slow; used when the lanes lack an operation, or when asked for).
 
 It also finds structure the solver exploits: constraints whose condensed Jacobian
 ``d g_j(x_k) / d u`` is the same constant for every scenario, step input and force (the
 bicycle's speed bounds: ``v_k = v_0 + dt sum (a_j + w_j)``). For those only the extreme
-scenario matters at every step, whatever ``u`` is: one exact linear row per step.
+scenario matters at every step, whatever ``u`` is: one exact linear row per step
+(:func:`~controllers.solvers.fast.screening.shared_linear_constraints`). Its results are the
+containers of :mod:`controllers.solvers.fast.iterate`.
 """
 
 from __future__ import annotations
@@ -39,24 +41,28 @@ import math
 import os
 import sys
 from collections import deque
-from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
 from controllers.problem import ScenarioProblem
 from controllers.solvers.fast.codegen.build import (
-    KernelUnavailable,
+    CodegenUnavailable,
     address,
-    build_kernel,
+    build_library,
     constraint_jacobian_pattern,
     ptr,
 )
+from controllers.solvers.fast.iterate import Linearisation, Rollout
 from controllers.solvers.fast.lanes import LaneFunction
-from controllers.solvers.fast.screening import screen_rows, worst_rows
+from controllers.solvers.fast.screening import (
+    screen_rows,
+    shared_linear_constraints,
+    worst_rows,
+)
 
-KERNEL_ENV = "LFM_KERNEL"
-KERNELS = ("auto", "c", "numpy", "vm")
+BACKEND_ENV = "LFM_BACKEND"
+BACKENDS = ("auto", "c", "numpy", "vm")
 
 
 def _references(arrays: tuple[np.ndarray, ...]) -> int:
@@ -69,126 +75,37 @@ def _references(arrays: tuple[np.ndarray, ...]) -> int:
 _POOLED = _references((np.empty(0), np.empty(0)))
 
 
-@dataclass
-class Rollout:
-    """States, constraint values and merit of all scenarios under one input sequence."""
-
-    u: np.ndarray  # (N nu,) flattened inputs [u_0, u_1, ...]
-    X: np.ndarray  # (N+1, nx, Ns) states, component-major per step
-    G: np.ndarray  # (ng, N, Ns) constraint values of steps 1..N
-    slack: float  # sum of the minimal slacks
-    merit: float  # exact-penalty objective (inf if not finite)
-
-
-@dataclass
-class Linearisation:
-    """First-order information at a rollout, w.r.t. the flattened inputs ``u``."""
-
-    ro: Rollout
-    # (N, Ns, nx, nx) step Jacobians d x_{k+1} / d x_k; None from the compiled kernel, which
-    # uses each where it computes it (in S and the Hessian's recursion) and stores none
-    A: np.ndarray | None
-    S: np.ndarray  # (N, Ns, nx, N nu) sensitivities d x_k / d u of steps 1..N, or packed
-    Jg: np.ndarray  # (N, Ns, ng, nx) constraint Jacobians at steps 1..N, or packed
-    grad: np.ndarray  # (N nu,) gradient of the cost
-    # Packed (the compiled kernel): S causally, the state of step k + 1 (k from 0) depends on
-    # u_0..u_k only, so its block is stored as (Ns, nx, (k + 1) nu), the steps one after
-    # another in one flat array; Jg as (N, Ns, nnz), the entries at jg_index of each
-    # (ng, nx) Jacobian read row-major (those that can be nonzero).
-    packed: bool = False
-    jg_index: np.ndarray | None = None
-
-    def constraint_jacobians(self) -> np.ndarray:
-        """``Jg`` as ``(N, Ns, ng, nx)`` (a new array if it is packed)."""
-        if not self.packed:
-            return self.Jg
-        n, nx, ns = self.ro.X.shape
-        ng = self.ro.G.shape[0]
-        full = np.zeros((n - 1, ns, ng * nx))
-        full[:, :, self.jg_index] = self.Jg
-        return full.reshape(n - 1, ns, ng, nx)
-
-    def sensitivities(self) -> np.ndarray:
-        """``S`` as ``(N, Ns, nx, N nu)`` (a new array if it is packed)."""
-        if not self.packed:
-            return self.S
-        n, nx, ns = self.ro.X.shape
-        n -= 1
-        nu = self.grad.size // n
-        full = np.zeros((n, ns, nx, n * nu))
-        for k in range(n):
-            width = (k + 1) * nu
-            full[k, :, :, :width] = packed_block(self.S, k, ns, nx, nu)
-        return full
-
-
-def packed_block(S: np.ndarray, k: int, ns: int, nx: int, nu: int) -> np.ndarray:
-    """Step ``k`` (from 0) of a causally packed ``S``: a view ``(Ns, nx, (k + 1) nu)``."""
-    start = ns * nx * nu * k * (k + 1) // 2
-    width = (k + 1) * nu
-    return S[start : start + ns * nx * width].reshape(ns, nx, width)
-
-
-def shared_linear_constraints(problem: ScenarioProblem) -> tuple[np.ndarray, np.ndarray]:
-    """Constraints whose condensed Jacobian is one constant row per step, and those rows.
-
-    Returns ``(indices (nL,), rows (nL, N, N nu))``: ``d g_j(x_k) / d u`` does not depend
-    on the initial state, the force or ``u`` for ``j`` in ``indices``.
-    """
-    system, n, dt = problem.system, problem.horizon, problem.dt
-    nx, nu, nw, ng = problem.nx, problem.nu, problem.nw, problem.ng
-    if ng == 0:
-        return np.zeros(0, dtype=int), np.zeros((0, n, n * nu))
-    x0, w, U = ca.SX.sym("x0", nx), ca.SX.sym("w", nw, n), ca.SX.sym("u", nu * n)
-    step, cons = system.casadi_step(dt), system.casadi_constraints()
-    x, G = x0, []
-    for k in range(n):
-        x = step(x, U[k * nu : (k + 1) * nu], w[:, k])
-        G.append(cons(x))
-    G = ca.horzcat(*G)  # (ng, N)
-    data = ca.vertcat(x0, ca.vec(w), U)
-    indices, rows = [], []
-    for j in range(ng):
-        J = ca.jacobian(ca.vec(G[j, :]), U)  # (N, N nu)
-        if not ca.depends_on(J, data):
-            indices.append(j)
-            zero = ca.Function("J", [data], [J])(np.zeros(data.shape[0]))
-            rows.append(np.asarray(ca.densify(zero), dtype=float))
-    if not indices:
-        return np.zeros(0, dtype=int), np.zeros((0, n, n * nu))
-    return np.array(indices), np.stack(rows)
-
-
 class CondensedModel:
     """Merit, sensitivities, gradient and Lagrangian Hessian of a problem over its inputs.
 
     Args:
         problem: the scenario problem (its model's system gives every expression).
-        kernel: ``"auto"`` (compiled C if a compiler or a cached library is there, else
-            NumPy lanes), ``"c"`` (compiled C or :class:`KernelUnavailable`), ``"numpy"``
-            or ``"vm"``; ``None`` reads ``$LFM_KERNEL`` (default ``"auto"``).
+        backend: ``"auto"`` (compiled C if a compiler or a cached library is there, else
+            NumPy lanes), ``"c"`` (compiled C or :class:`CodegenUnavailable`), ``"numpy"``
+            or ``"vm"``; ``None`` reads ``$LFM_BACKEND`` (default ``"auto"``).
 
     A model serves one call at a time: its rollout arrays and the Hessian's scratch are its
     own and reused between calls (like the solver that holds it, give each thread its own).
 
     Attributes:
         backend: ``"compiled-c"``, ``"numpy-lanes"`` or ``"casadi-vm"``.
-        compile_time: [s] building the C kernel in this constructor (generation, and
+        compile_time: [s] building the C library in this constructor (generation, and
             compilation unless cached; 0 for the other backends).
-        cache_hit: the C kernel came from the disk cache or this process (no compiler run).
-        vector_math: how the C kernel's rollout, linearisation and Hessian evaluate the
+        cache_hit: the C library came from the disk cache or this process (no compiler run).
+        vector_math: how the C library's rollout, linearisation and Hessian evaluate the
             system's functions over the scenarios: 2 in
             vectorised loops with libmvec's vector sine, cosine, exp, log and pow; 1
-            vectorised loops with scalar math; 0 one call per scenario (``kernel_inline``;
-            0 without a kernel).
-        kernel_error: why the C kernel is not used under ``"auto"`` (``None`` if it is).
+            vectorised loops with scalar math; 0 one call per scenario (``codegen.inline``;
+            0 without a C library).
+        requested_backend: the ``backend`` asked for (``"auto"``, ``"c"``, ``"numpy"``, ``"vm"``).
+        backend_error: why the C library is not used under ``"auto"`` (``None`` if it is).
 
     Raises:
-        ValueError: on an unknown ``kernel``.
-        KernelUnavailable: for ``kernel="c"`` when no kernel can be built.
+        ValueError: on an unknown ``backend``.
+        CodegenUnavailable: for ``backend="c"`` when no C library can be built.
     """
 
-    def __init__(self, problem: ScenarioProblem, kernel: str | None = None) -> None:
+    def __init__(self, problem: ScenarioProblem, backend: str | None = None) -> None:
         self.problem = problem
         system, cost = problem.system, problem.cost
         n, nx, nu, nw, ng = problem.horizon, problem.nx, problem.nu, problem.nw, problem.ng
@@ -196,37 +113,33 @@ class CondensedModel:
         self.n_u = n * nu
         self.lower = np.tile(problem.input_lower, n)
         self.upper = np.tile(problem.input_upper, n)
-        choice = kernel if kernel is not None else (os.environ.get(KERNEL_ENV) or "auto")
-        if choice not in KERNELS:
-            source = "kernel" if kernel is not None else f"${KERNEL_ENV}"
-            raise ValueError(f"CondensedModel {source}={choice!r}: must be one of {KERNELS}")
-        self.kernel = choice
+        choice = backend if backend is not None else (os.environ.get(BACKEND_ENV) or "auto")
+        if choice not in BACKENDS:
+            source = "backend" if backend is not None else f"${BACKEND_ENV}"
+            raise ValueError(f"CondensedModel {source}={choice!r}: must be one of {BACKENDS}")
+        self.requested_backend = choice
 
-        # --- the compiled kernel (a subclass with its own derivatives needs none) ---
+        # --- the C library ---
         self._lib = None
-        # Threads of the kernel's rollout, linearisation and Hessian: the scenarios in this
+        # Threads of the C library's rollout, linearisation and Hessian: the scenarios in this
         # many contiguous chunks, one per thread (results equal to rounding for every
-        # count; 1 is the serial sweep). See kernel_driver.DRIVER.
+        # count; 1 is the serial sweep). See codegen/c/driver.c.
         self.threads = 1
-        self.compile_time, self.cache_hit, self.kernel_error = 0.0, False, None
-        own = all(
-            getattr(type(self), name) is getattr(CondensedModel, name)
-            for name in ("evaluate", "linearise", "hessian")
-        )
-        if choice in ("auto", "c") and own:
+        self.compile_time, self.cache_hit, self.backend_error = 0.0, False, None
+        if choice in ("auto", "c"):
             try:
-                built = build_kernel(system, problem.dt)
-            except KernelUnavailable as err:
+                built = build_library(system, problem.dt)
+            except CodegenUnavailable as err:
                 if choice == "c":
                     raise
-                self.kernel_error = str(err)
+                self.backend_error = str(err)
             else:
                 self._lib, self.compile_time, self.cache_hit = (
                     built.lib,
                     built.build_time,
                     built.cache_hit,
                 )
-        # The kernel runs its chunks in threads (compiled with OpenMP).
+        # The C library runs its chunks in threads (compiled with OpenMP).
         self.openmp = self._lib is not None and bool(self._lib.lfm_openmp())
         # Its loops over scenarios (rollout, linearisation, Hessian): 2 vectorised with
         # glibc's vector math (libmvec), 1 vectorisable without it, 0 one call per scenario.
@@ -251,7 +164,7 @@ class CondensedModel:
             self._con_hess = LaneFunction(ca.Function("con_hess", [x, mu], [hess_g]), vm=vm)
             lanes += [self._con_jac, self._con_hess]
         # The states each constraint depends on (for picking extreme scenarios; the compiled
-        # kernel stores these entries of the constraint Jacobians, at _jg_index row-major).
+        # library stores these entries of the constraint Jacobians, at _jg_index row-major).
         self.depends = constraint_jacobian_pattern(system)  # constraint j depends on state m
         self._jg_index = np.flatnonzero(self.depends)
         if self._lib is not None:
@@ -273,7 +186,7 @@ class CondensedModel:
         self._diagonal = cost.diagonal
         weights = np.stack([cost.Q] * (n - 1) + [cost.Qf])  # (N, nx, nx) for steps 1..N
         self._w_state = np.ascontiguousarray(weights, dtype=float)
-        # The kernel's constant arguments, and the addresses of the arrays a solve passes at
+        # The C library's constant arguments, and the addresses of the arrays a solve passes at
         # every call (its x0 and forces; :meth:`_held`).
         self._weights_p = (ptr(self._goal), ptr(self._w_state))
         self._held_ptrs: dict[int, tuple[np.ndarray, int]] = {}
@@ -285,13 +198,10 @@ class CondensedModel:
 
     def __getstate__(self) -> dict:
         # The loaded library and the generated code are rebuilt (from the disk cache).
-        return {"problem": self.problem, "kernel": self.kernel}
+        return {"problem": self.problem, "backend": self.requested_backend}
 
     def __setstate__(self, state: dict) -> None:
-        if type(self).__init__ is CondensedModel.__init__:
-            CondensedModel.__init__(self, state["problem"], kernel=state["kernel"])
-        else:  # a subclass with its own derivatives (and constructor)
-            type(self).__init__(self, state["problem"])
+        CondensedModel.__init__(self, state["problem"], backend=state["backend"])
 
     @staticmethod
     def _strides(W: np.ndarray, axes: tuple[int, int, int]) -> tuple[int, int, int]:
@@ -420,10 +330,10 @@ class CondensedModel:
     ) -> Linearisation:
         """Step Jacobians, sensitivities, constraint Jacobians and the cost gradient.
 
-        ``recycle``: a linearisation the caller no longer needs; the compiled kernel writes
+        ``recycle``: a linearisation the caller no longer needs; the C library writes
         the new one into its arrays (same sizes), which are then no longer its.
         Allocating them anew each iteration cost page faults: at Ns = 5000 a fresh 9 MB
-        ``S`` took about 1000 faults per call and doubled the kernel's time.
+        ``S`` took about 1000 faults per call and doubled the C library's time.
         """
         if self._lib is not None:
             return self._linearise_c(ro, W_lanes, recycle)
@@ -517,7 +427,7 @@ class CondensedModel:
     def _linearise_c(
         self, ro: Rollout, W_lanes: np.ndarray, recycle: Linearisation | None
     ) -> Linearisation:
-        """:meth:`linearise` by the compiled kernel."""
+        """:meth:`linearise` by the C library."""
         n, nx, nu, n_u = self.n, self.nx, self.nu, self.n_u
         X = np.ascontiguousarray(ro.X, dtype=float)
         u = np.ascontiguousarray(ro.u, dtype=float)
@@ -542,7 +452,7 @@ class CondensedModel:
         )
 
     def _hessian_c(self, lin: Linearisation, mu: np.ndarray, W_lanes: np.ndarray) -> np.ndarray:
-        """:meth:`hessian` by the compiled kernel."""
+        """:meth:`hessian` by the C library."""
         n, nu, n_u = self.n, self.nu, self.n_u
         X, ns = lin.ro.X, lin.ro.X.shape[2]
         has_mu = self.ng > 0 and bool(mu.any())
@@ -594,7 +504,7 @@ class CondensedModel:
             )
             if r >= 0:
                 return out[:r]
-        # No kernel, or it ran out of memory: the reference gives the same rows.
+        # No C library, or it ran out of memory: the reference gives the same rows.
         return screen_rows(ro.G, ro.X, self.screened, self.depends, margin, keep)
 
     def violated_rows(
@@ -636,7 +546,7 @@ class CondensedModel:
             )
             if r >= 0:
                 return out[:r]
-        # No kernel, or it ran out of memory: the reference gives the same rows.
+        # No C library, or it ran out of memory: the reference gives the same rows.
         viol = self.linearised_values(lin, d)
         viol -= s_pos[self.screened][:, :, None]
         return worst_rows(viol, self.screened, pos, tol, keep)
@@ -656,10 +566,4 @@ class CondensedModel:
         return lin.ro.G[self.screened] + change[:, :, self.screened].transpose(2, 0, 1)
 
 
-__all__ = [
-    "CondensedModel",
-    "Linearisation",
-    "Rollout",
-    "packed_block",
-    "shared_linear_constraints",
-]
+__all__ = ["BACKENDS", "BACKEND_ENV", "CondensedModel"]

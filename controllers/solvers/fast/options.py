@@ -1,4 +1,4 @@
-"""Settings of the fast SQP solvers (:mod:`controllers.solvers.fast.solver`)."""
+"""Settings of the fast SQP solver (:mod:`controllers.solvers.fast.solver`)."""
 
 from __future__ import annotations
 
@@ -17,12 +17,12 @@ HESSIAN_MODIFICATIONS = ("floor", "abs", "augmented")
 # "on_demand": the QP is solved without slacks first, and with them only when that QP is
 # infeasible or a multiplier (a group's sum) exceeds the slack penalty; "always": with them.
 ELASTIC_MODES = ("on_demand", "always")
-MAX_THREADS = 256  # kernel_threads above this is surely a mistake
+MAX_THREADS = 256  # threads above this is surely a mistake
 
 
 @dataclass(frozen=True)
 class FastSolverOptions:
-    """Settings of the fast SQP solvers; the defaults suit the paper's problem.
+    """Settings of the fast SQP solver; the defaults suit the paper's problem.
 
     Tolerances are in the units of the inputs and constraints (the paper's problem: m/s^2,
     rad, m, m/s).
@@ -100,14 +100,14 @@ class FastSolverOptions:
     # Smallest trust radius: below it the line search alone handles a poor model, so the
     # trust region never holds back the fast local convergence near a solution.
     min_trust_radius: float = 1e-3
-    # Threads of the compiled kernel's rollouts, linearisations and Hessians (the scenarios
+    # Threads of the C library's rollouts, linearisations and Hessians (the scenarios
     # in that many chunks; results equal to rounding for every count). Worth it for many
     # scenarios: on a 2-core machine with 2 threads, N = 7 solves took 0.73x the time at
     # Ns = 500, 0.70x at 1000 and 0.58x at 5000, but 1.3x at the paper's Ns = 150 (waking
     # the second thread costs more than it saves). Leave it at 1 when processes already
     # share the cores (lfm-evaluate --jobs). Needs the compiler's OpenMP; without it the
     # chunks run one after another.
-    kernel_threads: int = 1
+    threads: int = 1
     # Wall-clock limit of one solve [s], checked between SQP iterations: a solve that
     # reaches it returns its best iterate with success=False, status
     # "Maximum_WallTime_Exceeded" (IPOPT's name), and tries no further start.
@@ -129,9 +129,9 @@ class FastSolverOptions:
         ):
             value = getattr(self, name)
             check(name, isinstance(value, int) and value >= 1, "an int >= 1")
-        value = self.kernel_threads
+        value = self.threads
         ok = isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= MAX_THREADS
-        check("kernel_threads", ok, f"an int in [1, {MAX_THREADS}]")
+        check("threads", ok, f"an int in [1, {MAX_THREADS}]")
         for name in (
             "tol",
             "acceptable_tol",

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from controllers.problem import ScenarioProblem
-from controllers.solvers.fast.condensed import Rollout
+from controllers.solvers.fast.iterate import Rollout
 from controllers.solvers.fast.options import FastSolverOptions
 
 

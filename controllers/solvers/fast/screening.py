@@ -1,6 +1,10 @@
-"""Which scenario rows enter the fast solver's QP: the NumPy reference of the selection.
+"""Which rows enter the fast solver's QP: the shared linear rows, and the NumPy reference of
+the scenario rows' selection.
 
-The scenario problem has ``ng N Ns`` scenario rows (constraint ``j``, step ``k``, scenario
+Constraints whose condensed Jacobian is one constant row per step for every scenario
+(:func:`shared_linear_constraints`, found symbolically from the system; the bicycle's speed
+bounds) enter as one exact row per step, for the extreme scenario. For the others, the
+scenario problem has ``ng N Ns`` scenario rows (constraint ``j``, step ``k``, scenario
 ``i``); the fast SQP puts only a few of each (constraint, step) *group* into its QP and adds
 the rest by check-and-add. Two selections decide which:
 
@@ -9,15 +13,48 @@ the rest by check-and-add. Two selections decide which:
 
 Both pick "the ``keep`` largest values of a group" with a fixed rule for ties (the larger
 value first, then the lower scenario index) and return the rows sorted by (constraint
-position, step, scenario), so the result is a function of the values alone. The compiled
-kernel (``lfm_screen``, ``lfm_violated`` in :mod:`controllers.solvers.fast.codegen.driver`)
+position, step, scenario), so the result is a function of the values alone. The C
+library (``lfm_screen``, ``lfm_violated`` in ``controllers/solvers/fast/codegen/c/selection.c``)
 implements the same rule and must return the same rows;
 :class:`~controllers.solvers.fast.condensed.CondensedModel` picks the implementation.
 """
 
 from __future__ import annotations
 
+import casadi as ca
 import numpy as np
+
+from controllers.problem import ScenarioProblem
+
+
+def shared_linear_constraints(problem: ScenarioProblem) -> tuple[np.ndarray, np.ndarray]:
+    """Constraints whose condensed Jacobian is one constant row per step, and those rows.
+
+    Returns ``(indices (nL,), rows (nL, N, N nu))``: ``d g_j(x_k) / d u`` does not depend
+    on the initial state, the force or ``u`` for ``j`` in ``indices``.
+    """
+    system, n, dt = problem.system, problem.horizon, problem.dt
+    nx, nu, nw, ng = problem.nx, problem.nu, problem.nw, problem.ng
+    if ng == 0:
+        return np.zeros(0, dtype=int), np.zeros((0, n, n * nu))
+    x0, w, U = ca.SX.sym("x0", nx), ca.SX.sym("w", nw, n), ca.SX.sym("u", nu * n)
+    step, cons = system.casadi_step(dt), system.casadi_constraints()
+    x, G = x0, []
+    for k in range(n):
+        x = step(x, U[k * nu : (k + 1) * nu], w[:, k])
+        G.append(cons(x))
+    G = ca.horzcat(*G)  # (ng, N)
+    data = ca.vertcat(x0, ca.vec(w), U)
+    indices, rows = [], []
+    for j in range(ng):
+        J = ca.jacobian(ca.vec(G[j, :]), U)  # (N, N nu)
+        if not ca.depends_on(J, data):
+            indices.append(j)
+            zero = ca.Function("J", [data], [J])(np.zeros(data.shape[0]))
+            rows.append(np.asarray(ca.densify(zero), dtype=float))
+    if not indices:
+        return np.zeros(0, dtype=int), np.zeros((0, n, n * nu))
+    return np.array(indices), np.stack(rows)
 
 
 def largest(values: np.ndarray, keep: int) -> np.ndarray:
@@ -100,4 +137,4 @@ def worst_rows(
     return np.column_stack([screened[group // n], group % n, worst[sub, col]])
 
 
-__all__ = ["largest", "screen_rows", "worst_rows"]
+__all__ = ["largest", "screen_rows", "shared_linear_constraints", "worst_rows"]

@@ -57,37 +57,38 @@ Where things are: the options in :mod:`controllers.solvers.fast.options`; one
 iteration's subproblem (convexification, screening, check-and-add, the QP step) in
 :mod:`controllers.solvers.fast.subproblem`; the extra starts' choices in
 :mod:`controllers.solvers.fast.restarts`; the QP in :mod:`controllers.solvers.fast.qp.slot_qp`;
-the derivatives in :mod:`controllers.solvers.fast.condensed` (and its compiled kernel,
-:mod:`controllers.solvers.fast.codegen.build`); the SQP loop, line search, trust region and extra
-starts here.
+the derivatives in :mod:`controllers.solvers.fast.condensed` (and its C library,
+:mod:`controllers.solvers.fast.codegen.build`); the line search, second-order correction, step
+expansion and trust region in :mod:`controllers.solvers.fast.globalisation`; the SQP loop and
+the extra starts here.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from controllers.problem import MPCSolution, ScenarioProblem
-from controllers.solvers.fast.condensed import CondensedModel, Linearisation, Rollout
+from controllers.solvers.fast.condensed import CondensedModel
+from controllers.solvers.fast.globalisation import Evaluate, GlobalisationMixin, ModelStep
+from controllers.solvers.fast.iterate import Linearisation, Rollout
 from controllers.solvers.fast.options import HESSIAN_MODIFICATIONS, RESTARTS, FastSolverOptions
 from controllers.solvers.fast.qp.slot_qp import resolve_qp_solver
 from controllers.solvers.fast.restarts import RestartMixin
 from controllers.solvers.fast.subproblem import QP, QPStep, SubproblemMixin
 
 
-class FastScenarioSolver(SubproblemMixin, RestartMixin):
+class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin):
     """Condensed exact-Hessian SQP solver of any :class:`ScenarioProblem`.
 
-    The model's derivatives come from :attr:`model_class` (generated from the system
-    definition by default; :mod:`controllers.solvers.fast_bicycle` swaps in hand-written ones).
-
-    Same interface and result semantics as :class:`controllers.solvers.casadi.ipopt.IpoptScenarioSolver`:
-    build once, call :meth:`solve` at every step; the previous solution shifted by one
-    step is the default initial guess.
+    Same interface and result semantics as
+    :class:`controllers.solvers.casadi.ipopt.IpoptScenarioSolver`: build once, call
+    :meth:`solve` at every step; the previous solution shifted by one step is the default
+    initial guess.
 
     Args:
         problem: the problem (its model's system gives every expression).
@@ -97,16 +98,14 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
         ValueError: on an unknown or out-of-range option.
     """
 
-    model_class: type[CondensedModel] = CondensedModel
-
     def __init__(self, problem: ScenarioProblem, **options: Any) -> None:
         unknown = set(options) - set(FastSolverOptions.__dataclass_fields__)
         if unknown:
             raise ValueError(f"unknown {type(self).__name__} options: {sorted(unknown)}")
         self.problem = problem
         self.options = FastSolverOptions(**options)
-        self.model = m = self.model_class(problem)
-        m.threads = self.options.kernel_threads
+        self.model = m = CondensedModel(problem)
+        m.threads = self.options.threads
         n = problem.horizon
         self._n_u = m.n_u
         self._lower, self._upper = m.lower, m.upper
@@ -135,8 +134,7 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
 
     @property
     def backend(self) -> str:
-        """How the derivatives are evaluated: ``"numpy"`` lanes, ``"casadi_map"`` or
-        ``"hand_written"`` (the bicycle's cache)."""
+        """How the derivatives are evaluated: :attr:`CondensedModel.backend`."""
         return self.model.backend
 
     # ------------------------------------------------------------------ public API
@@ -156,8 +154,8 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
-        self.model = self.model_class(self.problem)
-        self.model.threads = self.options.kernel_threads
+        self.model = CondensedModel(self.problem)
+        self.model.threads = self.options.threads
 
     def solve(
         self,
@@ -187,9 +185,9 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
             (``qp_rows``), QP calls retried after a failure (``qp_retries``), iterations
             whose check-and-add rounds ran out (``qp_rounds_exhausted``), merit
             evaluations and second-order corrections, names the derivative backend
-            (``backend``), the kernel's threads (``kernel_threads``: 1 without
+            (``backend``), the C library's threads (``threads``: 1 without
             OpenMP, whatever was asked) and its loops' vectorisation
-            (``kernel_vector_math``: ``CondensedModel.vector_math``), the QP solver option
+            (``vector_math``: ``CondensedModel.vector_math``), the QP solver option
             (``qp_solver``) with the QP calls per solver it resolved to (``qp_calls``, e.g.
             ``{"qpoases": 12}``), gives the first start's ``{"status", "iterations"}``
             (``first_start``), and ``extra["restarts"]`` maps each extra start tried to
@@ -270,8 +268,8 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
             if keep:
                 ro, status, success = ro2, status2, success2
         extra["backend"] = self.backend
-        extra["kernel_threads"] = self.model.threads if self.model.openmp else 1
-        extra["kernel_vector_math"] = getattr(self.model, "vector_math", 0)
+        extra["threads"] = self.model.threads if self.model.openmp else 1
+        extra["vector_math"] = getattr(self.model, "vector_math", 0)
         extra["qp_solver"] = self.options.qp_solver
         extra["first_start"] = {"status": first_status, "iterations": first_iterations}
 
@@ -290,51 +288,6 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
         )
 
     # ------------------------------------------------------------------ SQP
-
-    def _expand(
-        self, evaluate: Any, u: np.ndarray, d: np.ndarray, accepted: Rollout, stats: dict
-    ) -> tuple[Rollout, float]:
-        """The best of ``u + t d`` for ``t = 1, 2, 4, ...`` while the merit keeps falling."""
-        t = 1.0
-        for _ in range(self.options.max_expand):
-            self._check_time()
-            u_try = np.clip(u + 2.0 * t * d, self._lower, self._upper)
-            if np.array_equal(u_try, accepted.u):  # the bounds stop the step
-                break
-            trial = evaluate(u_try)
-            stats["merit_evals"] += 1
-            if not trial.merit < accepted.merit:
-                break
-            accepted, t = trial, 2.0 * t
-        return accepted, t
-
-    def _corrected(
-        self,
-        evaluate: Any,
-        lin: Linearisation,
-        qp_step: QPStep,
-        u: np.ndarray,
-        trial: Rollout,
-        stats: dict,
-    ) -> Rollout | None:
-        """The second-order correction of the full step that gave ``trial`` (or None).
-
-        The constraints' curvature made the full step infeasible: the QP's scenario rows
-        are shifted by their second-order error at ``trial`` and the QP re-solved (against
-        the Maratos effect); returns the rollout of the corrected step. (When the step came
-        from the QP without slacks, so does the correction, without the multiplier test: it
-        is a candidate like any other, kept by the caller only if the merit falls.)
-        """
-        pos, d = qp_step.pos, qp_step.d
-        a_pos, _ = self.model.rows(lin, pos)
-        g_try = trial.G[pos[:, 0], pos[:, 1], pos[:, 2]]
-        qp_step.qp.set_position_bounds(qp_step.row, g_try - a_pos @ d)
-        z_soc, _, ok_soc = qp_step.qp.solve()
-        self._count(stats, qp_step.qp)
-        if not ok_soc:
-            return None
-        stats["merit_evals"] += 1
-        return evaluate(np.clip(u + z_soc[: self._n_u], self._lower, self._upper))
 
     def _check_time(self) -> None:
         """Raise :class:`_OutOfTime` once the current solve's deadline has passed."""
@@ -362,11 +315,6 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
         success) and the last accepted iterate.
         """
         p, opt, model = self.problem, self.options, self.model
-        rho = p.slack_penalty
-        ns = data.x0T.shape[1]
-        mu = np.zeros((p.ng, p.horizon, ns))
-        active_pos = np.empty((0, 3), dtype=int)
-        active_shared = np.empty(0, dtype=int)
         stats: dict[str, Any] = {
             "qp_solves": 0,
             "qp_hard": 0,
@@ -386,15 +334,17 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
         ro = evaluate(u0)
         if not math.isfinite(ro.merit):
             return ro, "Invalid_Initial_Point", False, 0, stats
+        start = _Start(
+            ro=ro,
+            evaluate=evaluate,
+            stats=stats,
+            mu=np.zeros((p.ng, p.horizon, data.x0T.shape[1])),
+            lin=self._spare_lin,  # the last linearisation (its arrays are reused)
+        )
         status, success, iterations = "Maximum_Iterations_Exceeded", False, 0
-        prev_step = math.inf  # size of the last accepted full step
-        acceptable = 0  # accepted steps in a row that each lowered the merit <= acceptable_tol
-        damping = 0.0  # Levenberg-Marquardt term: grows while the quadratic model is poor
         self._radius = opt.trust_radius
         self._deadline = deadline
-        on_demand = opt.elastic_qp == "on_demand"
-        self._hard_first = on_demand
-        lin = self._spare_lin  # the last linearisation (its arrays are reused)
+        self._hard_first = opt.elastic_qp == "on_demand"
         self._spare_lin = None
         try:
             while iterations < opt.max_iter:
@@ -402,174 +352,153 @@ class FastScenarioSolver(SubproblemMixin, RestartMixin):
                     status = "Maximum_WallTime_Exceeded"
                     break
                 iterations += 1
-                u = ro.u
-                with np.errstate(all="ignore"):
-                    lin = model.linearise(ro, data.W_lanes, recycle=lin)
-                    H = model.hessian(lin, mu, data.W_lanes)
-                if not (np.isfinite(H).all() and np.isfinite(lin.grad).all()):
-                    status = "Invalid_Derivatives"
-                    break
-                try:
-                    qp_step, mu = self._newton_step(
-                        lin, H, u, active_pos, active_shared, damping, stats
-                    )
-                except np.linalg.LinAlgError:  # eigen-decomposition failed: keep the best iterate
-                    status = "Numerical_Error"
-                    break
-                if qp_step is None:
-                    status = "QP_Failed"
-                    break
-                d, pos = qp_step.d, qp_step.pos
-                # Slack needed now: likely next time too (e.g. a problem infeasible for every
-                # input), so the next QP gets its slacks at once.
-                self._hard_first = on_demand and qp_step.slack_sum <= opt.add_tol
-                # Hard-active constraints of this QP: the prediction for the next convexification.
-                hard = (mu[pos[:, 0], pos[:, 1], pos[:, 2]] > 1e-9) & (
-                    qp_step.s_pos[pos[:, 0], pos[:, 1]] <= 1e-9
-                )
-                active_pos = pos[hard]
-                active_shared = np.nonzero(
-                    (qp_step.lam_shared > 1e-9) & (qp_step.s_shared <= 1e-9)
-                )[0]
-                if np.max(np.abs(d)) <= opt.step_tol:
-                    status, success = "Solve_Succeeded", True
-                    break
-                # Upper bound of the merit's directional derivative along d (< 0 unless d = 0).
-                D = float(lin.grad @ d) + rho * (qp_step.slack_sum - ro.slack)
-                predicted = -(D + 0.5 * qp_step.curvature)  # the QP model's merit decrease
-                cut = opt.trust_radius > 0.0 and bool(
-                    np.max(np.abs(d) / self._range) >= 0.99 * self._radius
-                )
-                if -D <= opt.tol * (1.0 + abs(ro.merit)) and not cut:
-                    # The QP step (not cut by the trust region) promises nothing beyond
-                    # rounding: a KKT point up to the tolerance.
-                    status, success = "Solve_Succeeded", True
-                    break
-                if (
-                    iterations >= opt.restart_probe
-                    and ro.merit + opt.restart_optimism * D > abandon_above
-                ):
-                    # Even a multiple of the decrease the local model promises leaves this
-                    # start above the plan to beat: give it up.
-                    status = "Abandoned"
-                    break
-
-                # --- line search on the exact-penalty merit, with second-order correction ---
-                soc_ok = opt.second_order_correction and pos.shape[0] > 0
-                t = 1.0
-                accepted = None
-                while t >= opt.min_step:
-                    self._check_time()
-                    trial = evaluate(np.clip(u + t * d, self._lower, self._upper))
-                    stats["merit_evals"] += 1
-                    if trial.merit <= ro.merit + opt.armijo * t * D:
-                        accepted = trial
-                        if (
-                            t == 1.0
-                            and soc_ok
-                            and opt.soc_below_ratio > 0.0
-                            and trial.slack > ro.slack
-                            and ro.merit - trial.merit < opt.soc_below_ratio * predicted
-                        ):
-                            # Accepted, but far below the model's promise while the slack
-                            # grew: the same curvature error; keep the correction if better.
-                            soc = self._corrected(evaluate, lin, qp_step, u, trial, stats)
-                            if soc is not None and soc.merit < trial.merit:
-                                stats["soc_steps"] += 1
-                                accepted = soc
-                        break
-                    if t == 1.0 and soc_ok and trial.slack > ro.slack:
-                        soc = self._corrected(evaluate, lin, qp_step, u, trial, stats)
-                        if soc is not None and soc.merit <= ro.merit + opt.armijo * D:
-                            stats["soc_steps"] += 1
-                            accepted = soc
-                            break
-                    t *= opt.backtrack
-                if (
-                    accepted is not None
-                    and t == 1.0
-                    and opt.max_expand > 0
-                    and ro.merit - accepted.merit >= -opt.expand_ratio * D
-                    # no fast local convergence under way: the last step was cut, or this
-                    # QP step is not less than half the last full step
-                    and (not math.isfinite(prev_step) or float(np.max(np.abs(d))) > 0.5 * prev_step)
-                ):
-                    accepted, t = self._expand(evaluate, u, d, accepted, stats)
-                if accepted is None:
-                    # No decrease along a descent direction: converged up to rounding if the
-                    # predicted decrease is negligible, else a genuine failure.
-                    if -D <= 1e3 * opt.tol * (1.0 + abs(ro.merit)):
-                        status, success = "Solve_Succeeded", True
-                    else:
-                        status = "Line_Search_Failed"
-                    break
-                step = float(np.max(np.abs(accepted.u - u)))
-                if self.trace is not None:
-                    self.trace.append(
-                        {
-                            "merit": ro.merit,
-                            "ratio": (accepted.merit - ro.merit) / D,
-                            "slack": ro.slack,
-                            "D": D,
-                            "t": t,
-                            "step": step,
-                            "d": float(np.max(np.abs(d))),
-                            "damping": damping,
-                            "qp_solves": stats["qp_solves"],
-                            "rows": pos.shape[0],
-                            "eig0": self._last_eig[0],
-                            "eig1": self._last_eig[1],
-                            "sigma": self._last_sigma,
-                            "radius": self._radius,
-                        }
-                    )
-                slack_change = abs(accepted.slack - ro.slack)
-                prev_merit = ro.merit
-                ro = accepted
-                # Stagnation (see FastSolverOptions.acceptable_tol): the merit has fallen by
-                # next to nothing in each of the last acceptable_iter iterations.
-                small = prev_merit - ro.merit <= opt.acceptable_tol * (1.0 + abs(ro.merit))
-                acceptable = acceptable + 1 if small else 0
-                if acceptable >= opt.acceptable_iter:
-                    status, success = "Solved_To_Acceptable_Level", True
-                    break
-                if rival is not None and self._bound_for(rival, u, ro, abandon_above):
-                    status = "Duplicate"
-                    break
-                # A trust region (or, without one, Levenberg-Marquardt damping) keeps steps
-                # where the quadratic model holds: after heavy backtracking or a poor model
-                # ratio (negative curvature floored, strongly curved constraints) the next
-                # steps are shorter; good full steps lift the limit again, so the local
-                # convergence stays fast.
-                at_radius = False
-                if opt.trust_radius > 0.0:
-                    # The QP model's predicted decrease against the actual one at the full step.
-                    size = float(np.max(np.abs(d) / self._range))
-                    at_radius = cut  # (the radius has not changed since)
-                    model_ratio = (prev_merit - ro.merit) / predicted if predicted > 0 else 1.0
-                    if t < 1.0 or model_ratio < 0.25:
-                        self._radius = max(0.5 * t * size, opt.min_trust_radius)
-                    elif model_ratio > 0.25 and at_radius:
-                        self._radius = min(2.0 * self._radius, 1.0)
-                elif t < opt.damping_threshold:
-                    damping = max(10.0 * damping, opt.damping_init)
-                elif t == 1.0:
-                    damping = (
-                        opt.damping_decrease * damping if damping > 1e-3 * opt.damping_init else 0.0
-                    )
-                ratio = step / prev_step if math.isfinite(prev_step) else 1.0
-                # (a step cut by the trust region says nothing about convergence)
-                predicted_next = step * min(ratio, 1.0) if t == 1.0 and not at_radius else math.inf
-                prev_step = step if t == 1.0 else math.inf
-                if predicted_next <= opt.final_step_tol and (
-                    ro.slack <= opt.add_tol or slack_change <= opt.add_tol * (1.0 + ro.slack)
-                ):
-                    status, success = "Solve_Succeeded", True
+                end = self._iteration(start, data, iterations, abandon_above, rival)
+                if end is not None:
+                    status, success = end
                     break
         except _OutOfTime:  # inside an iteration: keep the last accepted iterate
             status, success = "Maximum_WallTime_Exceeded", False
-        self._spare_lin = lin
-        return ro, status, success, iterations, stats
+        self._spare_lin = start.lin
+        return start.ro, status, success, iterations, stats
+
+    def _iteration(
+        self,
+        start: _Start,
+        data: _Data,
+        iteration: int,
+        abandon_above: float,
+        rival: np.ndarray | None,
+    ) -> tuple[str, bool] | None:
+        """SQP iteration number ``iteration`` of ``start`` (see :meth:`_sqp`): the QP step, the
+        tests that end the start before the line search, the line search, and the accepted
+        step's own tests. Returns ``(status, success)`` when the start ends, else ``None``."""
+        qp_step, failure = self._qp_step(start, data)
+        if qp_step is None:
+            return failure, False
+        step = self._measure(start.ro, start.lin, qp_step)
+        end = self._stop_before_search(start, step, iteration, abandon_above)
+        if end is not None:
+            return end
+        accepted, t = self._line_search(
+            start.evaluate, start.ro, start.lin, step, start.prev_step, start.stats
+        )
+        return self._accept(start, step, accepted, t, abandon_above, rival)
+
+    def _qp_step(self, start: _Start, data: _Data) -> tuple[QPStep | None, str]:
+        """The linearisation and Hessian at ``start.ro`` and the QP step from them, with the
+        multipliers and the hard-active rows of that QP kept in ``start`` for the next
+        convexification; ``(None, status)`` when the derivatives or the QP fail."""
+        opt, model, ro = self.options, self.model, start.ro
+        with np.errstate(all="ignore"):
+            start.lin = lin = model.linearise(ro, data.W_lanes, recycle=start.lin)
+            H = model.hessian(lin, start.mu, data.W_lanes)
+        if not (np.isfinite(H).all() and np.isfinite(lin.grad).all()):
+            return None, "Invalid_Derivatives"
+        try:
+            qp_step, start.mu = self._newton_step(
+                lin, H, ro.u, start.active_pos, start.active_shared, start.damping, start.stats
+            )
+        except np.linalg.LinAlgError:  # eigen-decomposition failed: keep the best iterate
+            return None, "Numerical_Error"
+        if qp_step is None:
+            return None, "QP_Failed"
+        pos, mu = qp_step.pos, start.mu
+        # Slack needed now: likely next time too (e.g. a problem infeasible for every
+        # input), so the next QP gets its slacks at once.
+        self._hard_first = opt.elastic_qp == "on_demand" and qp_step.slack_sum <= opt.add_tol
+        # Hard-active constraints of this QP: the prediction for the next convexification.
+        hard = (mu[pos[:, 0], pos[:, 1], pos[:, 2]] > 1e-9) & (
+            qp_step.s_pos[pos[:, 0], pos[:, 1]] <= 1e-9
+        )
+        start.active_pos = pos[hard]
+        shared_hard = (qp_step.lam_shared > 1e-9) & (qp_step.s_shared <= 1e-9)
+        start.active_shared = np.nonzero(shared_hard)[0]
+        return qp_step, ""
+
+    def _stop_before_search(
+        self, start: _Start, step: ModelStep, iteration: int, abandon_above: float
+    ) -> tuple[str, bool] | None:
+        """``(status, success)`` when the QP step ends the start before any line search: a
+        negligible step or promise (converged), or an extra start that cannot win."""
+        opt, ro, D = self.options, start.ro, step.D
+        if np.max(np.abs(step.qp.d)) <= opt.step_tol:
+            return "Solve_Succeeded", True
+        if -D <= opt.tol * (1.0 + abs(ro.merit)) and not step.cut:
+            # The QP step (not cut by the trust region) promises nothing beyond
+            # rounding: a KKT point up to the tolerance.
+            return "Solve_Succeeded", True
+        if iteration >= opt.restart_probe and ro.merit + opt.restart_optimism * D > abandon_above:
+            # Even a multiple of the decrease the local model promises leaves this
+            # start above the plan to beat: give it up.
+            return "Abandoned", False
+        return None
+
+    def _accept(
+        self,
+        start: _Start,
+        step: ModelStep,
+        accepted: Rollout | None,
+        t: float,
+        abandon_above: float,
+        rival: np.ndarray | None,
+    ) -> tuple[str, bool] | None:
+        """Move ``start`` to the line search's ``accepted`` rollout (step length ``t``) and
+        adapt the trust region; ``(status, success)`` when that ends the start (no
+        acceptable point, stagnation, the rival plan again, convergence), else ``None``."""
+        opt, ro, D = self.options, start.ro, step.D
+        if accepted is None:
+            # No decrease along a descent direction: converged up to rounding if the
+            # predicted decrease is negligible, else a genuine failure.
+            if -D <= 1e3 * opt.tol * (1.0 + abs(ro.merit)):
+                return "Solve_Succeeded", True
+            return "Line_Search_Failed", False
+        u = ro.u
+        size = float(np.max(np.abs(accepted.u - u)))
+        if self.trace is not None:
+            self.trace.append(self._trace_row(start, step, accepted, t, size))
+        slack_change = abs(accepted.slack - ro.slack)
+        prev_merit = ro.merit
+        start.ro = ro = accepted
+        # Stagnation (see FastSolverOptions.acceptable_tol): the merit has fallen by
+        # next to nothing in each of the last acceptable_iter iterations.
+        small = prev_merit - ro.merit <= opt.acceptable_tol * (1.0 + abs(ro.merit))
+        start.acceptable = start.acceptable + 1 if small else 0
+        if start.acceptable >= opt.acceptable_iter:
+            return "Solved_To_Acceptable_Level", True
+        if rival is not None and self._bound_for(rival, u, ro, abandon_above):
+            return "Duplicate", False
+        at_radius, start.damping = self._adapt_region(step, t, prev_merit, ro.merit, start.damping)
+        ratio = size / start.prev_step if math.isfinite(start.prev_step) else 1.0
+        # (a step cut by the trust region says nothing about convergence)
+        predicted_next = size * min(ratio, 1.0) if t == 1.0 and not at_radius else math.inf
+        start.prev_step = size if t == 1.0 else math.inf
+        if predicted_next <= opt.final_step_tol and (
+            ro.slack <= opt.add_tol or slack_change <= opt.add_tol * (1.0 + ro.slack)
+        ):
+            return "Solve_Succeeded", True
+        return None
+
+    def _trace_row(
+        self, start: _Start, step: ModelStep, accepted: Rollout, t: float, size: float
+    ) -> dict[str, Any]:
+        """The diagnostics of one accepted iteration (:attr:`trace`)."""
+        ro, D = start.ro, step.D
+        return {
+            "merit": ro.merit,
+            "ratio": (accepted.merit - ro.merit) / D,
+            "slack": ro.slack,
+            "D": D,
+            "t": t,
+            "step": size,
+            "d": float(np.max(np.abs(step.qp.d))),
+            "damping": start.damping,
+            "qp_solves": start.stats["qp_solves"],
+            "rows": step.qp.pos.shape[0],
+            "eig0": self._last_eig[0],
+            "eig1": self._last_eig[1],
+            "sigma": self._last_sigma,
+            "radius": self._radius,
+        }
 
 
 class _OutOfTime(Exception):
@@ -585,6 +514,24 @@ class _Data:
     W_lanes: np.ndarray  # (nw, N, Ns) forces as evaluation points
     cost0: float  # averaged stage cost of the initial states (a constant)
     backoff: np.ndarray | None = None  # (ng, N, 1) constraint tightening, or None
+
+
+@dataclass
+class _Start:
+    """One SQP start between its iterations (:meth:`FastScenarioSolver._sqp`)."""
+
+    ro: Rollout  # the current iterate
+    evaluate: Evaluate  # the rollout and merit of inputs (N nu,)
+    stats: dict[str, Any]  # the counts the solve reports in extra
+    mu: np.ndarray  # (ng, N, Ns) the scenario rows' multipliers of the last QP
+    lin: Linearisation | None  # the last linearisation (its arrays are reused)
+    # The hard-active scenario rows (r, 3) and shared rows of the last QP: the prediction
+    # for the next convexification.
+    active_pos: np.ndarray = field(default_factory=lambda: np.empty((0, 3), dtype=int))
+    active_shared: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=int))
+    prev_step: float = math.inf  # size of the last accepted full step
+    acceptable: int = 0  # accepted steps in a row that each lowered the merit <= acceptable_tol
+    damping: float = 0.0  # Levenberg-Marquardt term: grows while the quadratic model is poor
 
 
 __all__ = ["HESSIAN_MODIFICATIONS", "RESTARTS", "FastScenarioSolver", "FastSolverOptions"]

@@ -6,8 +6,9 @@ constraints predicted active, which leaves the QP step on that active set unchan
 else by raising eigenvalues to a floor), screens the scenario rows that can become
 active, and solves the dense QP (:class:`~controllers.solvers.fast.qp.slot_qp.SlotQP`) with
 check-and-add over every scenario row, so the step is the full QP's. The SQP loop
-around it (line search, trust region, extra starts) is
-:class:`controllers.solvers.fast.solver.FastScenarioSolver`.
+around it is :class:`controllers.solvers.fast.solver.FastScenarioSolver` (the line search and
+trust region: :mod:`controllers.solvers.fast.globalisation`; the extra starts:
+:mod:`controllers.solvers.fast.restarts`).
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ import numpy as np
 import scipy.linalg.lapack
 
 from controllers.problem import ScenarioProblem
-from controllers.solvers.fast.condensed import CondensedModel, Linearisation, Rollout
+from controllers.solvers.fast.condensed import CondensedModel
+from controllers.solvers.fast.iterate import Linearisation, Rollout
 from controllers.solvers.fast.options import FastSolverOptions
 from controllers.solvers.fast.qp.hard_qp import DaqpHardQP
 from controllers.solvers.fast.qp.slot_qp import SlotQP
@@ -43,13 +45,10 @@ class QPStep:
     curvature: float = 0.0  # d' H_qp d of the QP's (convexified) Hessian
 
 
-class SubproblemMixin:
-    """The QP subproblem of :class:`~controllers.solvers.fast.solver.FastScenarioSolver`.
-
-    A base class of the solver: it reads the solver's problem, options, model, input
-    bounds and trust radius (the attributes declared below, set by the solver's
-    ``__init__`` and SQP loop) and keeps the QP objects by size (``_qps``).
-    """
+class SolverAttributes:
+    """What the mixins of :class:`~controllers.solvers.fast.solver.FastScenarioSolver` read
+    of it: its problem, options, model, input bounds and trust radius (set by the solver's
+    ``__init__`` and SQP loop), and its deadline check."""
 
     problem: ScenarioProblem
     options: FastSolverOptions
@@ -59,6 +58,18 @@ class SubproblemMixin:
     _upper: np.ndarray
     _range: np.ndarray  # (N nu,) each input's range (inf: none)
     _radius: float  # current trust radius (fraction of the range; 0: none)
+
+    def _check_time(self) -> None:  # the solver's deadline check
+        raise NotImplementedError
+
+
+class SubproblemMixin(SolverAttributes):
+    """The QP subproblem of :class:`~controllers.solvers.fast.solver.FastScenarioSolver`.
+
+    A base class of the solver: it reads the solver's attributes (:class:`SolverAttributes`
+    and those declared below) and keeps the QP objects by size (``_qps``).
+    """
+
     _n_shared: int  # shared rows, ordered (step, shared constraint)
     _a_shared: np.ndarray  # (n_shared, N nu) their Jacobian rows
     _n_groups: int  # (constraint, step) groups of scenario rows
@@ -70,9 +81,6 @@ class SubproblemMixin:
     _last_eig: Any  # diagnostics of the last convexification (for the trace)
     trace: list[dict[str, Any]] | None  # per-iteration diagnostics, when asked for
     _last_sigma: float
-
-    def _check_time(self) -> None:  # the solver's deadline check
-        raise NotImplementedError
 
     # ------------------------------------------------------------------ convexification
 
@@ -381,4 +389,4 @@ def _positive_definite(M: np.ndarray) -> bool:
 
 _DPOTRF = scipy.linalg.lapack.dpotrf
 
-__all__ = ["QPStep", "SubproblemMixin"]
+__all__ = ["QP", "QPStep", "SolverAttributes", "SubproblemMixin"]

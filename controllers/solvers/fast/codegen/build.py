@@ -10,17 +10,18 @@ adjoint). This module generates that work as one C library:
   Hessian of ``mu' g``) are CasADi functions of the system's own expressions
   (:meth:`ControlSystem.casadi_step`, :meth:`ControlSystem.casadi_constraints`), written as C
   by CasADi's ``CodeGenerator``;
-* a fixed driver (:data:`controllers.solvers.fast.codegen.driver.DRIVER`) loops over the steps
-  and scenarios, with the horizon ``N`` and the scenario count ``Ns`` given at run time, and
-  skips the structural zeros of the sensitivities (``S_k`` has nonzero columns only for
+* a fixed driver (the C files of ``codegen/c/``: ``driver.c`` with the row selection
+  ``selection.c`` and the Hessian ``hessian.c``, read with :func:`c_source`) loops over the
+  steps and scenarios, with the horizon ``N`` and the scenario count ``Ns`` given at run time,
+  and skips the structural zeros of the sensitivities (``S_k`` has nonzero columns only for
   inputs before step ``k``).
 
 So one library serves a system and time step at every ``N`` and ``Ns``. It is compiled with
 the system C compiler (``$CC``, else ``cc``, else ``gcc``; ``-O3 -fPIC -shared``), cached on
 disk under ``$LFM_CACHE_DIR`` (default ``~/.cache/lfm-scenario-mpc``) by a hash of its C
-source and compile command, written atomically (two processes compiling the same kernel at
+source and compile command, written atomically (two processes compiling the same library at
 once both end with a valid library), and called through ``ctypes`` on the NumPy arrays
-directly (no copies). :func:`build_kernel` raises :class:`KernelUnavailable` when no
+directly (no copies). :func:`build_library` raises :class:`CodegenUnavailable` when no
 compiler is found or compilation fails; the caller then falls back to NumPy.
 """
 
@@ -30,6 +31,7 @@ import contextlib
 import ctypes
 import hashlib
 import os
+import re
 import shlex
 import shutil
 import subprocess
@@ -37,12 +39,12 @@ import tempfile
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
 
-from controllers.solvers.fast.codegen.driver import DRIVER
 from controllers.solvers.fast.codegen.inline import (
     VECTOR_MATH_DECLARATIONS,
     NotInlinable,
@@ -54,12 +56,12 @@ from controllers.solvers.fast.codegen.inline import (
 
 CACHE_ENV = "LFM_CACHE_DIR"
 FLAGS = ("-O3", "-fPIC", "-shared")
-# Added when the compiler takes it (the kernel's scenario chunks then run in threads,
+# Added when the compiler takes it (the C library's scenario chunks then run in threads,
 # CondensedModel.threads); without it the chunks run one after another.
 OPENMP_FLAG = "-fopenmp"
 # Without OpenMP, its simd pragmas alone (the rollout's vectorised scenario loop).
 SIMD_FLAG = "-fopenmp-simd"
-# glibc's vector math library for the rollout's vectorised loop (kernel_inline); the link
+# glibc's vector math library for the rollout's vectorised loop (codegen.inline); the link
 # must resolve every symbol, so a system without libmvec fails here and builds without it.
 VECTOR_MATH_FLAGS = ("-DLFM_VECTOR_MATH",)
 VECTOR_MATH_LIBS = ("-lmvec", "-Wl,-z,defs")
@@ -73,18 +75,21 @@ BUILDS = (
 )
 COMPILE_TIMEOUT = 120.0  # [s] a compile taking longer is abandoned (fallback)
 
+# A line of a C file of c/ that stands for another file of that folder (c_source).
+_INCLUDE = re.compile(r'^#include "([\w.]+)"\n', re.MULTILINE)
+
 # Loaded libraries of this process, by source hash (a second build is free).
 _LOADED: dict[str, ctypes.CDLL] = {}
 # The cache directories that replace the configured one inside fresh_cache() (innermost last).
 _CACHE_OVERRIDE: list[Path] = []
 
 
-class KernelUnavailable(RuntimeError):
-    """No compiled kernel: no compiler found, compilation failed or the library did not load."""
+class CodegenUnavailable(RuntimeError):
+    """No C library: no compiler found, compilation failed or the library did not load."""
 
 
 def cache_dir() -> Path:
-    """The kernel cache directory: ``$LFM_CACHE_DIR`` or ``~/.cache/lfm-scenario-mpc``
+    """The C library cache directory: ``$LFM_CACHE_DIR`` or ``~/.cache/lfm-scenario-mpc``
     (inside :func:`fresh_cache`, its temporary directory)."""
     if _CACHE_OVERRIDE:
         return _CACHE_OVERRIDE[-1]
@@ -94,16 +99,16 @@ def cache_dir() -> Path:
 
 @contextlib.contextmanager
 def fresh_cache() -> Iterator[Path]:
-    """An empty, temporary kernel cache for the duration, yielded as a path.
+    """An empty, temporary C library cache for the duration, yielded as a path.
 
-    A kernel built inside is compiled anew (the libraries this process has loaded are set
+    A library built inside is compiled anew (the libraries this process has loaded are set
     aside meanwhile, and restored after), so its ``compile_time`` is a cold build's: the
     benchmark measures compilation this way without touching the real cache. Solvers
     built inside keep their loaded library after the directory is removed.
     """
     saved = dict(_LOADED)
     _LOADED.clear()
-    with tempfile.TemporaryDirectory(prefix="lfm-kernel-cache-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="lfm-codegen-cache-") as tmp:
         _CACHE_OVERRIDE.append(Path(tmp))
         try:
             yield Path(tmp)
@@ -117,16 +122,23 @@ def find_compiler() -> list[str]:
     """The C compiler command: ``$CC`` if set (only it), else ``cc`` or ``gcc`` on ``PATH``.
 
     Raises:
-        KernelUnavailable: when that compiler is not found.
+        CodegenUnavailable: when that compiler is not found.
     """
     cc = os.environ.get("CC")
     candidates = [shlex.split(cc)] if cc else [["cc"], ["gcc"]]
     for cmd in candidates:
         if cmd and shutil.which(cmd[0]):
             return [shutil.which(cmd[0]) or cmd[0], *cmd[1:]]
-    raise KernelUnavailable(
+    raise CodegenUnavailable(
         f"no C compiler found (CC={cc!r})" if cc else "no C compiler found (cc, gcc on PATH)"
     )
+
+
+def c_source(name: str) -> str:
+    """The text of the C file ``c/<name>`` beside this module, each of its ``#include "..."``
+    lines replaced by the text of that file of the folder (a whole translation unit)."""
+    text = (resources.files(__package__) / "c" / name).read_text(encoding="utf-8")
+    return _INCLUDE.sub(lambda m: c_source(m.group(1)), text)
 
 
 def pointwise_functions(system, dt: float) -> list[ca.Function]:
@@ -210,7 +222,7 @@ def constraint_jacobian_pattern(system) -> np.ndarray:
     """``(ng, nx)`` bool: where the constraints' Jacobian ``dg/dx`` can be nonzero (CasADi's
     structural sparsity), i.e. which states each constraint depends on.
 
-    The compiled kernel stores only these entries of each point's constraint Jacobian
+    The C library stores only these entries of each point's constraint Jacobian
     (:func:`constraint_jacobian_table`); the bicycle's six constraints have 8 of 24.
     """
     nx, ng = system.nx, system.ng
@@ -223,7 +235,7 @@ def constraint_jacobian_pattern(system) -> np.ndarray:
 
 
 def constraint_jacobian_table(system) -> str:
-    """C tables of the constraint Jacobian entries the kernel stores per point, row by row.
+    """C tables of the constraint Jacobian entries the C library stores per point, row by row.
 
     ``G_NNZ`` entries (those of :func:`constraint_jacobian_pattern`, row-major), constraint
     ``j``'s from ``G_PTR[j]`` to ``G_PTR[j + 1]`` (``G_PTR[NG] = G_NNZ``), each at state
@@ -243,8 +255,10 @@ def constraint_jacobian_table(system) -> str:
     return "\n".join(lines)
 
 
-def kernel_source(system, dt: float) -> str:
-    """The complete C source of ``system``'s kernel at time step ``dt`` [s]."""
+def library_source(system, dt: float) -> str:
+    """The complete C source of ``system``'s C library at time step ``dt`` [s]."""
+    # (The generator's name prefixes the generated symbols: part of the source, so of the
+    # cache key; kept as it was.)
     cg = ca.CodeGenerator("lfm_kernel.c", {"with_header": False, "casadi_real": "double"})
     fns = pointwise_functions(system, dt)
     for f in fns:
@@ -271,12 +285,13 @@ def kernel_source(system, dt: float) -> str:
     if "lfm_con_jac" in by_name:
         with contextlib.suppress(NotInlinable):
             inline += inline_con_jac(code, by_name["lfm_con_jac"])
-    return code + "\n" + defines + "\n" + inline + DRIVER.replace("@WORK@", work)
+    driver = c_source("driver.c").replace("@WORK@", work)  # (the work-size queries)
+    return code + "\n" + defines + "\n" + inline + "\n" + driver
 
 
 @dataclass
-class Kernel:
-    """A loaded kernel library and how it was obtained."""
+class CompiledLibrary:
+    """A loaded C library and how it was obtained."""
 
     lib: ctypes.CDLL
     path: Path
@@ -300,12 +315,12 @@ def _compile(source: str, target: Path, compiler: list[str]) -> None:
                     cmd, capture_output=True, text=True, timeout=COMPILE_TIMEOUT, check=False
                 )
             except (OSError, subprocess.TimeoutExpired) as err:
-                raise KernelUnavailable(f"compiler {compiler[0]!r} failed to run: {err}") from err
+                raise CodegenUnavailable(f"compiler {compiler[0]!r} failed to run: {err}") from err
             if out.returncode == 0:
                 break
         if out.returncode != 0:
             msg = (out.stderr or out.stdout).strip().splitlines()[:3]
-            raise KernelUnavailable(f"compilation with {compiler[0]!r} failed: {msg}")
+            raise CodegenUnavailable(f"compilation with {compiler[0]!r} failed: {msg}")
         os.replace(tmp, target)  # atomic: a concurrent build replaces an equal file
         os.replace(c_file, target.with_suffix(".c"))
     finally:
@@ -313,26 +328,26 @@ def _compile(source: str, target: Path, compiler: list[str]) -> None:
             leftover.unlink(missing_ok=True)
 
 
-def build_kernel(system, dt: float) -> Kernel:
-    """The compiled kernel of ``system`` at time step ``dt`` [s], from the cache if there.
+def build_library(system, dt: float) -> CompiledLibrary:
+    """The C library of ``system`` at time step ``dt`` [s], from the cache if there.
 
     Raises:
-        KernelUnavailable: no compiler found, compilation failed or the library did not load.
+        CodegenUnavailable: no compiler found, compilation failed or the library did not load.
     """
     start = time.perf_counter()
-    kernel = load_library(kernel_source(system, dt), "lfm_kernel")
-    _declare(kernel.lib)
-    kernel.build_time = time.perf_counter() - start
-    return kernel
+    library = load_library(library_source(system, dt), "lfm_codegen")
+    _declare(library.lib)
+    library.build_time = time.perf_counter() - start
+    return library
 
 
-def load_library(source: str, stem: str) -> Kernel:
-    """The shared library of the C ``source``, compiled with the kernel's compiler and
+def load_library(source: str, stem: str) -> CompiledLibrary:
+    """The shared library of the C ``source``, compiled with the C library's compiler and
     flags (:data:`BUILDS`) and cached under :func:`cache_dir` as ``<stem>_<hash>.so``
     (loaded once per process).
 
     Raises:
-        KernelUnavailable: no compiler found, compilation failed or the library did not load.
+        CodegenUnavailable: no compiler found, compilation failed or the library did not load.
     """
     start = time.perf_counter()
     compiler_env = os.environ.get("CC", "")
@@ -341,21 +356,21 @@ def load_library(source: str, stem: str) -> Kernel:
     lib = _LOADED.get(key)
     if lib is not None:
         path = Path(lib._name)
-        return Kernel(lib, path, key, True, time.perf_counter() - start)
+        return CompiledLibrary(lib, path, key, True, time.perf_counter() - start)
     path = cache_dir() / f"{stem}_{key}.so"
     hit = path.is_file()
     if not hit:
         try:
             _compile(source, path, find_compiler())
         except OSError:  # the cache is not writable: compile into a private directory
-            path = Path(tempfile.mkdtemp(prefix="lfm-kernel-")) / path.name
+            path = Path(tempfile.mkdtemp(prefix="lfm-codegen-")) / path.name
             _compile(source, path, find_compiler())
     try:
         lib = ctypes.CDLL(str(path))
     except OSError as err:
-        raise KernelUnavailable(f"cannot load {path}: {err} (CC={compiler_env!r})") from err
+        raise CodegenUnavailable(f"cannot load {path}: {err} (CC={compiler_env!r})") from err
     _LOADED[key] = lib
-    return Kernel(lib, path, key, hit, time.perf_counter() - start)
+    return CompiledLibrary(lib, path, key, hit, time.perf_counter() - start)
 
 
 def forget_loaded() -> None:
@@ -363,6 +378,15 @@ def forget_loaded() -> None:
     _LOADED.clear()
 
 
+# The driver's arrays (C order): x0T (NX, Ns); W any (strides sa, sk, si of force
+# component, step, scenario, in elements); u (N NU); goal (NX);
+# Wq (N, NX, NX) state weights of steps 1..N; X (N+1, NX, Ns); G (NG, N, Ns);
+# Jg (N, Ns, G_NNZ): of each point's constraint Jacobian (NG, NX) only the entries that can
+# be nonzero, row by row (constraint j's from G_PTR[j], each at state G_COL[e]; the tables
+# of constraint_jacobian_table); mu (NG, N, Ns); H (N NU, N NU).
+# S causally packed: x_{k+1} depends on u_0..u_k only, so step k (from 0) is stored as
+# (Ns, NX, (k + 1) NU) from S_OFF(k), the steps one after another (N (N + 1) / 2 NU NX Ns
+# values instead of N^2 NU NX Ns; the zeros are never written or read).
 def _declare(lib: ctypes.CDLL) -> None:
     """Argument types of the driver's entry points."""
     L, P, D = ctypes.c_long, ctypes.c_void_p, ctypes.c_double
@@ -390,7 +414,7 @@ def ptr(a: np.ndarray | None) -> int | None:
     if a is None:
         return None
     if a.dtype != np.float64 or not a.flags.c_contiguous:
-        raise ValueError(f"kernel array: must be C-contiguous float64, got {a.dtype}")
+        raise ValueError(f"C library array: must be C-contiguous float64, got {a.dtype}")
     return address(a)
 
 
@@ -406,15 +430,16 @@ def address(a: np.ndarray) -> int:
 
 __all__ = [
     "CACHE_ENV",
-    "Kernel",
-    "KernelUnavailable",
+    "CodegenUnavailable",
+    "CompiledLibrary",
     "address",
-    "build_kernel",
+    "build_library",
+    "c_source",
     "cache_dir",
     "find_compiler",
     "forget_loaded",
     "fresh_cache",
-    "kernel_source",
+    "library_source",
     "load_library",
     "pointwise_functions",
 ]

@@ -1,21 +1,21 @@
-"""The system's generated point functions as inline C the kernel's scenario loops vectorise.
+"""The system's generated point functions as inline C the C library's scenario loops vectorise.
 
 CasADi writes a function as C that reads its inputs through ``const casadi_real** arg`` and
 writes through ``casadi_real** res`` (each checked for NULL). Called once per scenario, it
 keeps the compiler from vectorising the loop over the scenarios: it cannot see through the
 pointer arrays. The functions here rewrite the generated body of a point function (straight-
 line code of an SX function: scalar temporaries, arithmetic and math calls) into a ``static
-inline`` function of plain strided pointers, which the driver
-(:data:`controllers.solvers.fast.codegen.driver.DRIVER`) calls inside ``#pragma omp simd`` loops over
-the scenarios of one step: the rollout's step (:func:`inline_step`), the Hessian's recursion
-step (:func:`inline_step_curv`) and the linearisation's step and constraint Jacobians
-(:func:`inline_step_jac`, :func:`inline_con_jac`). Each defines a macro (``LFM_STEP_INLINE``,
+inline`` function of plain strided pointers, which the driver (``codegen/c/driver.c``) calls
+inside ``#pragma omp simd`` loops over the scenarios of one step: the rollout's step
+(:func:`inline_step`), the Hessian's recursion step (:func:`inline_step_curv`) and the
+linearisation's step and constraint Jacobians (:func:`inline_step_jac`,
+:func:`inline_con_jac`). Each defines a macro (``LFM_STEP_INLINE``,
 ...) that switches the driver to its vectorisable path; a body the rewrite does not handle
 raises :class:`NotInlinable` and the driver keeps one call per scenario there.
 
 The math functions glibc's vector math library (libmvec) has had since 2.22 (``sin``,
 ``cos``, ``exp``, ``log``, ``pow``) are renamed ``lfm_v*``: with ``LFM_VECTOR_MATH`` defined
-(the kernel is built with ``-lmvec``) these are declared as the same C functions under the
+(the C library is built with ``-lmvec``) these are declared as the same C functions under the
 same symbols, with GCC's ``simd`` attribute, so the vectorised loops call libmvec's variants
 (``_ZGVbN2v_sin`` and so on); else they are the plain functions. (Under their own names the
 compiler would also merge ``sin(a)`` and ``cos(a)`` into one scalar ``sincos``, which has no

@@ -1,9 +1,9 @@
-"""The dense QP of the fast SQP solvers, in fixed row slots so that hot starts mean something.
+"""The dense QP of the fast SQP solver, in fixed row slots so that hot starts mean something.
 
-Used by :mod:`controllers.solvers.fast.solver` and :mod:`controllers.solvers.fast_bicycle`.
+Used by :mod:`controllers.solvers.fast.solver`.
 QP solvers (:data:`QP_SOLVERS`):
 
-* ``"auto"`` (the fast solvers' default): qpOASES for QPs with fewer than
+* ``"auto"`` (the fast solver's default): qpOASES for QPs with fewer than
   :data:`AUTO_IPM_VARIABLES` variables, the elastic interior point for larger ones (PIQP
   from :data:`AUTO_PIQP_VARIABLES` on where no C compiler works), and DAQP for the QPs
   without slacks (:func:`resolve_qp_solver`): those are small (the inputs only) and often

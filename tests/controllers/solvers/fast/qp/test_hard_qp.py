@@ -1,5 +1,6 @@
-"""The QP without slacks on DAQP straight from the caller's rows (controllers.solvers.fast.qp.hard_qp):
-the same QP as through the row slots of SlotQP, so the same step bit for bit."""
+"""The QP without slacks on DAQP straight from the caller's rows
+(controllers.solvers.fast.qp.hard_qp): the same QP as through the row slots of SlotQP, so the
+same step bit for bit."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The compiled C kernel of the condensed model against its NumPy reference.
+"""The C library of the condensed model against its NumPy reference.
 
 :class:`CondensedModel` evaluates the rollout, sensitivities, gradient and exact Lagrangian
 Hessian either with a C library generated from the system's CasADi expressions
@@ -6,7 +6,7 @@ Hessian either with a C library generated from the system's CasADi expressions
 backends agree to 1e-12 on the recorded paper problems and on the point mass of
 ``test_second_system.py``; without a working compiler the model really falls back to NumPy
 (the compiler is hidden, not mocked); the disk cache serves a second build without a
-compiler; two processes compiling the same kernel at once leave a valid library; the model
+compiler; two processes compiling the same library at once leave a valid library; the model
 and the solver pickle.
 """
 
@@ -25,10 +25,9 @@ import pytest
 from controllers.problem import ScenarioProblem
 from controllers.solvers import make_solver
 from controllers.solvers.fast.codegen import build as compiled
-from controllers.solvers.fast.codegen import inline as kernel_inline
-from controllers.solvers.fast.codegen.build import KernelUnavailable, forget_loaded
+from controllers.solvers.fast.codegen import inline as codegen_inline
+from controllers.solvers.fast.codegen.build import CodegenUnavailable, forget_loaded
 from controllers.solvers.fast.condensed import CondensedModel
-from controllers.solvers.fast_bicycle import BicycleCondensedModel
 from experiments.benchmark.problems import problem_from_config
 from lfm_env.cost import QuadraticCost
 from tests.controllers.test_second_system import (
@@ -42,7 +41,7 @@ from tests.controllers.test_second_system import (
     sample_forces,
 )
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[4]
 DATA = dict(np.load(ROOT / "tests" / "data" / "recorded_problems.npz"))
 IDS = [f"seed{s}-step{k}" for s, k in zip(DATA["seed"], DATA["step"], strict=True)]
 RTOL = 1e-12  # relative to the largest entry of each compared array
@@ -55,7 +54,7 @@ def paper() -> ScenarioProblem:
 
 @pytest.fixture(scope="module")
 def paper_models(paper: ScenarioProblem) -> dict[str, CondensedModel]:
-    return {k: CondensedModel(paper, kernel=k) for k in ("numpy", "c")}
+    return {k: CondensedModel(paper, backend=k) for k in ("numpy", "c")}
 
 
 def _layouts(problem: ScenarioProblem, x0: np.ndarray, W: np.ndarray) -> tuple:
@@ -83,7 +82,7 @@ def _everything(model: CondensedModel, problem, x0, W, u, mu, backoff=None) -> d
         "H0": model.hessian(lin, np.zeros_like(mu), W_lanes),
         "H": model.hessian(lin, mu, W_lanes),
     }
-    # The compiled kernel stores no step Jacobians A (it uses each where it computes it: S
+    # The C library stores no step Jacobians A (it uses each where it computes it: S
     # and the Hessians check them); the other backends do.
     assert (lin.A is None) == (model.backend == "compiled-c"), model.backend
     if lin.A is not None:
@@ -117,10 +116,10 @@ def _assert_same(ref: dict, got: dict) -> None:
         assert err <= RTOL, f"{key}: relative difference {err:.2e}"
 
 
-def test_the_compiled_kernel_is_used_when_a_compiler_is_there(paper_models) -> None:
+def test_the_c_library_is_used_when_a_compiler_is_there(paper_models) -> None:
     model = paper_models["c"]
     assert model.backend == "compiled-c"
-    assert model.kernel_error is None and model.compile_time > 0.0
+    assert model.backend_error is None and model.compile_time > 0.0
     assert paper_models["numpy"].backend == "numpy-lanes"
 
 
@@ -171,7 +170,7 @@ def test_a_recycled_linearisation_equals_a_fresh_one(paper, paper_models) -> Non
 def test_rollout_arrays_are_reused_only_once_nothing_refers_to_them(paper) -> None:
     """The compiled rollout takes its X and G from a pool, and an array goes back into use
     only when no rollout, view or caller holds it any more."""
-    model = CondensedModel(paper, kernel="c")  # (an empty pool)
+    model = CondensedModel(paper, backend="c")  # (an empty pool)
     _, x0T, W_steps, _ = _layouts(paper, DATA["x0"][0], DATA["W"][0])
     u_a, u_b = DATA["reference_u"][0].ravel(), DATA["u_guess"][0].ravel()
     first = model.evaluate(x0T, W_steps, u_a, 0.0, None)
@@ -197,7 +196,7 @@ def test_rollout_arrays_are_reused_only_once_nothing_refers_to_them(paper) -> No
 def test_compiled_equals_numpy_on_the_second_system(variant) -> None:
     model = point_mass_model(point_mass(**VARIANTS[variant]))
     problem = ScenarioProblem(model, COST, horizon=N, n_scenarios=NS, slack_penalty=1.0e3)
-    models = {k: CondensedModel(problem, kernel=k) for k in ("numpy", "vm", "c")}
+    models = {k: CondensedModel(problem, backend=k) for k in ("numpy", "vm", "c")}
     assert models["c"].backend == "compiled-c"
     assert models["vm"].backend == "casadi-vm"
     rng = np.random.default_rng(3)
@@ -210,10 +209,10 @@ def test_compiled_equals_numpy_on_the_second_system(variant) -> None:
             _assert_same(ref, _everything(models[name], problem, x0, W, u, mu))
 
 
-def test_the_kernel_stores_only_the_constraint_jacobian_entries_that_can_be_nonzero(
+def test_the_c_library_stores_only_the_constraint_jacobian_entries_that_can_be_nonzero(
     paper, paper_models
 ) -> None:
-    """Per point the kernel keeps the structurally nonzero entries of ``dg/dx`` (the
+    """Per point the C library keeps the structurally nonzero entries of ``dg/dx`` (the
     bicycle: 8 of 24); NumPy's dense Jacobians are zero everywhere else, and the packed ones
     expand to them."""
     _, x0T, W_steps, W_lanes = _layouts(paper, DATA["x0"][0], DATA["W"][0])
@@ -234,7 +233,7 @@ def test_the_kernel_stores_only_the_constraint_jacobian_entries_that_can_be_nonz
 
 
 def test_compiled_equals_numpy_with_coupled_state_weights() -> None:
-    """The kernel skips the zeros of diagonal state weights; a full ``Q`` (with a diagonal
+    """The C library skips the zeros of diagonal state weights; a full ``Q`` (with a diagonal
     ``Qf``: every step's matrix counts) takes the general path, equal to NumPy's."""
     model = point_mass_model(point_mass(**VARIANTS[sorted(VARIANTS)[0]]))
     q = np.diag([1.0, 1.0, 0.1, 0.1])
@@ -242,7 +241,7 @@ def test_compiled_equals_numpy_with_coupled_state_weights() -> None:
     cost = QuadraticCost(Q=q, Qf=COST.Qf, R=COST.R, x_goal=COST.x_goal)
     assert not cost.diagonal
     problem = ScenarioProblem(model, cost, horizon=N, n_scenarios=NS, slack_penalty=1.0e3)
-    models = {k: CondensedModel(problem, kernel=k) for k in ("numpy", "c")}
+    models = {k: CondensedModel(problem, backend=k) for k in ("numpy", "c")}
     assert models["c"].backend == "compiled-c"
     x0 = next(iter(STARTS.values()))
     W = sample_forces(model, 0)
@@ -257,7 +256,7 @@ def test_compiled_equals_numpy_with_coupled_state_weights() -> None:
 
 @pytest.fixture
 def fresh_cache(tmp_path, monkeypatch) -> Path:
-    """An empty kernel cache, and no library loaded in this process (restored after)."""
+    """An empty C library cache, and no library loaded in this process (restored after)."""
     monkeypatch.setenv("LFM_CACHE_DIR", str(tmp_path / "cache"))
     forget_loaded()
     yield tmp_path / "cache"
@@ -277,24 +276,24 @@ def test_without_a_compiler_the_model_falls_back_to_numpy(
         monkeypatch.setenv("PATH", str(tmp_path))  # neither cc nor gcc on it
     model = CondensedModel(paper)
     assert model.backend == "numpy-lanes"
-    assert "compil" in model.kernel_error
+    assert "compil" in model.backend_error
     assert not list(fresh_cache.glob("*.so"))
     i = 2
     mu = _multipliers(paper, 150, i)
     u = DATA["reference_u"][i].ravel()
     ref = _everything(paper_models["c"], paper, DATA["x0"][i], DATA["W"][i], u, mu)
     _assert_same(ref, _everything(model, paper, DATA["x0"][i], DATA["W"][i], u, mu))
-    with pytest.raises(KernelUnavailable, match="compil"):
-        CondensedModel(paper, kernel="c")
+    with pytest.raises(CodegenUnavailable, match="compil"):
+        CondensedModel(paper, backend="c")
 
 
-def test_an_unknown_kernel_is_named(paper, monkeypatch) -> None:
-    with pytest.raises(ValueError, match="kernel='fortran'"):
-        CondensedModel(paper, kernel="fortran")
-    monkeypatch.setenv("LFM_KERNEL", "gpu")
-    with pytest.raises(ValueError, match=r"\$LFM_KERNEL='gpu'.*one of"):
+def test_an_unknown_backend_is_named(paper, monkeypatch) -> None:
+    with pytest.raises(ValueError, match="backend='fortran'"):
+        CondensedModel(paper, backend="fortran")
+    monkeypatch.setenv("LFM_BACKEND", "gpu")
+    with pytest.raises(ValueError, match=r"\$LFM_BACKEND='gpu'.*one of"):
         CondensedModel(paper)
-    monkeypatch.setenv("LFM_KERNEL", "numpy")
+    monkeypatch.setenv("LFM_BACKEND", "numpy")
     assert CondensedModel(paper).backend == "numpy-lanes"
 
 
@@ -306,7 +305,7 @@ def test_the_disk_cache_serves_a_second_build_without_a_compiler(
 ) -> None:
     first = CondensedModel(paper)
     assert first.backend == "compiled-c" and not first.cache_hit
-    assert len(list(fresh_cache.glob("lfm_kernel_*.so"))) == 1
+    assert len(list(fresh_cache.glob("lfm_codegen_*.so"))) == 1
     forget_loaded()
     monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))  # compiling would fail
     second = CondensedModel(paper)
@@ -316,16 +315,16 @@ def test_the_disk_cache_serves_a_second_build_without_a_compiler(
 
 
 def test_a_fresh_cache_compiles_anew_and_leaves_the_real_one(paper, paper_models) -> None:
-    """Inside ``compiled.fresh_cache()`` the kernel is compiled again into a temporary
+    """Inside ``compiled.fresh_cache()`` the C library is compiled again into a temporary
     directory (the benchmark's cold first build); afterwards the configured cache and the
     libraries loaded before are back, and a solver built inside still solves."""
     before = compiled.cache_dir()
     assert CondensedModel(paper).cache_hit  # loaded in this process (paper_models)
     with compiled.fresh_cache() as tmp:
         assert compiled.cache_dir() == tmp
-        model = CondensedModel(paper, kernel="c")
+        model = CondensedModel(paper, backend="c")
         assert not model.cache_hit and model.compile_time > 0
-        assert len(list(tmp.glob("lfm_kernel_*.so"))) == 1
+        assert len(list(tmp.glob("lfm_codegen_*.so"))) == 1
         solver = make_solver(paper, "fast")
     assert compiled.cache_dir() == before and not tmp.exists()
     assert CondensedModel(paper).cache_hit
@@ -340,11 +339,10 @@ _BUILD = """
 import sys
 import numpy as np
 from controllers.solvers.fast.condensed import CondensedModel
-from controllers.solvers.fast_bicycle import BicycleCondensedModel
 from experiments.benchmark.problems import problem_from_config
 data = dict(np.load(sys.argv[1]))
 p = problem_from_config(n_scenarios=150)
-m = CondensedModel(p, kernel="c")
+m = CondensedModel(p, backend="c")
 x0, W = p.check_data(data["x0"][0], data["W"][0])
 ro = m.evaluate(np.ascontiguousarray(x0.T), np.ascontiguousarray(W.transpose(1, 0, 2)),
                 data["reference_u"][0].ravel(), m.state_cost0(x0))
@@ -354,9 +352,9 @@ print(m.backend, m.cache_hit, repr(float(ro.merit)), repr(float(np.abs(H).sum())
 """
 
 
-def test_two_processes_compiling_at_once_leave_a_valid_kernel(paper, paper_models, tmp_path):
+def test_two_processes_compiling_at_once_leave_a_valid_library(paper, paper_models, tmp_path):
     env = {**os.environ, "LFM_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": str(ROOT)}
-    env.pop("LFM_KERNEL", None)
+    env.pop("LFM_BACKEND", None)
     cmd = [sys.executable, "-c", _BUILD, str(ROOT / "tests" / "data" / "recorded_problems.npz")]
     procs = [
         subprocess.Popen(cmd, env=env, cwd=ROOT, stdout=subprocess.PIPE, text=True)
@@ -381,7 +379,7 @@ def test_two_processes_compiling_at_once_leave_a_valid_kernel(paper, paper_model
 # ----------------------------------------------------------------------------- pickling
 
 
-def test_the_model_and_the_solver_pickle_with_their_kernel(paper, paper_models) -> None:
+def test_the_model_and_the_solver_pickle_with_their_c_library(paper, paper_models) -> None:
     model = pickle.loads(pickle.dumps(paper_models["c"]))
     assert model.backend == "compiled-c" and model.cache_hit
     i = 4
@@ -389,8 +387,6 @@ def test_the_model_and_the_solver_pickle_with_their_kernel(paper, paper_models) 
     u = DATA["reference_u"][i].ravel()
     ref = _everything(paper_models["c"], paper, DATA["x0"][i], DATA["W"][i], u, mu)
     _assert_same(ref, _everything(model, paper, DATA["x0"][i], DATA["W"][i], u, mu))
-    bicycle = pickle.loads(pickle.dumps(BicycleCondensedModel(paper)))
-    assert bicycle.backend == "hand_written"  # its own derivatives: no kernel built
     solver = pickle.loads(pickle.dumps(make_solver(paper, "fast")))
     sol = solver.solve(DATA["x0"][i], DATA["W"][i], u_guess=DATA["u_guess"][i])
     assert sol.extra["backend"] == "compiled-c"
@@ -398,10 +394,10 @@ def test_the_model_and_the_solver_pickle_with_their_kernel(paper, paper_models) 
 
 def test_the_fast_solver_reaches_the_same_plan_with_either_backend(paper, monkeypatch) -> None:
     plans = {}
-    for kernel in ("numpy", "c"):
-        monkeypatch.setenv("LFM_KERNEL", kernel)
+    for backend in ("numpy", "c"):
+        monkeypatch.setenv("LFM_BACKEND", backend)
         solver = make_solver(paper, "fast")
-        plans[kernel] = [
+        plans[backend] = [
             solver.solve(DATA["x0"][i], DATA["W"][i], u_guess=DATA["u_guess"][i])
             for i in range(0, len(IDS), 3)
         ]
@@ -414,11 +410,11 @@ def test_the_fast_solver_reaches_the_same_plan_with_either_backend(paper, monkey
 
 @pytest.mark.parametrize("horizon", [1, 2, 15, 30])
 def test_the_compiled_hessian_equals_numpys_at_every_horizon(horizon) -> None:
-    """The kernel's Hessian (a backward recursion per scenario) against the NumPy reference
+    """The C library's Hessian (a backward recursion per scenario) against the NumPy reference
     (sum_j S_j' Mxx_j S_j and the cross terms) from one step (no off-diagonal blocks) to
     N = 30, with multipliers on scenario rows and inputs that drive the car hard."""
     problem = problem_from_config(horizon=horizon, n_scenarios=40)
-    models = {k: CondensedModel(problem, kernel=k) for k in ("numpy", "c")}
+    models = {k: CondensedModel(problem, backend=k) for k in ("numpy", "c")}
     rng = np.random.default_rng(horizon)
     x0 = DATA["x0"][0]
     W = DATA["W"][0][:40, :1].repeat(horizon, axis=1) * rng.uniform(0.5, 1.5, (40, horizon, 1))
@@ -434,8 +430,8 @@ def test_the_compiled_hessian_equals_numpys_at_every_horizon(horizon) -> None:
 @pytest.mark.parametrize("threads", [2, 3, 200])
 def test_threaded_chunks_equal_the_serial_sweep(threads, paper, paper_models) -> None:
     """The scenarios in 2, 3 (uneven) or more chunks than scenarios (one each): every output
-    equals the serial kernel's to rounding."""
-    model = CondensedModel(paper, kernel="c")
+    equals the serial C library's to rounding."""
+    model = CondensedModel(paper, backend="c")
     assert model.openmp  # the test machines' compilers have OpenMP
     model.threads = threads
     for i in (0, 5):
@@ -449,7 +445,7 @@ def test_threaded_chunks_equal_the_serial_sweep(threads, paper, paper_models) ->
 def test_without_openmp_the_chunks_run_one_after_another(
     paper, paper_models, fresh_cache, tmp_path, monkeypatch
 ) -> None:
-    """A compiler that refuses -fopenmp (a real cc behind a script) still builds the kernel,
+    """A compiler that refuses -fopenmp (a real cc behind a script) still builds the C library,
     without threads; more chunks than one give the same outputs."""
     cc = tmp_path / "cc-without-openmp"
     cc.write_text(
@@ -457,7 +453,7 @@ def test_without_openmp_the_chunks_run_one_after_another(
     )
     cc.chmod(0o755)
     monkeypatch.setenv("CC", str(cc))
-    model = CondensedModel(paper, kernel="c")
+    model = CondensedModel(paper, backend="c")
     assert model.backend == "compiled-c" and not model.openmp
     model.threads = 3
     i = 1
@@ -465,19 +461,19 @@ def test_without_openmp_the_chunks_run_one_after_another(
     mu = _multipliers(paper, W.shape[0], i)
     ref = _everything(paper_models["c"], paper, x0, W, u, mu)
     _assert_same(ref, _everything(model, paper, x0, W, u, mu))
-    solver = make_solver(paper, "fast", kernel_threads=2)
-    assert solver.solve(x0, W).extra["kernel_threads"] == 1  # (this process's kernel now)
+    solver = make_solver(paper, "fast", threads=2)
+    assert solver.solve(x0, W).extra["threads"] == 1  # (this process's C library now)
 
 
-def test_the_fast_solver_with_kernel_threads_reaches_the_same_plan(paper) -> None:
+def test_the_fast_solver_with_threads_reaches_the_same_plan(paper) -> None:
     i = 3
     x0, W = DATA["x0"][i], DATA["W"][i]
     one = make_solver(paper, "fast").solve(x0, W)
-    two = make_solver(paper, "fast", kernel_threads=2).solve(x0, W)
-    assert one.extra["kernel_threads"] == 1 and two.extra["kernel_threads"] == 2
+    two = make_solver(paper, "fast", threads=2).solve(x0, W)
+    assert one.extra["threads"] == 1 and two.extra["threads"] == 2
     assert two.objective == pytest.approx(one.objective, rel=1e-9)
     np.testing.assert_allclose(two.u, one.u, atol=1e-6)
-    clone = pickle.loads(pickle.dumps(make_solver(paper, "fast", kernel_threads=2)))
+    clone = pickle.loads(pickle.dumps(make_solver(paper, "fast", threads=2)))
     assert clone.model.threads == 2
 
 
@@ -491,7 +487,7 @@ def test_the_rollout_is_vectorised_with_vector_math_where_glibc_has_it(paper_mod
     model = paper_models["c"]
     expected = 2 if ctypes.util.find_library("mvec") else 1
     assert model.vector_math == expected
-    source = compiled.kernel_source(model.problem.system, model.problem.dt)
+    source = compiled.library_source(model.problem.system, model.problem.dt)
     assert "lfm_vsin(" in source and "lfm_vcos(" in source  # the inlined body's names
 
 
@@ -499,12 +495,12 @@ def test_without_libmvec_the_rollout_is_vectorisable_and_the_same(
     paper, paper_models, fresh_cache, tmp_path, monkeypatch
 ) -> None:
     """A system without libmvec (a real cc behind a script that refuses -lmvec) still builds
-    the kernel with the inlined rollout and plain math; every output equals the reference."""
+    the C library with the inlined rollout and plain math; every output equals the reference."""
     cc = tmp_path / "cc-without-libmvec"
     cc.write_text('#!/bin/sh\nfor a in "$@"; do [ "$a" = -lmvec ] && exit 1; done\nexec cc "$@"\n')
     cc.chmod(0o755)
     monkeypatch.setenv("CC", str(cc))
-    model = CondensedModel(paper, kernel="c")
+    model = CondensedModel(paper, backend="c")
     assert model.backend == "compiled-c" and model.vector_math == 1
     for i in (0, 4):
         x0, W, u = DATA["x0"][i], DATA["W"][i], DATA["reference_u"][i].ravel()
@@ -523,7 +519,7 @@ def test_the_baseline_version_of_the_vectorised_rollout_is_the_same(
     cc.write_text('#!/bin/sh\nexec cc -DLFM_NO_CLONES "$@"\n')
     cc.chmod(0o755)
     monkeypatch.setenv("CC", str(cc))
-    model = CondensedModel(paper, kernel="c")
+    model = CondensedModel(paper, backend="c")
     assert model.backend == "compiled-c" and model.vector_math >= 1
     for i in (1, 3):
         x0, W, u = DATA["x0"][i], DATA["W"][i], DATA["reference_u"][i].ravel()
@@ -539,21 +535,21 @@ INLINERS = ("inline_step", "inline_step_curv", "inline_step_jac", "inline_con_ja
 def test_a_step_that_cannot_be_inlined_keeps_the_call_per_scenario(
     refused, paper, paper_models, fresh_cache, monkeypatch
 ) -> None:
-    """When the rewrite of a generated point function fails (kernel_inline.NotInlinable),
-    the kernel calls it once per scenario (the rollout's step, the Hessian's recursion step,
+    """When the rewrite of a generated point function fails (codegen_inline.NotInlinable),
+    the C library calls it once per scenario (the rollout's step, the Hessian's recursion step,
     the linearisation's step or constraint Jacobian, or all), with the same outputs."""
 
     def refuse(*_args, **_kwargs):
-        raise kernel_inline.NotInlinable("refused by the test")
+        raise codegen_inline.NotInlinable("refused by the test")
 
     names = list(INLINERS) if refused == "all" else [refused]
     for name in names:
         monkeypatch.setattr(compiled, name, refuse)
-    source = compiled.kernel_source(paper.system, paper.dt)
+    source = compiled.library_source(paper.system, paper.dt)
     for name in INLINERS:
         define = "#define LFM_" + name.removeprefix("inline_").upper() + "_INLINE"
         assert (define in source) == (name not in names), define
-    model = CondensedModel(paper, kernel="c")
+    model = CondensedModel(paper, backend="c")
     assert model.backend == "compiled-c"
     assert (model.vector_math == 0) == (refused == "all")
     i = 2
@@ -567,24 +563,24 @@ def test_the_inline_rewrite_reads_and_writes_plain_strided_pointers(paper) -> No
     """The rewritten step has no pointer-array access left and renames the vector-math
     functions; a function of another shape is refused."""
     fns = compiled.pointwise_functions(paper.system, paper.dt)
-    code = compiled.kernel_source(paper.system, paper.dt)
+    code = compiled.library_source(paper.system, paper.dt)
     step = next(f for f in fns if f.name() == "lfm_step")
-    text = kernel_inline.inline_step(code, step, paper.system.nx)
+    text = codegen_inline.inline_step(code, step, paper.system.nx)
     assert "arg[" not in text and "res[" not in text and "return" not in text
     assert "lfm_vsin(" in text and " sin(" not in text
     nx, ng = paper.system.nx, paper.system.ng
     assert all(f"xo_[{j}*xs]=" in text for j in range(nx))
     assert all(f"go_[{j}*gs]=" in text for j in range(ng))
     curv = next(f for f in fns if f.name() == "lfm_step_curv")  # six inputs
-    with pytest.raises(kernel_inline.NotInlinable, match="4 inputs"):
-        kernel_inline.inline_step(code, curv, nx)
-    text = kernel_inline.inline_step_curv(code, curv)
+    with pytest.raises(codegen_inline.NotInlinable, match="4 inputs"):
+        codegen_inline.inline_step(code, curv, nx)
+    text = codegen_inline.inline_step_curv(code, curv)
     assert "arg[" not in text and "res[" not in text and "l_[0*bs]" in text
     jac = next(f for f in fns if f.name() == "lfm_step_jac")
-    text = kernel_inline.inline_step_jac(code, jac)
+    text = codegen_inline.inline_step_jac(code, jac)
     assert all(f"o_[{j}*bs]=" in text for j in range(nx * (nx + paper.system.nu)))
     con = next(f for f in fns if f.name() == "lfm_con_jac")
-    text = kernel_inline.inline_con_jac(code, con)
+    text = codegen_inline.inline_con_jac(code, con)
     assert "arg[" not in text and all(f"o_[{j}*bs]=" in text for j in range(ng * nx))
-    with pytest.raises(kernel_inline.NotInlinable, match="1 inputs"):
-        kernel_inline.inline_con_jac(code, jac)
+    with pytest.raises(codegen_inline.NotInlinable, match="1 inputs"):
+        codegen_inline.inline_con_jac(code, jac)

@@ -20,7 +20,7 @@ from controllers.solvers.fast.qp.slot_qp import QP_SOLVERS
 from controllers.solvers.fast.solver import FastScenarioSolver
 from experiments.benchmark.problems import problem_from_config
 
-DATA_DIR = Path(__file__).resolve().parents[1] / "data"
+DATA_DIR = Path(__file__).resolve().parents[3] / "data"
 LONG = dict(np.load(DATA_DIR / "long_horizon_problems.npz"))
 RECORDED = dict(np.load(DATA_DIR / "recorded_problems.npz"))
 RTOL = 1e-4  # objective no more than this above IPOPT's (the benchmark's target)

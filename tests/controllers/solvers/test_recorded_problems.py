@@ -26,7 +26,7 @@ from controllers.problem import ScenarioProblem
 from controllers.solvers import make_solver
 from experiments.benchmark.problems import problem_from_config
 
-DATA = dict(np.load(Path(__file__).resolve().parents[1] / "data" / "recorded_problems.npz"))
+DATA = dict(np.load(Path(__file__).resolve().parents[2] / "data" / "recorded_problems.npz"))
 IDS = [f"seed{s}-step{k}" for s, k in zip(DATA["seed"], DATA["step"], strict=True)]
 RTOL = 1e-4  # objective agreement (the benchmark's target)
 IPOPT_RTOL = 1e-6  # IPOPT at tol 1e-10 against the reference (measured: <= 1.1e-8)

@@ -2,7 +2,7 @@
 
 :meth:`CondensedModel.screen` (the rows a QP starts with) and
 :meth:`CondensedModel.violated_rows` (the rows a QP step violates, added by check-and-add)
-run in the compiled kernel (``lfm_screen``, ``lfm_violated``) when there is one, else as
+run in the C library (``lfm_screen``, ``lfm_violated``) when there is one, else as
 :mod:`controllers.solvers.fast.screening`. Checked here: both give the same rows, in the same
 order, on the recorded paper problems and on the point mass of ``test_second_system.py``;
 the rule on ties (larger value, then lower scenario) and on NaN groups; the selection's
@@ -31,7 +31,7 @@ from tests.controllers.test_second_system import (
     sample_forces,
 )
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[4]
 DATA = dict(np.load(ROOT / "tests" / "data" / "recorded_problems.npz"))
 KEEP = 4
 
@@ -43,7 +43,7 @@ def paper() -> ScenarioProblem:
 
 @pytest.fixture(scope="module")
 def paper_c(paper) -> CondensedModel:
-    model = CondensedModel(paper, kernel="c")
+    model = CondensedModel(paper, backend="c")
     assert model.backend == "compiled-c"
     return model
 
@@ -101,7 +101,7 @@ def test_compiled_selection_equals_the_reference_on_the_recorded_problems(i, pap
 def test_compiled_selection_equals_the_reference_on_the_second_system() -> None:
     model = point_mass_model(point_mass())
     problem = ScenarioProblem(model, COST, horizon=N, n_scenarios=NS, slack_penalty=1.0e3)
-    c = CondensedModel(problem, kernel="c")
+    c = CondensedModel(problem, backend="c")
     assert c.backend == "compiled-c" and c.screened.size > 0
     rng = np.random.default_rng(5)
     total = 0
@@ -122,9 +122,9 @@ def _crafted(paper_c, paper):
     return ro, lin, np.zeros(paper.horizon * paper.nu), np.zeros((paper.ng, paper.horizon))
 
 
-@pytest.mark.parametrize("kernel", ["c", "numpy"])
-def test_ties_go_to_the_lower_scenario_and_nan_groups_are_left_out(kernel, paper, paper_c):
-    model = paper_c if kernel == "c" else CondensedModel(paper, kernel="numpy")
+@pytest.mark.parametrize("backend", ["c", "numpy"])
+def test_ties_go_to_the_lower_scenario_and_nan_groups_are_left_out(backend, paper, paper_c):
+    model = paper_c if backend == "c" else CondensedModel(paper, backend="numpy")
     ro, lin, d, s_pos = _crafted(paper_c, paper)
     j = int(model.screened[0])
     ro.G[j, 2, [3, 7, 20, 40, 41, 90]] = [0.2, 0.2, 0.2, 0.3, 0.2, 0.2]  # ties at 0.2

@@ -1,50 +1,3 @@
-"""The fixed C driver of the compiled kernel (:mod:`controllers.solvers.fast.codegen.build`).
-
-System-independent C that loops over the steps and scenarios and calls the system's
-pointwise functions, which :func:`controllers.solvers.fast.codegen.build.kernel_source` generates and
-puts in front of it (with the sizes ``NX``, ``NU``, ``NW``, ``NG``, ``NP_*`` as macros and the
-work-size queries at ``@WORK@``). Entry points: ``lfm_rollout``, ``lfm_linearise``,
-``lfm_linear_change``, ``lfm_rows``, ``lfm_hessian`` and the row selection ``lfm_screen`` and
-``lfm_violated``; their argument types are declared in
-:func:`controllers.solvers.fast.codegen.build._declare`. Both sweeps run step by step over all
-scenarios, in the (step, scenario) order of the arrays. This module holds the prelude, the
-rollout, the linearisation and the QP rows; the row selection's C is in
-:mod:`~controllers.solvers.fast.codegen.selection` and the Hessian's in
-:mod:`~controllers.solvers.fast.codegen.hessian`, appended in that order (:data:`DRIVER` is the
-whole text).
-"""
-
-from controllers.solvers.fast.codegen.hessian import HESSIAN
-from controllers.solvers.fast.codegen.selection import SELECTION
-
-# The driver. Layouts (C order): x0T (NX, Ns); W any (strides sa, sk, si of force
-# component, step, scenario, in elements); u (N NU); goal (NX);
-# Wq (N, NX, NX) state weights of steps 1..N; X (N+1, NX, Ns); G (NG, N, Ns);
-# Jg (N, Ns, G_NNZ): of each point's constraint Jacobian (NG, NX) only the entries that can
-# be nonzero, row by row (constraint j's from G_PTR[j], each at state G_COL[e]; the tables
-# of compiled.constraint_jacobian_table); mu (NG, N, Ns); H (N NU, N NU).
-# S causally packed: x_{k+1} depends on u_0..u_k only, so step k (from 0) is stored as
-# (Ns, NX, (k + 1) NU) from S_OFF(k), the steps one after another (N (N + 1) / 2 NU NX Ns
-# values instead of N^2 NU NX Ns; the zeros are never written or read).
-# LFM_CLONES, the attribute of the functions with a second, x86-64-v3 version (the kernel's
-# vectorised loops; controllers.solvers.fast.qp.elastic_ipm's solver).
-CLONES = (
-    "/* Two versions of the vectorised loops where GCC (>= 11) and glibc (IFUNC) can"
-    r""" dispatch at
-   load time: one for x86-64-v3 (AVX2 and FMA: four scenarios per instruction, libmvec's AVX2
-   functions) and the baseline; the running CPU picks (so a cached kernel stays portable).
-   Compiled with -DLFM_NO_CLONES: the baseline only (the tests check it on AVX2 machines). */
-#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11 && defined(__x86_64__) \
-    && defined(__GLIBC__) && !defined(LFM_NO_CLONES)
-#define LFM_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
-#else
-#define LFM_CLONES
-#endif
-"""
-)
-
-DRIVER = (
-    r"""
 #include <stdlib.h>
 #include <string.h>
 #include <math.h>
@@ -83,9 +36,8 @@ CASADI_SYMBOL_EXPORT int lfm_openmp(void) {
 }
 #define S_OFF(k, ns) ((ns) * NX * NU * (k) * ((k) + 1) / 2)
 
-"""
-    + CLONES
-    + r"""
+#include "clones.h"
+
 typedef int (*cfun)(const casadi_real**, casadi_real**, casadi_int*, casadi_real*, int);
 typedef struct {
   const casadi_real** arg; casadi_real** res; casadi_int* iw; casadi_real* w;
@@ -479,9 +431,7 @@ CASADI_SYMBOL_EXPORT int lfm_rows(long n, long ns, const double* S, const double
   }
   return 0;
 }
-"""
-    + SELECTION
-    + HESSIAN
-)
 
-__all__ = ["CLONES", "DRIVER"]
+#include "selection.c"
+
+#include "hessian.c"

@@ -1,13 +1,3 @@
-"""The compiled kernel's exact Hessian, in C (a part of :mod:`~controllers.solvers.fast.codegen.driver`).
-
-``lfm_hessian`` and its backward recursion over the steps (the adjoints, the curvature each
-scenario carries to the step before, the blocks of the condensed Hessian), vectorised over
-blocks of scenarios where the recursion step is inlined (``LFM_STEP_CURV_INLINE``). The text is
-appended to the driver's, whose macros and helpers (``work_t``, ``CALL*``, ``weighted``,
-``load_state``, ``chunks``, ``LFM_CLONES``, ...) it uses.
-"""
-
-HESSIAN = r"""
 /* The adjoint lambda_k = dl/dx_{k+1} + Jg_k' mu + A_{k+1}' lambda_{k+1} of step k of scenario
    i (the last term ATl_next, from step k + 1's lfm_step_curv; none at the last step) into
    lam. */
@@ -248,6 +238,3 @@ CASADI_SYMBOL_EXPORT int lfm_hessian(long n, long ns, const double* X, const dou
   work_free(&wk);
   return status;
 }
-"""
-
-__all__ = ["HESSIAN"]

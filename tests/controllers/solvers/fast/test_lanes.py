@@ -1,4 +1,5 @@
-"""Tests of :mod:`controllers.solvers.fast.lanes`: CasADi functions evaluated on many points at once."""
+"""Tests of :mod:`controllers.solvers.fast.lanes`: CasADi functions evaluated on many points at
+once."""
 
 from __future__ import annotations
 

@@ -1,13 +1,3 @@
-"""The compiled kernel's row selection, in C (a part of :mod:`~controllers.solvers.fast.codegen.driver`).
-
-``lfm_screen`` (the scenario rows a QP starts with) and ``lfm_violated`` (the rows a QP step
-violates, for check-and-add), with their helpers; the NumPy reference and fallback is
-:mod:`controllers.solvers.fast.screening`. The text is appended to the driver's, whose macros
-(``NX``, ``NG``, ``G_PTR``, ``S_OFF``, ...) and helpers (``step_change``, ``linear_value``) it
-uses.
-"""
-
-SELECTION = r"""
 /* The row selection (the NumPy reference is controllers/solvers/fast/screening.py): the keep
    best values of a group, best first, ranked by larger value, then lower scenario index.
    The scenarios come in ascending order, so a new value ranks after an equal one. */
@@ -185,6 +175,3 @@ CASADI_SYMBOL_EXPORT long lfm_violated(long n, long ns, long nsc, const long* sc
   free(skip);
   return r;
 }
-"""
-
-__all__ = ["SELECTION"]
