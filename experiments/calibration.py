@@ -116,7 +116,7 @@ def record_calibration_episodes(
     import gymnasium as gym
 
     import lfm_env  # noqa: F401  (registers the env)
-    from controllers.agents.mpc import make_agent
+    from controllers.agents import make_agent
     from controllers.config import load_config
 
     config = load_config(config)  # read and checked once for all episodes

@@ -69,7 +69,7 @@ from typing import Any
 import lfm_env  # noqa: F401  (registers the envs, also in spawned workers)
 from controllers.config import ExperimentConfig
 from experiments.evaluation.agent_lookup import (
-    AgentSpec,
+    OwnAgentSpec,
     check_agent,
     check_picklable,
     resolve_agents,
@@ -129,7 +129,7 @@ _POOL_RESTARTS = 3  # new process pools after a worker died, before lost episode
 
 
 def _episode_task(
-    agent: str | AgentSpec,
+    agent: str | OwnAgentSpec,
     config: ExperimentConfig,
     seed: int,
     out: str | None,
@@ -140,7 +140,7 @@ def _episode_task(
 
     Top-level (picklable by reference) so process pools and Dask workers can run it; the
     resolved config travels with the task, so workers parse nothing. ``agent`` is a
-    registered name or a user agent's :class:`~experiments.evaluation.agent_lookup.AgentSpec`.
+    registered name or a user agent's :class:`~experiments.evaluation.agent_lookup.OwnAgentSpec`.
     """
     name = name_of(agent)
     t0 = time.perf_counter()

@@ -1,9 +1,7 @@
 """The evaluation report: :func:`write_report` reads a results folder back and writes Markdown and self-contained HTML with its figures and intervals."""
 
 from experiments.report.write import (
-    AGENT_SHORT_LABELS,
     GIF_EMBED_LIMIT,
-    KNOWN_AGENT_ORDER,
     agent_label,
     bootstrap_ci,
     calibration,
@@ -31,9 +29,7 @@ from experiments.report.write import (
 )
 
 __all__ = [
-    "AGENT_SHORT_LABELS",
     "GIF_EMBED_LIMIT",
-    "KNOWN_AGENT_ORDER",
     "agent_label",
     "bootstrap_ci",
     "calibration",

@@ -35,11 +35,11 @@ from typing import Any
 
 import numpy as np
 
+from controllers.agents.registry import AGENT_REGISTRY
 from experiments.plots import episode as plots
 from experiments.evaluation.columns import tolerance_columns
 from experiments.report.document import GIF_EMBED_LIMIT, Document, embedded_image
 from experiments.report.results import (
-    KNOWN_AGENT_ORDER,
     Results,
     load_results,
     load_trajectory,
@@ -70,33 +70,22 @@ from experiments.report.stats import (
 )
 from lfm_env.system import split_unit
 
-# Short labels for tables and axes; the oracle is an upper bound everywhere it appears.
-AGENT_SHORT_LABELS = {
-    "nominal": "nominal MPC",
-    "pf": "PF + CE MPC",
-    "scenario": "scenario MPC (paper)",
-    "scenario_particles": "scenario MPC, particle starts",
-    "robust": "robust MPC (back-off)",
-    "oracle": "oracle (upper bound)",
-}
-
 PAPER_ENV_ID = "lfm_env/SineTrack-v0"  # the paper's world: "paper vs measured" only there
 PAPER_SPEED_EXCESS = 0.35  # [m/s] largest speed excess over the bound reported in the paper
 
 
 def agent_label(name: str, wrap: bool = False) -> str:
-    """Short display label of an agent (the oracle is marked as an upper bound).
+    """Short display label of an agent (a registered agent's ``short_label``, else its
+    name; the oracle is marked as an upper bound).
 
     ``wrap`` puts a parenthesised remark on its own line, for axis tick labels.
     """
-    label = AGENT_SHORT_LABELS.get(name, name)
+    label = AGENT_REGISTRY[name].short_label if name in AGENT_REGISTRY else name
     return label.replace(" (", "\n(").replace(", ", ",\n") if wrap else label
 
 
 def _long_label(name: str) -> str:
-    from controllers.agents.mpc import AGENT_LABELS
-
-    return AGENT_LABELS.get(name, name)
+    return AGENT_REGISTRY[name].label if name in AGENT_REGISTRY else name
 
 
 def _seeds(n: int) -> str:
@@ -782,11 +771,9 @@ def write_report(
 
 
 __all__ = [
-    "AGENT_SHORT_LABELS",
     "Document",
     "GIF_EMBED_LIMIT",
     "embedded_image",
-    "KNOWN_AGENT_ORDER",
     "Metric",
     "Estimate",
     "PairedDifference",

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controllers.agents.mpc import make_agent
+from controllers.agents import make_agent
 from experiments.calibration import (
     SpeedRecord,
     fit_disturbance,

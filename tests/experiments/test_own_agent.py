@@ -16,7 +16,7 @@ import pytest
 from controllers.config import ExperimentConfig
 from controllers.agents.protocol import Agent
 from experiments.evaluation import run as evaluation
-from experiments.evaluation.agent_lookup import AgentSpec, AgentSpecError, resolve_agent
+from experiments.evaluation.agent_lookup import OwnAgentSpec, AgentSpecError, resolve_agent
 from experiments.evaluation.run import (
     TIMING_COLUMNS,
     agent_seed,
@@ -174,7 +174,7 @@ def test_names_come_from_the_name_attribute_else_the_spec():
     assert resolve_agent(f"{OWN}:ProportionalAgent").name == "proportional"
     assert resolve_agent(f" {OWN}:ConstantAgent").name == f"{OWN}.ConstantAgent"
     spec = resolve_agent(Unnamed)
-    assert isinstance(spec, AgentSpec) and spec.name == "Unnamed"
+    assert isinstance(spec, OwnAgentSpec) and spec.name == "Unnamed"
     assert isinstance(spec.build(evaluation.resolve_config(TINY)), Agent)
 
 

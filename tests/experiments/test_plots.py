@@ -395,3 +395,14 @@ def test_plane_figures_are_to_scale_and_agent_labels_stay_short():
     assert labels[0] == "nominal MPC" and labels[1].endswith("own:Factory")
     assert len(labels[1]) <= summary_plots.TICK_LABEL_CHARS
     assert all(t.get_rotation() == 30 for t in fig.axes[0].get_xticklabels())
+
+
+def test_registered_agents_keep_their_colours_and_others_get_a_stable_fallback():
+    from controllers.agents.registry import AGENT_REGISTRY
+    from experiments.plots.style import agent_colour
+
+    assert {n: agent_colour(n) for n in AGENT_REGISTRY} == {
+        n: s.colour for n, s in AGENT_REGISTRY.items()
+    }
+    assert agent_colour("rl") == "tab:olive"  # what its name got before it had a record
+    assert agent_colour("my_agent") == agent_colour("my_agent") != ""

@@ -686,3 +686,16 @@ def test_one_load_results_for_every_reader(results_dir):
     for a, b in zip(table, saved, strict=True):
         for column in ("success", "steps", "cost", "max_track_excess", "latent_rmse"):
             assert a[column] == pytest.approx(float(b[column]), nan_ok=True), column
+
+
+def test_registered_agents_get_their_short_labels_and_order_then_the_others_sorted(tmp_path):
+    from experiments.report.results import Results
+    from experiments.report.write import agent_label
+
+    assert agent_label("rl") == "RL baseline"
+    assert agent_label("my_agent") == "my_agent"
+    assert agent_label("scenario_particles", wrap=True) == "scenario MPC,\nparticle starts"
+    names = ["zeta", "rl", "oracle", "alpha", "nominal", "pf"]
+    rows = [{"agent": n, "seed": 0, "error": ""} for n in names]
+    results = Results(directory=tmp_path, rows=rows, config=None)
+    assert results.agents == ["nominal", "pf", "oracle", "rl", "alpha", "zeta"]

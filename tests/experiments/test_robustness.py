@@ -32,7 +32,7 @@ from hypothesis import strategies as st
 
 import lfm_env  # noqa: F401  (registers the env id)
 from controllers.agents import mpc as agents_module
-from controllers.agents.mpc import AGENTS, make_agent
+from controllers.agents import AGENTS, make_agent
 from controllers.config import AgentConfig, load_agent_config, load_config
 from controllers.estimators.particle_filter import ParticleFilter, gaussian_log_likelihood
 from controllers.problem import ScenarioProblem
