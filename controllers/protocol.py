@@ -10,4 +10,12 @@ from controllers.agents.protocol import (
     last_info,
 )
 
-__all__ = ["INFO_DEFAULTS", "Agent", "AgentInfo", "SB3Policy", "SB3Predict", "is_agent", "last_info"]
+__all__ = [
+    "INFO_DEFAULTS",
+    "Agent",
+    "AgentInfo",
+    "SB3Policy",
+    "SB3Predict",
+    "is_agent",
+    "last_info",
+]

@@ -33,8 +33,8 @@ import gymnasium as gym
 import numpy as np
 
 import lfm_env  # noqa: F401  (registers the envs)
-from controllers.config import ExperimentConfig, load_config
 from controllers.agents.rl import policy_features
+from controllers.config import ExperimentConfig, load_config
 from experiments.cli import (
     add_config_argument,
     check_writable,

@@ -38,10 +38,9 @@ from typing import Any
 import yaml
 
 from controllers.config import ConfigError, ExperimentConfig, load_config
-from experiments.evaluation import episode
+from experiments.evaluation import episode, storage
 from experiments.evaluation import run as evaluation
 from experiments.plots import episode as plots
-from experiments.evaluation import storage
 from experiments.report.write import (
     Document,
     Estimate,

@@ -1,4 +1,5 @@
-"""The benchmark (``lfm-benchmark``): the solvers side by side on recorded closed-loop problems, the horizon and scenario sweeps, the filter and one episode, and its targets."""
+"""The benchmark (``lfm-benchmark``): the solvers side by side on recorded closed-loop
+problems, the horizon and scenario sweeps, the filter and one episode, and its targets."""
 
 from experiments.benchmark.run import (
     DEFAULT_CONFIG,

@@ -17,9 +17,10 @@ The benchmark answers the solver issues' questions with measurements, never with
   5000; a fresh fast solver's build and first solve (compilation included); the filter
   with 7000 particles; one episode.
 * **Failures**: every failed solve of every solver and part, with its problem's id.
-* **Verdicts and report** (:mod:`experiments.benchmark.targets`, :mod:`experiments.benchmark.report`):
-  PASS/FAIL per target with the measured figure, JSON (``--out``) and the speed table and
-  targets as Markdown (beside it, ``.md``). ``--check`` exits 1 when a target fails.
+* **Verdicts and report** (:mod:`experiments.benchmark.targets`,
+  :mod:`experiments.benchmark.report`): PASS/FAIL per target with the measured figure,
+  JSON (``--out``) and the speed table and targets as Markdown (beside it, ``.md``).
+  ``--check`` exits 1 when a target fails.
 
 Timing is noisy on a shared machine: the figures are medians and percentiles of one run.
 A solver that cannot be built (an optional package missing) is listed as unavailable with

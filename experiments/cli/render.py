@@ -11,8 +11,8 @@ from experiments.cli.common import (
     check_writable,
     config_argument_path,
     one_line_errors,
-    registered_agents_help,
     positive_int,
+    registered_agents_help,
 )
 
 _RENDER_EPILOG = """\

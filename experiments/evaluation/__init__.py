@@ -1,4 +1,5 @@
-"""Evaluation over seeds: :func:`evaluate` runs agents on a world's env (serially, in a process pool or on Dask) and stores one row and one trajectory per episode."""
+"""Evaluation over seeds: :func:`evaluate` runs agents on a world's env (serially, in a
+process pool or on Dask) and stores one row and one trajectory per episode."""
 
 from experiments.evaluation.run import (
     HEAD_COLUMNS,
@@ -6,17 +7,17 @@ from experiments.evaluation.run import (
     SAVED_SCENARIOS,
     TAIL_COLUMNS,
     TIMING_COLUMNS,
+    DamagedEpisodeError,
+    FolderLock,
+    ResultsFolderError,
     agent_seed,
     config_hash,
-    DamagedEpisodeError,
     episode_stem,
     evaluate,
-    FolderLock,
     group_columns,
     load_trajectory,
     parse_seeds,
     resolve_config,
-    ResultsFolderError,
     row_columns,
     run_episode,
     save_episode,

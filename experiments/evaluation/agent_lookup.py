@@ -41,9 +41,9 @@ import sys
 from collections.abc import Iterable
 from typing import Any
 
-from controllers.config import ExperimentConfig
 from controllers.agents.protocol import Agent, is_agent
 from controllers.agents.registry import AGENT_REGISTRY
+from controllers.config import ExperimentConfig
 
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._+-]{0,99}")
 _SPEC_TEXT = re.compile(r"[A-Za-z_][\w.]*:[A-Za-z_][\w.]*")

@@ -1,8 +1,8 @@
 """One closed-loop episode of an agent, and the inputs every run checks first.
 
 :func:`run_episode` runs one (agent, env seed) episode on the config's world and returns its
-row of metrics (the columns of :mod:`experiments.evaluation.columns`) and its trajectory. The agent's
-own randomness is seeded by :func:`agent_seed` (paired design: see
+row of metrics (the columns of :mod:`experiments.evaluation.columns`) and its trajectory. The
+agent's own randomness is seeded by :func:`agent_seed` (paired design: see
 :mod:`experiments.evaluation.run`). :func:`resolve_config` reads and validates a config once,
 :func:`parse_seeds` reads seeds from text.
 """
@@ -20,9 +20,9 @@ import gymnasium as gym
 import numpy as np
 
 import lfm_env  # noqa: F401  (registers the envs, also in spawned workers)
-from controllers.config import ExperimentConfig, load_config
 from controllers.agents.protocol import INFO_DEFAULTS, last_info
 from controllers.agents.registry import AGENT_REGISTRY, check_agent_config, make_agent
+from controllers.config import ExperimentConfig, load_config
 from experiments.evaluation.agent_lookup import (
     OwnAgentSpec,
     resolve_agents,
@@ -61,8 +61,9 @@ def resolve_config(
             :class:`~controllers.config.ExperimentConfig`, or ``None`` for the built-in
             defaults (the paper's values). Missing keys take their defaults.
         agent_names: agents that will run on it; what each registered agent needs is
-            checked too (user agents, :class:`~experiments.evaluation.agent_lookup.OwnAgentSpec`, are
-            checked by building one: :func:`~experiments.evaluation.agent_lookup.check_agent`).
+            checked too (user agents,
+            :class:`~experiments.evaluation.agent_lookup.OwnAgentSpec`, are checked by
+            building one: :func:`~experiments.evaluation.agent_lookup.check_agent`).
 
     Raises:
         ConfigError: (a ``ValueError``) for unknown keys or out-of-range values.

@@ -33,13 +33,14 @@ loads with one step per row step); a damaged one is named on stderr and run agai
 An interrupt (Ctrl-C, or SIGTERM while :func:`evaluate` runs in the main thread) ends the
 workers at once, removes temporary files and rebuilds ``episodes.csv`` before
 ``KeyboardInterrupt`` propagates; pool and Dask workers ignore Ctrl-C themselves. An
-interrupt is also remembered and checked at every step (:mod:`experiments.evaluation.interrupts`), so
-one that a library swallowed (CasADi clears errors raised inside its type conversions)
-still stops the run.
+interrupt is also remembered and checked at every step
+(:mod:`experiments.evaluation.interrupts`), so one that a library swallowed (CasADi clears
+errors raised inside its type conversions) still stops the run.
 
-Agents are registered names, or a user's own agents (:class:`controllers.agents.protocol.Agent`)
-given as factories, agent objects or ``"module:attribute"`` (:mod:`experiments.evaluation.agent_lookup`);
-an agent's ``last_info`` keys are all optional, read with their documented defaults.
+Agents are registered names, or a user's own agents
+(:class:`controllers.agents.protocol.Agent`) given as factories, agent objects or
+``"module:attribute"`` (:mod:`experiments.evaluation.agent_lookup`); an agent's
+``last_info`` keys are all optional, read with their documented defaults.
 
 Runs are serial (``jobs=1``), on local processes (``jobs > 1``) or on a Dask cluster
 (``scheduler=`` an existing one, checked to answer as Dask within 5 s, or
@@ -52,8 +53,8 @@ parallel and distributed runs give identical rows apart from the timing columns
 
 This module runs the episodes (serially, on a process pool or on Dask) and keeps the folder
 up to date; one episode is :mod:`experiments.evaluation.episode`, the table's columns
-:mod:`experiments.evaluation.columns`, the folder's files and lock :mod:`experiments.evaluation.storage`. Their
-public names are also importable from here.
+:mod:`experiments.evaluation.columns`, the folder's files and lock
+:mod:`experiments.evaluation.storage`. Their public names are also importable from here.
 """
 
 from __future__ import annotations

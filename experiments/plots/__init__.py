@@ -1,4 +1,6 @@
-"""The figures: one episode's (states, inputs, latent force, constraint excess), the summaries over seeds, the feasible region and the scenario fan, and the replays. They read saved results; they never run episodes."""
+"""The figures: one episode's (states, inputs, latent force, constraint excess), the
+summaries over seeds, the feasible region and the scenario fan, and the replays. They read
+saved results; they never run episodes."""
 
 from experiments.plots.episode import (
     agent_colour,

@@ -43,6 +43,14 @@ from experiments.plots.feasible_region import (
     constraints_on,
     state_bounds,
 )
+from experiments.plots.replay import (
+    annotate_frame,
+    make_render_env,
+    replay_frames,
+    stack_frames,
+    write_gif,
+)
+from experiments.plots.scenario_fan import plan_panel_frames, saved_fans, scenario_fan_figure
 from experiments.plots.style import (
     _step_plot,
     agent_colour,
@@ -53,14 +61,6 @@ from experiments.plots.style import (
     save_figure,
     unit_of,
 )
-from experiments.plots.replay import (
-    annotate_frame,
-    make_render_env,
-    replay_frames,
-    stack_frames,
-    write_gif,
-)
-from experiments.plots.scenario_fan import plan_panel_frames, saved_fans, scenario_fan_figure
 from experiments.plots.summary import (
     calibration_figure,
     distribution_axes,

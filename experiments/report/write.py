@@ -22,8 +22,9 @@ section is the sine track's own, and it is left out for other worlds.
 :func:`write_report` writes ``report.md`` and ``report.html`` (the same content) into the
 folder and the figures into ``DIR/figures/``; ``report.html`` embeds every figure, so it can
 be sent alone. Its pieces: :mod:`experiments.report.results` reads the folder,
-:mod:`experiments.report.stats` computes the metrics and intervals, :mod:`experiments.report.document`
-renders Markdown and HTML, :mod:`experiments.plots.episode` draws.
+:mod:`experiments.report.stats` computes the metrics and intervals,
+:mod:`experiments.report.document` renders Markdown and HTML,
+:mod:`experiments.plots.episode` draws.
 """
 
 from __future__ import annotations
@@ -36,8 +37,8 @@ from typing import Any
 import numpy as np
 
 from controllers.agents.registry import AGENT_REGISTRY
-from experiments.plots import episode as plots
 from experiments.evaluation.columns import tolerance_columns
+from experiments.plots import episode as plots
 from experiments.report.document import GIF_EMBED_LIMIT, Document, embedded_image
 from experiments.report.results import (
     Results,

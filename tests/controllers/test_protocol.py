@@ -13,7 +13,6 @@ import yaml
 
 import lfm_env  # noqa: F401  (registers the envs)
 from controllers.agents import AGENTS, make_agent
-from controllers.config import load_config
 from controllers.agents.protocol import (
     INFO_DEFAULTS,
     Agent,
@@ -23,6 +22,7 @@ from controllers.agents.protocol import (
     is_agent,
     last_info,
 )
+from controllers.config import load_config
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = {

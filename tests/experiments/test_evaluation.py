@@ -17,9 +17,9 @@ import pytest
 import yaml
 
 from controllers.config import load_config
+from experiments.cli import evaluate_main
 from experiments.evaluation import episode
 from experiments.evaluation import run as evaluation
-from experiments.cli import evaluate_main
 from experiments.evaluation.run import (
     HEAD_COLUMNS,
     TAIL_COLUMNS,

@@ -1,5 +1,6 @@
 """Evaluating agents that are not registered: factories, agent objects, 'module:attribute'
-(``experiments.evaluation.agent_lookup``, through ``experiments.evaluation.run`` and ``lfm-evaluate``)."""
+(``experiments.evaluation.agent_lookup``, through ``experiments.evaluation.run`` and
+``lfm-evaluate``)."""
 
 from __future__ import annotations
 
@@ -13,10 +14,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from controllers.config import ExperimentConfig
 from controllers.agents.protocol import Agent
+from controllers.config import ExperimentConfig
 from experiments.evaluation import run as evaluation
-from experiments.evaluation.agent_lookup import OwnAgentSpec, AgentSpecError, resolve_agent
+from experiments.evaluation.agent_lookup import AgentSpecError, OwnAgentSpec, resolve_agent
 from experiments.evaluation.run import (
     TIMING_COLUMNS,
     agent_seed,

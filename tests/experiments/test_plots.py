@@ -14,9 +14,7 @@ import numpy as np
 import pytest
 
 from experiments.plots import episode as plots
-
 from experiments.plots import scenario_fan
-
 from experiments.plots import summary as summary_plots
 from lfm_env import gp
 from lfm_env.env import LatentForceEnv

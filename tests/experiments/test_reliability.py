@@ -25,9 +25,10 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from experiments.evaluation import run as evaluation
 from experiments.benchmark.problems import problem_from_config
 from experiments.benchmark.solvers import build_solver, solve_record
+from experiments.evaluation import run as evaluation
+from experiments.evaluation.interrupts import raise_if_interrupted, remember_interrupts
 from experiments.evaluation.run import (
     DamagedEpisodeError,
     FolderLock,
@@ -38,7 +39,6 @@ from experiments.evaluation.run import (
     saved_rows,
     write_table,
 )
-from experiments.evaluation.interrupts import raise_if_interrupted, remember_interrupts
 
 REPO = Path(__file__).resolve().parents[2]
 LFM_EVALUATE = Path(sys.executable).with_name("lfm-evaluate")

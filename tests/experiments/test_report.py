@@ -1,4 +1,5 @@
-"""Tests of the report (``experiments.report.write``), its figures and the lfm-report/render CLIs."""
+"""Tests of the report (``experiments.report.write``), its figures and the lfm-report/render
+CLIs."""
 
 from __future__ import annotations
 
@@ -17,9 +18,9 @@ import numpy as np
 import pytest
 import yaml
 
-from experiments.plots import episode as plots
 from experiments.cli import render_main, report_main
 from experiments.evaluation import evaluate
+from experiments.plots import episode as plots
 from experiments.report.write import (
     Results,
     bootstrap_ci,
@@ -671,8 +672,8 @@ def test_default_baseline_without_the_scenario_agent_and_agents_of_any_name(resu
 def test_one_load_results_for_every_reader(results_dir):
     from experiments import sweep
     from experiments.evaluation import run as evaluation
-    from experiments.report import write as report
     from experiments.report import results
+    from experiments.report import write as report
 
     assert report.load_results is results.load_results is load_results
     for module in (evaluation, sweep):

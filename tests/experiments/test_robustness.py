@@ -31,15 +31,14 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 import lfm_env  # noqa: F401  (registers the env id)
-from controllers.agents import mpc as agents_module
 from controllers.agents import AGENTS, make_agent
+from controllers.agents import mpc as agents_module
 from controllers.config import AgentConfig, load_agent_config, load_config
 from controllers.estimators.particle_filter import ParticleFilter, gaussian_log_likelihood
 from controllers.problem import ScenarioProblem
 from controllers.solvers import make_solver
-from experiments.evaluation import run as evaluation
-from experiments.report import write as report
 from experiments.cli import evaluate_main, render_main, report_main
+from experiments.evaluation import run as evaluation
 from experiments.evaluation.run import (
     TIMING_COLUMNS,
     ResultsFolderError,
@@ -49,6 +48,7 @@ from experiments.evaluation.run import (
     run_episode,
     saved_rows,
 )
+from experiments.report import write as report
 from lfm_env.config import (
     DEFAULT_ENV_ID as ENV_ID,
 )
@@ -1365,7 +1365,8 @@ def test_library_code_loads_nothing_unsafely():
     config_source = sources["config.py"]
     assert "yaml.safe_load(fh)" in config_source or "yaml.SafeLoader(" in config_source
     assert "np.load(path, allow_pickle=False)" in sources["storage.py"]
-    # The report reads episodes (experiments.report.results) through the evaluation's checked loader.
+    # The report reads episodes (experiments.report.results) through the evaluation's checked
+    # loader.
     assert "from experiments.evaluation.storage import load_trajectory" in sources["results.py"]
 
 

@@ -34,8 +34,8 @@ import yaml
 
 from controllers.agents.mpc import MPCAgent
 from controllers.estimators.particle_filter import ParticleFilter
-from controllers.solvers.fast.solver import FastScenarioSolver
 from controllers.solvers.casadi.ipopt import IpoptScenarioSolver
+from controllers.solvers.fast.solver import FastScenarioSolver
 from experiments.evaluation.run import TIMING_COLUMNS, evaluate, resolve_config, run_episode
 from lfm_env.worlds import SineTrackEnv
 

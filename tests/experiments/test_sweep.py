@@ -12,9 +12,9 @@ import pytest
 
 from controllers.config import ConfigError
 from experiments import sweep
+from experiments.cli import report_main, sweep_main
 from experiments.evaluation import run as evaluation
 from experiments.plots import episode as plots
-from experiments.cli import report_main, sweep_main
 from experiments.report.write import Metric, bootstrap_ci, fmt_estimate, write_report
 from lfm_env.system import ControlSystem, xp
 
