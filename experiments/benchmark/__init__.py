@@ -3,14 +3,10 @@ problems, the horizon and scenario sweeps, the filter and one episode, and its t
 
 from experiments.benchmark.run import (
     DEFAULT_CONFIG,
+    DEFAULT_MAX_STEPS,
     DEFAULT_SOLVERS,
     all_failures,
-    build_parser,
     build_solver,
-    main,
-    parse_ints,
-    parse_seeds,
-    parse_threshold,
     problem_from_config,
     record_problems,
     run_benchmark,
@@ -19,14 +15,10 @@ from experiments.benchmark.run import (
 
 __all__ = [
     "DEFAULT_CONFIG",
+    "DEFAULT_MAX_STEPS",
     "DEFAULT_SOLVERS",
     "all_failures",
-    "build_parser",
     "build_solver",
-    "main",
-    "parse_ints",
-    "parse_seeds",
-    "parse_threshold",
     "problem_from_config",
     "record_problems",
     "run_benchmark",

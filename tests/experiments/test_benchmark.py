@@ -16,10 +16,10 @@ import pytest
 from controllers.solvers import SOLVERS, make_solver
 from experiments.benchmark import problems as bench_problems
 from experiments.benchmark import report as bench_report
-from experiments.benchmark import run as benchmark
 from experiments.benchmark import solvers as bench_solvers
 from experiments.benchmark import suites as bench_suites
 from experiments.benchmark import targets as bench_targets
+from experiments.cli import benchmark as benchmark_cli
 
 TIMING_KEYS = ("solve_ms_median", "solve_ms_p95", "solve_ms_max", "wall_ms_median")
 # The textbook and csnlp are slow; sqpmethod (the anchor) is in, JIT compilation included.
@@ -43,7 +43,7 @@ def quick_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, str]:
     out = tmp_path_factory.mktemp("bench") / "b.json"
     solvers = ",".join(QUICK_SOLVERS)
     argv = ["--quick", "--out", str(out), "--no-progress", "--solvers", solvers]
-    code = benchmark.main([*argv, "--threshold", IMPOSSIBLE])
+    code = benchmark_cli.benchmark_main([*argv, "--threshold", IMPOSSIBLE])
     assert code == 0  # a failing target without --check: exit 0, the verdict in the report
     return json.loads(out.read_text()), str(out)
 
@@ -214,7 +214,7 @@ def test_every_failed_solve_is_listed_with_its_problem(quick_run: tuple[dict, st
                 if f["part"] == "ns_sweep" and f["solver"] == name and f["Ns"] == row["n_scenarios"]
             ]
             assert len(listed) == s["n_problems"] - s["n_success"]
-    report = benchmark.format_report(data)
+    report = bench_report.format_report(data)
     assert "Failed solves: " in report
     for f in failures:
         assert f"{f['part']:<20}{f['solver']:<25}{f['seed']:>5}{f['step']:>6}" in report
@@ -268,11 +268,11 @@ def test_check_exits_1_when_a_target_fails_and_0_when_all_pass(tmp_path) -> None
     """--check on a small real run: an impossible threshold fails it, loose ones pass."""
     small = ["--quick", "--solvers", "fast", "--horizons", "7", "--max-steps", "2"]
     small += ["--no-progress", "--out", str(tmp_path / "c.json")]
-    assert benchmark.main([*small, "--check", "--threshold", IMPOSSIBLE]) == 1
+    assert benchmark_cli.benchmark_main([*small, "--check", "--threshold", IMPOSSIBLE]) == 1
     data = json.loads((tmp_path / "c.json").read_text())
     assert "fast_median_ms" in [t["key"] for t in data["targets"] if t["passed"] is False]
     loose = [a for kv in LOOSE for a in ("--threshold", kv)]
-    assert benchmark.main([*small, "--check", *loose]) == 0
+    assert benchmark_cli.benchmark_main([*small, "--check", *loose]) == 0
     data = json.loads((tmp_path / "c.json").read_text())
     assert not [t for t in data["targets"] if t["passed"] is False]
     assert any(t["passed"] for t in data["targets"])
@@ -290,7 +290,7 @@ def test_check_exits_1_when_a_target_fails_and_0_when_all_pass(tmp_path) -> None
 )
 def test_bad_options_name_the_field(argv: list[str], match: str, capsys) -> None:
     with pytest.raises(SystemExit) as exc:
-        benchmark.main([*argv, "--no-progress"])
+        benchmark_cli.benchmark_main([*argv, "--no-progress"])
     assert exc.value.code == 2
     assert match in capsys.readouterr().err
 
@@ -311,7 +311,7 @@ def test_json_is_strict_and_the_markdown_has_the_speed_table(quick_run) -> None:
 
 def test_report_shows_the_speed_table_and_every_target(quick_run: tuple[dict, str]) -> None:
     data, _ = quick_run
-    report = benchmark.format_report(data)
+    report = bench_report.format_report(data)
     assert report.startswith("Speed (N = 7, Ns = 150")
     for name in QUICK_SOLVERS:
         assert f"\n{name} " in report
@@ -443,12 +443,12 @@ def test_worse_problems_lists_gaps_above_the_tolerance_and_crashes() -> None:
 
 
 def test_parse_seeds() -> None:
-    assert benchmark.parse_seeds("0:3") == [0, 1, 2]
-    assert benchmark.parse_seeds("5") == [5]
-    assert benchmark.parse_seeds("1,4,1,0:2") == [1, 4, 0]
+    assert benchmark_cli.parse_seeds("0:3") == [0, 1, 2]
+    assert benchmark_cli.parse_seeds("5") == [5]
+    assert benchmark_cli.parse_seeds("1,4,1,0:2") == [1, 4, 0]
     for bad in ("", "3:1", "-1", "a"):
         with pytest.raises(ValueError, match="seeds="):
-            benchmark.parse_seeds(bad)
+            benchmark_cli.parse_seeds(bad)
 
 
 @pytest.mark.parametrize("name", ["gurobi", "textbook", "ipopt_condensed"])
@@ -459,7 +459,7 @@ def test_only_the_registry_names_are_accepted(name: str) -> None:
     with pytest.raises(ValueError, match="unknown solver"):
         bench_solvers.time_solvers([], [name], problem=problem)
     with pytest.raises(SystemExit):
-        benchmark.build_parser().parse_args(["--skip", name])
+        benchmark_cli.build_parser().parse_args(["--skip", name])
     assert name not in SOLVERS
 
 

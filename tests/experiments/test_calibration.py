@@ -9,9 +9,9 @@ from controllers.agents import make_agent
 from experiments.calibration import (
     SpeedRecord,
     fit_disturbance,
-    main,
     speed_log_likelihood,
 )
+from experiments.cli import calibrate_main as main
 from lfm_env.config import EnvConfig, load_env_config
 from lfm_env.gp import matern
 from lfm_env.model import LatentForceModel

@@ -12,9 +12,9 @@ import pytest
 pytest.importorskip("stable_baselines3")
 
 from controllers.config import load_config  # noqa: E402
+from experiments.cli import train_main as main  # noqa: E402
 from experiments.rl_training import (  # noqa: E402
     TrainingReward,
-    main,
     make_training_env,
     reward_scale,
     train,
