@@ -21,11 +21,11 @@ import yaml
 from experiments.cli import render_main, report_main
 from experiments.evaluation import evaluate
 from experiments.plots import episode as plots
+from experiments.report.format import fmt_estimate
 from experiments.report.write import (
     Results,
     bootstrap_ci,
     calibration,
-    fmt_estimate,
     load_results,
     load_trajectory,
     paired_differences,
@@ -690,8 +690,8 @@ def test_one_load_results_for_every_reader(results_dir):
 
 
 def test_registered_agents_get_their_short_labels_and_order_then_the_others_sorted(tmp_path):
+    from experiments.report.format import agent_label
     from experiments.report.results import Results
-    from experiments.report.write import agent_label
 
     assert agent_label("rl") == "RL baseline"
     assert agent_label("my_agent") == "my_agent"

@@ -15,7 +15,10 @@ from experiments import sweep
 from experiments.cli import report_main, sweep_main
 from experiments.evaluation import run as evaluation
 from experiments.plots import episode as plots
-from experiments.report.write import Metric, bootstrap_ci, fmt_estimate, write_report
+from experiments.report.format import fmt_estimate
+from experiments.report.stats import Metric, bootstrap_ci
+from experiments.report.sweep_summary import metric_key
+from experiments.report.write import write_report
 from lfm_env.system import ControlSystem, xp
 
 REPO = Path(__file__).resolve().parents[2]
@@ -100,7 +103,7 @@ def test_paired_intervals_match_a_direct_computation(sweep_dir):
             else:
                 pairs = [(rows[s][metric.column], base[s][metric.column]) for s in SEEDS]
             direct = bootstrap_ci([float(a) - float(b) for a, b in pairs])
-            got = v.differences[sweep.metric_key(metric)].estimate
+            got = v.differences[metric_key(metric)].estimate
             assert got.n == direct.n == len(pairs)
             if direct.n:
                 assert (got.mean, got.low, got.high) == pytest.approx(
@@ -116,7 +119,7 @@ def test_paired_intervals_match_a_direct_computation(sweep_dir):
         assert cell.endswith(f"Δ {fmt_estimate(direct)}")
         assert cell in md
         mean = np.mean([rows[s][column] for s in SEEDS])
-        assert v.stats[sweep.metric_key(summary.metrics[i])].mean == pytest.approx(mean)
+        assert v.stats[metric_key(summary.metrics[i])].mean == pytest.approx(mean)
     assert checked >= 2 * (len(summary.metrics) - 1)
 
 
@@ -222,7 +225,7 @@ def test_pareto_figure_has_one_point_per_value_and_the_baseline(sweep_dir):
     for container, v in zip(ax.containers, summary.values, strict=True):
         point = container.lines[0].get_xydata()[0]
         dx = v.differences["time_to_goal"].estimate.mean
-        dy = v.differences[sweep.metric_key(y)].estimate.mean
+        dy = v.differences[metric_key(y)].estimate.mean
         assert tuple(point) == pytest.approx((dx, dy))
     assert "track violation steps > 0.01 m" in ax.get_ylabel()
 
