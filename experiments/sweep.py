@@ -35,9 +35,12 @@ from typing import Any
 
 import yaml
 
+from controllers.agents.registry import AGENT_REGISTRY
 from controllers.config import ConfigError, ExperimentConfig, load_config
-from experiments.evaluation import episode, storage
 from experiments.evaluation import run as evaluation
+from experiments.evaluation.agent_lookup import OwnAgentSpec, resolve_agents
+from experiments.evaluation.episode import check_seeds
+from experiments.evaluation.storage import check_folder
 from experiments.report.sweep_summary import (
     BASELINE_FOLDER,
     MANIFEST,
@@ -199,6 +202,17 @@ def parse_setting(text: str, config: Any = None) -> tuple[str, list[str], list[E
 # --------------------------------------------------------------------------- running
 
 
+def _registered_agents(agents: Any) -> list[str]:
+    """Registered agent names only: the sweep's manifest stores the agents by name."""
+    specs = resolve_agents(agents)
+    own = [s.text for s in specs if isinstance(s, OwnAgentSpec)]
+    if own:
+        raise ValueError(
+            f"agents {own}: only registered agents here; choose from {sorted(AGENT_REGISTRY)}"
+        )
+    return specs
+
+
 def run_sweep(
     agent: str,
     setting: str,
@@ -234,9 +248,9 @@ def run_sweep(
         ValueError: unknown agents, bad seeds, a bad setting (naming the key) or a folder
             that holds another sweep or another config, before any episode runs.
     """
-    (agent_name,) = episode._check_agents([agent])
-    (baseline_name,) = episode._check_agents([baseline])
-    seed_list = episode._check_seeds(seeds)
+    (agent_name,) = _registered_agents([agent])
+    (baseline_name,) = _registered_agents([baseline])
+    seed_list = check_seeds(seeds)
     base = evaluation.resolve_config(config, [baseline_name])
     key, texts, configs = parse_setting(setting, base)
     for cfg in configs:
@@ -266,7 +280,7 @@ def run_sweep(
         for t, cfg in zip(texts, configs, strict=True)
     ]
     for _, cfg, folder, _ in runs:  # every folder checked before the first episode
-        storage._check_folder(folder, cfg)
+        check_folder(folder, cfg)
     out_path.mkdir(parents=True, exist_ok=True)
     (out_path / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
     for name, cfg, folder, label in runs:

@@ -113,20 +113,13 @@ def parse_seeds(text: str) -> list[int]:
     return list(dict.fromkeys(seeds))
 
 
-def _check_agents(agents: Any) -> list[str]:
-    """Registered agent names only (for callers that store names, e.g. the sweep)."""
-    specs = resolve_agents(agents)
-    own = [s.text for s in specs if isinstance(s, OwnAgentSpec)]
-    if own:
-        raise ValueError(f"agents {own}: only registered agents here; choose from {_known()}")
-    return specs
+def check_seeds(seeds: int | str | Iterable[int]) -> list[int]:
+    """The env seeds of a run: integers >= 0, or a text for :func:`parse_seeds`.
 
-
-def _known() -> list[str]:
-    return sorted(AGENT_REGISTRY)
-
-
-def _check_seeds(seeds: int | Iterable[int]) -> list[int]:
+    Raises:
+        ValueError: naming the bad seed, for an empty list, duplicates, more than
+            :data:`MAX_SEEDS`, or anything but non-negative integers.
+    """
     if isinstance(seeds, str):
         return parse_seeds(seeds)
     if not isinstance(seeds, (int, np.integer, Iterable)):
@@ -446,7 +439,7 @@ def run_episode(
             error of the episode itself propagates (:func:`evaluate` records it instead).
     """
     (spec,) = resolve_agents([agent])
-    (seed,) = _check_seeds([seed])
+    (seed,) = check_seeds([seed])
     cfg = resolve_config(config, [spec])
     t0 = time.perf_counter()
     rec = _EpisodeRecorder(cfg)
@@ -459,6 +452,7 @@ def run_episode(
 
 __all__ = [
     "agent_seed",
+    "check_seeds",
     "MAX_SEEDS",
     "parse_seeds",
     "resolve_config",

@@ -90,13 +90,13 @@ from experiments.evaluation.columns import (
 from experiments.evaluation.episode import (
     MAX_SEEDS,
     SAVED_SCENARIOS,
-    _check_seeds,
     _episode_metrics,
     _EpisodeRecorder,
     _error_row,
     _one_line,
     _simulate,
     agent_seed,
+    check_seeds,
     parse_seeds,
     resolve_config,
     run_episode,
@@ -106,9 +106,9 @@ from experiments.evaluation.storage import (
     DamagedEpisodeError,
     FolderLock,
     ResultsFolderError,
-    _check_folder,
     _prepare_folder,
     _remove_stale_temp_files,
+    check_folder,
     config_hash,
     episode_stem,
     finished_row,
@@ -276,7 +276,7 @@ def evaluate(
     out_path = None if out is None else Path(out).resolve()
     run = _Run(specs, seed_list, cfg, columns, out_path, record, retry_failed)
     if out_path is not None:
-        _check_folder(out_path, cfg)
+        check_folder(out_path, cfg)
 
     with ExitStack() as stack:
         stack.enter_context(remember_interrupts())
@@ -315,7 +315,7 @@ def _checked_arguments(
     """The run's agents, seeds, config and table columns, every argument checked (and
     every user agent built once) before any episode runs."""
     specs = resolve_agents(agents)
-    seed_list = _check_seeds(seeds)
+    seed_list = check_seeds(seeds)
     cfg = resolve_config(config, specs)
     columns = row_columns(cfg.make_system())
     modes = sum([jobs != 1, scheduler is not None, dask_workers is not None])
@@ -413,7 +413,7 @@ def _take_folder(run: _Run, folder_stack: Any) -> None:
     lock = FolderLock(run.out).acquire()
     folder_stack.callback(lock.release)
     folder_stack.callback(_finish_folder, run.out, run.columns)  # runs before release
-    _check_folder(run.out, run.cfg)  # again: another run may have written meanwhile
+    check_folder(run.out, run.cfg)  # again: another run may have written meanwhile
     _prepare_folder(run.out, run.cfg)
 
 

@@ -341,7 +341,7 @@ def _config_differences(a: dict, b: dict, prefix: str = "") -> list[str]:
     return diffs
 
 
-def _check_folder(out: Path, config: ExperimentConfig) -> None:
+def check_folder(out: Path, config: ExperimentConfig) -> None:
     """Refuse a folder of another config (reads only).
 
     Its ``config.yaml`` must equal ``config``, and every episode json must carry
@@ -457,6 +457,7 @@ def _prepare_folder(out: Path, config: ExperimentConfig) -> None:
 
 
 __all__ = [
+    "check_folder",
     "config_hash",
     "DamagedEpisodeError",
     "episode_stem",
