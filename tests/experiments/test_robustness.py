@@ -40,7 +40,6 @@ from controllers.solvers import make_solver
 from experiments.cli import evaluate_main, render_main, report_main
 from experiments.evaluation import run as evaluation
 from experiments.evaluation.run import (
-    TIMING_COLUMNS,
     ResultsFolderError,
     evaluate,
     load_trajectory,
@@ -61,23 +60,12 @@ from lfm_env.config import (
 )
 from lfm_env.model import psd_factor
 from lfm_env.system import QuadraticCost
+from tests.experiments.evaluation.tiny_runs import comparable
 
 REPO = Path(__file__).resolve().parents[2]
 TINY_AGENTS = {"horizon": 5, "n_scenarios": 5, "n_particles": 300}
 TINY = {"env": {"max_steps": 15}, "agents": TINY_AGENTS}
 NAN, INF = math.nan, math.inf
-
-
-def comparable(rows: list[dict]) -> list[dict]:
-    """Rows without timing columns, NaN replaced so that equal rows compare equal."""
-    return [
-        {
-            k: ("NaN" if isinstance(v, float) and math.isnan(v) else v)
-            for k, v in r.items()
-            if k not in TIMING_COLUMNS
-        }
-        for r in rows
-    ]
 
 
 def write_yaml(path: Path, config: dict) -> Path:
