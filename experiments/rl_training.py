@@ -20,12 +20,10 @@ The evaluation tables use the env's own reward, not the training reward.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import time
 from collections import deque
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -35,12 +33,6 @@ import numpy as np
 import lfm_env  # noqa: F401  (registers the envs)
 from controllers.agents.rl import policy_features
 from controllers.config import ExperimentConfig, load_config
-from experiments.cli import (
-    add_config_argument,
-    check_writable,
-    config_argument_path,
-    one_line_errors,
-)
 
 ALGOS = ("ppo", "sac")
 MAX_TIMESTEPS = 10**9
@@ -196,7 +188,7 @@ def train(
     Raises:
         ValueError: naming the bad argument and its allowed range.
     """
-    _check_args(algo, timesteps, minutes, n_envs, cost_weight)
+    check_training_arguments(algo, timesteps, minutes, n_envs, cost_weight)
     import torch
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
@@ -218,9 +210,10 @@ def train(
     return summary
 
 
-def _check_args(
+def check_training_arguments(
     algo: str, timesteps: int, minutes: float | None, n_envs: int, cost_weight: float
 ) -> None:
+    """Raise ``ValueError`` naming the first argument of :func:`train` out of its range."""
     if algo not in ALGOS:
         raise ValueError(f"algo={algo!r}: must be one of {ALGOS}")
     if isinstance(timesteps, bool) or not 1 <= int(timesteps) <= MAX_TIMESTEPS:
@@ -275,66 +268,12 @@ def _save(
     return summary
 
 
-def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="lfm-train",
-        description=(
-            "Train an RL baseline (stable-baselines3 PPO or SAC) on the config's world "
-            "through gym.make; saves OUT/policy.zip for the 'rl' agent "
-            "(agents.rl_policy: OUT/policy.zip)."
-        ),
-        epilog="example: lfm-train --config configs/paper.yaml --algo ppo --minutes 25 "
-        "--out results/rl/ppo",
-    )
-    add_config_argument(parser)
-    parser.add_argument("--algo", choices=ALGOS, default="ppo", help="algorithm (default ppo)")
-    parser.add_argument(
-        "--timesteps", type=int, default=1_000_000, help="env steps at most (default 1e6)"
-    )
-    parser.add_argument(
-        "--minutes", type=float, default=None, help="wall-clock budget [min] (default none)"
-    )
-    parser.add_argument("--out", default="results/rl/ppo", help="output folder")
-    parser.add_argument("--seed", type=int, default=0, help="seed (default 0)")
-    parser.add_argument("--n-envs", type=int, default=4, help="envs in lockstep (default 4)")
-    parser.add_argument(
-        "--cost-weight",
-        type=float,
-        default=1.0,
-        help="training penalty per violated constraint group and step (default 1)",
-    )
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    return parser
-
-
-@one_line_errors("lfm-train")
-def main(argv: Sequence[str] | None = None) -> int:
-    """``lfm-train``: train and save a policy; prints the run's summary as JSON."""
-    parser = _parser()
-    args = parser.parse_args(argv)
-    path = config_argument_path(parser, args.config)
-    try:
-        _check_args(args.algo, args.timesteps, args.minutes, args.n_envs, args.cost_weight)
-        config = load_config(path)
-    except ValueError as exc:
-        parser.error(" ".join(str(exc).split()))
-    problem = check_writable(Path(args.out) / POLICY_FILE, "--out")
-    if problem is not None:
-        parser.error(problem)
-    summary = train(
-        config,
-        algo=args.algo,
-        timesteps=args.timesteps,
-        minutes=args.minutes,
-        out=args.out,
-        seed=args.seed,
-        n_envs=args.n_envs,
-        cost_weight=args.cost_weight,
-        progress=not args.no_progress,
-    )
-    print(json.dumps(summary, indent=2))
-    print(f"policy: {Path(args.out) / POLICY_FILE}")
-    return 0
-
-
-__all__ = ["ALGOS", "TrainingReward", "make_training_env", "main", "reward_scale", "train"]
+__all__ = [
+    "ALGOS",
+    "POLICY_FILE",
+    "TrainingReward",
+    "check_training_arguments",
+    "make_training_env",
+    "reward_scale",
+    "train",
+]

@@ -1,10 +1,10 @@
 """Solver, particle-filter and episode benchmark: ``python scripts/benchmark.py --help``.
 
-A thin command line over :func:`experiments.benchmark.run.main` (also installed as
+A thin command line over :func:`experiments.cli.benchmark_main` (also installed as
 ``lfm-benchmark``).
 """
 
-from experiments.benchmark import main
+from experiments.cli import benchmark_main
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(benchmark_main())

@@ -1,6 +1,6 @@
 """Learn the latent force's hyperparameters from calibration episodes (lfm-calibrate)."""
 
-from experiments.calibration import main
+from experiments.cli import calibrate_main
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(calibrate_main())

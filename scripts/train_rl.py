@@ -3,7 +3,7 @@
 The same command is installed as ``lfm-train``.
 """
 
-from experiments.rl_training import main
+from experiments.cli import train_main
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(train_main())

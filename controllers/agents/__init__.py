@@ -1,10 +1,9 @@
 """The agents: the MPC agents over any model (:mod:`~controllers.agents.mpc`), the agent
-that runs a trained policy (:mod:`~controllers.agents.rl`) and the face every agent has
-(:mod:`~controllers.agents.protocol`)."""
+that runs a trained policy (:mod:`~controllers.agents.rl`), the face every agent has
+(:mod:`~controllers.agents.protocol`) and the registered agents, one record each, with
+:func:`make_agent` (:mod:`~controllers.agents.registry`)."""
 
 from controllers.agents.mpc import (
-    AGENT_LABELS,
-    AGENTS,
     CertaintyEquivalentMPCAgent,
     MPCAgent,
     NominalMPCAgent,
@@ -12,18 +11,27 @@ from controllers.agents.mpc import (
     ParticleScenarioMPCAgent,
     RobustMPCAgent,
     ScenarioMPCAgent,
+)
+from controllers.agents.protocol import INFO_DEFAULTS, Agent, is_agent, last_info
+from controllers.agents.registry import (
+    AGENT_LABELS,
+    AGENT_REGISTRY,
+    AGENTS,
+    AgentSpec,
+    agent_spec,
     check_agent_config,
     make_agent,
     needs_measurement_noise,
 )
-from controllers.agents.protocol import INFO_DEFAULTS, Agent, is_agent, last_info
 from controllers.agents.rl import RLAgent
 
 __all__ = [
     "AGENTS",
     "AGENT_LABELS",
+    "AGENT_REGISTRY",
     "INFO_DEFAULTS",
     "Agent",
+    "AgentSpec",
     "CertaintyEquivalentMPCAgent",
     "MPCAgent",
     "NominalMPCAgent",
@@ -32,6 +40,7 @@ __all__ = [
     "RLAgent",
     "RobustMPCAgent",
     "ScenarioMPCAgent",
+    "agent_spec",
     "check_agent_config",
     "is_agent",
     "last_info",

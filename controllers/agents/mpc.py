@@ -37,20 +37,16 @@ import numpy as np
 from scipy import special
 
 from controllers.agents.protocol import SB3Predict
-from controllers.agents.rl import RLAgent, check_rl_policy
 from controllers.config import (
     AgentConfig,
-    ExperimentConfig,
     check_filter_memory,
     check_problem_memory,
-    load_config,
 )
 from controllers.estimators.estimator import make_estimator
 from controllers.problem import MPCSolution, ScenarioProblem
 from controllers.solvers import make_solver
-from lfm_env.config import ConfigError
-from lfm_env.cost import QuadraticCost
 from lfm_env.model import LatentForceModel
+from lfm_env.system import QuadraticCost
 from lfm_env.validation import real_vector
 
 # Tail probability of the filter's divergence test: a measurement whose normalised
@@ -425,88 +421,7 @@ class OracleMPCAgent(MPCAgent):
         return self._x, self._W
 
 
-AGENTS = {
-    "nominal": NominalMPCAgent,
-    "pf": CertaintyEquivalentMPCAgent,
-    "scenario": ScenarioMPCAgent,
-    "scenario_particles": ParticleScenarioMPCAgent,
-    "robust": RobustMPCAgent,
-    "oracle": OracleMPCAgent,
-    "rl": RLAgent,
-}
-
-AGENT_LABELS = {
-    "nominal": "nominal MPC (w = 0)",
-    "pf": "PF + certainty-equivalent MPC",
-    "scenario": "PF + scenario MPC (paper)",
-    "scenario_particles": "PF + scenario MPC, scenarios start from particles (paper's remark)",
-    "robust": "robust: calibrated estimator + MPC with constraint back-off",
-    "oracle": "oracle MPC (upper bound, reads hidden truth)",
-    "rl": "RL baseline (a policy trained by lfm-train, agents.rl_policy)",
-}
-
-FILTERING_AGENTS = tuple(k for k, v in AGENTS.items() if issubclass(v, _FilteringAgent))
-
-
-def needs_measurement_noise(name: str) -> bool:
-    """Whether the registered agent ``name`` weighs measurements by their noise (its
-    estimator's likelihood), so every ``env.measurement_noise_std`` must be > 0."""
-    return bool(getattr(AGENTS[name], "needs_measurement_noise", False))
-
-
-def check_agent_config(name: str, config: Any = None) -> ExperimentConfig:
-    """Raise ``ConfigError`` if agent ``name`` cannot run on this config; returns it resolved.
-
-    Cheap (builds no solver), so :func:`experiments.evaluation.run.evaluate` calls it for every
-    agent before the first episode. Every agent with an estimator (``pf``, ``scenario``,
-    ``scenario_particles``, ``robust``: :func:`needs_measurement_noise`) weighs
-    measurements by their noise, which must not be zero.
-    """
-    if name not in AGENTS:
-        raise ValueError(f"unknown agent {name!r}; choose one of {sorted(AGENTS)}")
-    config = load_config(config)
-    std = tuple(config.env.measurement_noise_std)
-    if needs_measurement_noise(name) and not all(s > 0.0 for s in std):
-        states = config.make_system().state_names
-        zero = [n for n, s in zip(states, std, strict=False) if not s > 0.0]
-        raise ConfigError(
-            f"env.measurement_noise_std={list(std)}: must be all > 0 (each in (0, inf)) "
-            f"for the {name!r} agent (its estimator weighs each measurement by this noise); "
-            f"zero for {zero}"
-        )
-    if name == "rl":  # the policy file must be there before the first episode
-        check_rl_policy(config.agents.rl_policy)
-    return config
-
-
-def make_agent(name: str, config: Any = None, env: Any = None) -> MPCAgent:
-    """Build an agent by name from a config.
-
-    Args:
-        name: one of :data:`AGENTS` (``"nominal"``, ``"pf"``, ``"scenario"``,
-            ``"scenario_particles"``, ``"oracle"``).
-        config: an :class:`~controllers.config.ExperimentConfig`, a YAML path, a dict
-            (whole file), or ``None`` for the paper's values; the ``env`` section is the
-            agents' known model, the ``agents`` section their settings.
-        env: the environment, only for the oracle (which reads the hidden truth).
-
-    To use an agent on another system, build it directly:
-    ``ScenarioMPCAgent(model, cost, AgentConfig(...), measurement_std=...)``.
-    """
-    if name not in AGENTS:
-        raise ValueError(f"unknown agent {name!r}; choose one of {sorted(AGENTS)}")
-    if env is not None and name != "oracle":
-        raise ValueError(f"agent {name!r} must not get env= (only the oracle reads the truth)")
-    config = check_agent_config(name, config)
-    args = (config.make_model(), config.make_cost(), config.agents, config.measurement_std)
-    if name == "oracle":
-        return OracleMPCAgent(*args, env=env)
-    return AGENTS[name](*args)
-
-
 __all__ = [
-    "AGENTS",
-    "AGENT_LABELS",
     "CertaintyEquivalentMPCAgent",
     "MPCAgent",
     "NominalMPCAgent",
@@ -514,7 +429,4 @@ __all__ = [
     "ParticleScenarioMPCAgent",
     "RobustMPCAgent",
     "ScenarioMPCAgent",
-    "check_agent_config",
-    "make_agent",
-    "needs_measurement_noise",
 ]

@@ -1,15 +1,12 @@
-"""The benchmark (``lfm-benchmark``): the solvers side by side on recorded closed-loop problems, the horizon and scenario sweeps, the filter and one episode, and its targets."""
+"""The benchmark (``lfm-benchmark``): the solvers side by side on recorded closed-loop
+problems, the horizon and scenario sweeps, the filter and one episode, and its targets."""
 
 from experiments.benchmark.run import (
     DEFAULT_CONFIG,
+    DEFAULT_MAX_STEPS,
     DEFAULT_SOLVERS,
     all_failures,
-    build_parser,
     build_solver,
-    main,
-    parse_ints,
-    parse_seeds,
-    parse_threshold,
     problem_from_config,
     record_problems,
     run_benchmark,
@@ -18,14 +15,10 @@ from experiments.benchmark.run import (
 
 __all__ = [
     "DEFAULT_CONFIG",
+    "DEFAULT_MAX_STEPS",
     "DEFAULT_SOLVERS",
     "all_failures",
-    "build_parser",
     "build_solver",
-    "main",
-    "parse_ints",
-    "parse_seeds",
-    "parse_threshold",
     "problem_from_config",
     "record_problems",
     "run_benchmark",

@@ -146,7 +146,7 @@ def record_closed_loop(
     import gymnasium as gym
 
     import lfm_env  # noqa: F401  (registers the env id)
-    from controllers.agents.mpc import make_agent
+    from controllers.agents import make_agent
 
     cfg = experiment_config(config, solver=solver, horizon=horizon)
     nx = cfg.make_system().nx

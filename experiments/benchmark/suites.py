@@ -536,7 +536,7 @@ def time_episode(
     import gymnasium as gym
 
     import lfm_env  # noqa: F401  (registers the env id)
-    from controllers.agents.mpc import make_agent
+    from controllers.agents import make_agent
 
     cfg = experiment_config(config, solver=solver)
     t0 = time.perf_counter()

@@ -10,11 +10,15 @@ code 130.
 
 One module per command: :mod:`~experiments.cli.evaluate` (``lfm-evaluate``),
 :mod:`~experiments.cli.report` (``lfm-report``), :mod:`~experiments.cli.sweep`
-(``lfm-sweep``), :mod:`~experiments.cli.render` (``lfm-render``); what they share (and the
-other command lines, ``lfm-benchmark``, ``lfm-calibrate``, ``lfm-train``, use) in
-:mod:`~experiments.cli.common`. This package gives the entry points and the shared helpers.
+(``lfm-sweep``), :mod:`~experiments.cli.render` (``lfm-render``),
+:mod:`~experiments.cli.benchmark` (``lfm-benchmark``), :mod:`~experiments.cli.calibrate`
+(``lfm-calibrate``), :mod:`~experiments.cli.train` (``lfm-train``); what they share in
+:mod:`~experiments.cli.common`. The work is done by library functions, which import nothing
+from here. This package gives the entry points and the shared helpers.
 """
 
+from experiments.cli.benchmark import benchmark_main
+from experiments.cli.calibrate import calibrate_main
 from experiments.cli.common import (
     DEFAULT_PRESET,
     PRESETS_PACKAGE,
@@ -32,6 +36,7 @@ from experiments.cli.evaluate import evaluate_main
 from experiments.cli.render import MAX_RENDER_SIDE, RENDER_MEMORY_BUDGET, render_main
 from experiments.cli.report import report_main
 from experiments.cli.sweep import sweep_main
+from experiments.cli.train import train_main
 
 __all__ = [
     "DEFAULT_PRESET",
@@ -39,6 +44,8 @@ __all__ = [
     "PRESETS_PACKAGE",
     "RENDER_MEMORY_BUDGET",
     "add_config_argument",
+    "benchmark_main",
+    "calibrate_main",
     "check_writable",
     "config_argument_path",
     "config_file",
@@ -51,4 +58,5 @@ __all__ = [
     "report_main",
     "seeds_and_executor",
     "sweep_main",
+    "train_main",
 ]

@@ -178,6 +178,13 @@ def add_executor_arguments(parser: argparse.ArgumentParser, jobs_help: str) -> N
     )
 
 
+def registered_agents_help() -> str:
+    """``name = label`` of every registered agent, for the agent options' help texts."""
+    from controllers.agents import AGENT_REGISTRY
+
+    return "; ".join(f"{s.name} = {s.label}" for s in AGENT_REGISTRY.values())
+
+
 def seeds_and_executor(parser: argparse.ArgumentParser, args: argparse.Namespace) -> list[int]:
     """The parsed ``--seeds``, after checking that the executor options fit together
     (exits 2 through ``parser.error`` naming the option otherwise)."""
@@ -206,5 +213,6 @@ __all__ = [
     "os_error_text",
     "positive_int",
     "preset_names",
+    "registered_agents_help",
     "seeds_and_executor",
 ]

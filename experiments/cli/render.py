@@ -12,6 +12,7 @@ from experiments.cli.common import (
     config_argument_path,
     one_line_errors,
     positive_int,
+    registered_agents_help,
 )
 
 _RENDER_EPILOG = """\
@@ -29,9 +30,7 @@ examples:
 
 
 def _render_parser() -> argparse.ArgumentParser:
-    from controllers.agents.mpc import AGENT_LABELS
-
-    agents_help = "; ".join(f"{k} = {v}" for k, v in AGENT_LABELS.items())
+    agents_help = registered_agents_help()
     parser = argparse.ArgumentParser(
         prog="lfm-render",
         description="Run one episode of an agent on the config's world and render it.",
@@ -72,7 +71,7 @@ def _render_episode(
     config: object, agent_name: str, seed: int, max_steps: int | None, size: tuple[int, int]
 ) -> tuple[list, float]:
     """Frames ``(H, W, 3)`` of one episode rendered step by step, and ``dt`` [s]."""
-    from controllers.agents.mpc import make_agent
+    from controllers.agents import AGENT_REGISTRY, make_agent
     from experiments.evaluation.run import agent_seed, resolve_config
     from experiments.plots.episode import annotate_frame, make_render_env
 
@@ -80,7 +79,8 @@ def _render_episode(
     # The same drawing options as the report's replay (experiments.plots.episode.replay_frames).
     env = make_render_env(cfg, screen_size=size)  # each world's own view
     try:
-        agent = make_agent(agent_name, cfg, env=env if agent_name == "oracle" else None)
+        reads_truth = AGENT_REGISTRY[agent_name].reads_truth
+        agent = make_agent(agent_name, cfg, env=env if reads_truth else None)
         dt = env.unwrapped.model.dt
         obs, info = env.reset(seed=seed)
         agent.reset(seed=agent_seed(seed, agent_name))
@@ -115,7 +115,7 @@ def render_main(argv: Sequence[str] | None = None) -> int:
     Returns:
         The exit code: 0 when the file was written.
     """
-    from controllers.agents.mpc import AGENTS
+    from controllers.agents import AGENT_REGISTRY
     from experiments.plots import write_gif
 
     parser = _render_parser()
@@ -123,8 +123,8 @@ def render_main(argv: Sequence[str] | None = None) -> int:
     out = Path(args.out)
     if out.suffix.lower() not in (".gif", ".png"):
         parser.error(f"--out {args.out}: must end in .gif or .png")
-    if args.agent not in AGENTS:
-        parser.error(f"--agent {args.agent}: choose one of {', '.join(AGENTS)}")
+    if args.agent not in AGENT_REGISTRY:
+        parser.error(f"--agent {args.agent}: choose one of {', '.join(AGENT_REGISTRY)}")
     if args.seed < 0:
         parser.error(f"--seed {args.seed}: must be >= 0")
     try:

@@ -12,6 +12,7 @@ from experiments.cli.common import (
     add_executor_arguments,
     config_argument_path,
     one_line_errors,
+    registered_agents_help,
     seeds_and_executor,
 )
 
@@ -42,9 +43,7 @@ examples:
 
 
 def _sweep_parser() -> argparse.ArgumentParser:
-    from controllers.agents.mpc import AGENT_LABELS
-
-    agents_help = "; ".join(f"{k} = {v}" for k, v in AGENT_LABELS.items())
+    agents_help = registered_agents_help()
     parser = argparse.ArgumentParser(
         prog="lfm-sweep",
         description=(

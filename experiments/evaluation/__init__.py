@@ -1,4 +1,5 @@
-"""Evaluation over seeds: :func:`evaluate` runs agents on a world's env (serially, in a process pool or on Dask) and stores one row and one trajectory per episode."""
+"""Evaluation over seeds: :func:`evaluate` runs agents on a world's env (serially, in a
+process pool or on Dask) and stores one row and one trajectory per episode."""
 
 from experiments.evaluation.run import (
     HEAD_COLUMNS,

@@ -3,8 +3,8 @@
 :func:`experiments.evaluation.run.evaluate`, :func:`~experiments.evaluation.run.run_episode` and
 ``lfm-evaluate --agents`` take agent specs of three kinds:
 
-* a registered name (``"scenario"``: :data:`controllers.agents.mpc.AGENTS`), built by
-  :func:`controllers.agents.mpc.make_agent` (the oracle also gets the env);
+* a registered name (``"scenario"``: :data:`controllers.agents.registry.AGENT_REGISTRY`),
+  built by :func:`controllers.agents.registry.make_agent` (the oracle also gets the env);
 * a factory: a callable called once per episode as ``factory(config)`` with the resolved
   :class:`~controllers.config.ExperimentConfig` (its ``env`` section is the world, its
   ``agents`` section the settings) and returning an agent
@@ -41,8 +41,8 @@ import sys
 from collections.abc import Iterable
 from typing import Any
 
-from controllers.agents.mpc import AGENTS
 from controllers.agents.protocol import Agent, is_agent
+from controllers.agents.registry import AGENT_REGISTRY
 from controllers.config import ExperimentConfig
 
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._+-]{0,99}")
@@ -54,7 +54,7 @@ class AgentSpecError(ValueError):
 
 
 @dataclasses.dataclass(frozen=True)
-class AgentSpec:
+class OwnAgentSpec:
     """A user agent to run: its name and how to get it (a registered agent is its name).
 
     Attributes:
@@ -136,9 +136,9 @@ def _default_name(obj: Any, text: str | None) -> str:
     return re.sub(r"[^A-Za-z0-9._+-]", "_", qualname)
 
 
-def resolve_agent(spec: Any) -> str | AgentSpec:
+def resolve_agent(spec: Any) -> str | OwnAgentSpec:
     """One agent spec resolved: a registered name as itself, anything else an
-    :class:`AgentSpec` (the module of a ``"module:attribute"`` text is imported).
+    :class:`OwnAgentSpec` (the module of a ``"module:attribute"`` text is imported).
 
     Raises:
         AgentSpecError: (a ``ValueError``) one line naming the spec, for an unknown
@@ -147,11 +147,11 @@ def resolve_agent(spec: Any) -> str | AgentSpec:
     """
     if isinstance(spec, str):
         text = spec.strip()
-        if text in AGENTS:
+        if text in AGENT_REGISTRY:
             return text
         if ":" not in text:
             raise AgentSpecError(
-                f"unknown agent(s) [{text!r}]; choose from {sorted(AGENTS)} or give "
+                f"unknown agent(s) [{text!r}]; choose from {sorted(AGENT_REGISTRY)} or give "
                 "'module:attribute' of an agent factory"
             )
         if not _SPEC_TEXT.fullmatch(text):
@@ -166,7 +166,7 @@ def resolve_agent(spec: Any) -> str | AgentSpec:
     else:
         raise AgentSpecError(
             f"unknown agent {str(spec)!r} (a {type(spec).__name__}); choose from "
-            f"{sorted(AGENTS)}, or give a factory (config -> agent), an agent, or "
+            f"{sorted(AGENT_REGISTRY)}, or give a factory (config -> agent), an agent, or "
             "'module:attribute'"
         )
     if not _NAME.fullmatch(name):
@@ -174,12 +174,12 @@ def resolve_agent(spec: Any) -> str | AgentSpec:
             f"agent {text!r}: its name {name!r} must be 1 to 100 letters, digits or ._+- "
             "(it names the agent's files); set a valid `name` attribute"
         )
-    if name in AGENTS:
+    if name in AGENT_REGISTRY:
         raise AgentSpecError(
             f"agent {text!r}: its name {name!r} is a registered agent's; give your agent "
             "another `name` attribute"
         )
-    return AgentSpec(name=name, target=target, text=text)
+    return OwnAgentSpec(name=name, target=target, text=text)
 
 
 def _describe(obj: Any) -> str:
@@ -189,12 +189,12 @@ def _describe(obj: Any) -> str:
     return f"{module}:{getattr(source, '__qualname__', type(source).__name__)}"
 
 
-def agent_name(agent: str | AgentSpec) -> str:
+def agent_name(agent: str | OwnAgentSpec) -> str:
     """The name of a resolved agent (a registered name is its own name)."""
     return agent if isinstance(agent, str) else agent.name
 
 
-def resolve_agents(agents: Any) -> list[str | AgentSpec]:
+def resolve_agents(agents: Any) -> list[str | OwnAgentSpec]:
     """Agent specs resolved (:func:`resolve_agent`), each name once.
 
     Args:
@@ -205,7 +205,7 @@ def resolve_agents(agents: Any) -> list[str | AgentSpec]:
         AgentSpecError: (a ``ValueError``) for an empty list, a bad spec, or two
             agents of one name.
     """
-    known = sorted(AGENTS)
+    known = sorted(AGENT_REGISTRY)
     if isinstance(agents, str):
         items: list[Any] = agents.split(",")
     elif is_agent(agents) or (callable(agents) and not isinstance(agents, Iterable)):
@@ -217,7 +217,7 @@ def resolve_agents(agents: Any) -> list[str | AgentSpec]:
     if not items or any(isinstance(a, str) and not a.strip() for a in items):
         raise AgentSpecError(f"agents {agents!r}: give at least one agent; choose from {known}")
     unknown = [a.strip() for a in items if isinstance(a, str) and ":" not in a]
-    unknown = [a for a in unknown if a not in AGENTS]
+    unknown = [a for a in unknown if a not in AGENT_REGISTRY]
     if unknown:
         raise AgentSpecError(
             f"unknown agent(s) {unknown}; choose from {known} or give 'module:attribute' "
@@ -234,20 +234,20 @@ def resolve_agents(agents: Any) -> list[str | AgentSpec]:
     return resolved
 
 
-def check_agent(agent: str | AgentSpec, config: ExperimentConfig) -> None:
+def check_agent(agent: str | OwnAgentSpec, config: ExperimentConfig) -> None:
     """Build a user agent once, so a bad factory fails before any episode runs.
 
-    Registered agents are checked by :func:`controllers.agents.mpc.check_agent_config`
+    Registered agents are checked by :func:`controllers.agents.registry.check_agent_config`
     (without building a solver).
 
     Raises:
-        AgentSpecError: naming the spec (see :meth:`AgentSpec.build`).
+        AgentSpecError: naming the spec (see :meth:`OwnAgentSpec.build`).
     """
-    if isinstance(agent, AgentSpec):
+    if isinstance(agent, OwnAgentSpec):
         agent.build(config)
 
 
-def check_picklable(agent: str | AgentSpec, how: str) -> None:
+def check_picklable(agent: str | OwnAgentSpec, how: str) -> None:
     """Refuse a user agent that cannot travel to the workers of ``how``.
 
     Args:
@@ -258,7 +258,7 @@ def check_picklable(agent: str | AgentSpec, how: str) -> None:
     Raises:
         AgentSpecError: naming the agent and why.
     """
-    if not isinstance(agent, AgentSpec) or isinstance(agent.target, str):
+    if not isinstance(agent, OwnAgentSpec) or isinstance(agent.target, str):
         return
     if how == "dask":
         import cloudpickle
@@ -285,7 +285,7 @@ def check_picklable(agent: str | AgentSpec, how: str) -> None:
 
 
 __all__ = [
-    "AgentSpec",
+    "OwnAgentSpec",
     "AgentSpecError",
     "agent_name",
     "check_agent",

@@ -1,8 +1,8 @@
 """One closed-loop episode of an agent, and the inputs every run checks first.
 
 :func:`run_episode` runs one (agent, env seed) episode on the config's world and returns its
-row of metrics (the columns of :mod:`experiments.evaluation.columns`) and its trajectory. The agent's
-own randomness is seeded by :func:`agent_seed` (paired design: see
+row of metrics (the columns of :mod:`experiments.evaluation.columns`) and its trajectory. The
+agent's own randomness is seeded by :func:`agent_seed` (paired design: see
 :mod:`experiments.evaluation.run`). :func:`resolve_config` reads and validates a config once,
 :func:`parse_seeds` reads seeds from text.
 """
@@ -20,11 +20,11 @@ import gymnasium as gym
 import numpy as np
 
 import lfm_env  # noqa: F401  (registers the envs, also in spawned workers)
-from controllers.agents.mpc import AGENTS, check_agent_config, make_agent
 from controllers.agents.protocol import INFO_DEFAULTS, last_info
+from controllers.agents.registry import AGENT_REGISTRY, check_agent_config, make_agent
 from controllers.config import ExperimentConfig, load_config
 from experiments.evaluation.agent_lookup import (
-    AgentSpec,
+    OwnAgentSpec,
     resolve_agents,
 )
 from experiments.evaluation.agent_lookup import agent_name as name_of
@@ -52,7 +52,7 @@ def agent_seed(seed: int, agent_name: str) -> int:
 
 
 def resolve_config(
-    config: Any = None, agent_names: Iterable[str | AgentSpec] = ()
+    config: Any = None, agent_names: Iterable[str | OwnAgentSpec] = ()
 ) -> ExperimentConfig:
     """The full config, read and validated once: workers get this object, not a path.
 
@@ -61,8 +61,9 @@ def resolve_config(
             :class:`~controllers.config.ExperimentConfig`, or ``None`` for the built-in
             defaults (the paper's values). Missing keys take their defaults.
         agent_names: agents that will run on it; what each registered agent needs is
-            checked too (user agents, :class:`~experiments.evaluation.agent_lookup.AgentSpec`, are
-            checked by building one: :func:`~experiments.evaluation.agent_lookup.check_agent`).
+            checked too (user agents,
+            :class:`~experiments.evaluation.agent_lookup.OwnAgentSpec`, are checked by
+            building one: :func:`~experiments.evaluation.agent_lookup.check_agent`).
 
     Raises:
         ConfigError: (a ``ValueError``) for unknown keys or out-of-range values.
@@ -112,20 +113,13 @@ def parse_seeds(text: str) -> list[int]:
     return list(dict.fromkeys(seeds))
 
 
-def _check_agents(agents: Any) -> list[str]:
-    """Registered agent names only (for callers that store names, e.g. the sweep)."""
-    specs = resolve_agents(agents)
-    own = [s.text for s in specs if isinstance(s, AgentSpec)]
-    if own:
-        raise ValueError(f"agents {own}: only registered agents here; choose from {_known()}")
-    return specs
+def check_seeds(seeds: int | str | Iterable[int]) -> list[int]:
+    """The env seeds of a run: integers >= 0, or a text for :func:`parse_seeds`.
 
-
-def _known() -> list[str]:
-    return sorted(AGENTS)
-
-
-def _check_seeds(seeds: int | Iterable[int]) -> list[int]:
+    Raises:
+        ValueError: naming the bad seed, for an empty list, duplicates, more than
+            :data:`MAX_SEEDS`, or anything but non-negative integers.
+    """
     if isinstance(seeds, str):
         return parse_seeds(seeds)
     if not isinstance(seeds, (int, np.integer, Iterable)):
@@ -324,17 +318,18 @@ class _EpisodeRecorder:
 
 
 def _simulate(
-    agent_spec: str | AgentSpec, config: ExperimentConfig, seed: int, rec: _EpisodeRecorder
+    agent_spec: str | OwnAgentSpec, config: ExperimentConfig, seed: int, rec: _EpisodeRecorder
 ) -> None:
     """Run one episode into ``rec``; exceptions propagate with ``rec`` holding the steps done."""
     name = name_of(agent_spec)
     env = gym.make(config.env_id, config=config.env)
     try:
         obs, info = env.reset(seed=seed)
-        if isinstance(agent_spec, AgentSpec):
+        if isinstance(agent_spec, OwnAgentSpec):
             agent = agent_spec.build(config)
         else:
-            agent = make_agent(name, config, env=env if name == "oracle" else None)
+            reads_truth = AGENT_REGISTRY[name].reads_truth  # the oracle: an upper bound
+            agent = make_agent(name, config, env=env if reads_truth else None)
         agent.reset(seed=agent_seed(seed, name))
         rec.start(obs, info)
         terminated = truncated = False
@@ -444,7 +439,7 @@ def run_episode(
             error of the episode itself propagates (:func:`evaluate` records it instead).
     """
     (spec,) = resolve_agents([agent])
-    (seed,) = _check_seeds([seed])
+    (seed,) = check_seeds([seed])
     cfg = resolve_config(config, [spec])
     t0 = time.perf_counter()
     rec = _EpisodeRecorder(cfg)
@@ -457,6 +452,7 @@ def run_episode(
 
 __all__ = [
     "agent_seed",
+    "check_seeds",
     "MAX_SEEDS",
     "parse_seeds",
     "resolve_config",

@@ -33,13 +33,14 @@ loads with one step per row step); a damaged one is named on stderr and run agai
 An interrupt (Ctrl-C, or SIGTERM while :func:`evaluate` runs in the main thread) ends the
 workers at once, removes temporary files and rebuilds ``episodes.csv`` before
 ``KeyboardInterrupt`` propagates; pool and Dask workers ignore Ctrl-C themselves. An
-interrupt is also remembered and checked at every step (:mod:`experiments.evaluation.interrupts`), so
-one that a library swallowed (CasADi clears errors raised inside its type conversions)
-still stops the run.
+interrupt is also remembered and checked at every step
+(:mod:`experiments.evaluation.interrupts`), so one that a library swallowed (CasADi clears
+errors raised inside its type conversions) still stops the run.
 
-Agents are registered names, or a user's own agents (:class:`controllers.agents.protocol.Agent`)
-given as factories, agent objects or ``"module:attribute"`` (:mod:`experiments.evaluation.agent_lookup`);
-an agent's ``last_info`` keys are all optional, read with their documented defaults.
+Agents are registered names, or a user's own agents
+(:class:`controllers.agents.protocol.Agent`) given as factories, agent objects or
+``"module:attribute"`` (:mod:`experiments.evaluation.agent_lookup`); an agent's
+``last_info`` keys are all optional, read with their documented defaults.
 
 Runs are serial (``jobs=1``), on local processes (``jobs > 1``) or on a Dask cluster
 (``scheduler=`` an existing one, checked to answer as Dask within 5 s, or
@@ -52,8 +53,8 @@ parallel and distributed runs give identical rows apart from the timing columns
 
 This module runs the episodes (serially, on a process pool or on Dask) and keeps the folder
 up to date; one episode is :mod:`experiments.evaluation.episode`, the table's columns
-:mod:`experiments.evaluation.columns`, the folder's files and lock :mod:`experiments.evaluation.storage`. Their
-public names are also importable from here.
+:mod:`experiments.evaluation.columns`, the folder's files and lock
+:mod:`experiments.evaluation.storage`. Their public names are also importable from here.
 """
 
 from __future__ import annotations
@@ -63,13 +64,14 @@ import os
 import time
 import traceback
 from collections.abc import Iterable, Sequence
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
 import lfm_env  # noqa: F401  (registers the envs, also in spawned workers)
 from controllers.config import ExperimentConfig
 from experiments.evaluation.agent_lookup import (
-    AgentSpec,
+    OwnAgentSpec,
     check_agent,
     check_picklable,
     resolve_agents,
@@ -88,31 +90,28 @@ from experiments.evaluation.columns import (
 from experiments.evaluation.episode import (
     MAX_SEEDS,
     SAVED_SCENARIOS,
-    _check_seeds,
     _episode_metrics,
     _EpisodeRecorder,
     _error_row,
     _one_line,
     _simulate,
     agent_seed,
+    check_seeds,
     parse_seeds,
     resolve_config,
     run_episode,
 )
 from experiments.evaluation.interrupts import raise_if_interrupted, remember_interrupts
 from experiments.evaluation.storage import (
-    _EPISODES,
-    _JSON_EXTRAS,
     DamagedEpisodeError,
     FolderLock,
     ResultsFolderError,
-    _check_folder,
     _prepare_folder,
-    _read_record,
     _remove_stale_temp_files,
-    _warn,
+    check_folder,
     config_hash,
     episode_stem,
+    finished_row,
     load_trajectory,
     save_episode,
     saved_rows,
@@ -129,7 +128,7 @@ _POOL_RESTARTS = 3  # new process pools after a worker died, before lost episode
 
 
 def _episode_task(
-    agent: str | AgentSpec,
+    agent: str | OwnAgentSpec,
     config: ExperimentConfig,
     seed: int,
     out: str | None,
@@ -140,7 +139,7 @@ def _episode_task(
 
     Top-level (picklable by reference) so process pools and Dask workers can run it; the
     resolved config travels with the task, so workers parse nothing. ``agent`` is a
-    registered name or a user agent's :class:`~experiments.evaluation.agent_lookup.AgentSpec`.
+    registered name or a user agent's :class:`~experiments.evaluation.agent_lookup.OwnAgentSpec`.
     """
     name = name_of(agent)
     t0 = time.perf_counter()
@@ -189,38 +188,6 @@ def _exit_with_parent() -> None:
         os._exit(1)
 
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
-
-
-def _finished_row(
-    out: Path, agent_name: str, seed: int, record: bool, digest: str = ""
-) -> dict | None:
-    """The saved and verified row of a finished episode, or ``None`` if it must (re-)run.
-
-    The json must be an episode record of this (agent, seed) and of this config (when
-    it carries a config hash); with ``record`` the npz must exist and, for an episode
-    that ran, load with one reward per step. A damaged file is named on stderr.
-    """
-    stem = out / _EPISODES / episode_stem(agent_name, seed)
-    json_path, npz_path = stem.with_name(stem.name + ".json"), stem.with_name(stem.name + ".npz")
-    if not json_path.exists():
-        return None
-    try:
-        record_ = _read_record(json_path)
-        if digest and record_["config_hash"] not in (None, "", digest):
-            raise DamagedEpisodeError(f"episode file {str(json_path)!r} is of another config")
-        if record and not npz_path.exists():
-            return None
-        if record and record_["error"] == "":
-            steps = len(load_trajectory(out, agent_name, seed)["reward"])
-            if steps != record_["steps"]:
-                raise DamagedEpisodeError(
-                    f"episode file {str(npz_path)!r} holds {steps} steps, its row "
-                    f"{record_['steps']}"
-                )
-    except (DamagedEpisodeError, KeyError) as exc:
-        _warn(f"{exc}; running the episode again")
-        return None
-    return {k: v for k, v in record_.items() if k not in _JSON_EXTRAS}
 
 
 def _connect_dask(scheduler: str | None, dask_workers: int | None, stack: Any):
@@ -303,10 +270,52 @@ def evaluate(
             config, before any episode runs.
         ConnectionError: the Dask scheduler cannot be reached.
     """
+    specs, seed_list, cfg, columns = _checked_arguments(
+        agents, seeds, config, jobs, scheduler, dask_workers
+    )
+    out_path = None if out is None else Path(out).resolve()
+    run = _Run(specs, seed_list, cfg, columns, out_path, record, retry_failed)
+    if out_path is not None:
+        check_folder(out_path, cfg)
+
+    with ExitStack() as stack:
+        stack.enter_context(remember_interrupts())
+        # Closed after the executor below (last in, first out): the folder is finished
+        # and unlocked only once no worker writes into it any more.
+        folder_stack = stack.enter_context(ExitStack())
+        if out_path is not None:
+            run.load_finished()  # read only: whether a Dask cluster is needed at all
+        # Connect before the first episode: an unreachable scheduler fails fast.
+        client = None
+        if run.todo() and (scheduler is not None or dask_workers is not None):
+            client = _connect_dask(scheduler, dask_workers, stack)
+        if out_path is not None:
+            _take_folder(run, folder_stack)
+            run.load_finished()
+        todo = run.todo()
+        run.bar = stack.enter_context(_progress_bar(run, progress, progress_label))
+        if client is not None and todo:
+            _run_on_dask(run, client, todo)
+        elif jobs > 1 and len(todo) > 1:
+            _run_on_pool(run, jobs, todo)
+        else:
+            _run_serially(run, todo)
+
+    return run.sorted_rows()
+
+
+def _checked_arguments(
+    agents: Any,
+    seeds: Any,
+    config: Any,
+    jobs: int,
+    scheduler: str | None,
+    dask_workers: int | None,
+) -> tuple[list[str | OwnAgentSpec], list[int], ExperimentConfig, tuple[str, ...]]:
+    """The run's agents, seeds, config and table columns, every argument checked (and
+    every user agent built once) before any episode runs."""
     specs = resolve_agents(agents)
-    names = [name_of(a) for a in specs]
-    spec_of = dict(zip(names, specs, strict=True))
-    seed_list = _check_seeds(seeds)
+    seed_list = check_seeds(seeds)
     cfg = resolve_config(config, specs)
     columns = row_columns(cfg.make_system())
     modes = sum([jobs != 1, scheduler is not None, dask_workers is not None])
@@ -322,158 +331,184 @@ def evaluate(
         if jobs > 1 or scheduler is not None or dask_workers is not None:
             check_picklable(spec, "pool" if jobs > 1 else "dask")
         check_agent(spec, cfg)
+    return specs, seed_list, cfg, columns
 
-    out_path = None if out is None else Path(out).resolve()
-    digest = config_hash(cfg)
-    if out_path is not None:
-        _check_folder(out_path, cfg)
 
-    # Seed-major order: an interrupted run leaves complete pairs of agents per seed.
-    pairs = [(a, s) for s in seed_list for a in names]
-    rows: dict[tuple[str, int], dict[str, Any]] = {}
+class _Run:
+    """One call's episodes: the (agent, seed) pairs, the rows finished so far (loaded from
+    the folder or just run), the progress bar and the table kept up to date."""
 
-    def load_finished() -> None:
-        rows.clear()
-        for a, s in pairs:
-            row = _finished_row(out_path, a, s, record, digest)
-            if row is not None and (row["error"] == "" or not retry_failed):
-                rows[(a, s)] = row
+    def __init__(
+        self,
+        specs: Sequence[str | OwnAgentSpec],
+        seeds: Sequence[int],
+        cfg: ExperimentConfig,
+        columns: Sequence[str],
+        out: Path | None,
+        record: bool,
+        retry_failed: bool,
+    ) -> None:
+        names = [name_of(a) for a in specs]
+        self.spec_of = dict(zip(names, specs, strict=True))
+        # Seed-major order: an interrupted run leaves complete pairs of agents per seed.
+        self.pairs = [(a, s) for s in seeds for a in names]
+        self.rows: dict[tuple[str, int], dict[str, Any]] = {}
+        self.cfg, self.columns = cfg, columns
+        self.out, self.record, self.retry_failed = out, record, retry_failed
+        self.digest = config_hash(cfg)
+        self.bar: Any = None
+        self.last_table = time.monotonic()
+        self.n_errors = 0
 
-    out_str = None if out_path is None else str(out_path)
+    def load_finished(self) -> None:
+        """The saved rows of this run's pairs (verified; an error row only without retry)."""
+        self.rows.clear()
+        for a, s in self.pairs:
+            row = finished_row(self.out, a, s, self.record, self.digest)
+            if row is not None and (row["error"] == "" or not self.retry_failed):
+                self.rows[(a, s)] = row
 
-    from contextlib import ExitStack
+    def todo(self) -> list[tuple[str, int]]:
+        """The pairs still to run, in seed-major order."""
+        return [p for p in self.pairs if p not in self.rows]
 
+    def task_args(self, agent: str, seed: int) -> tuple:
+        """The arguments of :func:`_episode_task` for one episode."""
+        out = None if self.out is None else str(self.out)
+        return self.spec_of[agent], self.cfg, seed, out, self.record, self.digest
+
+    def done(self, pair: tuple[str, int], row: dict[str, Any]) -> None:
+        """Record a finished episode; rebuild the table now and then."""
+        self.rows[pair] = row
+        self.n_errors += row["error"] != ""
+        self.bar.update(1)
+        if self.n_errors:
+            self.bar.set_postfix(errors=self.n_errors)
+        if self.out is not None and time.monotonic() - self.last_table > _TABLE_REFRESH:
+            write_table(self.out, self.columns)
+            self.last_table = time.monotonic()
+
+    def lost(self, pair: tuple[str, int], exc: BaseException) -> dict[str, Any]:
+        """The row of an episode whose worker died (or whose task was lost): an error row,
+        saved so that the rerun retries it, unless the episode was saved before the loss."""
+        if self.out is not None:
+            saved = finished_row(self.out, pair[0], pair[1], self.record, self.digest)
+            if saved is not None and saved["error"] == "":
+                return saved
+        row = _error_row(pair[0], pair[1], _one_line(exc), math.nan, self.columns)
+        if self.out is not None:
+            tb = "".join(traceback.format_exception(exc))
+            save_episode(self.out, row, None, tb, self.digest)
+        return row
+
+    def sorted_rows(self) -> list[dict[str, Any]]:
+        """Every pair's row, sorted by (agent, seed)."""
+        return sorted((self.rows[p] for p in self.pairs), key=lambda r: (r["agent"], r["seed"]))
+
+
+def _take_folder(run: _Run, folder_stack: Any) -> None:
+    """Create and lock the results folder (released, after the table is rebuilt, when
+    ``folder_stack`` closes) and write its config, checked again under the lock."""
+    run.out.mkdir(parents=True, exist_ok=True)
+    lock = FolderLock(run.out).acquire()
+    folder_stack.callback(lock.release)
+    folder_stack.callback(_finish_folder, run.out, run.columns)  # runs before release
+    check_folder(run.out, run.cfg)  # again: another run may have written meanwhile
+    _prepare_folder(run.out, run.cfg)
+
+
+def _progress_bar(run: _Run, progress: bool, label: str | None) -> Any:
+    """A tqdm bar over every pair of the run, the finished ones counted."""
     from tqdm.auto import tqdm
 
-    with ExitStack() as stack:
-        stack.enter_context(remember_interrupts())
-        # Closed after the executor below (last in, first out): the folder is finished
-        # and unlocked only once no worker writes into it any more.
-        folder_stack = stack.enter_context(ExitStack())
-        if out_path is not None:
-            load_finished()  # read only: whether a Dask cluster is needed at all
-        # Connect before the first episode: an unreachable scheduler fails fast.
-        client = None
-        if len(rows) < len(pairs) and (scheduler is not None or dask_workers is not None):
-            client = _connect_dask(scheduler, dask_workers, stack)
-        if out_path is not None:
-            out_path.mkdir(parents=True, exist_ok=True)
-            lock = FolderLock(out_path).acquire()
-            folder_stack.callback(lock.release)
-            folder_stack.callback(_finish_folder, out_path, columns)  # runs before release
-            _check_folder(out_path, cfg)  # again: another run may have written meanwhile
-            _prepare_folder(out_path, cfg)
-            load_finished()
-        todo = [p for p in pairs if p not in rows]
-        bar = stack.enter_context(
-            tqdm(
-                total=len(pairs),
-                initial=len(rows),
-                disable=not progress,
-                unit="episode",
-                desc=progress_label,
-            )
+    return tqdm(
+        total=len(run.pairs),
+        initial=len(run.rows),
+        disable=not progress,
+        unit="episode",
+        desc=label,
+    )
+
+
+def _run_on_dask(run: _Run, client: Any, todo: Sequence[tuple[str, int]]) -> None:
+    """Every episode of ``todo`` as a task of the Dask cluster; cancelled on an interrupt."""
+    import distributed
+
+    futures = {
+        client.submit(_episode_task, *run.task_args(a, s), pure=False, key=f"episode-{a}-{s}"): (
+            a,
+            s,
         )
-        last_table = time.monotonic()
-        n_errors = 0
-
-        def done(pair: tuple[str, int], row: dict[str, Any]) -> None:
-            nonlocal last_table, n_errors
-            rows[pair] = row
-            n_errors += row["error"] != ""
-            bar.update(1)
-            if n_errors:
-                bar.set_postfix(errors=n_errors)
-            if out_path is not None and time.monotonic() - last_table > _TABLE_REFRESH:
-                write_table(out_path, columns)
-                last_table = time.monotonic()
-
-        def lost(pair: tuple[str, int], exc: BaseException) -> dict[str, Any]:
-            # The worker died (or the task was lost): record it so the rerun retries it,
-            # unless the episode was saved before the loss.
-            if out_path is not None:
-                saved = _finished_row(out_path, pair[0], pair[1], record, digest)
-                if saved is not None and saved["error"] == "":
-                    return saved
-            row = _error_row(pair[0], pair[1], _one_line(exc), math.nan, columns)
-            if out_path is not None:
-                tb = "".join(traceback.format_exception(exc))
-                save_episode(out_path, row, None, tb, digest)
-            return row
-
-        def task_args(a: str, s: int) -> tuple:
-            return spec_of[a], cfg, s, out_str, record, digest
-
-        if client is not None and todo:
-            import distributed
-
-            futures = {
-                client.submit(
-                    _episode_task,
-                    spec_of[a],
-                    cfg,
-                    s,
-                    out_str,
-                    record,
-                    digest,
-                    pure=False,
-                    key=f"episode-{a}-{s}",
-                ): (a, s)
-                for a, s in todo
-            }
+        for a, s in todo
+    }
+    try:
+        for fut in distributed.as_completed(futures):
             try:
-                for fut in distributed.as_completed(futures):
-                    try:
-                        row = fut.result()
-                    except Exception as exc:
-                        row = lost(futures[fut], exc)
-                    done(futures[fut], row)
-            except BaseException:
-                client.cancel(list(futures), force=True)
-                raise
-        elif jobs > 1 and len(todo) > 1:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor, as_completed
-            from concurrent.futures.process import BrokenProcessPool
+                row = fut.result()
+            except Exception as exc:
+                row = run.lost(futures[fut], exc)
+            run.done(futures[fut], row)
+    except BaseException:
+        client.cancel(list(futures), force=True)
+        raise
 
-            # A worker that dies (OOM killer, a crash in native code) breaks the whole pool
-            # and fails every unfinished episode; rerun those on a new pool, a few times.
-            pending = todo
-            for restart in range(_POOL_RESTARTS + 1):
-                broken = []
-                pool = ProcessPoolExecutor(
-                    max_workers=min(jobs, len(pending)),
-                    mp_context=multiprocessing.get_context("spawn"),  # no forked CasADi state
-                    initializer=_exit_with_parent,
-                )
-                try:
-                    futs = {
-                        pool.submit(_episode_task, *task_args(a, s)): (a, s) for a, s in pending
-                    }
-                    for fut in as_completed(futs):
-                        try:
-                            row = fut.result()
-                        except BrokenProcessPool as exc:
-                            if restart < _POOL_RESTARTS:
-                                broken.append(futs[fut])
-                                continue
-                            row = lost(futs[fut], exc)
-                        except Exception as exc:
-                            row = lost(futs[fut], exc)
-                        done(futs[fut], row)
-                except BaseException:
-                    _stop_pool(pool)  # Ctrl-C or SIGTERM: end the workers now
-                    raise
-                pool.shutdown(wait=True, cancel_futures=True)
-                if not broken:
-                    break
-                pending = sorted(broken, key=pairs.index)
-        else:
-            for a, s in todo:
-                raise_if_interrupted()
-                done((a, s), _episode_task(*task_args(a, s)))
 
-    return sorted((rows[p] for p in pairs), key=lambda r: (r["agent"], r["seed"]))
+def _run_on_pool(run: _Run, jobs: int, todo: Sequence[tuple[str, int]]) -> None:
+    """Every episode of ``todo`` on a process pool of ``jobs`` spawned workers.
+
+    A worker that dies (OOM killer, a crash in native code) breaks the whole pool and fails
+    every unfinished episode; those rerun on a new pool, a few times.
+    """
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    pending = list(todo)
+    for restart in range(_POOL_RESTARTS + 1):
+        pool = ProcessPoolExecutor(
+            max_workers=min(jobs, len(pending)),
+            mp_context=multiprocessing.get_context("spawn"),  # no forked CasADi state
+            initializer=_exit_with_parent,
+        )
+        try:
+            broken = _collect_from_pool(run, pool, pending, retry=restart < _POOL_RESTARTS)
+        except BaseException:
+            _stop_pool(pool)  # Ctrl-C or SIGTERM: end the workers now
+            raise
+        pool.shutdown(wait=True, cancel_futures=True)
+        if not broken:
+            break
+        pending = sorted(broken, key=run.pairs.index)
+
+
+def _collect_from_pool(
+    run: _Run, pool: Any, pending: Sequence[tuple[str, int]], retry: bool
+) -> list[tuple[str, int]]:
+    """Submit ``pending`` to ``pool`` and record each result as it comes; returns the
+    pairs a broken pool lost, to retry (with ``retry``; else they are recorded as lost)."""
+    from concurrent.futures import as_completed
+    from concurrent.futures.process import BrokenProcessPool
+
+    broken = []
+    futs = {pool.submit(_episode_task, *run.task_args(a, s)): (a, s) for a, s in pending}
+    for fut in as_completed(futs):
+        try:
+            row = fut.result()
+        except BrokenProcessPool as exc:
+            if retry:
+                broken.append(futs[fut])
+                continue
+            row = run.lost(futs[fut], exc)
+        except Exception as exc:
+            row = run.lost(futs[fut], exc)
+        run.done(futs[fut], row)
+    return broken
+
+
+def _run_serially(run: _Run, todo: Sequence[tuple[str, int]]) -> None:
+    """Every episode of ``todo`` in this process, one after the other."""
+    for a, s in todo:
+        raise_if_interrupted()
+        run.done((a, s), _episode_task(*run.task_args(a, s)))
 
 
 def _finish_folder(out: Path, columns: Sequence[str]) -> None:

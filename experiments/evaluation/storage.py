@@ -3,8 +3,9 @@
 Layout and guarantees are those of :mod:`experiments.evaluation.run` (every file written
 atomically, the npz before the json; one config per folder; one run at a time).
 :func:`save_episode` writes an episode, :func:`saved_rows` and :func:`load_trajectory` read
-them back (verified), :func:`write_table` rebuilds ``episodes.csv``, :class:`FolderLock`
-owns the folder while a run writes into it. Downstream readers use
+them back (verified), :func:`finished_row` tells a resumed run which episodes are done,
+:func:`write_table` rebuilds ``episodes.csv``, :class:`FolderLock` owns the folder while a
+run writes into it. Downstream readers use
 :func:`experiments.report.results.load_results`.
 """
 
@@ -249,6 +250,38 @@ def load_trajectory(out: str | os.PathLike, agent_name: str, seed: int) -> dict[
         raise DamagedEpisodeError(f"episode file {str(path)!r}: {_one_line(exc)}") from exc
 
 
+def finished_row(
+    out: Path, agent_name: str, seed: int, record: bool, digest: str = ""
+) -> dict | None:
+    """The saved and verified row of a finished episode, or ``None`` if it must (re-)run.
+
+    The json must be an episode record of this (agent, seed) and of this config (when
+    it carries a config hash); with ``record`` the npz must exist and, for an episode
+    that ran, load with one reward per step. A damaged file is named on stderr.
+    """
+    stem = out / _EPISODES / episode_stem(agent_name, seed)
+    json_path, npz_path = stem.with_name(stem.name + ".json"), stem.with_name(stem.name + ".npz")
+    if not json_path.exists():
+        return None
+    try:
+        record_ = _read_record(json_path)
+        if digest and record_["config_hash"] not in (None, "", digest):
+            raise DamagedEpisodeError(f"episode file {str(json_path)!r} is of another config")
+        if record and not npz_path.exists():
+            return None
+        if record and record_["error"] == "":
+            steps = len(load_trajectory(out, agent_name, seed)["reward"])
+            if steps != record_["steps"]:
+                raise DamagedEpisodeError(
+                    f"episode file {str(npz_path)!r} holds {steps} steps, its row "
+                    f"{record_['steps']}"
+                )
+    except (DamagedEpisodeError, KeyError) as exc:
+        _warn(f"{exc}; running the episode again")
+        return None
+    return {k: v for k, v in record_.items() if k not in _JSON_EXTRAS}
+
+
 def _csv_value(v: Any) -> str:
     if isinstance(v, float):
         return repr(v)  # shortest exact text; NaN as "nan"
@@ -308,7 +341,7 @@ def _config_differences(a: dict, b: dict, prefix: str = "") -> list[str]:
     return diffs
 
 
-def _check_folder(out: Path, config: ExperimentConfig) -> None:
+def check_folder(out: Path, config: ExperimentConfig) -> None:
     """Refuse a folder of another config (reads only).
 
     Its ``config.yaml`` must equal ``config``, and every episode json must carry
@@ -424,9 +457,11 @@ def _prepare_folder(out: Path, config: ExperimentConfig) -> None:
 
 
 __all__ = [
+    "check_folder",
     "config_hash",
     "DamagedEpisodeError",
     "episode_stem",
+    "finished_row",
     "FolderLock",
     "load_trajectory",
     "ResultsFolderError",

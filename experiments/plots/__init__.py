@@ -1,7 +1,8 @@
-"""The figures: one episode's (states, inputs, latent force, constraint excess), the summaries over seeds, the feasible region and the scenario fan, and the replays. They read saved results; they never run episodes."""
+"""The figures: one episode's (states, inputs, latent force, constraint excess), the
+summaries over seeds, the feasible region and the scenario fan, and the replays. They read
+saved results; they never run episodes."""
 
 from experiments.plots.episode import (
-    AGENT_COLOURS,
     agent_colour,
     annotate_frame,
     calibration_figure,
@@ -36,7 +37,6 @@ from experiments.plots.episode import (
 )
 
 __all__ = [
-    "AGENT_COLOURS",
     "agent_colour",
     "annotate_frame",
     "calibration_figure",

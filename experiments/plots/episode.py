@@ -52,7 +52,6 @@ from experiments.plots.replay import (
 )
 from experiments.plots.scenario_fan import plan_panel_frames, saved_fans, scenario_fan_figure
 from experiments.plots.style import (
-    AGENT_COLOURS,
     _step_plot,
     agent_colour,
     force_unit,
@@ -495,7 +494,6 @@ def episode_figures(
 
 # The figures of the experiment layer under one name (``plots.X``), wherever they live.
 __all__ = [
-    "AGENT_COLOURS",
     "agent_colour",
     "annotate_frame",
     "calibration_figure",

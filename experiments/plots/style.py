@@ -13,25 +13,17 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from controllers.agents.registry import AGENT_REGISTRY
 from lfm_env.system import ControlSystem, split_unit
 
-# Colours follow the paper's captions where it names them (true path green dashed,
-# estimate red); the agents get a fixed colour each so plots can be compared.
-AGENT_COLOURS = {
-    "nominal": "tab:gray",
-    "pf": "tab:orange",
-    "scenario": "tab:blue",
-    "scenario_particles": "tab:green",
-    "robust": "tab:red",
-    "oracle": "tab:purple",
-}
 _FALLBACK_COLOURS = ("tab:brown", "tab:pink", "tab:olive", "tab:cyan")
 
 
 def agent_colour(name: str) -> str:
-    """A fixed colour per agent name (unknown names get a stable fallback)."""
-    if name in AGENT_COLOURS:
-        return AGENT_COLOURS[name]
+    """A fixed colour per agent name: a registered agent's own
+    (:class:`~controllers.agents.registry.AgentSpec`), else a stable fallback."""
+    if name in AGENT_REGISTRY:
+        return AGENT_REGISTRY[name].colour
     return _FALLBACK_COLOURS[sum(map(ord, name)) % len(_FALLBACK_COLOURS)]
 
 

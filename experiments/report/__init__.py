@@ -1,9 +1,8 @@
-"""The evaluation report: :func:`write_report` reads a results folder back and writes Markdown and self-contained HTML with its figures and intervals."""
+"""The evaluation report: :func:`write_report` reads a results folder back and writes
+Markdown and self-contained HTML with its figures and intervals."""
 
 from experiments.report.write import (
-    AGENT_SHORT_LABELS,
     GIF_EMBED_LIMIT,
-    KNOWN_AGENT_ORDER,
     Calibration,
     Document,
     Estimate,
@@ -31,9 +30,7 @@ from experiments.report.write import (
 )
 
 __all__ = [
-    "AGENT_SHORT_LABELS",
     "GIF_EMBED_LIMIT",
-    "KNOWN_AGENT_ORDER",
     "agent_label",
     "bootstrap_ci",
     "calibration",

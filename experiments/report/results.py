@@ -20,14 +20,11 @@ from typing import Any
 
 import numpy as np
 
+from controllers.agents.registry import AGENT_REGISTRY
 from experiments.evaluation.columns import tolerance_columns, violation_counts
 from experiments.evaluation.storage import episode_stem
 from lfm_env.config import WorldConfig, load_env_config, load_yaml
 from lfm_env.system import ControlSystem
-
-#: The project's agents in their usual order; other names (a user's own agents) follow,
-#: sorted.
-KNOWN_AGENT_ORDER = ("nominal", "pf", "scenario", "scenario_particles", "robust", "oracle")
 
 _TEXT_COLUMNS = ("agent", "error")
 _FALSY = ("", "0", "0.0", "false", "no", "none", "nan")
@@ -49,9 +46,9 @@ class Results:
 
     @property
     def agents(self) -> list[str]:
-        """Agent names, the known ones in their usual order, then the rest sorted."""
+        """Agent names, the registered ones in their order, then the rest (a user's own) sorted."""
         names = {r["agent"] for r in self.rows}
-        known = [a for a in KNOWN_AGENT_ORDER if a in names]
+        known = [a for a in AGENT_REGISTRY if a in names]
         return known + sorted(names - set(known))
 
     def rows_of(self, agent: str, include_errors: bool = False) -> list[dict[str, Any]]:
@@ -175,7 +172,6 @@ def load_trajectory(results: Results, agent: str, seed: int) -> dict[str, np.nda
 
 
 __all__ = [
-    "KNOWN_AGENT_ORDER",
     "Results",
     "load_results",
     "load_trajectory",

@@ -2,10 +2,10 @@
 the estimators' calibration, computed from a loaded results folder
 (:func:`experiments.report.results.load_results`); :mod:`experiments.report.write` writes them down.
 
-The metrics are the columns of ``episodes.csv`` (:func:`~experiments.evaluation.columns.row_columns`)
-as the report names them, per constraint group of the world's system with its unit.
-Every interval is a percentile bootstrap with a fixed resampling seed, so the same
-results give the same report.
+The metrics are the columns of ``episodes.csv``
+(:func:`~experiments.evaluation.columns.row_columns`) as the report names them, per
+constraint group of the world's system with its unit. Every interval is a percentile
+bootstrap with a fixed resampling seed, so the same results give the same report.
 """
 
 from __future__ import annotations

@@ -22,8 +22,9 @@ section is the sine track's own, and it is left out for other worlds.
 :func:`write_report` writes ``report.md`` and ``report.html`` (the same content) into the
 folder and the figures into ``DIR/figures/``; ``report.html`` embeds every figure, so it can
 be sent alone. Its pieces: :mod:`experiments.report.results` reads the folder,
-:mod:`experiments.report.stats` computes the metrics and intervals, :mod:`experiments.report.document`
-renders Markdown and HTML, :mod:`experiments.plots.episode` draws.
+:mod:`experiments.report.stats` computes the metrics and intervals,
+:mod:`experiments.report.document` renders Markdown and HTML,
+:mod:`experiments.plots.episode` draws.
 """
 
 from __future__ import annotations
@@ -31,15 +32,15 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from experiments.evaluation.columns import tolerance_columns
 from experiments.plots import episode as plots
 from experiments.report.document import GIF_EMBED_LIMIT, Document, embedded_image
+from experiments.report.figures import check_figure_seed, figures_section
+from experiments.report.format import agent_label, fmt, fmt_estimate, long_label
 from experiments.report.results import (
-    KNOWN_AGENT_ORDER,
     Results,
     load_results,
     load_trajectory,
@@ -68,35 +69,19 @@ from experiments.report.stats import (
     tolerance_metrics,
     zero_violation_metrics,
 )
+from experiments.report.sweep_summary import (
+    FIGURE_CAPTION,
+    SWEEP_TABLE,
+    SweepSummary,
+    load_sweep,
+    sweep_description,
+    sweep_figure,
+    sweep_table,
+)
 from lfm_env.system import split_unit
-
-# Short labels for tables and axes; the oracle is an upper bound everywhere it appears.
-AGENT_SHORT_LABELS = {
-    "nominal": "nominal MPC",
-    "pf": "PF + CE MPC",
-    "scenario": "scenario MPC (paper)",
-    "scenario_particles": "scenario MPC, particle starts",
-    "robust": "robust MPC (back-off)",
-    "oracle": "oracle (upper bound)",
-}
 
 PAPER_ENV_ID = "lfm_env/SineTrack-v0"  # the paper's world: "paper vs measured" only there
 PAPER_SPEED_EXCESS = 0.35  # [m/s] largest speed excess over the bound reported in the paper
-
-
-def agent_label(name: str, wrap: bool = False) -> str:
-    """Short display label of an agent (the oracle is marked as an upper bound).
-
-    ``wrap`` puts a parenthesised remark on its own line, for axis tick labels.
-    """
-    label = AGENT_SHORT_LABELS.get(name, name)
-    return label.replace(" (", "\n(").replace(", ", ",\n") if wrap else label
-
-
-def _long_label(name: str) -> str:
-    from controllers.agents.mpc import AGENT_LABELS
-
-    return AGENT_LABELS.get(name, name)
 
 
 def _seeds(n: int) -> str:
@@ -109,28 +94,6 @@ def _quantiles(values: Iterable[float], qs: Sequence[float]) -> list[float]:
     if len(x) == 0:
         return [math.nan] * len(qs)
     return [float(v) for v in np.quantile(x, qs)]
-
-
-# --------------------------------------------------------------------------- document
-
-
-def fmt(value: float, digits: int = 3) -> str:
-    """A number for a table: ``digits`` significant digits, thousands separated, "n/a"."""
-    if value is None or not np.isfinite(value):
-        return "n/a"
-    if abs(value) >= 10**digits:
-        return f"{value:,.0f}"
-    return f"{value:.{digits}g}"
-
-
-def fmt_estimate(e: Estimate, n_total: int | None = None) -> str:
-    """``mean [low, high]``, with ``(n=k)`` when fewer values than episodes were usable."""
-    if e.n == 0:
-        return "n/a"
-    text = f"{fmt(e.mean)} [{fmt(e.low)}, {fmt(e.high)}]"
-    if n_total is not None and e.n < n_total:
-        text += f" (n={e.n})"
-    return text
 
 
 # --------------------------------------------------------------------------- sections
@@ -414,265 +377,6 @@ def _tolerance_aware_text(results: Results, rows: Sequence[dict], group: str) ->
     return "; tolerance-aware, " + "; ".join(parts) if parts else ""
 
 
-# --------------------------------------------------------------------------- figures
-
-
-def _main_agent(results: Results) -> str:
-    """The agent of the episode figures: the paper's, else the first one."""
-    return REFERENCE_AGENT if REFERENCE_AGENT in results.agents else results.agents[0]
-
-
-def _check_figure_seed(results: Results, figure_seed: int | None) -> None:
-    """Raise ``ValueError`` if ``figure_seed`` has no saved trajectory to draw."""
-    if figure_seed is None:
-        return
-    agent = _main_agent(results)
-    path = results.trajectory_path(agent, figure_seed)
-    if not path.is_file():
-        raise ValueError(
-            f"no saved trajectory of agent {agent!r} for seed {figure_seed}: {path} does not exist"
-        )
-
-
-def _steps(row: dict) -> float:
-    """The ``steps`` of an episode row as a number (NaN when missing or unreadable)."""
-    try:
-        return float(row.get("steps", math.nan))
-    except (TypeError, ValueError):
-        return math.nan
-
-
-def _default_figure_seed(results: Results, agent: str) -> tuple[int | None, str]:
-    """The seed of the episode figures and why it was chosen (a sentence for the report).
-
-    The smallest seed whose ``agent`` episode ran without error for at least one step and
-    has a saved trajectory; a failed or 0-step episode draws empty figures, so it is
-    chosen only when no other has a trajectory, and the sentence says so.
-    """
-    rows = results.rows_of(agent, include_errors=True)
-    saved = [r for r in rows if results.trajectory_path(agent, r["seed"]).is_file()]
-    good = [r for r in saved if not r.get("error") and _steps(r) > 0]
-    skipped = sorted({int(r["seed"]) for r in saved if r not in good})
-    if good:
-        seed = int(good[0]["seed"])
-        why = f"the smallest seed whose `{agent}` episode ran without error for at least one step"
-        earlier = [s for s in skipped if s < seed]
-        if earlier:
-            shown = ", ".join(str(s) for s in earlier[:10]) + (", ..." if len(earlier) > 10 else "")
-            why += f"; seeds {shown} skipped: their episodes failed or have no step"
-        return seed, why
-    if saved:
-        seed = int(saved[0]["seed"])
-        return seed, (
-            f"no `{agent}` episode ran without error for a step, so this failed episode is "
-            "drawn: its figures may be empty"
-        )
-    return None, ""
-
-
-def _metric_values(results: Results, column: str) -> dict[str, np.ndarray]:
-    return {
-        agent_label(a): np.array([r.get(column, math.nan) for r in results.rows_of(a)])
-        for a in results.agents
-    }
-
-
-def _goal(results: Results) -> tuple[np.ndarray, float | None]:
-    """The task's goal state (SI units) and, if the world has one, its goal radius.
-
-    A world whose success is reaching a disc (a ``goal`` position in the plane of the
-    first two states and a ``goal_radius``, as both the sine track and the quadrotor
-    have) gets that disc drawn; otherwise the cost's goal state is marked.
-    """
-    cfg = results.config
-    goal_state = np.array(cfg.goal_state_rad, dtype=float)
-    goal, radius = getattr(cfg, "goal", None), getattr(cfg, "goal_radius", None)
-    if goal is not None and np.shape(goal) == (2,) and radius is not None:
-        goal_state[:2] = goal
-        return goal_state, float(radius)
-    return goal_state, None
-
-
-def _figures_section(doc: Document, results: Results, figure_seed: int | None, gif: bool) -> None:
-    fig_dir = results.directory / "figures"
-    fig_dir.mkdir(exist_ok=True)
-    cfg = results.config
-    system = results.system
-    agents = results.agents
-    main_agent = _main_agent(results)
-
-    doc.heading("Across seeds")
-    dists = {}
-    for g in system.constraint_groups:
-        unit = plots.group_unit(system, g)
-        dists[f"max {g} excess" + (f" [{unit}]" if unit else "")] = _metric_values(
-            results, f"max_{g}_excess"
-        )
-        dists[f"{g} violation steps"] = _metric_values(results, f"{g}_violation_steps")
-    dists["cost (log scale)"] = _metric_values(results, "cost")
-    dists["time to goal [s] (successes)"] = _metric_values(results, "time_to_goal")
-    fig = plots.metric_distributions_figure(dists, agents, log_scale=["cost (log scale)"])
-    plots.save_figure(fig, fig_dir / "metrics_by_agent.png")
-    doc.image(
-        "figures/metrics_by_agent.png",
-        "Per-episode metrics by agent: box (quartiles, median) and one point per seed.",
-    )
-    fig = plots.solve_time_figure(
-        _metric_values(results, "solve_time_median"),
-        _metric_values(results, "solve_time_p95"),
-        agents,
-        cfg.dt,
-    )
-    plots.save_figure(fig, fig_dir / "solve_time.png")
-    doc.image(
-        "figures/solve_time.png",
-        f"Solve time per MPC step (log scale) against the sampling time {cfg.dt:g} s.",
-    )
-
-    doc.heading("One episode")
-    if figure_seed is None:
-        figure_seed, why = _default_figure_seed(results, main_agent)
-    else:
-        why = "chosen with --seed"
-        row = next((r for r in results.rows_of(main_agent, True) if r["seed"] == figure_seed), {})
-        if row.get("error") or not _steps(row) > 0:
-            why += "; this episode failed or has no step, so its figures may be empty"
-    if figure_seed is None:
-        doc.paragraph(f"No saved trajectory of `{main_agent}`: no episode figures.")
-        return
-    traj = load_trajectory(results, main_agent, figure_seed)
-    if traj is None:
-        raise ValueError(
-            f"no saved trajectory of agent {main_agent!r} for seed {figure_seed}: "
-            f"{results.trajectory_path(main_agent, figure_seed)} does not exist"
-        )
-    # Every agent on the same seed, the main one first, each in its own colour.
-    same_seed = {main_agent: traj}
-    for a in agents:
-        if a != main_agent:
-            t = load_trajectory(results, a, figure_seed)
-            if t is not None:
-                same_seed[a] = t
-    label = agent_label(main_agent)
-    goal_state, goal_radius = _goal(results)
-    names = system.state_labels
-    doc.paragraph(
-        f"Env seed {figure_seed} ({why}), agent {label}, on the `{system.name}` system. "
-        "Time in seconds, "
-        f"dt = {cfg.dt:g} s. The figures are drawn from the system's definition: its state, "
-        "input and force names, its input bounds and its constraint functions."
-    )
-    region = (
-        "infeasible region of the constraints on these two states shaded, their bounds "
-        "dashed (evaluated with the other states at the goal state)"
-    )
-    captions = {
-        "trajectory": f"Trajectory in the plane {names[0]} / {names[1]}: true path (green "
-        f"dashed), estimate (red) with 2-sigma ellipses, goal; {region}.",
-        "latent_force": "Latent force: true (dashed) and estimated with its 2-sigma band.",
-        "inputs": "Inputs with their bounds (dash-dotted); a force in an input's unit is "
-        "drawn beside it with its negative: an input on -w would cancel the force exactly.",
-        "states": "The other states: true (dashed) and estimated with the 2-sigma band; "
-        "bounds on a state alone dashed, their infeasible side shaded.",
-        "constraints": "Largest excess of each constraint group over time (0: inside).",
-    }
-    figures = plots.episode_figures(
-        traj, system, cfg.dt, goal_state=goal_state, goal_radius=goal_radius, label=label
-    )
-    for name, fig in figures.items():
-        rel = f"figures/seed{figure_seed}_{main_agent}_{name}.png"
-        plots.save_figure(fig, results.directory / rel)
-        doc.image(rel, captions.get(name, name))
-
-    if len(same_seed) > 1:
-        doc.paragraph("All agents on the same seed (same disturbance and noise):")
-        fig = plots.paths_figure(
-            system,
-            {
-                agent_label(a): (t["true_state"], plots.agent_colour(a))
-                for a, t in same_seed.items()
-            },
-            goal_state=goal_state,
-            goal_radius=goal_radius,
-            title=f"True paths of all agents, seed {figure_seed}",
-        )
-        rel = f"figures/seed{figure_seed}_agents_trajectory.png"
-        plots.save_figure(fig, results.directory / rel)
-        doc.image(rel, "True paths of all agents on the same seed (x: end of the episode).")
-        fig = plots.constraint_excess_figure(
-            system,
-            cfg.dt,
-            {
-                agent_label(a): (plots.group_excess_of(t, system), plots.agent_colour(a))
-                for a, t in same_seed.items()
-            },
-            title=f"Constraint excess of all agents, seed {figure_seed}",
-        )
-        if fig is not None:
-            rel = f"figures/seed{figure_seed}_agents_constraints.png"
-            plots.save_figure(fig, results.directory / rel)
-            doc.image(rel, "Constraint-group excess of all agents on the same seed.")
-
-    _fan_figure(doc, results, traj, main_agent, figure_seed, goal_state, goal_radius)
-    if gif:
-        frames = plots.replay_frames(traj["true_state"], cfg, caption=label)
-        width = frames[0].shape[1] if frames else 480
-        panels = plots.plan_panel_frames(
-            system, traj, size=(width, max(160, width // 3)), goal_state=goal_state,
-            goal_radius=goal_radius,
-        )  # fmt: skip
-        rel = "figures/episode.gif"
-        plots.write_gif(plots.stack_frames(frames, panels), results.directory / rel, 1.0 / cfg.dt)
-        doc.image(
-            rel,
-            f"The episode replayed from its saved true states ({len(frames)} frames, "
-            f"{1.0 / cfg.dt:g} frames/s): above, the world's own scene; below, a camera "
-            "following the true state (green square) in the plane of the first two states, "
-            "with the estimate and its 2-sigma ellipse (red), the plan's scenario "
-            "predictions (blue) and their mean (navy) at each step.",
-        )
-
-
-def _fan_figure(
-    doc: Document,
-    results: Results,
-    traj: dict[str, np.ndarray],
-    agent: str,
-    seed: int,
-    goal_state: np.ndarray,
-    goal_radius: float | None,
-) -> None:
-    """What the scenario MPC plans: the fan of scenario predictions at four steps."""
-    fig = plots.scenario_fan_figure(
-        results.system,
-        traj,
-        results.config.dt,
-        goal_state=goal_state,
-        goal_radius=goal_radius,
-        title=f"The plan's scenario fan - {agent_label(agent)}, seed {seed}",
-    )
-    if fig is None:
-        doc.paragraph(f"`{agent}` saved no predicted trajectories: no scenario-fan figure.")
-        return
-    fans, compact = plots.saved_fans(traj)
-    rel = f"figures/seed{seed}_{agent}_scenario_fan.png"
-    plots.save_figure(fig, results.directory / rel)
-    shown = (
-        f"up to {fans.shape[1]} of the plan's scenarios (the first ones saved per step)"
-        if compact
-        else "only the first scenario (this episode file predates the saved fans)"
-    )
-    doc.image(
-        rel,
-        f"What the MPC of {agent_label(agent)} plans, at four steps of the episode (for the "
-        "scenario MPC, its scenario fan): from the estimate (red, "
-        "2-sigma ellipse) one input sequence is planned for all scenarios of the latent "
-        f"force; each thin blue line is one scenario's predicted path ({shown}), the navy "
-        "line their mean; the true path so far (grey) and over the next horizon (green "
-        "dashed) with the infeasible region shaded. Equal axes: lengths to scale.",
-    )
-
-
 def _pooled_solve_times(results: Results, agent: str) -> np.ndarray:
     """All per-step solve times [s] of an agent's saved episodes (empty if any is missing)."""
     chunks = []
@@ -685,34 +389,30 @@ def _pooled_solve_times(results: Results, agent: str) -> np.ndarray:
     return st[np.isfinite(st)]
 
 
-def _load_sweep(directory: Path, sweep_dir: str | Path | None):
+def _load_sweep(directory: Path, sweep_dir: str | Path | None) -> SweepSummary | None:
     """The risk sweep to include: ``sweep_dir``'s, else the folder's own if it has one."""
-    from experiments import sweep
-
     if sweep_dir is None:
-        if not (directory / sweep.SWEEP_TABLE).is_file():
+        if not (directory / SWEEP_TABLE).is_file():
             return None
         sweep_dir = directory
-    return sweep.load_sweep(sweep_dir)
+    return load_sweep(sweep_dir)
 
 
-def _sweep_section(doc: Document, results: Results, summary: Any) -> None:
+def _sweep_section(doc: Document, results: Results, summary: SweepSummary) -> None:
     """The risk sweep's table and Pareto figure (see :mod:`experiments.sweep`)."""
-    from experiments import sweep
-
     doc.heading(f"Risk trade-off: `{summary.key}` of `{summary.agent}`")
     world = summary.system.name
     doc.paragraph(
         f"From the sweep folder `{summary.directory}` (`lfm-sweep`, on the `{world}` system"
         + ("" if world == results.system.name else ", not this report's world")
         + "). "
-        + sweep.sweep_description(summary)
+        + sweep_description(summary)
     )
-    header, rows = sweep.sweep_table(summary)
+    header, rows = sweep_table(summary)
     doc.table(header, rows)
     rel = "figures/sweep.png"
-    plots.save_figure(sweep.sweep_figure(summary), results.directory / rel)
-    doc.image(rel, sweep.FIGURE_CAPTION)
+    plots.save_figure(sweep_figure(summary), results.directory / rel)
+    doc.image(rel, FIGURE_CAPTION)
 
 
 # --------------------------------------------------------------------------- entry point
@@ -749,7 +449,7 @@ def write_report(
     """
     results = load_results(results_dir)
     baseline = choose_baseline(results, baseline)
-    _check_figure_seed(results, figure_seed)  # before writing any file
+    check_figure_seed(results, figure_seed)  # before writing any file
     sweep = _load_sweep(results.directory, sweep_dir)
     stats = summarize(results)
     doc = Document()
@@ -763,7 +463,7 @@ def write_report(
         f"`{results.system.name}`); {_settings_text(results)}. On one env seed every agent "
         "faces the same hidden disturbance and noise. Agents:"
     )
-    doc.bullets([f"`{a}`: {_long_label(a)}" for a in results.agents])
+    doc.bullets([f"`{a}`: {long_label(a)}" for a in results.agents])
     _model_section(doc, results)
     _summary_section(doc, results, stats)
     _errors_section(doc, results)
@@ -773,7 +473,7 @@ def write_report(
     _calibration_section(doc, results)
     if sweep is not None:
         _sweep_section(doc, results, sweep)
-    _figures_section(doc, results, figure_seed, gif)
+    figures_section(doc, results, figure_seed, gif)
 
     md_path = results.directory / "report.md"
     md_path.write_text(doc.markdown())
@@ -782,11 +482,9 @@ def write_report(
 
 
 __all__ = [
-    "AGENT_SHORT_LABELS",
     "Document",
     "GIF_EMBED_LIMIT",
     "embedded_image",
-    "KNOWN_AGENT_ORDER",
     "Metric",
     "Estimate",
     "PairedDifference",

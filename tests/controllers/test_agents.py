@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 import lfm_env  # noqa: F401  (registers the env)
-from controllers.agents.mpc import AGENTS, ScenarioMPCAgent, make_agent
+from controllers.agents import AGENTS, make_agent
+from controllers.agents.mpc import ScenarioMPCAgent
 from controllers.config import AgentConfig, load_config
 from controllers.scenario_count import campi_garatti_scenarios
 from controllers.solvers import SOLVERS

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controllers.agents.mpc import make_agent
+from controllers.agents import make_agent
 from controllers.config import load_config
 from controllers.solvers import SOLVERS, make_solver
 

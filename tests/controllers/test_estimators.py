@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controllers.agents.mpc import make_agent
+from controllers.agents import make_agent
 from controllers.estimators.estimator import ESTIMATORS, make_estimator
 from controllers.estimators.rbpf import RaoBlackwellisedParticleFilter
 from controllers.estimators.ukf import UnscentedKalmanFilter

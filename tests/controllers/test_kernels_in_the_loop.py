@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import lfm_env  # noqa: F401
-from controllers.agents.mpc import make_agent
+from controllers.agents import make_agent
 from lfm_env.config import ConfigError
 
 

@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 import lfm_env  # noqa: F401  (registers the envs)
-from controllers.agents.mpc import AGENTS, make_agent
+from controllers.agents import AGENTS, make_agent
 from controllers.agents.protocol import (
     INFO_DEFAULTS,
     Agent,
@@ -149,7 +149,7 @@ def test_sb3_evaluate_policy_runs_the_scenario_agent_as_our_evaluation_does():
 
 
 def test_every_agent_with_an_estimator_refuses_zero_measurement_noise():
-    from controllers.agents.mpc import check_agent_config, needs_measurement_noise
+    from controllers.agents import check_agent_config, needs_measurement_noise
 
     config = {"env": {"measurement_noise_std": [0.15, 0.0, 0.15, 0.5]}}
     needing = sorted(n for n in AGENTS if needs_measurement_noise(n))

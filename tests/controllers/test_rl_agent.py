@@ -12,7 +12,7 @@ import pytest
 
 pytest.importorskip("stable_baselines3")
 
-from controllers.agents.mpc import AGENTS, make_agent  # noqa: E402
+from controllers.agents import AGENTS, make_agent  # noqa: E402
 from controllers.agents.rl import RLAgent, policy_features  # noqa: E402
 from controllers.config import load_config  # noqa: E402
 from experiments.evaluation.run import evaluate  # noqa: E402

@@ -2,7 +2,8 @@
 
 Importable as ``tests.experiments.own_agents`` (``lfm-evaluate --agents
 tests.experiments.own_agents:ProportionalAgent`` from the repository root). None of them
-is in :data:`controllers.agents.mpc.AGENTS`; they follow :class:`controllers.agents.protocol.Agent`.
+is in :data:`controllers.agents.registry.AGENT_REGISTRY`; they follow
+:class:`controllers.agents.protocol.Agent`.
 """
 
 from __future__ import annotations

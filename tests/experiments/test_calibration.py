@@ -1,18 +1,17 @@
-"""Learning the latent force's hyperparameters from measured speeds."""
+"""Learning the latent force's hyperparameters from measured speeds
+(``experiments.calibration``)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from controllers.agents.mpc import make_agent
 from experiments.calibration import (
     SpeedRecord,
     fit_disturbance,
-    main,
     speed_log_likelihood,
 )
-from lfm_env.config import SineTrackConfig, load_env_config
+from lfm_env.config import SineTrackConfig
 from lfm_env.gp import matern
 from lfm_env.model import LatentForceModel
 
@@ -80,24 +79,3 @@ def test_fit_recovers_the_hyperparameters_within_their_standard_errors():
 def test_fit_needs_records():
     with pytest.raises(ValueError, match="records"):
         fit_disturbance([], SineTrackConfig())
-
-
-def test_cli_writes_a_config_whose_agents_model_the_learned_force(tmp_path, capsys):
-    out = tmp_path / "learned.yaml"
-    cfg = tmp_path / "small.yaml"
-    cfg.write_text("env:\n  max_steps: 20\nagents:\n  n_particles: 200\n  n_scenarios: 5\n")
-    assert main(["--config", str(cfg), "--seeds", "0:2", "--out", str(out)]) == 0
-    printed = capsys.readouterr().out
-    assert "variance" in printed and "lengthscale" in printed
-    agent = make_agent("pf", str(out))
-    learned = agent.model.kernel
-    # The env keeps the true (hidden) force; the agents use the learned one.
-    assert load_env_config(str(out)).disturbance.variance == 4.0
-    assert learned.variance != 4.0
-
-
-def test_cli_rejects_a_bad_seed_range(capsys):
-    with pytest.raises(SystemExit) as exc:
-        main(["--seeds", "5:2"])
-    assert exc.value.code == 2
-    assert "5:2" in capsys.readouterr().err

@@ -321,7 +321,7 @@ def test_calibrate_out_is_checked_before_the_episodes(tmp_path):
     folder = tmp_path / "a_folder"
     folder.mkdir()
     rc, out, err = run_cli(
-        "experiments.calibration:main",
+        "experiments.cli:calibrate_main",
         "--config",
         "configs/quick.yaml",
         "--seeds",

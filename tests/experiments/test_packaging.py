@@ -67,8 +67,9 @@ def test_commands_find_presets_by_name_from_another_folder(tmp_path):
     assert (tmp_path / "out" / "episodes" / "nominal__seed0.json").is_file()
 
     code = (
-        "import sys; from experiments.calibration import main; "
-        "sys.exit(main(['--config', 'quick', '--seeds', '1000', '--out', 'learned.yaml']))"
+        "import sys; from experiments.cli import calibrate_main; "
+        "sys.exit(calibrate_main(['--config', 'quick', '--seeds', '1000', "
+        "'--out', 'learned.yaml']))"
     )
     done = run(code, tmp_path)
     assert done.returncode == 0, done.stderr
@@ -77,11 +78,10 @@ def test_commands_find_presets_by_name_from_another_folder(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "command", ["evaluate_main", "render_main", "sweep_main", "calibration.main"]
+    "command", ["evaluate_main", "render_main", "sweep_main", "calibrate_main", "train_main"]
 )
 def test_every_config_option_refuses_an_unknown_name_naming_the_presets(command, tmp_path):
-    module, _, func = command.rpartition(".")
-    module = f"experiments.{module or 'cli'}"
+    module, func = "experiments.cli", command
     extra = {"render_main": ", '--out', 'x.png'", "sweep_main": ", '--set', 'agents.horizon=5'"}
     code = (
         f"import sys; from {module} import {func}; "

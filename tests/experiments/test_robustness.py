@@ -31,8 +31,8 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 import lfm_env  # noqa: F401  (registers the env id)
+from controllers.agents import AGENTS, make_agent
 from controllers.agents import mpc as agents_module
-from controllers.agents.mpc import AGENTS, make_agent
 from controllers.config import AgentConfig, load_agent_config, load_config
 from controllers.estimators.particle_filter import ParticleFilter, gaussian_log_likelihood
 from controllers.problem import ScenarioProblem
@@ -40,7 +40,6 @@ from controllers.solvers import make_solver
 from experiments.cli import evaluate_main, render_main, report_main
 from experiments.evaluation import run as evaluation
 from experiments.evaluation.run import (
-    TIMING_COLUMNS,
     ResultsFolderError,
     evaluate,
     load_trajectory,
@@ -59,25 +58,14 @@ from lfm_env.config import (
     load_env_config,
     load_yaml,
 )
-from lfm_env.cost import QuadraticCost
 from lfm_env.model import psd_factor
+from lfm_env.system import QuadraticCost
+from tests.experiments.evaluation.tiny_runs import comparable
 
 REPO = Path(__file__).resolve().parents[2]
 TINY_AGENTS = {"horizon": 5, "n_scenarios": 5, "n_particles": 300}
 TINY = {"env": {"max_steps": 15}, "agents": TINY_AGENTS}
 NAN, INF = math.nan, math.inf
-
-
-def comparable(rows: list[dict]) -> list[dict]:
-    """Rows without timing columns, NaN replaced so that equal rows compare equal."""
-    return [
-        {
-            k: ("NaN" if isinstance(v, float) and math.isnan(v) else v)
-            for k, v in r.items()
-            if k not in TIMING_COLUMNS
-        }
-        for r in rows
-    ]
 
 
 def write_yaml(path: Path, config: dict) -> Path:
@@ -903,7 +891,9 @@ def test_junk_value_for_any_key_gives_config_error_naming_it(tmp_path, key, valu
     via_yaml=st.booleans(),
 )
 def test_unknown_key_anywhere_gives_config_error_naming_it(tmp_path, where, key, via_yaml):
-    known = {f.name for cls in (SineTrackConfig, DisturbanceConfig, AgentConfig) for f in fields(cls)}
+    known = {
+        f.name for cls in (SineTrackConfig, DisturbanceConfig, AgentConfig) for f in fields(cls)
+    }
     assume(key not in known | {"env", "agents"})
     if where == "top":
         source: Any = {"env": {}, key: {}}
@@ -1361,12 +1351,16 @@ def test_library_code_loads_nothing_unsafely():
     ]
     assert found == []
     # The loaders this rests on are really there.
-    sources = {p.name: p.read_text() for p in LIBRARY_FILES}
-    config_source = (REPO / "lfm_env" / "config" / "loading.py").read_text()
+    sources = {p.relative_to(REPO).as_posix(): p.read_text() for p in LIBRARY_FILES}
+    config_source = sources["lfm_env/config/loading.py"]
     assert "yaml.safe_load(fh)" in config_source or "yaml.SafeLoader(" in config_source
-    assert "np.load(path, allow_pickle=False)" in sources["storage.py"]
-    # The report reads episodes (experiments.report.results) through the evaluation's checked loader.
-    assert "from experiments.evaluation.storage import load_trajectory" in sources["results.py"]
+    assert "np.load(path, allow_pickle=False)" in sources["experiments/evaluation/storage.py"]
+    # The report reads episodes (experiments.report.results) through the evaluation's checked
+    # loader.
+    assert (
+        "from experiments.evaluation.storage import load_trajectory"
+        in sources["experiments/report/results.py"]
+    )
 
 
 def test_the_scanner_finds_what_it_looks_for(tmp_path):

@@ -1,4 +1,6 @@
-"""Tests of the risk sweep (``experiments.sweep``), its command line and its report section."""
+"""The risk sweep (``experiments.sweep``): a sweep run into its folder, resumed, refused
+when the folder holds another, its values read by the keys' types; its table, figure and
+report section as they come out of a run."""
 
 from __future__ import annotations
 
@@ -14,11 +16,16 @@ from controllers.config import ConfigError
 from experiments import sweep
 from experiments.cli import report_main, sweep_main
 from experiments.evaluation import run as evaluation
-from experiments.plots import episode as plots
-from experiments.report.write import Metric, bootstrap_ci, fmt_estimate, write_report
-from lfm_env.system import ControlSystem
-from lfm_env.xp import xp
+from experiments.report.format import fmt_estimate
+from experiments.report.stats import bootstrap_ci
+from experiments.report.sweep_summary import metric_key
+from experiments.report.write import write_report
 
+TINY = {
+    "env": {"max_steps": 15},
+    "agents": {"horizon": 5, "n_scenarios": 5, "n_particles": 300},
+}
+OWN = "tests.experiments.own_agents"
 REPO = Path(__file__).resolve().parents[2]
 QUICK = REPO / "configs" / "quick.yaml"
 SEEDS = [0, 1]
@@ -42,9 +49,6 @@ def json_rows(folder: Path, agent: str) -> dict[int, dict]:
         record = json.loads(path.read_text())
         rows[record["seed"]] = record
     return rows
-
-
-# --------------------------------------------------------------------------- end to end
 
 
 def test_sweep_writes_every_folder_the_table_and_the_figure(sweep_dir):
@@ -101,7 +105,7 @@ def test_paired_intervals_match_a_direct_computation(sweep_dir):
             else:
                 pairs = [(rows[s][metric.column], base[s][metric.column]) for s in SEEDS]
             direct = bootstrap_ci([float(a) - float(b) for a, b in pairs])
-            got = v.differences[sweep.metric_key(metric)].estimate
+            got = v.differences[metric_key(metric)].estimate
             assert got.n == direct.n == len(pairs)
             if direct.n:
                 assert (got.mean, got.low, got.high) == pytest.approx(
@@ -117,7 +121,7 @@ def test_paired_intervals_match_a_direct_computation(sweep_dir):
         assert cell.endswith(f"Δ {fmt_estimate(direct)}")
         assert cell in md
         mean = np.mean([rows[s][column] for s in SEEDS])
-        assert v.stats[sweep.metric_key(summary.metrics[i])].mean == pytest.approx(mean)
+        assert v.stats[metric_key(summary.metrics[i])].mean == pytest.approx(mean)
     assert checked >= 2 * (len(summary.metrics) - 1)
 
 
@@ -142,9 +146,6 @@ def test_another_sweep_into_the_same_folder_is_refused(sweep_dir, tmp_path, monk
         sweep.run_sweep("scenario", "agents.n_scenarios=5,10", SEEDS, QUICK, out=copy)
     with pytest.raises(evaluation.ResultsFolderError, match="n_particles"):  # another base
         sweep.run_sweep("scenario", SETTING, SEEDS, {"agents": {"n_particles": 10}}, out=copy)
-
-
-# --------------------------------------------------------------------------- the setting
 
 
 def test_values_are_read_by_the_keys_own_type():
@@ -190,28 +191,6 @@ def test_bad_setting_names_the_key(setting, words, tmp_path, capsys):
     assert words[0] in last and not out.exists()
 
 
-def test_cli_help_and_bad_agents(tmp_path, capsys):
-    with pytest.raises(SystemExit) as code:
-        sweep_main(["--help"])
-    assert code.value.code == 0
-    text = capsys.readouterr().out
-    for word in ("--set", "--baseline", "agents.robust.backoff", "sweep.png", "paired"):
-        assert word in text
-    for argv, word in (
-        (["--agent", "robot"], "robot"),
-        (["--baseline", "pff"], "pff"),
-        (["--seeds", "3:1"], "3:1"),
-    ):
-        with pytest.raises(SystemExit) as code:
-            sweep_main([*argv, "--set", SETTING, "--out", str(tmp_path / "o"), "--quiet"])
-        assert code.value.code == 2
-        assert word in capsys.readouterr().err.strip().splitlines()[-1]
-    assert not (tmp_path / "o").exists()
-
-
-# --------------------------------------------------------------------------- figure, report
-
-
 def test_pareto_figure_has_one_point_per_value_and_the_baseline(sweep_dir):
     summary = sweep.load_sweep(sweep_dir)
     fig = sweep.sweep_figure(summary)
@@ -223,19 +202,9 @@ def test_pareto_figure_has_one_point_per_value_and_the_baseline(sweep_dir):
     for container, v in zip(ax.containers, summary.values, strict=True):
         point = container.lines[0].get_xydata()[0]
         dx = v.differences["time_to_goal"].estimate.mean
-        dy = v.differences[sweep.metric_key(y)].estimate.mean
+        dy = v.differences[metric_key(y)].estimate.mean
         assert tuple(point) == pytest.approx((dx, dy))
     assert "track violation steps > 0.01 m" in ax.get_ylabel()
-
-
-def test_pareto_figure_leaves_out_undefined_points():
-    fig = plots.pareto_figure(
-        [("a", [0.1, 0.0, 0.2], [-1.0, -2.0, 0.0]), ("b", [np.nan] * 3, [1.0, 0.0, 2.0])],
-        baseline="pf",
-        xlabel="x",
-        ylabel="y",
-    )
-    assert fig.axes[0].get_legend_handles_labels()[1] == ["pf (baseline)", "a"]
 
 
 def test_report_includes_the_sweep(sweep_dir, tmp_path, capsys):
@@ -265,36 +234,8 @@ def test_report_includes_the_sweep(sweep_dir, tmp_path, capsys):
         write_report(results, gif=False, sweep_dir=tmp_path)
 
 
-def test_sweep_metrics_fall_back_to_raw_counts_without_tolerances():
-    def rhs(x, u, w):
-        return xp.stack([xp.unstack(x)[1], xp.unstack(u)[0] + xp.unstack(w)[0]])
+def test_sweeps_take_registered_agents_only():
+    from experiments.sweep import run_sweep
 
-    def constraints(x):
-        p, v = xp.unstack(x)
-        return xp.stack([p - 0.2, v - 1.0])
-
-    system = ControlSystem(
-        name="corridor_1d",
-        state_names=("p [m]", "v [m/s]"),
-        input_names=("a [m/s^2]",),
-        rhs=rhs,
-        input_lower=[-1.0],
-        input_upper=[1.0],
-        constraints=constraints,
-        constraint_names=("ceiling [m]", "v_max [m/s]"),
-        constraint_groups={"corridor": (0,), "speed": (1,)},
-        violation_tolerances={"corridor": (0.01, 0.1)},  # none for the speed
-    )
-    metrics = sweep.sweep_metrics(system)
-    columns = [(m.column, m.zero_count) for m in metrics]
-    assert columns == [
-        ("success", False),
-        ("corridor_violation_steps_over_0.01", False),
-        ("corridor_violation_steps_over_0.1", False),
-        ("corridor_violation_steps_over_0.01", True),
-        ("corridor_violation_steps_over_0.1", True),
-        ("speed_violation_steps", False),
-        ("speed_violation_steps", True),
-        ("time_to_goal", False),
-    ]
-    assert isinstance(metrics[0], Metric)
+    with pytest.raises(ValueError, match=r"only registered agents here"):
+        run_sweep(f"{OWN}:ProportionalAgent", "agents.backoff=0,1", [0], TINY, out="/nonexistent")

@@ -156,7 +156,7 @@ def test_steady_state_shortcut_matches_the_full_filter(kernel, monkeypatch):
     y = rng.standard_normal(t.size)
     fast = log_marginal_likelihood(kernel, t, y, 0.1)
     fast_ll, fast_grad = log_marginal_likelihood_and_grad(kernel, t, y, 0.1)
-    monkeypatch.setattr(gp_likelihood, "_STEADY_STATE_RTOL", -1.0)  # never converged: full recursion
+    monkeypatch.setattr(gp_likelihood, "_STEADY_STATE_RTOL", -1.0)  # never converged: all steps
     slow = log_marginal_likelihood(kernel, t, y, 0.1)
     slow_ll, slow_grad = log_marginal_likelihood_and_grad(kernel, t, y, 0.1)
     assert fast == pytest.approx(slow, rel=1e-11)

@@ -39,7 +39,7 @@ from controllers.solvers.fast.solver import FastScenarioSolver
 from experiments.evaluation.run import TIMING_COLUMNS, evaluate, resolve_config, run_episode
 from lfm_env.worlds import SineTrackEnv
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 AGENT_CYCLE = ("nominal", "pf", "scenario", "oracle")
 SOAK_EPISODES = 300
 WARM_UP = 30  # episodes before the memory baseline: imports, caches and allocator pools

@@ -1,13 +1,10 @@
-"""Evaluating agents that are not registered: factories, agent objects, 'module:attribute'
-(``experiments.evaluation.agent_lookup``, through ``experiments.evaluation.run`` and ``lfm-evaluate``)."""
+"""Evaluating agents that are not registered (``experiments.evaluation.agent_lookup``):
+factories, agent objects and 'module:attribute', how they are named, checked and sent to
+workers, and how the evaluation runs them."""
 
 from __future__ import annotations
 
 import math
-import os
-import subprocess
-import sys
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -16,18 +13,17 @@ import pytest
 from controllers.agents.protocol import Agent
 from controllers.config import ExperimentConfig
 from experiments.evaluation import run as evaluation
-from experiments.evaluation.agent_lookup import AgentSpec, AgentSpecError, resolve_agent
+from experiments.evaluation.agent_lookup import AgentSpecError, OwnAgentSpec, resolve_agent
 from experiments.evaluation.run import (
-    TIMING_COLUMNS,
     agent_seed,
     evaluate,
     load_trajectory,
     run_episode,
     saved_rows,
 )
+from tests.experiments.evaluation.tiny_runs import comparable
 from tests.experiments.own_agents import ConstantAgent, ProportionalAgent
 
-REPO = Path(__file__).resolve().parents[2]
 TINY = {
     "env": {"max_steps": 15},
     "agents": {"horizon": 5, "n_scenarios": 5, "n_particles": 300},
@@ -49,18 +45,6 @@ class BrakingAgent:
 
     def act(self, obs: Any) -> np.ndarray:
         return np.array([-1.0, 0.0])[: self.nu]
-
-
-def comparable(rows: list[dict]) -> list[dict]:
-    """Rows without timing columns, NaN replaced so that equal rows compare equal."""
-    return [
-        {
-            k: ("NaN" if isinstance(v, float) and math.isnan(v) else v)
-            for k, v in r.items()
-            if k not in TIMING_COLUMNS
-        }
-        for r in rows
-    ]
 
 
 def test_own_agents_in_a_process_pool_equal_the_serial_run(tmp_path):
@@ -89,13 +73,6 @@ def test_own_agents_on_a_local_dask_cluster_equal_the_serial_run(tmp_path):
     dask = evaluate(agents, [2], TINY, out=tmp_path, dask_workers=1, progress=False)
     assert [r["error"] for r in dask] == [""] * 3
     assert comparable(dask) == comparable(serial)
-
-
-def test_sweeps_take_registered_agents_only():
-    from experiments.sweep import run_sweep
-
-    with pytest.raises(ValueError, match=r"only registered agents here"):
-        run_sweep(f"{OWN}:ProportionalAgent", "agents.backoff=0,1", [0], TINY, out="/nonexistent")
 
 
 def test_a_minimal_agent_has_no_solver_failures_and_na_estimates():
@@ -174,7 +151,7 @@ def test_names_come_from_the_name_attribute_else_the_spec():
     assert resolve_agent(f"{OWN}:ProportionalAgent").name == "proportional"
     assert resolve_agent(f" {OWN}:ConstantAgent").name == f"{OWN}.ConstantAgent"
     spec = resolve_agent(Unnamed)
-    assert isinstance(spec, AgentSpec) and spec.name == "Unnamed"
+    assert isinstance(spec, OwnAgentSpec) and spec.name == "Unnamed"
     assert isinstance(spec.build(evaluation.resolve_config(TINY)), Agent)
 
 
@@ -209,44 +186,4 @@ def test_bad_agent_specs_fail_before_any_episode_naming_the_spec(
     with pytest.raises(AgentSpecError, match=match) as exc:
         evaluate(agents, [0], TINY, out=tmp_path / "out", progress=False)
     assert "\n" not in str(exc.value)
-    assert not (tmp_path / "out").exists()
-
-
-def _command_line() -> list[str]:
-    script = Path(sys.executable).with_name("lfm-evaluate")
-    if script.is_file():
-        return [str(script)]
-    return [sys.executable, str(REPO / "scripts" / "evaluate.py")]
-
-
-def _run_cli(tmp_path: Path, agents: str) -> subprocess.CompletedProcess:
-    config = tmp_path / "tiny.yaml"
-    config.write_text(
-        "env:\n  max_steps: 15\nagents:\n  horizon: 5\n  n_scenarios: 5\n  n_particles: 300\n"
-    )
-    cmd = _command_line() + [
-        *("--config", str(config), "--agents", agents, "--seeds", "0:2"),
-        *("--jobs", "2", "--out", str(tmp_path / "out"), "--no-report", "--quiet"),
-    ]
-    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
-    env.pop("PYTHONPATH", None)  # the module must be found from the current folder
-    return subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
-
-
-def test_cli_runs_a_module_attribute_agent_from_the_repo_root(tmp_path):
-    done = _run_cli(tmp_path, f"nominal,{OWN}:ProportionalAgent")
-    assert done.returncode == 0, done.stdout + done.stderr
-    rows = saved_rows(tmp_path / "out")
-    assert [(r["agent"], r["seed"], r["error"]) for r in rows] == [
-        (a, s, "") for a in ("nominal", "proportional") for s in (0, 1)
-    ]
-    assert rows[2]["solver_failures"] == 0 and math.isnan(rows[2]["latent_rmse"])
-
-
-def test_cli_exits_2_with_one_line_naming_a_bad_agent(tmp_path):
-    done = _run_cli(tmp_path, f"{OWN}:not_an_agent_factory")
-    assert done.returncode == 2
-    last = done.stderr.strip().splitlines()[-1]
-    assert last.startswith("lfm-evaluate: error: agent ")
-    assert f"{OWN}:not_an_agent_factory" in last and "no reset(seed=None) and act(obs)" in last
     assert not (tmp_path / "out").exists()

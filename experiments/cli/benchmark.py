@@ -1,0 +1,239 @@
+"""``lfm-benchmark``: the solvers, the particle filter and an episode timed side by side
+(:mod:`experiments.benchmark.run`); prints the report, writes JSON and Markdown."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from controllers.solvers import SOLVERS
+from experiments.benchmark.problems import DEFAULT_CONFIG
+from experiments.benchmark.report import format_markdown, format_report, json_ready
+from experiments.benchmark.run import DEFAULT_MAX_STEPS, DEFAULT_SOLVERS, run_benchmark
+from experiments.benchmark.suites import DEFAULT_HORIZON_STEPS, DEFAULT_HORIZONS
+from experiments.benchmark.targets import DEFAULT_THRESHOLDS, check_thresholds, failed_targets
+from experiments.cli.common import one_line_errors
+from experiments.evaluation import parse_seeds as parse_evaluation_seeds
+
+DEFAULT_OUT = "results/benchmark.json"
+# --quick: a smoke run of every part (a few problems, tiny sweeps and filter).
+QUICK = {
+    "seeds": "0",
+    "max_steps": 3,
+    "horizon_steps": 2,
+    # [s] per solve at N = 15, 30: a smoke run, not a verdict (failed solves are listed)
+    "horizon_max_time": 2.0,
+    "sweep_ns": (10, 50),
+    "sweep_steps_per_seed": 3,
+    "pf_sizes": (1000, 7000),
+    "pf_steps": 30,
+}
+
+
+def parse_seeds(text: str) -> list[int]:
+    """Seeds from ``"0:3"`` (end exclusive), ``"5"`` or ``"1,4,7"`` (ranges may be mixed in).
+
+    The syntax of :func:`experiments.evaluation.run.parse_seeds`, with the error worded for
+    this command line.
+
+    Raises:
+        ValueError: naming ``text`` when it is not a list of non-negative integers and
+            non-empty ranges.
+    """
+    try:
+        return parse_evaluation_seeds(text)
+    except ValueError:
+        raise ValueError(
+            f"seeds={text!r}: expected non-negative integers and ranges like '0:3' or '1,4,7'"
+        ) from None
+
+
+def parse_ints(text: str, name: str) -> list[int]:
+    """Positive integers from ``"7,15,30"``.
+
+    Raises:
+        ValueError: naming ``name`` when an entry is not an integer >= 1.
+    """
+    try:
+        values = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        values = []
+    if not values or min(values) < 1:
+        raise ValueError(f"{name}={text!r}: expected integers >= 1 separated by commas")
+    return values
+
+
+def parse_threshold(text: str) -> tuple[str, float]:
+    """``KEY=VALUE`` of ``--threshold``, checked against the known keys.
+
+    Raises:
+        argparse.ArgumentTypeError: naming the bad key or value and the known keys.
+    """
+    key, sep, value = text.partition("=")
+    try:
+        if not sep:
+            raise ValueError(f"threshold {text!r}: expected KEY=VALUE")
+        return key, check_thresholds({key.strip(): value})[key.strip()]
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: must be an integer >= 1")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``lfm-benchmark`` argument parser."""
+    parser = argparse.ArgumentParser(
+        prog="lfm-benchmark",
+        description=(
+            f"Benchmark the scenario MPC solvers ({', '.join(SOLVERS)}) side by side on "
+            "closed-loop problems, at several horizons and scenario counts, the particle "
+            "filter and one episode; print the speed table, every failed solve and "
+            "PASS/FAIL per target, write JSON and the speed table as Markdown."
+        ),
+    )
+    parser.add_argument(
+        "--config", default=DEFAULT_CONFIG, help="config YAML (default: %(default)s)"
+    )
+    parser.add_argument(
+        "--seeds",
+        default=None,
+        help="episode seeds, e.g. '0:6' or '0,5' (default: 0:6; quick: 0)",
+    )
+    parser.add_argument(
+        "--max-steps",
+        type=_positive_int,
+        default=None,
+        help=f"recorded steps per seed (default: {DEFAULT_MAX_STEPS}; quick: {QUICK['max_steps']})",
+    )
+    parser.add_argument(
+        "--solvers",
+        default=",".join(DEFAULT_SOLVERS),
+        help=f"solvers of the comparison, comma-separated (default: %(default)s; all: "
+        f"{','.join(SOLVERS)})",
+    )
+    parser.add_argument(
+        "--skip",
+        action="append",
+        default=[],
+        choices=SOLVERS,
+        metavar="SOLVER",
+        help=f"leave a solver out of the comparison (repeatable; one of {', '.join(SOLVERS)})",
+    )
+    parser.add_argument(
+        "--horizons",
+        default=",".join(str(n) for n in DEFAULT_HORIZONS),
+        help="horizons N of the horizon sweep, comma-separated (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--horizon-steps",
+        type=_positive_int,
+        default=None,
+        help="problems per seed at each horizon other than the config's (default: "
+        + ", ".join(f"N={n}: {k}" for n, k in DEFAULT_HORIZON_STEPS.items())
+        + f"; quick: {QUICK['horizon_steps']})",
+    )
+    parser.add_argument(
+        "--threshold",
+        action="append",
+        default=[],
+        type=parse_threshold,
+        metavar="KEY=VALUE",
+        help="change a target's threshold (repeatable); keys: " + ", ".join(DEFAULT_THRESHOLDS),
+    )
+    parser.add_argument(
+        "--check",
+        action="store_true",
+        help="exit with status 1 when any target FAILS (SKIP is no failure)",
+    )
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="a smoke run: few problems, tiny sweeps and filter (the figures mean little)",
+    )
+    parser.add_argument(
+        "--out",
+        default=DEFAULT_OUT,
+        help="JSON output (default: %(default)s); the Markdown table goes beside it (.md)",
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    return parser
+
+
+def _solver_list(text: str, skip: Sequence[str]) -> list[str]:
+    names = [s.strip() for s in text.split(",") if s.strip()]
+    for name in names:
+        if name not in SOLVERS:
+            raise ValueError(f"solvers: unknown solver {name!r}; choose from {', '.join(SOLVERS)}")
+    return [s for s in names if s not in skip]
+
+
+@one_line_errors("lfm-benchmark")
+def benchmark_main(argv: Sequence[str] | None = None) -> int:
+    """Command line: run the benchmark, print the report, write JSON and Markdown.
+
+    Returns:
+        0, or 1 with ``--check`` when a target fails.
+    """
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        seeds = parse_seeds(args.seeds or (QUICK["seeds"] if args.quick else "0:6"))
+        solvers = _solver_list(args.solvers, args.skip)
+        horizons = parse_ints(args.horizons, "horizons")
+    except ValueError as exc:
+        parser.error(str(exc))
+    options: dict[str, Any] = {}
+    if args.quick:
+        options = {k: v for k, v in QUICK.items() if k != "seeds"}
+    if args.max_steps is not None:
+        options["max_steps"] = args.max_steps
+    if args.horizon_steps is not None:
+        options["horizon_steps"] = args.horizon_steps
+    options.setdefault("max_steps", DEFAULT_MAX_STEPS)
+    results = run_benchmark(
+        config=args.config,
+        seeds=seeds,
+        solvers=solvers,
+        horizons=horizons,
+        thresholds=dict(args.threshold),
+        progress=not args.no_progress,
+        **options,
+    )
+    results["meta"]["argv"] = list(sys.argv[1:] if argv is None else argv)
+    print(format_report(results), flush=True)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(json_ready(results), indent=1, allow_nan=False) + "\n")
+    markdown = out.with_suffix(".md")
+    markdown.write_text(format_markdown(results))
+    print(f"\nwrote {out} and {markdown}; {results['meta']['total_time_s']:.0f} s in all")
+    failed = failed_targets(results["targets"])
+    if args.check and failed:
+        print(f"--check: {len(failed)} target(s) FAIL: " + "; ".join(t["key"] for t in failed))
+        return 1
+    return 0
+
+
+__all__ = [
+    "QUICK",
+    "benchmark_main",
+    "build_parser",
+    "parse_ints",
+    "parse_seeds",
+    "parse_threshold",
+]
+
+if __name__ == "__main__":
+    raise SystemExit(benchmark_main())

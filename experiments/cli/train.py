@@ -1,0 +1,85 @@
+"""``lfm-train``: train the RL baseline on the config's world and save its policy
+(:mod:`experiments.rl_training`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+from controllers.config import load_config
+from experiments.cli.common import (
+    add_config_argument,
+    check_writable,
+    config_argument_path,
+    one_line_errors,
+)
+from experiments.rl_training import ALGOS, POLICY_FILE, check_training_arguments, train
+
+
+def _train_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="lfm-train",
+        description=(
+            "Train an RL baseline (stable-baselines3 PPO or SAC) on the config's world "
+            "through gym.make; saves OUT/policy.zip for the 'rl' agent "
+            "(agents.rl_policy: OUT/policy.zip)."
+        ),
+        epilog="example: lfm-train --config configs/paper.yaml --algo ppo --minutes 25 "
+        "--out results/rl/ppo",
+    )
+    add_config_argument(parser)
+    parser.add_argument("--algo", choices=ALGOS, default="ppo", help="algorithm (default ppo)")
+    parser.add_argument(
+        "--timesteps", type=int, default=1_000_000, help="env steps at most (default 1e6)"
+    )
+    parser.add_argument(
+        "--minutes", type=float, default=None, help="wall-clock budget [min] (default none)"
+    )
+    parser.add_argument("--out", default="results/rl/ppo", help="output folder")
+    parser.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    parser.add_argument("--n-envs", type=int, default=4, help="envs in lockstep (default 4)")
+    parser.add_argument(
+        "--cost-weight",
+        type=float,
+        default=1.0,
+        help="training penalty per violated constraint group and step (default 1)",
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return parser
+
+
+@one_line_errors("lfm-train")
+def train_main(argv: Sequence[str] | None = None) -> int:
+    """``lfm-train``: train and save a policy; prints the run's summary as JSON."""
+    parser = _train_parser()
+    args = parser.parse_args(argv)
+    path = config_argument_path(parser, args.config)
+    try:
+        check_training_arguments(
+            args.algo, args.timesteps, args.minutes, args.n_envs, args.cost_weight
+        )
+        config = load_config(path)
+    except ValueError as exc:
+        parser.error(" ".join(str(exc).split()))
+    problem = check_writable(Path(args.out) / POLICY_FILE, "--out")
+    if problem is not None:
+        parser.error(problem)
+    summary = train(
+        config,
+        algo=args.algo,
+        timesteps=args.timesteps,
+        minutes=args.minutes,
+        out=args.out,
+        seed=args.seed,
+        n_envs=args.n_envs,
+        cost_weight=args.cost_weight,
+        progress=not args.no_progress,
+    )
+    print(json.dumps(summary, indent=2))
+    print(f"policy: {Path(args.out) / POLICY_FILE}")
+    return 0
+
+
+__all__ = ["train_main"]

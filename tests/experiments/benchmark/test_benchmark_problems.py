@@ -1,0 +1,24 @@
+"""The benchmark's closed-loop problems (``experiments.benchmark.problems``)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from experiments.benchmark import problems as bench_problems
+
+
+def test_recording_keeps_the_agents_problems_and_estimates() -> None:
+    cfg = bench_problems.experiment_config()
+    problem = cfg.make_problem()
+    problems, anchors = bench_problems.record_closed_loop(cfg, seeds=[3], max_steps=2)
+    assert [(p.seed, p.step) for p in problems] == [(3, 0), (3, 1)]
+    assert [(a.seed, a.step) for a in anchors] == [(3, 0), (3, 1)]
+    for p, a in zip(problems, anchors, strict=True):
+        x0, W = problem.check_data(p.x0, p.W)  # the agent's problem size
+        assert np.array_equal(x0[0], a.x0)  # the scenarios start from the estimate
+        assert a.z.shape == (problem.model.latent_dim,)
+    # Draws of another size around the anchors, as the agent draws them.
+    small = cfg.make_problem(n_scenarios=5)
+    draws = bench_problems.scenario_draws(small, anchors, np.random.default_rng(0))
+    assert [d.W.shape for d in draws] == [(5, small.horizon, small.nw)] * 2
+    assert np.allclose(draws[0].W[:, 0], small.model.latent_force(anchors[0].z))

@@ -1,0 +1,60 @@
+"""``lfm-benchmark`` (``experiments.cli.benchmark``): --check's exit code, its one-line
+errors and its seeds."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from experiments.benchmark import targets as bench_targets
+from experiments.cli import benchmark as benchmark_cli
+
+# A threshold no run can meet: the quick run must still exit 0 (no --check) and say FAIL.
+IMPOSSIBLE = "fast_median_ms=1e-9"
+# Thresholds every measured figure meets: with --check such a run exits 0.
+LOOSE = [
+    f"{key}={-1e9 if key.endswith(('_over_fast', '_share_pct')) else 1e9}"
+    for key in bench_targets.DEFAULT_THRESHOLDS
+    if key != "worse_share_pct"
+] + ["worse_share_pct=100"]
+
+
+def test_check_exits_1_when_a_target_fails_and_0_when_all_pass(tmp_path) -> None:
+    """--check on a small real run: an impossible threshold fails it, loose ones pass."""
+    small = ["--quick", "--solvers", "fast", "--horizons", "7", "--max-steps", "2"]
+    small += ["--no-progress", "--out", str(tmp_path / "c.json")]
+    assert benchmark_cli.benchmark_main([*small, "--check", "--threshold", IMPOSSIBLE]) == 1
+    data = json.loads((tmp_path / "c.json").read_text())
+    assert "fast_median_ms" in [t["key"] for t in data["targets"] if t["passed"] is False]
+    loose = [a for kv in LOOSE for a in ("--threshold", kv)]
+    assert benchmark_cli.benchmark_main([*small, "--check", *loose]) == 0
+    data = json.loads((tmp_path / "c.json").read_text())
+    assert not [t for t in data["targets"] if t["passed"] is False]
+    assert any(t["passed"] for t in data["targets"])
+
+
+@pytest.mark.parametrize(
+    ("argv", "match"),
+    [
+        (["--threshold", "no_such_key=1"], "no_such_key"),
+        (["--threshold", "pf_step_ms=fast"], "pf_step_ms"),
+        (["--threshold", "pf_step_ms"], "KEY=VALUE"),
+        (["--horizons", "7,0"], "horizons"),
+        (["--solvers", "fast,gurobi"], "gurobi"),
+    ],
+)
+def test_bad_options_name_the_field(argv: list[str], match: str, capsys) -> None:
+    with pytest.raises(SystemExit) as exc:
+        benchmark_cli.benchmark_main([*argv, "--no-progress"])
+    assert exc.value.code == 2
+    assert match in capsys.readouterr().err
+
+
+def test_parse_seeds() -> None:
+    assert benchmark_cli.parse_seeds("0:3") == [0, 1, 2]
+    assert benchmark_cli.parse_seeds("5") == [5]
+    assert benchmark_cli.parse_seeds("1,4,1,0:2") == [1, 4, 0]
+    for bad in ("", "3:1", "-1", "a"):
+        with pytest.raises(ValueError, match="seeds="):
+            benchmark_cli.parse_seeds(bad)

@@ -1,0 +1,31 @@
+"""``lfm-calibrate`` (``experiments.cli.calibrate``): the learned config it writes, and its
+one-line errors."""
+
+from __future__ import annotations
+
+import pytest
+
+from controllers.agents import make_agent
+from experiments.cli import calibrate_main as main
+from lfm_env.config import load_env_config
+
+
+def test_cli_writes_a_config_whose_agents_model_the_learned_force(tmp_path, capsys):
+    out = tmp_path / "learned.yaml"
+    cfg = tmp_path / "small.yaml"
+    cfg.write_text("env:\n  max_steps: 20\nagents:\n  n_particles: 200\n  n_scenarios: 5\n")
+    assert main(["--config", str(cfg), "--seeds", "0:2", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "variance" in printed and "lengthscale" in printed
+    agent = make_agent("pf", str(out))
+    learned = agent.model.kernel
+    # The env keeps the true (hidden) force; the agents use the learned one.
+    assert load_env_config(str(out)).disturbance.variance == 4.0
+    assert learned.variance != 4.0
+
+
+def test_cli_rejects_a_bad_seed_range(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--seeds", "5:2"])
+    assert exc.value.code == 2
+    assert "5:2" in capsys.readouterr().err

@@ -1,0 +1,52 @@
+"""``lfm-report`` (``experiments.cli.report``), and the --help of ``lfm-report`` and
+``lfm-render`` and their scripts."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from experiments.cli import render_main, report_main
+from tests.experiments.saved_results import REPO
+
+
+@pytest.mark.parametrize("main", [report_main, render_main])
+def test_cli_help(main, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    text = capsys.readouterr().out
+    assert "usage:" in text and "examples:" in text
+    if main is report_main:
+        assert "--no-gif" in text and "--seed" in text
+    else:
+        assert all(opt in text for opt in ("--config", "--agent", "--seed", "--out", "--steps"))
+
+
+@pytest.mark.parametrize("script", ["report.py", "render.py"])
+def test_scripts_help(script):
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "scripts" / script), "--help"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "usage:" in proc.stdout
+
+
+def test_report_main_writes_report(results_copy, capsys):
+    assert report_main([str(results_copy), "--seed", "1", "--no-gif"]) == 0
+    assert (results_copy / "report.html").is_file()
+    assert (results_copy / "figures" / "seed1_scenario_trajectory.png").is_file()
+    assert not (results_copy / "figures" / "episode.gif").exists()
+    assert "report:" in capsys.readouterr().out
+
+
+def test_report_main_missing_folder_exits_2(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        report_main([str(tmp_path / "nowhere")])
+    assert exc.value.code == 2
+    assert "nowhere" in capsys.readouterr().err
