@@ -1,11 +1,16 @@
 #!/usr/bin/env bash
-# Set up .venv and run the default test suite (slow seed sweeps excluded; add -m slow for them).
-# Extra arguments go to pytest. Fails when no test ran (pytest exit code 5).
+# Set up .venv, lint with ruff, and run the default test suite (slow seed sweeps excluded; add
+# -m slow for them). Extra arguments go to pytest. Fails when ruff finds a problem or when no
+# test ran (pytest exit code 5).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup_env.sh test
 # Tiny LAPACK calls dominate here; OpenBLAS threads spin-waiting on them slowed the suite 10x.
 export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
+# Lint first (pyproject's [tool.ruff]: pycodestyle, pyflakes, pyupgrade, isort, bugbear and
+# the complexity rule C901 at 15), then the format; either failing fails the run.
+.venv/bin/ruff check .
+.venv/bin/ruff format --check .
 set +e
 .venv/bin/python -m pytest "$@"
 code=$?
