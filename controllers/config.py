@@ -19,8 +19,8 @@ from controllers.solvers import SOLVER_SPECS, SOLVERS
 from controllers.solvers.fast.options import MAX_THREADS
 from lfm_env.config import (
     ConfigError,
-    DisturbanceConfig,
     FieldChecker,
+    LatentForceConfig,
     WorldConfig,
     check_latent_step,
     from_dict,
@@ -160,6 +160,8 @@ class AgentConfig:
     against the system when the cost is built (:meth:`ExperimentConfig.make_cost`).
     """
 
+    RENAMED_KEYS = {"disturbance": "latent_force"}  # old name -> new (read with a warning)
+
     horizon: int = 7  # N, prediction steps
     n_scenarios: int | None = 150  # Ns; null to derive it from violation_level/confidence
     violation_level: float | None = None  # epsilon of the Campi-Garatti bound, in (0, 1)
@@ -194,7 +196,7 @@ class AgentConfig:
     robust: RobustConfig = field(default_factory=RobustConfig)
     # The agents' belief about the latent force. null: the env section's, known a priori
     # (the paper); set it to learned hyperparameters (see lfm-calibrate).
-    disturbance: DisturbanceConfig | None = None
+    latent_force: LatentForceConfig | None = None
     # The "rl" agent's saved policy: a .zip written by lfm-train (its observation
     # normalisation beside it); null when no RL agent is run. Relative to the working dir.
     rl_policy: str | None = None
@@ -318,8 +320,8 @@ class ExperimentConfig:
 
     def __post_init__(self) -> None:
         check_latent_step(self.env)
-        if self.agents.disturbance is not None:
-            check_latent_step(self.env, self.agents.disturbance, where="agents.disturbance")
+        if self.agents.latent_force is not None:
+            check_latent_step(self.env, self.agents.latent_force, where="agents.latent_force")
         self.make_cost()  # vector lengths against the system, with the field's name
         system = self.make_system()
         self.agents.check_scenario_count(system.nu)
@@ -349,10 +351,10 @@ class ExperimentConfig:
     def make_model(self):
         """The agents' model: the env's system with the agents' belief about the force.
 
-        ``agents.disturbance`` when set (e.g. learned by ``lfm-calibrate``), otherwise the
-        env's own disturbance, known a priori as in the paper.
+        ``agents.latent_force`` when set (e.g. learned by ``lfm-calibrate``), otherwise the
+        env's own latent force, known a priori as in the paper.
         """
-        return self.env.make_model(self.agents.disturbance)
+        return self.env.make_model(self.agents.latent_force)
 
     def make_cost(self):
         """The agents' :class:`~lfm_env.system.QuadraticCost` (``Q``, ``R``, ``Qf``, goal)."""

@@ -15,7 +15,7 @@ input sequence within the input bounds, exactly, as a small linear program (HiGH
 
 * ``> 0``: the problem is infeasible for every input; its optimum keeps at least this much
   slack, and the exact penalty on it dominates the objective (at the paper's penalty of
-  1e4 per unit of slack). A long horizon with a strong disturbance does this: the
+  1e4 per unit of slack). A long horizon with a strong latent force does this: the
   open-loop spread of the scenarios grows with the horizon.
 * ``0``: no verdict (the other constraints may still be unsatisfiable).
 """

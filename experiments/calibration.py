@@ -2,7 +2,7 @@
 
 The paper gives the controller the GP's hyperparameters a priori and notes that, with
 full-state feedback, they can be learned from measurements. Here a calibration run
-drives the car with a simple controller (the nominal MPC, which needs no disturbance
+drives the car with a simple controller (the nominal MPC, which needs no latent force
 model), records the measured speeds and the applied accelerations, and maximises the
 exact likelihood of the measured speeds under the model
 
@@ -24,7 +24,7 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
-from lfm_env.config import DisturbanceConfig, SineTrackConfig, load_env_config
+from lfm_env.config import LatentForceConfig, SineTrackConfig, load_env_config
 from lfm_env.gp import StateSpaceKernel
 
 LEARNABLE = ("variance", "lengthscale")
@@ -36,14 +36,14 @@ class SpeedRecord:
 
     speed: np.ndarray  # (T+1,) measured speed [m/s] at samples 0..T
     accel: np.ndarray  # (T,) applied acceleration [m/s^2] during steps 0..T-1
-    true_disturbance: np.ndarray | None = None  # (T,) true w, kept only for reporting
+    true_latent_force: np.ndarray | None = None  # (T,) true w, kept only for reporting
 
 
 @dataclass
 class CalibrationResult:
     """Learned hyperparameters and how the fit went."""
 
-    disturbance: DisturbanceConfig  # the learned kernel settings, usable as agents.disturbance
+    latent_force: LatentForceConfig  # the learned kernel settings, usable as agents.latent_force
     log_likelihood: float  # of all records at the optimum
     true: dict[str, float]  # the env's (hidden) hyperparameters, for comparison only
     n_episodes: int
@@ -110,7 +110,7 @@ def record_calibration_episodes(
     Args:
         config: the world (a path, dict or config); its ``agents`` section sets the controller.
         seeds: env seeds of the calibration episodes.
-        agent: the controller; ``"nominal"`` needs no disturbance model.
+        agent: the controller; ``"nominal"`` needs no latent force model.
     """
     import gymnasium as gym
 
@@ -132,27 +132,27 @@ def record_calibration_episodes(
             obs, _, terminated, truncated, info = env.step(u)
             speeds.append(obs[2])
             accels.append(info["applied_action"][0])
-            ws.append(info["disturbance"])
+            ws.append(info["latent_force"])
             done = terminated or truncated
         env.close()
         records.append(SpeedRecord(np.array(speeds), np.array(accels), np.array(ws)))
     return records
 
 
-def fit_disturbance(
+def fit_latent_force(
     records: list[SpeedRecord],
     env_config: SineTrackConfig,
-    initial: DisturbanceConfig | None = None,
+    initial: LatentForceConfig | None = None,
 ) -> CalibrationResult:
     """Maximum-likelihood ``variance`` and ``lengthscale`` of the latent force.
 
     The kernel family and its fixed settings (``nu``, ``order``, ``period``...) come from
-    ``initial`` (default: the env's ``disturbance`` section, with a deliberately wrong
+    ``initial`` (default: the env's ``latent_force`` section, with a deliberately wrong
     start of variance 1 and lengthscale 1 s so nothing is borrowed from the truth).
     """
     if not records:
         raise ValueError("records: need at least one calibration episode")
-    base = initial or dataclasses.replace(env_config.disturbance, variance=1.0, lengthscale=1.0)
+    base = initial or dataclasses.replace(env_config.latent_force, variance=1.0, lengthscale=1.0)
     dt = env_config.dt
     meas_std = float(env_config.measurement_std_rad[2])
     proc_std = float(env_config.process_noise_std_rad[2])
@@ -174,9 +174,9 @@ def fit_disturbance(
     learned = dataclasses.replace(
         base, variance=float(np.exp(res.x[0])), lengthscale=float(np.exp(res.x[1]))
     )
-    true = {k: float(getattr(env_config.disturbance, k)) for k in LEARNABLE}
+    true = {k: float(getattr(env_config.latent_force, k)) for k in LEARNABLE}
     return CalibrationResult(
-        disturbance=learned,
+        latent_force=learned,
         log_likelihood=-float(res.fun),
         true=true,
         n_episodes=len(records),
@@ -208,11 +208,11 @@ def calibrate(config: Any = None, seeds: range | list[int] = range(5)) -> Calibr
     """Calibration episodes under the nominal MPC, then a maximum-likelihood fit."""
     env_config = load_env_config(config)
     records = record_calibration_episodes(config, seeds)
-    return fit_disturbance(records, env_config)
+    return fit_latent_force(records, env_config)
 
 
 def write_learned_config(config: Any, result: CalibrationResult, path: str) -> None:
-    """Write ``config`` (path or dict) with ``agents.disturbance`` set to the learned values."""
+    """Write ``config`` (path or dict) with ``agents.latent_force`` set to the learned values."""
     import os
     import tempfile
     from pathlib import Path
@@ -229,13 +229,13 @@ def write_learned_config(config: Any, result: CalibrationResult, path: str) -> N
         data = load_yaml(config)
     env = read_section(data, "env") or {}
     agents = dict(read_section(data, "agents") or {}) if ("agents" in data or "env" in data) else {}
-    agents["disturbance"] = to_dict(result.disturbance)
+    agents["latent_force"] = to_dict(result.latent_force)
     out = {"env": env, "agents": agents}
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     header = (
         f"# Learned by lfm-calibrate from {result.n_episodes} calibration episodes "
-        f"({result.n_samples} samples).\n# The env keeps its own (hidden) disturbance; "
+        f"({result.n_samples} samples).\n# The env keeps its own (hidden) latent force; "
         "the agents model the learned one.\n"
     )
     fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")

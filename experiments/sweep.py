@@ -4,7 +4,7 @@ A sweep answers "what does this knob buy, and what does it cost?": for each valu
 setting of the ``agents`` section (the back-off ``agents.backoff``, ``agents.n_scenarios``,
 ``agents.estimator``, ``agents.n_particles``, ``agents.robust.backoff``, ...), it runs the
 evaluation of one agent over env seeds (:func:`experiments.evaluation.run.evaluate`) and
-compares it with a baseline agent on the same seeds (same hidden disturbance and noise):
+compares it with a baseline agent on the same seeds (same hidden latent force and noise):
 violation steps beyond each tolerance of the system, zero-violation episodes and time to
 goal, each with the paired bootstrap interval of the difference to the baseline.
 

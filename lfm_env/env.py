@@ -104,7 +104,7 @@ class LatentForceEnv(gym.Env):
     State constraints are recorded in ``info``, not enforced.
 
     ## Info
-    ``true_state`` (nx,), ``disturbance`` (the force ``w`` acting during the step just
+    ``true_state`` (nx,), ``latent_force`` (the force ``w`` acting during the step just
     taken, at reset the one that acts next; a float when ``nw == 1``, else ``(nw,)``),
     ``latent_state`` (z), ``<group>_excess`` for each of ``system.constraint_groups`` (the
     largest excess ``max(g, 0)`` in the group, in its unit), ``constraint_excess`` (ng,) in
@@ -220,7 +220,7 @@ class LatentForceEnv(gym.Env):
         """The hidden latent state ``z`` ``(p,)`` acting in the next step (a copy)."""
         return self._latent_at(self._steps).copy()
 
-    def preview_disturbance(self, n_steps: int) -> np.ndarray:
+    def preview_latent_force(self, n_steps: int) -> np.ndarray:
         """The true latent force of the next ``n_steps`` steps ``(n_steps, nw)`` (oracle only).
 
         Row ``k`` acts during step ``k`` from now, in the force's units. Reading it never
@@ -346,7 +346,7 @@ class LatentForceEnv(gym.Env):
         excess = self.system.constraint_excess(x)
         info: dict[str, Any] = {
             "true_state": x.copy(),
-            "disturbance": float(w[0]) if self.model.nw == 1 else np.array(w, dtype=float),
+            "latent_force": float(w[0]) if self.model.nw == 1 else np.array(w, dtype=float),
             "latent_state": z.copy(),
         }
         violated = 0

@@ -19,10 +19,10 @@ full-state observation ``y = x + e``; every dimension is read from the model.
   scenario starting from a particle (the paper's remark): the plan also carries the
   estimate's uncertainty.
 * :class:`OracleMPCAgent` (``"oracle"``): an upper bound, NOT a controller one can build:
-  it reads the true state and the true future disturbance from the env.
+  it reads the true state and the true future latent force from the env.
 
 Agents draw their randomness from their own seed, independent of the env's, so the
-same env seed gives every agent the same disturbance and noise. Every agent here follows
+same env seed gives every agent the same latent force and noise. Every agent here follows
 :class:`controllers.agents.protocol.Agent` and has stable-baselines3's ``predict``
 (:class:`controllers.agents.protocol.SB3Predict`); an agent of one's own needs only the protocol.
 """
@@ -414,7 +414,7 @@ class OracleMPCAgent(MPCAgent):
     def _estimate(self, y: np.ndarray) -> dict[str, Any]:
         truth = self.env.unwrapped
         self._x = np.asarray(truth.true_state, dtype=float)
-        self._W = np.asarray(truth.preview_disturbance(self.problem.horizon), dtype=float)[None]
+        self._W = np.asarray(truth.preview_latent_force(self.problem.horizon), dtype=float)[None]
         return {"estimate": self._x.copy(), "estimate_std": np.zeros(self.system.nx)}
 
     def _scenarios(self) -> tuple[np.ndarray, np.ndarray]:

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 
 from experiments.calibration import (
     LEARNABLE,
-    fit_disturbance,
+    fit_latent_force,
     record_calibration_episodes,
     write_learned_config,
 )
@@ -22,7 +22,7 @@ def _calibrate_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="lfm-calibrate",
         description=(
-            "Drive calibration episodes with the nominal MPC (no disturbance model), record "
+            "Drive calibration episodes with the nominal MPC (no latent force model), record "
             "measured speeds and applied accelerations, and fit the latent force's variance "
             "[(m/s^2)^2] and lengthscale [s] by maximum likelihood (Kalman filter on speed "
             "and latent state). Writes a config whose agents model the learned force."
@@ -64,11 +64,11 @@ def calibrate_main(argv: Sequence[str] | None = None) -> int:
         problem = check_writable(args.out, "--out")
         if problem is not None:
             parser.error(problem)
-    result = fit_disturbance(record_calibration_episodes(args.config, seeds), env_config)
+    result = fit_latent_force(record_calibration_episodes(args.config, seeds), env_config)
     print(f"calibration: {result.n_episodes} episodes, {result.n_samples} samples")
     print(f"{'hyperparameter':<14} {'learned':>10} {'std err (log)':>14} {'true (hidden)':>14}")
     for name in LEARNABLE:
-        learned = getattr(result.disturbance, name)
+        learned = getattr(result.latent_force, name)
         se = result.std_errors[name]
         print(f"{name:<14} {learned:>10.4g} {se:>14.3g} {result.true[name]:>14.4g}")
     if not result.success:

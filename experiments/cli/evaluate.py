@@ -59,7 +59,7 @@ def _evaluate_parser() -> argparse.ArgumentParser:
             "Run MPC agents on the world of the config (its env_id, e.g. lfm_env/SineTrack-v0\n"
             "for configs/paper.yaml) over env seeds and save one row of metrics and one\n"
             "trajectory per episode. For one env seed every agent faces the same hidden\n"
-            "disturbance and noise (paired design)."
+            "latent_force and noise (paired design)."
         ),
         epilog=_EVALUATE_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,

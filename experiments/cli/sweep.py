@@ -48,7 +48,7 @@ def _sweep_parser() -> argparse.ArgumentParser:
         prog="lfm-sweep",
         description=(
             "The risk trade-off: run one agent with one setting swept over values, and a\n"
-            "baseline agent once, on the same env seeds (same hidden disturbance and noise),\n"
+            "baseline agent once, on the same env seeds (same hidden latent force and noise),\n"
             "then compare each value with the baseline: violation steps beyond each tolerance,\n"
             "zero-violation episodes and time to goal, with paired bootstrap intervals."
         ),

@@ -178,7 +178,7 @@ class _EpisodeRecorder:
                 "obs",
                 "time",
                 "action",
-                "disturbance",
+                "latent_force",
                 "reward",
                 "estimate",
                 "estimate_std",
@@ -218,7 +218,7 @@ class _EpisodeRecorder:
             "time": float(info["time"]),
             "action": np.asarray(info["applied_action"], dtype=float),
             # w acting during this step: the quantity the agent estimated before it.
-            "disturbance": self._force(info["disturbance"]),
+            "latent_force": self._force(info["latent_force"]),
             "reward": float(reward),
             "estimate": estimate,
             "estimate_std": estimate_std,
@@ -299,7 +299,7 @@ class _EpisodeRecorder:
             "obs": stack("obs", (0, self.nx)),
             "time": stack("time", (0,)),
             "action": stack("action", (0, self.nu)),
-            "disturbance": stack("disturbance", force),
+            "latent_force": stack("latent_force", force),
             "reward": stack("reward", (0,)),
             "estimate": stack("estimate", (0, d)),
             "estimate_std": stack("estimate_std", (0, d)),
@@ -353,7 +353,7 @@ def _episode_metrics(rec: _EpisodeRecorder, arrays: dict[str, np.ndarray]) -> di
     solve = solve[np.isfinite(solve)]  # steps without a solve time are not counted
     slack = arrays["slack"][np.asarray(rec.slack_reported[:T], dtype=bool)]
     if rec.has_filter and T:
-        err = arrays["latent_force_est"] - arrays["disturbance"]
+        err = arrays["latent_force_est"] - arrays["latent_force"]
         latent_rmse = float(np.sqrt(np.mean(err**2)))
         latent_coverage = float(np.mean(np.abs(err) <= 2.0 * arrays["latent_force_std"]))
     else:
@@ -421,11 +421,11 @@ def run_episode(
         (in the units of the system's ``state_names``, ``input_names`` and
         ``force_names``), the trajectory holds ``true_state (T+1, nx)``, ``obs (T+1, nx)``
         (noisy measurement of ``true_state``), ``time (T+1,)`` [s], ``action (T, nu)``
-        (applied), ``disturbance`` (the force acting during step k: ``(T,)`` when
+        (applied), ``latent_force`` (the force acting during step k: ``(T,)`` when
         ``nw == 1``, else ``(T, nw)``), ``reward (T,)``, ``estimate (T, d)`` and
         ``estimate_std (T, d)`` (the agent's state estimate from ``obs[k]``; ``d`` = nx,
         or nx + latent states for filter agents), ``latent_force_est`` and
-        ``latent_force_std`` (its estimate of ``disturbance[k]``, shaped like it; NaN
+        ``latent_force_std`` (its estimate of ``latent_force[k]``, shaped like it; NaN
         without a filter), ``predicted (T, N+1, nx)`` (first scenario's predicted
         states), ``solve_time (T,)`` [s], ``slack (T,)``, ``solver_success (T,)``,
         ``fallback (T,)`` ('' or the fallback used), ``estimator (T,)`` (the name the

@@ -4,7 +4,7 @@ The shape follows stable-baselines3's ``evaluate_policy``: one library function,
 :func:`evaluate`, runs every (agent, seed) episode and returns one row of metrics per
 episode; command lines (:mod:`experiments.cli`) only parse arguments and call it.
 
-Paired design: for a given env seed every agent faces the same hidden disturbance and
+Paired design: for a given env seed every agent faces the same hidden latent force and
 the same measurement and process noise (the env draws them from its own seed), while
 each agent's own randomness (particle filter, scenario draws) comes from a seed derived
 from the env seed and the agent's name (:func:`agent_seed`). Differences between agents

@@ -245,9 +245,13 @@ def load_trajectory(out: str | os.PathLike, agent_name: str, seed: int) -> dict[
         raise FileNotFoundError(f"episode file {str(path)!r} does not exist")
     try:
         with np.load(path, allow_pickle=False) as data:
-            return {k: data[k] for k in data.files}
+            arrays = {k: data[k] for k in data.files}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise DamagedEpisodeError(f"episode file {str(path)!r}: {_one_line(exc)}") from exc
+    # Episodes saved before 0.2 call the true force "disturbance".
+    if "disturbance" in arrays and "latent_force" not in arrays:
+        arrays["latent_force"] = arrays.pop("disturbance")
+    return arrays
 
 
 def finished_row(

@@ -11,13 +11,13 @@ input, force and constraint names; input bounds from ``input_lower``/``input_upp
 feasible region from the system's own ``constraint_values`` evaluated on a grid (the
 constraints that depend only on the plotted states, found from the structure of
 ``casadi_constraints``). On the sine track this draws the paper's figures (the track band
-and x bounds around the path, the latent force, the acceleration against the disturbance,
+and x bounds around the path, the latent force, the acceleration against the latent force,
 the speed with its bounds); on the quadrotor the tunnel. Nothing here runs an episode: the
 GIF frames are a replay of saved true states through the world's own scene
 (:meth:`lfm_env.env.LatentForceEnv.make_scene`).
 
 Time axes are in seconds: sample ``k`` of a trajectory is at ``t = k dt``; actions and the
-disturbance act during ``[k dt, (k+1) dt)`` and are drawn as steps; the constraint excess
+latent force act during ``[k dt, (k+1) dt)`` and are drawn as steps; the constraint excess
 after step ``k`` is at ``t = (k+1) dt``.
 """
 
@@ -161,7 +161,7 @@ def _stacked_axes(n: int, width: float = 7.0, height: float = 2.4):
 def latent_force_figure(
     system: ControlSystem,
     dt: float,
-    disturbance: np.ndarray,
+    latent_force: np.ndarray,
     estimate: np.ndarray | None = None,
     estimate_std: np.ndarray | None = None,
     title: str = "",
@@ -173,14 +173,14 @@ def latent_force_figure(
     Args:
         system: the world's system.
         dt: sampling time [s].
-        disturbance: true force acting during step ``k``: ``(T,)`` for one component,
+        latent_force: true force acting during step ``k``: ``(T,)`` for one component,
             else ``(T, nw)``, in the force's units.
-        estimate: the filter's estimate, shaped like ``disturbance`` (NaN: no filter).
+        estimate: the filter's estimate, shaped like ``latent_force`` (NaN: no filter).
         estimate_std: its standard deviation.
         title: title of the first panel.
     """
     nw = system.nw
-    w = _components(disturbance, nw, "disturbance")
+    w = _components(latent_force, nw, "latent_force")
     est = None if estimate is None else _components(estimate, nw, "estimate")
     std = None if estimate_std is None else _components(estimate_std, nw, "estimate_std")
     fig, axes = _stacked_axes(nw, height=3.0 if nw == 1 else 2.4)
@@ -223,7 +223,7 @@ def inputs_figure(
     system: ControlSystem,
     dt: float,
     action: np.ndarray,
-    disturbance: np.ndarray | None = None,
+    latent_force: np.ndarray | None = None,
     title: str = "",
 ) -> Figure:
     """The applied inputs with their bounds, one panel per input (paper Fig. 3 on the track).
@@ -236,12 +236,12 @@ def inputs_figure(
         system: the world's system (input names, ``input_lower``/``input_upper``).
         dt: sampling time [s].
         action: ``(T, nu)`` applied inputs in the inputs' units.
-        disturbance: true force in the same steps, ``(T,)`` or ``(T, nw)``; ``None`` for
+        latent_force: true force in the same steps, ``(T,)`` or ``(T, nw)``; ``None`` for
             none.
         title: title of the first panel.
     """
     u = _components(action, system.nu, "action")
-    w = None if disturbance is None else _components(disturbance, system.nw, "disturbance")
+    w = None if latent_force is None else _components(latent_force, system.nw, "latent_force")
     fig, axes = _stacked_axes(system.nu)
     t = sample_times(len(u), dt)
     for k, ax in enumerate(axes):
@@ -253,7 +253,7 @@ def inputs_figure(
                     continue
                 fname = split_unit(force)[0]
                 style = {"color": "tab:blue", "lw": 1.0}
-                _step_plot(ax, t, w[:, c], dt, ls="--", label=f"disturbance {fname}", **style)
+                _step_plot(ax, t, w[:, c], dt, ls="--", label=f"latent_force {fname}", **style)
                 _step_plot(
                     ax, t, -w[:, c], dt, ls=":", label=f"$-${fname} (full cancellation)", **style
                 )
@@ -434,7 +434,7 @@ def episode_figures(
 
     Args:
         trajectory: arrays of one episode (``true_state``, ``estimate``, ``estimate_std``,
-            ``action``, ``disturbance``, ``latent_force_est``, ``latent_force_std``,
+            ``action``, ``latent_force``, ``latent_force_est``, ``latent_force_std``,
             ``<group>_excess``).
         system: the world's system.
         dt: sampling time [s].
@@ -452,7 +452,7 @@ def episode_figures(
     x = np.asarray(trajectory["true_state"])
     est = np.asarray(trajectory["estimate"])
     std = np.asarray(trajectory["estimate_std"])
-    w = np.asarray(trajectory["disturbance"])
+    w = np.asarray(trajectory["latent_force"])
     suffix = f" - {label}" if label else ""
     plane = " / ".join(split_unit(system.state_names[i])[0] for i in (0, 1))
     figures: dict[str, Figure | None] = {

@@ -1,6 +1,6 @@
 """What scenario MPC plans: the predicted scenario trajectories of saved episodes.
 
-At every step the scenario MPC draws ``Ns`` disturbance scenarios, plans one input
+At every step the scenario MPC draws ``Ns`` latent force scenarios, plans one input
 sequence shared by all of them and predicts each scenario's states over the horizon
 (``predicted``, ``(Ns, N+1, nx)``). The evaluation keeps a compact fan per step in the
 episode file (``predicted_scenarios``, ``(T, S, N+1, nx)``, the first

@@ -241,7 +241,7 @@ def _same_seed_figures(
     if len(same_seed) < 2:
         return
     goal_state, goal_radius = goal
-    doc.paragraph("All agents on the same seed (same disturbance and noise):")
+    doc.paragraph("All agents on the same seed (same latent force and noise):")
     fig = plots.paths_figure(
         system,
         {agent_label(a): (t["true_state"], plots.agent_colour(a)) for a, t in same_seed.items()},

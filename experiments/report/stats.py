@@ -396,7 +396,7 @@ def _estimate_errors(traj: dict[str, np.ndarray], system: ControlSystem) -> tupl
             err_x[:, i] = (err_x[:, i] + math.pi) % (2.0 * math.pi) - math.pi
     std_x = np.asarray(traj["estimate_std"], dtype=float)[:, :nx]
     force = np.asarray(traj["latent_force_est"], dtype=float).reshape(T, nw)
-    truth = np.asarray(traj["disturbance"], dtype=float).reshape(T, nw)
+    truth = np.asarray(traj["latent_force"], dtype=float).reshape(T, nw)
     std_w = np.asarray(traj["latent_force_std"], dtype=float).reshape(T, nw)
     return np.hstack([err_x, force - truth]), np.hstack([std_x, std_w])
 

@@ -261,7 +261,7 @@ def sweep_description(summary: SweepSummary) -> str:
         f"The `{summary.agent}` agent with `{summary.key}` set to each of "
         f"{', '.join(v.text for v in summary.values)}, against the `{summary.baseline}` "
         f"agent (baseline, on the base config) on the same {len(seeds)} env seeds ({span}): "
-        "the same hidden disturbance and noise for every column. A value's cell is its "
+        "the same hidden latent force and noise for every column. A value's cell is its "
         "mean, then Δ the paired difference `value - baseline` with a 95% bootstrap "
         "interval over the seeds both ran without error (an interval that excludes 0 is a "
         "difference the seeds support). Violation steps `> t` count the steps whose excess "

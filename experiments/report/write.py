@@ -110,8 +110,8 @@ def _settings_text(results: Results) -> str:
 
 def _model_section(doc: Document, results: Results) -> None:
     """The hidden force's kernel beside the agents' belief (learned or given)."""
-    true = results.config.disturbance
-    belief = results.agent_settings.get("disturbance")
+    true = results.config.latent_force
+    belief = results.agent_settings.get("latent_force")
     doc.heading("Latent force: hidden truth and the agents' model")
     fields = ("kernel", "nu", "variance", "lengthscale", "discretization")
     if not belief:
@@ -124,7 +124,7 @@ def _model_section(doc: Document, results: Results) -> None:
         )
         return
     doc.paragraph(
-        "The agents model the force with their own hyperparameters (`agents.disturbance`, "
+        "The agents model the force with their own hyperparameters (`agents.latent_force`, "
         "e.g. learned by `lfm-calibrate`), not the env's hidden ones:"
     )
     rows = []
@@ -143,7 +143,7 @@ def _summary_section(doc: Document, results: Results, stats: dict) -> None:
         "Episodes that ended with an error are counted in the last row and listed below, "
         "but left out of the statistics; `(n=k)` marks a metric defined on fewer episodes "
         "(e.g. time to goal only where the goal was reached). The oracle reads the hidden "
-        "true state and future disturbance: it is an upper bound, not a controller one "
+        "true state and future latent force: it is an upper bound, not a controller one "
         "could build. Violation steps `> t` count only the steps whose excess over the "
         "group's bounds is above the tolerance t (a millimetre over a bound is not a crash); "
         "zero-violation episodes are the fraction of episodes with no such step."
@@ -216,7 +216,7 @@ def _paired_section(
         )
         return []
     doc.paragraph(
-        f"Difference `agent - {baseline}` on the same env seeds (same disturbance and "
+        f"Difference `agent - {baseline}` on the same env seeds (same latent force and "
         "noise), mean with a 95% bootstrap interval over seeds. Negative: the agent's value "
         f"is lower than {baseline}'s. Only seeds where both episodes are error-free "
         "and the metric is defined count. The baseline is chosen with "
@@ -461,7 +461,7 @@ def write_report(
         f"{n_eps} episodes of {len(results.agents)} agents on {len(seeds)} env seeds "
         f"({seeds[0]}..{seeds[-1]}) of the world `{results.config.ENV_ID}` (system "
         f"`{results.system.name}`); {_settings_text(results)}. On one env seed every agent "
-        "faces the same hidden disturbance and noise. Agents:"
+        "faces the same hidden latent force and noise. Agents:"
     )
     doc.bullets([f"`{a}`: {long_label(a)}" for a in results.agents])
     _model_section(doc, results)

@@ -40,6 +40,7 @@ from lfm_env.config.world import (
     MAX_STEPS,
     STARTS,
     DisturbanceConfig,
+    LatentForceConfig,
     WorldConfig,
     check_latent_step,
 )
@@ -47,6 +48,7 @@ from lfm_env.config.world import (
 _ELSEWHERE = {
     "SineTrackConfig": "lfm_env.worlds.sine_track.config",
     "EnvConfig": "lfm_env.worlds.sine_track.config",
+    "QuadrotorLatentForceConfig": "lfm_env.worlds.quadrotor.config",
     "GustConfig": "lfm_env.worlds.quadrotor.config",
     "QuadrotorGustConfig": "lfm_env.worlds.quadrotor.config",
     "DEFAULT_ENV_ID": "lfm_env.worlds.registry",
@@ -75,6 +77,7 @@ __all__ = [
     "TOP_LEVEL_KEYS",
     "ConfigError",
     "DisturbanceConfig",
+    "LatentForceConfig",
     "FieldChecker",
     "WorldConfig",
     "check_latent_step",

@@ -16,6 +16,7 @@ import os
 import reprlib
 import types
 import typing
+import warnings
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -328,6 +329,34 @@ def _convert_tuple(value: Any, args: tuple, key: str) -> tuple:
     )
 
 
+def _renamed_keys(cls: type, data: dict, prefix: str) -> dict:
+    """``data`` with the keys ``cls.RENAMED_KEYS`` lists under their new names.
+
+    A section may declare ``RENAMED_KEYS = {"old": "new"}`` for a field that was renamed:
+    a file written with the old name still reads, with a ``FutureWarning`` naming both.
+
+    Raises:
+        ConfigError: when a section gives both names.
+    """
+    renamed = getattr(cls, "RENAMED_KEYS", {})
+    if not any(old in data for old in renamed):
+        return data
+    data = dict(data)
+    where = f"{prefix}." if prefix else ""
+    for old, new in renamed.items():
+        if old not in data:
+            continue
+        if new in data:
+            raise ConfigError(f"{where}{old} and {where}{new} are one setting: give only {new}")
+        warnings.warn(
+            f"config key {where}{old} is now {where}{new}; the old name still reads for now",
+            FutureWarning,
+            stacklevel=2,
+        )
+        data[new] = data.pop(old)
+    return data
+
+
 def from_dict(cls: type[T], data: dict | None, prefix: str = "") -> T:
     """Build the frozen dataclass ``cls`` from a plain mapping, validating every key.
 
@@ -342,6 +371,7 @@ def from_dict(cls: type[T], data: dict | None, prefix: str = "") -> T:
     data = {} if data is None else data
     if not isinstance(data, dict):
         raise ConfigError(f"{prefix or cls.__name__}: expected a mapping, got {_show(data)}")
+    data = _renamed_keys(cls, data, prefix)
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(_key(k) for k in data if k not in names)

@@ -1,6 +1,6 @@
 """What every world's config shares: the latent force's section and the world mixin.
 
-:class:`DisturbanceConfig` describes the latent force (a stationary GP in state-space form);
+:class:`LatentForceConfig` describes the latent force (a stationary GP in state-space form);
 :class:`WorldConfig` derives, the same way for every world, the model, the reward's cost and
 the SI vectors from a world's ``env`` section. Each world defines its own section in its
 folder (``lfm_env/worlds/<world>/config.py``) and registers it
@@ -35,7 +35,7 @@ STARTS = ("stationary", "zero")
 
 
 @dataclass(frozen=True)
-class DisturbanceConfig:
+class LatentForceConfig:
     """The latent force: a stationary GP in time, in state-space form.
 
     ``kernel`` picks the covariance: ``matern`` (exact in state space; the paper's),
@@ -100,7 +100,7 @@ class WorldConfig:
     A world config is a frozen dataclass with at least the fields ``dt`` [s],
     ``initial_state``, ``goal_state``, ``Q``, ``R``, ``measurement_noise_std``,
     ``process_noise_diffusion`` (vectors over the state in config units),
-    ``max_steps`` and ``disturbance``; it names the states it gives in degrees
+    ``max_steps`` and ``latent_force``; it names the states it gives in degrees
     (:attr:`ANGLE_STATES`, converted to radians here) and builds its system
     (:meth:`make_system`). Its env is the registered world's (:attr:`ENV_ID`). Everything
     else (the model, the cost, the SI vectors) is derived here the same way for every world.
@@ -108,6 +108,7 @@ class WorldConfig:
 
     ENV_ID = _RegisteredEnvId()  # the Gymnasium id of the world's env (from the registry)
     ANGLE_STATES: tuple[int, ...] = ()  # state indices given in degrees (deg/s) in configs
+    RENAMED_KEYS = {"disturbance": "latent_force"}  # old name -> new (read with a warning)
 
     def make_system(self):  # pragma: no cover - every world defines it
         raise NotImplementedError
@@ -139,16 +140,16 @@ class WorldConfig:
         """Per-step process noise std on the physical states in SI units."""
         return self.state_from_config(self.process_noise_diffusion) * math.sqrt(self.dt)
 
-    def make_model(self, disturbance: DisturbanceConfig | None = None, system: Any = None):
+    def make_model(self, latent_force: LatentForceConfig | None = None, system: Any = None):
         """The latent-force model of this world, or of another belief about its force.
 
         Args:
-            disturbance: the GP to model; ``None`` for this config's (the hidden truth's).
+            latent_force: the GP to model; ``None`` for this config's (the hidden truth's).
             system: the system to stack it on; ``None`` builds :meth:`make_system`.
         """
         from lfm_env.model import LatentForceModel
 
-        d = self.disturbance if disturbance is None else disturbance
+        d = self.latent_force if latent_force is None else latent_force
         return LatentForceModel(
             self.make_system() if system is None else system,
             kernel=d.make_kernel(),
@@ -171,8 +172,8 @@ class WorldConfig:
 
 def check_latent_step(
     config: WorldConfig,
-    disturbance: DisturbanceConfig | None = None,
-    where: str = "env.disturbance",
+    latent_force: LatentForceConfig | None = None,
+    where: str = "env.latent_force",
 ) -> WorldConfig:
     """Refuse a latent-force model whose Euler-Maruyama step diverges; returns ``config``.
 
@@ -184,14 +185,14 @@ def check_latent_step(
     :func:`load_env_config` does not, so such a config can still be read.
 
     Args:
-        config: the world; its ``dt`` and, by default, its disturbance.
-        disturbance: another model of the force at the same ``dt`` (the agents' belief).
+        config: the world; its ``dt`` and, by default, its latent force.
+        latent_force: another model of the force at the same ``dt`` (the agents' belief).
         where: the config section of that model, for the message.
 
     Raises:
         ConfigError: naming ``<where>.lengthscale`` and its lower bound.
     """
-    d = config.disturbance if disturbance is None else disturbance
+    d = config.latent_force if latent_force is None else latent_force
     if d.discretization == "euler_maruyama" and d.kernel == "matern":
         bound = math.sqrt(2.0 * d.nu) * config.dt / 2.0
         if not d.lengthscale > bound:
@@ -212,13 +213,17 @@ def check_latent_step(
     return config
 
 
+#: The name this class had before the project said "latent force" throughout (old imports).
+DisturbanceConfig = LatentForceConfig
+
 __all__ = [
     "DISCRETIZATIONS",
+    "DisturbanceConfig",
     "KERNELS",
     "MATERN_NUS",
     "MAX_STEPS",
     "STARTS",
-    "DisturbanceConfig",
+    "LatentForceConfig",
     "WorldConfig",
     "check_latent_step",
 ]

@@ -49,7 +49,7 @@ class GoalReachingEnv(LatentForceEnv):
             initial_state=self.config.initial_state_rad,
             measurement_std=self.config.measurement_std_rad,
             max_steps=self.config.max_steps,
-            latent_start=self.config.disturbance.start,
+            latent_start=self.config.latent_force.start,
             render_mode=render_mode,
         )
 

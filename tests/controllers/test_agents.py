@@ -56,7 +56,7 @@ def test_each_agent_reaches_the_goal_on_the_quick_config(name):
 def test_filter_agents_track_the_hidden_force():
     cfg = {"env": {"max_steps": 40}, "agents": {"n_particles": 3000, "n_scenarios": 5}}
     _, infos, est = run("pf", cfg, seed=3)
-    w_true = np.array([i["disturbance"] for i in infos[1:]])
+    w_true = np.array([i["latent_force"] for i in infos[1:]])
     w_hat = np.array([r["latent_force"] for r in est])[:, 0]  # (T, nw) with nw = 1
     # Skip the first second while the filter learns; the force's std is 2 m/s^2.
     err = w_hat[5:] - w_true[5:]
@@ -71,12 +71,12 @@ def test_same_seeds_give_identical_actions():
     np.testing.assert_array_equal(a1, a2)
 
 
-def test_agent_seed_does_not_change_the_disturbance():
+def test_agent_seed_does_not_change_the_latent_force():
     env_a = gym.make("lfm_env/SineTrack-v0", config=QUICK)
     env_b = gym.make("lfm_env/SineTrack-v0", config=QUICK)
     _, ia = env_a.reset(seed=5)
     _, ib = env_b.reset(seed=5)
-    assert ia["disturbance"] == ib["disturbance"]
+    assert ia["latent_force"] == ib["latent_force"]
 
 
 def test_solver_failure_falls_back_to_the_previous_plan_then_to_the_systems_fallback():

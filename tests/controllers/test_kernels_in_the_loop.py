@@ -1,4 +1,4 @@
-"""Other kernels for the hidden force (env) and for the agents' belief (agents.disturbance)."""
+"""Other kernels for the hidden force (env) and for the agents' belief (agents.latent_force)."""
 
 from __future__ import annotations
 
@@ -12,20 +12,20 @@ from lfm_env.config import ConfigError
 
 
 @pytest.mark.parametrize(
-    "disturbance",
+    "latent_force",
     [
         {"kernel": "squared_exponential", "variance": 2.0, "lengthscale": 3.0, "order": 6},
         {"kernel": "periodic", "variance": 2.0, "lengthscale": 1.0, "period": 6.0},
     ],
     ids=["squared_exponential", "periodic"],
 )
-def test_env_draws_the_configured_kernel(disturbance):
-    env = gym.make("lfm_env/SineTrack-v0", config={"env": {"disturbance": disturbance}})
+def test_env_draws_the_configured_kernel(latent_force):
+    env = gym.make("lfm_env/SineTrack-v0", config={"env": {"latent_force": latent_force}})
     kernel = env.unwrapped.model.kernel
     w = []
     for seed in range(400):
         env.reset(seed=seed)
-        w.append(env.unwrapped.preview_disturbance(6))
+        w.append(env.unwrapped.preview_latent_force(6))
     w = np.array(w)
     # Variance at one time and covariance at lag 1 s against the kernel's state-space form.
     var_ss = float(kernel.state_space_covariance(np.array([0.0]))[0])
@@ -37,15 +37,15 @@ def test_env_draws_the_configured_kernel(disturbance):
 
 
 def test_periodic_force_is_periodic():
-    cfg = {"env": {"disturbance": {"kernel": "periodic", "lengthscale": 1.0, "period": 2.0}}}
+    cfg = {"env": {"latent_force": {"kernel": "periodic", "lengthscale": 1.0, "period": 2.0}}}
     env = gym.make("lfm_env/SineTrack-v0", config=cfg)
     env.reset(seed=3)
-    w = env.unwrapped.preview_disturbance(40)  # 8 s, period 2 s = 10 steps
+    w = env.unwrapped.preview_latent_force(40)  # 8 s, period 2 s = 10 steps
     np.testing.assert_allclose(w[10:], w[:-10], atol=1e-6)
 
 
 @pytest.mark.parametrize(
-    "disturbance, key",
+    "latent_force, key",
     [
         ({"kernel": "rbf"}, "kernel"),
         ({"kernel": "periodic", "lengthscale": 0.1}, "harmonics"),
@@ -54,9 +54,9 @@ def test_periodic_force_is_periodic():
         ({"kernel": "periodic", "discretization": "euler_maruyama"}, "euler_maruyama"),
     ],
 )
-def test_bad_kernel_settings_name_the_problem(disturbance, key):
+def test_bad_kernel_settings_name_the_problem(latent_force, key):
     with pytest.raises(ConfigError, match=key):
-        gym.make("lfm_env/SineTrack-v0", config={"env": {"disturbance": disturbance}})
+        gym.make("lfm_env/SineTrack-v0", config={"env": {"latent_force": latent_force}})
 
 
 def test_agents_model_their_own_belief_of_the_force():
@@ -65,7 +65,7 @@ def test_agents_model_their_own_belief_of_the_force():
         "agents": {
             "n_particles": 300,
             "n_scenarios": 5,
-            "disturbance": {"kernel": "squared_exponential", "variance": 1.0, "lengthscale": 2.0},
+            "latent_force": {"kernel": "squared_exponential", "variance": 1.0, "lengthscale": 2.0},
         },
     }
     agent = make_agent("scenario", cfg)

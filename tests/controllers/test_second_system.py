@@ -346,11 +346,11 @@ def test_env_episode_with_the_scenario_mpc(variant: str) -> None:
         y, reward, terminated, truncated, info = env.step(sol.u[0])
         assert reward == pytest.approx(-COST.stage_cost(x, sol.u[0]), rel=1e-12)
         x = info["true_state"]
-        assert info["disturbance"] is not None
+        assert info["latent_force"] is not None
         if system.nw == 1:
-            assert isinstance(info["disturbance"], float)
+            assert isinstance(info["latent_force"], float)
         else:
-            assert info["disturbance"].shape == (2,)
+            assert info["latent_force"].shape == (2,)
         excess = system.constraint_excess(x)
         np.testing.assert_array_equal(info["constraint_excess"], excess)
         for j, name in enumerate(system.constraint_labels):

@@ -7,7 +7,7 @@ The file was recorded with the env as it was before the generic ``LatentForceEnv
 reproduces every number exactly. Regenerate it only when the dynamics, the reward or the
 random streams change on purpose (and bump the env's version then).
 
-Recorded: the paper config for env seeds 0, 1, 2 and the published code's disturbance
+Recorded: the paper config for env seeds 0, 1, 2 and the published code's latent force
 (Euler-Maruyama, zero start; no failure) for seed 3, each driven by one fixed action sequence of
 :data:`N_STEPS` actions (a few out of range, so clipping is covered) until the episode ends;
 per step the observation, reward, flags and every ``info`` entry, and at reset a preview of
@@ -29,7 +29,7 @@ PAPER = ROOT / "configs" / "paper.yaml"
 #: The published code's force, and a safety box so wide that the episode runs all its steps.
 PUBLISHED = {
     "env": {
-        "disturbance": {"discretization": "euler_maruyama", "start": "zero"},
+        "latent_force": {"discretization": "euler_maruyama", "start": "zero"},
         "safety_margin": 1.0e6,
     }
 }
@@ -45,7 +45,7 @@ N_PREVIEW = 150
 #: info entries of the pre-refactor env (the new one may add more).
 INFO_KEYS = (
     "true_state",
-    "disturbance",
+    "latent_force",
     "latent_state",
     "track_excess",
     "speed_excess",
@@ -71,7 +71,7 @@ def record(config, seed: int) -> dict[str, np.ndarray]:
     obs, info = env.reset(seed=seed)
     out = {
         "reset_obs": obs,
-        "preview": np.reshape(env.unwrapped.preview_disturbance(N_PREVIEW), (N_PREVIEW, -1)),
+        "preview": np.reshape(env.unwrapped.preview_latent_force(N_PREVIEW), (N_PREVIEW, -1)),
     }
     out.update({f"reset_{k}": np.asarray(info[k]) for k in INFO_KEYS})
     steps: dict[str, list] = {

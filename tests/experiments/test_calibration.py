@@ -8,7 +8,7 @@ import pytest
 
 from experiments.calibration import (
     SpeedRecord,
-    fit_disturbance,
+    fit_latent_force,
     speed_log_likelihood,
 )
 from lfm_env.config import SineTrackConfig
@@ -67,10 +67,10 @@ def test_fit_recovers_the_hyperparameters_within_their_standard_errors():
     model = cfg.make_model()
     rng = np.random.default_rng(7)
     records = [simulate(model, 150, rng) for _ in range(12)]
-    result = fit_disturbance(records, cfg)
+    result = fit_latent_force(records, cfg)
     assert result.success
     for name, true in (("variance", 4.0), ("lengthscale", 4.0)):
-        learned = getattr(result.disturbance, name)
+        learned = getattr(result.latent_force, name)
         se = result.std_errors[name]
         assert np.isfinite(se) and se > 0
         assert abs(np.log(learned / true)) < 3.5 * se, (name, learned, se)
@@ -78,4 +78,4 @@ def test_fit_recovers_the_hyperparameters_within_their_standard_errors():
 
 def test_fit_needs_records():
     with pytest.raises(ValueError, match="records"):
-        fit_disturbance([], SineTrackConfig())
+        fit_latent_force([], SineTrackConfig())

@@ -74,7 +74,7 @@ def test_commands_find_presets_by_name_from_another_folder(tmp_path):
     done = run(code, tmp_path)
     assert done.returncode == 0, done.stderr
     learned = yaml.safe_load((tmp_path / "learned.yaml").read_text())
-    assert learned["agents"]["disturbance"]["variance"] > 0.0
+    assert learned["agents"]["latent_force"]["variance"] > 0.0
 
 
 @pytest.mark.parametrize(

@@ -53,7 +53,7 @@ from lfm_env.config import (
 )
 from lfm_env.config import (
     ConfigError,
-    DisturbanceConfig,
+    LatentForceConfig,
     SineTrackConfig,
     load_env_config,
     load_yaml,
@@ -143,8 +143,10 @@ BAD_CONFIGS = [
     env_case("goal-scalar", {"goal": 62.83}, "env.goal", "expected a list"),
     env_case("goal-three-values", {"goal": [62.83, 0.0, 0.0]}, "env.goal", "2 values"),
     env_case("R-text-element", {"R": [0.5, "x"]}, "env.R[1]", "expected a number"),
-    env_case("disturbance-not-mapping", {"disturbance": 3}, "env.disturbance", "a mapping"),
-    env_case("disturbance-unknown-key", {"disturbance": {"sigma": 2.0}}, "env.disturbance.sigma"),
+    env_case("latent_force-not-mapping", {"latent_force": 3}, "env.latent_force", "a mapping"),
+    env_case(
+        "latent_force-unknown-key", {"latent_force": {"sigma": 2.0}}, "env.latent_force.sigma"
+    ),
     # --- env section: NaN, inf, huge
     env_case("dt-nan", {"dt": NAN}, "env.dt", "finite"),
     env_case("dt-inf", {"dt": INF}, "env.dt", "finite"),
@@ -180,40 +182,47 @@ BAD_CONFIGS = [
         ">= 0",
     ),
     env_case(
-        "lengthscale-zero", {"disturbance": {"lengthscale": 0.0}}, "disturbance.lengthscale", "> 0"
+        "lengthscale-zero",
+        {"latent_force": {"lengthscale": 0.0}},
+        "latent_force.lengthscale",
+        "> 0",
     ),
     env_case(
         "lengthscale-negative",
-        {"disturbance": {"lengthscale": -4.0}},
-        "env.disturbance.lengthscale",
+        {"latent_force": {"lengthscale": -4.0}},
+        "env.latent_force.lengthscale",
         "> 0",
     ),
     env_case(
         "lengthscale-nan",
-        {"disturbance": {"lengthscale": NAN}},
-        "disturbance.lengthscale",
+        {"latent_force": {"lengthscale": NAN}},
+        "latent_force.lengthscale",
         "finite",
     ),
     env_case(
         "lengthscale-overflowing",
-        {"disturbance": {"lengthscale": 1.0e-60}},
-        "env.disturbance.lengthscale",
+        {"latent_force": {"lengthscale": 1.0e-60}},
+        "env.latent_force.lengthscale",
         ">= 1.0e-6 s",
     ),
     env_case(
         "lengthscale-unstable-euler-step",
-        {"disturbance": {"discretization": "euler_maruyama", "lengthscale": 0.2}},
-        "env.disturbance.lengthscale",
+        {"latent_force": {"discretization": "euler_maruyama", "lengthscale": 0.2}},
+        "env.latent_force.lengthscale",
         "sqrt(2 nu) dt / 2 = 0.223607 s",
     ),
-    env_case("variance-zero", {"disturbance": {"variance": 0.0}}, "disturbance.variance", "> 0"),
-    env_case("variance-inf", {"disturbance": {"variance": INF}}, "disturbance.variance", "finite"),
-    env_case("nu-not-half-integer", {"disturbance": {"nu": 2.0}}, "disturbance.nu", "one of"),
-    env_case("kernel-unknown", {"disturbance": {"kernel": "rbf"}}, "disturbance.kernel", "matern"),
+    env_case("variance-zero", {"latent_force": {"variance": 0.0}}, "latent_force.variance", "> 0"),
+    env_case(
+        "variance-inf", {"latent_force": {"variance": INF}}, "latent_force.variance", "finite"
+    ),
+    env_case("nu-not-half-integer", {"latent_force": {"nu": 2.0}}, "latent_force.nu", "one of"),
+    env_case(
+        "kernel-unknown", {"latent_force": {"kernel": "rbf"}}, "latent_force.kernel", "matern"
+    ),
     env_case(
         "periodic-euler-step",
-        {"disturbance": {"kernel": "periodic", "discretization": "euler_maruyama"}},
-        "env.disturbance.discretization",
+        {"latent_force": {"kernel": "periodic", "discretization": "euler_maruyama"}},
+        "env.latent_force.discretization",
         "diverges",
     ),
     # --- env section: inverted bounds, goal or start off the track
@@ -275,26 +284,26 @@ BAD_CONFIGS = [
     agents_case("max-iter-beyond-c-int", {"max_iter": 2**31}, "agents.max_iter", "2147483647"),
     agents_case(
         "belief-unknown-key",
-        {"disturbance": {"sigma": 2.0}},
-        "agents.disturbance.sigma",
+        {"latent_force": {"sigma": 2.0}},
+        "agents.latent_force.sigma",
         "allowed keys",
     ),
     agents_case(
         "belief-lengthscale-zero",
-        {"disturbance": {"lengthscale": 0.0}},
-        "agents.disturbance.lengthscale",
+        {"latent_force": {"lengthscale": 0.0}},
+        "agents.latent_force.lengthscale",
         "> 0",
     ),
     agents_case(
         "belief-unstable-euler-step",
-        {"disturbance": {"discretization": "euler_maruyama", "lengthscale": 0.2}},
-        "agents.disturbance.lengthscale",
+        {"latent_force": {"discretization": "euler_maruyama", "lengthscale": 0.2}},
+        "agents.latent_force.lengthscale",
         "sqrt(2 nu) dt / 2 = 0.223607 s",
     ),
     agents_case(
         "belief-periodic-euler-step",
-        {"disturbance": {"kernel": "periodic", "discretization": "euler_maruyama"}},
-        "agents.disturbance.discretization",
+        {"latent_force": {"kernel": "periodic", "discretization": "euler_maruyama"}},
+        "agents.latent_force.discretization",
         "diverges",
     ),
     agents_case(
@@ -812,11 +821,11 @@ def test_the_bad_input_tables_are_well_formed():
 
 # ================================================================= config loader, properties
 
-ENV_KEYS = [f"env.{f.name}" for f in fields(SineTrackConfig) if f.name != "disturbance"]
-DISTURBANCE_KEYS = [f"env.disturbance.{f.name}" for f in fields(DisturbanceConfig)]
+ENV_KEYS = [f"env.{f.name}" for f in fields(SineTrackConfig) if f.name != "latent_force"]
+DISTURBANCE_KEYS = [f"env.latent_force.{f.name}" for f in fields(LatentForceConfig)]
 AGENT_KEYS = [f"agents.{f.name}" for f in fields(AgentConfig)]
-BELIEF_KEYS = [f"agents.disturbance.{f.name}" for f in fields(DisturbanceConfig)]
-ALL_KEYS = [*ENV_KEYS, "env.disturbance", *DISTURBANCE_KEYS, *AGENT_KEYS, *BELIEF_KEYS]
+BELIEF_KEYS = [f"agents.latent_force.{f.name}" for f in fields(LatentForceConfig)]
+ALL_KEYS = [*ENV_KEYS, "env.latent_force", *DISTURBANCE_KEYS, *AGENT_KEYS, *BELIEF_KEYS]
 # Cross-field checks report the field a value is checked against (a goal on a moved track).
 TRACK_PARTNERS = ("env.goal", "env.initial_state")
 PARTNERS = {
@@ -886,13 +895,13 @@ def test_junk_value_for_any_key_gives_config_error_naming_it(tmp_path, key, valu
     suppress_health_check=[HealthCheck.function_scoped_fixture],
 )
 @given(
-    where=st.sampled_from(["top", "env", "env.disturbance", "agents"]),
+    where=st.sampled_from(["top", "env", "env.latent_force", "agents"]),
     key=yaml_text | st.integers(-5, 5) | st.none() | st.booleans(),
     via_yaml=st.booleans(),
 )
 def test_unknown_key_anywhere_gives_config_error_naming_it(tmp_path, where, key, via_yaml):
     known = {
-        f.name for cls in (SineTrackConfig, DisturbanceConfig, AgentConfig) for f in fields(cls)
+        f.name for cls in (SineTrackConfig, LatentForceConfig, AgentConfig) for f in fields(cls)
     }
     assume(key not in known | {"env", "agents"})
     if where == "top":

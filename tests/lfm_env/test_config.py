@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from lfm_env.config import (
     ConfigError,
-    DisturbanceConfig,
+    LatentForceConfig,
     SineTrackConfig,
     from_dict,
     load_env_config,
@@ -24,7 +24,7 @@ from lfm_env.worlds.sine_track.system import track_of
 
 
 def assert_names_key(exc: pytest.ExceptionInfo, key: str) -> None:
-    """The error message names the dotted ``key`` (e.g. ``env.disturbance.nu``)."""
+    """The error message names the dotted ``key`` (e.g. ``env.latent_force.nu``)."""
     msg = str(exc.value)
     assert re.search(rf"(?<![\w.]){re.escape(key)}(?![\w])", msg), f"{key!r} not in {msg!r}"
 
@@ -46,7 +46,7 @@ def test_config_error_is_a_value_error():
 def test_defaults_are_the_papers_case_study(source):
     cfg = load_env_config(source)
     assert cfg == SineTrackConfig()
-    # REFERENCE.md: vehicle, track, start, goal, bounds, noise, disturbance, MPC weights.
+    # REFERENCE.md: vehicle, track, start, goal, bounds, noise, latent force, MPC weights.
     assert cfg.dt == 0.2
     assert cfg.vehicle_length == 0.5
     assert (cfg.track_amplitude, cfg.track_pulsation, cfg.track_half_width) == (3.0, 0.2, 1.0)
@@ -68,7 +68,7 @@ def test_defaults_are_the_papers_case_study(source):
         [0.01 * math.sqrt(0.2)] * 3 + [math.radians(0.5) * math.sqrt(0.2)]
     )
     assert cfg.max_steps == 150  # 30 s at 0.2 s
-    d = cfg.disturbance
+    d = cfg.latent_force
     assert (d.kernel, d.nu, d.variance, d.lengthscale) == ("matern", 2.5, 4.0, 4.0)
     track = cfg.track
     assert (track.amplitude, track.pulsation, track.half_width) == (3.0, 0.2, 1.0)
@@ -88,7 +88,7 @@ def test_yaml_round_trip(tmp_path):
                 "R": [0.5, 0.75],
                 "goal_radius": 0.5,
                 "measurement_noise_std": [0.1, 0.2, 0.3, 1.0e-3],
-                "disturbance": {"discretization": "euler_maruyama", "start": "zero", "nu": 1.5},
+                "latent_force": {"discretization": "euler_maruyama", "start": "zero", "nu": 1.5},
             }
         }
     )
@@ -151,7 +151,7 @@ def test_missing_file_and_non_mapping_top_level(tmp_path):
         ({"env": {}, "envv": {}}, "envv"),
         ({"env": {"dtt": 0.2}}, "env.dtt"),
         ({"dtt": 0.2}, "env.dtt"),
-        ({"env": {"disturbance": {"foo": 1.0}}}, "env.disturbance.foo"),
+        ({"env": {"latent_force": {"foo": 1.0}}}, "env.latent_force.foo"),
     ],
 )
 def test_unknown_keys(source, key):
@@ -175,14 +175,14 @@ def test_unknown_keys(source, key):
         ({"Q": 2.0}, "env.Q"),
         ({"R": [0.5, "x"]}, "env.R[1]"),
         ({"initial_state": {"x": 0.0}}, "env.initial_state"),
-        ({"disturbance": 3}, "env.disturbance"),
-        ({"disturbance": {"discretization": 1}}, "env.disturbance.discretization"),
+        ({"latent_force": 3}, "env.latent_force"),
+        ({"latent_force": {"discretization": 1}}, "env.latent_force.discretization"),
         # non-finite
         ({"dt": math.nan}, "env.dt"),
         ({"accel_max": math.inf}, "env.accel_max"),
         ({"x_min": -math.inf}, "env.x_min"),
         ({"goal": [62.83, math.nan]}, "env.goal[1]"),
-        ({"disturbance": {"variance": math.inf}}, "env.disturbance.variance"),
+        ({"latent_force": {"variance": math.inf}}, "env.latent_force.variance"),
         # out of range
         ({"dt": -0.2}, "env.dt"),
         ({"dt": 0.0}, "env.dt"),
@@ -193,10 +193,10 @@ def test_unknown_keys(source, key):
         ({"steer_max_deg": 90.0}, "env.steer_max_deg"),
         ({"Q": [2.0, -2.0, 1.0, 0.0]}, "env.Q"),
         ({"measurement_noise_std": [0.15, 0.15, -0.15, 0.5]}, "env.measurement_noise_std"),
-        ({"disturbance": {"nu": 2.0}}, "env.disturbance.nu"),
-        ({"disturbance": {"lengthscale": -4.0}}, "env.disturbance.lengthscale"),
-        ({"disturbance": {"kernel": "rbf"}}, "env.disturbance.kernel"),
-        ({"disturbance": {"start": "random"}}, "env.disturbance.start"),
+        ({"latent_force": {"nu": 2.0}}, "env.latent_force.nu"),
+        ({"latent_force": {"lengthscale": -4.0}}, "env.latent_force.lengthscale"),
+        ({"latent_force": {"kernel": "rbf"}}, "env.latent_force.kernel"),
+        ({"latent_force": {"start": "random"}}, "env.latent_force.start"),
         # inverted bounds
         ({"x_max": -5.0}, "env.x_max"),
         ({"x_max": -1.0}, "env.x_max"),
@@ -215,10 +215,10 @@ def test_invalid_values_name_the_key(env, key):
 
 
 def test_invalid_value_in_yaml_names_the_key(tmp_path):
-    path = write(tmp_path, "env:\n  disturbance:\n    lengthscale: .nan\n")
+    path = write(tmp_path, "env:\n  latent_force:\n    lengthscale: .nan\n")
     with pytest.raises(ConfigError, match="finite") as exc:
         load_env_config(path)
-    assert_names_key(exc, "env.disturbance.lengthscale")
+    assert_names_key(exc, "env.latent_force.lengthscale")
 
 
 def test_replace_validates():
@@ -288,7 +288,7 @@ def valid_env_sections(draw):
     env = draw(st.fixed_dictionaries({}, optional=VALID_ENV))
     dist = draw(st.fixed_dictionaries({}, optional=VALID_DISTURBANCE))
     if dist:
-        env["disturbance"] = dist
+        env["latent_force"] = dist
     return env
 
 
@@ -314,12 +314,12 @@ def test_random_valid_configs_load(env, via_yaml):
         source = yaml.safe_load(yaml.safe_dump(source))
     cfg = load_env_config(source)
     for name, value in env.items():
-        if name == "disturbance":
+        if name == "latent_force":
             for dname, dvalue in value.items():
-                assert same_type_and_value(getattr(cfg.disturbance, dname), dvalue)
+                assert same_type_and_value(getattr(cfg.latent_force, dname), dvalue)
         else:
             assert same_type_and_value(getattr(cfg, name), value)
-    for name in set(env) - {"max_steps", "disturbance"}:
+    for name in set(env) - {"max_steps", "latent_force"}:
         value = getattr(cfg, name)
         assert all(type(v) is float for v in (value if isinstance(value, tuple) else (value,)))
     untouched = set(f.name for f in dataclasses.fields(SineTrackConfig)) - set(env)
@@ -405,8 +405,8 @@ def invalid_env_sections(draw):
         env[name] = draw(INVALID_ENV[name])
         return env, f"env.{name}"
     name = draw(st.sampled_from(sorted(INVALID_DISTURBANCE)))
-    env["disturbance"] = {**env.get("disturbance", {}), name: draw(INVALID_DISTURBANCE[name])}
-    return env, f"env.disturbance.{name}"
+    env["latent_force"] = {**env.get("latent_force", {}), name: draw(INVALID_DISTURBANCE[name])}
+    return env, f"env.latent_force.{name}"
 
 
 BOUND_PARTNERS = {"env.x_min": "env.x_max", "env.speed_min": "env.speed_max"}
@@ -434,12 +434,12 @@ def test_random_invalid_values_are_rejected_naming_the_key(case):
         assert key in msg, f"{key!r} not in {msg!r}"
 
 
-def test_from_dict_builds_a_disturbance_section_alone():
-    d = from_dict(DisturbanceConfig, {"nu": 1.5, "variance": 2}, prefix="env.disturbance")
-    assert d == DisturbanceConfig(nu=1.5, variance=2.0)
+def test_from_dict_builds_a_latent_force_section_alone():
+    d = from_dict(LatentForceConfig, {"nu": 1.5, "variance": 2}, prefix="env.latent_force")
+    assert d == LatentForceConfig(nu=1.5, variance=2.0)
     with pytest.raises(ConfigError) as exc:
-        from_dict(DisturbanceConfig, {"nu": 3.0}, prefix="env.disturbance")
-    assert_names_key(exc, "env.disturbance.nu")
+        from_dict(LatentForceConfig, {"nu": 3.0}, prefix="env.latent_force")
+    assert_names_key(exc, "env.latent_force.nu")
 
 
 # ----------------------------------------------------------------------------- built objects
@@ -459,7 +459,7 @@ def test_make_system_model_and_cost_read_the_config():
                 "Q": [1.0, 2.0, 3.0, 4.0],
                 "R": [0.25, 5.0],
                 "goal_state": [60.0, 0.0, 2.0, 90.0],
-                "disturbance": {"nu": 1.5, "discretization": "euler_maruyama"},
+                "latent_force": {"nu": 1.5, "discretization": "euler_maruyama"},
             }
         }
     )
@@ -477,7 +477,7 @@ def test_make_system_model_and_cost_read_the_config():
     assert model.dt == 0.1 and model.discretization == "euler_maruyama"
     assert model.latent_dim == 2  # Matern 3/2
     np.testing.assert_allclose(model.process_std, cfg.process_noise_std_rad)
-    belief = cfg.make_model(DisturbanceConfig(nu=0.5), system=system)
+    belief = cfg.make_model(LatentForceConfig(nu=0.5), system=system)
     assert belief.system is system and belief.latent_dim == 1
 
     cost = cfg.make_cost()
@@ -527,3 +527,19 @@ def test_the_resolved_experiment_config_round_trips_through_yaml(tmp_path):
     path.write_text(yaml.safe_dump(cfg.to_dict()))
     again = load_config(path)
     assert again == cfg and again.env_id == "lfm_env/SineTrack-v0"
+
+
+def test_the_old_name_of_the_latent_force_section_still_reads_with_a_warning():
+    old = {"env": {"disturbance": {"variance": 2.0}}, "agents": {"disturbance": {"nu": 1.5}}}
+    with pytest.warns(FutureWarning, match=r"env\.disturbance is now env\.latent_force"):
+        cfg = load_env_config(old)
+    assert cfg.latent_force.variance == 2.0
+
+    from controllers.config import load_config
+
+    with pytest.warns(FutureWarning, match=r"agents\.disturbance is now agents\.latent_force"):
+        full = load_config(old)
+    assert full.agents.latent_force.nu == 1.5 and full.env.latent_force.variance == 2.0
+    both = {"env": {"disturbance": {}, "latent_force": {}}}
+    with pytest.raises(ConfigError, match="env.disturbance and env.latent_force are one setting"):
+        load_env_config(both)

@@ -152,7 +152,7 @@ def rollout(env: gym.Env, seed: int, actions: np.ndarray, preview: bool = False)
     out = [env.reset(seed=seed)]
     for u in actions:
         if preview:
-            env.unwrapped.preview_disturbance(200)
+            env.unwrapped.preview_latent_force(200)
         step = env.step(u)
         out.append(step)
         if step[2] or step[3]:
@@ -193,12 +193,14 @@ def test_episodes_match_the_recording():
     recorder = load_recorder()
     data = np.load(DATA / "sine_track_episodes.npz")
     np.testing.assert_array_equal(data["actions"], recorder.actions())
+    # The recording predates the rename of the env's "disturbance" to "latent_force".
+    stored = {k.replace("disturbance", "latent_force"): k for k in data.files}
     for name, config, seed in recorder.EPISODES:
         episode = recorder.record(config, seed)
-        recorded = {k.split("/", 1)[1] for k in data.files if k.startswith(f"{name}/")}
+        recorded = {k.split("/", 1)[1] for k in stored if k.startswith(f"{name}/")}
         assert recorded == set(episode), name
         for key, value in episode.items():
-            expected = data[f"{name}/{key}"]
+            expected = data[stored[f"{name}/{key}"]]
             assert np.shape(value) == expected.shape, f"{name}/{key}"
             if expected.dtype.kind == "f":
                 np.testing.assert_allclose(
@@ -341,7 +343,7 @@ def test_step_before_reset_raises(make_env):
     with pytest.raises(gym.error.ResetNeeded):
         env.step(np.zeros(env.action_space.shape))
     with pytest.raises(gym.error.ResetNeeded):
-        env.preview_disturbance(3)
+        env.preview_latent_force(3)
 
 
 # ----------------------------------------------------------------------------- determinism
@@ -361,18 +363,18 @@ def test_reset_with_the_same_seed_repeats_the_episode(make_env):
     assert_rollouts_equal(rollout(env, 11, actions), rollout(env, 11, actions))
 
 
-def test_same_seed_same_disturbance_other_seed_other_disturbance(make_env):
+def test_same_seed_same_latent_force_other_seed_other_latent_force(make_env):
     env1, env2 = make_env(), make_env()
     env1.reset(seed=3)
     env2.reset(seed=3)
-    w1 = env1.unwrapped.preview_disturbance(100)
-    np.testing.assert_array_equal(w1, env2.unwrapped.preview_disturbance(100))
+    w1 = env1.unwrapped.preview_latent_force(100)
+    np.testing.assert_array_equal(w1, env2.unwrapped.preview_latent_force(100))
     env2.reset(seed=4)
-    w2 = env2.unwrapped.preview_disturbance(100)
+    w2 = env2.unwrapped.preview_latent_force(100)
     assert not np.any(w1 == w2)
     # The hidden force is redrawn at every reset, also without a new seed.
     env1.reset()
-    assert not np.any(env1.unwrapped.preview_disturbance(100) == w1)
+    assert not np.any(env1.unwrapped.preview_latent_force(100) == w1)
 
 
 def test_pickle_round_trip_of_a_reset_env(make_env):
@@ -387,7 +389,7 @@ def test_pickle_round_trip_of_a_reset_env(make_env):
         assert_infos_equal(s1[4], s2[4])
 
 
-def test_preview_does_not_change_the_episode_and_foretells_the_disturbance(make_env):
+def test_preview_does_not_change_the_episode_and_foretells_the_latent_force(make_env):
     # A 140-step episode crosses the latent path's 64-step chunks.
     actions = np.zeros((140, make_env().action_space.shape[0]))
     long_episode = {
@@ -404,16 +406,16 @@ def test_preview_does_not_change_the_episode_and_foretells_the_disturbance(make_
     env = make_env(**kwargs)
     _, info = env.reset(seed=21)
     nw = env.unwrapped.model.nw
-    preview = env.unwrapped.preview_disturbance(140)
+    preview = env.unwrapped.preview_latent_force(140)
     assert preview.shape == (140, nw)
-    disturbance = lambda info: np.reshape(info["disturbance"], nw)  # noqa: E731
-    np.testing.assert_array_equal(preview[0], disturbance(info))
-    seen = [disturbance(env.step(u)[4]) for u in actions]
+    latent_force = lambda info: np.reshape(info["latent_force"], nw)  # noqa: E731
+    np.testing.assert_array_equal(preview[0], latent_force(info))
+    seen = [latent_force(env.step(u)[4]) for u in actions]
     np.testing.assert_array_equal(preview, seen)
-    np.testing.assert_array_equal(preview, [disturbance(s[-1]) for s in plain[1:]])
-    assert env.unwrapped.preview_disturbance(0).shape == (0, nw)
+    np.testing.assert_array_equal(preview, [latent_force(s[-1]) for s in plain[1:]])
+    assert env.unwrapped.preview_latent_force(0).shape == (0, nw)
     with pytest.raises(ValueError, match="n_steps"):
-        env.unwrapped.preview_disturbance(-1)
+        env.unwrapped.preview_latent_force(-1)
 
 
 # ----------------------------------------------------------------------------- reset options
@@ -426,11 +428,11 @@ def test_reset_options_take_effect():
     _, info = env.reset(seed=0, options={"initial_state": x0, "latent_state": z0})
     np.testing.assert_array_equal(info["true_state"], x0)
     np.testing.assert_array_equal(info["latent_state"], z0)
-    assert info["disturbance"] == 1.5  # w = H z, H = [1, 0, 0]
+    assert info["latent_force"] == 1.5  # w = H z, H = [1, 0, 0]
     np.testing.assert_array_equal(env.unwrapped.true_state, x0)
     np.testing.assert_array_equal(env.unwrapped.true_latent_state, z0)
     _, _, _, _, info = env.step([0.0, 0.0])
-    assert info["disturbance"] == 1.5  # the force that acted during the first step
+    assert info["latent_force"] == 1.5  # the force that acted during the first step
     # The speed moves by (a + w) dt plus a small process noise (std 0.0045 m/s).
     assert info["true_state"][2] == pytest.approx(2.0 + 1.5 * 0.2, abs=0.03)
     # Without options the paper's start state is back.
@@ -445,10 +447,10 @@ def test_quadrotor_reset_options_take_effect():
     _, info = env.reset(seed=0, options={"initial_state": x0, "latent_state": z0})
     np.testing.assert_array_equal(info["true_state"], x0)
     np.testing.assert_array_equal(info["latent_state"], z0)
-    assert info["disturbance"] == 1.5  # w = H z, H = [1, 0]
+    assert info["latent_force"] == 1.5  # w = H z, H = [1, 0]
     thrust = 0.3
     _, _, _, _, info = env.step([thrust, 0.1])
-    assert info["disturbance"] == 1.5
+    assert info["latent_force"] == 1.5
     # v_x moves by (T sin(theta) / m + w) dt, plus process noise (std 0.0063 m/s).
     expected = 0.5 + 0.1 * (thrust * math.sin(0.1) / 0.027 + 1.5)
     assert info["true_state"][3] == pytest.approx(expected, abs=0.03)
@@ -460,9 +462,9 @@ def test_reset_options_of_a_two_component_force():
     env = make_point_mass()
     z0 = np.array([0.7, 0.1, -0.4])  # Matern 3/2 (2 states) then Matern 1/2 (1 state)
     _, info = env.reset(seed=0, options={"latent_state": z0})
-    np.testing.assert_array_equal(info["disturbance"], [0.7, -0.4])  # H = blockdiag([1, 0], [1])
+    np.testing.assert_array_equal(info["latent_force"], [0.7, -0.4])  # H = blockdiag([1, 0], [1])
     _, _, _, _, info = env.step([0.0, 0.0])
-    np.testing.assert_array_equal(info["disturbance"], [0.7, -0.4])
+    np.testing.assert_array_equal(info["latent_force"], [0.7, -0.4])
     # v moves by (a + w) dt, with process noise of std 0.01 m/s.
     assert info["true_state"][2:] == pytest.approx([0.5 + 0.07, -0.04], abs=0.06)
 
@@ -514,7 +516,7 @@ def test_cost_of_other_dimensions_is_refused():
 def test_zero_latent_start_and_no_failure_unless_not_finite():
     env = make_point_mass(latent_start="zero", max_steps=3)
     _, info = env.reset(seed=0)
-    np.testing.assert_array_equal(info["disturbance"], [0.0, 0.0])
+    np.testing.assert_array_equal(info["latent_force"], [0.0, 0.0])
     np.testing.assert_array_equal(info["latent_state"], np.zeros(3))
     # Far outside its constraints the point mass goes on: the generic env has no safety box.
     env.reset(seed=0, options={"initial_state": [50.0, 0.0, 30.0, 0.0]})
@@ -559,7 +561,7 @@ def test_scene_factory_draws_the_true_state():
     assert scene.closed and env.unwrapped._scene is None
 
 
-# ----------------------------------------------------------------------------- disturbance
+# ----------------------------------------------------------------------------- latent_force
 
 
 @pytest.mark.parametrize(
@@ -569,15 +571,15 @@ def test_scene_factory_draws_the_true_state():
         (make_quadrotor, matern(1.5, 6.25, 2.5), 10),  # lag 10 steps = 1 s at dt = 0.1 s
     ],
 )
-def test_disturbance_statistics_match_the_matern_kernel(make_world, kernel, lag):
+def test_latent_force_statistics_match_the_matern_kernel(make_world, kernel, lag):
     """Over 500 resets the force has the kernel's variance and lag-1 s correlation."""
     n = 500
     env = make_world()
     w = np.empty((n, lag + 1))
     for seed in range(n):
         _, info = env.reset(seed=seed)
-        w[seed] = env.unwrapped.preview_disturbance(lag + 1)[:, 0]
-        assert w[seed, 0] == info["disturbance"]
+        w[seed] = env.unwrapped.preview_latent_force(lag + 1)[:, 0]
+        assert w[seed, 0] == info["latent_force"]
     k0, k1 = kernel.covariance([0.0, 1.0])
     rho = k1 / k0
 
@@ -593,15 +595,15 @@ def test_disturbance_statistics_match_the_matern_kernel(make_world, kernel, lag)
 
 
 def test_euler_maruyama_zero_start_begins_at_zero():
-    config = {"env": {"disturbance": {"discretization": "euler_maruyama", "start": "zero"}}}
+    config = {"env": {"latent_force": {"discretization": "euler_maruyama", "start": "zero"}}}
     env = make(config=config)
     _, info = env.reset(seed=0)
-    assert info["disturbance"] == 0.0
+    assert info["latent_force"] == 0.0
     np.testing.assert_array_equal(info["latent_state"], np.zeros(3))
     _, _, _, _, info = env.step([0.0, 0.0])
-    assert info["disturbance"] == 0.0
+    assert info["latent_force"] == 0.0
     # Afterwards the force moves (rank-1 noise enters through the third latent state).
-    assert np.any(env.unwrapped.preview_disturbance(10) != 0.0)
+    assert np.any(env.unwrapped.preview_latent_force(10) != 0.0)
 
 
 # ----------------------------------------------------------------------------- episode end

@@ -23,10 +23,10 @@ ENV_IDS = ("lfm_env/SineTrack-v0", "lfm_env/QuadrotorGust-v0")
 # hundreds of steps with the coasting input (the car rolls on at 1 m/s, the quadrotor hovers).
 NEVER_ENDS = {
     "lfm_env/SineTrack-v0": {
-        "env": {"max_steps": 20, "safety_margin": 1000.0, "disturbance": {"variance": 1e-6}}
+        "env": {"max_steps": 20, "safety_margin": 1000.0, "latent_force": {"variance": 1e-6}}
     },
     "lfm_env/QuadrotorGust-v0": {
-        "env": {"max_steps": 20, "safety_margin": 1000.0, "disturbance": {"variance": 1e-6}}
+        "env": {"max_steps": 20, "safety_margin": 1000.0, "latent_force": {"variance": 1e-6}}
     },
 }
 

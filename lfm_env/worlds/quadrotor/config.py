@@ -7,7 +7,7 @@ import math
 from dataclasses import dataclass, field
 
 from lfm_env.config.loading import FieldChecker
-from lfm_env.config.world import MAX_STEPS, DisturbanceConfig, WorldConfig
+from lfm_env.config.world import MAX_STEPS, LatentForceConfig, WorldConfig
 from lfm_env.worlds.quadrotor.system import (
     Corridor,
     attitude_euler_radius,
@@ -17,15 +17,15 @@ from lfm_env.worlds.quadrotor.system import (
 
 
 @dataclass(frozen=True)
-class GustConfig(DisturbanceConfig):
-    """The quadrotor's gust: a :class:`DisturbanceConfig` whose defaults are the gust's.
+class QuadrotorLatentForceConfig(LatentForceConfig):
+    """The quadrotor's gust: a :class:`LatentForceConfig` whose defaults are the gust's.
 
     Matern 3/2 (a gust spectrum is a low-order filtered noise), std 2.5 m/s^2 on the
     horizontal acceleration: 60% of the horizontal authority of a vehicle tilted to the
     0.4 rad bound (``g tan(0.4) = 4.1 m/s^2``), so one gust in ten exceeds it for a while.
     Lengthscale 2.5 s: predictable over the MPC's 1 s horizon once estimated (at 1 s the
     open-loop spread of the position, times the tunnel's slope, exceeded the tunnel's
-    height and every scenario plan hovered at a crest). A partial ``disturbance:``
+    height and every scenario plan hovered at a crest). A partial ``latent_force:``
     section keeps these defaults for the keys it omits.
     """
 
@@ -103,7 +103,7 @@ class QuadrotorGustConfig(WorldConfig):
     )  # per sqrt(s) [m, m, deg, m/s, m/s, deg/s]
     max_steps: int = 120  # truncation after this many steps (12 s at dt = 0.1 s)
     safety_margin: float = 1.0  # [m] failure when this far outside the tunnel or x bounds
-    disturbance: GustConfig = field(default_factory=GustConfig)
+    latent_force: QuadrotorLatentForceConfig = field(default_factory=QuadrotorLatentForceConfig)
 
     def __post_init__(self) -> None:
         c = FieldChecker(self)
@@ -169,4 +169,7 @@ class QuadrotorGustConfig(WorldConfig):
         )
 
 
-__all__ = ["GustConfig", "QuadrotorGustConfig"]
+#: The name this class had before the project said "latent force" throughout (old imports).
+GustConfig = QuadrotorLatentForceConfig
+
+__all__ = ["GustConfig", "QuadrotorGustConfig", "QuadrotorLatentForceConfig"]

@@ -56,7 +56,7 @@ class QuadrotorGustEnv(GoalReachingEnv):
 
     ## Starting State
     True state ``[0, 1, 0, 0, 0, 0]`` (hovering at the tunnel's entrance); the latent
-    state is drawn from the GP's stationary distribution (or zero, ``disturbance.start:
+    state is drawn from the GP's stationary distribution (or zero, ``latent_force.start:
     zero``). The first observation is the noisy start state.
 
     ## Episode End
@@ -70,7 +70,7 @@ class QuadrotorGustEnv(GoalReachingEnv):
     Constraint violations (tunnel, x bounds) are recorded in ``info``, not enforced.
 
     ## Info
-    ``true_state`` (6,), ``disturbance`` (``w`` [m/s^2] acting during the step just taken;
+    ``true_state`` (6,), ``latent_force`` (``w`` [m/s^2] acting during the step just taken;
     at reset, the one that will act next), ``latent_state`` (z), ``corridor_excess`` [m]
     and ``x_excess`` [m] (each 0 inside the bounds; the system's constraint groups),
     ``constraint_excess`` (4,) in the order corridor_floor, corridor_ceiling, x_min,

@@ -26,7 +26,7 @@ The mass and ``g`` are safe-control-gym's (``quadrotor_2D``); the thrust bound
 **The gust** is a Gaussian process in time (Matern 3/2 by default: a gust spectrum is a
 low-order filtered noise), estimated and predicted by the scenario MPC of "Model
 Predictive Control of Nonlinear Latent Force Models: A Scenario-Based Approach" (ICRA
-2021; this project's paper). The defaults of :class:`lfm_env.config.GustConfig` (std
+2021; this project's paper). The defaults of :class:`lfm_env.config.QuadrotorLatentForceConfig` (std
 2.5 m/s^2, lengthscale 2.5 s) make it matter against the available thrust: at the pitch
 bound ``theta_max = 0.4 rad`` a hovering vehicle can push ``g tan(0.4) = 4.1 m/s^2``
 sideways, so a one-sigma gust takes 60% of the horizontal authority and one in ten

@@ -6,13 +6,13 @@ import math
 from dataclasses import dataclass, field
 
 from lfm_env.config.loading import FieldChecker
-from lfm_env.config.world import MAX_STEPS, DisturbanceConfig, WorldConfig
+from lfm_env.config.world import MAX_STEPS, LatentForceConfig, WorldConfig
 from lfm_env.worlds.sine_track.system import SineTrack, sine_track_system
 
 
 @dataclass(frozen=True)
 class SineTrackConfig(WorldConfig):
-    """The SineTrack world: vehicle, track, noise, disturbance, goal and episode limits.
+    """The SineTrack world: vehicle, track, noise, latent force, goal and episode limits.
 
     Vectors over the state ``[p_x, p_y, v, psi]`` give the heading in **degrees** for
     readability; the env converts to radians.
@@ -51,7 +51,7 @@ class SineTrackConfig(WorldConfig):
     )  # per sqrt(s) [m, m, m/s, deg]
     max_steps: int = 150  # truncation after this many steps (30 s at dt = 0.2 s)
     safety_margin: float = 10.0  # [m] failure when the car is this far outside the track box
-    disturbance: DisturbanceConfig = field(default_factory=DisturbanceConfig)
+    latent_force: LatentForceConfig = field(default_factory=LatentForceConfig)
 
     def __post_init__(self) -> None:
         c = FieldChecker(self)

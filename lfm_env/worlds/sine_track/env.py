@@ -17,7 +17,7 @@ class SineTrackEnv(GoalReachingEnv):
     :class:`~lfm_env.env.LatentForceEnv`. A car with kinematic-bicycle dynamics
     (:func:`lfm_env.worlds.sine_track.system.sine_track_system`) must drive along the track
     ``|p_y - 3 sin(0.2 p_x)| <= 1 m`` from ``[0, 0]`` to the goal ``[62.83, 0]``. An
-    unmeasured disturbance ``w(t)``, a Gaussian process with a Matern 5/2 covariance
+    unmeasured latent force ``w(t)``, a Gaussian process with a Matern 5/2 covariance
     (``sigma^2 = 4``, lengthscale 4 s), acts on the acceleration: ``dv/dt = a + w``. The GP
     is simulated exactly through its state-space form.
 
@@ -48,7 +48,7 @@ class SineTrackEnv(GoalReachingEnv):
 
     ## Starting State
     True state ``[0, 0, 1 m/s, 45 deg]``; the latent state is drawn from the GP's
-    stationary distribution (or zero, ``disturbance.start: zero``). The first
+    stationary distribution (or zero, ``latent_force.start: zero``). The first
     observation is the noisy start state.
 
     ## Episode End
@@ -63,7 +63,7 @@ class SineTrackEnv(GoalReachingEnv):
     Constraint violations (track, speed, x bounds) are recorded in ``info``, not enforced.
 
     ## Info
-    ``true_state`` (4,), ``disturbance`` (``w`` [m/s^2] acting during the step just
+    ``true_state`` (4,), ``latent_force`` (``w`` [m/s^2] acting during the step just
     taken; at reset, the one that will act next), ``latent_state`` (z), ``track_excess``
     [m], ``x_excess`` [m], ``speed_excess`` [m/s] (each 0 inside the bounds; the system's
     constraint groups), ``constraint_excess`` (6,) in the order track_left, track_right,

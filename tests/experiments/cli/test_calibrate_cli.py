@@ -20,7 +20,7 @@ def test_cli_writes_a_config_whose_agents_model_the_learned_force(tmp_path, caps
     agent = make_agent("pf", str(out))
     learned = agent.model.kernel
     # The env keeps the true (hidden) force; the agents use the learned one.
-    assert load_env_config(str(out)).disturbance.variance == 4.0
+    assert load_env_config(str(out)).latent_force.variance == 4.0
     assert learned.variance != 4.0
 
 

@@ -118,7 +118,7 @@ def test_run_episode_row_trajectory_and_time_alignment():
         "true_state": (T + 1, 4),
         "obs": (T + 1, 4),
         "action": (T, 2),
-        "disturbance": (T,),
+        "latent_force": (T,),
         "estimate": (T, 7),
         "estimate_std": (T, 7),
         "latent_force_est": (T,),
@@ -135,7 +135,7 @@ def test_run_episode_row_trajectory_and_time_alignment():
 
     # The row's metrics are those of the trajectory.
     assert row["cost"] == pytest.approx(-traj["reward"].sum())
-    err = traj["latent_force_est"] - traj["disturbance"]
+    err = traj["latent_force_est"] - traj["latent_force"]
     assert row["latent_rmse"] == pytest.approx(np.sqrt(np.mean(err**2)))
     assert row["slack_total"] == pytest.approx(traj["slack"].sum())
     for g in ("track", "x", "speed"):
@@ -143,13 +143,13 @@ def test_run_episode_row_trajectory_and_time_alignment():
         assert row[f"{g}_violation_steps"] == np.sum(traj[f"{g}_excess"] > 0)
         assert row[f"max_{g}_excess"] == traj[f"{g}_excess"].max()
 
-    # Alignment with the env: obs[0] measures true_state[0], and disturbance[0] is the
+    # Alignment with the env: obs[0] measures true_state[0], and latent_force[0] is the
     # force that the env announces at reset as acting in the first step.
     env = gym.make("lfm_env/SineTrack-v0", config=TINY)
     obs0, info0 = env.reset(seed=3)
     np.testing.assert_array_equal(traj["obs"][0], obs0)
     np.testing.assert_array_equal(traj["true_state"][0], info0["true_state"])
-    assert traj["disturbance"][0] == info0["disturbance"]
+    assert traj["latent_force"][0] == info0["latent_force"]
     # ...and the first action was computed from obs[0] alone: replaying it reproduces step 1.
     _, _, _, _, info1 = env.step(traj["action"][0])
     np.testing.assert_array_equal(traj["true_state"][1], info1["true_state"])
@@ -161,7 +161,7 @@ def test_paired_design_and_determinism():
     pf, traj_pf = run_episode("pf", TINY, seed=5)
     # Same env seed: the hidden force does not depend on the agent.
     n = min(nominal["steps"], pf["steps"])
-    np.testing.assert_array_equal(traj_n["disturbance"][:n], traj_pf["disturbance"][:n])
+    np.testing.assert_array_equal(traj_n["latent_force"][:n], traj_pf["latent_force"][:n])
     np.testing.assert_array_equal(traj_n["obs"][0], traj_pf["obs"][0])
     # Filter metrics exist only for filter agents.
     assert math.isnan(nominal["latent_rmse"]) and math.isnan(nominal["latent_coverage"])
@@ -174,7 +174,7 @@ def test_paired_design_and_determinism():
     assert_same_trajectory(traj_again, traj_pf)
 
     _, traj_other = run_episode("nominal", TINY, seed=6)
-    assert traj_other["disturbance"][0] != traj_n["disturbance"][0]
+    assert traj_other["latent_force"][0] != traj_n["latent_force"][0]
 
 
 def test_run_episode_rejects_unknown_agent_and_negative_seed():

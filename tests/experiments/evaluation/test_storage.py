@@ -235,3 +235,14 @@ def test_a_copied_or_garbage_json_is_named_and_not_counted(tmp_path, capsys):
     ]
     assert copy.name in err and junk.name in err
     assert len(saved_rows(tmp_path)) == 3
+
+
+def test_an_episode_saved_before_the_rename_reads_its_force_as_latent_force(tmp_path):
+    from experiments.evaluation.storage import episode_stem, load_trajectory
+
+    folder = tmp_path / "episodes"
+    folder.mkdir()
+    np.savez(folder / f"{episode_stem('pf', 3)}.npz", disturbance=np.arange(4.0))
+    arrays = load_trajectory(tmp_path, "pf", 3)
+    assert "disturbance" not in arrays
+    np.testing.assert_array_equal(arrays["latent_force"], np.arange(4.0))

@@ -58,7 +58,7 @@ def synthetic_episode(T: int = 30) -> dict[str, np.ndarray]:
         "estimate": np.concatenate([est, np.zeros((T, 3))], axis=1),  # + latent states
         "estimate_std": np.full((T, 7), 0.05),
         "action": np.tile([0.5, -1.0], (T, 1)),
-        "disturbance": w,
+        "latent_force": w,
         "latent_force_est": w + 0.1,
         "latent_force_std": np.full((T, 2), 0.2),
         "keep_out_excess": excess[:, :2].max(axis=1),

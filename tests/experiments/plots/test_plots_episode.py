@@ -60,29 +60,29 @@ def test_paths_figure_draws_every_agent():
 def test_latent_force_figure_has_one_panel_per_component():
     ep = synthetic_episode()
     fig = plots.latent_force_figure(
-        SYSTEM, DT, ep["disturbance"], ep["latent_force_est"], ep["latent_force_std"]
+        SYSTEM, DT, ep["latent_force"], ep["latent_force_est"], ep["latent_force_std"]
     )
     assert [ax.get_ylabel() for ax in fig.axes] == [
         "latent force w_x [m/s^2]",
         "latent force w_y [N]",
     ]
-    with pytest.raises(ValueError, match=r"disturbance of shape \(30,\)"):
-        plots.latent_force_figure(SYSTEM, DT, ep["disturbance"][:, 0])
+    with pytest.raises(ValueError, match=r"latent_force of shape \(30,\)"):
+        plots.latent_force_figure(SYSTEM, DT, ep["latent_force"][:, 0])
 
 
 def test_inputs_figure_draws_bounds_and_the_force_of_the_same_unit():
     ep = synthetic_episode()
-    fig = plots.inputs_figure(SYSTEM, DT, ep["action"], ep["disturbance"])
+    fig = plots.inputs_figure(SYSTEM, DT, ep["action"], ep["latent_force"])
     first, second = fig.axes
     assert (first.get_ylabel(), second.get_ylabel()) == ("a_x [m/s^2]", "f_y [N]")
     # w_x shares a_x's unit and w_y shares f_y's: each is drawn beside its input only.
-    assert "disturbance w_x" in first.get_legend_handles_labels()[1]
-    assert "disturbance w_y" not in first.get_legend_handles_labels()[1]
-    assert "disturbance w_y" in second.get_legend_handles_labels()[1]
+    assert "latent_force w_x" in first.get_legend_handles_labels()[1]
+    assert "latent_force w_y" not in first.get_legend_handles_labels()[1]
+    assert "latent_force w_y" in second.get_legend_handles_labels()[1]
     levels = {round(line.get_ydata()[0], 6) for line in second.lines if len(line.get_ydata()) == 2}
     assert {-3.0, 3.0} <= levels  # f_y's bounds
     no_force = plots.inputs_figure(SYSTEM, DT, ep["action"])
-    assert "disturbance w_x" not in no_force.axes[0].get_legend_handles_labels()[1]
+    assert "latent_force w_x" not in no_force.axes[0].get_legend_handles_labels()[1]
 
 
 def test_states_figure_draws_the_other_states_with_their_bounds():
@@ -129,7 +129,7 @@ def test_episode_figures_of_a_new_system(tmp_path):
         "estimate": np.zeros((3, 2)),
         "estimate_std": np.zeros((3, 2)),
         "action": np.zeros((3, 1)),
-        "disturbance": np.zeros(3),
+        "latent_force": np.zeros(3),
         "latent_force_est": np.full(3, np.nan),
         "latent_force_std": np.full(3, np.nan),
     }

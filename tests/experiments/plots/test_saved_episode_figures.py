@@ -39,10 +39,10 @@ def test_sine_track_figures_keep_the_papers_content(results_dir):
     assert plane.get_xlim()[0] < cfg.x_min and plane.get_xlim()[1] > cfg.x_max  # x bounds
     pad = cfg.track_amplitude + cfg.track_half_width
     assert plane.get_ylim()[0] < -pad and plane.get_ylim()[1] > pad  # the whole band
-    # The acceleration is drawn against the disturbance (same unit); the steering is not.
+    # The acceleration is drawn against the latent force (same unit); the steering is not.
     accel, steer = figs["inputs"].axes
-    assert "disturbance w" in accel.get_legend_handles_labels()[1]
-    assert "disturbance w" not in steer.get_legend_handles_labels()[1]
+    assert "latent_force w" in accel.get_legend_handles_labels()[1]
+    assert "latent_force w" not in steer.get_legend_handles_labels()[1]
     # The speed panel shows the speed bounds, found from the speed constraints alone.
     speed = figs["states"].axes[0]
     assert speed.get_ylabel() == "v [m/s]"

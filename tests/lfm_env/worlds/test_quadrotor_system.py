@@ -17,8 +17,8 @@ import yaml
 from lfm_env.config import (
     WORLDS,
     ConfigError,
-    GustConfig,
     QuadrotorGustConfig,
+    QuadrotorLatentForceConfig,
     SineTrackConfig,
     load_env_config,
     to_dict,
@@ -319,8 +319,8 @@ def test_defaults_are_valid_and_describe_the_case_study():
     assert corridor_of(system) == cfg.corridor
     model = cfg.make_model()
     assert model.latent_dim == 2  # Matern 3/2: [w, dw/dt]
-    d = cfg.disturbance
-    assert isinstance(d, GustConfig)
+    d = cfg.latent_force
+    assert isinstance(d, QuadrotorLatentForceConfig)
     assert (d.kernel, d.nu, d.discretization) == ("matern", 1.5, "exact")
     assert model.stationary_latent_covariance()[0, 0] == pytest.approx(d.variance)
     cost = cfg.make_cost()
@@ -366,7 +366,7 @@ def test_yaml_round_trip(tmp_path):
                 "corridor_amplitude": 0.4,
                 "Q": [0.5, 2.0, 0.0, 1.0, 1.0, 0.0],
                 "initial_state": [0.0, 1.0, 5.0, 0.0, 0.0, 10.0],
-                "disturbance": {"variance": 1.0, "start": "zero"},
+                "latent_force": {"variance": 1.0, "start": "zero"},
             },
         }
     )
@@ -378,11 +378,11 @@ def test_yaml_round_trip(tmp_path):
     assert loaded.initial_state_rad[2] == pytest.approx(math.radians(5.0))
 
 
-def test_a_partial_disturbance_keeps_the_gust_defaults():
-    cfg = load_env_config({"env_id": ENV_ID, "env": {"disturbance": {"variance": 3.0}}})
-    default = GustConfig()
-    assert (cfg.disturbance.variance, cfg.disturbance.nu) == (3.0, default.nu)
-    assert cfg.disturbance.lengthscale == default.lengthscale
+def test_a_partial_latent_force_keeps_the_gust_defaults():
+    cfg = load_env_config({"env_id": ENV_ID, "env": {"latent_force": {"variance": 3.0}}})
+    default = QuadrotorLatentForceConfig()
+    assert (cfg.latent_force.variance, cfg.latent_force.nu) == (3.0, default.nu)
+    assert cfg.latent_force.lengthscale == default.lengthscale
 
 
 def test_the_world_follows_the_env_id():
@@ -422,8 +422,8 @@ def test_the_world_follows_the_env_id():
         ),
         ({"max_steps": 0}, "env.max_steps"),
         ({"safety_margin": 0.0}, "env.safety_margin"),
-        ({"disturbance": {"nu": 2.0}}, "env.disturbance.nu"),
-        ({"disturbance": {"lengthscale": 0.0}}, "env.disturbance.lengthscale"),
+        ({"latent_force": {"nu": 2.0}}, "env.latent_force.nu"),
+        ({"latent_force": {"lengthscale": 0.0}}, "env.latent_force.lengthscale"),
     ],
 )
 def test_bad_fields_are_named(env, key):

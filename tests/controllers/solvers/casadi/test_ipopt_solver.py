@@ -95,7 +95,7 @@ def test_nominal_problem_agrees_across_formulations_and_scipy(x0: np.ndarray) ->
     assert rel_diff(cond.objective, ms.objective) < 1e-6
     np.testing.assert_allclose(cond.u, ms.u, atol=1e-4)
 
-    # Identical zero-disturbance scenarios average to the same nominal problem.
+    # Identical zero-latent_force scenarios average to the same nominal problem.
     many = paper_problem(n_scenarios=4)
     rep = solve_scenario_problem(many, x0, np.zeros((4, N)))
     assert rel_diff(cond.objective, rep.objective) < 1e-6
