@@ -117,7 +117,7 @@ FORECASTS = ("sampled", "mean")
 @dataclass(frozen=True)
 class RobustConfig:
     """The ``robust`` agent: the combination that carried the estimate's uncertainty best
-    in our measurements (README "Robust agent"); the ``agents.robust`` section.
+    in our measurements (docs/agents.md, "The robust agent"); the ``agents.robust`` section.
 
     Its other settings (horizon, weights, solver, ...) are the ``agents`` section's.
     """

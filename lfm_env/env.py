@@ -67,7 +67,7 @@ class LatentForceEnv(gym.Env):
     force ``w = H z`` (``nw`` components) is a Gaussian process in time, simulated in
     state-space form, ``z+ = A z + eta``; it is hidden from the agent. The path of ``z`` is
     drawn in chunks from a generator of its own, so reading it ahead
-    (:meth:`preview_disturbance`, for an oracle) never changes the episode.
+    (:meth:`preview_latent_force`, for an oracle) never changes the episode.
 
     ## Action Space
     ``Box(system.input_lower, system.input_upper, (nu,), float32)`` in the inputs' units.
@@ -81,7 +81,7 @@ class LatentForceEnv(gym.Env):
     states' units (``system.state_names``); the latent force is hidden.
     ``Box(-inf, inf, (nx,), float64)`` (Gaussian noise has unbounded support). The
     observations stay float64: rounding them to float32 changes the MPC agents' closed-loop
-    episodes (README, "Gymnasium conventions"); RL code casts them to float32 itself.
+    episodes (docs/environment.md, "Gymnasium conventions"); RL code casts them to float32 itself.
 
     ## Rewards
     Minus the stage cost on the true state before the step and the applied action:

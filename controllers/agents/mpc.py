@@ -392,7 +392,7 @@ class OracleMPCAgent(MPCAgent):
     """UPPER BOUND, not a realisable controller: reads the true state and future force.
 
     It gets the env (``make_agent("oracle", env=env)``) and reads
-    ``env.unwrapped.true_state`` and ``env.unwrapped.preview_disturbance(N)``, which do
+    ``env.unwrapped.true_state`` and ``env.unwrapped.preview_latent_force(N)``, which do
     not change the episode. The observation passed to :meth:`act` is ignored.
     """
 

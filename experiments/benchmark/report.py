@@ -2,7 +2,7 @@
 
 :func:`format_report` prints the speed table, the detailed tables (closed loop, horizons,
 scenario sweep, first solve, filter, episode), every failed solve and the targets;
-:func:`format_markdown` gives the speed table and the targets as Markdown (for the README);
+:func:`format_markdown` gives the speed table and the targets as Markdown (for docs/benchmark.md);
 :func:`json_ready` makes a result strict JSON. :func:`evaluate_targets` and
 :func:`speed_targets` are :mod:`experiments.benchmark.targets`'.
 """
@@ -119,7 +119,7 @@ def format_speed_table(results: dict[str, Any]) -> str:
 
 
 def format_markdown(results: dict[str, Any]) -> str:
-    """The speed table and the targets as Markdown (e.g. for the README)."""
+    """The speed table and the targets as Markdown (e.g. for docs/benchmark.md)."""
     lines = [
         f"| solver ({_speed_title(results)}) | median [ms] | p95 [ms] | x fast (median) "
         "| objective vs reference |",

@@ -42,7 +42,8 @@ def one_line_errors(prog: str) -> Callable:
                 return 2
             except MemoryError:
                 print(
-                    f"{prog}: error: out of memory; use smaller settings (see README, Limits)",
+                    f"{prog}: error: out of memory; use smaller settings "
+                    "(see docs/configuration.md, Limits)",
                     file=sys.stderr,
                 )
                 return 2

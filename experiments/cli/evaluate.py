@@ -73,8 +73,8 @@ def _evaluate_parser() -> argparse.ArgumentParser:
             "comma-separated agents (default: nominal,pf,scenario): registered names, or "
             "your own agent as module:attribute, a factory called with the resolved config "
             "(or an agent class taking it) returning an object with reset(seed=None) and "
-            "act(obs) (README, 'Your own agent'; the module is looked up from the current "
-            f"folder too). {agents_help}"
+            "act(obs) (docs/own-system.md, 'Your own agent'; the module is looked up from the "
+            f"current folder too). {agents_help}"
         ),
     )
     parser.add_argument(
