@@ -96,6 +96,14 @@ SOLVER_SPECS: dict[str, SolverSpec] = {
             threaded=True,
         ),
         SolverSpec(
+            "fast_c",
+            "controllers.solvers.fast.compiled:CompiledScenarioSolver",
+            "the same SQP with its whole loop compiled (one C call per solve; the project's "
+            "own QP solvers in C; the Python loop, with a notice, where no compiler works)",
+            max_horizon=40,
+            threaded=True,
+        ),
+        SolverSpec(
             "ipopt",
             _IPOPT,
             "IPOPT on the condensed NLP (inputs and slacks only)",

@@ -26,6 +26,7 @@ def test_the_names_are_the_registrys_and_each_entry_point_is_a_solver_class():
         == tuple(SOLVER_SPECS)
         == (
             "fast",
+            "fast_c",
             "ipopt",
             "ipopt_multiple_shooting",
             "sqpmethod",
@@ -80,7 +81,7 @@ def test_the_config_checks_the_capabilities_of_the_records():
     threaded: from the records, before any solver is built."""
     limited = [name for name, spec in SOLVER_SPECS.items() if spec.max_horizon is not None]
     threaded = [name for name, spec in SOLVER_SPECS.items() if spec.threaded]
-    assert limited == threaded == ["fast"]
+    assert limited == threaded == ["fast", "fast_c"]
     longest = SOLVER_SPECS["fast"].max_horizon
     with pytest.raises(ConfigError, match=rf"agents.horizon={longest + 1}: must be <= {longest}"):
         load_config({"agents": {"horizon": longest + 1}})

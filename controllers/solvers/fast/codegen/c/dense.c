@@ -1,0 +1,438 @@
+/* Small dense linear algebra of the compiled SQP loop (sqp.c): a Cholesky test, a symmetric
+   eigen-decomposition (cyclic Jacobi) and a dual active-set QP solver for the QPs without
+   slacks (Goldfarb and Idnani's method). Written for the fast SQP's sizes: n = N nu inputs
+   (14 at N = 7, 60 at N = 30), matrices row-major. Names start with dq_ (static) or
+   lfm_dense_ (exported, for the tests). */
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* 1 if the symmetric M (n, n) has a Cholesky factor (every pivot > 0, as LAPACK's dpotrf on
+   its lower triangle decides), else 0. M is read only; work: n * n doubles. */
+static int dq_positive_definite(long n, const double* M, double* work) {
+  for (long j = 0; j < n; ++j) {
+    double* Lj = work + j * n;
+    double s = M[j * n + j];
+    for (long k = 0; k < j; ++k) s -= Lj[k] * Lj[k];
+    if (!(s > 0.0)) return 0;
+    const double l = sqrt(s);
+    Lj[j] = l;
+    for (long i = j + 1; i < n; ++i) {
+      double* Li = work + i * n;
+      double t = M[i * n + j];
+      for (long k = 0; k < j; ++k) t -= Li[k] * Lj[k];
+      Li[j] = t / l;
+    }
+  }
+  return 1;
+}
+
+/* Lower Cholesky factor L of M (n, n) into L (rows; the upper part zero); -1 if M is not
+   positive definite. */
+static int dq_cholesky(long n, const double* M, double* L) {
+  memset(L, 0, sizeof(double) * n * n);
+  for (long j = 0; j < n; ++j) {
+    double* Lj = L + j * n;
+    double s = M[j * n + j];
+    for (long k = 0; k < j; ++k) s -= Lj[k] * Lj[k];
+    if (!(s > 0.0)) return -1;
+    const double l = sqrt(s);
+    Lj[j] = l;
+    for (long i = j + 1; i < n; ++i) {
+      double* Li = L + i * n;
+      double t = M[i * n + j];
+      for (long k = 0; k < j; ++k) t -= Li[k] * Lj[k];
+      Li[j] = t / l;
+    }
+  }
+  return 0;
+}
+
+/* Eigen-decomposition M = V diag(w) V' of the symmetric M (n, n): Householder reduction to
+   a tridiagonal T = Q' M Q, then implicit symmetric QR steps with Wilkinson's shift on T
+   (Golub and Van Loan, Matrix Computations, 8.3), their rotations accumulated into Q. w
+   ascending, V's columns the eigenvectors (row-major, V[r n + c]). work: n * n + 3 n
+   doubles. Returns 0, or -1 if M is not finite or the QR steps did not converge. */
+static int dq_eigh(long n, const double* M, double* w, double* V, double* work) {
+  double* a = work;
+  double *e = work + n * n, *v = e + n, *p = v + n;
+  memcpy(a, M, sizeof(double) * n * n);
+  memset(V, 0, sizeof(double) * n * n);
+  double norm = 0.0;
+  for (long i = 0; i < n; ++i) {
+    V[i * n + i] = 1.0;
+    for (long j = 0; j < n; ++j) norm = fmax(norm, fabs(a[i * n + j]));
+  }
+  if (!isfinite(norm)) return -1;
+  /* Householder: column k below the subdiagonal zeroed by H = I - beta v v' on k + 1.. */
+  for (long k = 0; k + 2 < n; ++k) {
+    const long L = n - k - 1;
+    double xn = 0.0;
+    for (long j = 0; j < L; ++j) xn += a[(k + 1 + j) * n + k] * a[(k + 1 + j) * n + k];
+    xn = sqrt(xn);
+    double tail = 0.0;
+    for (long j = 1; j < L; ++j) tail = fmax(tail, fabs(a[(k + 1 + j) * n + k]));
+    if (tail == 0.0) continue; /* already tridiagonal in this column */
+    const double x0 = a[(k + 1) * n + k];
+    const double alpha = x0 >= 0.0 ? -xn : xn;
+    for (long j = 0; j < L; ++j) v[j] = a[(k + 1 + j) * n + k];
+    v[0] -= alpha;
+    double vv = 0.0;
+    for (long j = 0; j < L; ++j) vv += v[j] * v[j];
+    const double beta = 2.0 / vv;
+    /* A22 <- H A22 H = A22 - v w' - w v', p = beta A22 v, w = p - (beta v'p / 2) v */
+    double vp = 0.0;
+    for (long i = 0; i < L; ++i) {
+      const double* ai = a + (k + 1 + i) * n + k + 1;
+      double t = 0.0;
+      for (long j = 0; j < L; ++j) t += ai[j] * v[j];
+      p[i] = beta * t;
+      vp += v[i] * p[i];
+    }
+    const double K = 0.5 * beta * vp;
+    for (long i = 0; i < L; ++i) p[i] -= K * v[i];
+    for (long i = 0; i < L; ++i) {
+      double* ai = a + (k + 1 + i) * n + k + 1;
+      for (long j = 0; j < L; ++j) ai[j] -= v[i] * p[j] + p[i] * v[j];
+    }
+    a[(k + 1) * n + k] = a[k * n + k + 1] = alpha;
+    for (long j = 1; j < L; ++j) a[(k + 1 + j) * n + k] = a[k * n + k + 1 + j] = 0.0;
+    for (long r = 0; r < n; ++r) { /* Q <- Q H */
+      double* qr = V + r * n + k + 1;
+      double t = 0.0;
+      for (long j = 0; j < L; ++j) t += qr[j] * v[j];
+      t *= beta;
+      for (long j = 0; j < L; ++j) qr[j] -= t * v[j];
+    }
+  }
+  for (long i = 0; i < n; ++i) {
+    w[i] = a[i * n + i];
+    e[i] = i + 1 < n ? a[(i + 1) * n + i] : 0.0;
+  }
+  /* implicit QR steps on the unreduced blocks [l, m], from the bottom */
+  long m = n - 1, steps = 0;
+  while (m > 0) {
+    for (long i = 0; i < m; ++i)
+      if (fabs(e[i]) <= 1e-16 * (fabs(w[i]) + fabs(w[i + 1])) || fabs(e[i]) <= 1e-300 * norm)
+        e[i] = 0.0;
+    if (e[m - 1] == 0.0) {
+      --m;
+      continue;
+    }
+    long l = m - 1;
+    while (l > 0 && e[l - 1] != 0.0) --l;
+    if (++steps > 60 * n) return -1;
+    const double delta = 0.5 * (w[m - 1] - w[m]);
+    const double em = e[m - 1];
+    const double mu = w[m] - em * em / (delta + (delta >= 0.0 ? 1.0 : -1.0) * hypot(delta, em));
+    double x = w[l] - mu, z = e[l], bulge = 0.0;
+    for (long k = l; k < m; ++k) {
+      if (k > l) x = e[k - 1], z = bulge;
+      const double r = hypot(x, z);
+      const double c = r > 0.0 ? x / r : 1.0, s = r > 0.0 ? z / r : 0.0;
+      if (k > l) e[k - 1] = r;
+      const double dk = w[k], ek = e[k], dk1 = w[k + 1];
+      w[k] = c * c * dk + 2.0 * c * s * ek + s * s * dk1;
+      e[k] = -c * s * dk + (c * c - s * s) * ek + c * s * dk1;
+      w[k + 1] = s * s * dk - 2.0 * c * s * ek + c * c * dk1;
+      if (k + 1 < m) {
+        bulge = s * e[k + 1];
+        e[k + 1] *= c;
+      }
+      for (long rr = 0; rr < n; ++rr) { /* Q <- Q P' on columns k, k + 1 */
+        double* q = V + rr * n + k;
+        const double qa = q[0], qb = q[1];
+        q[0] = c * qa + s * qb;
+        q[1] = -s * qa + c * qb;
+      }
+    }
+  }
+  /* ascending, the vectors with them (selection sort: n is small) */
+  for (long i = 0; i < n; ++i) {
+    long best = i;
+    for (long j = i + 1; j < n; ++j)
+      if (w[j] < w[best]) best = j;
+    if (best != i) {
+      const double t = w[i];
+      w[i] = w[best];
+      w[best] = t;
+      for (long r = 0; r < n; ++r) {
+        const double q = V[r * n + i];
+        V[r * n + i] = V[r * n + best];
+        V[r * n + best] = q;
+      }
+    }
+  }
+  return 0;
+}
+
+/* dq_eigh for the tests: 0 or -1 (-3 out of memory). */
+CASADI_SYMBOL_EXPORT int lfm_dense_eigh(long n, const double* M, double* w, double* V) {
+  double* work = malloc(sizeof(double) * (size_t)(n * n + 3 * n + 1));
+  if (!work) return -3;
+  const int code = dq_eigh(n, M, w, V, work);
+  free(work);
+  return code;
+}
+
+/* out (n, n) = V diag(f(w)) V' with f(w) = max(w, floor), or max(|w|, floor) if absolute. */
+static void dq_rebuild(long n, const double* w, const double* V, double floor, int absolute,
+                       double* out) {
+  for (long r = 0; r < n; ++r)
+    for (long c = 0; c <= r; ++c) {
+      double s = 0.0;
+      for (long k = 0; k < n; ++k) {
+        const double wk = absolute ? fabs(w[k]) : w[k];
+        s += V[r * n + k] * (wk > floor ? wk : floor) * V[c * n + k];
+      }
+      out[r * n + c] = out[c * n + r] = s;
+    }
+}
+
+/* ------------------------------------------------------------------ the QP without slacks
+
+   min x'H x / 2 + g'x  over  lo <= x <= hi  and  A x <= b, H positive definite, by the dual
+   active-set method of Goldfarb and Idnani (Math. Programming 27, 1983): start at the
+   unconstrained minimum, add the most violated constraint, step in the primal and dual
+   space until it is active, dropping the constraints whose multiplier reaches zero on the
+   way. The factorisation J = L^-T Q, R of the active normals is updated by Givens rotations.
+   Each constraint k is written c_k'x >= e_k: a row (k < m) as -a_k'x >= -b_k, an upper
+   bound (m <= k < m + n) as -x_j >= -hi_j, a lower bound as x_j >= lo_j. */
+
+typedef struct {
+  long n, m;
+  const double *A, *b, *lo, *hi;
+} dq_cons_t;
+
+/* The value c_k'x - e_k (>= 0: satisfied) of constraint k at x. */
+static double dq_slack(const dq_cons_t* c, long k, const double* x) {
+  const long n = c->n;
+  if (k < c->m) {
+    const double* a = c->A + k * n;
+    double s = 0.0;
+    for (long j = 0; j < n; ++j) s += a[j] * x[j];
+    return c->b[k] - s;
+  }
+  if (k < c->m + n) return c->hi[k - c->m] - x[k - c->m];
+  return x[k - c->m - n] - c->lo[k - c->m - n];
+}
+
+/* d = J' c_k (J (n, n) row-major). */
+static void dq_project(const dq_cons_t* c, long k, const double* J, double* d) {
+  const long n = c->n;
+  if (k < c->m) {
+    const double* a = c->A + k * n;
+    for (long i = 0; i < n; ++i) d[i] = 0.0;
+    for (long r = 0; r < n; ++r) {
+      const double ar = a[r];
+      if (ar == 0.0) continue;
+      const double* Jr = J + r * n;
+      for (long i = 0; i < n; ++i) d[i] -= ar * Jr[i];
+    }
+  } else if (k < c->m + n) {
+    const double* Jr = J + (k - c->m) * n;
+    for (long i = 0; i < n; ++i) d[i] = -Jr[i];
+  } else {
+    const double* Jr = J + (k - c->m - n) * n;
+    for (long i = 0; i < n; ++i) d[i] = Jr[i];
+  }
+}
+
+/* A Givens rotation of columns i and i + 1 of J: (J_i, J_i+1) <- (c J_i + s J_i+1,
+   -s J_i + c J_i+1). */
+static void dq_rotate_columns(long n, double* J, long i, double c, double s) {
+  for (long r = 0; r < n; ++r) {
+    double* Jr = J + r * n;
+    const double a = Jr[i], b = Jr[i + 1];
+    Jr[i] = c * a + s * b;
+    Jr[i + 1] = -s * a + c * b;
+  }
+}
+
+/* Drop active constraint l of q: R (n, n) row-major loses column l and is made upper
+   triangular again by rotations, applied to J's columns too. */
+static void dq_drop(long n, long q, long l, double* R, double* J, long* act, double* u) {
+  for (long c = l; c + 1 < q; ++c) {
+    for (long r = 0; r < n; ++r) R[r * n + c] = R[r * n + c + 1];
+    act[c] = act[c + 1];
+    u[c] = u[c + 1];
+  }
+  for (long r = 0; r < n; ++r) R[r * n + q - 1] = 0.0;
+  for (long j = l; j + 1 < q; ++j) { /* zero R[j + 1, j] */
+    const double a = R[j * n + j], b = R[(j + 1) * n + j];
+    const double h = hypot(a, b);
+    if (h == 0.0) continue;
+    const double c = a / h, s = b / h;
+    R[j * n + j] = h;
+    R[(j + 1) * n + j] = 0.0;
+    for (long k = j + 1; k + 1 < q; ++k) {
+      const double x = R[j * n + k], y = R[(j + 1) * n + k];
+      R[j * n + k] = c * x + s * y;
+      R[(j + 1) * n + k] = -s * x + c * y;
+    }
+    dq_rotate_columns(n, J, j, c, s);
+  }
+}
+
+/* Add constraint p with d = J' c_p: rotations zero d[q + 1 ..], applied to J's columns; d[0..q]
+   becomes column q of R. */
+static void dq_add(long n, long q, double* d, double* R, double* J) {
+  for (long j = n - 1; j > q; --j) {
+    const double a = d[j - 1], b = d[j];
+    if (b == 0.0) continue;
+    const double h = hypot(a, b);
+    const double c = a / h, s = b / h;
+    d[j - 1] = h;
+    d[j] = 0.0;
+    dq_rotate_columns(n, J, j - 1, c, s);
+  }
+  for (long r = 0; r <= q; ++r) R[r * n + q] = d[r];
+}
+
+enum { DQ_SOLVED = 0, DQ_INFEASIBLE = 1, DQ_ITERATIONS = 2, DQ_NOT_CONVEX = 3, DQ_MEMORY = 4 };
+
+/* One full or partial step towards the violated constraint p (Goldfarb-Idnani step 2, until p
+   is added or the problem is found infeasible); returns -1 (infeasible), else the
+   constraints added (0 or 1), and counts the rotations' steps in *steps. */
+static int dq_step_to(const dq_cons_t* cons, long p, double* x, double* J, double* R,
+                      long* act, double* u, long* q_io, double* d, double* z, double* r,
+                      long max_steps, long* steps) {
+  const long n = cons->n;
+  long q = *q_io;
+  double uq = 0.0; /* the multiplier of p */
+  for (;;) {
+    if (++*steps > max_steps) return -2;
+    dq_project(cons, p, J, d);
+    double d2 = 0.0, dn = 0.0;
+    for (long i = 0; i < n; ++i) {
+      dn += d[i] * d[i];
+      if (i >= q) d2 += d[i] * d[i];
+    }
+    const int primal = d2 > 1e-20 * dn; /* c_p independent of the active normals */
+    for (long i = q - 1; i >= 0; --i) { /* r = R^-1 d[0..q) */
+      double s = d[i];
+      for (long k = i + 1; k < q; ++k) s -= R[i * n + k] * r[k];
+      r[i] = s / R[i * n + i];
+    }
+    double t1 = INFINITY;
+    long l = -1;
+    for (long j = 0; j < q; ++j)
+      if (r[j] > 0.0 && u[j] / r[j] < t1) t1 = u[j] / r[j], l = j;
+    double t2 = INFINITY;
+    if (primal) {
+      for (long i = 0; i < n; ++i) {
+        double s = 0.0;
+        for (long k = q; k < n; ++k) s += J[i * n + k] * d[k];
+        z[i] = s;
+      }
+      t2 = -dq_slack(cons, p, x) / d2;
+      if (t2 < 0.0) t2 = 0.0;
+    }
+    const double t = t1 < t2 ? t1 : t2;
+    if (!(t < INFINITY)) return -1;
+    for (long j = 0; j < q; ++j) u[j] -= t * r[j];
+    uq += t;
+    if (primal)
+      for (long i = 0; i < n; ++i) x[i] += t * z[i];
+    if (primal && t2 <= t1) { /* full step: p becomes active */
+      dq_add(n, q, d, R, J);
+      act[q] = p;
+      u[q] = uq;
+      *q_io = q + 1;
+      return 1;
+    }
+    dq_drop(n, q, l, R, J, act, u); /* partial step: constraint l leaves */
+    --q;
+    *q_io = q;
+  }
+}
+
+/* Solves min x'Hx/2 + g'x, lo <= x <= hi (infinite: none), A x <= b (rows with b = +inf
+   skipped): x (n), the rows' multipliers lam (m, >= 0; zero where inactive); tol: the
+   violation a constraint may keep. Returns DQ_SOLVED, DQ_INFEASIBLE, DQ_ITERATIONS,
+   DQ_NOT_CONVEX or DQ_MEMORY. */
+CASADI_SYMBOL_EXPORT int lfm_dense_qp(long n, long m, const double* H, const double* g,
+    const double* lo, const double* hi, const double* A, const double* b, double tol,
+    long max_steps, double* x, double* lam, long* steps_out) {
+  const long K = m + 2 * n;
+  double* buf = malloc(sizeof(double) * (size_t)(3 * n * n + 4 * n + K + 1));
+  long* act = malloc(sizeof(long) * (size_t)(n + 1));
+  unsigned char* skip = calloc((size_t)K + 1, 1);
+  if (!buf || !act || !skip) {
+    free(buf);
+    free(act);
+    free(skip);
+    return DQ_MEMORY;
+  }
+  double *L = buf, *J = buf + n * n, *R = buf + 2 * n * n, *d = buf + 3 * n * n;
+  double *z = d + n, *r = z + n, *u = r + n, *tmp = u + n;
+  (void)tmp;
+  int status = DQ_SOLVED;
+  long q = 0, steps = 0;
+  dq_cons_t cons = {n, m, A, b, lo, hi};
+  for (long k = 0; k < m; ++k) skip[k] = !(b[k] < INFINITY);
+  for (long j = 0; j < n; ++j) {
+    skip[m + j] = !(fabs(hi[j]) < 1e30);
+    skip[m + n + j] = !(fabs(lo[j]) < 1e30);
+  }
+  if (dq_cholesky(n, H, L)) {
+    status = DQ_NOT_CONVEX;
+  } else {
+    /* J = L^-T: column i of L^-1 solves L y = e_i; J[r, i] = (L^-1)[i, r] */
+    memset(J, 0, sizeof(double) * n * n);
+    for (long i = 0; i < n; ++i) {
+      for (long rr = 0; rr < n; ++rr) {
+        double s = rr == i ? 1.0 : 0.0;
+        for (long k = 0; k < rr; ++k) s -= L[rr * n + k] * J[i * n + k];
+        J[i * n + rr] = s / L[rr * n + rr]; /* row i of J' = (L^-1)' ... stored transposed */
+      }
+    }
+    /* J above holds (L^-1)' rows as J[i, rr] = (L^-1)[rr, i]: i.e. J = L^-T. */
+    for (long i = 0; i < n; ++i) { /* x = -J J' g */
+      double s = 0.0;
+      for (long k = 0; k < n; ++k) s += J[k * n + i] * g[k];
+      d[i] = s;
+    }
+    for (long k = 0; k < n; ++k) {
+      double s = 0.0;
+      for (long i = 0; i < n; ++i) s += J[k * n + i] * d[i];
+      x[k] = -s;
+    }
+    for (;;) {
+      long p = -1;
+      double worst = -tol;
+      for (long k = 0; k < K; ++k) {
+        if (skip[k]) continue;
+        int active = 0;
+        for (long a = 0; a < q && !active; ++a) active = act[a] == k;
+        if (active) continue;
+        const double s = dq_slack(&cons, k, x);
+        if (s < worst || s != s) worst = s, p = k;
+        if (s != s) break;
+      }
+      if (p < 0) break;
+      if (worst != worst) {
+        status = DQ_INFEASIBLE;
+        break;
+      }
+      const int added = dq_step_to(&cons, p, x, J, R, act, u, &q, d, z, r, max_steps, &steps);
+      if (added == -1) {
+        status = DQ_INFEASIBLE;
+        break;
+      }
+      if (added == -2) {
+        status = DQ_ITERATIONS;
+        break;
+      }
+    }
+  }
+  for (long k = 0; k < m; ++k) lam[k] = 0.0;
+  if (status == DQ_SOLVED)
+    for (long a = 0; a < q; ++a)
+      if (act[a] < m) lam[act[a]] = u[a] > 0.0 ? u[a] : 0.0;
+  if (steps_out) *steps_out = steps;
+  free(buf);
+  free(act);
+  free(skip);
+  return status;
+}
