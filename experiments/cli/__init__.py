@@ -12,7 +12,8 @@ One module per command: :mod:`~experiments.cli.evaluate` (``lfm-evaluate``),
 :mod:`~experiments.cli.report` (``lfm-report``), :mod:`~experiments.cli.sweep`
 (``lfm-sweep``), :mod:`~experiments.cli.render` (``lfm-render``),
 :mod:`~experiments.cli.benchmark` (``lfm-benchmark``), :mod:`~experiments.cli.calibrate`
-(``lfm-calibrate``), :mod:`~experiments.cli.train` (``lfm-train``); what they share in
+(``lfm-calibrate``), :mod:`~experiments.cli.train` (``lfm-train``),
+:mod:`~experiments.cli.export` (``lfm-export``); what they share in
 :mod:`~experiments.cli.common`. The work is done by library functions, which import nothing
 from here. This package gives the entry points and the shared helpers.
 """
@@ -36,6 +37,7 @@ from experiments.cli.common import (
     seeds_and_executor,
 )
 from experiments.cli.evaluate import _evaluate_parser, evaluate_main
+from experiments.cli.export import _export_parser, export_main
 from experiments.cli.render import (
     MAX_RENDER_SIDE,
     RENDER_MEMORY_BUDGET,
@@ -56,6 +58,7 @@ COMMAND_PARSERS: dict[str, Callable[[], argparse.ArgumentParser]] = {
     "lfm-calibrate": _calibrate_parser,
     "lfm-train": _train_parser,
     "lfm-benchmark": build_parser,
+    "lfm-export": _export_parser,
 }
 
 __all__ = [
@@ -71,6 +74,7 @@ __all__ = [
     "config_argument_path",
     "config_file",
     "evaluate_main",
+    "export_main",
     "one_line_errors",
     "os_error_text",
     "positive_int",

@@ -102,7 +102,9 @@ def test_the_package_list_holds_every_package_of_the_source_tree():
         for p in (REPO / top).rglob("__init__.py")
     }
     assert found <= listed, f"add to [tool.setuptools] packages: {sorted(found - listed)}"
-    assert listed - found == {"experiments.presets", "controllers.solvers.fast.codegen.c"}
+    data_only = {"experiments.presets", "controllers.solvers.fast.codegen.c"}
+    data_only.add("controllers.export.c")
+    assert listed - found == data_only
     assert setuptools["package-dir"] == {"experiments.presets": "configs"}
     assert setuptools["package-data"]["experiments.presets"] == ["*.yaml"]
 
@@ -114,7 +116,8 @@ def test_the_c_files_are_package_data():
     sources = [
         p for top in ("lfm_env", "controllers", "experiments") for p in (REPO / top).rglob("*.[ch]")
     ]
-    assert {p.name for p in sources} >= {"driver.c", "elastic_ipm.c"}
+    assert {p.name for p in sources} >= {"driver.c", "elastic_ipm.c", "sqp.c", "lfm_controller.c"}
+    assert "Makefile" in data["controllers.export.c"]  # (copied by lfm-export)
     for path in sources:
         package = ".".join(path.parent.relative_to(REPO).parts)
         assert package in setuptools["packages"], f"add {package} to [tool.setuptools] packages"

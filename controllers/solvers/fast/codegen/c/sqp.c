@@ -19,50 +19,11 @@
    the QP solvers. Entry points: lfm_sqp_new, lfm_sqp_solve, lfm_sqp_reset, lfm_sqp_free. */
 #include <time.h>
 
+#include "sqp.h"
+
 #include "elastic_ipm.c"
 
 #include "dense.c"
-
-/* FastSolverOptions, one field each (bools and choices as longs). */
-typedef struct {
-  long max_iter;
-  double tol, acceptable_tol;
-  long acceptable_iter;
-  double step_tol, final_step_tol, screen_margin;
-  long screen_rows;
-  double add_tol;
-  long max_qp_rounds;
-  double armijo, backtrack, min_step, hessian_floor, slack_regularisation;
-  long second_order_correction;
-  double soc_below_ratio, damping_init, damping_threshold, damping_decrease;
-  long hessian_modification; /* 0 "floor", 1 "abs", 2 "augmented" */
-  long elastic_on_demand;    /* elastic_qp == "on_demand" */
-  long max_expand;
-  double expand_ratio;
-  long restart_mirror, restart_straight; /* "mirror", "straight" in restarts */
-  double restart_threshold;
-  long restart_probe;
-  double restart_optimism, restart_margin, restart_same_tol, restart_near_tol;
-  double trust_radius, min_trust_radius;
-  long threads;
-  double max_time; /* [s] per solve; INFINITY: none */
-} lfm_sqp_options;
-
-/* The scenario problem (controllers/problem.py) and what the solver finds in it. */
-typedef struct {
-  long n, ns;                                 /* horizon N, scenarios Ns */
-  double slack_penalty;                       /* rho */
-  const double *input_lower, *input_upper;    /* (NU) */
-  const double *goal, *Q, *Qf, *R;            /* (NX), (NX, NX), (NX, NX), (NU, NU) */
-  long n_shared;                              /* constraints that are one row per step */
-  const long* shared;                         /* (n_shared) their indices */
-  const double* shared_rows;                  /* (n_shared, N, N NU) their rows */
-  long n_screened;                            /* the others */
-  const long* screened;                       /* (n_screened) ascending */
-  const unsigned char* depends;               /* (NG, NX) constraint j depends on state m */
-  long n_mirror;                              /* system.mirror_inputs */
-  const long* mirror;
-} lfm_sqp_problem;
 
 /* Statuses (the Python loop's names: sqp.py STATUSES). */
 enum {
@@ -94,7 +55,7 @@ typedef struct {
   double *a, *g; /* (r, N NU) their Jacobian rows, (r) their values */
 } rows_t;
 
-typedef struct lfm_sqp {
+struct lfm_sqp {
   long n, ns, nut, nL, nsh, nsc, n_groups, nmirror;
   lfm_sqp_options o;
   double rho;
@@ -127,7 +88,7 @@ typedef struct lfm_sqp {
   double *prev_u;
   int has_prev;
   double *u_try, *u_prev;
-} lfm_sqp;
+};
 
 static double sq_now(void) {
   struct timespec t;
@@ -1189,3 +1150,19 @@ CASADI_SYMBOL_EXPORT int lfm_sqp_solve(lfm_sqp* s, const double* x0, const doubl
 }
 
 CASADI_SYMBOL_EXPORT long lfm_sqp_stats_count(void) { return ST_COUNT; }
+
+/* The constraints' Jacobian dg/dx at the state x into J (NG, NX) row-major (the exported
+   controller's back-off); 0, or 1 if the generated function failed. */
+CASADI_SYMBOL_EXPORT int lfm_constraint_jacobian(const double* x, double* J) {
+#if NG > 0
+  work_t wk;
+  if (work_alloc(&wk)) return 1;
+  const int status = CALL1(lfm_con_jac, x, J);
+  work_free(&wk);
+  return status;
+#else
+  (void)x;
+  (void)J;
+  return 0;
+#endif
+}
