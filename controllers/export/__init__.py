@@ -6,7 +6,13 @@ this module in ``c/``), :func:`write_problem` a scenario problem for its ``examp
 (:mod:`controllers.export.binding`). See ``docs/export.md``.
 """
 
-from controllers.export.binding import ExportedController, build_shared, config_defines
+from controllers.export.binding import (
+    ExportedController,
+    build_shared,
+    config_defines,
+    external_dependencies,
+    run_make,
+)
 from controllers.export.project import (
     EXPORTABLE_AGENTS,
     ExportResult,
@@ -23,7 +29,9 @@ __all__ = [
     "build_shared",
     "config_defines",
     "export_controller",
+    "external_dependencies",
     "read_plan",
+    "run_make",
     "solver_options",
     "write_problem",
 ]

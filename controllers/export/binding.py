@@ -68,6 +68,67 @@ def build_shared(folder: str | Path, cc: str | None = None) -> Path:
     return folder / "liblfm_controller.so"
 
 
+def _nm(*args: str) -> set[str]:
+    done = subprocess.run(["nm", *args], capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        raise RuntimeError(f"nm {' '.join(args)}: {done.stderr.strip()[:200]}")
+    return {line.split()[-1].split("@")[0] for line in done.stdout.splitlines() if line.split()}
+
+
+def external_dependencies(folder: str | Path) -> dict[str, Any]:
+    """What a built export needs at run time: the shared libraries ``ldd`` lists for
+    ``example``, and the symbols the static library leaves undefined that neither it nor
+    libc and libm define (``nm``).
+
+    Returns:
+        ``{"libraries": [...], "other_libraries": [...] (not libc, libm, the loader or the
+        vDSO), "undefined": [...], "outside_libc_libm": [...], "ok": bool}``.
+
+    Raises:
+        RuntimeError: when ``ldd`` or ``nm`` fails (not built, tools missing).
+    """
+    folder = Path(folder)
+    done = subprocess.run(
+        ["ldd", str(folder / "example")], capture_output=True, text=True, check=False
+    )
+    if done.returncode != 0:
+        raise RuntimeError(f"ldd {folder / 'example'}: {done.stderr.strip()[:200]}")
+    libraries = sorted({line.split()[0] for line in done.stdout.splitlines() if line.strip()})
+    basic = ("linux-vdso.so", "libc.so", "libm.so", "ld-linux", "/lib64/ld-linux")
+    other = [lib for lib in libraries if not lib.startswith(basic)]
+    archive = str(folder / "liblfm_controller.a")
+    undefined = _nm("-u", archive) - _nm("--defined-only", archive)
+    system: set[str] = set()
+    for line in done.stdout.splitlines():
+        if "=>" in line and ("libc.so" in line or "libm.so" in line):
+            system |= _nm("-D", "--defined-only", line.split("=>")[1].split()[0])
+    outside = sorted(undefined - system)
+    return {
+        "libraries": libraries,
+        "other_libraries": other,
+        "undefined": sorted(undefined),
+        "outside_libc_libm": outside,
+        "ok": not other and not outside,
+    }
+
+
+def run_make(folder: str | Path, *targets: str, cc: str | None = None) -> float:
+    """``make -C folder [targets]`` (with ``CC=cc``): its wall time [s].
+
+    Raises:
+        RuntimeError: with make's last lines when the build fails.
+    """
+    import time
+
+    cmd = ["make", "-C", str(folder), *targets] + ([f"CC={cc}"] if cc else [])
+    t0 = time.perf_counter()
+    done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        tail = (done.stderr or done.stdout).strip().splitlines()[-5:]
+        raise RuntimeError(f"make {' '.join(targets)} failed in {folder}: {tail}")
+    return time.perf_counter() - t0
+
+
 class ExportedController:
     """The exported controller of ``folder`` (built with :func:`build_shared` if needed).
 
@@ -167,4 +228,12 @@ class ExportedController:
         return self.lib.lfm_status_name(int(code)).decode()
 
 
-__all__ = ["ACTIONS", "ExportedController", "LfmInfo", "build_shared", "config_defines"]
+__all__ = [
+    "ACTIONS",
+    "ExportedController",
+    "LfmInfo",
+    "build_shared",
+    "config_defines",
+    "external_dependencies",
+    "run_make",
+]

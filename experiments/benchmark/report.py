@@ -27,7 +27,7 @@ from experiments.benchmark.targets import (
     target,
 )
 
-SPEED_TABLE_SOLVERS = ("fast", ANCHOR, "ipopt", TEXTBOOK, "csnlp")
+SPEED_TABLE_SOLVERS = ("fast", "fast_c", ANCHOR, "ipopt", TEXTBOOK, "csnlp")
 
 
 # --------------------------------------------------------------------------- text
@@ -79,7 +79,7 @@ def speed_rows(results: dict[str, Any]) -> list[tuple[str, str, str, str, str]]:
                 "",
             )
         )
-    for name in ("fast", *SOLVER_VARIANTS):
+    for name in ("fast", "fast_c", *SOLVER_VARIANTS):
         large = large_ns_median(results, name)
         if large is not None:
             rows.append((f"{name}, Ns={LARGE_NS} (sweep)", _fmt(large, ".2f"), "", "", ""))
@@ -130,6 +130,10 @@ def format_markdown(results: dict[str, Any]) -> str:
     lines += ["", _ratio_line(results) + ".", ""]
     for t in results.get("targets", []):
         lines.append(f"- {_target_line(t)}")
+    if results.get("compiled"):
+        from experiments.benchmark.compiled import compiled_lines
+
+        lines += ["", "```text", *compiled_lines(results), "```"]
     return "\n".join(lines) + "\n"
 
 
@@ -399,6 +403,10 @@ def format_report(results: dict[str, Any]) -> str:
         lines.append("")
     if "failures" in results:
         lines += _failure_lines(results["failures"]) + [""]
+    if results.get("compiled"):
+        from experiments.benchmark.compiled import compiled_lines
+
+        lines += compiled_lines(results) + [""]
     lines.append("Targets")
     lines += [f"  {_target_line(t)}" for t in results.get("targets", [])]
     return "\n".join(lines)

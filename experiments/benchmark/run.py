@@ -7,15 +7,19 @@ The benchmark answers the solver issues' questions with measurements, never with
   scenario agent (seeds 0..5), recording the ``(x0, W)`` it met at every step.
 * **Solvers side by side** (:mod:`experiments.benchmark.solvers`): the solvers of the registry
   (:data:`controllers.solvers.SOLVERS`; by default all but ``csnlp``: ``fast``,
-  ``ipopt``, ``ipopt_multiple_shooting`` (the textbook reference),
-  ``sqpmethod`` (CasADi's SQP + qpOASES, JIT-compiled: the anchor)) solve these problems in
-  closed-loop order, warm-started from their own past, interleaved problem by problem;
+  ``fast_c`` (its whole loop compiled), ``ipopt``, ``ipopt_multiple_shooting`` (the textbook
+  reference), ``sqpmethod`` (CasADi's SQP + qpOASES, JIT-compiled: the anchor)) solve
+  these problems in closed-loop order, warm-started from their own past, interleaved problem
+  by problem;
   times, iterations, objectives (:meth:`~controllers.problem.ScenarioProblem.objective` of
   the returned inputs) and violations; then the fast solver again alone.
 * **Horizons, scenario counts, first solve, particle filter, whole episode**
   (:mod:`experiments.benchmark.suites`): fast and IPOPT at ``N`` = 7, 15, 30; ``Ns`` up to
   5000; a fresh fast solver's build and first solve (compilation included); the filter
   with 7000 particles; one episode.
+* **The compiled loop and the export** (:mod:`experiments.benchmark.compiled`): ``fast_c``
+  against the Python loop with the same QP solvers, plan by plan; the exported C projects
+  built with ``make`` and timed from C, their plans and run-time dependencies.
 * **Failures**: every failed solve of every solver and part, with its problem's id.
 * **Verdicts and report** (:mod:`experiments.benchmark.targets`,
   :mod:`experiments.benchmark.report`): PASS/FAIL per target with the measured figure,
@@ -113,6 +117,7 @@ def run_benchmark(
     pf_steps: int = 200,
     thresholds: dict[str, float] | None = None,
     progress: bool = True,
+    compiled: bool = True,
 ) -> dict[str, Any]:
     """Run every part of the benchmark and judge the targets.
 
@@ -135,10 +140,13 @@ def run_benchmark(
         thresholds: target thresholds to change, by key
             (:data:`experiments.benchmark.targets.DEFAULT_THRESHOLDS`).
         progress: show progress bars.
+        compiled: the compiled loop's plan agreement and the exported controllers
+            (:func:`experiments.benchmark.compiled.time_compiled`; ``fast_c`` itself is timed
+            with the solvers when it is among them).
 
     Returns:
         All figures: ``meta``, ``closed_loop``, ``horizons``, ``sweep``, ``first_solve``,
-        ``particle_filter``, ``episode``, ``failures`` and ``targets``.
+        ``particle_filter``, ``episode``, ``compiled``, ``failures`` and ``targets``.
 
     Raises:
         ValueError: for an unknown solver name or threshold key, or a bad config.
@@ -208,6 +216,11 @@ def run_benchmark(
             "particle_filter", time_particle_filter, pf_sizes, config=cfg, n_steps=pf_steps
         )
     results["episode"] = timed("episode", time_episode, cfg, seed=int(seeds[0]))
+    if compiled:
+        from experiments.benchmark.compiled import AGREEMENT_NS, time_compiled
+
+        large = tuple(ns for ns in AGREEMENT_NS if ns in sweep_ns)
+        results["compiled"] = timed("compiled", time_compiled, cfg, problems, anchors, large)
     results["failures"] = all_failures(results)
     results["targets"] = evaluate_targets(results, thresholds)
     meta["load_average_end"] = _load()

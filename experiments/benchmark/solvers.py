@@ -29,12 +29,13 @@ from experiments.evaluation.interrupts import raise_if_interrupted
 SOLVER_LABELS = {
     "fast": "fast SQP, derivatives generated from the system (FastScenarioSolver)",
     "fast_2threads": "fast SQP, its C library on two threads (threads=2)",
+    "fast_c": "fast SQP with its whole loop compiled (CompiledScenarioSolver, own C QP solvers)",
     "ipopt": "IPOPT, condensed (single shooting)",
     "ipopt_multiple_shooting": "IPOPT, multiple shooting, exact Hessian (textbook reference)",
     "sqpmethod": "CasADi sqpmethod + qpOASES, condensed, JIT-compiled (the SQP anchor)",
     "csnlp": "csnlp ScenarioBasedMpc + IPOPT",
 }
-FAST_SOLVERS = ("fast",)  # timed again alone, without IPOPT in between
+FAST_SOLVERS = ("fast", "fast_c")  # timed again alone, without IPOPT in between
 # Variants of a registered solver with options, by the name the tables give them: the fast
 # solver with its C library on two threads (FastSolverOptions.threads), timed in the
 # scenario sweep (bench_suites.sweep_scenarios).

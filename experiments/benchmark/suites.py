@@ -63,7 +63,7 @@ HORIZON_SOLVERS = ("fast", "ipopt")  # the second is the objective reference
 # (about 10 s on a busy 2-core machine) and can spend minutes on a hard problem; a solve
 # that reaches its limit is a failed solve (kind wall_time).
 HORIZON_MAX_TIME_S = {"fast": 10.0, "ipopt": 30.0}
-SWEEP_SOLVERS = ("fast",)  # timed at every Ns
+SWEEP_SOLVERS = ("fast", "fast_c")  # timed at every Ns
 # Timed from this Ns on, and at the largest Ns of a shorter sweep: the solver variants
 # (bench_solvers.SOLVER_VARIANTS; the fast solver's C library on two threads, which pays for
 # many scenarios).

@@ -41,6 +41,17 @@ DEFAULT_THRESHOLDS: dict[str, float] = {
     "pf_step_ms": 0.6,  # particle-filter step at PF_PARTICLES [ms]
     "cold_build_s": 5.0,  # fast solver built with an empty C library cache + first solve [s]
     "episode_s": 3.0,  # a whole paper episode [s]
+    # Issue 37, the compiled loop (fast_c) and the exported controller
+    # (experiments.benchmark.compiled):
+    "fast_c_median_ms": 0.8,  # fast_c median solve [ms]
+    "fast_c_p95_ms": 3.0,  # fast_c p95 solve [ms]
+    "anchor_over_fast_c": 25.0,  # sqpmethod median / fast_c median
+    "textbook_over_fast_c": 500.0,  # textbook IPOPT median / fast_c median
+    "fast_c_ns1000_median_ms": 4.0,  # fast_c median at Ns = 1000 [ms]
+    "fast_c_ns5000_median_ms": 15.0,  # fast_c median at Ns = 5000 [ms]
+    "robust_step_ms": 1.0,  # the exported robust agent's whole step, median [ms]
+    "export_plan_diff": 1e-8,  # exported example vs Python loop, largest plan difference
+    "export_dependencies": 0.0,  # run-time dependencies of the export beyond libc and libm
 }
 _OPS = {"<=": np.less_equal, ">=": np.greater_equal, ">": np.greater}
 
@@ -414,14 +425,18 @@ def evaluate_targets(
 
     Returns:
         :func:`target` dicts: the main size's speed and accuracy, the horizons, then large
-        ``Ns``, QP failures, the filter, the cold first build and the episode.
+        ``Ns``, QP failures, the filter, the cold first build and the episode, then the
+        compiled loop's and the export's (:func:`experiments.benchmark.compiled.compiled_targets`).
     """
+    from experiments.benchmark.compiled import compiled_targets
+
     th = check_thresholds(thresholds)
     closed = results.get("closed_loop", {})
     return (
         _closed_loop_targets(closed, th)
         + _horizon_targets(results, th)
         + _other_targets(results, th)
+        + compiled_targets(results, th)
     )
 
 

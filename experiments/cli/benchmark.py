@@ -167,6 +167,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=DEFAULT_OUT,
         help="JSON output (default: %(default)s); the Markdown table goes beside it (.md)",
     )
+    parser.add_argument(
+        "--no-compiled",
+        action="store_true",
+        help="leave out the compiled loop's plan agreement and the exported C controllers "
+        "(built with make and timed from C); fast_c is still timed when among --solvers",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     return parser
 
@@ -209,6 +215,7 @@ def benchmark_main(argv: Sequence[str] | None = None) -> int:
         horizons=horizons,
         thresholds=dict(args.threshold),
         progress=not args.no_progress,
+        compiled=not args.no_compiled,
         **options,
     )
     results["meta"]["argv"] = list(sys.argv[1:] if argv is None else argv)

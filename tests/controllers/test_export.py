@@ -26,6 +26,7 @@ from controllers.config import load_config
 from controllers.export import (
     ExportedController,
     export_controller,
+    external_dependencies,
     read_plan,
     solver_options,
     write_problem,
@@ -242,6 +243,10 @@ def test_the_libraries_need_only_libc_and_libm(robust_export):
         assert path, f"{name} not linked"
         system |= symbols("-D", "--defined-only", path=path)
     assert undefined and undefined <= system, undefined - system
+    # The benchmark's check (controllers.export.external_dependencies) finds the same.
+    deps = external_dependencies(robust_export)
+    assert deps["ok"] and deps["other_libraries"] == deps["outside_libc_libm"] == []
+    assert set(deps["libraries"]) == libraries and set(deps["undefined"]) == undefined
 
 
 def test_a_solve_only_export_refuses_the_step(quadrotor_export, tmp_path):

@@ -6,18 +6,21 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
 
+from experiments.benchmark import compiled as bench_compiled
 from experiments.benchmark import report as bench_report
 from experiments.benchmark import solvers as bench_solvers
 from experiments.benchmark import targets as bench_targets
 from experiments.cli import benchmark as benchmark_cli
 
 TIMING_KEYS = ("solve_ms_median", "solve_ms_p95", "solve_ms_max", "wall_ms_median")
-# The textbook and csnlp are slow; sqpmethod (the anchor) is in, JIT compilation included.
-QUICK_SOLVERS = ("fast", "ipopt", "sqpmethod")
+# The textbook and csnlp are slow; sqpmethod (the anchor) is in, JIT compilation included,
+# and the compiled loop (fast_c) beside the Python loop (fast).
+QUICK_SOLVERS = ("fast", "fast_c", "ipopt", "sqpmethod")
 # A threshold no run can meet: the quick run must still exit 0 (no --check) and say FAIL.
 IMPOSSIBLE = "fast_median_ms=1e-9"
 
@@ -46,6 +49,7 @@ def test_quick_run_writes_complete_json(quick_run: tuple[dict, str]) -> None:
         "first_solve",
         "particle_filter",
         "episode",
+        "compiled",
         "failures",
         "targets",
     ):
@@ -78,7 +82,7 @@ def test_quick_run_writes_complete_json(quick_run: tuple[dict, str]) -> None:
     assert closed["solvers"]["sqpmethod"]["build_time_s"] > 0
     assert _finite(closed["speedup"]["sqpmethod"]["median_ratio"])
     # The fast solver's closed loop again, alone: same problems, the same plans.
-    assert set(closed["alone"]) == {"fast"}
+    assert set(closed["alone"]) == {"fast", "fast_c"}
     for alone in closed["alone"].values():
         assert alone["n_problems"] == closed["n_problems"]
         assert alone["plan_difference_max"] <= 1e-6
@@ -89,7 +93,7 @@ def test_quick_run_writes_complete_json(quick_run: tuple[dict, str]) -> None:
     for row in rows:
         # The C library on two threads at the sweep's largest Ns (here 50; from 500 on in full).
         extra = {"fast_2threads"} if row is rows[-1] else set()
-        assert set(row["summary"]) == {"fast", "ipopt"} | extra
+        assert set(row["summary"]) == {"fast", "fast_c", "ipopt"} | extra
         for name, summary in row["summary"].items():
             assert _finite(summary["solve_ms_median"]), (row["n_scenarios"], name)
     threaded, fast = rows[-1]["summary"]["fast_2threads"], rows[-1]["summary"]["fast"]
@@ -246,6 +250,7 @@ def test_targets_of_the_run_follow_from_its_figures(quick_run: tuple[dict, str])
     skipped = {t["key"] for t in targets if t["passed"] is None}
     assert {"textbook_over_fast", "worse_share_pct", "csnlp_over_fast"} <= skipped
     assert "large_ns_median_ms" in skipped
+    assert {"fast_c_ns1000_median_ms", "fast_c_ns5000_median_ms"} <= skipped
 
 
 def test_json_is_strict_and_the_markdown_has_the_speed_table(quick_run) -> None:
@@ -257,6 +262,9 @@ def test_json_is_strict_and_the_markdown_has_the_speed_table(quick_run) -> None:
     for name in QUICK_SOLVERS:
         assert f"| {name} |" in markdown
     assert "sqpmethod / fast:" in markdown
+    # The compiled part as printed, in a text block after the targets.
+    block = markdown.split("\n```text\n")[1].split("\n```\n")[0]
+    assert block == "\n".join(bench_compiled.compiled_lines(data))
     assert markdown.count("- PASS") + markdown.count("- FAIL") + markdown.count("- SKIP") == len(
         data["targets"]
     )
@@ -270,3 +278,46 @@ def test_report_shows_the_speed_table_and_every_target(quick_run: tuple[dict, st
         assert f"\n{name} " in report
     for t in data["targets"]:
         assert t["target"] in report
+
+
+@pytest.mark.skipif(
+    shutil.which("make") is None or shutil.which("cc") is None, reason="needs make and cc"
+)
+def test_quick_run_compares_the_compiled_loop_and_times_the_export(quick_run) -> None:
+    """The compiled loop's plans against the Python loop's on the closed-loop problems, the
+    exported scenario controller's example on them, the exported robust agent's step on an
+    episode's measurements, and the issue-37 targets taken from those figures."""
+    data, _ = quick_run
+    closed, compiled = data["closed_loop"], data["compiled"]
+    (row,) = compiled["agreement"]  # the quick sweep has no Ns = 1000 or 5000
+    assert row["n_problems"] == closed["n_problems"] and row["loop"] == "c"
+    assert row["max_abs_diff"] <= bench_compiled.PLAN_TOL and row["n_above_tol"] == 0
+    export = compiled["export"]
+    assert export["available"], export["reason"]
+    assert export["n_problems"] == closed["n_problems"] and export["n_failed"] == 0
+    assert export["plan_diff_max"] <= bench_compiled.EXPORT_PLAN_TOL
+    assert export["dependencies"]["ok"] and export["dependencies"]["other_libraries"] == []
+    robust = export["robust"]
+    assert robust["example_returncode"] == 0 and robust["steps"] > 0
+    assert robust["input_diff_max"] <= bench_compiled.EXPORT_PLAN_TOL
+    assert _finite(robust["c_step_us_median"]) and _finite(export["solve_us"]["median"])
+    by_key = {t["key"]: t for t in data["targets"]}
+    summary = closed["summary"]
+    assert by_key["fast_c_median_ms"]["value"] == summary["fast_c"]["solve_ms_median"]
+    assert by_key["fast_c_p95_ms"]["value"] == summary["fast_c"]["solve_ms_p95"]
+    anchor = summary["sqpmethod"]["solve_ms_median"] / summary["fast_c"]["solve_ms_median"]
+    assert by_key["anchor_over_fast_c"]["value"] == pytest.approx(anchor)
+    assert by_key["robust_step_ms"]["value"] == pytest.approx(robust["c_step_us_median"] / 1e3)
+    assert by_key["export_plan_diff"]["value"] == export["plan_diff_max"]
+    assert by_key["export_dependencies"]["value"] == 0 and by_key["export_dependencies"]["passed"]
+    report = bench_report.format_report(data)
+    assert "\nCompiled loop (fast_c) against the Python loop" in report
+    assert "\nExported controllers (make: scenario " in report
+    table = report.split("Targets of issue 37 (the compiled loop and the export)\n")[1]
+    rows = table.split("\n\n")[0].splitlines()[1:]
+    assert [r.split()[0] for r in rows] == [
+        k for k in bench_targets.DEFAULT_THRESHOLDS if k in bench_compiled.ISSUE_37_KEYS
+    ]
+    for r in rows:
+        verdict = {True: "PASS", False: "FAIL", None: "SKIP"}[by_key[r.split()[0]]["passed"]]
+        assert f" {verdict} " in r

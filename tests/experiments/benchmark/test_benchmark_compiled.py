@@ -1,0 +1,94 @@
+"""The benchmark's compiled-loop part (``experiments.benchmark.compiled``) at tiny sizes: the
+compiled loop's plans against the Python loop's (closed-loop problems and problems drawn at
+another scenario count), the issue-37 targets judged from them, and the printed table's rows.
+The part with the exports (make, example, ldd) runs in the quick benchmark
+(``test_benchmark_run``). No timing is asserted."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from experiments.benchmark import compiled as bench_compiled
+from experiments.benchmark.problems import (
+    DEFAULT_CONFIG,
+    anchors_per_seed,
+    experiment_config,
+    record_closed_loop,
+)
+from experiments.benchmark.targets import DEFAULT_THRESHOLDS, evaluate_targets
+
+ISSUE_37_KEYS = (
+    "fast_c_median_ms",
+    "fast_c_p95_ms",
+    "anchor_over_fast_c",
+    "textbook_over_fast_c",
+    "fast_c_ns1000_median_ms",
+    "fast_c_ns5000_median_ms",
+    "robust_step_ms",
+    "export_plan_diff",
+    "export_dependencies",
+)
+DRAWN_NS = 40  # a scenario count of the drawn problems (the full run: 1000 and 5000)
+
+
+@pytest.fixture(scope="module")
+def tiny() -> tuple[dict, list, list]:
+    cfg = experiment_config(DEFAULT_CONFIG)
+    problems, anchors = record_closed_loop(cfg, [0, 1], 3)
+    out = bench_compiled.time_compiled(cfg, problems, anchors, (DRAWN_NS,), export=False)
+    return out, problems, anchors
+
+
+def test_the_compiled_loop_gives_the_python_loops_plans(tiny) -> None:
+    out, problems, anchors = tiny
+    assert "export" not in out  # export=False
+    main, drawn = out["agreement"]
+    assert (main["horizon"], main["n_scenarios"]) == (7, 150)
+    assert main["n_problems"] == len(problems) == 6
+    assert (drawn["horizon"], drawn["n_scenarios"]) == (7, DRAWN_NS)
+    chosen = anchors_per_seed(anchors, bench_compiled.AGREEMENT_STEPS)
+    assert drawn["n_problems"] == len(chosen) == 4  # two per seed
+    for row in (main, drawn):
+        assert row["loop"] == "c"  # compiled here, not the Python fallback
+        assert 0.0 <= row["max_abs_diff"] <= bench_compiled.PLAN_TOL
+        assert row["n_above_tol"] == 0
+        assert row["rel_gap_abs_max"] <= 1e-9
+        assert 0 <= row["n_same_iterations"] <= row["n_problems"]
+        assert row["worst"]["seed"] in (0, 1)
+        assert "_python_u" not in row  # the plans are dropped from the results
+        for side in ("python_ms", "c_ms"):
+            assert row[side]["median"] > 0 and math.isfinite(row[side]["p95"])
+
+
+def test_the_targets_without_the_solvers_and_export_are_skipped(tiny) -> None:
+    out, _, _ = tiny
+    targets = [t for t in evaluate_targets({"compiled": out}) if t["key"] in set(ISSUE_37_KEYS)]
+    assert [t["key"] for t in targets] == list(ISSUE_37_KEYS)
+    for t in targets:
+        assert t["passed"] is None and t["value"] is None, t["key"]
+        assert t["threshold"] == DEFAULT_THRESHOLDS[t["key"]]
+    by_key = {t["key"]: t for t in targets}
+    assert "export not run" in by_key["robust_step_ms"]["note"]
+    assert "export not run" in by_key["export_dependencies"]["note"]
+
+
+def test_the_printed_part_has_a_row_per_agreement_and_target(tiny) -> None:
+    out, _, _ = tiny
+    results = {"compiled": out, "targets": evaluate_targets({"compiled": out})}
+    lines = bench_compiled.compiled_lines(results)
+    assert lines[0].startswith("Compiled loop (fast_c) against the Python loop")
+    rows = [line for line in lines if line.startswith("  N=7, Ns=")]
+    assert [row.split(",")[1].strip().split()[0] for row in rows] == ["Ns=150", f"Ns={DRAWN_NS}"]
+    for row, agreement in zip(rows, out["agreement"], strict=True):
+        assert f"{agreement['n_problems']} problems, loop c" in row
+        assert f"plans max abs difference {agreement['max_abs_diff']:.2e}" in row
+    assert not any(line.startswith("Exported controllers") for line in lines)
+    head = lines.index("Targets of issue 37 (the compiled loop and the export)")
+    table = lines[head + 2 :]
+    assert lines[head + 1].split() == ["figure", "measured", "target", "verdict"]
+    assert [line.split()[0] for line in table] == list(ISSUE_37_KEYS)
+    assert all(line.split()[1] == "-" for line in table)  # measured: nothing
+    assert all(" SKIP " in line for line in table)
+    assert bench_compiled.compiled_lines({}) == []
