@@ -93,7 +93,8 @@ def sweep_main(argv: Sequence[str] | None = None) -> int:
     Returns:
         The exit code: 0 if every episode ran, 1 if some raised an error.
     """
-    from experiments.sweep import run_sweep, sweep_errors
+    from experiments.report.sweep_summary import sweep_errors
+    from experiments.sweep import run_sweep
 
     parser = _sweep_parser()
     args = parser.parse_args(argv)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from experiments import sweep
+from experiments.report import sweep_summary
 from experiments.report.stats import Metric
 from lfm_env.system import ControlSystem, xp
 
@@ -27,7 +27,7 @@ def test_sweep_metrics_fall_back_to_raw_counts_without_tolerances():
         constraint_groups={"corridor": (0,), "speed": (1,)},
         violation_tolerances={"corridor": (0.01, 0.1)},  # none for the speed
     )
-    metrics = sweep.sweep_metrics(system)
+    metrics = sweep_summary.sweep_metrics(system)
     columns = [(m.column, m.zero_count) for m in metrics]
     assert columns == [
         ("success", False),
