@@ -1,9 +1,10 @@
-"""Figures of saved evaluation results: one episode drawn from the system definition, and
-across-seed plots.
+"""Figures of one saved episode, drawn from the system definition (the figures across seeds
+are :mod:`experiments.plots.summary`'s; every figure under one name: :mod:`experiments.plots`).
 
 Every function takes arrays that were loaded from a results folder and returns a
 :class:`matplotlib.figure.Figure` built without pyplot, so no global figure state leaks
-and nothing opens a window; :func:`save_figure` writes it with the Agg canvas.
+and nothing opens a window; :func:`experiments.plots.style.save_figure` writes it with the
+Agg canvas.
 
 The episode figures know no particular world: they read the world's
 :class:`~lfm_env.system.ControlSystem` only. Axis labels and units come from its state,
@@ -40,33 +41,13 @@ from experiments.plots.feasible_region import (
     _limits,
     _plane_figure,
     constraint_dependencies,
-    constraints_on,
-    state_bounds,
 )
-from experiments.plots.replay import (
-    annotate_frame,
-    make_render_env,
-    replay_frames,
-    stack_frames,
-    write_gif,
-)
-from experiments.plots.scenario_fan import plan_panel_frames, saved_fans, scenario_fan_figure
 from experiments.plots.style import (
     _step_plot,
-    agent_colour,
-    force_unit,
     group_unit,
     new_figure,
     sample_times,
-    save_figure,
     unit_of,
-)
-from experiments.plots.summary import (
-    calibration_figure,
-    distribution_axes,
-    metric_distributions_figure,
-    pareto_figure,
-    solve_time_figure,
 )
 from lfm_env.system import ControlSystem, split_unit
 
@@ -489,40 +470,13 @@ def episode_figures(
     return {k: f for k, f in figures.items() if f is not None}
 
 
-# --------------------------------------------------------------------------- across seeds
-
-
-# The figures of the experiment layer under one name (``plots.X``), wherever they live.
 __all__ = [
-    "agent_colour",
-    "annotate_frame",
-    "calibration_figure",
-    "constraint_dependencies",
     "constraint_excess_figure",
-    "constraints_on",
-    "distribution_axes",
     "episode_figures",
-    "force_unit",
     "group_excess_of",
-    "group_unit",
     "inputs_figure",
     "latent_force_figure",
-    "make_render_env",
-    "metric_distributions_figure",
-    "new_figure",
-    "pareto_figure",
     "paths_figure",
-    "plan_panel_frames",
-    "replay_frames",
-    "saved_fans",
-    "scenario_fan_figure",
-    "stack_frames",
-    "sample_times",
-    "save_figure",
-    "solve_time_figure",
-    "state_bounds",
     "states_figure",
     "trajectory_figure",
-    "unit_of",
-    "write_gif",
 ]
