@@ -43,6 +43,7 @@ from experiments.benchmark.solvers import (
     SOLVER_VARIANTS,
     accuracy_summary,
     build_solver,
+    build_solvers,
     failures_of,
     p95,
     relative_gap,
@@ -124,14 +125,9 @@ def sweep_scenarios(
         names = list(SWEEP_SOLVERS) + ([SWEEP_REFERENCE] if ns <= ipopt_max_ns else [])
         if ns >= min(SWEEP_VARIANTS_MIN_NS, max(ns_list)):
             names += list(SOLVER_VARIANTS)
-        built, info = {}, {}
-        for name in names:
-            base, options = SOLVER_VARIANTS.get(name, (name, {}))
-            solver, build_time, reason = build_solver(base, problem, **options)
-            info[name] = {"available": solver is not None, "reason": reason}
-            info[name]["build_time_s"] = build_time
-            if solver is not None:
-                built[name] = solver
+        built, info = build_solvers(
+            problem, [(name, *SOLVER_VARIANTS.get(name, (name, {}))) for name in names]
+        )
         records = run_interleaved(
             built, problem, problems, warmup=True, progress=progress, desc=f"sweep Ns={ns}"
         )
@@ -326,14 +322,13 @@ def sweep_horizons(
         steps = counts.get(n, 5) if isinstance(counts, dict) else counts
         problems, _ = record_closed_loop(cfg, seeds, steps, progress, horizon=n)
         problem = experiment_config(cfg, horizon=n).make_problem()
-        built, info = {}, {}
-        for name in HORIZON_SOLVERS:
-            limit = max_time.get(name) if isinstance(max_time, dict) else max_time
-            solver, build_time, reason = build_solver(name, problem, max_time=limit)
-            info[name] = {"available": solver is not None, "reason": reason}
-            info[name]["build_time_s"] = build_time
-            if solver is not None:
-                built[name] = solver
+        limits = {
+            name: max_time.get(name) if isinstance(max_time, dict) else max_time
+            for name in HORIZON_SOLVERS
+        }
+        built, info = build_solvers(
+            problem, [(name, name, {"max_time": limits[name]}) for name in HORIZON_SOLVERS]
+        )
         records = run_interleaved(
             built, problem, problems, warmup=True, progress=progress, desc=f"horizon N={n}"
         )
