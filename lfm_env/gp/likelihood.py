@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-from lfm_env.gp.kernels.base import StateSpaceKernel
+from lfm_env.gp.kernels.base import StateSpaceKernel, _check_float
 
 #: Step in log-hyperparameters for the central differences of the kernel matrices.
 _MATRIX_FD_STEP = 1e-5
@@ -38,17 +38,7 @@ def _check_data(times: Any, values: Any) -> tuple[np.ndarray, np.ndarray]:
 
 def _check_noise(noise_variance: Any) -> float:
     """Return ``noise_variance`` as a float >= 0, or raise ValueError."""
-    if isinstance(noise_variance, bool):
-        raise ValueError(f"noise_variance={noise_variance!r}: must be a finite float >= 0")
-    try:
-        r = float(noise_variance)
-    except (TypeError, ValueError):
-        raise ValueError(
-            f"noise_variance={noise_variance!r}: must be a finite float >= 0"
-        ) from None
-    if not (math.isfinite(r) and r >= 0.0):
-        raise ValueError(f"noise_variance={noise_variance!r}: must be finite and >= 0")
-    return r
+    return _check_float(noise_variance, "noise_variance", ">= 0")
 
 
 def _matrix_derivatives(
