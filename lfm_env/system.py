@@ -8,22 +8,10 @@ scenario problem and every solver read these two objects; nothing else writes th
 dynamics, a constraint or the cost again.
 
 The functions a system is made of are written once and work on both kinds of data. Write
-them with the array namespace :data:`lfm_env.xp.xp` (also importable from here)::
-
-    from lfm_env.xp import xp
-
-    def rhs(x, u, w):
-        p, v = xp.unstack(x)          # components of the state
-        (a,) = xp.unstack(u)
-        (force,) = xp.unstack(w)
-        return xp.stack([v, a + force])
-
-* NumPy: ``x`` has shape ``(..., nx)``, ``u`` ``(..., nu)``, ``w`` ``(..., nw)``, broadcast
-  against each other; the result has shape ``(..., nx)``.
-* CasADi: ``x``, ``u`` and ``w`` are column vectors (``SX``/``MX``); the result is an
-  ``(nx, 1)`` column.
-
-Constraints ``g(x)`` follow the same rule with ``ng`` components (feasible where ``<= 0``).
+them with the array namespace :data:`lfm_env.xp.xp` (also importable from here); the module
+:mod:`lfm_env.xp` shows a right-hand side written so, and the shapes it gets and returns on
+NumPy batches and on CasADi columns. Constraints ``g(x)`` follow the same rule with ``ng``
+components (feasible where ``<= 0``).
 """
 
 from __future__ import annotations
