@@ -157,11 +157,7 @@ def test_an_unstable_attitude_loop_diverges_and_a_stable_one_does_not():
 
 
 def test_batched_step_equals_row_by_row():
-    rng = np.random.default_rng(0)
-    n = 50
-    states, actions = random_states(rng, n), random_actions(rng, n)
-    w = rng.normal(0.0, 1.5, size=(n, 1))
-    assert_batched_step_equals_row_by_row(SYSTEM, states, actions, w, DT)
+    assert_batched_step_equals_row_by_row(SYSTEM, DT, random_states, random_actions, force_std=1.5)
 
 
 def test_casadi_equals_numpy():
