@@ -8,17 +8,12 @@ compares it with a baseline agent on the same seeds (same hidden latent force an
 violation steps beyond each tolerance of the system, zero-violation episodes and time to
 goal, each with the paired bootstrap interval of the difference to the baseline.
 
-Sweep folder (``out``)::
-
-    out/sweep.json              what was swept: agent, key, values, baseline, seeds
-    out/baseline/               the baseline agent on the base config (an evaluation folder)
-    out/<key>=<value>/          the agent with the key set to the value (one per value)
-    out/sweep.md, out/sweep.png the table and the Pareto picture
-
-Every evaluation folder resumes as the evaluation does (finished episodes are kept, so an
-interrupted sweep loses at most the episodes in flight); rerunning the same sweep resumes
-it. The sweep folder may be a results folder of ``lfm-evaluate`` too: ``lfm-report``
-then includes the sweep's table and figure (or give ``--sweep DIR``).
+The sweep folder (``out``; its layout: :mod:`experiments.report.sweep_summary`, which reads
+it back) holds the manifest, one evaluation folder for the baseline and one per value, and
+the table and figure. Every evaluation folder resumes as the evaluation does (finished
+episodes are kept, so an interrupted sweep loses at most the episodes in flight); rerunning
+the same sweep resumes it. The sweep folder may be a results folder of ``lfm-evaluate`` too:
+``lfm-report`` then includes the sweep's table and figure (or give ``--sweep DIR``).
 """
 
 from __future__ import annotations
@@ -45,16 +40,19 @@ from experiments.report.sweep_summary import (
     BASELINE_FOLDER,
     MANIFEST,
     SweepSummary,
-    SweepValue,
     load_sweep,
     read_manifest,
-    sweep_errors,
-    sweep_figure,
-    sweep_metrics,
-    sweep_table,
     value_folder,
     write_sweep,
 )
+
+# The old import path: the folder's reading (experiments.report.sweep_summary) was part of this
+# module, so its public names stay importable from here too.
+from experiments.report.sweep_summary import SweepValue as SweepValue
+from experiments.report.sweep_summary import sweep_errors as sweep_errors
+from experiments.report.sweep_summary import sweep_figure as sweep_figure
+from experiments.report.sweep_summary import sweep_metrics as sweep_metrics
+from experiments.report.sweep_summary import sweep_table as sweep_table
 
 SECTION = "agents"  # the sweep varies agent settings only: the episodes stay the same
 
@@ -301,18 +299,4 @@ def run_sweep(
     return summary
 
 
-__all__ = [
-    "SweepSummary",
-    "SweepValue",
-    "config_with",
-    "load_sweep",
-    "parse_setting",
-    "run_sweep",
-    "split_values",
-    "sweep_errors",
-    "sweep_figure",
-    "sweep_metrics",
-    "sweep_table",
-    "value_folder",
-    "write_sweep",
-]
+__all__ = ["config_with", "parse_setting", "run_sweep", "split_values"]

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -76,6 +76,28 @@ def build_solver(
         raise_if_interrupted()  # a Ctrl-C turned into another error stops the run
         return None, math.nan, f"{type(exc).__name__}: {exc}"
     return solver, time.perf_counter() - t0, ""
+
+
+def build_solvers(
+    problem: ScenarioProblem, solvers: Iterable[tuple[str, str, Mapping[str, Any]]]
+) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
+    """Build every ``(label, registry name, options)`` of ``solvers`` (:func:`build_solver`).
+
+    Returns:
+        ``(built, info)``: the solvers that could be built, by label, and for every label
+        ``{"available", "reason", "build_time_s"}``.
+    """
+    built, info = {}, {}
+    for label, name, options in solvers:
+        solver, build_time, reason = build_solver(name, problem, **options)
+        info[label] = {
+            "available": solver is not None,
+            "reason": reason,
+            "build_time_s": build_time,
+        }
+        if solver is not None:
+            built[label] = solver
+    return built, info
 
 
 def solve_record(
@@ -535,17 +557,9 @@ def time_solvers(
             raise ValueError("problems is empty: cannot infer the problem size")
         ns, n = np.shape(problems[0][3])[:2]
         problem = problem_from_config(config, n_scenarios=int(ns), horizon=int(n))
-    built, info = {}, {}
+    built, info = build_solvers(problem, [(name, name, {}) for name in solvers])
     for name in solvers:
-        solver, build_time, reason = build_solver(name, problem)
-        info[name] = {
-            "available": solver is not None,
-            "reason": reason,
-            "build_time_s": build_time,
-            "label": SOLVER_LABELS[name],
-        }
-        if solver is not None:
-            built[name] = solver
+        info[name]["label"] = SOLVER_LABELS[name]
     records = run_interleaved(built, problem, problems, warmup, progress, "closed-loop solves")
     reference = next((r for r in REFERENCES if r in built), None)
     summary = {}
@@ -583,6 +597,7 @@ __all__ = [
     "SOLVER_LABELS",
     "accuracy_summary",
     "build_solver",
+    "build_solvers",
     "certify_lower_plans",
     "classify_failure",
     "failures_of",

@@ -10,6 +10,7 @@ import sys
 import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from experiments.evaluation.interrupts import remember_interrupts
 
@@ -179,6 +180,35 @@ def add_executor_arguments(parser: argparse.ArgumentParser, jobs_help: str) -> N
     )
 
 
+def run_episodes(
+    parser: argparse.ArgumentParser,
+    args: argparse.Namespace,
+    out: Path,
+    run: Callable[..., Any],
+    *run_args: Any,
+    **run_kwargs: Any,
+) -> Any:
+    """``run(*run_args, out=out, <the executor options>, progress=not args.quiet, **run_kwargs)``
+    for ``lfm-evaluate`` and ``lfm-sweep``: a ``ValueError`` or ``ConnectionError`` (raised
+    before any episode runs) exits 2 through ``parser.error``; Ctrl-C prints where the
+    finished episodes are and gives ``None`` (the command then returns 130)."""
+    try:
+        return run(
+            *run_args,
+            out=out,
+            jobs=args.jobs,
+            scheduler=args.scheduler,
+            dask_workers=args.dask_workers,
+            progress=not args.quiet,
+            **run_kwargs,
+        )
+    except (ValueError, ConnectionError) as exc:  # raised before any episode runs
+        parser.error(" ".join(str(exc).split()))
+    except KeyboardInterrupt:
+        print(f"\ninterrupted; finished episodes are in {out}; rerun to resume", file=sys.stderr)
+        return None
+
+
 def registered_agents_help() -> str:
     """``name = label`` of every registered agent, for the agent options' help texts."""
     from controllers.agents import AGENT_REGISTRY
@@ -215,5 +245,6 @@ __all__ = [
     "positive_int",
     "preset_names",
     "registered_agents_help",
+    "run_episodes",
     "seeds_and_executor",
 ]

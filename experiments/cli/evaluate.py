@@ -14,6 +14,7 @@ from experiments.cli.common import (
     config_argument_path,
     one_line_errors,
     registered_agents_help,
+    run_episodes,
     seeds_and_executor,
 )
 
@@ -143,23 +144,9 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
         else Path("results") / (config_path.stem if config_path is not None else "defaults")
     )
 
-    try:
-        rows = evaluate(
-            agents,
-            seeds,
-            config=config_path,
-            out=out,
-            jobs=args.jobs,
-            scheduler=args.scheduler,
-            dask_workers=args.dask_workers,
-            progress=not args.quiet,
-        )
-    except (ValueError, ConnectionError) as exc:  # raised before any episode runs
-        parser.error(" ".join(str(exc).split()))
-    except KeyboardInterrupt:
-        print(f"\ninterrupted; finished episodes are in {out}; rerun to resume", file=sys.stderr)
+    rows = run_episodes(parser, args, out, evaluate, agents, seeds, config=config_path)
+    if rows is None:
         return 130
-
     n_errors = sum(r["error"] != "" for r in rows)
     if not args.quiet:
         _print_summary(rows)

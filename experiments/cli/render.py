@@ -73,10 +73,10 @@ def _render_episode(
     """Frames ``(H, W, 3)`` of one episode rendered step by step, and ``dt`` [s]."""
     from controllers.agents import AGENT_REGISTRY, make_agent
     from experiments.evaluation.run import agent_seed, resolve_config
-    from experiments.plots.episode import annotate_frame, make_render_env
+    from experiments.plots.replay import annotate_frame, make_render_env
 
     cfg = resolve_config(config, [agent_name])
-    # The same drawing options as the report's replay (experiments.plots.episode.replay_frames).
+    # The same drawing options as the report's replay (experiments.plots.replay.replay_frames).
     env = make_render_env(cfg, screen_size=size)  # each world's own view
     try:
         reads_truth = AGENT_REGISTRY[agent_name].reads_truth

@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from experiments.plots import episode as plots
+from experiments import plots
 from experiments.report.document import Document
 from experiments.report.format import agent_label
 from experiments.report.results import Results, load_trajectory

@@ -23,8 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from experiments import plots
 from experiments.evaluation import run as evaluation
-from experiments.plots import episode as plots
 from experiments.report.document import Document
 from experiments.report.format import agent_label, fmt, fmt_estimate
 from experiments.report.stats import (

@@ -35,8 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments import plots
 from experiments.evaluation.columns import tolerance_columns
-from experiments.plots import episode as plots
 from experiments.report.document import GIF_EMBED_LIMIT, Document, embedded_image
 from experiments.report.figures import check_figure_seed, figures_section
 from experiments.report.format import agent_label, fmt, fmt_estimate, long_label

@@ -16,9 +16,6 @@ use, since they import this package).
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
-
 from lfm_env.config.loading import (
     MAX_CONFIG_BYTES,
     MAX_CONFIG_DEPTH,
@@ -44,6 +41,7 @@ from lfm_env.config.world import (
     WorldConfig,
     check_latent_step,
 )
+from lfm_env.lazy import lazy_attributes
 
 _ELSEWHERE = {
     "SineTrackConfig": "lfm_env.worlds.sine_track.config",
@@ -59,10 +57,7 @@ _ELSEWHERE = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    if name in _ELSEWHERE:
-        return getattr(importlib.import_module(_ELSEWHERE[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _ELSEWHERE)
 
 
 __all__ = [

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-from lfm_env.gp.kernels.base import StateSpaceKernel
+from lfm_env.gp.kernels.base import StateSpaceKernel, _check_float
 
 #: Step in log-hyperparameters for the central differences of the kernel matrices.
 _MATRIX_FD_STEP = 1e-5
@@ -38,17 +38,7 @@ def _check_data(times: Any, values: Any) -> tuple[np.ndarray, np.ndarray]:
 
 def _check_noise(noise_variance: Any) -> float:
     """Return ``noise_variance`` as a float >= 0, or raise ValueError."""
-    if isinstance(noise_variance, bool):
-        raise ValueError(f"noise_variance={noise_variance!r}: must be a finite float >= 0")
-    try:
-        r = float(noise_variance)
-    except (TypeError, ValueError):
-        raise ValueError(
-            f"noise_variance={noise_variance!r}: must be a finite float >= 0"
-        ) from None
-    if not (math.isfinite(r) and r >= 0.0):
-        raise ValueError(f"noise_variance={noise_variance!r}: must be finite and >= 0")
-    return r
+    return _check_float(noise_variance, "noise_variance", ">= 0")
 
 
 def _matrix_derivatives(
@@ -115,8 +105,21 @@ def _converged(new: np.ndarray, old: np.ndarray) -> bool:
     return bool(np.all(change <= _STEADY_STATE_RTOL * size))
 
 
-def _run_length(step_index: np.ndarray, n: int, j: int) -> int:
-    """First index ``end > n`` such that samples ``n + 1 .. end - 1`` all arrive by step ``j``."""
+def _transition_at(
+    n: int, step_index: np.ndarray, trans: list[tuple[np.ndarray, ...] | None]
+) -> tuple[int, tuple[np.ndarray, ...] | None]:
+    """``(j, transition)`` that brings the filter to sample ``n``: step group ``j`` (-1 and
+    no transition for the first sample; no transition for a repeated time either)."""
+    j = step_index[n - 1] if n > 0 else -1
+    return j, (trans[j] if n > 0 else None)
+
+
+def _steady_run_end(steady: bool, step_index: np.ndarray, n: int, j: int) -> int | None:
+    """Where a run of steady-state steps after sample ``n`` ends: the first index
+    ``end > n + 1`` such that samples ``n + 1 .. end - 1`` all arrive by step ``j``, when the
+    filter is steady and the next step is ``j`` too; ``None`` otherwise."""
+    if not (steady and n + 1 <= step_index.size and step_index[n] == j):
+        return None
     end = n + 1
     while end <= step_index.size and step_index[end - 1] == j:
         end += 1
@@ -229,11 +232,15 @@ def _kalman_log_likelihood(
     return _kalman_value_and_grad(kernel.H[0], Pinf, y, noise_variance, trans, step_index, sens[1:])
 
 
-def _innovation_variance_error(S: float, n: int) -> ValueError:
-    return ValueError(
-        f"innovation variance {S:.3g} <= 0 at sample {n}: "
-        "noise_variance = 0 with a (numerically) deterministic prediction"
-    )
+def _innovation_variance(h: np.ndarray, Ph: np.ndarray, noise_variance: float, n: int) -> float:
+    """``S = h P h' + R`` of sample ``n`` (``Ph = P h``), or a ValueError unless it is > 0."""
+    S = float(h @ Ph) + noise_variance
+    if not S > 0.0:
+        raise ValueError(
+            f"innovation variance {S:.3g} <= 0 at sample {n}: "
+            "noise_variance = 0 with a (numerically) deterministic prediction"
+        )
+    return S
 
 
 def _kalman_value(
@@ -254,8 +261,7 @@ def _kalman_value(
     ll = 0.0
     n = 0
     while n < y.size:
-        j = step_index[n - 1] if n > 0 else -1
-        tr = trans[j] if n > 0 else None
+        j, tr = _transition_at(n, step_index, trans)
         steady = False
         if tr is not None:
             A, AT, Q = tr
@@ -267,16 +273,14 @@ def _kalman_value(
         else:
             P_pred_prev = None
         Ph = P @ h
-        S = float(h @ Ph) + noise_variance
-        if not S > 0.0:
-            raise _innovation_variance_error(S, n)
+        S = _innovation_variance(h, Ph, noise_variance, n)
         v = float(y[n] - h @ m)
         ll -= 0.5 * (log_2pi + math.log(S) + v * v / S)
         K = Ph / S
         m = m + K * v
         P = P - np.outer(Ph, K)
-        if steady and n + 1 < y.size and step_index[n] == j:
-            end = _run_length(step_index, n, j)
+        end = _steady_run_end(steady, step_index, n, j)
+        if end is not None:
             vs, _, m, _ = _steady_state_run(
                 A, no_par.reshape(0, p, p), h, no_par, K, no_par, m, no_par, y[n + 1 : end]
             )
@@ -313,8 +317,7 @@ def _kalman_value_and_grad(
     grad = np.zeros(n_par)
     n = 0
     while n < y.size:
-        j = step_index[n - 1] if n > 0 else -1
-        tr = trans[j] if n > 0 else None
+        j, tr = _transition_at(n, step_index, trans)
         steady = False
         if tr is not None:
             A, AT, Qs, dA = tr
@@ -333,9 +336,7 @@ def _kalman_value_and_grad(
         P, m = Ps[0], ms[0]
         PHs = Ps @ h  # [P h; dP_i h]
         Ph = PHs[0]
-        S = float(h @ Ph) + noise_variance
-        if not S > 0.0:
-            raise _innovation_variance_error(S, n)
+        S = _innovation_variance(h, Ph, noise_variance, n)
         dPh = PHs[1:] + dh @ P
         dS = dh @ Ph + dPh @ h + dR
         HM = ms @ h
@@ -352,8 +353,8 @@ def _kalman_value_and_grad(
         PHs[1:] = dPh  # reuse as [P h; d(P h)_i]
         Ps = Ps - PHs[:, :, None] * K[None, None, :]
         Ps[1:] += dS[:, None, None] * np.outer(K, K)[None] - KdPh
-        if steady and n + 1 < y.size and step_index[n] == j:
-            end = _run_length(step_index, n, j)
+        end = _steady_run_end(steady, step_index, n, j)
+        if end is not None:
             vs, dvs, m_end, dm_end = _steady_state_run(
                 A, dA, h, dh, K, dK, ms[0], ms[1:], y[n + 1 : end]
             )

@@ -28,9 +28,9 @@ from lfm_env.cost import QuadraticCost
 from lfm_env.env import LatentForceEnv
 from lfm_env.gp import matern
 from lfm_env.model import LatentForceModel
-from lfm_env.system import ControlSystem
 from lfm_env.worlds import QuadrotorGustEnv, SineTrackEnv
 from lfm_env.xp import xp
+from tests.point_mass import point_mass_system
 
 ENV_ID = "lfm_env/SineTrack-v0"
 QUADROTOR_ID = "lfm_env/QuadrotorGust-v0"
@@ -58,28 +58,13 @@ def make_quadrotor(**kwargs) -> gym.Env:
 # ----------------------------------------------------------------------------- a second system
 
 
-def point_mass_rhs(x, u, w):
-    """A planar point mass ``[p_x, p_y, v_x, v_y]`` pushed by a force on both axes."""
-    _, _, vx, vy = xp.unstack(x)
-    ax, ay = xp.unstack(u)
-    wx, wy = xp.unstack(w)
-    return xp.stack([vx, vy, ax + wx, ay + wy])
-
-
 def point_mass_constraints(x):
     """``|p_x| <= 5 m`` and ``|v_x| <= 2 m/s``."""
     px, _, vx, _ = xp.unstack(x)
     return xp.stack([px - 5.0, -px - 5.0, vx - 2.0, -vx - 2.0])
 
 
-POINT_MASS = ControlSystem(
-    name="point_mass",
-    state_names=("p_x [m]", "p_y [m]", "v_x [m/s]", "v_y [m/s]"),
-    input_names=("a_x [m/s^2]", "a_y [m/s^2]"),
-    force_names=("w_x [m/s^2]", "w_y [m/s^2]"),
-    rhs=point_mass_rhs,
-    input_lower=(-1.0, -1.0),
-    input_upper=(1.0, 1.0),
+POINT_MASS = point_mass_system(
     constraints=point_mass_constraints,
     constraint_names=("x_max [m]", "x_min [m]", "vx_max [m/s]", "vx_min [m/s]"),
     constraint_groups={"position": (0, 1), "velocity": (2, 3)},
