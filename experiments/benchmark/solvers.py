@@ -23,6 +23,7 @@ from tqdm.auto import tqdm
 
 from controllers.problem import ScenarioProblem
 from controllers.solvers import SOLVERS, make_solver, solver_spec
+from experiments.benchmark.failures import failures_of
 from experiments.benchmark.problems import DEFAULT_CONFIG, problem_from_config
 from experiments.evaluation.interrupts import raise_if_interrupted
 
@@ -415,62 +416,6 @@ def speedups(
     return out
 
 
-# --------------------------------------------------------------------------- failures
-
-FAILURE_KINDS = (
-    "QP_Failed",
-    "Maximum_Iterations_Exceeded",
-    "wall_time",
-    "infeasible",
-    "exception",
-    "other",
-)
-
-
-def classify_failure(status: str) -> str:
-    """The kind of a failed solve's status, one of :data:`FAILURE_KINDS`."""
-    if status.startswith("raised"):
-        return "exception"
-    if "QP_Failed" in status:
-        return "QP_Failed"
-    if "Maximum_Iterations_Exceeded" in status:
-        return "Maximum_Iterations_Exceeded"
-    if "WallTime" in status or "wall time" in status.lower():
-        return "wall_time"
-    if "nfeasib" in status:
-        return "infeasible"
-    return "other"
-
-
-def failures_of(
-    records: dict[str, list[dict[str, Any]]], part: str, horizon: int, n_scenarios: int
-) -> list[dict[str, Any]]:
-    """Every failed solve of ``records``, with the problem's id and the failure's kind.
-
-    Returns:
-        ``[{"part", "solver", "seed", "step", "N", "Ns", "kind", "status"}]``, solver by
-        solver in problem order.
-    """
-    out = []
-    for name, recs in records.items():
-        for r in recs:
-            if r["success"]:
-                continue
-            out.append(
-                {
-                    "part": part,
-                    "solver": name,
-                    "seed": int(r["seed"]),
-                    "step": int(r["step"]),
-                    "N": int(horizon),
-                    "Ns": int(n_scenarios),
-                    "kind": classify_failure(str(r["status"])),
-                    "status": str(r["status"]),
-                }
-            )
-    return out
-
-
 # --------------------------------------------------------------------------- comparison
 
 
@@ -588,7 +533,6 @@ def time_solvers(
 
 
 __all__ = [
-    "FAILURE_KINDS",
     "FAST_SOLVERS",
     "SOLVER_VARIANTS",
     "GAP_TOL",
@@ -599,8 +543,6 @@ __all__ = [
     "build_solver",
     "build_solvers",
     "certify_lower_plans",
-    "classify_failure",
-    "failures_of",
     "relative_gap",
     "restart_check",
     "run_interleaved",

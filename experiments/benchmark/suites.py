@@ -26,6 +26,7 @@ import numpy as np
 
 from controllers.feasibility import INFEASIBLE_TOL, SharedConstraints, shared_slack_bound
 from controllers.solvers.fast.codegen.build import fresh_cache
+from experiments.benchmark.failures import failures_of
 from experiments.benchmark.problems import (
     DEFAULT_CONFIG,
     DEFAULT_SEEDS,
@@ -44,7 +45,6 @@ from experiments.benchmark.solvers import (
     accuracy_summary,
     build_solver,
     build_solvers,
-    failures_of,
     p95,
     relative_gap,
     run_interleaved,
