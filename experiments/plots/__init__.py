@@ -33,6 +33,7 @@ from experiments.plots.episode import (
     states_figure,
     trajectory_figure,
     unit_of,
+    world_draws,
     write_gif,
 )
 
@@ -57,6 +58,7 @@ __all__ = [
     "paths_figure",
     "plan_panel_frames",
     "replay_frames",
+    "world_draws",
     "sample_times",
     "save_figure",
     "saved_fans",

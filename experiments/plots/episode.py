@@ -48,6 +48,7 @@ from experiments.plots.replay import (
     make_render_env,
     replay_frames,
     stack_frames,
+    world_draws,
     write_gif,
 )
 from experiments.plots.scenario_fan import plan_panel_frames, saved_fans, scenario_fan_figure
@@ -514,6 +515,7 @@ __all__ = [
     "paths_figure",
     "plan_panel_frames",
     "replay_frames",
+    "world_draws",
     "saved_fans",
     "scenario_fan_figure",
     "stack_frames",

@@ -196,15 +196,18 @@ TOP_LEVEL_KEYS = ("env_id", "env", "agents")
 
 
 def read_section(source: Any, section: str) -> dict | None:
-    """The ``section`` mapping of a config given as a path, a dict or ``None``.
+    """The ``section`` mapping of a config given as a preset's name, a path, a dict or ``None``.
 
     A dict that holds top-level keys (``env_id``, ``env``, ``agents``) gives the named
-    section; any other dict is taken as the section itself.
+    section; any other dict is taken as the section itself. A name, a path and a ``base:``
+    are resolved by :func:`lfm_env.config.compose.read_config`.
     """
     if source is None:
         return None
-    if isinstance(source, (str, os.PathLike)):
-        source = load_yaml(source)
+    if isinstance(source, (str, os.PathLike)) or (isinstance(source, dict) and "base" in source):
+        from lfm_env.config.compose import read_config  # a preset, a path, base: resolved
+
+        source = read_config(source)
     if not isinstance(source, dict):
         raise ConfigError(
             f"config must be a path, a dict or a dataclass, got {type(source).__name__}"
