@@ -129,6 +129,15 @@ def config_argument_path(parser: argparse.ArgumentParser, given: str | None) -> 
         parser.error(str(exc))
 
 
+#: The help texts' note on the fast solver's compiled C library and where it is cached.
+CACHE_NOTE = (
+    "The fast solver compiles a C library once per system (about 1.5 s, with the system C "
+    "compiler $CC, else cc or gcc) and caches it under $LFM_CACHE_DIR (default "
+    "~/.cache/lfm-scenario-mpc); delete that folder to rebuild. Without a compiler it runs "
+    "on CasADi's functions, slower."
+)
+
+
 def add_set_argument(parser: argparse.ArgumentParser) -> None:
     """``--set KEY=VALUE`` (repeatable): a field of the config, set on top of ``--config``."""
     parser.add_argument(
@@ -213,6 +222,7 @@ def seeds_and_executor(parser: argparse.ArgumentParser, args: argparse.Namespace
 
 
 __all__ = [
+    "CACHE_NOTE",
     "DEFAULT_PRESET",
     "PRESETS_PACKAGE",
     "add_config_argument",

@@ -5,10 +5,12 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 
 from experiments.cli.common import (
+    CACHE_NOTE,
     add_config_argument,
     add_executor_arguments,
     add_set_argument,
@@ -69,7 +71,7 @@ def _evaluate_parser() -> argparse.ArgumentParser:
             "trajectory per episode. For one env seed every agent faces the same hidden\n"
             "latent_force and noise (paired design)."
         ),
-        epilog=_EVALUATE_EPILOG,
+        epilog=_EVALUATE_EPILOG + "\n" + textwrap.fill(CACHE_NOTE, 84) + "\n",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_config_argument(parser)

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
+from pathlib import Path
 
-from experiments.cli.common import (
-    one_line_errors,
-)
+from experiments.cli.common import check_writable, one_line_errors
 
 _REPORT_EPILOG = """\
 files written (DIR is the results folder):
@@ -109,6 +108,12 @@ def report_main(argv: Sequence[str] | None = None) -> int:
 
     parser = _report_parser()
     args = parser.parse_args(argv)
+    folder = Path(args.results_dir)
+    if folder.is_dir():  # the report's files: writable before any figure is drawn
+        for target in (folder / "report.md", folder / "figures" / "metrics_by_agent.png"):
+            problem = check_writable(target, "DIR")
+            if problem is not None:
+                parser.error(problem)
     try:
         path = write_report(
             args.results_dir,
