@@ -110,10 +110,12 @@ def report_main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     folder = Path(args.results_dir)
     if folder.is_dir():  # the report's files: writable before any figure is drawn
-        for target in (folder / "report.md", folder / "figures" / "metrics_by_agent.png"):
-            problem = check_writable(target, "DIR")
-            if problem is not None:
-                parser.error(problem)
+        figures = folder / "figures"
+        problem = check_writable(folder / "report.md", "DIR")
+        if problem is None and figures.exists() and not figures.is_dir():
+            problem = f"DIR {figures}: is a file, expected the report's figures folder"
+        if problem is not None:
+            parser.error(problem)
     try:
         path = write_report(
             args.results_dir,

@@ -58,5 +58,5 @@ def test_report_main_checks_its_files_before_drawing(results_copy, capsys):
     with pytest.raises(SystemExit) as exc:
         report_main([str(results_copy), "--no-gif"])
     assert exc.value.code == 2
-    assert "cannot be written" in capsys.readouterr().err
+    assert "is a file, expected the report's figures folder" in capsys.readouterr().err
     assert not (results_copy / "report.md").exists()
