@@ -19,6 +19,7 @@ from experiments.plots.replay import (
     make_render_env,
     replay_frames,
     stack_frames,
+    world_draws,
     write_gif,
 )
 from experiments.plots.scenario_fan import plan_panel_frames, saved_fans, scenario_fan_figure
@@ -61,6 +62,7 @@ __all__ = [
     "paths_figure",
     "plan_panel_frames",
     "replay_frames",
+    "world_draws",
     "sample_times",
     "save_figure",
     "saved_fans",

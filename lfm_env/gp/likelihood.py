@@ -3,7 +3,9 @@
 :func:`log_marginal_likelihood` runs a Kalman filter over (irregular) sample times;
 :func:`log_marginal_likelihood_and_grad` adds its gradient by the filter's sensitivity
 equations (the kernel matrices' derivatives by central differences in log-hyperparameters).
-:func:`lfm_env.gp.inference.fit` maximises it.
+:func:`lfm_env.gp.inference.fit` maximises it. :func:`driven_log_likelihood` scores
+measured states that the force drives (a latent force model's calibration data);
+:func:`lfm_env.gp.inference.fit_driven` maximises it.
 """
 
 from __future__ import annotations
@@ -476,4 +478,108 @@ def log_marginal_likelihood_and_grad(
     return ll, {name: float(g) for name, g in out.items()}
 
 
-__all__ = ["log_marginal_likelihood", "log_marginal_likelihood_and_grad"]
+def _per_step(value: Any, T: int, m: int, name: str, square: bool) -> np.ndarray:
+    """``value`` as ``(T, m, m)`` (square) or ``(T, m)``: one array per step, or one for all."""
+    a = np.asarray(value, dtype=float)
+    if square and a.shape == (m,):
+        a = np.diag(a)  # variances
+    if not square and m == 1 and a.shape == (T,):
+        a = a[:, None]  # one state: one number per step
+    one = (m, m) if square else (m,)
+    if a.shape == one:
+        a = np.broadcast_to(a, (T, *one))
+    if a.shape != (T, *one) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: expected finite numbers of shape {(T, *one)} or {one}")
+    return a
+
+
+def driven_log_likelihood(
+    kernel: StateSpaceKernel,
+    dt: float,
+    measured: Any,
+    offset: Any,
+    gain: Any,
+    measurement_variance: Any,
+    process_covariance: Any,
+    transition: Any = None,
+) -> float:
+    """Log-likelihood [nats] of measured states driven by a latent force, by a Kalman filter.
+
+    The states ``x`` (``m`` of them) move by a known linear step and are pushed by the
+    force ``w = H z``, a stationary state-space GP; each is measured with noise::
+
+        x_{k+1} = Phi_k x_k + c_k + g_k w_k + e_k,   e_k ~ N(0, Q_k)
+        z_{k+1} = A z_k + eta_k                      (the kernel's exact discretisation)
+        y_k     = x_k + n_k,                         n_k ~ N(0, R)
+
+    The filter runs on ``[x, z]`` from ``x_0 ~ N(y_0, R)`` (the first measurement decides
+    it) and ``z_0 ~ N(0, Pinf)``; the result is ``log p(y_1, ..., y_T)``. Keeping the
+    measurement noise in the model avoids the correlated (moving-average) noise of
+    differenced measurements. This is the likelihood :func:`lfm_env.gp.inference.fit_driven`
+    maximises (``lfm-calibrate`` builds ``Phi, c, g, Q`` from a system's force gain).
+
+    Args:
+        kernel: the force's state-space kernel (hyperparameters to score).
+        dt: step [s] between measurements, > 0.
+        measured: ``(T + 1, m)`` measurements ``y_0 .. y_T``.
+        offset: ``(T, m)`` the known part ``c_k`` of each step.
+        gain: ``(T, m)`` how one step moves the states per unit of force, ``g_k``.
+        measurement_variance: ``R``: ``(m,)`` variances or ``(m, m)``.
+        process_covariance: ``Q_k``: ``(m,)`` variances, ``(m, m)``, or ``(T, m, m)``.
+        transition: ``Phi_k``: ``(T, m, m)`` or ``(m, m)``; ``None`` for the identity.
+
+    Raises:
+        ValueError: for arrays of the wrong shape or not finite, or an innovation
+            covariance that is not positive definite.
+    """
+    y = np.asarray(measured, dtype=float)
+    if y.ndim == 1:
+        y = y[:, None]
+    if y.ndim != 2 or y.shape[0] < 2 or not np.all(np.isfinite(y)):
+        raise ValueError(f"measured: expected finite numbers of shape (T + 1, m), got {y.shape}")
+    T, m = y.shape[0] - 1, y.shape[1]
+    c = _per_step(offset, T, m, "offset", False)
+    g = _per_step(gain, T, m, "gain", False)
+    R = _per_step(measurement_variance, 1, m, "measurement_variance", True)[0]
+    Q = _per_step(process_covariance, T, m, "process_covariance", True)
+    Phi = None if transition is None else _per_step(transition, T, m, "transition", True)
+    A_z, Q_z = kernel.discretize(float(dt))
+    h = np.asarray(kernel.H, dtype=float).reshape(-1)
+    p = A_z.shape[0]
+    n = m + p
+    A = np.zeros((n, n))
+    A[:m, :m] = np.eye(m)
+    A[m:, m:] = A_z
+    Qs = np.zeros((n, n))
+    Qs[m:, m:] = Q_z
+    mean = np.zeros(n)
+    mean[:m] = y[0]
+    P = np.zeros((n, n))
+    P[:m, :m] = R
+    P[m:, m:] = kernel.Pinf
+    total = 0.0
+    log_2pi = math.log(2.0 * math.pi)
+    for k in range(T):
+        if Phi is not None:
+            A[:m, :m] = Phi[k]
+        A[:m, m:] = np.outer(g[k], h)
+        Qs[:m, :m] = Q[k]
+        mean = A @ mean
+        mean[:m] += c[k]
+        P = A @ P @ A.T + Qs
+        S = P[:m, :m] + R
+        innov = y[k + 1] - mean[:m]
+        try:
+            L = np.linalg.cholesky(0.5 * (S + S.T))
+        except np.linalg.LinAlgError:
+            raise ValueError(f"innovation covariance not positive definite at step {k}") from None
+        white = scipy.linalg.solve_triangular(L, innov, lower=True)
+        total -= 0.5 * (m * log_2pi + 2.0 * float(np.sum(np.log(np.diag(L)))) + white @ white)
+        gain_k = scipy.linalg.cho_solve((L, True), P[:m, :]).T  # (n, m): P H' S^-1
+        mean = mean + gain_k @ innov
+        P = P - gain_k @ P[:m, :]
+        P = 0.5 * (P + P.T)
+    return float(total)
+
+
+__all__ = ["driven_log_likelihood", "log_marginal_likelihood", "log_marginal_likelihood_and_grad"]

@@ -233,8 +233,11 @@ def test_spaces_are_in_physical_units():
     np.testing.assert_allclose(space.high, [5.0, math.radians(25.0)], rtol=1e-7)
     np.testing.assert_allclose(space.low, [-5.0, -math.radians(25.0)], rtol=1e-7)
     assert env.observation_space.dtype == np.float64 and env.observation_space.shape == (4,)
-    assert np.all(env.observation_space.low == -np.inf)
-    assert np.all(env.observation_space.high == np.inf)
+    # Positions [m] in the safety box (widened for the step that leaves it) plus the noise's
+    # reach; the speed and the heading have no bound of their own: float32's largest.
+    np.testing.assert_allclose(env.observation_space.low[:2], [-23.1, -26.1], rtol=1e-6)
+    np.testing.assert_allclose(env.observation_space.high[:2], [92.1, 26.1], rtol=1e-6)
+    assert np.all(env.observation_space.high[2:] == np.finfo(np.float32).max)
 
 
 def test_quadrotor_spaces_are_in_physical_units():
@@ -244,7 +247,9 @@ def test_quadrotor_spaces_are_in_physical_units():
     np.testing.assert_allclose(space.low, [0.0, -0.4], rtol=1e-7)  # [N, rad]
     np.testing.assert_allclose(space.high, [2.0 * 0.027 * 9.81, 0.4], rtol=1e-7)
     assert env.observation_space.dtype == np.float64 and env.observation_space.shape == (6,)
-    assert np.all(np.isinf(env.observation_space.low) & np.isinf(env.observation_space.high))
+    np.testing.assert_allclose(env.observation_space.low[:2], [-2.78, -2.13], rtol=1e-6)
+    np.testing.assert_allclose(env.observation_space.high[:2], [11.28, 4.13], rtol=1e-6)
+    assert np.all(env.observation_space.low[2:] == -np.finfo(np.float32).max)
 
 
 def test_spaces_follow_the_system():
