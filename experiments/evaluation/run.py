@@ -25,10 +25,12 @@ holds the traceback, its npz the steps done before the error); such rows are kep
 table but, with ``retry_failed=True`` (the default), re-run by the next call. A folder
 holds the results of one config only: :func:`evaluate` refuses to resume into a folder
 whose ``config.yaml`` differs or whose episodes carry another :func:`config_hash`. A
-folder is owned by one run at a time (``out/.lock`` holds its pid and host; a second run
-is refused naming it; the lock of a dead process is taken over). Every saved episode is
-verified before it is skipped on resume (its json names its own agent and seed, its npz
-loads with one step per row step); a damaged one is named on stderr and run again.
+folder is owned by one run at a time: an operating-system lock on ``out/.lock``
+(:class:`~experiments.evaluation.storage.FolderLock`), which the kernel releases when the
+run ends however it ends; a second run is refused naming the owner's pid and host. Every
+saved episode is verified before it is skipped on resume (its json names its own agent and
+seed, its npz loads with one step per row step); a damaged one is named on stderr and run
+again.
 
 An interrupt (Ctrl-C, or SIGTERM while :func:`evaluate` runs in the main thread) ends the
 workers at once, removes temporary files and rebuilds ``episodes.csv`` before

@@ -12,6 +12,7 @@ run writes into it. Downstream readers use
 from __future__ import annotations
 
 import csv
+import fcntl
 import hashlib
 import io
 import json
@@ -19,7 +20,6 @@ import math
 import os
 import secrets
 import socket
-import time
 import zipfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -380,71 +380,93 @@ def check_folder(out: Path, config: ExperimentConfig) -> None:
             )
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True  # another user's live process
-    return True
-
-
 class FolderLock:
-    """Ownership of a results folder by one run: ``out/.lock`` holds ``<pid> <host>``.
+    """Ownership of a folder by one process: an operating-system lock on ``out/.lock``.
 
-    Taken with ``O_EXCL``; a lock of a process that no longer runs on this host is stale
-    and taken over. Another live owner gets a :class:`ResultsFolderError` naming it.
+    The lock is ``flock`` (exclusive, not waiting) on the open lock file, which the kernel
+    releases when its owner ends, however it ends (SIGKILL, the OOM killer, a crash): no
+    stale lock is ever taken over, and of any number of processes trying at once exactly
+    one owns the folder. The file holds ``<pid> <host>`` of the owner, for the message
+    another process gets: a :class:`ResultsFolderError` naming it. The owner removes the
+    file when it releases the lock (a lock file left by a killed owner is free to take).
+    The lock is local to one machine's kernel (and NFS with its lock manager).
+
+    Args:
+        out: the folder (it must exist).
+        what: how the messages call the folder.
+        hint: what the message of a refusal advises.
     """
 
-    def __init__(self, out: Path) -> None:
+    def __init__(
+        self,
+        out: Path,
+        what: str = "results folder",
+        hint: str = "wait for that run to end or choose another output folder",
+    ) -> None:
         self.path = Path(out) / _LOCK
+        self.what, self.hint = what, hint
         self.text = f"{os.getpid()} {socket.gethostname()}\n"
+        self._fd: int | None = None
 
-    def _owner(self) -> tuple[int, str] | None:
-        for _ in range(10):  # the owner may be between creating and writing it
-            try:
-                parts = self.path.read_text().split()
-            except FileNotFoundError:
-                return None
-            if len(parts) == 2 and parts[0].isdigit():
-                return int(parts[0]), parts[1]
-            time.sleep(0.05)
-        return -1, ""  # garbage: treated as stale
+    def _owner(self, fd: int) -> str:
+        """The owner named by the lock file, as text for a message."""
+        try:
+            parts = os.pread(fd, 200, 0).decode(errors="replace").split()
+        except OSError:
+            parts = []
+        if len(parts) == 2 and parts[0].isdigit():
+            return f"process {parts[0]} on {parts[1]}"
+        return "another process"
 
     def acquire(self) -> FolderLock:
-        for _ in range(3):
+        """Take the lock, or raise :class:`ResultsFolderError` naming its owner."""
+        folder = str(self.path.parent)
+        for _ in range(20):
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
             try:
-                fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-            except FileExistsError:
-                owner = self._owner()
-                if owner is None:
-                    continue
-                pid, host = owner
-                if pid > 0 and (host != socket.gethostname() or _pid_alive(pid)):
-                    raise ResultsFolderError(
-                        f"results folder {str(self.path.parent)!r} is in use by process {pid} "
-                        f"on {host} (lock file {str(self.path)!r}); wait for that run to end "
-                        "or choose another output folder"
-                    ) from None
-                # Stale (its process is gone): move it aside, so only one taker wins.
-                try:
-                    os.rename(self.path, self.path.with_name(f"{_LOCK}.stale.{os.getpid()}"))
-                    self.path.with_name(f"{_LOCK}.stale.{os.getpid()}").unlink()
-                except FileNotFoundError:
-                    pass
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                owner = self._owner(fd)
+                os.close(fd)
+                raise ResultsFolderError(
+                    f"{self.what} {folder!r} is in use by {owner} (lock file "
+                    f"{str(self.path)!r}); {self.hint}"
+                ) from None
+            except BaseException:
+                os.close(fd)
+                raise
+            # Its previous owner may have removed the file between our open and our lock:
+            # the lock then holds a file no other process can find. Try again.
+            try:
+                current = os.stat(self.path)
+                mine = os.fstat(fd)
+                same = (current.st_dev, current.st_ino) == (mine.st_dev, mine.st_ino)
+            except FileNotFoundError:
+                same = False
+            if not same:
+                os.close(fd)
                 continue
-            with os.fdopen(fd, "w") as fh:
-                fh.write(self.text)
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, self.text.encode(), 0)
+            self._fd = fd
             return self
-        raise ResultsFolderError(f"results folder {str(self.path.parent)!r}: cannot take its lock")
+        raise ResultsFolderError(f"{self.what} {folder!r}: cannot take its lock {self.path}")
 
     def release(self) -> None:
+        """Remove the lock file and release the lock (nothing if not held)."""
+        if self._fd is None:
+            return
         try:
-            if self.path.read_text() == self.text:
-                self.path.unlink()
-        except FileNotFoundError:
-            pass
+            self.path.unlink(missing_ok=True)  # while still holding it
+        finally:
+            os.close(self._fd)
+            self._fd = None
+
+    def __enter__(self) -> FolderLock:
+        return self.acquire()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.release()
 
 
 def _prepare_folder(out: Path, config: ExperimentConfig) -> None:
