@@ -10,6 +10,7 @@ from pathlib import Path
 
 from experiments.cli.common import (
     add_config_argument,
+    add_episode_timeout_argument,
     add_executor_arguments,
     config_argument_path,
     one_line_errors,
@@ -26,8 +27,11 @@ files written (DIR is --out):
 
 Rerunning the same command resumes an interrupted run: finished episodes are
 skipped and episodes that raised an error are retried. A folder holds one config;
-resuming with another config is refused. Exit code 0 when every episode ran, 1 when
-some raised (they are in the table with their error), 2 on bad arguments.
+resuming with another config is refused; one run writes into a folder at a time.
+An episode that raises (SystemExit included), runs past --episode-timeout, or whose
+worker process dies (--jobs) is an error row naming why; the other episodes run on.
+Exit code 0 when every episode ran, 1 when some raised (they are in the table with
+their error), 2 on bad arguments, 130 when interrupted.
 
 Metrics (columns of episodes.csv): success, steps, time_to_goal [s], cost (sum of
 the true stage cost), then per constraint group G of the world's system
@@ -87,6 +91,7 @@ def _evaluate_parser() -> argparse.ArgumentParser:
         ),
     )
     add_executor_arguments(parser, "local worker processes (default: 1, serial)")
+    add_episode_timeout_argument(parser)
     parser.add_argument(
         "--out",
         metavar="DIR",
@@ -153,6 +158,7 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
             scheduler=args.scheduler,
             dask_workers=args.dask_workers,
             progress=not args.quiet,
+            episode_timeout=args.episode_timeout,
         )
     except (ValueError, ConnectionError) as exc:  # raised before any episode runs
         parser.error(" ".join(str(exc).split()))

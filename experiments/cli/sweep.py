@@ -9,6 +9,7 @@ from pathlib import Path
 
 from experiments.cli.common import (
     add_config_argument,
+    add_episode_timeout_argument,
     add_executor_arguments,
     config_argument_path,
     one_line_errors,
@@ -76,6 +77,7 @@ def _sweep_parser() -> argparse.ArgumentParser:
         help="env seeds, e.g. 0:100, 3, 1,5,9 (end exclusive; default: 0:20)",
     )
     add_executor_arguments(parser, "local worker processes per evaluation (default: 1, serial)")
+    add_episode_timeout_argument(parser)
     parser.add_argument(
         "--out",
         metavar="DIR",
@@ -112,6 +114,7 @@ def sweep_main(argv: Sequence[str] | None = None) -> int:
             scheduler=args.scheduler,
             dask_workers=args.dask_workers,
             progress=not args.quiet,
+            episode_timeout=args.episode_timeout,
         )
     except (ValueError, ConnectionError) as exc:  # raised before any episode runs
         parser.error(" ".join(str(exc).split()))

@@ -35,6 +35,7 @@ from experiments.evaluation.columns import (
     violation_counts,
 )
 from experiments.evaluation.interrupts import raise_if_interrupted
+from experiments.evaluation.limits import check_deadline
 
 # --------------------------------------------------------------------------- small helpers
 
@@ -335,6 +336,7 @@ def _simulate(
         terminated = truncated = False
         while not (terminated or truncated):
             raise_if_interrupted()  # a Ctrl-C that a library swallowed
+            check_deadline()  # the episode's time limit, if a library swallowed it
             # The agent's estimate made with obs k is compared with the w of step k.
             action = agent.act(obs)
             agent_info = last_info(agent)

@@ -108,6 +108,7 @@ def save_episode(
     trajectory: dict[str, np.ndarray] | None,
     traceback_text: str = "",
     config_digest: str = "",
+    run_token: str = "",
 ) -> Path:
     """Save an episode as ``episodes/<agent>__seed<seed>.npz`` then ``.json``, atomically.
 
@@ -117,6 +118,8 @@ def save_episode(
         trajectory: arrays for the npz; ``None`` writes the json only.
         traceback_text: the traceback of a failed episode, kept in the json.
         config_digest: :func:`config_hash` of the episode's config, kept in the json.
+        run_token: the run's token, for the row of an episode that got stuck past its
+            limit and ended its process (:func:`stuck_row`); kept in the json as ``run``.
 
     Returns:
         The json's path (its presence marks the episode finished).
@@ -129,6 +132,8 @@ def save_episode(
     record["agent_seed"] = agent_seed(row["seed"], row["agent"])
     record["traceback"] = traceback_text
     record["config_hash"] = config_digest
+    if run_token:
+        record["run"] = run_token
     text = json.dumps(record, indent=1, allow_nan=False) + "\n"
     json_path = folder / f"{stem}.json"
     _atomic_write(json_path, lambda fh: fh.write(text.encode()))
@@ -139,6 +144,7 @@ _JSON_EXTRAS = (
     "agent_seed",
     "traceback",
     "config_hash",
+    "run",
 )  # keys of an episode json that are not columns
 
 
@@ -284,6 +290,22 @@ def finished_row(
         _warn(f"{exc}; running the episode again")
         return None
     return {k: v for k, v in record_.items() if k not in _JSON_EXTRAS}
+
+
+def stuck_row(out: str | os.PathLike, agent_name: str, seed: int, token: str) -> dict | None:
+    """The row an episode saved when it got stuck past its limit in the run of ``token``
+    and ended its process (``None`` if it did not): a task run again after that process
+    ended (a Dask worker's) returns it instead of running the episode again."""
+    path = Path(out) / _EPISODES / f"{episode_stem(agent_name, seed)}.json"
+    if not token or not path.is_file():
+        return None
+    try:
+        record = _read_record(path)
+    except DamagedEpisodeError:
+        return None
+    if record.get("run") != token:
+        return None
+    return {k: v for k, v in record.items() if k not in _JSON_EXTRAS}
 
 
 def _csv_value(v: Any) -> str:
@@ -493,5 +515,6 @@ __all__ = [
     "ResultsFolderError",
     "save_episode",
     "saved_rows",
+    "stuck_row",
     "write_table",
 ]

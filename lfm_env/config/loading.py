@@ -192,14 +192,16 @@ def load_yaml(path: str | os.PathLike) -> dict:
     return data
 
 
-TOP_LEVEL_KEYS = ("env_id", "env", "agents")
+#: The top level of a config file: the world (``env_id``, ``env``), the agents and how an
+#: evaluation runs (``evaluation``: :class:`controllers.config.EvaluationConfig`).
+TOP_LEVEL_KEYS = ("env_id", "env", "agents", "evaluation")
 
 
 def read_section(source: Any, section: str) -> dict | None:
     """The ``section`` mapping of a config given as a path, a dict or ``None``.
 
-    A dict that holds top-level keys (``env_id``, ``env``, ``agents``) gives the named
-    section; any other dict is taken as the section itself.
+    A dict that holds top-level keys (:data:`TOP_LEVEL_KEYS`) gives the named section; any
+    other dict is taken as the section itself.
     """
     if source is None:
         return None
