@@ -139,6 +139,7 @@ from experiments.evaluation.storage import (
     save_episode,
     saved_rows,
     stuck_row,
+    warnings_once,
     write_table,
 )
 
@@ -370,6 +371,7 @@ def evaluate(
 
     with ExitStack() as stack:
         stack.enter_context(remember_interrupts())
+        stack.enter_context(warnings_once())  # (the folder is read more than once)
         # Closed after the executor below (last in, first out): the folder is finished
         # and unlocked only once no worker writes into it any more.
         folder_stack = stack.enter_context(ExitStack())

@@ -11,6 +11,7 @@ run writes into it. Downstream readers use
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import fcntl
 import hashlib
@@ -20,8 +21,10 @@ import math
 import os
 import secrets
 import socket
+import sys
+import time
 import zipfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -210,11 +213,32 @@ def _read_row(path: Path) -> dict[str, Any] | None:
     return {k: v for k, v in record.items() if k not in _JSON_EXTRAS}
 
 
-def _warn(message: str) -> None:
-    """One line on stderr: a damaged file is named, never dropped silently."""
-    import sys
+# The warnings printed in the current warnings_once() scope (innermost last).
+_WARNED: list[set[str]] = []
 
+
+@contextlib.contextmanager
+def warnings_once() -> Iterator[None]:
+    """Within it, each warning of :func:`warn` is printed once (an evaluation reads its
+    folder more than once; a report reads a trajectory in several sections)."""
+    _WARNED.append(set())
+    try:
+        yield
+    finally:
+        _WARNED.pop()
+
+
+def warn(message: str) -> None:
+    """One line ``warning: <message>`` on stderr (once per :func:`warnings_once` scope): a
+    damaged file is named, never dropped silently."""
+    if _WARNED:
+        if message in _WARNED[-1]:
+            return
+        _WARNED[-1].add(message)
     print(f"warning: {message}", file=sys.stderr, flush=True)
+
+
+_warn = warn
 
 
 def saved_rows(out: str | os.PathLike) -> list[dict[str, Any]]:
@@ -402,6 +426,48 @@ def check_folder(out: Path, config: ExperimentConfig) -> None:
             )
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # another user's live process
+    return True
+
+
+def _lock_owner(fd: int) -> tuple[bool, str]:
+    """Whether the lock file names a live owner (a live process of this host, or one of
+    another host), and a text naming it for a message."""
+    try:
+        parts = os.pread(fd, 200, 0).decode(errors="replace").split()
+    except OSError:
+        parts = []
+    if len(parts) == 2 and parts[0].isdigit():
+        alive = parts[1] != socket.gethostname() or _pid_alive(int(parts[0]))
+        return alive, f"process {parts[0]} on {parts[1]}"
+    return False, "another process"
+
+
+def folder_in_use(out: str | os.PathLike) -> str | None:
+    """Who holds the lock of the folder ``out`` (a text naming the process), or ``None``
+    when no run writes into it. Looks without taking the lock for more than a moment
+    (a run that starts meanwhile tries again: :meth:`FolderLock.acquire`)."""
+    try:
+        fd = os.open(Path(out) / _LOCK, os.O_RDONLY | os.O_NOFOLLOW)
+    except OSError:
+        return None  # no lock file: no owner
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return _lock_owner(fd)[1]
+    except OSError:
+        return None
+    finally:
+        os.close(fd)  # (releases a lock taken)
+    return None
+
+
 class FolderLock:
     """Ownership of a folder by one process: an operating-system lock on ``out/.lock``.
 
@@ -430,26 +496,24 @@ class FolderLock:
         self.text = f"{os.getpid()} {socket.gethostname()}\n"
         self._fd: int | None = None
 
-    def _owner(self, fd: int) -> str:
-        """The owner named by the lock file, as text for a message."""
-        try:
-            parts = os.pread(fd, 200, 0).decode(errors="replace").split()
-        except OSError:
-            parts = []
-        if len(parts) == 2 and parts[0].isdigit():
-            return f"process {parts[0]} on {parts[1]}"
-        return "another process"
-
     def acquire(self) -> FolderLock:
-        """Take the lock, or raise :class:`ResultsFolderError` naming its owner."""
+        """Take the lock, or raise :class:`ResultsFolderError` naming its owner.
+
+        A lock held while the file names no live owner (an owner between taking the lock
+        and writing its name, or a reader's short look: :func:`folder_in_use`) is tried
+        again for a moment before the folder is refused.
+        """
         folder = str(self.path.parent)
-        for _ in range(20):
+        for attempt in range(40):
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
-                owner = self._owner(fd)
+                alive, owner = _lock_owner(fd)
                 os.close(fd)
+                if not alive and attempt < 39:
+                    time.sleep(0.01)
+                    continue
                 raise ResultsFolderError(
                     f"{self.what} {folder!r} is in use by {owner} (lock file "
                     f"{str(self.path)!r}); {self.hint}"
@@ -511,10 +575,13 @@ __all__ = [
     "episode_stem",
     "finished_row",
     "FolderLock",
+    "folder_in_use",
     "load_trajectory",
     "ResultsFolderError",
     "save_episode",
     "saved_rows",
     "stuck_row",
+    "warn",
+    "warnings_once",
     "write_table",
 ]
