@@ -586,8 +586,8 @@ def _compile(source: str, target: Path, compiler: list[str]) -> None:
             if out.returncode == 0:
                 break
         if out.returncode != 0:
-            msg = (out.stderr or out.stdout).strip().splitlines()[:3]
-            raise CodegenUnavailable(f"compilation with {compiler[0]!r} failed: {msg}")
+            why = _compiler_error(out.stderr or out.stdout)
+            raise CodegenUnavailable(f"compilation with {compiler[0]!r} failed: {why}")
         os.chmod(tmp, 0o755)  # (whatever the umask: writable by this user only)
         record = {
             "key": target.stem.rpartition("_")[2],
@@ -605,6 +605,13 @@ def _compile(source: str, target: Path, compiler: list[str]) -> None:
     finally:
         for leftover in (c_file, tmp, record_tmp):
             leftover.unlink(missing_ok=True)
+
+
+def _compiler_error(output: str) -> str:
+    """The first error line of a compiler's output, without its ``file:line:col:`` start."""
+    lines = [line.strip() for line in output.strip().splitlines() if line.strip()]
+    line = next((x for x in lines if "error" in x.lower()), lines[0] if lines else "no output")
+    return re.sub(r"^\S+:\d+:(\d+:)?\s*", "", line)[:300]
 
 
 def build_library(system, dt: float) -> CompiledLibrary:
