@@ -486,15 +486,16 @@ def _cache_folder() -> Path:
 @contextlib.contextmanager
 def _key_lock(folder: Path, name: str, exclusive: bool) -> Iterator[None]:
     """Hold the lock ``folder/name`` (shared or exclusive) for the duration; without one
-    when it cannot be created (a folder this process cannot write, which no other process
-    of the user's can write either)."""
+    when it cannot be created or taken (a folder this process cannot write, which no other
+    process of the user's can write either; a file system without locks)."""
     try:
         fd = os.open(folder / name, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
     except OSError:
         yield
         return
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH)
+        with contextlib.suppress(OSError):  # (a file system without locks: none)
+            fcntl.flock(fd, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH)
         yield
     finally:
         os.close(fd)  # (releases the lock)
