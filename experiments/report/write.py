@@ -39,6 +39,7 @@ import numpy as np
 from controllers.agents.registry import AGENT_REGISTRY
 from experiments import plots
 from experiments.evaluation.columns import tolerance_columns
+from experiments.evaluation.storage import folder_in_use, warn, warnings_once
 from experiments.report.document import GIF_EMBED_LIMIT, Document, embedded_image
 from experiments.report.figures import check_figure_seed, figures_section
 from experiments.report.format import agent_label, fmt, fmt_estimate, long_label
@@ -212,6 +213,23 @@ def _errors_section(doc: Document, results: Results) -> None:
     doc.table(
         ["agent", "seed", "error"],
         [[agent_label(r["agent"]), str(r["seed"]), r["error"][:300]] for r in errors],
+    )
+
+
+def _damaged_section(doc: Document, results: Results) -> None:
+    """The episode files that did not load, left out of the figures (the table's rows of
+    those episodes are kept: the statistics read ``episodes.csv``)."""
+    if not results.damaged:
+        return
+    doc.heading("Damaged episode files")
+    doc.paragraph(
+        f"{len(results.damaged)} episode file(s) did not load and are left out of the figures "
+        "and of the pooled solve times (their rows in episodes.csv are kept); rerunning the "
+        "evaluation into this folder runs those episodes again."
+    )
+    doc.table(
+        ["file", "why"],
+        [[path.name, why[-300:]] for path, why in sorted(results.damaged.items())],
     )
 
 
@@ -430,6 +448,8 @@ def _pooled_solve_times(results: Results, agent: str) -> np.ndarray:
     chunks = []
     for row in results.rows_of(agent):
         traj = load_trajectory(results, agent, row["seed"])
+        if traj is None and results.trajectory_path(agent, row["seed"]) in results.damaged:
+            continue  # (named in the report)
         if traj is None or "solve_time" not in traj:
             return np.zeros(0)
         chunks.append(np.asarray(traj["solve_time"], dtype=float))
@@ -561,6 +581,25 @@ def write_report(
             ``baseline`` is not an agent of the results (the message lists them), or the
             sweep ran on another config (the message lists the fields).
     """
+    with warnings_once():  # (a damaged file is read by several sections)
+        return _write_report(results_dir, figure_seed, gif, sweep_dir, baseline, allow_other_config)
+
+
+def _write_report(
+    results_dir: str | Path,
+    figure_seed: int | None,
+    gif: bool,
+    sweep_dir: str | Path | None,
+    baseline: str | None,
+    allow_other_config: bool,
+) -> Path:
+    """:func:`write_report`'s work."""
+    owner = folder_in_use(results_dir)
+    if owner is not None:
+        warn(
+            f"results folder {str(results_dir)!r} is still being written by {owner}; the "
+            "report holds the episodes finished so far"
+        )
     results = load_results(results_dir)
     baseline = choose_baseline(results, baseline)
     check_figure_seed(results, figure_seed)  # before writing any file
@@ -589,6 +628,12 @@ def write_report(
     if sweep is not None:
         _sweep_section(doc, results, sweep, differences)
     figures_section(doc, results, figure_seed, gif)
+    _damaged_section(doc, results)
+    if owner is not None:
+        doc.paragraph(
+            f"Written while the results folder was still being written by {owner}: the "
+            "report holds the episodes finished by then."
+        )
 
     md_path = results.directory / "report.md"
     md_path.write_text(doc.markdown())

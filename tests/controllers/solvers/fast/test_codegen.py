@@ -5,9 +5,9 @@ Hessian either with a C library generated from the system's CasADi expressions
 (``"compiled-c"``) or with NumPy (``"numpy-lanes"``, ``"casadi-vm"``). Checked here: the
 backends agree to 1e-12 on the recorded paper problems and on the point mass of
 ``test_second_system.py``; without a working compiler the model really falls back to NumPy
-(the compiler is hidden, not mocked); the disk cache serves a second build without a
-compiler; two processes compiling the same library at once leave a valid library; the model
-and the solver pickle.
+(the compiler is hidden, not mocked); two processes compiling the same library at once leave
+a valid library; the model and the solver pickle. The cache's checks (a damaged, foreign or
+planted library, the key, failed builds) are test_codegen_cache.py's.
 """
 
 from __future__ import annotations
@@ -294,20 +294,6 @@ def test_an_unknown_backend_is_named(paper, monkeypatch) -> None:
 
 
 # ----------------------------------------------------------------------------- cache
-
-
-def test_the_disk_cache_serves_a_second_build_without_a_compiler(
-    paper, fresh_cache, tmp_path, monkeypatch
-) -> None:
-    first = CondensedModel(paper)
-    assert first.backend == "compiled-c" and not first.cache_hit
-    assert len(list(fresh_cache.glob("lfm_codegen_*.so"))) == 1
-    forget_loaded()
-    monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))  # compiling would fail
-    second = CondensedModel(paper)
-    assert second.backend == "compiled-c" and second.cache_hit
-    # And within the process, without looking at the disk again.
-    assert CondensedModel(paper).cache_hit
 
 
 def test_a_fresh_cache_compiles_anew_and_leaves_the_real_one(paper, paper_models) -> None:
