@@ -120,7 +120,7 @@ def test_every_python_block_runs(page, in_a_fresh_root, registries_restored):
     claims = {text: check for (name, text), check in CLAIMS.items() if name == page_id(page)}
     for text in claims:  # every claim belongs to exactly one block of its page
         assert sum(text in b for b in blocks) == 1, f"{page_id(page)}: one block with {text!r}"
-    namespace: dict = {"__name__": "docs_example"}
+    namespace: dict = {"__name__": "__main__"}  # as a script of the reader's own runs them
     skipped = []
     for number, block in enumerate(blocks, start=1):
         extra = optional_extra(block)

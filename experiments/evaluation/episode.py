@@ -35,6 +35,8 @@ from experiments.evaluation.columns import (
     violation_counts,
 )
 from experiments.evaluation.interrupts import raise_if_interrupted
+from experiments.evaluation.limits import check_deadline
+from lfm_env.config import show_value
 
 # --------------------------------------------------------------------------- small helpers
 
@@ -207,11 +209,7 @@ class _EpisodeRecorder:
     def step(
         self, agent_info: dict[str, Any], obs: np.ndarray, reward: float, info: dict[str, Any]
     ) -> None:
-        nan_pred = np.full((self.horizon + 1, self.nx), np.nan)
-        no_force = np.full(self.nw, np.nan)
-        predicted = agent_info.get("predicted")
         self.has_filter = self.has_filter or agent_info.get("latent_force") is not None
-        estimate, estimate_std = self._estimate(agent_info)
         values = {
             "true_state": np.asarray(info["true_state"], dtype=float),
             "obs": np.asarray(obs, dtype=float),
@@ -220,23 +218,7 @@ class _EpisodeRecorder:
             # w acting during this step: the quantity the agent estimated before it.
             "latent_force": self._force(info["latent_force"]),
             "reward": float(reward),
-            "estimate": estimate,
-            "estimate_std": estimate_std,
-            "latent_force_est": self._force(self._get(agent_info, "latent_force", no_force)),
-            "latent_force_std": self._force(self._get(agent_info, "latent_force_std", no_force)),
-            "predicted": nan_pred if predicted is None else np.array(predicted, dtype=float)[0],
-            # A compact fan: the first SAVED_SCENARIOS predicted trajectories, float32.
-            "predicted_scenarios": (
-                nan_pred[None] if predicted is None else np.asarray(predicted)[:SAVED_SCENARIOS]
-            ).astype(np.float32),
-            "solve_time": float(self._get(agent_info, "solve_time")),
-            "slack": float(self._get(agent_info, "slack")),
-            "solver_success": bool(self._get(agent_info, "success")),
-            "fallback": str(self._get(agent_info, "fallback")),
-            "filter_reset": bool(self._get(agent_info, "filter_reset")),
-            # The estimator's name, from agents that say which one they run (it may differ
-            # from agents.estimator: the robust agent has its own).
-            "estimator": str(self._get(agent_info, "estimator")),
+            **self._agent_values(agent_info),
         }
         # The largest excess of each constraint group after the step, in its unit.
         values.update((k, float(info[k])) for k in self._excess_keys())
@@ -244,6 +226,57 @@ class _EpisodeRecorder:
             self.lists[k].append(v)
         self.slack_reported.append(agent_info.get("slack") is not None)
         self.final_info = info
+
+    def _agent_values(self, agent_info: dict[str, Any]) -> dict[str, Any]:
+        """The step's values from the agent's ``last_info``, each converted and checked.
+
+        Raises:
+            ValueError: naming the key, for a value of the wrong kind or shape.
+        """
+        nan_pred = np.full((self.horizon + 1, self.nx), np.nan)
+        no_force = np.full(self.nw, np.nan)
+        get = self._get
+
+        def checked(key: str, convert: Callable[[], Any]) -> Any:
+            try:
+                return convert()
+            except (TypeError, ValueError, IndexError) as exc:
+                raise ValueError(
+                    f"last_info[{key!r}] of the agent is {show_value(agent_info.get(key))}: "
+                    f"{_one_line(exc)} (expected {INFO_EXPECTED.get(key, 'see AgentInfo')}; "
+                    "controllers.agents.protocol.AgentInfo)"
+                ) from None
+
+        predicted = agent_info.get("predicted")
+        if predicted is None:
+            first, fan = nan_pred, nan_pred[None]
+        else:
+            first = checked("predicted", lambda: np.array(predicted, dtype=float)[0])
+            fan = checked("predicted", lambda: np.asarray(predicted, dtype=float))
+            fan = fan[:SAVED_SCENARIOS]
+        estimate, estimate_std = self._estimate(agent_info, checked)
+        return {
+            "estimate": estimate,
+            "estimate_std": estimate_std,
+            "latent_force_est": checked(
+                "latent_force", lambda: self._force(get(agent_info, "latent_force", no_force))
+            ),
+            "latent_force_std": checked(
+                "latent_force_std",
+                lambda: self._force(get(agent_info, "latent_force_std", no_force)),
+            ),
+            "predicted": first,
+            # A compact fan: the first SAVED_SCENARIOS predicted trajectories, float32.
+            "predicted_scenarios": fan.astype(np.float32),
+            "solve_time": checked("solve_time", lambda: float(get(agent_info, "solve_time"))),
+            "slack": checked("slack", lambda: float(get(agent_info, "slack"))),
+            "solver_success": bool(get(agent_info, "success")),
+            "fallback": str(get(agent_info, "fallback")),
+            "filter_reset": bool(get(agent_info, "filter_reset")),
+            # The estimator's name, from agents that say which one they run (it may differ
+            # from agents.estimator: the robust agent has its own).
+            "estimator": str(get(agent_info, "estimator")),
+        }
 
     @staticmethod
     def _get(agent_info: dict[str, Any], key: str, default: Any = None) -> Any:
@@ -253,14 +286,22 @@ class _EpisodeRecorder:
             return value
         return INFO_DEFAULTS[key] if default is None else default
 
-    def _estimate(self, agent_info: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    def _estimate(
+        self, agent_info: dict[str, Any], checked: Callable[[str, Callable[[], Any]], Any]
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The step's estimate and its std, copied; NaN (of the episode's width) if absent."""
         previous = self.lists["estimate"]
         width = len(previous[0]) if previous else self.nx
         est = agent_info.get("estimate")
-        est = np.full(width, np.nan) if est is None else np.array(est, dtype=float)
+        if est is None:
+            est = np.full(width, np.nan)
+        else:
+            est = checked("estimate", lambda: _vector(est, width if previous else None))
         std = agent_info.get("estimate_std")
-        std = np.full(est.shape, np.nan) if std is None else np.array(std, dtype=float)
+        if std is None:
+            std = np.full(est.shape, np.nan)
+        else:
+            std = checked("estimate_std", lambda: _vector(std, est.size))
         return est, std
 
     def _fan(self) -> np.ndarray:
@@ -317,6 +358,27 @@ class _EpisodeRecorder:
         }
 
 
+#: What each ``last_info`` key must hold, for the error of a bad value.
+INFO_EXPECTED = {
+    "estimate": "a vector of d >= nx numbers, the same d at every step",
+    "estimate_std": "a vector as long as the estimate",
+    "latent_force": "nw numbers",
+    "latent_force_std": "nw numbers",
+    "predicted": "an array (S, N+1, nx) of predicted states",
+    "solve_time": "a number of seconds",
+    "slack": "a number >= 0",
+}
+
+
+def _vector(value: Any, size: int | None) -> np.ndarray:
+    """``value`` as a new 1-D float array (of ``size`` entries when given)."""
+    a = np.array(value, dtype=float)
+    if a.ndim != 1 or (size is not None and a.size != size):
+        shown = "" if size is None else f" of {size} entries"
+        raise ValueError(f"shape {a.shape}, not a vector{shown}")
+    return a
+
+
 def _simulate(
     agent_spec: str | OwnAgentSpec, config: ExperimentConfig, seed: int, rec: _EpisodeRecorder
 ) -> None:
@@ -335,6 +397,7 @@ def _simulate(
         terminated = truncated = False
         while not (terminated or truncated):
             raise_if_interrupted()  # a Ctrl-C that a library swallowed
+            check_deadline()  # the episode's time limit, if a library swallowed it
             # The agent's estimate made with obs k is compared with the w of step k.
             action = agent.act(obs)
             agent_info = last_info(agent)

@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from experiments.plots import episode as plots
+from experiments import plots
 from experiments.report.document import Document
 from experiments.report.format import agent_label
 from experiments.report.results import Results, load_trajectory
@@ -51,7 +51,12 @@ def _default_figure_seed(results: Results, agent: str) -> tuple[int | None, str]
     chosen only when no other has a trajectory, and the sentence says so.
     """
     rows = results.rows_of(agent, include_errors=True)
-    saved = [r for r in rows if results.trajectory_path(agent, r["seed"]).is_file()]
+    saved = [
+        r
+        for r in rows
+        if results.trajectory_path(agent, r["seed"]).is_file()
+        and results.trajectory_path(agent, r["seed"]) not in results.damaged
+    ]
     good = [r for r in saved if not r.get("error") and _steps(r) > 0]
     skipped = sorted({int(r["seed"]) for r in saved if r not in good})
     if good:
@@ -79,13 +84,17 @@ def _metric_values(results: Results, column: str) -> dict[str, np.ndarray]:
 
 
 def _goal(results: Results) -> tuple[np.ndarray, float | None]:
+    """The task's goal state and goal radius of the results' world (:func:`world_goal`)."""
+    return world_goal(results.config)
+
+
+def world_goal(cfg: object) -> tuple[np.ndarray, float | None]:
     """The task's goal state (SI units) and, if the world has one, its goal radius.
 
     A world whose success is reaching a disc (a ``goal`` position in the plane of the
     first two states and a ``goal_radius``, as both the sine track and the quadrotor
     have) gets that disc drawn; otherwise the cost's goal state is marked.
     """
-    cfg = results.config
     goal_state = np.array(cfg.goal_state_rad, dtype=float)
     goal, radius = getattr(cfg, "goal", None), getattr(cfg, "goal_radius", None)
     if goal is not None and np.shape(goal) == (2,) and radius is not None:
@@ -158,16 +167,28 @@ def _episode_section(doc: Document, results: Results, figure_seed: int | None, g
     main_agent = _main_agent(results)
 
     doc.heading("One episode")
-    figure_seed, why = _episode_seed(results, main_agent, figure_seed)
-    if figure_seed is None:
-        doc.paragraph(f"No saved trajectory of `{main_agent}`: no episode figures.")
-        return
-    traj = load_trajectory(results, main_agent, figure_seed)
-    if traj is None:
-        raise ValueError(
-            f"no saved trajectory of agent {main_agent!r} for seed {figure_seed}: "
-            f"{results.trajectory_path(main_agent, figure_seed)} does not exist"
-        )
+    chosen = figure_seed
+    while True:
+        figure_seed, why = _episode_seed(results, main_agent, chosen)
+        if figure_seed is None:
+            doc.paragraph(f"No saved trajectory of `{main_agent}`: no episode figures.")
+            return
+        traj = load_trajectory(results, main_agent, figure_seed)
+        if traj is not None:
+            break
+        path = results.trajectory_path(main_agent, figure_seed)
+        if path not in results.damaged:
+            raise ValueError(
+                f"no saved trajectory of agent {main_agent!r} for seed {figure_seed}: "
+                f"{path} does not exist"
+            )
+        if chosen is not None:  # the seed asked for: its file is damaged
+            doc.paragraph(
+                f"The episode file of `{main_agent}` on seed {figure_seed} is damaged and left "
+                f"out (`{path.name}`): no episode figures."
+            )
+            return
+        # the default seed's file is damaged: the next one (_default_figure_seed skips it)
     label = agent_label(main_agent)
     goal = _goal(results)
     doc.paragraph(
@@ -277,18 +298,26 @@ def _replay_gif(
     """The episode replayed from its saved true states, the plan's panel below the scene."""
     cfg = results.config
     goal_state, goal_radius = goal
-    frames = plots.replay_frames(traj["true_state"], cfg, caption=label)
+    draws = plots.world_draws(cfg)
+    frames = plots.replay_frames(traj["true_state"], cfg, caption=label) if draws else []
     width = frames[0].shape[1] if frames else 480
     panels = plots.plan_panel_frames(
         results.system, traj, size=(width, max(160, width // 3)), goal_state=goal_state,
         goal_radius=goal_radius,
     )  # fmt: skip
+    if draws:
+        frames = plots.stack_frames(frames, panels)
+        where = "above, the world's own scene; below, "
+    else:
+        frames = [plots.annotate_frame(p, f"{label} | t = {k * cfg.dt:.1f} s")
+                  for k, p in enumerate(panels)]  # fmt: skip
+        where = "the world has no scene of its own (its env draws none), so only "
     rel = "figures/episode.gif"
-    plots.write_gif(plots.stack_frames(frames, panels), results.directory / rel, 1.0 / cfg.dt)
+    plots.write_gif(frames, results.directory / rel, 1.0 / cfg.dt)
     doc.image(
         rel,
         f"The episode replayed from its saved true states ({len(frames)} frames, "
-        f"{1.0 / cfg.dt:g} frames/s): above, the world's own scene; below, a camera "
+        f"{1.0 / cfg.dt:g} frames/s): {where}a camera "
         "following the true state (green square) in the plane of the first two states, "
         "with the estimate and its 2-sigma ellipse (red), the plan's scenario "
         "predictions (blue) and their mean (navy) at each step.",
@@ -335,4 +364,4 @@ def _fan_figure(
     )
 
 
-__all__ = ["check_figure_seed", "figures_section"]
+__all__ = ["check_figure_seed", "figures_section", "world_goal"]

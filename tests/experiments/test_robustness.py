@@ -1159,11 +1159,11 @@ def test_pool_worker_killed_mid_run_the_table_ends_complete(tmp_path):
 def test_a_worker_killed_mid_write_leaves_no_temporary_file(tmp_path, monkeypatch):
     task = evaluation._episode_task
 
-    def task_after_a_torn_write(agent_name, config, seed, out, record, digest=""):
+    def task_after_a_torn_write(agent_name, config, seed, out, record, *rest):
         # What a worker killed inside an atomic write (its episode rerun elsewhere) leaves.
         torn = Path(out) / "episodes" / f".{agent_name}__seed{seed}.npz.4242.dead.tmp"
         torn.write_bytes(b"torn")
-        return task(agent_name, config, seed, out, record, digest)
+        return task(agent_name, config, seed, out, record, *rest)
 
     monkeypatch.setattr(evaluation, "_episode_task", task_after_a_torn_write)
     rows = evaluate(["nominal"], [0, 1], TINY, out=tmp_path, progress=False)

@@ -13,6 +13,7 @@ import pytest
 from experiments.evaluation import episode
 from experiments.evaluation.run import (
     agent_seed,
+    evaluate,
     parse_seeds,
     row_columns,
     run_episode,
@@ -182,3 +183,39 @@ def test_run_episode_rejects_unknown_agent_and_negative_seed():
         run_episode("random", TINY, 0)
     with pytest.raises(ValueError, match="-1"):
         run_episode("nominal", TINY, -1)
+
+
+class _BadInfoAgent:
+    """Steers nowhere, with one bad value in its last_info."""
+
+    def __init__(self, key: str, value) -> None:
+        self.key, self.value = key, value
+        self.last_info: dict = {}
+
+    def reset(self, seed=None) -> None:
+        self.last_info = {}
+
+    def act(self, obs):
+        self.last_info = {self.key: self.value}
+        return np.zeros(2)
+
+
+@pytest.mark.parametrize(
+    "key, value",
+    [
+        ("solve_time", "fast"),
+        ("slack", [1.0, 2.0]),
+        ("estimate", [[1.0, 2.0], [3.0, 4.0]]),
+        ("estimate_std", "wide"),
+        ("latent_force", [1.0, 2.0, 3.0]),
+        ("latent_force_std", object()),
+        ("predicted", 5.0),
+    ],
+)
+def test_a_bad_last_info_value_is_named_by_its_key(key, value) -> None:
+    """Lesser case: a bad last_info value gave an error that did not name its key."""
+    agent = _BadInfoAgent(key, value)
+    with pytest.raises(ValueError, match=rf"last_info\['{key}'\] of the agent is "):
+        episode.run_episode(agent, TINY, 0)
+    (row,) = evaluate([agent], [0], TINY, progress=False)
+    assert f"last_info['{key}']" in row["error"]

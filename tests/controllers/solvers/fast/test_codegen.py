@@ -5,9 +5,9 @@ Hessian either with a C library generated from the system's CasADi expressions
 (``"compiled-c"``) or with NumPy (``"numpy-lanes"``, ``"casadi-vm"``). Checked here: the
 backends agree to 1e-12 on the recorded paper problems and on the point mass of
 ``test_second_system.py``; without a working compiler the model really falls back to NumPy
-(the compiler is hidden, not mocked); the disk cache serves a second build without a
-compiler; two processes compiling the same library at once leave a valid library; the model
-and the solver pickle.
+(the compiler is hidden, not mocked); two processes compiling the same library at once leave
+a valid library; the model and the solver pickle. The cache's checks (a damaged, foreign or
+planted library, the key, failed builds) are test_codegen_cache.py's.
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ from controllers.solvers.fast.codegen.build import CodegenUnavailable, forget_lo
 from controllers.solvers.fast.condensed import CondensedModel
 from experiments.benchmark.problems import problem_from_config
 from lfm_env.cost import QuadraticCost
+from tests.controllers.solvers.recorded import DATA_DIR, load_problems
 from tests.controllers.test_second_system import (
     COST,
     NS,
@@ -42,14 +43,9 @@ from tests.controllers.test_second_system import (
 )
 
 ROOT = Path(__file__).resolve().parents[4]
-DATA = dict(np.load(ROOT / "tests" / "data" / "recorded_problems.npz"))
+DATA = load_problems()
 IDS = [f"seed{s}-step{k}" for s, k in zip(DATA["seed"], DATA["step"], strict=True)]
 RTOL = 1e-12  # relative to the largest entry of each compared array
-
-
-@pytest.fixture(scope="module")
-def paper() -> ScenarioProblem:
-    return problem_from_config(n_scenarios=150)
 
 
 @pytest.fixture(scope="module")
@@ -300,20 +296,6 @@ def test_an_unknown_backend_is_named(paper, monkeypatch) -> None:
 # ----------------------------------------------------------------------------- cache
 
 
-def test_the_disk_cache_serves_a_second_build_without_a_compiler(
-    paper, fresh_cache, tmp_path, monkeypatch
-) -> None:
-    first = CondensedModel(paper)
-    assert first.backend == "compiled-c" and not first.cache_hit
-    assert len(list(fresh_cache.glob("lfm_codegen_*.so"))) == 1
-    forget_loaded()
-    monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))  # compiling would fail
-    second = CondensedModel(paper)
-    assert second.backend == "compiled-c" and second.cache_hit
-    # And within the process, without looking at the disk again.
-    assert CondensedModel(paper).cache_hit
-
-
 def test_a_fresh_cache_compiles_anew_and_leaves_the_real_one(paper, paper_models) -> None:
     """Inside ``compiled.fresh_cache()`` the C library is compiled again into a temporary
     directory (the benchmark's cold first build); afterwards the configured cache and the
@@ -355,7 +337,7 @@ print(m.backend, m.cache_hit, repr(float(ro.merit)), repr(float(np.abs(H).sum())
 def test_two_processes_compiling_at_once_leave_a_valid_library(paper, paper_models, tmp_path):
     env = {**os.environ, "LFM_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": str(ROOT)}
     env.pop("LFM_BACKEND", None)
-    cmd = [sys.executable, "-c", _BUILD, str(ROOT / "tests" / "data" / "recorded_problems.npz")]
+    cmd = [sys.executable, "-c", _BUILD, str(DATA_DIR / "recorded_problems.npz")]
     procs = [
         subprocess.Popen(cmd, env=env, cwd=ROOT, stdout=subprocess.PIPE, text=True)
         for _ in range(2)
