@@ -36,6 +36,7 @@ from experiments.benchmark.problems import (
     anchors_per_seed,
     scenario_draws,
 )
+from experiments.benchmark.targets import ANCHOR, TEXTBOOK, target
 from experiments.evaluation.interrupts import raise_if_interrupted
 
 COMPILED = "fast_c"
@@ -287,7 +288,6 @@ def _sweep_median(results: Mapping[str, Any], name: str, ns: int) -> Any:
 def compiled_targets(results: Mapping[str, Any], th: Mapping[str, float]) -> list[dict]:
     """The issue's targets (issue 37) from a run: the compiled loop's latency and ratios,
     large Ns, the robust whole step in C, the exported plans and dependencies."""
-    from experiments.benchmark.targets import ANCHOR, TEXTBOOK, target
 
     def ratio(a: Any, b: Any) -> float | None:
         ok = a is not None and b is not None and math.isfinite(a) and math.isfinite(b) and b > 0

@@ -17,7 +17,7 @@ from experiments.benchmark.problems import (
     experiment_config,
     record_closed_loop,
 )
-from experiments.benchmark.targets import DEFAULT_THRESHOLDS, evaluate_targets
+from experiments.benchmark.targets import DEFAULT_THRESHOLDS
 
 ISSUE_37_KEYS = (
     "fast_c_median_ms",
@@ -64,7 +64,11 @@ def test_the_compiled_loop_gives_the_python_loops_plans(tiny) -> None:
 
 def test_the_targets_without_the_solvers_and_export_are_skipped(tiny) -> None:
     out, _, _ = tiny
-    targets = [t for t in evaluate_targets({"compiled": out}) if t["key"] in set(ISSUE_37_KEYS)]
+    targets = [
+        t
+        for t in bench_compiled.compiled_targets({"compiled": out}, DEFAULT_THRESHOLDS)
+        if t["key"] in set(ISSUE_37_KEYS)
+    ]
     assert [t["key"] for t in targets] == list(ISSUE_37_KEYS)
     for t in targets:
         assert t["passed"] is None and t["value"] is None, t["key"]
@@ -76,7 +80,10 @@ def test_the_targets_without_the_solvers_and_export_are_skipped(tiny) -> None:
 
 def test_the_printed_part_has_a_row_per_agreement_and_target(tiny) -> None:
     out, _, _ = tiny
-    results = {"compiled": out, "targets": evaluate_targets({"compiled": out})}
+    results = {
+        "compiled": out,
+        "targets": bench_compiled.compiled_targets({"compiled": out}, DEFAULT_THRESHOLDS),
+    }
     lines = bench_compiled.compiled_lines(results)
     assert lines[0].startswith("Compiled loop (fast_c) against the Python loop")
     rows = [line for line in lines if line.startswith("  N=7, Ns=")]
