@@ -78,6 +78,17 @@ def tour_claims(namespace: dict) -> None:
     assert all(r["error"] == "" for r in rows)
 
 
+def export_claims(namespace: dict) -> None:
+    """The exported robust agent drives the paper's episode to the goal; example solves the
+    last step's problem and prints a plan of N rows."""
+    import numpy as np
+
+    assert namespace["terminated"] and namespace["info"]["is_success"]
+    assert namespace["result"].step_available and namespace["done"].returncode == 0
+    plan = namespace["plan"]
+    assert plan.shape == (namespace["result"].dimensions["N"], 2) and np.isfinite(plan).all()
+
+
 # (page, a text that names the block) -> the check run after that block
 CLAIMS: dict[tuple[str, str], Callable[[dict], None]] = {
     ("README.md", "write_report("): tour_claims,
@@ -85,6 +96,7 @@ CLAIMS: dict[tuple[str, str], Callable[[dict], None]] = {
     ("docs/own-system.md", "class TrackFollower"): own_agent_claims,
     ("docs/own-system.md", "evaluate_policy("): sb3_claims,
     ("docs/own-system.md", "register_world("): own_world_claims,
+    ("docs/export.md", "ExportedController("): export_claims,
 }
 
 
