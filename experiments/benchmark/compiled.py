@@ -431,17 +431,16 @@ def compiled_lines(results: Mapping[str, Any]) -> list[str]:
     elif export is not None:
         lines.append(f"Exported controllers: not run ({export.get('reason')})")
     lines += ["", "Targets of issue 37 (the compiled loop and the export)"]
-    lines.append(f"  {'figure':<60} {'measured':>12} {'target':>12}  verdict")
+    width = max(len(k) for k in ISSUE_37_KEYS)
+    lines.append(f"  {'figure':<{width}} {'measured':>12} {'target':>12}  verdict")
     for t in results.get("targets", []):
         if t["key"] not in ISSUE_37_KEYS:
             continue
         verdict = {True: "PASS", False: "FAIL", None: "SKIP"}[t["passed"]]
         value = t["value"]
         shown = "-" if value is None or not math.isfinite(value) else f"{value:.3g}{t['unit']}"
-        lines.append(
-            f"  {t['key']:<60} {shown:>12} {t['op']}{t['threshold']:g}{t['unit']:<3}  "
-            f"{verdict}  {t['note']}"
-        )
+        wanted = f"{t['op']}{t['threshold']:g}{t['unit']}"
+        lines.append(f"  {t['key']:<{width}} {shown:>12} {wanted:>12}  {verdict}  {t['note']}")
     return lines
 
 
