@@ -189,6 +189,7 @@ class _EpisodeRecorder:
                 "solve_time",
                 "slack",
                 "solver_success",
+                "solver_usable",
                 "fallback",
                 "filter_reset",
                 "estimator",
@@ -232,6 +233,10 @@ class _EpisodeRecorder:
             "solve_time": float(self._get(agent_info, "solve_time")),
             "slack": float(self._get(agent_info, "slack")),
             "solver_success": bool(self._get(agent_info, "success")),
+            # (an agent that does not say: usable exactly when it succeeded)
+            "solver_usable": bool(
+                self._get(agent_info, "usable", self._get(agent_info, "success"))
+            ),
             "fallback": str(self._get(agent_info, "fallback")),
             "filter_reset": bool(self._get(agent_info, "filter_reset")),
             # The estimator's name, from agents that say which one they run (it may differ
@@ -310,6 +315,7 @@ class _EpisodeRecorder:
             "solve_time": stack("solve_time", (0,)),
             "slack": stack("slack", (0,)),
             "solver_success": stack("solver_success", (0,), bool),
+            "solver_usable": stack("solver_usable", (0,), bool),
             "fallback": stack("fallback", (0,), str),
             "filter_reset": stack("filter_reset", (0,), bool),
             "estimator": stack("estimator", (0,), str),
@@ -359,6 +365,9 @@ def _episode_metrics(rec: _EpisodeRecorder, arrays: dict[str, np.ndarray]) -> di
     else:
         latent_rmse = latent_coverage = math.nan
 
+    # Episodes saved before 'solver_usable' existed: usable exactly when it succeeded.
+    usable = arrays.get("solver_usable", arrays["solver_success"])
+
     def stat(fn: Callable[[np.ndarray], Any], x: np.ndarray) -> float:
         return float(fn(x)) if len(x) else math.nan
 
@@ -379,7 +388,8 @@ def _episode_metrics(rec: _EpisodeRecorder, arrays: dict[str, np.ndarray]) -> di
         "solve_time_median": stat(np.median, solve),
         "solve_time_p95": stat(lambda x: np.percentile(x, 95), solve),
         "solve_time_max": stat(np.max, solve),
-        "solver_failures": int(np.sum(~arrays["solver_success"])),
+        "solver_failures": int(np.sum(~usable)),
+        "unconverged_solves": int(np.sum(usable & ~arrays["solver_success"])),
         "fallback_steps": int(np.sum(arrays["fallback"] != "")),
         "filter_resets": int(np.sum(arrays["filter_reset"])) if rec.has_filter else 0,
         "slack_total": float(np.sum(slack)) if len(slack) else math.nan,
@@ -427,12 +437,12 @@ def run_episode(
         or nx + latent states for filter agents), ``latent_force_est`` and
         ``latent_force_std`` (its estimate of ``latent_force[k]``, shaped like it; NaN
         without a filter), ``predicted (T, N+1, nx)`` (first scenario's predicted
-        states), ``solve_time (T,)`` [s], ``slack (T,)``, ``solver_success (T,)``,
-        ``fallback (T,)`` ('' or the fallback used), ``estimator (T,)`` (the name the
-        agent gives its estimator in ``last_info["estimator"]``, '' when it gives none),
-        and ``<group>_excess (T,)`` per constraint group of the system (its largest
-        excess after step k, in its unit; ``track_excess``, ``x_excess``, ``speed_excess``
-        on the sine track).
+        states), ``solve_time (T,)`` [s], ``slack (T,)``, ``solver_success (T,)``
+        (converged), ``solver_usable (T,)`` (a plan to apply), ``fallback (T,)`` ('' or
+        the fallback used), ``estimator (T,)`` (the name the agent gives its estimator
+        in ``last_info["estimator"]``, '' when it gives none), and ``<group>_excess (T,)``
+        per constraint group of the system (its largest excess after step k, in its unit;
+        ``track_excess``, ``x_excess``, ``speed_excess`` on the sine track).
 
     Raises:
         ValueError: unknown agent or bad agent spec (naming it) or negative seed; any
