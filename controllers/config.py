@@ -8,7 +8,7 @@ and the scenario problem (:meth:`~ExperimentConfig.make_problem`).
 
 from __future__ import annotations
 
-import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -25,11 +25,12 @@ from lfm_env.config import (
     WorldConfig,
     check_latent_step,
     from_dict,
-    load_yaml,
+    read_config,
     read_section,
     to_dict,
 )
-from lfm_env.worlds.registry import load_env_config
+from lfm_env.config.compose import SECTION_TYPES
+from lfm_env.worlds.registry import load_env_config, qualified_env_id
 
 RESAMPLING = ("systematic", "stratified", "residual", "multinomial")
 SCENARIO_INITIAL_STATES = ("estimate", "particles")
@@ -118,7 +119,7 @@ FORECASTS = ("sampled", "mean")
 @dataclass(frozen=True)
 class RobustConfig:
     """The ``robust`` agent: the combination that carried the estimate's uncertainty best
-    in our measurements (README "Robust agent"); the ``agents.robust`` section.
+    in our measurements (docs/agents.md, "The robust agent"); the ``agents.robust`` section.
 
     Its other settings (horizon, weights, solver, ...) are the ``agents`` section's.
     """
@@ -318,8 +319,10 @@ class ExperimentConfig:
 
     @property
     def env_id(self) -> str:
-        """The Gymnasium id of the world's env (``gym.make(cfg.env_id, config=cfg.env)``)."""
-        return self.env.ENV_ID
+        """The Gymnasium id of the world's env (``gym.make(cfg.env_id, config=cfg.env)``):
+        ``module:EnvId`` for a world registered by a module of one's own, so that any
+        process (a worker, a later report) imports the module and finds the world."""
+        return qualified_env_id(self.env.ENV_ID)
 
     def to_dict(self) -> dict:
         """Plain, YAML-ready data that :func:`load_config` reads back to an equal config."""
@@ -418,23 +421,29 @@ class ExperimentConfig:
         )
 
 
-def load_config(config: Any = None) -> ExperimentConfig:
-    """An :class:`ExperimentConfig` from a YAML path, a dict with ``env``/``agents``
-    sections, an ``ExperimentConfig``, or ``None`` (the paper's values).
+def load_config(config: Any = None, settings: Sequence[str] = ()) -> ExperimentConfig:
+    """An :class:`ExperimentConfig` from a preset's name (``"paper"``, ``"quick"``, ...), a
+    YAML path, a dict with ``env``/``agents`` sections, an ``ExperimentConfig``, or ``None``
+    (the paper's values).
+
+    A file (or dict) may inherit from another with ``base:``, and ``settings`` (``KEY=VALUE``
+    texts, as ``lfm-evaluate --set``) override single fields
+    (:mod:`lfm_env.config.compose`).
 
     Raises:
         ConfigError: naming the first bad field (``env.dt``, ``agents.Q``, ...).
     """
     if isinstance(config, ExperimentConfig):
-        return config
-    if isinstance(config, (str, os.PathLike)):
-        config = load_yaml(config)  # read once, both sections from it
-    return ExperimentConfig(env=load_env_config(config), agents=load_agent_config(config))
+        if not settings:
+            return config
+        config = config.to_dict()
+    data = read_config(config, settings)  # read once, both sections from it
+    return ExperimentConfig(env=load_env_config(data), agents=load_agent_config(data))
 
 
 def load_agent_config(config: Any = None) -> AgentConfig:
-    """An :class:`AgentConfig` from a path, a dict (whole file or its ``agents`` section),
-    an ``AgentConfig`` or ``None`` (paper defaults)."""
+    """An :class:`AgentConfig` from a preset's name, a path, a dict (whole file or its
+    ``agents`` section), an ``AgentConfig`` or ``None`` (paper defaults)."""
     if isinstance(config, AgentConfig):
         return config
     if hasattr(config, "agents") and isinstance(config.agents, AgentConfig):
@@ -442,6 +451,9 @@ def load_agent_config(config: Any = None) -> AgentConfig:
     section = read_section(config, "agents")
     return from_dict(AgentConfig, section, prefix="agents")
 
+
+# --set agents.KEY=VALUE reads the value by the field's type (lfm_env cannot import this).
+SECTION_TYPES["agents"] = AgentConfig
 
 __all__ = [
     "AgentConfig",

@@ -1,42 +1,56 @@
-"""Learning the latent force's hyperparameters from calibration episodes.
+"""Learning the latent force's hyperparameters from calibration episodes, on any world.
 
 The paper gives the controller the GP's hyperparameters a priori and notes that, with
-full-state feedback, they can be learned from measurements. Here a calibration run
-drives the car with a simple controller (the nominal MPC, which needs no latent force
-model), records the measured speeds and the applied accelerations, and maximises the
-exact likelihood of the measured speeds under the model
+full-state feedback, they can be learned from measurements. Here a calibration run drives
+the world with a simple controller (the nominal MPC, which needs no latent force model),
+records the measured states and the applied inputs, and maximises the exact likelihood of
+the measurements of the states the force drives under the world's own model.
 
-    v_{k+1} = v_k + (a_k + H z_k) dt + e_k,   z_{k+1} = A z_k + eta_k,   y_k = v_k + n_k
+The model is the world's system (:class:`~lfm_env.model.LatentForceModel`), whose force
+enters ``f(x, u, w) = f0(x, u) + G(x, u) w`` affinely: the force gain ``G``
+(:meth:`~lfm_env.model.LatentForceModel.force_gain`) picks the states ``S`` the force moves
+(the sine track's speed, the quadrotor's horizontal velocity) and how much. Their Euler
+step, linearised in ``x_S`` about each measurement, is the linear-Gaussian model ::
 
-with a Kalman filter on ``[v, z]``. This is the "w ~ dv/dt - a" idea with the
-measurement noise kept in the model: differencing noisy speeds would give a
-correlated (moving-average) noise that a white-noise GP likelihood ignores.
-The other physical states carry no information about ``w`` and are left out.
+    x_S[k+1] = x_S[k] + dt (f0_S(y_k, u_k) + J_SS (x_S[k] - y_S[k])) + dt G_S w_k + e_k
+    y_S[k]   = x_S[k] + n_k
+
+with ``J = df0/dx`` at the measurement; the measurement noise of the other states enters
+``f0_S`` and is added to the process noise (``dt^2 J_SO R_O J_SO'``). The force is the
+GP's state-space form, so a Kalman filter on ``[x_S, z]`` gives the likelihood
+(:func:`lfm_env.gp.likelihood.driven_log_likelihood`), maximised over the force's
+``variance`` and ``lengthscale`` by :func:`lfm_env.gp.inference.fit_driven`: one
+likelihood in the package. Keeping the measurement noise in the model avoids the
+correlated (moving-average) noise of differenced measurements ("w ~ dv/dt - a"). On the
+sine track (``dv/dt = a + w``) the model is exact.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
+import tempfile
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
-import scipy.linalg
-import scipy.optimize
 
-from lfm_env.config import LatentForceConfig, SineTrackConfig, load_env_config
-from lfm_env.gp import StateSpaceKernel
+from lfm_env.config import LatentForceConfig, WorldConfig, to_dict
 
 LEARNABLE = ("variance", "lengthscale")
+#: The box of the learned values [the force's unit squared], [s]: wide, and the start
+#: (variance 1, lengthscale 1 s) borrows nothing from the truth.
+BOUNDS = {"variance": (1e-4, 1e4), "lengthscale": (1e-2, 1e3)}
 
 
 @dataclass
-class SpeedRecord:
-    """Measured speeds and applied accelerations of one calibration episode."""
+class CalibrationRecord:
+    """Measured states and applied inputs of one calibration episode."""
 
-    speed: np.ndarray  # (T+1,) measured speed [m/s] at samples 0..T
-    accel: np.ndarray  # (T,) applied acceleration [m/s^2] during steps 0..T-1
-    true_latent_force: np.ndarray | None = None  # (T,) true w, kept only for reporting
+    measured: np.ndarray  # (T+1, nx) observations [the states' SI units] at samples 0..T
+    inputs: np.ndarray  # (T, nu) applied inputs during steps 0..T-1
+    true_latent_force: np.ndarray | None = None  # (T, nw) true w, kept only for reporting
 
 
 @dataclass
@@ -51,186 +65,174 @@ class CalibrationResult:
     success: bool
     message: str
     std_errors: dict[str, float] = field(default_factory=dict)  # in log-space, from the Hessian
-
-
-def speed_log_likelihood(
-    kernel: StateSpaceKernel,
-    records: list[SpeedRecord],
-    dt: float,
-    measurement_std: float,
-    process_std: float,
-) -> float:
-    """Exact log-likelihood [nats] of the measured speeds of ``records`` under ``kernel``.
-
-    Args:
-        kernel: the latent force's state-space kernel (hyperparameters to score).
-        records: calibration episodes; each starts with the latent state stationary.
-        dt: sampling time [s].
-        measurement_std: std of the speed measurement [m/s].
-        process_std: per-step std of the process noise on the speed [m/s].
-    """
-    A_z, Q_z = kernel.discretize(dt)
-    H = np.asarray(kernel.H, dtype=float).reshape(-1)
-    p = A_z.shape[0]
-    A = np.zeros((p + 1, p + 1))
-    A[0, 0] = 1.0
-    A[0, 1:] = dt * H
-    A[1:, 1:] = A_z
-    Q = np.zeros((p + 1, p + 1))
-    Q[0, 0] = process_std**2
-    Q[1:, 1:] = Q_z
-    r = measurement_std**2
-    total = 0.0
-    for rec in records:
-        # Diffuse-ish prior on v (first measurement decides it), stationary on z.
-        m = np.zeros(p + 1)
-        m[0] = rec.speed[0]
-        P = np.zeros((p + 1, p + 1))
-        P[0, 0] = r
-        P[1:, 1:] = kernel.Pinf
-        for k in range(len(rec.accel)):
-            m = A @ m
-            m[0] += rec.accel[k] * dt
-            P = A @ P @ A.T + Q
-            s = P[0, 0] + r
-            innov = rec.speed[k + 1] - m[0]
-            total += -0.5 * (np.log(2.0 * np.pi * s) + innov * innov / s)
-            gain = P[:, 0] / s
-            m = m + gain * innov
-            P = P - np.outer(gain, P[0, :])
-            P = 0.5 * (P + P.T)
-    return float(total)
+    states: tuple[str, ...] = ()  # the measured states the force drives (the fit's data)
 
 
 def record_calibration_episodes(
     config: Any = None, seeds: range | list[int] = range(5), agent: str = "nominal"
-) -> list[SpeedRecord]:
-    """Run calibration episodes with a simple controller and record speeds and inputs.
+) -> list[CalibrationRecord]:
+    """Run calibration episodes with a simple controller and record states and inputs.
 
     Args:
-        config: the world (a path, dict or config); its ``agents`` section sets the controller.
+        config: the world and the controller's settings: a preset's name, a path, a dict
+            or an :class:`~controllers.config.ExperimentConfig` (any registered world).
         seeds: env seeds of the calibration episodes.
         agent: the controller; ``"nominal"`` needs no latent force model.
     """
     import gymnasium as gym
 
-    import lfm_env  # noqa: F401  (registers the env)
+    import lfm_env  # noqa: F401  (registers the envs)
     from controllers.agents import make_agent
     from controllers.config import load_config
 
     config = load_config(config)  # read and checked once for all episodes
     records = []
     for seed in seeds:
-        env = gym.make("lfm_env/SineTrack-v0", config=config.env)
+        env = gym.make(config.env_id, config=config.env)
         ctrl = make_agent(agent, config)
         obs, info = env.reset(seed=int(seed))
         ctrl.reset(seed=int(seed) + 7919)
-        speeds, accels, ws = [obs[2]], [], []
+        measured, inputs, forces = [obs], [], []
         done = False
         while not done:
-            u = ctrl.act(obs)
-            obs, _, terminated, truncated, info = env.step(u)
-            speeds.append(obs[2])
-            accels.append(info["applied_action"][0])
-            ws.append(info["latent_force"])
+            obs, _, terminated, truncated, info = env.step(ctrl.act(obs))
+            measured.append(obs)
+            inputs.append(info["applied_action"])
+            forces.append(np.atleast_1d(info["latent_force"]))
             done = terminated or truncated
         env.close()
-        records.append(SpeedRecord(np.array(speeds), np.array(accels), np.array(ws)))
+        records.append(
+            CalibrationRecord(
+                np.array(measured, dtype=float),
+                np.array(inputs, dtype=float).reshape(len(inputs), -1),
+                np.array(forces, dtype=float).reshape(len(forces), -1),
+            )
+        )
     return records
 
 
+def _drift_jacobian(model: Any, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """``df0/dx`` ``(T, nx, nx)`` of the force-free drift at each row of ``x``, ``u``."""
+    import casadi as ca
+
+    system = model.system
+    xs, us = ca.SX.sym("x", system.nx), ca.SX.sym("u", system.nu)
+    f0 = system.casadi_rhs()(xs, us, ca.DM.zeros(system.nw))
+    jac = ca.Function("df0_dx", [xs, us], [ca.jacobian(f0, xs)]).map(len(x))
+    out = np.asarray(jac(x.T, u.T), dtype=float)  # (nx, T nx): the blocks side by side
+    return out.reshape(system.nx, len(x), system.nx).transpose(1, 0, 2)
+
+
+def forced_states(model: Any, records: list[CalibrationRecord]) -> np.ndarray:
+    """Indices of the states the force moves at some recorded step (``G`` not zero there).
+
+    Raises:
+        ValueError: when the force does not enter the system affinely, or moves no state.
+    """
+    if not model.force_enters_affinely:
+        raise ValueError(
+            f"system {model.system.name!r}: lfm-calibrate needs a force that enters "
+            "f(x, u, w) affinely (f0(x, u) + G(x, u) w)"
+        )
+    moved = np.zeros(model.nx, dtype=bool)
+    for rec in records:
+        G = model.force_gain(rec.measured[:-1], rec.inputs)  # (T, nx, nw)
+        moved |= np.any(G != 0.0, axis=(0, 2))
+    if not moved.any():
+        raise ValueError("the latent force moves no state on the recorded steps: nothing to fit")
+    return np.flatnonzero(moved)
+
+
+def force_observations(
+    model: Any, record: CalibrationRecord, measurement_std: Any, states: np.ndarray
+) -> dict[str, np.ndarray]:
+    """The data of one episode for :func:`lfm_env.gp.likelihood.driven_log_likelihood`:
+    the measured ``states`` with the known part, transition, force gain and noise of each
+    step, from the model linearised about the measurements (see the module docstring)."""
+    y, u = record.measured, record.inputs
+    x = y[:-1]
+    dt = model.dt
+    S = np.asarray(states)
+    O = np.setdiff1d(np.arange(model.nx), S)  # noqa: E741 (the other states)
+    f0 = np.asarray(model.system.rhs(x, u, np.zeros(model.nw)), dtype=float)  # (T, nx)
+    G = model.force_gain(x, u)  # (T, nx, 1): a world's force has one component
+    J = _drift_jacobian(model, x, u)
+    J_SS, J_SO = J[:, S][:, :, S], J[:, S][:, :, O]
+    r = np.asarray(measurement_std, dtype=float) ** 2
+    process = np.diag(np.asarray(model.process_std, dtype=float)[S] ** 2)
+    spread = dt**2 * np.einsum("kio,o,kjo->kij", J_SO, r[O], J_SO)
+    return {
+        "measured": y[:, S],
+        "offset": dt * (f0[:, S] - np.einsum("kij,kj->ki", J_SS, x[:, S])),
+        "transition": np.eye(len(S)) + dt * J_SS,
+        "gain": dt * G[:, S, 0],
+        "measurement_variance": r[S],
+        "process_covariance": process + spread,
+    }
+
+
 def fit_latent_force(
-    records: list[SpeedRecord],
-    env_config: SineTrackConfig,
+    records: list[CalibrationRecord],
+    env_config: WorldConfig,
     initial: LatentForceConfig | None = None,
 ) -> CalibrationResult:
-    """Maximum-likelihood ``variance`` and ``lengthscale`` of the latent force.
+    """Maximum-likelihood ``variance`` and ``lengthscale`` of the latent force of any world.
 
     The kernel family and its fixed settings (``nu``, ``order``, ``period``...) come from
-    ``initial`` (default: the env's ``latent_force`` section, with a deliberately wrong
+    ``initial`` (default: the world's ``latent_force`` section, with a deliberately wrong
     start of variance 1 and lengthscale 1 s so nothing is borrowed from the truth).
+
+    Args:
+        records: calibration episodes (:func:`record_calibration_episodes`).
+        env_config: the world's config (its system, step, noise levels).
+        initial: the starting latent force.
     """
+    from lfm_env.gp.inference import fit_driven
+
     if not records:
         raise ValueError("records: need at least one calibration episode")
     base = initial or dataclasses.replace(env_config.latent_force, variance=1.0, lengthscale=1.0)
-    dt = env_config.dt
-    meas_std = float(env_config.measurement_std_rad[2])
-    proc_std = float(env_config.process_noise_std_rad[2])
-
-    def kernel_of(theta: np.ndarray) -> StateSpaceKernel:
-        variance, lengthscale = (float(v) for v in np.exp(theta))
-        return dataclasses.replace(base, variance=variance, lengthscale=lengthscale).make_kernel()
-
-    def negative_ll(theta: np.ndarray) -> float:
-        try:
-            return -speed_log_likelihood(kernel_of(theta), records, dt, meas_std, proc_std)
-        except (ValueError, np.linalg.LinAlgError):
-            return 1e12  # outside the kernel's usable range
-
-    theta0 = np.log([base.variance, base.lengthscale])
-    bounds = [(np.log(1e-4), np.log(1e4)), (np.log(1e-2), np.log(1e3))]
-    res = scipy.optimize.minimize(negative_ll, theta0, method="L-BFGS-B", bounds=bounds)
-    std_errors = _log_space_std_errors(negative_ll, res.x)
-    learned = dataclasses.replace(
-        base, variance=float(np.exp(res.x[0])), lengthscale=float(np.exp(res.x[1]))
-    )
-    true = {k: float(getattr(env_config.latent_force, k)) for k in LEARNABLE}
+    model = env_config.make_model(base)
+    states = forced_states(model, records)
+    std = env_config.measurement_std_rad
+    episodes = [force_observations(model, rec, std, states) for rec in records]
+    fitted = fit_driven(base.make_kernel(), model.dt, episodes, LEARNABLE, BOUNDS)
+    info = fitted.fit_info
+    learned = dataclasses.replace(base, **{k: info.hyperparameters[k] for k in LEARNABLE})
+    names = model.system.state_names
     return CalibrationResult(
         latent_force=learned,
-        log_likelihood=-float(res.fun),
-        true=true,
+        log_likelihood=info.log_likelihood,
+        true={k: float(getattr(env_config.latent_force, k)) for k in LEARNABLE},
         n_episodes=len(records),
-        n_samples=int(sum(len(r.accel) for r in records)),
-        success=bool(res.success),
-        message=str(res.message),
-        std_errors=dict(zip(LEARNABLE, std_errors, strict=True)),
+        n_samples=int(sum(len(r.inputs) for r in records)),
+        success=info.success,
+        message=info.message,
+        std_errors=dict(info.std_errors),
+        states=tuple(names[i] for i in states),
     )
-
-
-def _log_space_std_errors(f, theta: np.ndarray, h: float = 1e-3) -> list[float]:
-    """Standard errors from a central-difference Hessian of ``f`` (NaN if not PD)."""
-    n = theta.size
-    hess = np.empty((n, n))
-    for i in range(n):
-        for j in range(n):
-            ei, ej = np.eye(n)[i] * h, np.eye(n)[j] * h
-            hess[i, j] = (
-                f(theta + ei + ej) - f(theta + ei - ej) - f(theta - ei + ej) + f(theta - ei - ej)
-            ) / (4 * h * h)
-    try:
-        cov = scipy.linalg.inv(0.5 * (hess + hess.T))
-        return [float(np.sqrt(c)) if c > 0 else float("nan") for c in np.diag(cov)]
-    except np.linalg.LinAlgError:
-        return [float("nan")] * n
 
 
 def calibrate(config: Any = None, seeds: range | list[int] = range(5)) -> CalibrationResult:
     """Calibration episodes under the nominal MPC, then a maximum-likelihood fit."""
-    env_config = load_env_config(config)
-    records = record_calibration_episodes(config, seeds)
-    return fit_latent_force(records, env_config)
+    from controllers.config import load_config
+
+    config = load_config(config)
+    return fit_latent_force(record_calibration_episodes(config, seeds), config.env)
 
 
-def write_learned_config(config: Any, result: CalibrationResult, path: str) -> None:
-    """Write ``config`` (path or dict) with ``agents.latent_force`` set to the learned values."""
-    import os
-    import tempfile
-    from pathlib import Path
+def write_learned_config(config: Any, result: CalibrationResult, path: str | os.PathLike) -> None:
+    """Write the resolved ``config`` with ``agents.latent_force`` set to the learned values.
 
+    The file holds the whole config (``env_id``, ``env``, ``agents``), so it evaluates the
+    same world on any machine, whatever the presets or the base files become.
+    """
     import yaml
 
-    from lfm_env.config import load_yaml, read_section, to_dict
+    from controllers.config import load_config
 
-    if config is None:
-        data: dict = {}
-    elif isinstance(config, dict):
-        data = dict(config)
-    else:
-        data = load_yaml(config)
-    env = read_section(data, "env") or {}
-    agents = dict(read_section(data, "agents") or {}) if ("agents" in data or "env" in data) else {}
-    agents["latent_force"] = to_dict(result.latent_force)
-    out = {"env": env, "agents": agents}
+    data = load_config(config).to_dict()
+    data["agents"]["latent_force"] = to_dict(result.latent_force)
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     header = (
@@ -242,8 +244,22 @@ def write_learned_config(config: Any, result: CalibrationResult, path: str) -> N
     try:
         with os.fdopen(fd, "w") as fh:
             fh.write(header)
-            yaml.safe_dump(out, fh, sort_keys=False)
+            yaml.safe_dump(data, fh, sort_keys=False)
         os.replace(tmp, target)
     except BaseException:  # disk full, Ctrl-C: leave no temporary file behind
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+__all__ = [
+    "BOUNDS",
+    "LEARNABLE",
+    "CalibrationRecord",
+    "CalibrationResult",
+    "calibrate",
+    "fit_latent_force",
+    "force_observations",
+    "forced_states",
+    "record_calibration_episodes",
+    "write_learned_config",
+]

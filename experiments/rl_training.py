@@ -12,8 +12,10 @@ normalised by running statistics (``VecNormalize``), which are saved with the po
 The policy observes :func:`~controllers.agents.rl.policy_features` of the observation (the
 noisy state and the known system's signed constraint values), as the ``rl`` agent does.
 The run writes ``OUT/policy.zip`` (the SB3 model), ``OUT/policy.npz`` (the observation
-normalisation) and ``OUT/policy.json`` (algorithm, world, steps, wall time, seed, the
-training reward's settings and the last episodes' statistics). The ``rl`` agent
+normalisation), ``OUT/policy.json`` (algorithm, world, steps, wall time, seed, the
+training reward's settings and the last episodes' statistics) and ``OUT/eval.yaml`` (the
+resolved config of the training with ``agents.rl_policy`` set: ``lfm-evaluate --config
+OUT/eval.yaml --agents rl,...`` evaluates the policy). The ``rl`` agent
 (:class:`controllers.agents.rl.RLAgent`) loads them from ``agents.rl_policy: OUT/policy.zip``.
 The evaluation tables use the env's own reward, not the training reward.
 """
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from collections import deque
 from pathlib import Path
@@ -37,6 +40,8 @@ from controllers.config import ExperimentConfig, load_config
 ALGOS = ("ppo", "sac")
 MAX_TIMESTEPS = 10**9
 POLICY_FILE = "policy.zip"
+EVAL_CONFIG_FILE = "eval.yaml"  # beside the policy: the config that evaluates it
+DEFAULT_N_ENVS = 8  # envs stepped in lockstep (the README's measured run)
 
 
 class TrainingReward(gym.Wrapper):
@@ -167,7 +172,7 @@ def train(
     minutes: float | None = None,
     out: str | Path = "results/rl/ppo",
     seed: int = 0,
-    n_envs: int = 4,
+    n_envs: int = DEFAULT_N_ENVS,
     cost_weight: float = 1.0,
     progress: bool = True,
 ) -> dict[str, Any]:
@@ -179,7 +184,8 @@ def train(
         algo: ``"ppo"`` or ``"sac"``.
         timesteps: env steps to train at most, >= 1 (summed over the ``n_envs`` envs).
         minutes: wall-clock budget [min] (> 0) that stops training earlier; ``None``: none.
-        out: folder of ``policy.zip``, ``policy.npz`` and ``policy.json`` (created).
+        out: folder of ``policy.zip``, ``policy.npz``, ``policy.json`` and ``eval.yaml``
+            (created; :func:`write_eval_config`).
         seed: seed of the networks, the sampling and the envs (env ``i`` gets ``seed + i``).
         n_envs: envs stepped in lockstep in this process, >= 1.
         cost_weight: training penalty per violated constraint group and step, >= 0.
@@ -206,8 +212,35 @@ def train(
         model.learn(total_timesteps=timesteps, callback=callback)
     finally:  # Ctrl-C or an error: keep what was learnt
         summary = _save(model, venv, cfg, out, algo, seed, cost_weight, t0, callback)
+        write_eval_config(cfg, out)
         venv.close()
     return summary
+
+
+def write_eval_config(config: ExperimentConfig, out: str | Path) -> Path:
+    """Write ``OUT/eval.yaml``: the training's config, resolved, whose ``rl`` agent runs the
+    policy of ``OUT`` (``agents.rl_policy``, an absolute path), so that
+    ``lfm-evaluate --config OUT/eval.yaml --agents rl,nominal,...`` evaluates it on the world
+    and with the settings it was trained on, from any folder.
+
+    Returns:
+        The path of the file.
+    """
+    import yaml
+
+    out = Path(out)
+    data = config.to_dict()
+    data["agents"]["rl_policy"] = str((out / POLICY_FILE).resolve())
+    path = out / EVAL_CONFIG_FILE
+    header = (
+        "# Written by lfm-train: the config the policy beside this file was trained on, whose\n"
+        "# rl agent runs it. Evaluate it next to the MPC agents on the same seeds:\n"
+        f"#   lfm-evaluate --config {path} --agents rl,nominal,scenario\n"
+    )
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(header + yaml.safe_dump(data, sort_keys=False))
+    os.replace(tmp, path)
+    return path
 
 
 def check_training_arguments(
@@ -270,10 +303,13 @@ def _save(
 
 __all__ = [
     "ALGOS",
+    "DEFAULT_N_ENVS",
+    "EVAL_CONFIG_FILE",
     "POLICY_FILE",
     "TrainingReward",
     "check_training_arguments",
     "make_training_env",
     "reward_scale",
     "train",
+    "write_eval_config",
 ]

@@ -8,17 +8,12 @@ compares it with a baseline agent on the same seeds (same hidden latent force an
 violation steps beyond each tolerance of the system, zero-violation episodes and time to
 goal, each with the paired bootstrap interval of the difference to the baseline.
 
-Sweep folder (``out``)::
-
-    out/sweep.json              what was swept: agent, key, values, baseline, seeds
-    out/baseline/               the baseline agent on the base config (an evaluation folder)
-    out/<key>=<value>/          the agent with the key set to the value (one per value)
-    out/sweep.md, out/sweep.png the table and the Pareto picture
-
-Every evaluation folder resumes as the evaluation does (finished episodes are kept, so an
-interrupted sweep loses at most the episodes in flight); rerunning the same sweep resumes
-it. The sweep folder may be a results folder of ``lfm-evaluate`` too: ``lfm-report``
-then includes the sweep's table and figure (or give ``--sweep DIR``).
+The sweep folder (``out``; its layout: :mod:`experiments.report.sweep_summary`, which reads
+it back) holds the manifest, one evaluation folder for the baseline and one per value, and
+the table and figure. Every evaluation folder resumes as the evaluation does (finished
+episodes are kept, so an interrupted sweep loses at most the episodes in flight); rerunning
+the same sweep resumes it. The sweep folder may be a results folder of ``lfm-evaluate`` too:
+``lfm-report`` then includes the sweep's table and figure (or give ``--sweep DIR``).
 """
 
 from __future__ import annotations
@@ -26,14 +21,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import re
-import types
-import typing
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
-
-import yaml
 
 from controllers.agents.registry import AGENT_REGISTRY
 from controllers.config import ConfigError, ExperimentConfig, load_config
@@ -45,85 +35,25 @@ from experiments.report.sweep_summary import (
     BASELINE_FOLDER,
     MANIFEST,
     SweepSummary,
-    SweepValue,
     load_sweep,
     read_manifest,
-    sweep_errors,
-    sweep_figure,
-    sweep_metrics,
-    sweep_table,
     value_folder,
     write_sweep,
 )
+
+# The old import path: the folder's reading (experiments.report.sweep_summary) was part of this
+# module, so its public names stay importable from here too.
+from experiments.report.sweep_summary import SweepValue as SweepValue
+from experiments.report.sweep_summary import sweep_errors as sweep_errors
+from experiments.report.sweep_summary import sweep_figure as sweep_figure
+from experiments.report.sweep_summary import sweep_metrics as sweep_metrics
+from experiments.report.sweep_summary import sweep_table as sweep_table
+from lfm_env.config.compose import field_types, optional_type, parse_value, split_values
 
 SECTION = "agents"  # the sweep varies agent settings only: the episodes stay the same
 
 
 # --------------------------------------------------------------------------- the setting
-
-
-def split_values(text: str) -> list[str]:
-    """Comma-separated values, commas inside brackets kept: ``"0,[1,2]"`` -> ``["0", "[1,2]"]``."""
-    values, depth, current = [], 0, []
-    for ch in text:
-        depth += {"[": 1, "]": -1}.get(ch, 0)
-        if ch == "," and depth == 0:
-            values.append("".join(current).strip())
-            current = []
-        else:
-            current.append(ch)
-    values.append("".join(current).strip())
-    return values
-
-
-def _field_types(obj: Any) -> dict[str, Any]:
-    """The annotated types of a config dataclass's init fields."""
-    hints = typing.get_type_hints(type(obj))
-    return {f.name: hints[f.name] for f in dataclasses.fields(obj) if f.init}
-
-
-def _optional(tp: Any) -> tuple[Any, bool]:
-    """``(inner type, whether None is allowed)`` of ``X | None``; other types unchanged."""
-    if typing.get_origin(tp) in (typing.Union, types.UnionType):
-        inner = [a for a in typing.get_args(tp) if a is not type(None)]
-        return inner[0], len(inner) < len(typing.get_args(tp))
-    return tp, False
-
-
-def _parse_text(text: str, tp: Any) -> Any:
-    """A value given on the command line, read as the config field's type ``tp`` reads it.
-
-    Strings stay as written; numbers are read as numbers (``1e-3`` too); a list field
-    takes ``[a, b]`` or one value, which becomes a list of one. What does not parse is
-    passed on as text, so the config's own check names the key.
-    """
-    tp, nullable = _optional(tp)
-    if nullable and text.strip().lower() in ("null", "none", "~"):
-        return None
-    text = text.strip()
-    if tp is str:
-        return text
-    if tp is int:
-        return int(text) if re.fullmatch(r"[+-]?\d+", text) else text
-    if tp is float:
-        try:
-            return float(text)
-        except ValueError:
-            return text
-    if typing.get_origin(tp) is tuple:
-        args = typing.get_args(tp)
-        if text.startswith("[") and text.endswith("]"):
-            inner = text[1:-1].strip()
-            items = split_values(inner) if inner else []
-        else:
-            items = [text]
-        if len(args) == 2 and args[1] is Ellipsis:
-            return [_parse_text(i, args[0]) for i in items]
-        return [_parse_text(i, a) for i, a in zip(items, args, strict=False)] + items[len(args) :]
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError:
-        return text
 
 
 def config_with(config: Any, key: str, text: str) -> ExperimentConfig:
@@ -152,12 +82,12 @@ def config_with(config: Any, key: str, text: str) -> ExperimentConfig:
     node, obj = data[SECTION], base.agents
     for depth, name in enumerate(parts[1:], start=1):
         where = ".".join(parts[:depth])
-        fields = _field_types(obj)
+        fields = field_types(obj)
         if name not in fields:
             raise ConfigError(
                 f"--set {key}: {where} has no key {name!r}; its keys are {sorted(fields)}"
             )
-        tp, _ = _optional(fields[name])
+        tp, _ = optional_type(fields[name])
         last = depth == len(parts) - 1
         if not last:
             if not dataclasses.is_dataclass(tp):
@@ -169,10 +99,10 @@ def config_with(config: Any, key: str, text: str) -> ExperimentConfig:
             node = node[name]
         elif dataclasses.is_dataclass(tp):
             raise ConfigError(
-                f"--set {key}: {key} is a section; set one of its keys {sorted(_field_types(tp()))}"
+                f"--set {key}: {key} is a section; set one of its keys {sorted(field_types(tp()))}"
             )
         else:
-            node[name] = _parse_text(text, fields[name])
+            node[name] = parse_value(text, fields[name])
     try:
         return load_config(data)
     except ConfigError as exc:
@@ -301,18 +231,4 @@ def run_sweep(
     return summary
 
 
-__all__ = [
-    "SweepSummary",
-    "SweepValue",
-    "config_with",
-    "load_sweep",
-    "parse_setting",
-    "run_sweep",
-    "split_values",
-    "sweep_errors",
-    "sweep_figure",
-    "sweep_metrics",
-    "sweep_table",
-    "value_folder",
-    "write_sweep",
-]
+__all__ = ["config_with", "parse_setting", "run_sweep", "split_values"]

@@ -10,6 +10,8 @@ fails and how to draw the scene (:class:`lfm_env.worlds.sine_track.env.SineTrack
 
 from __future__ import annotations
 
+import os
+import sys
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -24,6 +26,38 @@ from lfm_env.validation import real_vector
 
 LATENT_STARTS = ("stationary", "zero")
 _LATENT_CHUNK = 64  # latent path is drawn in chunks so previews never change the episode
+
+#: How far the measurement noise reaches [its standard deviations]: NumPy's normal draws
+#: (the ziggurat of ``Generator.standard_normal``, float64) never exceed 13.71 in magnitude
+#: (3.654 plus the tail's ``-log(2**-53) / 3.654``), so ``state +- 14 std`` holds every
+#: observation of a state.
+NOISE_REACH = 14.0
+#: The largest finite float32: the bound of a state nothing else bounds.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def observation_bounds(
+    state_low: Any, state_high: Any, measurement_std: Any
+) -> tuple[np.ndarray, np.ndarray]:
+    """The observation space's bounds: the state's range widened by the noise's reach.
+
+    ``state_low - NOISE_REACH std`` and ``state_high + NOISE_REACH std``, rounded outward to
+    float32-representable numbers (so a float32 copy of the space holds the same values);
+    an unbounded side (``-inf``, ``inf``) or one beyond float32's range is ``-+FLOAT32_MAX``.
+
+    Returns:
+        ``(low, high)``, float64 arrays of float32-representable numbers.
+    """
+    std = np.asarray(measurement_std, dtype=float)
+    low = np.asarray(state_low, dtype=float) - NOISE_REACH * std
+    high = np.asarray(state_high, dtype=float) + NOISE_REACH * std
+    low = np.clip(np.nan_to_num(low, nan=-FLOAT32_MAX, neginf=-FLOAT32_MAX), -FLOAT32_MAX, None)
+    high = np.clip(np.nan_to_num(high, nan=FLOAT32_MAX, posinf=FLOAT32_MAX), None, FLOAT32_MAX)
+    with np.errstate(over="ignore"):  # nextafter of +-FLOAT32_MAX, then not taken
+        low32, high32 = low.astype(np.float32), high.astype(np.float32)
+        low32 = np.where(low32 > low, np.nextafter(low32, np.float32(-np.inf)), low32)
+        high32 = np.where(high32 < high, np.nextafter(high32, np.float32(np.inf)), high32)
+    return low32.astype(np.float64), high32.astype(np.float64)
 
 
 class Scene(Protocol):
@@ -57,6 +91,14 @@ def _vector(value: Any, n: int, name: str, labels: tuple[str, ...] = ()) -> np.n
     return v.copy()
 
 
+def has_display() -> bool:
+    """Whether a window can open: on Linux, ``DISPLAY``, ``WAYLAND_DISPLAY`` or a video driver
+    the user chose (``SDL_VIDEODRIVER``) is set; elsewhere always."""
+    if not sys.platform.startswith("linux"):
+        return True
+    return any(os.environ.get(k) for k in ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER"))
+
+
 class LatentForceEnv(gym.Env):
     """A controlled system pushed by a hidden latent force, observed with noise.
 
@@ -67,7 +109,7 @@ class LatentForceEnv(gym.Env):
     force ``w = H z`` (``nw`` components) is a Gaussian process in time, simulated in
     state-space form, ``z+ = A z + eta``; it is hidden from the agent. The path of ``z`` is
     drawn in chunks from a generator of its own, so reading it ahead
-    (:meth:`preview_disturbance`, for an oracle) never changes the episode.
+    (:meth:`preview_latent_force`, for an oracle) never changes the episode.
 
     ## Action Space
     ``Box(system.input_lower, system.input_upper, (nu,), float32)`` in the inputs' units.
@@ -79,9 +121,15 @@ class LatentForceEnv(gym.Env):
     ## Observation Space
     The physical state plus Gaussian measurement noise of std ``measurement_std``, in the
     states' units (``system.state_names``); the latent force is hidden.
-    ``Box(-inf, inf, (nx,), float64)`` (Gaussian noise has unbounded support). The
-    observations stay float64: rounding them to float32 changes the MPC agents' closed-loop
-    episodes (README, "Gymnasium conventions"); RL code casts them to float32 itself.
+    ``Box(low, high, (nx,), float64)`` with finite bounds that hold
+    (:func:`observation_bounds`): the range ``state_bounds`` keeps each state in, widened
+    by the noise's reach (:data:`NOISE_REACH` stds, beyond anything NumPy's normal
+    generator draws), as float32-representable numbers; a state without a range gets
+    ``+-FLOAT32_MAX``. An observation is clipped into the box, which changes it only when
+    the state itself left its range (by more than the range's own slack: the step that
+    ends an episode in a failure). The observations stay float64: rounding them to float32
+    changes the MPC agents' closed-loop episodes (docs/environment.md, "Gymnasium
+    conventions"); RL code casts them to float32 itself.
 
     ## Rewards
     Minus the stage cost on the true state before the step and the applied action:
@@ -114,12 +162,17 @@ class LatentForceEnv(gym.Env):
 
     ## Arguments
     ``LatentForceEnv(model, cost, initial_state, measurement_std, max_steps=200,
-    latent_start="stationary", render_mode=None, scene_factory=None)``: ``model`` is the
-    truth (its ``system`` the physics), ``cost`` the reward's cost, ``initial_state``
-    ``(nx,)`` and ``measurement_std`` ``(nx,)`` in the states' units; ``max_steps`` is the
-    episode length the registered time limit uses (the env itself does not truncate).
-    ``scene_factory(env)`` returns a :class:`Scene` for rendering (or a subclass overrides
-    :meth:`_make_scene`).
+    latent_start="stationary", render_mode=None, scene_factory=None, state_bounds=None)``:
+    ``model`` is the truth (its ``system`` the physics), ``cost`` the reward's cost,
+    ``initial_state`` ``(nx,)`` and ``measurement_std`` ``(nx,)`` in the states' units;
+    ``max_steps`` is the episode length the registered time limit uses (the env itself does
+    not truncate). ``scene_factory(env)`` returns a :class:`Scene` for rendering (or a
+    subclass overrides :meth:`_make_scene`). ``state_bounds`` is ``(low, high)``, each
+    ``(nx,)`` in the states' units: the range the episode keeps each state in (``-inf`` /
+    ``inf`` for none; ``None``: no state has one), which sets the observation space.
+    ``render_mode="human"`` needs a display: on Linux without ``DISPLAY`` or
+    ``WAYLAND_DISPLAY`` (nor ``SDL_VIDEODRIVER``) it is refused and not offered in
+    ``metadata["render_modes"]``.
     ``reset(options=...)`` accepts ``initial_state`` ``(nx,)`` and ``latent_state``
     ``(p,)`` overrides.
 
@@ -142,6 +195,7 @@ class LatentForceEnv(gym.Env):
         latent_start: str = "stationary",
         render_mode: str | None = None,
         scene_factory: Callable[[LatentForceEnv], Scene] | None = None,
+        state_bounds: tuple[Any, Any] | None = None,
     ) -> None:
         if not isinstance(model, LatentForceModel):
             raise ValueError(f"model must be a LatentForceModel, got {type(model).__name__}")
@@ -181,11 +235,17 @@ class LatentForceEnv(gym.Env):
                 f"render_mode={render_mode!r}: must be None or one of "
                 f"{self.metadata['render_modes']}"
             )
+        if render_mode == "human" and not has_display():
+            raise ValueError(
+                "render_mode='human': no display (neither DISPLAY nor WAYLAND_DISPLAY is set);"
+                " use render_mode='rgb_array' for frames"
+            )
         self.render_mode = render_mode
         self._scene_factory = scene_factory
+        modes = [m for m in self.metadata["render_modes"] if m != "human" or has_display()]
         self.metadata = {
             **self.metadata,
-            "render_modes": list(self.metadata["render_modes"]) if draws else [],
+            "render_modes": modes if draws else [],
             "render_fps": max(1, round(1.0 / model.dt)),
         }
 
@@ -197,8 +257,17 @@ class LatentForceEnv(gym.Env):
             shape=(system.nu,),
             dtype=np.float32,
         )
-        # Unbounded: Gaussian noise has unbounded support.
-        self.observation_space = spaces.Box(-np.inf, np.inf, shape=(system.nx,), dtype=np.float64)
+        # Finite bounds that hold: the states' range plus the noise's reach (float32 numbers).
+        if state_bounds is None:
+            state_bounds = (np.full(system.nx, -np.inf), np.full(system.nx, np.inf))
+        lo = _vector(np.nan_to_num(state_bounds[0], neginf=-FLOAT32_MAX), system.nx,
+                     "state_bounds[0]", names)  # fmt: skip
+        hi = _vector(np.nan_to_num(state_bounds[1], posinf=FLOAT32_MAX), system.nx,
+                     "state_bounds[1]", names)  # fmt: skip
+        if np.any(lo > hi):
+            raise ValueError(f"state_bounds: low {lo.tolist()} must be <= high {hi.tolist()}")
+        low, high = observation_bounds(lo, hi, std)
+        self.observation_space = spaces.Box(low, high, shape=(system.nx,), dtype=np.float64)
 
         self._action_layout = _labelled(system.input_names)
         self._state = np.zeros(system.nx)
@@ -334,7 +403,9 @@ class LatentForceEnv(gym.Env):
 
     def _observe(self) -> np.ndarray:
         noise = self._noise_rng.standard_normal(self.system.nx) * self.measurement_std
-        return (self._state + noise).astype(np.float64)
+        y = (self._state + noise).astype(np.float64)
+        # Inside the box unless the state left its range (the step that ends an episode).
+        return np.clip(y, self.observation_space.low, self.observation_space.high)
 
     def _info(
         self, success: bool, failure: bool, action: np.ndarray, w: np.ndarray | None = None
@@ -400,4 +471,12 @@ class LatentForceEnv(gym.Env):
             self._scene = None
 
 
-__all__ = ["LATENT_STARTS", "LatentForceEnv", "Scene"]
+__all__ = [
+    "FLOAT32_MAX",
+    "LATENT_STARTS",
+    "NOISE_REACH",
+    "LatentForceEnv",
+    "Scene",
+    "has_display",
+    "observation_bounds",
+]

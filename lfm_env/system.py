@@ -8,22 +8,10 @@ scenario problem and every solver read these two objects; nothing else writes th
 dynamics, a constraint or the cost again.
 
 The functions a system is made of are written once and work on both kinds of data. Write
-them with the array namespace :data:`lfm_env.xp.xp` (also importable from here)::
-
-    from lfm_env.xp import xp
-
-    def rhs(x, u, w):
-        p, v = xp.unstack(x)          # components of the state
-        (a,) = xp.unstack(u)
-        (force,) = xp.unstack(w)
-        return xp.stack([v, a + force])
-
-* NumPy: ``x`` has shape ``(..., nx)``, ``u`` ``(..., nu)``, ``w`` ``(..., nw)``, broadcast
-  against each other; the result has shape ``(..., nx)``.
-* CasADi: ``x``, ``u`` and ``w`` are column vectors (``SX``/``MX``); the result is an
-  ``(nx, 1)`` column.
-
-Constraints ``g(x)`` follow the same rule with ``ng`` components (feasible where ``<= 0``).
+them with the array namespace :data:`lfm_env.xp.xp` (also importable from here); the module
+:mod:`lfm_env.xp` shows a right-hand side written so, and the shapes it gets and returns on
+NumPy batches and on CasADi columns. Constraints ``g(x)`` follow the same rule with ``ng``
+components (feasible where ``<= 0``).
 """
 
 from __future__ import annotations
@@ -61,6 +49,17 @@ def _names(value: Any, field_name: str) -> tuple[str, ...]:
     if len(set(bare)) != len(bare):
         raise ValueError(f"ControlSystem.{field_name}={value!r}: names must be unique")
     return names
+
+
+def _tuples_by_name(
+    value: Any, convert: Callable[[Any], Any], field_name: str, allowed: str
+) -> dict[str, tuple]:
+    """``{str(name): tuple(convert(item) ...)}`` of a mapping, or a ValueError naming the field
+    ``ControlSystem.<field_name>`` and what it must map (``allowed``)."""
+    try:
+        return {str(k): tuple(convert(j) for j in v) for k, v in dict(value).items()}
+    except (TypeError, ValueError):
+        raise ValueError(f"ControlSystem.{field_name}={value!r}: must map {allowed}") from None
 
 
 @dataclass(frozen=True, eq=False)
@@ -148,26 +147,18 @@ class ControlSystem:
         groups = self.constraint_groups
         if groups is None:
             groups = {label: (j,) for j, label in enumerate(self.constraint_labels)}
-        try:
-            groups = {str(k): tuple(int(j) for j in v) for k, v in dict(groups).items()}
-        except (TypeError, ValueError):
-            raise ValueError(
-                f"ControlSystem.constraint_groups={self.constraint_groups!r}: must map names "
-                "to tuples of constraint indices"
-            ) from None
+        groups = _tuples_by_name(
+            groups, int, "constraint_groups", "names to tuples of constraint indices"
+        )
         if not all(v and all(0 <= j < self.ng for j in v) for v in groups.values()):
             raise ValueError(
                 f"ControlSystem.constraint_groups={groups}: indices must be in [0, {self.ng})"
             )
         object.__setattr__(self, "constraint_groups", groups)
         tolerances = {} if self.violation_tolerances is None else self.violation_tolerances
-        try:
-            tolerances = {str(k): tuple(float(t) for t in v) for k, v in dict(tolerances).items()}
-        except (TypeError, ValueError):
-            raise ValueError(
-                f"ControlSystem.violation_tolerances={self.violation_tolerances!r}: must map "
-                "group names to tuples of excesses > 0"
-            ) from None
+        tolerances = _tuples_by_name(
+            tolerances, float, "violation_tolerances", "group names to tuples of excesses > 0"
+        )
         unknown = sorted(set(tolerances) - set(groups))
         bad = [t for v in tolerances.values() for t in v if not (np.isfinite(t) and t > 0.0)]
         if unknown or bad:

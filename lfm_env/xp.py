@@ -17,6 +17,13 @@ symbols (every solver)::
   against each other; the result has shape ``(..., nx)``.
 * CasADi: ``x``, ``u`` and ``w`` are column vectors (``SX``/``MX``); the result is an
   ``(nx, 1)`` column.
+
+What it offers: ``unstack`` and ``stack`` (components out of and back into a state); the
+element-wise ``sin``, ``cos``, ``tan``, ``arcsin``, ``arccos``, ``arctan``, ``arctan2``,
+``tanh``, ``sqrt``, ``exp``, ``log``, ``abs``; and the piecewise ``minimum``, ``maximum``,
+``where`` and ``clip``. Arithmetic (``+ - * / **``) and comparisons work on both kinds
+as they are. The solvers differentiate the CasADi form, so prefer smooth expressions: the
+piecewise functions have kinks (``where`` evaluates both branches symbolically).
 """
 
 from __future__ import annotations
@@ -73,6 +80,36 @@ class _ArrayNamespace:
     def arctan2(y: Any, x: Any) -> Any:
         """``arctan2(y, x)`` [rad]."""
         return ca.atan2(y, x) if _any_symbolic((y, x)) else np.arctan2(y, x)
+
+    @staticmethod
+    def minimum(a: Any, b: Any) -> Any:
+        """The smaller of ``a`` and ``b``, element-wise (``fmin`` for CasADi). Not smooth
+        where ``a == b``: a gradient-based solver may stall there."""
+        return ca.fmin(a, b) if _any_symbolic((a, b)) else np.minimum(a, b)
+
+    @staticmethod
+    def maximum(a: Any, b: Any) -> Any:
+        """The larger of ``a`` and ``b``, element-wise (``fmax`` for CasADi); e.g. a drag
+        that acts only forwards, ``xp.maximum(v, 0.0)``. Not smooth where ``a == b``."""
+        return ca.fmax(a, b) if _any_symbolic((a, b)) else np.maximum(a, b)
+
+    @staticmethod
+    def where(condition: Any, a: Any, b: Any) -> Any:
+        """``a`` where ``condition`` holds, else ``b`` (``if_else`` for CasADi: both branches
+        are evaluated, so each must be finite everywhere). The condition is a comparison
+        of the same values, e.g. ``xp.where(v > 0.0, drag, 0.0)``; the result jumps where it
+        switches, which solvers see as a kink."""
+        if _any_symbolic((condition, a, b)):
+            return ca.if_else(condition, a, b)
+        return np.where(condition, a, b)
+
+    @staticmethod
+    def clip(a: Any, low: Any, high: Any) -> Any:
+        """``a`` limited to ``[low, high]``, element-wise (``fmin(fmax(a, low), high)`` for
+        CasADi), e.g. a saturated actuator. Flat outside the bounds: no gradient there."""
+        if _any_symbolic((a, low, high)):
+            return ca.fmin(ca.fmax(a, low), high)
+        return np.clip(a, low, high)
 
     @staticmethod
     def unstack(x: Any) -> list[Any]:

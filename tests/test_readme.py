@@ -1,59 +1,209 @@
-"""The README's examples ("Your own system", "Your own agent") run as written."""
+"""The README and the pages of docs/ show what works: every ```python block runs as written, the
+claims the own-system examples make in words hold, and every ``lfm-*`` command line of a
+```bash block is a valid invocation of the current command.
+
+Each page's python blocks run in order in one namespace, in a fresh folder that holds the
+repository's ``configs/`` (so ``configs/quick.yaml`` reads as from the repository's root, and the
+files the examples write stay under ``tmp_path``). A block that imports an optional extra
+(:data:`OPTIONAL`) is skipped through ``pytest.importorskip`` when the extra is missing.
+"""
 
 from __future__ import annotations
 
+import math
 import re
+import shlex
+from collections.abc import Callable
 from pathlib import Path
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+import gymnasium as gym
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PAGES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+OPTIONAL = ("stable_baselines3",)  # extras a block may need (the rl and test extras)
 
 
-def section_code(title: str) -> str:
-    text = README.read_text()
-    start = text.index(f"## {title}\n")
-    end = text.find("\n## ", start + 1)
-    blocks = re.findall(r"```python\n(.*?)```", text[start:end], flags=re.S)
-    assert blocks, f"no python block under '## {title}'"
-    return "\n".join(blocks)
+def fenced_blocks(page: Path, language: str) -> list[str]:
+    """The bodies of the page's fenced blocks of ``language``, in order."""
+    return re.findall(rf"^```{language}\n(.*?)^```", page.read_text(), flags=re.S | re.M)
 
 
-def test_the_own_system_example_runs(capsys):
-    namespace: dict = {"__name__": "readme_example"}
-    exec(compile(section_code("Your own system"), "README.md", "exec"), namespace)  # noqa: S102
+def page_id(page: Path) -> str:
+    return page.relative_to(REPO).as_posix()
+
+
+# --- the claims the examples make in words, checked right after the block that makes them ---
+
+
+def own_system_claims(namespace: dict) -> None:
+    """The point mass ends near the goal with no constraint excess."""
     env, info = namespace["env"], namespace["info"]
-    # The example's claims: the mass ends near the goal with no constraint excess.
     assert abs(info["true_state"][0] - 3.0) < 0.3 and abs(info["true_state"][1] - 0.3) < 0.3
     assert max(info["constraint_excess"]) < 0.05
     assert env.model.system.nw == 2
 
 
-def section_blocks(title: str) -> list[str]:
-    """The python blocks under ``## title``, each on its own."""
-    text = README.read_text()
-    start = text.index(f"## {title}\n")
-    end = text.find("\n## ", start + 1)
-    return re.findall(r"```python\n(.*?)```", text[start:end], flags=re.S)
-
-
-def test_the_own_agent_example_runs(monkeypatch):
-    import math
-
-    import pytest
-
-    evaluation_example, sb3_example = section_blocks("Your own agent")
-    monkeypatch.chdir(README.parent)  # the examples read configs/quick.yaml
-    namespace: dict = {"__name__": "readme_example"}
-    exec(compile(evaluation_example, "README.md", "exec"), namespace)  # noqa: S102
+def own_agent_claims(namespace: dict) -> None:
+    """No solver: no solver failures, n/a solve times and RMSE; it follows the track."""
     rows = namespace["rows"]
     assert [(r["agent"], r["seed"], r["error"]) for r in rows] == [
         (a, s, "") for a in ("nominal", "track_follower") for s in (0, 1)
     ]
-    # The example's claims: no solver, so no solver failures and n/a solve times and RMSE.
     mine = [r for r in rows if r["agent"] == "track_follower"]
     assert all(r["solver_failures"] == 0 and r["fallback_steps"] == 0 for r in mine)
     assert all(math.isnan(r["solve_time_median"]) and math.isnan(r["latent_rmse"]) for r in mine)
     assert all(r["success"] for r in mine)  # it does follow the track to the goal
 
-    pytest.importorskip("stable_baselines3")  # the section's SB3 example needs it
-    exec(compile(sb3_example, "README.md", "exec"), namespace)  # noqa: S102
+
+def sb3_claims(namespace: dict) -> None:
     assert math.isfinite(namespace["mean_reward"]) and namespace["mean_reward"] < 0.0
+
+
+def own_world_claims(namespace: dict) -> None:
+    """The registered world is the quadrotor in a lower tunnel, and it evaluates."""
+    env, rows = namespace["env"], namespace["rows"]
+    assert env.unwrapped.config.corridor_half_height == 0.25
+    assert env.spec.max_episode_steps == 120
+    assert [(r["agent"], r["error"]) for r in rows] == [("nominal", "")]
+
+
+def tour_claims(namespace: dict) -> None:
+    """The tour's report is written, and its table holds both agents on both seeds."""
+    assert Path("results/tour/report.md").is_file() and Path("results/tour/report.html").is_file()
+    rows = namespace["rows"]
+    assert sorted((r["agent"], r["seed"]) for r in rows) == [
+        (a, s) for a in ("nominal", "scenario") for s in (0, 1)
+    ]
+    assert all(r["error"] == "" for r in rows)
+
+
+# (page, a text that names the block) -> the check run after that block
+CLAIMS: dict[tuple[str, str], Callable[[dict], None]] = {
+    ("README.md", "write_report("): tour_claims,
+    ("docs/own-system.md", 'name="point_mass"'): own_system_claims,
+    ("docs/own-system.md", "class TrackFollower"): own_agent_claims,
+    ("docs/own-system.md", "evaluate_policy("): sb3_claims,
+    ("docs/own-system.md", "register_world("): own_world_claims,
+}
+
+
+def optional_extra(block: str) -> str | None:
+    """The optional package a block imports, if any."""
+    return next((name for name in OPTIONAL if re.search(rf"\b{name}\b", block)), None)
+
+
+@pytest.fixture
+def in_a_fresh_root(tmp_path, monkeypatch):
+    """A working folder that reads like the repository's root (its configs/), under tmp_path."""
+    (tmp_path / "configs").symlink_to(REPO / "configs", target_is_directory=True)
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+@pytest.fixture
+def registries_restored():
+    """Worlds an example registers are forgotten afterwards (by the project and Gymnasium)."""
+    from lfm_env.worlds.registry import WORLDS
+
+    worlds, envs = dict(WORLDS), dict(gym.envs.registry)
+    yield
+    WORLDS.clear()
+    WORLDS.update(worlds)
+    for env_id in set(gym.envs.registry) - set(envs):
+        del gym.envs.registry[env_id]
+
+
+@pytest.mark.parametrize("page", [p for p in PAGES if fenced_blocks(p, "python")], ids=page_id)
+def test_every_python_block_runs(page, in_a_fresh_root, registries_restored):
+    blocks = fenced_blocks(page, "python")
+    claims = {text: check for (name, text), check in CLAIMS.items() if name == page_id(page)}
+    for text in claims:  # every claim belongs to exactly one block of its page
+        assert sum(text in b for b in blocks) == 1, f"{page_id(page)}: one block with {text!r}"
+    namespace: dict = {"__name__": "__main__"}  # as a script of the reader's own runs them
+    skipped = []
+    for number, block in enumerate(blocks, start=1):
+        extra = optional_extra(block)
+        if extra is not None:
+            try:
+                pytest.importorskip(extra)
+            except pytest.skip.Exception:
+                skipped.append(f"block {number} needs {extra}")
+                continue
+        code = compile(block, f"{page_id(page)}, python block {number}", "exec", dont_inherit=True)
+        exec(code, namespace)  # noqa: S102
+        for text, check in claims.items():
+            if text in block:
+                check(namespace)
+    if skipped:
+        pytest.skip(f"{page_id(page)}: " + "; ".join(skipped))
+
+
+def test_the_pages_have_examples():
+    """The README's tour and the own-system page's examples are where the claims say."""
+    assert len(fenced_blocks(REPO / "README.md", "python")) == 1
+    assert len(fenced_blocks(REPO / "docs" / "own-system.md", "python")) == 4
+
+
+# --- the command lines ---
+
+
+def command_lines(page: Path) -> list[list[str]]:
+    """The ``lfm-*`` command lines of the page's bash blocks, split into words (continued
+    lines joined, comments dropped)."""
+    lines = []
+    for block in fenced_blocks(page, "bash"):
+        for line in block.replace("\\\n", " ").splitlines():
+            words = shlex.split(line, comments=True)
+            if words and words[0].startswith("lfm-"):
+                lines.append(words)
+    return lines
+
+
+COMMAND_LINES = [(page, words) for page in PAGES for words in command_lines(page)]
+
+
+def check_values(words: list[str], args) -> None:
+    """What argparse leaves to the command: the config, the seeds and the agents exist."""
+    from controllers.agents import AGENT_REGISTRY
+    from experiments.cli import config_file
+    from experiments.evaluation import parse_seeds
+
+    config = getattr(args, "config", None)
+    if config is not None and not str(config).startswith("results/"):  # written by a command
+        assert config_file(config).is_file()
+    if isinstance(getattr(args, "seeds", None), str) and words[0] != "lfm-benchmark":
+        assert parse_seeds(args.seeds)
+    names = getattr(args, "agents", None) or getattr(args, "agent", None)
+    for name in names.split(",") if names else ():
+        assert name in AGENT_REGISTRY or re.fullmatch(r"[\w.]+:\w+", name), name
+
+
+@pytest.mark.parametrize(
+    ("page", "words"), COMMAND_LINES, ids=[f"{page_id(p)}: {w[0]}" for p, w in COMMAND_LINES]
+)
+def test_every_command_line_parses(page, words, capsys):
+    from experiments.cli import COMMAND_PARSERS
+
+    assert words[0] in COMMAND_PARSERS, f"{page_id(page)}: no command {words[0]}"
+    try:
+        args = COMMAND_PARSERS[words[0]]().parse_args(words[1:])
+    except SystemExit:
+        pytest.fail(f"{page_id(page)}: {shlex.join(words)}\n{capsys.readouterr().err}")
+    check_values(words, args)
+
+
+def test_every_script_named_exists():
+    """``bash scripts/X.sh`` and ``python scripts/X.py`` of the bash blocks are files."""
+    for page in PAGES:
+        for block in fenced_blocks(page, "bash"):
+            for script in re.findall(r"(?:bash|python) (scripts/\S+)", block):
+                assert (REPO / script).is_file(), f"{page_id(page)}: {script}"
+
+
+def test_every_command_is_shown():
+    """Each command appears in a bash block of the README or of docs/."""
+    from experiments.cli import COMMAND_PARSERS
+
+    shown = {words[0] for _, words in COMMAND_LINES}
+    assert shown == set(COMMAND_PARSERS)

@@ -48,6 +48,7 @@ from scipy import special
 from controllers.agents.protocol import SB3Predict
 from controllers.config import (
     AgentConfig,
+    ConfigError,
     check_filter_memory,
     check_problem_memory,
 )
@@ -232,6 +233,8 @@ class _FilteringAgent(MPCAgent):
             )
         self._divergence_nis = float(special.chdtri(nx, DIVERGENCE_TAIL))  # chi2 upper quantile
         s = self.settings
+        # k_j per constraint, once: a back-off of the wrong length is refused here, not at act().
+        self._factors = self._backoff_factors
         where = "agents.robust.n_particles" if self.name == "robust" else "agents.n_particles"
         check_filter_memory(self.model, s.n_particles, s.estimator, where)
         self.estimator = make_estimator(
@@ -292,7 +295,7 @@ class _FilteringAgent(MPCAgent):
         ``Sigma_x`` of the estimate's covariance, the same at every step of the horizon;
         ``k_j`` is the one value of ``settings.backoff`` or that of ``g_j``'s constraint group.
         """
-        k = self._backoff_factors
+        k = self._factors
         if k is None:
             return None
         nx = self.system.nx
@@ -311,9 +314,10 @@ class _FilteringAgent(MPCAgent):
             return np.full(system.ng, factors[0])
         groups = system.constraint_groups
         if len(factors) != len(groups):
-            raise ValueError(
-                f"backoff={list(factors)}: one number or {len(groups)}, one per constraint "
-                f"group {list(groups)}"
+            where = "agents.robust.backoff" if self.name == "robust" else "agents.backoff"
+            raise ConfigError(
+                f"{where}={list(factors)}: must be one number or {len(groups)}, one per "
+                f"constraint group {list(groups)} of the {system.name} system"
             )
         k = np.zeros(system.ng)
         for f, members in zip(factors, groups.values(), strict=True):
@@ -405,7 +409,7 @@ class OracleMPCAgent(MPCAgent):
     """UPPER BOUND, not a realisable controller: reads the true state and future force.
 
     It gets the env (``make_agent("oracle", env=env)``) and reads
-    ``env.unwrapped.true_state`` and ``env.unwrapped.preview_disturbance(N)``, which do
+    ``env.unwrapped.true_state`` and ``env.unwrapped.preview_latent_force(N)``, which do
     not change the episode. The observation passed to :meth:`act` is ignored.
     """
 

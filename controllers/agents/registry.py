@@ -41,6 +41,9 @@ class AgentSpec:
     order: int  # place in tables and figures; other agents (a user's own) follow, sorted
     reads_truth: bool = False  # True: also gets the env (env=...), to read the hidden truth
     check: Callable[[ExperimentConfig], None] | None = None  # raises ConfigError; no solver
+    # The agents-section settings it reads ("latent_force": it models the force with the
+    # agents' belief); a report describes only the settings of the agents it holds.
+    uses: tuple[str, ...] = ()
 
     @property
     def needs_measurement_noise(self) -> bool:
@@ -63,6 +66,7 @@ _SPECS = (
         short_label="nominal MPC",
         colour="tab:gray",
         order=0,
+        uses=("horizon", "solver"),
     ),
     AgentSpec(
         "pf",
@@ -71,6 +75,7 @@ _SPECS = (
         short_label="PF + CE MPC",
         colour="tab:orange",
         order=1,
+        uses=("horizon", "solver", "estimator", "n_particles", "latent_force"),
     ),
     AgentSpec(
         "scenario",
@@ -79,6 +84,7 @@ _SPECS = (
         short_label="scenario MPC (paper)",
         colour="tab:blue",
         order=2,
+        uses=("horizon", "solver", "estimator", "n_particles", "n_scenarios", "latent_force"),
     ),
     AgentSpec(
         "scenario_particles",
@@ -87,6 +93,7 @@ _SPECS = (
         short_label="scenario MPC, particle starts",
         colour="tab:green",
         order=3,
+        uses=("horizon", "solver", "estimator", "n_particles", "n_scenarios", "latent_force"),
     ),
     AgentSpec(
         "robust",
@@ -95,6 +102,7 @@ _SPECS = (
         short_label="robust MPC (back-off)",
         colour="tab:red",
         order=4,
+        uses=("horizon", "solver", "robust", "latent_force"),
     ),
     AgentSpec(
         "oracle",
@@ -104,6 +112,7 @@ _SPECS = (
         colour="tab:purple",
         order=5,
         reads_truth=True,
+        uses=("horizon", "solver"),
     ),
     AgentSpec(
         "rl",
@@ -113,6 +122,7 @@ _SPECS = (
         colour="tab:olive",
         order=6,
         check=_check_rl_policy,
+        uses=("rl_policy",),
     ),
 )
 

@@ -87,19 +87,10 @@ class StateEstimator:
         """``n`` draws of ``[x, z]`` ``(n, nx + p)`` from the estimate's distribution."""
         return self.filter.sample(n, rng)
 
-    # shared by the particle filters
-    def _physical_prior(self, y: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-        return y + rng.standard_normal((n, self.nx)) * self.measurement_std
 
-    def _closest(self, y: np.ndarray, physical: np.ndarray) -> float:
-        r = (physical - y) / self.measurement_std
-        return float(np.min(np.einsum("ij,ij->i", r, r)))
-
-
-class BootstrapEstimator(StateEstimator):
-    """The paper's bootstrap particle filter over ``[x, z]``."""
-
-    name = "bootstrap"
+class _ParticleEstimator(StateEstimator):
+    """What the two particle filters share: their settings, the physical prior around the
+    first measurement and the distance of a measurement to the closest particle."""
 
     def __init__(
         self,
@@ -112,6 +103,22 @@ class BootstrapEstimator(StateEstimator):
         super().__init__(model, measurement_std)
         self.n_particles = int(n_particles)
         self.resampling, self.ess_threshold = resampling, ess_threshold
+
+    def _physical_prior(self, y: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+        return y + rng.standard_normal((n, self.nx)) * self.measurement_std
+
+    def _closest(self, y: np.ndarray, physical: np.ndarray) -> float:
+        r = (physical - y) / self.measurement_std
+        return float(np.min(np.einsum("ij,ij->i", r, r)))
+
+
+class BootstrapEstimator(_ParticleEstimator):
+    """The paper's bootstrap particle filter over ``[x, z]``."""
+
+    name = "bootstrap"
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
         self._log_lik = gaussian_log_likelihood(self.measurement_std, np.arange(self.nx))
         self.filter: ParticleFilter | None = None
 
@@ -146,27 +153,19 @@ class BootstrapEstimator(StateEstimator):
         return self.filter.particles[idx]
 
 
-class RBPFEstimator(StateEstimator):
+class RBPFEstimator(_ParticleEstimator):
     """The Rao-Blackwellised particle filter (particles over ``x``, Kalman over ``z``)."""
 
     name = "rbpf"
 
-    def __init__(
-        self,
-        model: LatentForceModel,
-        measurement_std: Any,
-        n_particles: int,
-        resampling: str = "systematic",
-        ess_threshold: float | None = None,
-    ) -> None:
-        super().__init__(model, measurement_std)
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        model = self.model
         if not model.force_enters_affinely:
             raise ValueError(
                 f"estimator 'rbpf': the force of system {model.system.name!r} does not enter "
                 "f(x, u, w) affinely; use 'bootstrap' or 'ukf'"
             )
-        self.n_particles = int(n_particles)
-        self.resampling, self.ess_threshold = resampling, ess_threshold
         self.filter: RaoBlackwellisedParticleFilter | None = None
 
     def start(self, y: np.ndarray, rng: np.random.Generator) -> EstimateInfo:

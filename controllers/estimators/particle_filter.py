@@ -32,6 +32,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -124,6 +125,16 @@ def gaussian_log_likelihood(
         return out
 
     return log_likelihood
+
+
+def measurement_noise_covariance(measurement_std: Any, nx: int) -> np.ndarray:
+    """``R = diag(std^2)`` of the full-state measurement ``y = x + e`` (the Rao-Blackwellised
+    filter's and the UKF's), or a ValueError naming ``measurement_std`` unless it is ``nx``
+    numbers > 0."""
+    std = np.asarray(measurement_std, dtype=float).reshape(-1)
+    if std.shape != (nx,) or not np.all(std > 0.0):
+        raise ValueError(f"measurement_std={std.tolist()}: must be {nx} numbers > 0")
+    return np.diag(std**2)
 
 
 class BoxMullerGenerator(np.random.Generator):

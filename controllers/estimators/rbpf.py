@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.estimators.particle_filter import UpdateInfo
+from controllers.estimators.particle_filter import UpdateInfo, measurement_noise_covariance
 from controllers.estimators.resampling import RESAMPLERS
 from lfm_env.model import LatentForceModel
 
@@ -80,10 +80,7 @@ class RaoBlackwellisedParticleFilter:
             raise ValueError(f"ess_threshold: must be None or in (0, 1], got {ess_threshold!r}")
         self.model = model
         self.nx, self.p = model.nx, model.latent_dim
-        std = np.asarray(measurement_std, dtype=float).reshape(-1)
-        if std.shape != (self.nx,) or not np.all(std > 0.0):
-            raise ValueError(f"measurement_std={std.tolist()}: must be {self.nx} numbers > 0")
-        self._R = np.diag(std**2)
+        self._R = measurement_noise_covariance(measurement_std, self.nx)
         self._sigma_x = np.diag(model.process_std**2) + _JITTER * np.eye(self.nx)
         self._rng = rng
         self._resample = RESAMPLERS[resampling]

@@ -1,9 +1,9 @@
 """Resampling schemes for particle filters, all vectorised over the particles.
 
-Every scheme takes normalised weights ``w`` of shape ``(n,)`` and a
-:class:`numpy.random.Generator`, and returns ``n`` ancestor indices (``np.intp``) such
-that the expected number of copies of particle ``i`` is ``n * w[i]`` (unbiasedness).
-They differ in the variance of those counts:
+Every scheme (a :data:`Resampler`) takes normalised weights ``w`` of shape ``(n,)`` and a
+:class:`numpy.random.Generator`, and returns ``n`` ancestor indices (``np.intp``, in
+ascending order) such that the expected number of copies of particle ``i`` is ``n * w[i]``
+(unbiasedness). They differ in the variance of those counts:
 
 * ``multinomial``: ``n`` independent draws from the weights; largest variance.
 * ``stratified``: one uniform draw in each of the ``n`` strata ``[j/n, (j+1)/n)``;
@@ -29,6 +29,7 @@ import numpy as np
 # another routine, tight enough to catch unnormalised weights passed by mistake.
 _SUM_TOLERANCE = 1.0e-6
 
+#: Every scheme's signature, ``(weights, rng) -> ancestor indices`` (see the module docstring).
 Resampler = Callable[[np.ndarray, np.random.Generator], np.ndarray]
 
 
@@ -68,15 +69,8 @@ def _invert(cdf: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def multinomial(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Multinomial resampling: ``n`` independent draws from the categorical ``weights``.
-
-    Args:
-        weights: normalised weights, shape ``(n,)``.
-        rng: source of randomness.
-
-    Returns:
-        Ancestor indices, shape ``(n,)``, dtype ``np.intp``, in ascending order.
-    """
+    """Multinomial resampling (a :data:`Resampler`): ``n`` independent draws from the
+    categorical ``weights``."""
     cdf = _cumulative(weights)
     return _invert(cdf, _sorted_uniforms(cdf.size, rng))
 
@@ -93,15 +87,8 @@ def _sorted_uniforms(m: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def stratified(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Stratified resampling: one independent uniform draw in each stratum ``[j/n, (j+1)/n)``.
-
-    Args:
-        weights: normalised weights, shape ``(n,)``.
-        rng: source of randomness.
-
-    Returns:
-        Ancestor indices, shape ``(n,)``, dtype ``np.intp``, in ascending order.
-    """
+    """Stratified resampling (a :data:`Resampler`): one independent uniform draw in each
+    stratum ``[j/n, (j+1)/n)``."""
     cdf = _cumulative(weights)
     n = cdf.size
     offsets = rng.random(n)
@@ -117,15 +104,8 @@ def stratified(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 
 def systematic(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Systematic resampling: the points ``(j + U) / n`` with one shared ``U ~ U[0, 1)``.
-
-    Args:
-        weights: normalised weights, shape ``(n,)``.
-        rng: source of randomness.
-
-    Returns:
-        Ancestor indices, shape ``(n,)``, dtype ``np.intp``, in ascending order.
-    """
+    """Systematic resampling (a :data:`Resampler`): the points ``(j + U) / n`` with one shared
+    ``U ~ U[0, 1)``."""
     cdf = _cumulative(weights)
     n = cdf.size
     offset = rng.random()
@@ -155,15 +135,8 @@ def _from_points_below(below: np.ndarray) -> np.ndarray:
 
 
 def residual(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Residual resampling: ``floor(n w_i)`` copies of each particle, the rest multinomial.
-
-    Args:
-        weights: normalised weights, shape ``(n,)``.
-        rng: source of randomness.
-
-    Returns:
-        Ancestor indices, shape ``(n,)``, dtype ``np.intp``, in ascending order.
-    """
+    """Residual resampling (a :data:`Resampler`): ``floor(n w_i)`` copies of each particle, the
+    rest multinomial."""
     w = np.asarray(weights, dtype=float)
     _cumulative(w)  # validation only
     n = w.size

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from controllers.estimators.particle_filter import measurement_noise_covariance
 from lfm_env.model import LatentForceModel, psd_factor
 
 _BETA = 2.0  # prior knowledge of a Gaussian distribution (optimal for one)
@@ -53,10 +54,7 @@ class UnscentedKalmanFilter:
     ) -> None:
         self.model = model
         self.nx, self.d = model.nx, model.state_dim
-        std = np.asarray(measurement_std, dtype=float).reshape(-1)
-        if std.shape != (self.nx,) or not np.all(std > 0.0):
-            raise ValueError(f"measurement_std={std.tolist()}: must be {self.nx} numbers > 0")
-        self._R = np.diag(std**2)
+        self._R = measurement_noise_covariance(measurement_std, self.nx)
         q = np.zeros((self.d, self.d))
         q[: self.nx, : self.nx] = np.diag(model.process_std**2)
         q[self.nx :, self.nx :] = model.Q

@@ -50,11 +50,16 @@ class SweepAnchor(NamedTuple):
 
 
 def config_path(config: Any) -> Any:
-    """A relative config path that is missing here is looked up from the repository root."""
+    """A config as :func:`~controllers.config.load_config` takes it (a preset's name, a path,
+    ...); a relative ``configs/NAME.yaml`` that is missing here (the repository's presets
+    folder, named from another folder) is the preset ``NAME``."""
+    from lfm_env.config.compose import preset_path
+
     if isinstance(config, (str, os.PathLike)) and not Path(config).is_file():
-        candidate = Path(__file__).resolve().parents[1] / config
-        if candidate.is_file():
-            return str(candidate)
+        path = Path(config)
+        preset = preset_path(path.name) if path.parent == Path("configs") else None
+        if preset is not None:
+            return str(preset)
     return config
 
 
@@ -64,8 +69,9 @@ def experiment_config(
     """The resolved, validated config, optionally with another ``agents.solver`` or horizon.
 
     Args:
-        config: a YAML path (relative paths also from the repository root), a dict (whole
-            file), an :class:`~controllers.config.ExperimentConfig` or ``None`` (paper values).
+        config: a preset's name, a YAML path (``configs/NAME.yaml`` also from another
+            folder), a dict (whole file), an :class:`~controllers.config.ExperimentConfig` or
+            ``None`` (paper values).
         solver: if given, replaces ``agents.solver`` (one of ``controllers.solvers.SOLVERS``;
             checked like a config value).
         horizon: if given, replaces ``agents.horizon`` (prediction steps ``N``; checked like

@@ -2,7 +2,7 @@
 
 :func:`format_report` prints the speed table, the detailed tables (closed loop, horizons,
 scenario sweep, first solve, filter, episode), every failed solve and the targets;
-:func:`format_markdown` gives the speed table and the targets as Markdown (for the README);
+:func:`format_markdown` gives the speed table and the targets as Markdown (for docs/benchmark.md);
 :func:`json_ready` makes a result strict JSON. :func:`evaluate_targets` and
 :func:`speed_targets` are :mod:`experiments.benchmark.targets`'.
 """
@@ -107,11 +107,18 @@ def _ratio_line(results: dict[str, Any]) -> str:
     )
 
 
+def _table_head(head: str, *units: str) -> list[str]:
+    """A text table's column titles, the units line(s) under them, and a rule as wide."""
+    return [head, *units, "-" * len(head)]
+
+
 def format_speed_table(results: dict[str, Any]) -> str:
     """The speed table (every solver side by side, the Ns=1000 row, the two ratios)."""
     head = f"{'solver':<28}{'median':>9}{'p95':>9}{'x fast':>8}  objective vs reference"
-    lines = [f"Speed ({_speed_title(results)})", head, f"{'':<28}{'[ms]':>9}{'[ms]':>9}"]
-    lines.append("-" * len(head))
+    lines = [
+        f"Speed ({_speed_title(results)})",
+        *_table_head(head, f"{'':<28}{'[ms]':>9}{'[ms]':>9}"),
+    ]
     for name, median, p95_, ratio, objective in speed_rows(results):
         lines.append(f"{name:<28}{median:>9}{p95_:>9}{ratio:>8}  {objective}")
     lines.append(_ratio_line(results))
@@ -119,7 +126,7 @@ def format_speed_table(results: dict[str, Any]) -> str:
 
 
 def format_markdown(results: dict[str, Any]) -> str:
-    """The speed table and the targets as Markdown (e.g. for the README)."""
+    """The speed table and the targets as Markdown (e.g. for docs/benchmark.md)."""
     lines = [
         f"| solver ({_speed_title(results)}) | median [ms] | p95 [ms] | x fast (median) "
         "| objective vs reference |",
@@ -166,8 +173,7 @@ def _closed_loop_lines(results: dict[str, Any]) -> list[str]:
         f"{'solver':<24}{'build':>7}{'median':>9}{'p95':>9}{'max':>9}{'wall med':>10}"
         f"{'iters':>8}{'ok':>8}{'|gap| med':>11}{'|gap| max':>11}{'viol@0':>10}"
     )
-    lines += [head, f"{'':<24}{'[s]':>7}{'[ms]':>9}{'[ms]':>9}{'[ms]':>9}{'[ms]':>10}"]
-    lines.append("-" * len(head))
+    lines += _table_head(head, f"{'':<24}{'[s]':>7}{'[ms]':>9}{'[ms]':>9}{'[ms]':>9}{'[ms]':>10}")
     for name, info in closed["solvers"].items():
         if not info["available"]:
             lines.append(f"{name:<24}unavailable: {info['reason']}")
@@ -228,7 +234,7 @@ def _sweep_lines(sweep: dict[str, Any]) -> list[str]:
     for row in sweep["results"]:
         names += [n for n in row["solvers"] if n not in names]
     head = f"{'Ns':>6}" + "".join(f"{n:>24}" for n in names) + f"{'|gap| max fast':>16}"
-    lines += [head, "-" * len(head)]
+    lines += _table_head(head)
     for row in sweep["results"]:
         cells = []
         for name in names:
@@ -256,8 +262,7 @@ def _horizon_lines(horizons: dict[str, Any]) -> list[str]:
         f"{'N':>4}{'Ns':>6}{'problems':>10}{'fast med':>10}{'p95':>9}{'iters':>7}{'fails':>7}"
         f"{'ipopt med':>11}{'p95':>9}{'iters':>7}{'fails':>7}{'x fast':>8}{'within':>9}"
     )
-    lines += [head, f"{'':>20}{'[ms]':>10}{'[ms]':>9}{'':>14}{'[ms]':>11}{'[ms]':>9}"]
-    lines.append("-" * len(head))
+    lines += _table_head(head, f"{'':>20}{'[ms]':>10}{'[ms]':>9}{'':>14}{'[ms]':>11}{'[ms]':>9}")
     for row in horizons.get("results", []):
         cells = []
         for name in ("fast", "ipopt"):
@@ -372,8 +377,8 @@ def format_report(results: dict[str, Any]) -> str:
             f"{'particles':>10}{'step med':>10}{'p95':>9}{'update med':>12}{'predict med':>13}"
             f"{'ziggurat step med':>19}"
         )
-        lines += [head, f"{'':>10}{'[ms]':>10}{'[ms]':>9}{'[ms]':>12}{'[ms]':>13}{'[ms]':>19}"]
-        lines.append("-" * len(head))
+        units = f"{'':>10}{'[ms]':>10}{'[ms]':>9}{'[ms]':>12}{'[ms]':>13}{'[ms]':>19}"
+        lines += _table_head(head, units)
         for r in pf["results"]:
             lines.append(
                 f"{r['n_particles']:>10}{_fmt(r['step_ms_median'], '.3f'):>10}"

@@ -42,11 +42,9 @@ from experiments.benchmark.problems import (
     DEFAULT_SEEDS,
     RECORDING_SOLVER,
     experiment_config,
-    problem_from_config,
     record_closed_loop,
-    record_problems,
 )
-from experiments.benchmark.solvers import build_solver, time_solvers
+from experiments.benchmark.solvers import time_solvers
 from experiments.benchmark.suites import (
     DEFAULT_HORIZONS,
     DEFAULT_PF_SIZES,
@@ -58,11 +56,7 @@ from experiments.benchmark.suites import (
     time_episode,
     time_particle_filter,
 )
-from experiments.benchmark.targets import (
-    check_thresholds,
-    evaluate_targets,
-    speed_targets,
-)
+from experiments.benchmark.targets import check_thresholds, evaluate_targets
 
 # Recorded steps per seed: a paper episode with the fast solver takes ~45 steps, so 50 keeps
 # whole episodes while capping a failing one (151 steps).
@@ -215,14 +209,4 @@ def run_benchmark(
     return results
 
 
-__all__ = [
-    "DEFAULT_CONFIG",
-    "DEFAULT_MAX_STEPS",
-    "DEFAULT_SOLVERS",
-    "all_failures",
-    "build_solver",
-    "problem_from_config",
-    "record_problems",
-    "run_benchmark",
-    "speed_targets",
-]
+__all__ = ["DEFAULT_MAX_STEPS", "DEFAULT_SOLVERS", "all_failures", "run_benchmark"]

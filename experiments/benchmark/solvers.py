@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -23,6 +23,7 @@ from tqdm.auto import tqdm
 
 from controllers.problem import ScenarioProblem
 from controllers.solvers import SOLVERS, make_solver, solver_spec
+from experiments.benchmark.failures import failures_of
 from experiments.benchmark.problems import DEFAULT_CONFIG, problem_from_config
 from experiments.evaluation.interrupts import raise_if_interrupted
 
@@ -76,6 +77,28 @@ def build_solver(
         raise_if_interrupted()  # a Ctrl-C turned into another error stops the run
         return None, math.nan, f"{type(exc).__name__}: {exc}"
     return solver, time.perf_counter() - t0, ""
+
+
+def build_solvers(
+    problem: ScenarioProblem, solvers: Iterable[tuple[str, str, Mapping[str, Any]]]
+) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
+    """Build every ``(label, registry name, options)`` of ``solvers`` (:func:`build_solver`).
+
+    Returns:
+        ``(built, info)``: the solvers that could be built, by label, and for every label
+        ``{"available", "reason", "build_time_s"}``.
+    """
+    built, info = {}, {}
+    for label, name, options in solvers:
+        solver, build_time, reason = build_solver(name, problem, **options)
+        info[label] = {
+            "available": solver is not None,
+            "reason": reason,
+            "build_time_s": build_time,
+        }
+        if solver is not None:
+            built[label] = solver
+    return built, info
 
 
 def solve_record(
@@ -393,62 +416,6 @@ def speedups(
     return out
 
 
-# --------------------------------------------------------------------------- failures
-
-FAILURE_KINDS = (
-    "QP_Failed",
-    "Maximum_Iterations_Exceeded",
-    "wall_time",
-    "infeasible",
-    "exception",
-    "other",
-)
-
-
-def classify_failure(status: str) -> str:
-    """The kind of a failed solve's status, one of :data:`FAILURE_KINDS`."""
-    if status.startswith("raised"):
-        return "exception"
-    if "QP_Failed" in status:
-        return "QP_Failed"
-    if "Maximum_Iterations_Exceeded" in status:
-        return "Maximum_Iterations_Exceeded"
-    if "WallTime" in status or "wall time" in status.lower():
-        return "wall_time"
-    if "nfeasib" in status:
-        return "infeasible"
-    return "other"
-
-
-def failures_of(
-    records: dict[str, list[dict[str, Any]]], part: str, horizon: int, n_scenarios: int
-) -> list[dict[str, Any]]:
-    """Every failed solve of ``records``, with the problem's id and the failure's kind.
-
-    Returns:
-        ``[{"part", "solver", "seed", "step", "N", "Ns", "kind", "status"}]``, solver by
-        solver in problem order.
-    """
-    out = []
-    for name, recs in records.items():
-        for r in recs:
-            if r["success"]:
-                continue
-            out.append(
-                {
-                    "part": part,
-                    "solver": name,
-                    "seed": int(r["seed"]),
-                    "step": int(r["step"]),
-                    "N": int(horizon),
-                    "Ns": int(n_scenarios),
-                    "kind": classify_failure(str(r["status"])),
-                    "status": str(r["status"]),
-                }
-            )
-    return out
-
-
 # --------------------------------------------------------------------------- comparison
 
 
@@ -535,17 +502,9 @@ def time_solvers(
             raise ValueError("problems is empty: cannot infer the problem size")
         ns, n = np.shape(problems[0][3])[:2]
         problem = problem_from_config(config, n_scenarios=int(ns), horizon=int(n))
-    built, info = {}, {}
+    built, info = build_solvers(problem, [(name, name, {}) for name in solvers])
     for name in solvers:
-        solver, build_time, reason = build_solver(name, problem)
-        info[name] = {
-            "available": solver is not None,
-            "reason": reason,
-            "build_time_s": build_time,
-            "label": SOLVER_LABELS[name],
-        }
-        if solver is not None:
-            built[name] = solver
+        info[name]["label"] = SOLVER_LABELS[name]
     records = run_interleaved(built, problem, problems, warmup, progress, "closed-loop solves")
     reference = next((r for r in REFERENCES if r in built), None)
     summary = {}
@@ -574,7 +533,6 @@ def time_solvers(
 
 
 __all__ = [
-    "FAILURE_KINDS",
     "FAST_SOLVERS",
     "SOLVER_VARIANTS",
     "GAP_TOL",
@@ -583,9 +541,8 @@ __all__ = [
     "SOLVER_LABELS",
     "accuracy_summary",
     "build_solver",
+    "build_solvers",
     "certify_lower_plans",
-    "classify_failure",
-    "failures_of",
     "relative_gap",
     "restart_check",
     "run_interleaved",

@@ -26,6 +26,7 @@ import numpy as np
 
 from controllers.feasibility import INFEASIBLE_TOL, SharedConstraints, shared_slack_bound
 from controllers.solvers.fast.codegen.build import fresh_cache
+from experiments.benchmark.failures import failures_of
 from experiments.benchmark.problems import (
     DEFAULT_CONFIG,
     DEFAULT_SEEDS,
@@ -43,7 +44,7 @@ from experiments.benchmark.solvers import (
     SOLVER_VARIANTS,
     accuracy_summary,
     build_solver,
-    failures_of,
+    build_solvers,
     p95,
     relative_gap,
     run_interleaved,
@@ -124,14 +125,9 @@ def sweep_scenarios(
         names = list(SWEEP_SOLVERS) + ([SWEEP_REFERENCE] if ns <= ipopt_max_ns else [])
         if ns >= min(SWEEP_VARIANTS_MIN_NS, max(ns_list)):
             names += list(SOLVER_VARIANTS)
-        built, info = {}, {}
-        for name in names:
-            base, options = SOLVER_VARIANTS.get(name, (name, {}))
-            solver, build_time, reason = build_solver(base, problem, **options)
-            info[name] = {"available": solver is not None, "reason": reason}
-            info[name]["build_time_s"] = build_time
-            if solver is not None:
-                built[name] = solver
+        built, info = build_solvers(
+            problem, [(name, *SOLVER_VARIANTS.get(name, (name, {}))) for name in names]
+        )
         records = run_interleaved(
             built, problem, problems, warmup=True, progress=progress, desc=f"sweep Ns={ns}"
         )
@@ -326,14 +322,13 @@ def sweep_horizons(
         steps = counts.get(n, 5) if isinstance(counts, dict) else counts
         problems, _ = record_closed_loop(cfg, seeds, steps, progress, horizon=n)
         problem = experiment_config(cfg, horizon=n).make_problem()
-        built, info = {}, {}
-        for name in HORIZON_SOLVERS:
-            limit = max_time.get(name) if isinstance(max_time, dict) else max_time
-            solver, build_time, reason = build_solver(name, problem, max_time=limit)
-            info[name] = {"available": solver is not None, "reason": reason}
-            info[name]["build_time_s"] = build_time
-            if solver is not None:
-                built[name] = solver
+        limits = {
+            name: max_time.get(name) if isinstance(max_time, dict) else max_time
+            for name in HORIZON_SOLVERS
+        }
+        built, info = build_solvers(
+            problem, [(name, name, {"max_time": limits[name]}) for name in HORIZON_SOLVERS]
+        )
         records = run_interleaved(
             built, problem, problems, warmup=True, progress=progress, desc=f"horizon N={n}"
         )
@@ -420,6 +415,19 @@ def first_solve(
     return {"solver": solver, "results": rows}
 
 
+_STATISTICS = {
+    "median": lambda t: float(np.median(t)),
+    "p95": lambda t: p95(np.asarray(t)),
+    "max": lambda t: float(np.max(t)),
+}
+
+
+def _milliseconds(name: str, seconds: Sequence[float], *statistics: str) -> dict[str, float]:
+    """``{"<name>_ms_<statistic>": value [ms]}`` of wall times in seconds, for each of
+    ``statistics`` (``"median"``, ``"p95"``, ``"max"``) in the order given."""
+    return {f"{name}_ms_{s}": 1e3 * _STATISTICS[s](seconds) for s in statistics}
+
+
 def time_particle_filter(
     n_particles: Sequence[int] = DEFAULT_PF_SIZES,
     config: Any = DEFAULT_CONFIG,
@@ -504,17 +512,13 @@ def time_particle_filter(
             t_update.append(t2 - t1)
             t_predict.append(t1 - t0)
             t_numpy.append(t3 - t2)
-        ms = 1e3
         results.append(
             {
                 "n_particles": int(n),
-                "step_ms_median": ms * float(np.median(t_step)),
-                "step_ms_p95": ms * p95(np.asarray(t_step)),
-                "step_ms_max": ms * float(np.max(t_step)),
-                "update_ms_median": ms * float(np.median(t_update)),
-                "update_ms_p95": ms * p95(np.asarray(t_update)),
-                "predict_ms_median": ms * float(np.median(t_predict)),
-                "numpy_normals_step_ms_median": ms * float(np.median(t_numpy)),
+                **_milliseconds("step", t_step, "median", "p95", "max"),
+                **_milliseconds("update", t_update, "median", "p95"),
+                **_milliseconds("predict", t_predict, "median"),
+                **_milliseconds("numpy_normals_step", t_numpy, "median"),
             }
         )
     return {"n_steps": int(n_steps), "results": results}
@@ -562,7 +566,6 @@ def time_episode(
         episode = time.perf_counter() - t_start
     finally:
         env.close()
-    ms = 1e3
     return {
         "solver": solver,
         "seed": int(seed),
@@ -571,12 +574,9 @@ def time_episode(
         "steps": len(step_wall),
         "reached_goal": bool(info.get("is_success", False)),
         "solver_successes": int(successes),
-        "step_ms_median": ms * float(np.median(step_wall)),
-        "step_ms_max": ms * float(np.max(step_wall)),
-        "solve_ms_median": ms * float(np.median(solve)),
-        "solve_ms_p95": ms * p95(np.asarray(solve)),
-        "solve_ms_max": ms * float(np.max(solve)),
-        "estimate_ms_median": ms * float(np.median(estimate)),
+        **_milliseconds("step", step_wall, "median", "max"),
+        **_milliseconds("solve", solve, "median", "p95", "max"),
+        **_milliseconds("estimate", estimate, "median"),
     }
 
 

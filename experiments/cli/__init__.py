@@ -17,8 +17,11 @@ One module per command: :mod:`~experiments.cli.evaluate` (``lfm-evaluate``),
 from here. This package gives the entry points and the shared helpers.
 """
 
-from experiments.cli.benchmark import benchmark_main
-from experiments.cli.calibrate import calibrate_main
+import argparse
+from collections.abc import Callable
+
+from experiments.cli.benchmark import benchmark_main, build_parser
+from experiments.cli.calibrate import _calibrate_parser, calibrate_main
 from experiments.cli.common import (
     DEFAULT_PRESET,
     PRESETS_PACKAGE,
@@ -32,13 +35,31 @@ from experiments.cli.common import (
     preset_names,
     seeds_and_executor,
 )
-from experiments.cli.evaluate import evaluate_main
-from experiments.cli.render import MAX_RENDER_SIDE, RENDER_MEMORY_BUDGET, render_main
-from experiments.cli.report import report_main
-from experiments.cli.sweep import sweep_main
-from experiments.cli.train import train_main
+from experiments.cli.evaluate import _evaluate_parser, evaluate_main
+from experiments.cli.render import (
+    MAX_RENDER_SIDE,
+    RENDER_MEMORY_BUDGET,
+    _render_parser,
+    render_main,
+)
+from experiments.cli.report import _report_parser, report_main
+from experiments.cli.sweep import _sweep_parser, sweep_main
+from experiments.cli.train import _train_parser, train_main
+
+#: Each command's argument parser as its ``main()`` builds it, by command name (the docs'
+#: tests parse the command lines they show with these).
+COMMAND_PARSERS: dict[str, Callable[[], argparse.ArgumentParser]] = {
+    "lfm-evaluate": _evaluate_parser,
+    "lfm-report": _report_parser,
+    "lfm-render": _render_parser,
+    "lfm-sweep": _sweep_parser,
+    "lfm-calibrate": _calibrate_parser,
+    "lfm-train": _train_parser,
+    "lfm-benchmark": build_parser,
+}
 
 __all__ = [
+    "COMMAND_PARSERS",
     "DEFAULT_PRESET",
     "MAX_RENDER_SIDE",
     "PRESETS_PACKAGE",

@@ -11,12 +11,18 @@ from pathlib import Path
 from typing import Any
 
 from controllers.solvers import SOLVERS
-from experiments.benchmark.problems import DEFAULT_CONFIG
 from experiments.benchmark.report import format_markdown, format_report, json_ready
 from experiments.benchmark.run import DEFAULT_MAX_STEPS, DEFAULT_SOLVERS, run_benchmark
 from experiments.benchmark.suites import DEFAULT_HORIZON_STEPS, DEFAULT_HORIZONS
 from experiments.benchmark.targets import DEFAULT_THRESHOLDS, check_thresholds, failed_targets
-from experiments.cli.common import one_line_errors
+from experiments.cli.common import (
+    CACHE_NOTE,
+    DEFAULT_PRESET,
+    add_config_argument,
+    check_writable,
+    config_argument_path,
+    one_line_errors,
+)
 from experiments.evaluation import parse_seeds as parse_evaluation_seeds
 
 DEFAULT_OUT = "results/benchmark.json"
@@ -102,10 +108,9 @@ def build_parser() -> argparse.ArgumentParser:
             "filter and one episode; print the speed table, every failed solve and "
             "PASS/FAIL per target, write JSON and the speed table as Markdown."
         ),
+        epilog=CACHE_NOTE,
     )
-    parser.add_argument(
-        "--config", default=DEFAULT_CONFIG, help="config YAML (default: %(default)s)"
-    )
+    add_config_argument(parser)
     parser.add_argument(
         "--seeds",
         default=None,
@@ -165,7 +170,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--out",
         default=DEFAULT_OUT,
-        help="JSON output (default: %(default)s); the Markdown table goes beside it (.md)",
+        help=(
+            "JSON output (default: %(default)s); the Markdown table goes beside it (.md); "
+            "both are checked writable before the benchmark runs"
+        ),
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     return parser
@@ -194,6 +202,12 @@ def benchmark_main(argv: Sequence[str] | None = None) -> int:
         horizons = parse_ints(args.horizons, "horizons")
     except ValueError as exc:
         parser.error(str(exc))
+    config_argument_path(parser, args.config)  # a preset's name or a file: exits 2 otherwise
+    out = Path(args.out)
+    for path in (out, out.with_suffix(".md")):  # before the work (minutes), not after it
+        problem = check_writable(path, "--out")
+        if problem is not None:
+            parser.error(problem)
     options: dict[str, Any] = {}
     if args.quick:
         options = {k: v for k, v in QUICK.items() if k != "seeds"}
@@ -203,7 +217,7 @@ def benchmark_main(argv: Sequence[str] | None = None) -> int:
         options["horizon_steps"] = args.horizon_steps
     options.setdefault("max_steps", DEFAULT_MAX_STEPS)
     results = run_benchmark(
-        config=args.config,
+        config=args.config or DEFAULT_PRESET,
         seeds=seeds,
         solvers=solvers,
         horizons=horizons,
@@ -213,7 +227,6 @@ def benchmark_main(argv: Sequence[str] | None = None) -> int:
     )
     results["meta"]["argv"] = list(sys.argv[1:] if argv is None else argv)
     print(format_report(results), flush=True)
-    out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(json_ready(results), indent=1, allow_nan=False) + "\n")
     markdown = out.with_suffix(".md")

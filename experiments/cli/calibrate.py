@@ -1,5 +1,5 @@
 """``lfm-calibrate``: learn the latent force's hyperparameters from calibration episodes
-(:mod:`experiments.calibration`)."""
+(:mod:`experiments.calibration`), on any registered world."""
 
 from __future__ import annotations
 
@@ -13,28 +13,38 @@ from experiments.calibration import (
     record_calibration_episodes,
     write_learned_config,
 )
-from experiments.cli.common import check_writable, config_file, one_line_errors, preset_names
+from experiments.cli.common import (
+    add_config_argument,
+    add_set_argument,
+    check_writable,
+    config_argument,
+    one_line_errors,
+)
 from experiments.evaluation import parse_seeds
-from lfm_env.config import load_env_config
 
 
 def _calibrate_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="lfm-calibrate",
         description=(
-            "Drive calibration episodes with the nominal MPC (no latent force model), record "
-            "measured speeds and applied accelerations, and fit the latent force's variance "
-            "[(m/s^2)^2] and lengthscale [s] by maximum likelihood (Kalman filter on speed "
-            "and latent state). Writes a config whose agents model the learned force."
+            "Drive calibration episodes with the nominal MPC (no latent force model) on the "
+            "config's world, record the measured states and the applied inputs, and fit the "
+            "latent force's variance [(force unit)^2] and lengthscale [s] by maximum "
+            "likelihood: a Kalman filter on the states the force drives (found from the "
+            "system's force gain df/dw) and the force's state-space GP. Writes a config "
+            "whose agents model the learned force."
         ),
-        epilog="example: lfm-calibrate --config paper --seeds 100:105 --out results/learned.yaml",
+        epilog=(
+            "examples:\n"
+            "  lfm-calibrate --config paper --seeds 1000:1005 --out results/learned.yaml\n"
+            "  lfm-calibrate --config quadrotor --seeds 1000:1003\n"
+            "  lfm-calibrate --config mine.yaml     a world of your own "
+            "(env_id: mine:Mine/Unicycle-v0)"
+        ),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument(
-        "--config",
-        metavar="NAME|YAML",
-        default="paper",
-        help=f"a preset's name ({', '.join(preset_names())}) or a config file (default: paper)",
-    )
+    add_config_argument(parser)
+    add_set_argument(parser)
     parser.add_argument(
         "--seeds",
         default="1000:1005",
@@ -56,16 +66,22 @@ def calibrate_main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         seeds = parse_seeds(args.seeds)
-        args.config = str(config_file(args.config))
-        env_config = load_env_config(args.config)
     except ValueError as exc:
         parser.error(" ".join(str(exc).split()))
+    _, config = config_argument(parser, args, ["nominal"])
     if args.out:  # before the episodes, not after them
         problem = check_writable(args.out, "--out")
         if problem is not None:
             parser.error(problem)
-    result = fit_latent_force(record_calibration_episodes(args.config, seeds), env_config)
-    print(f"calibration: {result.n_episodes} episodes, {result.n_samples} samples")
+    try:
+        records = record_calibration_episodes(config, seeds)
+        result = fit_latent_force(records, config.env)
+    except ValueError as exc:  # a world whose force cannot be calibrated: one line
+        parser.error(" ".join(str(exc).split()))
+    print(
+        f"calibration: {result.n_episodes} episodes, {result.n_samples} samples of "
+        f"{', '.join(result.states)} on {config.env_id}"
+    )
     print(f"{'hyperparameter':<14} {'learned':>10} {'std err (log)':>14} {'true (hidden)':>14}")
     for name in LEARNABLE:
         learned = getattr(result.latent_force, name)
@@ -74,7 +90,7 @@ def calibrate_main(argv: Sequence[str] | None = None) -> int:
     if not result.success:
         print(f"warning: optimiser: {result.message}", file=sys.stderr)
     if args.out:
-        write_learned_config(args.config, result, args.out)
+        write_learned_config(config, result, args.out)
         print(f"learned config: {args.out}")
     return 0
 

@@ -10,11 +10,11 @@ import sys
 import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from experiments.evaluation.interrupts import remember_interrupts
-
-PRESETS_PACKAGE = "experiments.presets"  # the configs/ folder, shipped in the package
-DEFAULT_PRESET = "paper"
+from lfm_env.config import ConfigError
+from lfm_env.config.compose import DEFAULT_PRESET, PRESETS_PACKAGE, config_path, preset_names
 
 
 def os_error_text(exc: OSError) -> str:
@@ -42,7 +42,8 @@ def one_line_errors(prog: str) -> Callable:
                 return 2
             except MemoryError:
                 print(
-                    f"{prog}: error: out of memory; use smaller settings (see README, Limits)",
+                    f"{prog}: error: out of memory; use smaller settings "
+                    "(see docs/configuration.md, Limits)",
                     file=sys.stderr,
                 )
                 return 2
@@ -84,32 +85,14 @@ def positive_int(text: str) -> int:
     return value
 
 
-def _presets_folder() -> Path:
-    """The folder of the presets: the installed package's, else a checkout's ``configs/``.
-
-    A wheel ships ``configs/`` as the package ``experiments.presets``; an editable install
-    maps it there too. A source tree used without installing it (``PYTHONPATH=.``) has
-    no such package, and its ``configs/`` folder beside ``experiments/`` is used instead.
-    """
-    from importlib import resources
-
-    try:
-        return Path(str(resources.files(PRESETS_PACKAGE)))
-    except ModuleNotFoundError:
-        return Path(__file__).resolve().parent.parent / "configs"
-
-
-def preset_names() -> list[str]:
-    """The names of the shipped presets (``paper``, ``quick``, ``quadrotor``, ...), sorted."""
-    return sorted(p.stem for p in _presets_folder().glob("*.yaml"))
-
-
 def config_file(given: str | os.PathLike | None) -> Path:
     """The config file of a ``--config`` value: a path to a YAML file, or a preset's name.
 
-    Every command with ``--config`` resolves it here. A path that names an existing file
-    wins; otherwise ``given`` is looked up among the presets shipped in the package
-    (``paper``, ``quick``, ``quadrotor``, with or without ``.yaml``), from any folder.
+    Every command with ``--config`` resolves it here, through the one resolver of every
+    function that takes a config (:func:`lfm_env.config.compose.config_path`): a path that
+    names an existing file wins; otherwise ``given`` is looked up among the presets shipped
+    in the package (``paper``, ``quick``, ``quadrotor``, with or without ``.yaml``), from
+    any folder.
 
     Args:
         given: the option's value; ``None`` for the default preset (``paper``).
@@ -117,18 +100,13 @@ def config_file(given: str | os.PathLike | None) -> Path:
     Raises:
         ValueError: naming ``given`` and the preset names, if it is neither.
     """
-    if given is None:
-        given = DEFAULT_PRESET
-    path = Path(given)
-    if path.is_file():
-        return path
-    name = path.name[: -len(".yaml")] if path.name.endswith(".yaml") else path.name
-    if path.parent == Path(".") and name in preset_names():
-        return _presets_folder() / f"{name}.yaml"
-    raise ValueError(
-        f"--config {str(given)[:200]}: no such file and no preset of that name; presets: "
-        f"{', '.join(preset_names())} (or a path to a YAML file)"
-    )
+    try:
+        return config_path(given)
+    except ConfigError:
+        raise ValueError(
+            f"--config {str(given)[:200]}: no such file and no preset of that name; presets: "
+            f"{', '.join(preset_names())} (or a path to a YAML file)"
+        ) from None
 
 
 def add_config_argument(parser: argparse.ArgumentParser) -> None:
@@ -151,6 +129,50 @@ def config_argument_path(parser: argparse.ArgumentParser, given: str | None) -> 
         return config_file(given)
     except ValueError as exc:
         parser.error(str(exc))
+
+
+#: The help texts' note on the fast solver's compiled C library and where it is cached.
+CACHE_NOTE = (
+    "The fast solver compiles a C library once per system (about 1.5 s, with the system C "
+    "compiler $CC, else cc or gcc) and caches it under $LFM_CACHE_DIR (default "
+    "~/.cache/lfm-scenario-mpc); delete that folder to rebuild. Without a compiler it runs "
+    "on CasADi's functions, slower."
+)
+
+
+def add_set_argument(parser: argparse.ArgumentParser) -> None:
+    """``--set KEY=VALUE`` (repeatable): a field of the config, set on top of ``--config``."""
+    parser.add_argument(
+        "--set",
+        dest="settings",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help=(
+            "set one field of the config, e.g. --set agents.horizon=10 --set "
+            "env.latent_force.variance=2.0 (repeatable; a dotted key from the top: env_id, "
+            "env.<field>, agents.<field>; the value read by the field's type, lists as "
+            "[a,b], null where allowed)"
+        ),
+    )
+
+
+def config_argument(
+    parser: argparse.ArgumentParser, args: argparse.Namespace, agents: Sequence[str] = ()
+) -> tuple[Path, object]:
+    """The ``--config`` file and the config it gives with the ``--set`` settings applied
+    (an :class:`~controllers.config.ExperimentConfig`, checked for ``agents``); exits 2
+    with one line naming the field otherwise."""
+    from experiments.evaluation import resolve_config
+
+    path = config_argument_path(parser, args.config)
+    try:
+        from controllers.config import load_config
+
+        config = resolve_config(load_config(path, getattr(args, "settings", ())), agents)
+    except ValueError as exc:  # ConfigError: the loaders name the key
+        parser.error(" ".join(str(exc).split()))
+    return path, config
 
 
 def add_executor_arguments(parser: argparse.ArgumentParser, jobs_help: str) -> None:
@@ -178,6 +200,35 @@ def add_executor_arguments(parser: argparse.ArgumentParser, jobs_help: str) -> N
     )
 
 
+def run_episodes(
+    parser: argparse.ArgumentParser,
+    args: argparse.Namespace,
+    out: Path,
+    run: Callable[..., Any],
+    *run_args: Any,
+    **run_kwargs: Any,
+) -> Any:
+    """``run(*run_args, out=out, <the executor options>, progress=not args.quiet, **run_kwargs)``
+    for ``lfm-evaluate`` and ``lfm-sweep``: a ``ValueError`` or ``ConnectionError`` (raised
+    before any episode runs) exits 2 through ``parser.error``; Ctrl-C prints where the
+    finished episodes are and gives ``None`` (the command then returns 130)."""
+    try:
+        return run(
+            *run_args,
+            out=out,
+            jobs=args.jobs,
+            scheduler=args.scheduler,
+            dask_workers=args.dask_workers,
+            progress=not args.quiet,
+            **run_kwargs,
+        )
+    except (ValueError, ConnectionError) as exc:  # raised before any episode runs
+        parser.error(" ".join(str(exc).split()))
+    except KeyboardInterrupt:
+        print(f"\ninterrupted; finished episodes are in {out}; rerun to resume", file=sys.stderr)
+        return None
+
+
 def registered_agents_help() -> str:
     """``name = label`` of every registered agent, for the agent options' help texts."""
     from controllers.agents import AGENT_REGISTRY
@@ -202,11 +253,14 @@ def seeds_and_executor(parser: argparse.ArgumentParser, args: argparse.Namespace
 
 
 __all__ = [
+    "CACHE_NOTE",
     "DEFAULT_PRESET",
     "PRESETS_PACKAGE",
     "add_config_argument",
     "add_executor_arguments",
+    "add_set_argument",
     "check_writable",
+    "config_argument",
     "config_argument_path",
     "config_file",
     "one_line_errors",
@@ -214,5 +268,6 @@ __all__ = [
     "positive_int",
     "preset_names",
     "registered_agents_help",
+    "run_episodes",
     "seeds_and_executor",
 ]

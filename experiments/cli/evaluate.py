@@ -5,15 +5,19 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 
 from experiments.cli.common import (
+    CACHE_NOTE,
     add_config_argument,
     add_executor_arguments,
-    config_argument_path,
+    add_set_argument,
+    config_argument,
     one_line_errors,
     registered_agents_help,
+    run_episodes,
     seeds_and_executor,
 )
 
@@ -23,6 +27,12 @@ files written (DIR is --out):
   DIR/episodes/<agent>__seed<S>.npz     trajectory of one episode
   DIR/episodes/<agent>__seed<S>.json    its row of metrics (written last: marks it done)
   DIR/episodes.csv                      all rows, sorted by agent and seed
+
+A config file may start with "base: paper" (a preset's name, or a path relative to
+the file) and override only some fields; --set KEY=VALUE overrides one more (DIR's
+config.yaml records the resolved config). A world of your own is named in the config
+as env_id: your.module:Name-v0 (the module, which calls lfm_env.register_world, is
+imported first; from the current folder too).
 
 Rerunning the same command resumes an interrupted run: finished episodes are
 skipped and episodes that raised an error are retried. A folder holds one config;
@@ -46,6 +56,7 @@ examples:
   lfm-evaluate --config quick --seeds 0:5 --jobs 2      a preset, by name
   lfm-evaluate --config quadrotor --agents nominal,scenario,oracle
   lfm-evaluate --config my/config.yaml --seeds 0:5      a config file, by path
+  lfm-evaluate --config paper --set agents.horizon=10 --set env.latent_force.variance=2.0
   lfm-evaluate --agents scenario,oracle --seeds 0:10,20:25 --out results/sweep
   lfm-evaluate --agents nominal,mypkg.agents:MyAgent   your own agent next to nominal
   lfm-evaluate --dask-workers 2                  local Dask cluster on 127.0.0.1
@@ -63,10 +74,11 @@ def _evaluate_parser() -> argparse.ArgumentParser:
             "trajectory per episode. For one env seed every agent faces the same hidden\n"
             "latent_force and noise (paired design)."
         ),
-        epilog=_EVALUATE_EPILOG,
+        epilog=_EVALUATE_EPILOG + "\n" + textwrap.fill(CACHE_NOTE, 84) + "\n",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_config_argument(parser)
+    add_set_argument(parser)
     parser.add_argument(
         "--agents",
         default="nominal,pf,scenario",
@@ -75,8 +87,8 @@ def _evaluate_parser() -> argparse.ArgumentParser:
             "comma-separated agents (default: nominal,pf,scenario): registered names, or "
             "your own agent as module:attribute, a factory called with the resolved config "
             "(or an agent class taking it) returning an object with reset(seed=None) and "
-            "act(obs) (README, 'Your own agent'; the module is looked up from the current "
-            f"folder too). {agents_help}"
+            "act(obs) (docs/own-system.md, 'Your own agent'; the module is looked up from the "
+            f"current folder too). {agents_help}"
         ),
     )
     parser.add_argument(
@@ -133,35 +145,21 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
     parser = _evaluate_parser()
     args = parser.parse_args(argv)
 
-    config_path = config_argument_path(parser, args.config)
     seeds = seeds_and_executor(parser, args)
     agents = [a.strip() for a in args.agents.split(",")]
     if any(":" in a for a in agents) and os.getcwd() not in sys.path:
         # As `python -m` does: `module:attribute` agents import from the current folder.
         sys.path.insert(0, os.getcwd())
+    config_path, config = config_argument(parser, args)
     out = (
         Path(args.out)
         if args.out
         else Path("results") / (config_path.stem if config_path is not None else "defaults")
     )
 
-    try:
-        rows = evaluate(
-            agents,
-            seeds,
-            config=config_path,
-            out=out,
-            jobs=args.jobs,
-            scheduler=args.scheduler,
-            dask_workers=args.dask_workers,
-            progress=not args.quiet,
-        )
-    except (ValueError, ConnectionError) as exc:  # raised before any episode runs
-        parser.error(" ".join(str(exc).split()))
-    except KeyboardInterrupt:
-        print(f"\ninterrupted; finished episodes are in {out}; rerun to resume", file=sys.stderr)
+    rows = run_episodes(parser, args, out, evaluate, agents, seeds, config=config)
+    if rows is None:
         return 130
-
     n_errors = sum(r["error"] != "" for r in rows)
     if not args.quiet:
         _print_summary(rows)

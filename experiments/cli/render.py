@@ -8,8 +8,9 @@ from pathlib import Path
 
 from experiments.cli.common import (
     add_config_argument,
+    add_set_argument,
     check_writable,
-    config_argument_path,
+    config_argument,
     one_line_errors,
     positive_int,
     registered_agents_help,
@@ -18,7 +19,9 @@ from experiments.cli.common import (
 _RENDER_EPILOG = """\
 Runs ONE episode (the same one lfm-evaluate runs for this agent, config and seed: the
 agent's own seed is derived the same way) on the config's world and draws every step
-with that world's own renderer (render_mode="rgb_array", no display needed). A .gif
+with that world's own renderer (render_mode="rgb_array", no display needed); a world
+without a scene of its own gets the report's plan panel (a camera on the first two
+states with the estimate and the plan's scenario fan). A .gif
 gets one frame per step plus the start (1/dt frames per second); a .png gets one frame.
 To look at a saved episode without re-running it, use lfm-report (figures/episode.gif).
 
@@ -26,6 +29,7 @@ examples:
   lfm-render --agent scenario --seed 0 --out scenario.gif
   lfm-render --config configs/quick.yaml --agent pf --seed 3 --steps 40 --out pf.png
   lfm-render --config configs/quadrotor.yaml --agent scenario --out quadrotor.gif
+  lfm-render --config quick --set env.latent_force.variance=9.0 --agent pf --out pf.gif
 """
 
 
@@ -38,6 +42,7 @@ def _render_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_config_argument(parser)
+    add_set_argument(parser)
     parser.add_argument(
         "--agent", default="scenario", help=f"agent (default: scenario). {agents_help}"
     )
@@ -67,16 +72,42 @@ def _render_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _panel_episode(
+    cfg: object, agent_name: str, seed: int, max_steps: int | None, size: tuple[int, int]
+) -> tuple[list, float]:
+    """Frames of one episode of a world without a scene of its own: the plan's panel (a
+    camera on the first two states with the estimate and the scenario fan), as the report's
+    replay draws it."""
+    from experiments.evaluation.run import run_episode
+    from experiments.plots.episode import annotate_frame, plan_panel_frames
+    from experiments.report.figures import world_goal
+
+    _, traj = run_episode(agent_name, cfg, seed)
+    goal_state, goal_radius = world_goal(cfg.env)
+    panels = plan_panel_frames(
+        cfg.make_system(), traj, size=size, goal_state=goal_state, goal_radius=goal_radius
+    )
+    if max_steps is not None:
+        panels = panels[: max_steps + 1]
+    dt = cfg.env.dt
+    return [
+        annotate_frame(p, f"{agent_name} | seed {seed} | t = {k * dt:.1f} s")
+        for k, p in enumerate(panels)
+    ], dt
+
+
 def _render_episode(
     config: object, agent_name: str, seed: int, max_steps: int | None, size: tuple[int, int]
 ) -> tuple[list, float]:
     """Frames ``(H, W, 3)`` of one episode rendered step by step, and ``dt`` [s]."""
     from controllers.agents import AGENT_REGISTRY, make_agent
     from experiments.evaluation.run import agent_seed, resolve_config
-    from experiments.plots.episode import annotate_frame, make_render_env
+    from experiments.plots.replay import annotate_frame, make_render_env, world_draws
 
     cfg = resolve_config(config, [agent_name])
-    # The same drawing options as the report's replay (experiments.plots.episode.replay_frames).
+    if not world_draws(cfg):
+        return _panel_episode(cfg, agent_name, seed, max_steps, size)
+    # The same drawing options as the report's replay (experiments.plots.replay.replay_frames).
     env = make_render_env(cfg, screen_size=size)  # each world's own view
     try:
         reads_truth = AGENT_REGISTRY[agent_name].reads_truth
@@ -136,13 +167,8 @@ def render_main(argv: Sequence[str] | None = None) -> int:
             f"--size {args.size[:40]}: expected WxH in pixels, each >= 16 and <= {MAX_RENDER_SIDE},"
             " e.g. 480x240"
         )
-    config = config_argument_path(parser, args.config)
-    try:
-        from experiments.evaluation import resolve_config
-
-        max_steps = resolve_config(config, [args.agent]).env.max_steps
-    except ValueError as exc:  # a bad config: the loaders name the key
-        parser.error(" ".join(str(exc).split()))
+    _, config = config_argument(parser, args, [args.agent])
+    max_steps = config.env.max_steps
     n_frames = 1 + (max_steps if args.steps is None else min(args.steps, max_steps))
     need = 3 * width * height * n_frames
     if need > RENDER_MEMORY_BUDGET:

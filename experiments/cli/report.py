@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
+from pathlib import Path
 
-from experiments.cli.common import (
-    one_line_errors,
-)
+from experiments.cli.common import check_writable, one_line_errors
 
 _REPORT_EPILOG = """\
 files written (DIR is the results folder):
@@ -25,12 +24,16 @@ Reads DIR/episodes.csv, DIR/episodes/*.npz and DIR/config.yaml; runs no episode.
 The figures and the metric units come from the system of the world in config.yaml,
 so a results folder of any world (configs/paper.yaml, configs/quadrotor.yaml, ...)
 is reported the same way.
-Exit code 0 on success, 2 when DIR is missing, empty or the seed has no trajectory.
+Claims about intervals over fewer than 20 seeds carry a caveat; the settings paragraph
+names only the settings of the agents DIR holds.
+Exit code 0 on success, 2 when DIR is missing, empty or the seed has no trajectory, or
+when the sweep ran on another config (without --allow-other-config).
 
 examples:
   lfm-report results/paper
   lfm-report results/quick --seed 3 --no-gif
   lfm-report results/paper --sweep results/sweep
+  lfm-report results/paper --sweep results/quick_sweep --allow-other-config
   lfm-report results/paper --baseline pf         paired differences against pf
 """
 
@@ -40,8 +43,9 @@ def _report_parser() -> argparse.ArgumentParser:
         prog="lfm-report",
         description=(
             "Write report.md and report.html for a results folder of lfm-evaluate: per-agent\n"
-            "means with 95% bootstrap intervals (constraint metrics per group of the world's\n"
-            "system), paired differences against a baseline agent, one episode's figures\n"
+            "means with 95% BCa bootstrap intervals (scipy.stats.bootstrap; constraint metrics\n"
+            "per group of the world's system), paired differences against a baseline agent\n"
+            "(paired bootstrap), one episode's figures\n"
             "drawn from the system (path in the plane of the first two states with the\n"
             "feasible region, latent force, inputs with bounds, other states, constraint\n"
             "excess), across-seed plots, a GIF of the episode and, for the sine track, a\n"
@@ -78,7 +82,16 @@ def _report_parser() -> argparse.ArgumentParser:
         default=None,
         help=(
             "include the table and Pareto figure of an lfm-sweep folder (default: DIR's own "
-            "sweep when DIR holds a sweep.md)"
+            "sweep when DIR holds a sweep.md); a sweep run on another config than DIR's is "
+            "refused, naming the fields that differ"
+        ),
+    )
+    parser.add_argument(
+        "--allow-other-config",
+        action="store_true",
+        help=(
+            "include a sweep run on another config than DIR's anyway; the report then lists "
+            "the fields that differ beside the sweep's table"
         ),
     )
     return parser
@@ -95,6 +108,14 @@ def report_main(argv: Sequence[str] | None = None) -> int:
 
     parser = _report_parser()
     args = parser.parse_args(argv)
+    folder = Path(args.results_dir)
+    if folder.is_dir():  # the report's files: writable before any figure is drawn
+        figures = folder / "figures"
+        problem = check_writable(folder / "report.md", "DIR")
+        if problem is None and figures.exists() and not figures.is_dir():
+            problem = f"DIR {figures}: is a file, expected the report's figures folder"
+        if problem is not None:
+            parser.error(problem)
     try:
         path = write_report(
             args.results_dir,
@@ -102,6 +123,7 @@ def report_main(argv: Sequence[str] | None = None) -> int:
             gif=not args.no_gif,
             sweep_dir=args.sweep,
             baseline=args.baseline,
+            allow_other_config=args.allow_other_config,
         )
     except (FileNotFoundError, ValueError) as exc:
         parser.error(" ".join(str(exc).split()))

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -13,6 +12,7 @@ from experiments.cli.common import (
     config_argument_path,
     one_line_errors,
     registered_agents_help,
+    run_episodes,
     seeds_and_executor,
 )
 
@@ -93,30 +93,26 @@ def sweep_main(argv: Sequence[str] | None = None) -> int:
     Returns:
         The exit code: 0 if every episode ran, 1 if some raised an error.
     """
-    from experiments.sweep import run_sweep, sweep_errors
+    from experiments.report.sweep_summary import sweep_errors
+    from experiments.sweep import run_sweep
 
     parser = _sweep_parser()
     args = parser.parse_args(argv)
     config_path = config_argument_path(parser, args.config)
     seeds = seeds_and_executor(parser, args)
     out = Path(args.out)
-    try:
-        summary = run_sweep(
-            args.agent.strip(),
-            args.setting,
-            seeds,
-            config=config_path,
-            out=out,
-            baseline=args.baseline.strip(),
-            jobs=args.jobs,
-            scheduler=args.scheduler,
-            dask_workers=args.dask_workers,
-            progress=not args.quiet,
-        )
-    except (ValueError, ConnectionError) as exc:  # raised before any episode runs
-        parser.error(" ".join(str(exc).split()))
-    except KeyboardInterrupt:
-        print(f"\ninterrupted; finished episodes are in {out}; rerun to resume", file=sys.stderr)
+    summary = run_episodes(
+        parser,
+        args,
+        out,
+        run_sweep,
+        args.agent.strip(),
+        args.setting,
+        seeds,
+        config=config_path,
+        baseline=args.baseline.strip(),
+    )
+    if summary is None:
         return 130
     n_errors = sweep_errors(summary)
     print(f"sweep: {out / 'sweep.md'} and {out / 'sweep.png'} ({len(summary.values)} values)")

@@ -11,11 +11,19 @@ from pathlib import Path
 from controllers.config import load_config
 from experiments.cli.common import (
     add_config_argument,
+    add_set_argument,
     check_writable,
     config_argument_path,
     one_line_errors,
 )
-from experiments.rl_training import ALGOS, POLICY_FILE, check_training_arguments, train
+from experiments.rl_training import (
+    ALGOS,
+    DEFAULT_N_ENVS,
+    EVAL_CONFIG_FILE,
+    POLICY_FILE,
+    check_training_arguments,
+    train,
+)
 
 
 def _train_parser() -> argparse.ArgumentParser:
@@ -23,23 +31,38 @@ def _train_parser() -> argparse.ArgumentParser:
         prog="lfm-train",
         description=(
             "Train an RL baseline (stable-baselines3 PPO or SAC) on the config's world "
-            "through gym.make; saves OUT/policy.zip for the 'rl' agent "
-            "(agents.rl_policy: OUT/policy.zip)."
+            "through gym.make; saves OUT/policy.zip for the 'rl' agent and OUT/eval.yaml, the "
+            "training's config with agents.rl_policy set, which evaluates it: lfm-evaluate "
+            "--config OUT/eval.yaml --agents rl,nominal,scenario. Training stops after "
+            "--timesteps steps or --minutes minutes, whichever comes first."
         ),
-        epilog="example: lfm-train --config configs/paper.yaml --algo ppo --minutes 25 "
-        "--out results/rl/ppo",
+        epilog="example (the README's run): lfm-train --config paper --algo ppo --minutes 28 "
+        "--n-envs 8 --seed 0 --out results/rl/ppo_paper",
     )
     add_config_argument(parser)
+    add_set_argument(parser)
     parser.add_argument("--algo", choices=ALGOS, default="ppo", help="algorithm (default ppo)")
     parser.add_argument(
-        "--timesteps", type=int, default=1_000_000, help="env steps at most (default 1e6)"
+        "--timesteps",
+        type=int,
+        default=1_000_000,
+        help="env steps at most, summed over the envs (default 1e6)",
     )
     parser.add_argument(
-        "--minutes", type=float, default=None, help="wall-clock budget [min] (default none)"
+        "--minutes",
+        type=float,
+        default=None,
+        help="wall-clock budget [min] that stops training earlier (default: none, the "
+        "--timesteps cap alone)",
     )
     parser.add_argument("--out", default="results/rl/ppo", help="output folder")
     parser.add_argument("--seed", type=int, default=0, help="seed (default 0)")
-    parser.add_argument("--n-envs", type=int, default=4, help="envs in lockstep (default 4)")
+    parser.add_argument(
+        "--n-envs",
+        type=int,
+        default=DEFAULT_N_ENVS,
+        help=f"envs stepped in lockstep in one process (default {DEFAULT_N_ENVS})",
+    )
     parser.add_argument(
         "--cost-weight",
         type=float,
@@ -60,12 +83,13 @@ def train_main(argv: Sequence[str] | None = None) -> int:
         check_training_arguments(
             args.algo, args.timesteps, args.minutes, args.n_envs, args.cost_weight
         )
-        config = load_config(path)
+        config = load_config(path, args.settings)
     except ValueError as exc:
         parser.error(" ".join(str(exc).split()))
-    problem = check_writable(Path(args.out) / POLICY_FILE, "--out")
-    if problem is not None:
-        parser.error(problem)
+    for name in (POLICY_FILE, EVAL_CONFIG_FILE):  # before the training, not after it
+        problem = check_writable(Path(args.out) / name, "--out")
+        if problem is not None:
+            parser.error(problem)
     summary = train(
         config,
         algo=args.algo,
@@ -79,6 +103,10 @@ def train_main(argv: Sequence[str] | None = None) -> int:
     )
     print(json.dumps(summary, indent=2))
     print(f"policy: {Path(args.out) / POLICY_FILE}")
+    print(
+        f"evaluate it: lfm-evaluate --config {Path(args.out) / EVAL_CONFIG_FILE} "
+        "--agents rl,nominal,scenario"
+    )
     return 0
 
 

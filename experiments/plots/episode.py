@@ -1,9 +1,10 @@
-"""Figures of saved evaluation results: one episode drawn from the system definition, and
-across-seed plots.
+"""Figures of one saved episode, drawn from the system definition (the figures across seeds
+are :mod:`experiments.plots.summary`'s; every figure under one name: :mod:`experiments.plots`).
 
 Every function takes arrays that were loaded from a results folder and returns a
 :class:`matplotlib.figure.Figure` built without pyplot, so no global figure state leaks
-and nothing opens a window; :func:`save_figure` writes it with the Agg canvas.
+and nothing opens a window; :func:`experiments.plots.style.save_figure` writes it with the
+Agg canvas.
 
 The episode figures know no particular world: they read the world's
 :class:`~lfm_env.system.ControlSystem` only. Axis labels and units come from its state,
@@ -40,33 +41,13 @@ from experiments.plots.feasible_region import (
     _limits,
     _plane_figure,
     constraint_dependencies,
-    constraints_on,
-    state_bounds,
 )
-from experiments.plots.replay import (
-    annotate_frame,
-    make_render_env,
-    replay_frames,
-    stack_frames,
-    write_gif,
-)
-from experiments.plots.scenario_fan import plan_panel_frames, saved_fans, scenario_fan_figure
 from experiments.plots.style import (
     _step_plot,
-    agent_colour,
-    force_unit,
     group_unit,
     new_figure,
     sample_times,
-    save_figure,
     unit_of,
-)
-from experiments.plots.summary import (
-    calibration_figure,
-    distribution_axes,
-    metric_distributions_figure,
-    pareto_figure,
-    solve_time_figure,
 )
 from lfm_env.system import ControlSystem, split_unit
 
@@ -158,6 +139,34 @@ def _stacked_axes(n: int, width: float = 7.0, height: float = 2.4):
     return fig, fig.subplots(n, 1, sharex=True, squeeze=False)[:, 0]
 
 
+def _finish_stacked(fig: Figure, axes, title: str) -> Figure:
+    """The time axis under the last panel of :func:`_stacked_axes` and ``title`` over the first."""
+    axes[-1].set_xlabel("time [s]")
+    if title:
+        axes[0].set_title(title)
+    return fig
+
+
+def _label_panel(ax, ylabel: str, **legend: Any) -> None:
+    """A panel's y label, grid and legend (``legend``: more of the legend's options)."""
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="best", **legend)
+
+
+def _sigma_band(ax, t: np.ndarray, mean: np.ndarray, std: np.ndarray) -> None:
+    """The estimate's 2-sigma band ``mean +- 2 std`` over the times ``t``."""
+    ax.fill_between(
+        t,
+        mean - 2 * std,
+        mean + 2 * std,
+        color="tab:blue",
+        alpha=0.2,
+        lw=0,
+        label="estimate $\\pm 2\\sigma$",
+    )
+
+
 def latent_force_figure(
     system: ControlSystem,
     dt: float,
@@ -191,15 +200,7 @@ def latent_force_figure(
         if est is not None and np.any(np.isfinite(est[:, c])):
             ax.plot(t, est[:, c], color="tab:blue", lw=1.5, label="estimate")
             if std is not None:
-                ax.fill_between(
-                    t,
-                    est[:, c] - 2 * std[:, c],
-                    est[:, c] + 2 * std[:, c],
-                    color="tab:blue",
-                    alpha=0.2,
-                    lw=0,
-                    label="estimate $\\pm 2\\sigma$",
-                )
+                _sigma_band(ax, t, est[:, c], std[:, c])
         else:
             ax.text(
                 0.02,
@@ -210,13 +211,8 @@ def latent_force_figure(
                 color="0.4",
             )
         ax.axhline(0.0, color="k", lw=0.5)
-        ax.set_ylabel(f"latent force {_axis_label(system.force_names[c])}")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="best")
-    axes[-1].set_xlabel("time [s]")
-    if title:
-        axes[0].set_title(title)
-    return fig
+        _label_panel(ax, f"latent force {_axis_label(system.force_names[c])}")
+    return _finish_stacked(fig, axes, title)
 
 
 def inputs_figure(
@@ -261,13 +257,8 @@ def inputs_figure(
         for b in (lo, hi):
             ax.axhline(b, color="k", lw=0.8, ls="-.")
         ax.plot([], [], "k-.", lw=0.8, label=f"bounds {lo:.3g} / {hi:.3g}")
-        ax.set_ylabel(_axis_label(system.input_names[k]))
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="best", ncols=2)
-    axes[-1].set_xlabel("time [s]")
-    if title:
-        axes[0].set_title(title)
-    return fig
+        _label_panel(ax, _axis_label(system.input_names[k]), ncols=2)
+    return _finish_stacked(fig, axes, title)
 
 
 def _draw_state_bounds(ax, system, state: int, base: np.ndarray, ylim) -> None:
@@ -351,25 +342,12 @@ def states_figure(
             if estimate_std is not None:
                 sd = np.asarray(estimate_std, dtype=float)[:, i]
                 if np.any(sd > 0):
-                    ax.fill_between(
-                        te,
-                        e - 2 * sd,
-                        e + 2 * sd,
-                        color="tab:blue",
-                        alpha=0.2,
-                        lw=0,
-                        label="estimate $\\pm 2\\sigma$",
-                    )
+                    _sigma_band(ax, te, e, sd)
         ylim = _limits(system, i, values, base)
         _draw_state_bounds(ax, system, i, base, ylim)
         ax.set_ylim(*ylim)
-        ax.set_ylabel(_axis_label(system.state_names[i]))
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="best")
-    axes[-1].set_xlabel("time [s]")
-    if title:
-        axes[0].set_title(title)
-    return fig
+        _label_panel(ax, _axis_label(system.state_names[i]))
+    return _finish_stacked(fig, axes, title)
 
 
 def constraint_excess_figure(
@@ -405,10 +383,7 @@ def constraint_excess_figure(
         ax.set_ylabel(f"{g} excess [{unit}]" if unit else f"{g} excess")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8, loc="best")
-    axes[-1].set_xlabel("time [s]")
-    if title:
-        axes[0].set_title(title)
-    return fig
+    return _finish_stacked(fig, axes, title)
 
 
 def group_excess_of(
@@ -489,40 +464,13 @@ def episode_figures(
     return {k: f for k, f in figures.items() if f is not None}
 
 
-# --------------------------------------------------------------------------- across seeds
-
-
-# The figures of the experiment layer under one name (``plots.X``), wherever they live.
 __all__ = [
-    "agent_colour",
-    "annotate_frame",
-    "calibration_figure",
-    "constraint_dependencies",
     "constraint_excess_figure",
-    "constraints_on",
-    "distribution_axes",
     "episode_figures",
-    "force_unit",
     "group_excess_of",
-    "group_unit",
     "inputs_figure",
     "latent_force_figure",
-    "make_render_env",
-    "metric_distributions_figure",
-    "new_figure",
-    "pareto_figure",
     "paths_figure",
-    "plan_panel_frames",
-    "replay_frames",
-    "saved_fans",
-    "scenario_fan_figure",
-    "stack_frames",
-    "sample_times",
-    "save_figure",
-    "solve_time_figure",
-    "state_bounds",
     "states_figure",
     "trajectory_figure",
-    "unit_of",
-    "write_gif",
 ]

@@ -58,9 +58,13 @@ def make_render_env(config: Any, render_mode: str = "rgb_array", **options: Any)
     import gymnasium as gym
 
     import lfm_env  # noqa: F401  (registers the envs)
+    from lfm_env.worlds.registry import import_world_module, split_env_id
 
     env_id, world = _world(config)
-    entry = gym.spec(env_id).entry_point
+    module, name = split_env_id(env_id)
+    if module:  # module:EnvId: the module registers the env (as gym.make imports it)
+        import_world_module(module, name)
+    entry = gym.spec(name).entry_point
     if not callable(entry):
         from gymnasium.envs.registration import load_env_creator
 
@@ -69,6 +73,22 @@ def make_render_env(config: Any, render_mode: str = "rgb_array", **options: Any)
     if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
         options = {k: v for k, v in options.items() if k in params}
     return gym.make(env_id, config=world, render_mode=render_mode, **options)
+
+
+def world_draws(config: Any) -> bool:
+    """Whether the config's world has a scene to draw (its env overrides ``_make_scene`` or
+    takes a scene factory): a world of one's own may have none, and then a replay shows
+    the plan's panel alone."""
+    import gymnasium as gym
+
+    import lfm_env  # noqa: F401  (registers the envs)
+
+    env_id, world = _world(config)
+    env = gym.make(env_id, config=world)
+    try:
+        return bool(env.unwrapped.metadata.get("render_modes"))
+    finally:
+        env.close()
 
 
 def replay_frames(

@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from experiments.plots import episode as plots
+from experiments import plots
 from experiments.report.document import Document
 from experiments.report.format import agent_label
 from experiments.report.results import Results, load_trajectory
@@ -79,13 +79,17 @@ def _metric_values(results: Results, column: str) -> dict[str, np.ndarray]:
 
 
 def _goal(results: Results) -> tuple[np.ndarray, float | None]:
+    """The task's goal state and goal radius of the results' world (:func:`world_goal`)."""
+    return world_goal(results.config)
+
+
+def world_goal(cfg: object) -> tuple[np.ndarray, float | None]:
     """The task's goal state (SI units) and, if the world has one, its goal radius.
 
     A world whose success is reaching a disc (a ``goal`` position in the plane of the
     first two states and a ``goal_radius``, as both the sine track and the quadrotor
     have) gets that disc drawn; otherwise the cost's goal state is marked.
     """
-    cfg = results.config
     goal_state = np.array(cfg.goal_state_rad, dtype=float)
     goal, radius = getattr(cfg, "goal", None), getattr(cfg, "goal_radius", None)
     if goal is not None and np.shape(goal) == (2,) and radius is not None:
@@ -277,18 +281,26 @@ def _replay_gif(
     """The episode replayed from its saved true states, the plan's panel below the scene."""
     cfg = results.config
     goal_state, goal_radius = goal
-    frames = plots.replay_frames(traj["true_state"], cfg, caption=label)
+    draws = plots.world_draws(cfg)
+    frames = plots.replay_frames(traj["true_state"], cfg, caption=label) if draws else []
     width = frames[0].shape[1] if frames else 480
     panels = plots.plan_panel_frames(
         results.system, traj, size=(width, max(160, width // 3)), goal_state=goal_state,
         goal_radius=goal_radius,
     )  # fmt: skip
+    if draws:
+        frames = plots.stack_frames(frames, panels)
+        where = "above, the world's own scene; below, "
+    else:
+        frames = [plots.annotate_frame(p, f"{label} | t = {k * cfg.dt:.1f} s")
+                  for k, p in enumerate(panels)]  # fmt: skip
+        where = "the world has no scene of its own (its env draws none), so only "
     rel = "figures/episode.gif"
-    plots.write_gif(plots.stack_frames(frames, panels), results.directory / rel, 1.0 / cfg.dt)
+    plots.write_gif(frames, results.directory / rel, 1.0 / cfg.dt)
     doc.image(
         rel,
         f"The episode replayed from its saved true states ({len(frames)} frames, "
-        f"{1.0 / cfg.dt:g} frames/s): above, the world's own scene; below, a camera "
+        f"{1.0 / cfg.dt:g} frames/s): {where}a camera "
         "following the true state (green square) in the plane of the first two states, "
         "with the estimate and its 2-sigma ellipse (red), the plan's scenario "
         "predictions (blue) and their mean (navy) at each step.",
@@ -335,4 +347,4 @@ def _fan_figure(
     )
 
 
-__all__ = ["check_figure_seed", "figures_section"]
+__all__ = ["check_figure_seed", "figures_section", "world_goal"]

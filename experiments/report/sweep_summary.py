@@ -14,6 +14,7 @@ value against the baseline), which :func:`sweep_table`, :func:`sweep_figure` and
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -23,15 +24,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from experiments import plots
 from experiments.evaluation import run as evaluation
-from experiments.plots import episode as plots
 from experiments.report.document import Document
 from experiments.report.format import agent_label, fmt, fmt_estimate
 from experiments.report.stats import (
+    FEW_SEEDS,
     Estimate,
     Metric,
     PairedDifference,
     bootstrap_ci,
+    few_seeds_caveat,
     paired_rows_difference,
     tolerance_metrics,
     zero_violation_metrics,
@@ -107,6 +110,7 @@ class SweepSummary:
     baseline_rows: tuple[dict[str, Any], ...]
     baseline_stats: dict[str, Estimate]
     values: tuple[SweepValue, ...]
+    config: dict = dataclasses.field(default_factory=dict)  # the base config, resolved
 
     @property
     def short_key(self) -> str:
@@ -182,7 +186,8 @@ def load_sweep(directory: str | os.PathLike) -> SweepSummary:
         raise FileNotFoundError(
             f"sweep {out}: the baseline's {base_folder / 'config.yaml'} is missing"
         )
-    system = evaluation.resolve_config(load_yaml(base_folder / "config.yaml")).make_system()
+    base_config = evaluation.resolve_config(load_yaml(base_folder / "config.yaml"))
+    system = base_config.make_system()
     metrics = sweep_metrics(system)
     seeds = tuple(int(s) for s in manifest["seeds"])
     agent, baseline, key = manifest["agent"], manifest["baseline"], manifest["key"]
@@ -207,6 +212,7 @@ def load_sweep(directory: str | os.PathLike) -> SweepSummary:
         baseline_rows=baseline_rows,
         baseline_stats=_stats(baseline_rows, metrics),
         values=tuple(values),
+        config=base_config.to_dict(),
     )
 
 
@@ -262,11 +268,12 @@ def sweep_description(summary: SweepSummary) -> str:
         f"{', '.join(v.text for v in summary.values)}, against the `{summary.baseline}` "
         f"agent (baseline, on the base config) on the same {len(seeds)} env seeds ({span}): "
         "the same hidden latent force and noise for every column. A value's cell is its "
-        "mean, then Δ the paired difference `value - baseline` with a 95% bootstrap "
-        "interval over the seeds both ran without error (an interval that excludes 0 is a "
-        "difference the seeds support). Violation steps `> t` count the steps whose excess "
-        "over the group's bounds is above the tolerance t; zero-violation episodes are the "
-        "fraction of episodes with none."
+        "mean, then Δ the paired difference `value - baseline` with a 95% paired BCa "
+        "bootstrap interval over the seeds both ran without error (an interval that "
+        "excludes 0 is a difference the seeds support). Violation steps `> t` count the "
+        "steps whose excess over the group's bounds is above the tolerance t; "
+        "zero-violation episodes are the fraction of episodes with none."
+        + (f" **{caveat}**" if (caveat := few_seeds_caveat(len(seeds))) else "")
     )
 
 
@@ -305,7 +312,8 @@ def _reading(summary: SweepSummary) -> list[str]:
                 continue
             if e.low > 0 or e.high < 0:
                 verdict = "higher than" if e.low > 0 else "lower than"
-                verdict += " the baseline's (the interval excludes 0)"
+                verdict += " the baseline's (the interval excludes 0"
+                verdict += f"; only {e.n} seeds: a hint, not a finding)" if e.n < FEW_SEEDS else ")"
             else:
                 verdict = "not distinguishable from the baseline's (the interval holds 0)"
             unit = f" {m.unit}" if m.unit and m.unit != "steps" else ""

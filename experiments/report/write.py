@@ -32,11 +32,13 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from controllers.agents.registry import AGENT_REGISTRY
+from experiments import plots
 from experiments.evaluation.columns import tolerance_columns
-from experiments.plots import episode as plots
 from experiments.report.document import GIF_EMBED_LIMIT, Document, embedded_image
 from experiments.report.figures import check_figure_seed, figures_section
 from experiments.report.format import agent_label, fmt, fmt_estimate, long_label
@@ -59,6 +61,7 @@ from experiments.report.stats import (
     _key,
     bootstrap_ci,
     calibration,
+    few_seeds_caveat,
     group_metrics,
     paired_differences,
     paired_metrics,
@@ -99,33 +102,66 @@ def _quantiles(values: Iterable[float], qs: Sequence[float]) -> list[float]:
 # --------------------------------------------------------------------------- sections
 
 
+def _used_settings(results: Results) -> set[str]:
+    """The agents-section settings some agent of the results reads (the registered agents'
+    :attr:`~controllers.agents.registry.AgentSpec.uses`; a user's own agent names none)."""
+    return {u for a in results.agents if a in AGENT_REGISTRY for u in AGENT_REGISTRY[a].uses}
+
+
+_PARTICLE_FILTERS = ("bootstrap", "rbpf")  # estimators whose size is a particle count
+
+
 def _settings_text(results: Results) -> str:
+    """The run's settings that its agents use: ``dt`` and ``max_steps`` always, the MPC's
+    horizon, scenario and particle counts and solver only when an agent present reads them."""
     cfg = results.config
+    settings = results.agent_settings
+    used = _used_settings(results)
     parts = [f"dt = {cfg.dt:g} s", f"max_steps = {cfg.max_steps}"]
     for key in ("horizon", "n_scenarios", "n_particles", "solver"):
-        if key in results.agent_settings:
-            parts.append(f"{key} = {results.agent_settings[key]}")
+        if key == "n_particles" and settings.get("estimator", "bootstrap") not in _PARTICLE_FILTERS:
+            continue  # the UKF has no particles
+        if key in used and key in settings:
+            parts.append(f"{key} = {settings[key]}")
+    robust = settings.get("robust")
+    if "robust" in used and isinstance(robust, dict):
+        est = robust.get("estimator", "ukf")
+        text = f"robust: estimator {est}, forecast {robust.get('forecast', 'mean')}"
+        if est in _PARTICLE_FILTERS:
+            text += f", {robust.get('n_particles')} particles"
+        parts.append(text)
     return ", ".join(parts)
 
 
 def _model_section(doc: Document, results: Results) -> None:
-    """The hidden force's kernel beside the agents' belief (learned or given)."""
+    """The hidden force's kernel beside the agents' belief (learned or given), when some
+    agent models the force; the hidden force alone otherwise."""
     true = results.config.latent_force
     belief = results.agent_settings.get("latent_force")
     doc.heading("Latent force: hidden truth and the agents' model")
     fields = ("kernel", "nu", "variance", "lengthscale", "discretization")
-    if not belief:
-        unit = plots.force_unit(results.system)
-        variance = f"variance {true.variance:g}" + (f" ({unit})^2" if unit else "")
-        scale = f"lengthscale {true.lengthscale:g}" + ("" if true.kernel == "periodic" else " s")
+    unit = plots.force_unit(results.system)
+    variance = f"variance {true.variance:g}" + (f" ({unit})^2" if unit else "")
+    scale = f"lengthscale {true.lengthscale:g}" + ("" if true.kernel == "periodic" else " s")
+    modelling = [a for a in results.agents if a in AGENT_REGISTRY
+                 and "latent_force" in AGENT_REGISTRY[a].uses]  # fmt: skip
+    if not modelling:
         doc.paragraph(
-            f"The agents know the hidden force's hyperparameters a priori, as in the paper: "
-            f"{true.kernel} kernel, {variance}, {scale}."
+            f"The hidden force: {true.kernel} kernel, {variance}, {scale}. No agent here models "
+            "it (none estimates or forecasts the force), so the agents' belief about its "
+            "hyperparameters plays no part."
+        )
+        return
+    who = ", ".join(f"`{a}`" for a in modelling)
+    if not belief:
+        doc.paragraph(
+            f"The agents that model the force ({who}) know the hidden force's hyperparameters "
+            f"a priori, as in the paper: {true.kernel} kernel, {variance}, {scale}."
         )
         return
     doc.paragraph(
-        "The agents model the force with their own hyperparameters (`agents.latent_force`, "
-        "e.g. learned by `lfm-calibrate`), not the env's hidden ones:"
+        f"The agents that model the force ({who}) use their own hyperparameters "
+        "(`agents.latent_force`, e.g. learned by `lfm-calibrate`), not the env's hidden ones:"
     )
     rows = []
     for f in fields:
@@ -136,10 +172,13 @@ def _model_section(doc: Document, results: Results) -> None:
 
 def _summary_section(doc: Document, results: Results, stats: dict) -> None:
     agents = results.agents
+    n_ok = {a: len(results.rows_of(a)) for a in agents}
     doc.heading("Results per agent")
     doc.paragraph(
-        f"Mean over episodes with a 95% percentile-bootstrap interval "
-        f"({BOOTSTRAP_RESAMPLES} resamples, fixed seed {BOOTSTRAP_SEED}), in brackets. "
+        f"Mean over episodes with a 95% BCa bootstrap interval (bias-corrected and "
+        f"accelerated, `scipy.stats.bootstrap`, {BOOTSTRAP_RESAMPLES} resamples, fixed seed "
+        f"{BOOTSTRAP_SEED}; the percentile interval where BCa is undefined, a zero-width one "
+        "where every value is equal), in brackets. "
         "Episodes that ended with an error are counted in the last row and listed below, "
         "but left out of the statistics; `(n=k)` marks a metric defined on fewer episodes "
         "(e.g. time to goal only where the goal was reached). The oracle reads the hidden "
@@ -147,10 +186,10 @@ def _summary_section(doc: Document, results: Results, stats: dict) -> None:
         "could build. Violation steps `> t` count only the steps whose excess over the "
         "group's bounds is above the tolerance t (a millimetre over a bound is not a crash); "
         "zero-violation episodes are the fraction of episodes with no such step."
+        + _caveat(min(n_ok.values(), default=0))
     )
     header = ["metric"] + [agent_label(a) for a in agents]
     rows = []
-    n_ok = {a: len(results.rows_of(a)) for a in agents}
     for m in _reported(results, summary_metrics(results.system)):
         rows.append([m.title] + [fmt_estimate(stats[a][_key(m)], n_ok[a]) for a in agents])
     rows.append(["episodes (error-free)"] + [str(n_ok[a]) for a in agents])
@@ -215,17 +254,19 @@ def _paired_section(
             f"Not available: the results need the `{baseline}` agent and at least one other agent."
         )
         return []
-    doc.paragraph(
-        f"Difference `agent - {baseline}` on the same env seeds (same latent force and "
-        "noise), mean with a 95% bootstrap interval over seeds. Negative: the agent's value "
-        f"is lower than {baseline}'s. Only seeds where both episodes are error-free "
-        "and the metric is defined count. The baseline is chosen with "
-        "`lfm-report --baseline NAME`."
-    )
     metrics = _reported(results, paired_metrics(results.system))
     found = {
         (a, m.column): paired_differences(results, m, a, baseline) for a in others for m in metrics
     }
+    paired_seeds = max((len(d.seeds) for d in found.values()), default=0)
+    doc.paragraph(
+        f"Difference `agent - {baseline}` on the same env seeds (same latent force and "
+        "noise), mean with a 95% paired BCa bootstrap interval over seeds (the two episodes "
+        f"of a seed resampled together). Negative: the agent's value is lower than "
+        f"{baseline}'s. Only seeds where both episodes are error-free "
+        "and the metric is defined count. The baseline is chosen with "
+        "`lfm-report --baseline NAME`." + _caveat(paired_seeds)
+    )
     rows = []
     for m in metrics:
         cells = []
@@ -327,7 +368,7 @@ def _calibration_section(doc: Document, results: Results) -> None:
         "does not see: the fraction of steps with the truth inside the estimate's 2-sigma "
         f"band (a calibrated Gaussian band covers {TWO_SIGMA_COVERAGE:g}; less is "
         "overconfident) and the root-mean-square error, both pooled over steps and "
-        f"episodes, with a 95% bootstrap interval over episodes ({BOOTSTRAP_RESAMPLES} "
+        f"episodes, with a 95% BCa bootstrap interval over whole episodes ({BOOTSTRAP_RESAMPLES} "
         "resamples). The estimate made from the measurement at step k is compared with the "
         "true state at step k, the force estimate with the force acting during step k."
     )
@@ -377,6 +418,13 @@ def _tolerance_aware_text(results: Results, rows: Sequence[dict], group: str) ->
     return "; tolerance-aware, " + "; ".join(parts) if parts else ""
 
 
+def _caveat(n_seeds: int) -> str:
+    """`` ``+ the few-seeds caveat (:func:`~experiments.report.stats.few_seeds_caveat`), or
+    ``""``."""
+    text = few_seeds_caveat(n_seeds)
+    return f" **{text}**" if text else ""
+
+
 def _pooled_solve_times(results: Results, agent: str) -> np.ndarray:
     """All per-step solve times [s] of an agent's saved episodes (empty if any is missing)."""
     chunks = []
@@ -398,8 +446,60 @@ def _load_sweep(directory: Path, sweep_dir: str | Path | None) -> SweepSummary |
     return load_sweep(sweep_dir)
 
 
-def _sweep_section(doc: Document, results: Results, summary: SweepSummary) -> None:
-    """The risk sweep's table and Pareto figure (see :mod:`experiments.sweep`)."""
+def _flat(data: Any, prefix: str = "") -> dict[str, Any]:
+    """A nested config mapping as ``{dotted key: value}``."""
+    if not isinstance(data, dict):
+        return {prefix: data}
+    out: dict[str, Any] = {}
+    for key, value in data.items():
+        out.update(_flat(value, f"{prefix}.{key}" if prefix else str(key)))
+    return out
+
+
+def config_differences(ours: dict, theirs: dict) -> list[tuple[str, Any, Any]]:
+    """``(dotted key, our value, their value)`` of every field two resolved configs (their
+    :meth:`~controllers.config.ExperimentConfig.to_dict`) hold differently, sorted."""
+    a, b = _flat(ours), _flat(theirs)
+    missing = object()
+    return [
+        (k, a.get(k, "(none)"), b.get(k, "(none)"))
+        for k in sorted(set(a) | set(b))
+        if a.get(k, missing) != b.get(k, missing)
+    ]
+
+
+def _check_sweep_config(
+    results: Results, summary: SweepSummary, allow: bool
+) -> list[tuple[str, Any, Any]]:
+    """The fields where the sweep's base config differs from the report's; refused (a
+    ``ValueError`` listing them) unless ``allow``."""
+    from controllers.config import load_config
+
+    ours = load_config(results.directory / "config.yaml").to_dict()
+    diffs = config_differences(ours, summary.config)
+    if diffs and not allow:
+        shown = "; ".join(f"{k} ({_text(a)} here, {_text(b)} there)" for k, a, b in diffs[:8])
+        more = f"; and {len(diffs) - 8} more" if len(diffs) > 8 else ""
+        raise ValueError(
+            f"the sweep {summary.directory} ran on another config than {results.directory}: "
+            f"{shown}{more}. Rerun the sweep on this config, or include it anyway with "
+            "lfm-report --allow-other-config (the report then lists these fields)"
+        )
+    return diffs
+
+
+def _text(value: Any) -> str:
+    return str(value) if not isinstance(value, str) else repr(value)
+
+
+def _sweep_section(
+    doc: Document,
+    results: Results,
+    summary: SweepSummary,
+    differences: Sequence[tuple[str, Any, Any]] = (),
+) -> None:
+    """The risk sweep's table and Pareto figure (see :mod:`experiments.sweep`), with the
+    fields its config does not share with the report's, if any."""
     doc.heading(f"Risk trade-off: `{summary.key}` of `{summary.agent}`")
     world = summary.system.name
     doc.paragraph(
@@ -408,6 +508,16 @@ def _sweep_section(doc: Document, results: Results, summary: SweepSummary) -> No
         + "). "
         + sweep_description(summary)
     )
+    if differences:
+        doc.paragraph(
+            f"**The sweep ran on another config than this report** ({len(differences)} "
+            "fields differ; included with `--allow-other-config`): its numbers are not "
+            "comparable with the tables above."
+        )
+        doc.table(
+            ["field", "this report", "the sweep"],
+            [[f"`{k}`", _text(a), _text(b)] for k, a, b in differences],
+        )
     header, rows = sweep_table(summary)
     doc.table(header, rows)
     rel = "figures/sweep.png"
@@ -424,6 +534,7 @@ def write_report(
     gif: bool = True,
     sweep_dir: str | Path | None = None,
     baseline: str | None = None,
+    allow_other_config: bool = False,
 ) -> Path:
     """Write ``report.md`` and ``report.html`` (same content) for a results folder.
 
@@ -437,6 +548,8 @@ def write_report(
             holds a ``sweep.md``.
         baseline: the agent every other one is compared with in the paired differences;
             ``None`` for the scenario agent when the results hold it, else the first agent.
+        allow_other_config: include a sweep whose base config differs from the results'
+            (the report lists the differing fields); by default such a sweep is refused.
 
     Returns:
         Path of ``report.md`` (figures linked from ``figures/``); ``report.html`` beside
@@ -444,13 +557,15 @@ def write_report(
 
     Raises:
         FileNotFoundError: if the folder, ``episodes.csv`` or ``config.yaml`` is missing.
-        ValueError: if there are no episodes, ``figure_seed`` has no saved trajectory, or
-            ``baseline`` is not an agent of the results (the message lists them).
+        ValueError: if there are no episodes, ``figure_seed`` has no saved trajectory,
+            ``baseline`` is not an agent of the results (the message lists them), or the
+            sweep ran on another config (the message lists the fields).
     """
     results = load_results(results_dir)
     baseline = choose_baseline(results, baseline)
     check_figure_seed(results, figure_seed)  # before writing any file
     sweep = _load_sweep(results.directory, sweep_dir)
+    differences = [] if sweep is None else _check_sweep_config(results, sweep, allow_other_config)
     stats = summarize(results)
     doc = Document()
     title = f"Evaluation report: {results.directory.name}"
@@ -461,7 +576,7 @@ def write_report(
         f"{n_eps} episodes of {len(results.agents)} agents on {len(seeds)} env seeds "
         f"({seeds[0]}..{seeds[-1]}) of the world `{results.config.ENV_ID}` (system "
         f"`{results.system.name}`); {_settings_text(results)}. On one env seed every agent "
-        "faces the same hidden latent force and noise. Agents:"
+        "faces the same hidden latent force and noise." + _caveat(len(seeds)) + " Agents:"
     )
     doc.bullets([f"`{a}`: {long_label(a)}" for a in results.agents])
     _model_section(doc, results)
@@ -472,7 +587,7 @@ def write_report(
         _paper_vs_measured_section(doc, results, _pooled_solve_times(results, REFERENCE_AGENT))
     _calibration_section(doc, results)
     if sweep is not None:
-        _sweep_section(doc, results, sweep)
+        _sweep_section(doc, results, sweep, differences)
     figures_section(doc, results, figure_seed, gif)
 
     md_path = results.directory / "report.md"
@@ -494,6 +609,7 @@ __all__ = [
     "bootstrap_ci",
     "calibration",
     "choose_baseline",
+    "config_differences",
     "load_results",
     "load_trajectory",
     "group_metrics",

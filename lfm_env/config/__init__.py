@@ -8,6 +8,9 @@ the key and the allowed range. A config file has a top-level ``env_id`` (the wor
 
 * :mod:`lfm_env.config.loading`: the YAML reader with its limits, and typed conversion;
 * :mod:`lfm_env.config.world`: the latent force's section and the :class:`WorldConfig` mixin;
+* :mod:`lfm_env.config.compose`: where a config comes from (a preset's name or a path, one
+  resolver for every function that takes a config), ``base:`` inheritance and ``KEY=VALUE``
+  settings;
 * :mod:`lfm_env.worlds.registry`: which world a config means (:func:`load_env_config`).
 
 The worlds' configs and the registry's functions are importable from here too (on first
@@ -16,9 +19,16 @@ use, since they import this package).
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
-
+from lfm_env.config.compose import (
+    DEFAULT_PRESET,
+    PRESETS_PACKAGE,
+    apply_settings,
+    config_path,
+    merge,
+    preset_names,
+    presets_folder,
+    read_config,
+)
 from lfm_env.config.loading import (
     MAX_CONFIG_BYTES,
     MAX_CONFIG_DEPTH,
@@ -44,6 +54,7 @@ from lfm_env.config.world import (
     WorldConfig,
     check_latent_step,
 )
+from lfm_env.lazy import lazy_attributes
 
 _ELSEWHERE = {
     "SineTrackConfig": "lfm_env.worlds.sine_track.config",
@@ -59,13 +70,11 @@ _ELSEWHERE = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    if name in _ELSEWHERE:
-        return getattr(importlib.import_module(_ELSEWHERE[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _ELSEWHERE)
 
 
 __all__ = [
+    "DEFAULT_PRESET",
     "DISCRETIZATIONS",
     "KERNELS",
     "MATERN_NUS",
@@ -73,6 +82,7 @@ __all__ = [
     "MAX_CONFIG_DEPTH",
     "MAX_CONFIG_VALUES",
     "MAX_STEPS",
+    "PRESETS_PACKAGE",
     "STARTS",
     "TOP_LEVEL_KEYS",
     "ConfigError",
@@ -80,9 +90,15 @@ __all__ = [
     "LatentForceConfig",
     "FieldChecker",
     "WorldConfig",
+    "apply_settings",
     "check_latent_step",
+    "config_path",
     "from_dict",
     "load_yaml",
+    "merge",
+    "preset_names",
+    "presets_folder",
+    "read_config",
     "read_section",
     "show_value",
     "to_dict",

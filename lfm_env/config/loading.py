@@ -10,6 +10,7 @@ each world's ``config.py``, :mod:`controllers.config`).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import io
 import math
 import os
@@ -196,15 +197,18 @@ TOP_LEVEL_KEYS = ("env_id", "env", "agents")
 
 
 def read_section(source: Any, section: str) -> dict | None:
-    """The ``section`` mapping of a config given as a path, a dict or ``None``.
+    """The ``section`` mapping of a config given as a preset's name, a path, a dict or ``None``.
 
     A dict that holds top-level keys (``env_id``, ``env``, ``agents``) gives the named
-    section; any other dict is taken as the section itself.
+    section; any other dict is taken as the section itself. A name, a path and a ``base:``
+    are resolved by :func:`lfm_env.config.compose.read_config`.
     """
     if source is None:
         return None
-    if isinstance(source, (str, os.PathLike)):
-        source = load_yaml(source)
+    if isinstance(source, (str, os.PathLike)) or (isinstance(source, dict) and "base" in source):
+        from lfm_env.config.compose import read_config  # a preset, a path, base: resolved
+
+        source = read_config(source)
     if not isinstance(source, dict):
         raise ConfigError(
             f"config must be a path, a dict or a dataclass, got {type(source).__name__}"
@@ -410,11 +414,54 @@ def to_dict_fields(changes: dict) -> dict:
     return {k: (to_dict(v) if dataclasses.is_dataclass(v) else v) for k, v in changes.items()}
 
 
+@functools.cache
+def _coercible_fields(cls: type) -> tuple[tuple[str, Any], ...]:
+    """The init fields of a config dataclass whose values :class:`FieldChecker` converts:
+    vectors (``tuple[...]``) and nested sections (dataclasses), optional ones too."""
+    hints = typing.get_type_hints(cls)
+    out = []
+    for f in dataclasses.fields(cls):
+        tp = hints.get(f.name)
+        union = typing.get_origin(tp) in (typing.Union, types.UnionType)
+        inner = [a for a in typing.get_args(tp) if a is not type(None)] if union else [tp]
+        if f.init and any(typing.get_origin(a) is tuple or dataclasses.is_dataclass(a)
+                          for a in inner):  # fmt: skip
+            out.append((f.name, tp))
+    return tuple(out)
+
+
+def _coerce_fields(obj: Any) -> None:
+    """Give a config dataclass built in Python the values a YAML file would give it.
+
+    ``AgentConfig(Q=[1, 1, 1, 0])`` or ``Q=np.array(...)``: a list or an array for a vector
+    field becomes the tuple of numbers the field holds, and a mapping for a nested section
+    its dataclass, each checked as :func:`from_dict` checks a file (a wrong length or a
+    text is a :class:`ConfigError` naming the field, not a bare ``TypeError`` later).
+    """
+    if not dataclasses.is_dataclass(obj):
+        return
+    for name, tp in _coercible_fields(type(obj)):
+        value = getattr(obj, name)
+        if value is None or dataclasses.is_dataclass(value):
+            continue  # None where allowed, a section built already: checked by their owners
+        numbers = isinstance(value, tuple) and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in value
+        )
+        if not numbers:
+            object.__setattr__(obj, name, _convert(value, tp, name))
+
+
 class FieldChecker:
-    """Collects range checks of one dataclass and raises with the field's name."""
+    """Collects range checks of one dataclass and raises with the field's name.
+
+    Made first in a config's ``__post_init__``, it also converts the values a Python caller
+    may give where a file gives lists: a list or an array for a vector field, a mapping for
+    a nested section (:func:`_coerce_fields`).
+    """
 
     def __init__(self, obj: Any) -> None:
         self.obj = obj
+        _coerce_fields(obj)
 
     def __call__(self, name: str, ok: bool, allowed: str) -> None:
         if not ok:

@@ -10,6 +10,7 @@ folder (``lfm_env/worlds/<world>/config.py``) and registers it
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -213,6 +214,33 @@ def check_latent_step(
     return config
 
 
+def check_goal_and_start(
+    c: FieldChecker, config: Any, excess: Callable[[Any, Any], Any], goal_rule: str, region: str
+) -> None:
+    """The goal and the start's position inside the x bounds ``[x_min, x_max]`` and inside the
+    region where ``excess(x, y)`` is 0 (the track's band, the tunnel): what a goal-reaching
+    world's config checks last (``c`` raises at the first failure).
+
+    Args:
+        c: the config's checker.
+        config: the world config (its ``goal``, ``initial_state``, ``x_min``, ``x_max``).
+        excess: how far [m] a position lies outside the region.
+        goal_rule: what the goal must be, for the message (e.g. ``on the track (...)``).
+        region: the region's name in the start's message (``a position inside the <region>
+            and the x bounds``).
+    """
+    gx, gy = config.goal
+    inside_x = f"inside x bounds [{config.x_min}, {config.x_max}]"
+    c("goal", config.x_min <= gx <= config.x_max, inside_x)
+    c("goal", float(excess(gx, gy)) == 0.0, goal_rule)
+    x0, y0 = config.initial_state[:2]
+    c(
+        "initial_state",
+        config.x_min <= x0 <= config.x_max and float(excess(x0, y0)) == 0.0,
+        f"a position inside the {region} and the x bounds",
+    )
+
+
 #: The name this class had before the project said "latent force" throughout (old imports).
 DisturbanceConfig = LatentForceConfig
 
@@ -225,5 +253,6 @@ __all__ = [
     "STARTS",
     "LatentForceConfig",
     "WorldConfig",
+    "check_goal_and_start",
     "check_latent_step",
 ]

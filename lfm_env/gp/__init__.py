@@ -7,7 +7,7 @@ This layer knows no system: a kernel gives ``F, L, Qc, H, Pinf`` and their discr
 :mod:`lfm_env.model` stacks it onto a controlled system.
 """
 
-from lfm_env.gp.inference import FitInfo, fit
+from lfm_env.gp.inference import DrivenFitInfo, FitInfo, fit, fit_driven
 from lfm_env.gp.kernels import (
     DISCRETIZATION_METHODS,
     SE_MAX_ORDER,
@@ -22,12 +22,17 @@ from lfm_env.gp.kernels import (
     periodic,
     squared_exponential,
 )
-from lfm_env.gp.likelihood import log_marginal_likelihood, log_marginal_likelihood_and_grad
+from lfm_env.gp.likelihood import (
+    driven_log_likelihood,
+    log_marginal_likelihood,
+    log_marginal_likelihood_and_grad,
+)
 
 __all__ = [
     "DISCRETIZATION_METHODS",
     "SE_MAX_ORDER",
     "START_MODES",
+    "DrivenFitInfo",
     "FitInfo",
     "Matern",
     "Periodic",
@@ -35,7 +40,9 @@ __all__ = [
     "SquaredExponential",
     "StateSpaceKernel",
     "SumKernel",
+    "driven_log_likelihood",
     "fit",
+    "fit_driven",
     "log_marginal_likelihood",
     "log_marginal_likelihood_and_grad",
     "matern",

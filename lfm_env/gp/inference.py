@@ -1,7 +1,9 @@
 """Fitting a state-space GP's hyperparameters to data: maximum likelihood.
 
-:func:`fit` maximises the Kalman likelihood (:mod:`lfm_env.gp.likelihood`) over
-log-hyperparameters with L-BFGS-B. The kernels themselves live in :mod:`lfm_env.gp.kernels`.
+:func:`fit` maximises the Kalman likelihood of noisy samples of the GP itself
+(:mod:`lfm_env.gp.likelihood`) over log-hyperparameters with L-BFGS-B; :func:`fit_driven`
+that of measured states the GP drives as a latent force (the calibration of a latent
+force model, ``lfm-calibrate``). The kernels themselves live in :mod:`lfm_env.gp.kernels`.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from lfm_env.gp.likelihood import (
     _check_data,
     _kalman_log_likelihood,
     _log_likelihood_and_grad,
+    driven_log_likelihood,
     log_marginal_likelihood,
     log_marginal_likelihood_and_grad,
 )
@@ -185,5 +188,130 @@ def fit(
     return fitted
 
 
+@dataclasses.dataclass(frozen=True)
+class DrivenFitInfo:
+    """What :func:`fit_driven` found besides the kernel, stored as ``kernel.fit_info``.
+
+    Attributes:
+        log_likelihood: the summed :func:`driven_log_likelihood` at the optimum [nats].
+        hyperparameters: the fitted kernel's hyperparameters (fixed ones included).
+        std_errors: per learned name, the standard error of its logarithm, from a
+            central-difference Hessian of the log-likelihood (NaN where not positive).
+        success: the optimiser's convergence flag.
+        message: the optimiser's message.
+        n_evaluations: likelihood evaluations of the optimiser.
+    """
+
+    log_likelihood: float
+    hyperparameters: dict[str, float]
+    std_errors: dict[str, float]
+    success: bool
+    message: str
+    n_evaluations: int
+
+
+def log_space_std_errors(f: Any, theta: np.ndarray, h: float = 1e-3) -> list[float]:
+    """Standard errors of ``theta`` from a central-difference Hessian of the negative
+    log-likelihood ``f`` at its minimum ``theta`` (NaN where the inverse is not positive)."""
+    import scipy.linalg
+
+    n = theta.size
+    hess = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            ei, ej = np.eye(n)[i] * h, np.eye(n)[j] * h
+            hess[i, j] = (
+                f(theta + ei + ej) - f(theta + ei - ej) - f(theta - ei + ej) + f(theta - ei - ej)
+            ) / (4 * h * h)
+    try:
+        cov = scipy.linalg.inv(0.5 * (hess + hess.T))
+        return [float(np.sqrt(c)) if c > 0 else float("nan") for c in np.diag(cov)]
+    except np.linalg.LinAlgError:
+        return [float("nan")] * n
+
+
+def fit_driven(
+    kernel: StateSpaceKernel,
+    dt: float,
+    episodes: Iterable[dict[str, Any]],
+    names: Iterable[str] = ("variance", "lengthscale"),
+    bounds: dict[str, tuple[float, float]] | None = None,
+) -> StateSpaceKernel:
+    """Maximum-likelihood hyperparameters of a latent force from the states it drives.
+
+    Maximises the sum over ``episodes`` of :func:`driven_log_likelihood` over the
+    logarithms of ``names`` by L-BFGS-B, from ``kernel``'s own values (choose a start
+    that borrows nothing from the truth). Where a kernel cannot be built the objective is
+    a large penalty.
+
+    Args:
+        kernel: the starting kernel (its structure, e.g. Matern ``nu``, is kept).
+        dt: step [s] between measurements.
+        episodes: per episode the keyword arguments of :func:`driven_log_likelihood`
+            besides ``kernel`` and ``dt`` (``measured``, ``offset``, ``gain``,
+            ``measurement_variance``, ``process_covariance``, optionally ``transition``).
+        names: the hyperparameters to learn (keys of ``kernel.hyperparameters``).
+        bounds: per name, ``(low, high)`` of the value itself; default a factor 1e4 either
+            side of the start.
+
+    Returns:
+        The fitted kernel; ``fitted.fit_info`` is a :class:`DrivenFitInfo`.
+
+    Raises:
+        ValueError: without episodes, or for a name the kernel does not have.
+    """
+    import scipy.optimize
+
+    episodes = list(episodes)
+    if not episodes:
+        raise ValueError("episodes: need at least one calibration episode")
+    names = list(names)
+    hp = kernel.hyperparameters
+    unknown = sorted(set(names) - set(hp))
+    if unknown:
+        raise ValueError(f"names: unknown {unknown}; allowed: {', '.join(hp) or 'none'}")
+    bounds = dict(bounds or {})
+    box = [
+        tuple(math.log(b) for b in bounds[n]) if n in bounds else
+        (math.log(hp[n]) - math.log(1e4), math.log(hp[n]) + math.log(1e4))
+        for n in names
+    ]  # fmt: skip
+
+    def kernel_of(theta: np.ndarray) -> StateSpaceKernel:
+        return kernel.with_hyperparameters(
+            **{n: float(v) for n, v in zip(names, np.exp(theta), strict=True)}
+        )
+
+    def negative_ll(theta: np.ndarray) -> float:
+        try:
+            k = kernel_of(theta)
+            return -sum(driven_log_likelihood(k, dt, **e) for e in episodes)
+        except (ValueError, np.linalg.LinAlgError):
+            return 1e12  # outside the kernel's usable range
+
+    theta0 = np.log([hp[n] for n in names])
+    res = scipy.optimize.minimize(negative_ll, theta0, method="L-BFGS-B", bounds=box)
+    fitted = kernel_of(res.x)
+    info = DrivenFitInfo(
+        log_likelihood=-float(res.fun),
+        hyperparameters=dict(fitted.hyperparameters),
+        std_errors=dict(zip(names, log_space_std_errors(negative_ll, res.x), strict=True)),
+        success=bool(res.success),
+        message=str(res.message),
+        n_evaluations=int(res.nfev),
+    )
+    object.__setattr__(fitted, "fit_info", info)
+    return fitted
+
+
 # The likelihood (lfm_env.gp.likelihood) is re-exported: it was defined here before.
-__all__ = ["FitInfo", "fit", "log_marginal_likelihood", "log_marginal_likelihood_and_grad"]
+__all__ = [
+    "DrivenFitInfo",
+    "FitInfo",
+    "driven_log_likelihood",
+    "fit",
+    "fit_driven",
+    "log_marginal_likelihood",
+    "log_marginal_likelihood_and_grad",
+    "log_space_std_errors",
+]

@@ -3,7 +3,9 @@
 :func:`log_marginal_likelihood` runs a Kalman filter over (irregular) sample times;
 :func:`log_marginal_likelihood_and_grad` adds its gradient by the filter's sensitivity
 equations (the kernel matrices' derivatives by central differences in log-hyperparameters).
-:func:`lfm_env.gp.inference.fit` maximises it.
+:func:`lfm_env.gp.inference.fit` maximises it. :func:`driven_log_likelihood` scores
+measured states that the force drives (a latent force model's calibration data);
+:func:`lfm_env.gp.inference.fit_driven` maximises it.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-from lfm_env.gp.kernels.base import StateSpaceKernel
+from lfm_env.gp.kernels.base import StateSpaceKernel, _check_float
 
 #: Step in log-hyperparameters for the central differences of the kernel matrices.
 _MATRIX_FD_STEP = 1e-5
@@ -38,17 +40,7 @@ def _check_data(times: Any, values: Any) -> tuple[np.ndarray, np.ndarray]:
 
 def _check_noise(noise_variance: Any) -> float:
     """Return ``noise_variance`` as a float >= 0, or raise ValueError."""
-    if isinstance(noise_variance, bool):
-        raise ValueError(f"noise_variance={noise_variance!r}: must be a finite float >= 0")
-    try:
-        r = float(noise_variance)
-    except (TypeError, ValueError):
-        raise ValueError(
-            f"noise_variance={noise_variance!r}: must be a finite float >= 0"
-        ) from None
-    if not (math.isfinite(r) and r >= 0.0):
-        raise ValueError(f"noise_variance={noise_variance!r}: must be finite and >= 0")
-    return r
+    return _check_float(noise_variance, "noise_variance", ">= 0")
 
 
 def _matrix_derivatives(
@@ -115,8 +107,21 @@ def _converged(new: np.ndarray, old: np.ndarray) -> bool:
     return bool(np.all(change <= _STEADY_STATE_RTOL * size))
 
 
-def _run_length(step_index: np.ndarray, n: int, j: int) -> int:
-    """First index ``end > n`` such that samples ``n + 1 .. end - 1`` all arrive by step ``j``."""
+def _transition_at(
+    n: int, step_index: np.ndarray, trans: list[tuple[np.ndarray, ...] | None]
+) -> tuple[int, tuple[np.ndarray, ...] | None]:
+    """``(j, transition)`` that brings the filter to sample ``n``: step group ``j`` (-1 and
+    no transition for the first sample; no transition for a repeated time either)."""
+    j = step_index[n - 1] if n > 0 else -1
+    return j, (trans[j] if n > 0 else None)
+
+
+def _steady_run_end(steady: bool, step_index: np.ndarray, n: int, j: int) -> int | None:
+    """Where a run of steady-state steps after sample ``n`` ends: the first index
+    ``end > n + 1`` such that samples ``n + 1 .. end - 1`` all arrive by step ``j``, when the
+    filter is steady and the next step is ``j`` too; ``None`` otherwise."""
+    if not (steady and n + 1 <= step_index.size and step_index[n] == j):
+        return None
     end = n + 1
     while end <= step_index.size and step_index[end - 1] == j:
         end += 1
@@ -229,11 +234,15 @@ def _kalman_log_likelihood(
     return _kalman_value_and_grad(kernel.H[0], Pinf, y, noise_variance, trans, step_index, sens[1:])
 
 
-def _innovation_variance_error(S: float, n: int) -> ValueError:
-    return ValueError(
-        f"innovation variance {S:.3g} <= 0 at sample {n}: "
-        "noise_variance = 0 with a (numerically) deterministic prediction"
-    )
+def _innovation_variance(h: np.ndarray, Ph: np.ndarray, noise_variance: float, n: int) -> float:
+    """``S = h P h' + R`` of sample ``n`` (``Ph = P h``), or a ValueError unless it is > 0."""
+    S = float(h @ Ph) + noise_variance
+    if not S > 0.0:
+        raise ValueError(
+            f"innovation variance {S:.3g} <= 0 at sample {n}: "
+            "noise_variance = 0 with a (numerically) deterministic prediction"
+        )
+    return S
 
 
 def _kalman_value(
@@ -254,8 +263,7 @@ def _kalman_value(
     ll = 0.0
     n = 0
     while n < y.size:
-        j = step_index[n - 1] if n > 0 else -1
-        tr = trans[j] if n > 0 else None
+        j, tr = _transition_at(n, step_index, trans)
         steady = False
         if tr is not None:
             A, AT, Q = tr
@@ -267,16 +275,14 @@ def _kalman_value(
         else:
             P_pred_prev = None
         Ph = P @ h
-        S = float(h @ Ph) + noise_variance
-        if not S > 0.0:
-            raise _innovation_variance_error(S, n)
+        S = _innovation_variance(h, Ph, noise_variance, n)
         v = float(y[n] - h @ m)
         ll -= 0.5 * (log_2pi + math.log(S) + v * v / S)
         K = Ph / S
         m = m + K * v
         P = P - np.outer(Ph, K)
-        if steady and n + 1 < y.size and step_index[n] == j:
-            end = _run_length(step_index, n, j)
+        end = _steady_run_end(steady, step_index, n, j)
+        if end is not None:
             vs, _, m, _ = _steady_state_run(
                 A, no_par.reshape(0, p, p), h, no_par, K, no_par, m, no_par, y[n + 1 : end]
             )
@@ -313,8 +319,7 @@ def _kalman_value_and_grad(
     grad = np.zeros(n_par)
     n = 0
     while n < y.size:
-        j = step_index[n - 1] if n > 0 else -1
-        tr = trans[j] if n > 0 else None
+        j, tr = _transition_at(n, step_index, trans)
         steady = False
         if tr is not None:
             A, AT, Qs, dA = tr
@@ -333,9 +338,7 @@ def _kalman_value_and_grad(
         P, m = Ps[0], ms[0]
         PHs = Ps @ h  # [P h; dP_i h]
         Ph = PHs[0]
-        S = float(h @ Ph) + noise_variance
-        if not S > 0.0:
-            raise _innovation_variance_error(S, n)
+        S = _innovation_variance(h, Ph, noise_variance, n)
         dPh = PHs[1:] + dh @ P
         dS = dh @ Ph + dPh @ h + dR
         HM = ms @ h
@@ -352,8 +355,8 @@ def _kalman_value_and_grad(
         PHs[1:] = dPh  # reuse as [P h; d(P h)_i]
         Ps = Ps - PHs[:, :, None] * K[None, None, :]
         Ps[1:] += dS[:, None, None] * np.outer(K, K)[None] - KdPh
-        if steady and n + 1 < y.size and step_index[n] == j:
-            end = _run_length(step_index, n, j)
+        end = _steady_run_end(steady, step_index, n, j)
+        if end is not None:
             vs, dvs, m_end, dm_end = _steady_state_run(
                 A, dA, h, dh, K, dK, ms[0], ms[1:], y[n + 1 : end]
             )
@@ -475,4 +478,108 @@ def log_marginal_likelihood_and_grad(
     return ll, {name: float(g) for name, g in out.items()}
 
 
-__all__ = ["log_marginal_likelihood", "log_marginal_likelihood_and_grad"]
+def _per_step(value: Any, T: int, m: int, name: str, square: bool) -> np.ndarray:
+    """``value`` as ``(T, m, m)`` (square) or ``(T, m)``: one array per step, or one for all."""
+    a = np.asarray(value, dtype=float)
+    if square and a.shape == (m,):
+        a = np.diag(a)  # variances
+    if not square and m == 1 and a.shape == (T,):
+        a = a[:, None]  # one state: one number per step
+    one = (m, m) if square else (m,)
+    if a.shape == one:
+        a = np.broadcast_to(a, (T, *one))
+    if a.shape != (T, *one) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: expected finite numbers of shape {(T, *one)} or {one}")
+    return a
+
+
+def driven_log_likelihood(
+    kernel: StateSpaceKernel,
+    dt: float,
+    measured: Any,
+    offset: Any,
+    gain: Any,
+    measurement_variance: Any,
+    process_covariance: Any,
+    transition: Any = None,
+) -> float:
+    """Log-likelihood [nats] of measured states driven by a latent force, by a Kalman filter.
+
+    The states ``x`` (``m`` of them) move by a known linear step and are pushed by the
+    force ``w = H z``, a stationary state-space GP; each is measured with noise::
+
+        x_{k+1} = Phi_k x_k + c_k + g_k w_k + e_k,   e_k ~ N(0, Q_k)
+        z_{k+1} = A z_k + eta_k                      (the kernel's exact discretisation)
+        y_k     = x_k + n_k,                         n_k ~ N(0, R)
+
+    The filter runs on ``[x, z]`` from ``x_0 ~ N(y_0, R)`` (the first measurement decides
+    it) and ``z_0 ~ N(0, Pinf)``; the result is ``log p(y_1, ..., y_T)``. Keeping the
+    measurement noise in the model avoids the correlated (moving-average) noise of
+    differenced measurements. This is the likelihood :func:`lfm_env.gp.inference.fit_driven`
+    maximises (``lfm-calibrate`` builds ``Phi, c, g, Q`` from a system's force gain).
+
+    Args:
+        kernel: the force's state-space kernel (hyperparameters to score).
+        dt: step [s] between measurements, > 0.
+        measured: ``(T + 1, m)`` measurements ``y_0 .. y_T``.
+        offset: ``(T, m)`` the known part ``c_k`` of each step.
+        gain: ``(T, m)`` how one step moves the states per unit of force, ``g_k``.
+        measurement_variance: ``R``: ``(m,)`` variances or ``(m, m)``.
+        process_covariance: ``Q_k``: ``(m,)`` variances, ``(m, m)``, or ``(T, m, m)``.
+        transition: ``Phi_k``: ``(T, m, m)`` or ``(m, m)``; ``None`` for the identity.
+
+    Raises:
+        ValueError: for arrays of the wrong shape or not finite, or an innovation
+            covariance that is not positive definite.
+    """
+    y = np.asarray(measured, dtype=float)
+    if y.ndim == 1:
+        y = y[:, None]
+    if y.ndim != 2 or y.shape[0] < 2 or not np.all(np.isfinite(y)):
+        raise ValueError(f"measured: expected finite numbers of shape (T + 1, m), got {y.shape}")
+    T, m = y.shape[0] - 1, y.shape[1]
+    c = _per_step(offset, T, m, "offset", False)
+    g = _per_step(gain, T, m, "gain", False)
+    R = _per_step(measurement_variance, 1, m, "measurement_variance", True)[0]
+    Q = _per_step(process_covariance, T, m, "process_covariance", True)
+    Phi = None if transition is None else _per_step(transition, T, m, "transition", True)
+    A_z, Q_z = kernel.discretize(float(dt))
+    h = np.asarray(kernel.H, dtype=float).reshape(-1)
+    p = A_z.shape[0]
+    n = m + p
+    A = np.zeros((n, n))
+    A[:m, :m] = np.eye(m)
+    A[m:, m:] = A_z
+    Qs = np.zeros((n, n))
+    Qs[m:, m:] = Q_z
+    mean = np.zeros(n)
+    mean[:m] = y[0]
+    P = np.zeros((n, n))
+    P[:m, :m] = R
+    P[m:, m:] = kernel.Pinf
+    total = 0.0
+    log_2pi = math.log(2.0 * math.pi)
+    for k in range(T):
+        if Phi is not None:
+            A[:m, :m] = Phi[k]
+        A[:m, m:] = np.outer(g[k], h)
+        Qs[:m, :m] = Q[k]
+        mean = A @ mean
+        mean[:m] += c[k]
+        P = A @ P @ A.T + Qs
+        S = P[:m, :m] + R
+        innov = y[k + 1] - mean[:m]
+        try:
+            L = np.linalg.cholesky(0.5 * (S + S.T))
+        except np.linalg.LinAlgError:
+            raise ValueError(f"innovation covariance not positive definite at step {k}") from None
+        white = scipy.linalg.solve_triangular(L, innov, lower=True)
+        total -= 0.5 * (m * log_2pi + 2.0 * float(np.sum(np.log(np.diag(L)))) + white @ white)
+        gain_k = scipy.linalg.cho_solve((L, True), P[:m, :]).T  # (n, m): P H' S^-1
+        mean = mean + gain_k @ innov
+        P = P - gain_k @ P[:m, :]
+        P = 0.5 * (P + P.T)
+    return float(total)
+
+
+__all__ = ["driven_log_likelihood", "log_marginal_likelihood", "log_marginal_likelihood_and_grad"]

@@ -7,8 +7,7 @@ so that a world's config can import the shared config layer without a cycle.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from lfm_env.lazy import lazy_attributes
 
 _EXPORTS = {
     "Corridor": "lfm_env.worlds.quadrotor.system",
@@ -20,10 +19,7 @@ _EXPORTS = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(_EXPORTS[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _EXPORTS)
 
 
 __all__ = sorted(_EXPORTS)

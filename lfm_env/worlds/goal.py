@@ -51,7 +51,19 @@ class GoalReachingEnv(LatentForceEnv):
             max_steps=self.config.max_steps,
             latent_start=self.config.latent_force.start,
             render_mode=render_mode,
+            state_bounds=self.state_bounds(),
         )
+
+    def state_bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Per state, in SI units, the range the safety box keeps it in (``-inf``/``inf``
+        for a state the box does not bound; ``None``: none is bounded). It sets the
+        observation space (:func:`lfm_env.env.observation_bounds`).
+
+        A world whose safety box bounds some states alone overrides this; the range should
+        hold the state that leaves the box too (the last of a failed episode), e.g. the
+        box widened once more by ``safety_margin``.
+        """
+        return None
 
     def _is_success(self, state: np.ndarray, next_state: np.ndarray) -> bool:
         """The segment travelled in the step passes within ``goal_radius`` of the goal."""

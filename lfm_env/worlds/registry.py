@@ -9,23 +9,31 @@ way from your own module.
 
 Classes may be given as ``"module:Class"`` strings, imported on first use (as Gymnasium's
 entry points are), so that registering a world imports none of its code.
+
+**A world from your own module.** A config names a world registered outside the package
+with Gymnasium's ``module:EnvId`` convention, ``env_id: mypkg.worlds:Mine/Unicycle-v0``:
+the module is imported first (as ``gym.make`` does), which registers the world. The record
+keeps the module that registered it (:attr:`WorldSpec.module`), so that a resolved config
+(a results folder's ``config.yaml``) names it the same way and any process, a worker or a
+later ``lfm-report``, finds the world again (:func:`qualified_env_id`).
 """
 
 from __future__ import annotations
 
 import importlib
 import os
-from dataclasses import dataclass
+import sys
+from dataclasses import dataclass, replace
 from typing import Any
 
 import gymnasium as gym
 from gymnasium.envs.registration import WrapperSpec
 
+from lfm_env.config.compose import read_config
 from lfm_env.config.loading import (
     TOP_LEVEL_KEYS,
     ConfigError,
     from_dict,
-    load_yaml,
     read_section,
     show_value,
 )
@@ -58,11 +66,15 @@ class WorldSpec:
             ``"module:Class"``).
         env: its env class, built as ``env(config=..., render_mode=...)`` (or
             ``"module:Class"``, Gymnasium's entry point).
+        module: the module whose import registers the world (``None`` for the built-in
+            worlds, which ``import lfm_env`` registers, and for a script's own): configs
+            name the world ``module:env_id`` (:func:`qualified_env_id`).
     """
 
     env_id: str
     config: Any
     env: Any
+    module: str | None = None
 
     @property
     def config_class(self) -> type[WorldConfig]:
@@ -79,31 +91,56 @@ class WorldSpec:
 WORLDS: dict[str, WorldSpec] = {}
 
 
-def register_world(env_id: str, config: Any, env: Any) -> WorldSpec:
+def _caller_module(depth: int = 2) -> str | None:
+    """The importable module of the code that called the caller (``None`` for a script)."""
+    try:
+        name = sys._getframe(depth).f_globals.get("__name__")
+    except ValueError:  # no such frame
+        return None
+    return None if name in (None, "__main__", "__mp_main__") else str(name)
+
+
+def register_world(env_id: str, config: Any, env: Any, module: str | None = None) -> WorldSpec:
     """Register a world under ``env_id``, with Gymnasium too (``gym.make(env_id)``).
 
     The Gymnasium registration truncates episodes after the config's ``max_steps``
     (:class:`lfm_env.wrappers.ConfigTimeLimit`), unless ``gym.make(env_id,
-    max_episode_steps=K)`` asks for another length.
+    max_episode_steps=K)`` asks for another length. Call it at the top level of your own
+    module; a config then names the world ``module:env_id`` (see the module docstring).
 
     Args:
-        env_id: the id, ``"namespace/Name-vN"`` as Gymnasium's ids are.
+        env_id: the id, ``"namespace/Name-vN"`` as Gymnasium's ids are (no ``:``).
         config: the ``env:`` section's dataclass (a :class:`WorldConfig`), or
             ``"module:Class"``.
         env: the env class, or ``"module:Class"``.
+        module: the module whose import registers the world; by default the module that
+            calls this function (none for a script run as ``__main__``, and none inside
+            ``lfm_env``, which registers the built-in worlds on import).
 
     Returns:
         The world's record, also in :data:`WORLDS`.
 
     Raises:
-        ValueError: for an id that is not a non-empty string or that is registered already
-            to other classes.
+        ValueError: for an id that is not a non-empty string, holds a ``:``, or is
+            registered already to other classes.
     """
     if not isinstance(env_id, str) or not env_id.strip():
         raise ValueError(f"register_world: env_id={env_id!r} must be a non-empty string")
-    spec = WorldSpec(env_id, config, env)
-    if env_id in WORLDS and WORLDS[env_id] != spec:
-        raise ValueError(f"register_world: {env_id!r} is registered already as {WORLDS[env_id]}")
+    if ":" in env_id:
+        raise ValueError(
+            f"register_world: env_id={env_id!r} must not hold ':' (configs write "
+            "'module:env_id' to name the module that registers it)"
+        )
+    if module is None:
+        module = _caller_module()
+    if module is not None and (module == "lfm_env" or module.startswith("lfm_env.")):
+        module = None  # the built-in worlds: import lfm_env registers them
+    spec = WorldSpec(env_id, config, env, module)
+    known = WORLDS.get(env_id)
+    if known is not None and replace(known, module=None) != replace(spec, module=None):
+        raise ValueError(f"register_world: {env_id!r} is registered already as {known}")
+    if known is not None and spec.module is None:
+        spec = known  # registered again (e.g. by a script): keep the module that did it first
     WORLDS[env_id] = spec
     gym.register(
         id=env_id,
@@ -114,11 +151,71 @@ def register_world(env_id: str, config: Any, env: Any) -> WorldSpec:
     return spec
 
 
+def import_world_module(module: str, env_id: str = "") -> None:
+    """Import the module that registers a world (the ``module`` of ``module:EnvId``).
+
+    As ``gym.make`` does, the module is imported as Python finds it; a module that Python
+    does not find is looked for in the working folder too (as ``python -m`` would), so a
+    ``mine.py`` beside the config works from a console script.
+
+    Raises:
+        ConfigError: naming the env id and the module, when it cannot be imported.
+    """
+    what = f"env_id={show_value(f'{module}:{env_id}' if env_id else module)}"
+    try:
+        try:
+            importlib.import_module(module)
+        except ModuleNotFoundError as exc:
+            top = module.partition(".")[0]
+            cwd = os.getcwd()
+            if exc.name not in (module, top) or cwd in sys.path or "" in sys.path:
+                raise
+            sys.path.append(cwd)  # last: never shadows an installed module
+            importlib.import_module(module)
+    except ConfigError:
+        raise
+    except Exception as exc:
+        problem = " ".join(f"{type(exc).__name__}: {exc}".split())
+        raise ConfigError(f"{what}: cannot import the module {module!r} ({problem})") from None
+
+
+def split_env_id(env_id: str) -> tuple[str | None, str]:
+    """``"mypkg.worlds:Mine/Unicycle-v0"`` -> ``("mypkg.worlds", "Mine/Unicycle-v0")``;
+    an id without a module -> ``(None, env_id)``."""
+    module, sep, name = env_id.partition(":")
+    return (module.strip(), name.strip()) if sep else (None, env_id)
+
+
 def world_spec(env_id: Any) -> WorldSpec:
-    """The record of the world ``env_id``; a ConfigError listing the known ids otherwise."""
-    if not isinstance(env_id, str) or env_id not in WORLDS:
+    """The record of the world ``env_id`` (``EnvId`` or ``module:EnvId``, the module imported
+    first); a ConfigError listing the known ids otherwise."""
+    if not isinstance(env_id, str):
         raise ConfigError(f"env_id={show_value(env_id)}: must be one of {sorted(WORLDS)}")
-    return WORLDS[env_id]
+    module, name = split_env_id(env_id)
+    if module:
+        import_world_module(module, name)
+        if name in WORLDS and WORLDS[name].module is None:
+            # Registered by a script or directly: remember how this config named it.
+            WORLDS[name] = replace(WORLDS[name], module=module)
+    if name not in WORLDS:
+        hint = (
+            f" (importing {module!r} registered no world of that id)"
+            if module
+            else " (a world of your own: env_id: your.module:Name-v0 imports it first)"
+        )
+        raise ConfigError(f"env_id={show_value(env_id)}: must be one of {sorted(WORLDS)}{hint}")
+    return WORLDS[name]
+
+
+def qualified_env_id(env_id: str) -> str:
+    """The id a config writes for a world: ``module:EnvId`` when a module of one's own
+    registers it (:attr:`WorldSpec.module`), the plain id otherwise (the built-in worlds).
+
+    Both ``gym.make`` and :func:`world_spec` take it, in any process."""
+    module, name = split_env_id(env_id)
+    spec = WORLDS.get(name)
+    module = spec.module if spec is not None and spec.module else module
+    return f"{module}:{name}" if module else name
 
 
 def world_config_class(env_id: Any) -> type[WorldConfig]:
@@ -141,8 +238,7 @@ def env_id_of(config: WorldConfig | type[WorldConfig]) -> str:
 
 def read_env_id(config: Any) -> Any:
     """The top-level ``env_id`` of a config (path or whole-file dict); ``None`` if absent."""
-    if isinstance(config, (str, os.PathLike)):
-        config = load_yaml(config)
+    config = read_config(config)  # a preset's name, a path, base: resolved
     if isinstance(config, dict) and any(k in TOP_LEVEL_KEYS for k in config):
         read_section(config, "env")  # unknown top-level keys are an error
         return config.get("env_id")
@@ -150,24 +246,28 @@ def read_env_id(config: Any) -> Any:
 
 
 def load_env_config(config: Any = None, env_id: str | None = None) -> WorldConfig:
-    """A world config from a path, a dict (whole file or the ``env`` section), a world
-    config, or ``None`` for the defaults.
+    """A world config from a preset's name or a path (``"paper"``, ``"my/config.yaml"``), a
+    dict (whole file or the ``env`` section), a world config, or ``None`` for the defaults.
 
+    Names, paths and ``base:`` are resolved by :func:`lfm_env.config.compose.read_config`.
     The world is the file's top-level ``env_id`` (default :data:`DEFAULT_ENV_ID`, the
-    paper's case study), or ``env_id`` when given (an env reading its own config); the two
-    must agree.
+    paper's case study; ``module:EnvId`` imports the module first), or ``env_id`` when
+    given (an env reading its own config); the two must agree.
 
     Raises:
         ConfigError: for an unknown ``env_id``, a file of another world, or a bad field.
     """
     if isinstance(config, WorldConfig):
         own = env_id_of(config)
-        if env_id is not None and own != env_id:
+        if env_id is not None and own != split_env_id(env_id)[1]:
             raise ConfigError(f"a config of {own!r} given to {env_id!r}")
         return config
-    if isinstance(config, (str, os.PathLike)):
-        config = load_yaml(config)
+    config = read_config(config)
     file_id = read_env_id(config)
+    if file_id is not None:
+        file_id = world_spec(file_id).env_id  # its module imported; the plain id
+    if env_id is not None:
+        env_id = split_env_id(env_id)[1]
     if env_id is not None and file_id is not None and file_id != env_id:
         raise ConfigError(
             f"env_id={show_value(file_id)}: the config is for another env than {env_id!r}"
@@ -182,9 +282,12 @@ __all__ = [
     "WORLDS",
     "WorldSpec",
     "env_id_of",
+    "import_world_module",
     "load_env_config",
+    "qualified_env_id",
     "read_env_id",
     "register_world",
+    "split_env_id",
     "world_config_class",
     "world_spec",
 ]

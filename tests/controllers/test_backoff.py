@@ -12,6 +12,8 @@ from controllers.solvers import SOLVERS, make_solver
 
 X0 = np.array([10.0, 1.2, 5.0, 0.3])
 BACKOFF = np.tile([0.1, 0.1, 0.0, 0.0, 0.2, 0.2], (7, 1))  # [m, m, m, m, m/s, m/s]
+OBS = np.array([0.0, 0.0, 1.0, np.pi / 4])  # the first observation of the agents' tests
+UKF_AGENT = {"estimator": "ukf", "n_scenarios": 5}
 
 
 @pytest.fixture(scope="module")
@@ -66,36 +68,33 @@ def test_a_bad_backoff_is_refused_naming_it(backoff, problem_and_data):
         problem.objective(X0, W, np.zeros((7, 2)), backoff)
 
 
-def test_the_agent_backs_off_k_estimate_stds_along_each_constraint_gradient():
-    cfg = {"agents": {"backoff": 2.0, "estimator": "ukf", "n_scenarios": 5}}
-    agent = make_agent("scenario", cfg)
+def agent_after_two_steps(backoff: object) -> tuple:
+    """The scenario agent (UKF, 5 scenarios) with ``backoff`` after two observations, and its
+    estimate's physical covariance and the constraint Jacobian at its mean."""
+    agent = make_agent("scenario", {"agents": {"backoff": backoff, **UKF_AGENT}})
     agent.reset(seed=0)
-    obs = np.array([0.0, 0.0, 1.0, np.pi / 4])
-    agent.act(obs)
-    agent.act(obs + np.array([0.2, 0.2, 0.0, 0.0]))
+    agent.act(OBS)
+    agent.act(OBS + np.array([0.2, 0.2, 0.0, 0.0]))
     mean, cov = agent.estimator.mean[:4], agent.estimator.covariance[:4, :4]
-    J = agent.system.constraint_jacobian(mean)
+    return agent, cov, agent.system.constraint_jacobian(mean)
+
+
+def test_the_agent_backs_off_k_estimate_stds_along_each_constraint_gradient():
+    agent, cov, J = agent_after_two_steps(2.0)
     expected = 2.0 * np.sqrt(np.diag(J @ cov @ J.T))
     np.testing.assert_allclose(agent.last_info["backoff"], expected, rtol=1e-12)
     # The speed bounds' gradient is the speed axis: their back-off is 2 speed stds.
     assert agent.last_info["backoff"][4] == pytest.approx(2.0 * np.sqrt(cov[2, 2]))
     assert np.all(expected > 0.0)
     # Without back-off the agent passes none.
-    plain = make_agent("scenario", {"agents": {"estimator": "ukf", "n_scenarios": 5}})
+    plain = make_agent("scenario", {"agents": UKF_AGENT})
     plain.reset(seed=0)
-    plain.act(obs)
+    plain.act(OBS)
     assert plain.last_info["backoff"] is None
 
 
 def test_one_backoff_per_constraint_group():
-    cfg = {"agents": {"backoff": [3.0, 0.0, 1.0], "estimator": "ukf", "n_scenarios": 5}}
-    agent = make_agent("scenario", cfg)
-    agent.reset(seed=0)
-    obs = np.array([0.0, 0.0, 1.0, np.pi / 4])
-    agent.act(obs)
-    agent.act(obs + np.array([0.2, 0.2, 0.0, 0.0]))
-    mean, cov = agent.estimator.mean[:4], agent.estimator.covariance[:4, :4]
-    J = agent.system.constraint_jacobian(mean)
+    agent, cov, J = agent_after_two_steps([3.0, 0.0, 1.0])
     spread = np.sqrt(np.diag(J @ cov @ J.T))
     # Groups of the sine track: track (track_left, track_right), x (x_min, x_max), speed.
     k = np.array([3.0, 3.0, 0.0, 0.0, 1.0, 1.0])

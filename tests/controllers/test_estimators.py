@@ -79,6 +79,19 @@ def simulate(model: LatentForceModel, n_steps: int, seed: int):
     return ys, us
 
 
+def run_bootstrap_and_rbpf(model: LatentForceModel, std, ys, us, n_rbpf: int) -> tuple:
+    """A 40000-particle bootstrap estimator (the reference) and a Rao-Blackwellised one of
+    ``n_rbpf`` particles, run over the same inputs and measurements."""
+    big = make_estimator("bootstrap", model, std, n_particles=40000)
+    rb = make_estimator("rbpf", model, std, n_particles=n_rbpf)
+    big.start(ys[0], np.random.default_rng(1))
+    rb.start(ys[0], np.random.default_rng(2))
+    for u, y in zip(us, ys[1:], strict=True):
+        big.step(u, y)
+        rb.step(u, y)
+    return big, rb
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_rbpf_matches_the_exact_kalman_filter_on_a_linear_model(seed):
     model = damped_mass()
@@ -209,13 +222,7 @@ def test_rbpf_agrees_with_a_large_bootstrap_filter_on_the_paper_model():
         z = model.A @ z + model.Q_factor @ rng.standard_normal(3)
         ys.append(x + std * rng.standard_normal(4))
         us.append(u)
-    big = make_estimator("bootstrap", model, std, n_particles=40000)
-    rb = make_estimator("rbpf", model, std, n_particles=1000)
-    big.start(ys[0], np.random.default_rng(1))
-    rb.start(ys[0], np.random.default_rng(2))
-    for u, y in zip(us, ys[1:], strict=True):
-        big.step(u, y)
-        rb.step(u, y)
+    big, rb = run_bootstrap_and_rbpf(model, std, ys, us, n_rbpf=1000)
     # The latent force's mean and spread agree within a fifth of its spread.
     H = model.H[0]
     w_big, w_rb = H @ big.mean[4:], H @ rb.mean[4:]
@@ -238,13 +245,7 @@ def test_rbpf_with_a_state_dependent_gain_agrees_with_a_large_bootstrap_filter()
     model = LatentForceModel(system, gp.matern(1.5, 1.0, 1.0), DT, process_noise_std=[0.01, 0.02])
     assert model.force_enters_affinely and not model.force_gain_is_constant
     ys, us = simulate(model, 40, 6)
-    big = make_estimator("bootstrap", model, R_STD, n_particles=40000)
-    rb = make_estimator("rbpf", model, R_STD, n_particles=2000)
-    big.start(ys[0], np.random.default_rng(1))
-    rb.start(ys[0], np.random.default_rng(2))
-    for u, y in zip(us, ys[1:], strict=True):
-        big.step(u, y)
-        rb.step(u, y)
+    big, rb = run_bootstrap_and_rbpf(model, R_STD, ys, us, n_rbpf=2000)
     std = big.std
     assert np.all(np.abs(rb.mean - big.mean) < 0.25 * std), (rb.mean, big.mean, std)
     assert np.all(np.abs(rb.std / std - 1.0) < 0.25), (rb.std, std)

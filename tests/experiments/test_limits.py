@@ -31,6 +31,20 @@ ENV = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
 TINY = {"env": {"max_steps": 6}, "agents": {"n_particles": 200, "n_scenarios": 3, "horizon": 4}}
 
 
+def run_interpreter(args: list[str], timeout: float, preexec_fn=None, **kw):
+    """``python *args`` from the repository in the tests' environment, output captured."""
+    return subprocess.run(
+        [sys.executable, *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=ENV,
+        cwd=REPO,
+        preexec_fn=preexec_fn,
+        **kw,
+    )
+
+
 def run_python(code: str, timeout: float = 60.0, memory: int | None = None, **kw):
     """Run ``code`` in a fresh interpreter (optionally under an address-space limit)."""
 
@@ -42,31 +56,14 @@ def run_python(code: str, timeout: float = 60.0, memory: int | None = None, **kw
         if memory is not None:
             resource.setrlimit(resource.RLIMIT_AS, (memory, memory))
 
-    return subprocess.run(
-        [sys.executable, "-c", textwrap.dedent(code)],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        env=ENV,
-        cwd=REPO,
-        preexec_fn=limit,
-        **kw,
-    )
+    return run_interpreter(["-c", textwrap.dedent(code)], timeout, limit, **kw)
 
 
 def run_cli(module_main: str, *args: str, timeout: float = 120.0, preexec=None):
     """A command line's ``main`` in a real subprocess: (returncode, stdout, stderr)."""
     module, main = module_main.split(":")
     code = f"import sys; from {module} import {main}; sys.exit({main}(sys.argv[1:]))"
-    proc = subprocess.run(
-        [sys.executable, "-c", code, *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        env=ENV,
-        cwd=REPO,
-        preexec_fn=preexec,
-    )
+    proc = run_interpreter(["-c", code, *args], timeout, preexec)
     return proc.returncode, proc.stdout, proc.stderr
 
 

@@ -77,6 +77,26 @@ def test_commands_find_presets_by_name_from_another_folder(tmp_path):
     assert learned["agents"]["latent_force"]["variance"] > 0.0
 
 
+def test_every_function_that_takes_a_config_takes_a_preset_by_name(tmp_path):
+    """Issue 35, item 3: load_config, make_agent, evaluate and gym.make took a path only."""
+    code = (
+        "import gymnasium as gym, lfm_env\n"
+        "from controllers.agents import make_agent\n"
+        "from controllers.config import load_config\n"
+        "from experiments.evaluation import evaluate\n"
+        "assert load_config('paper').agents.n_particles == 7000\n"
+        "assert make_agent('scenario', 'paper').problem.n_scenarios == 150\n"
+        "rows = evaluate(['nominal'], [0], config='quick', progress=False)\n"
+        "assert rows[0]['error'] == '' and rows[0]['steps'] > 0\n"
+        "env = gym.make('lfm_env/SineTrack-v0', config='paper')\n"
+        "assert env.unwrapped.config == load_config('paper').env\n"
+        "print('ok')\n"
+    )
+    done = run(code, tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "ok"
+
+
 @pytest.mark.parametrize(
     "command", ["evaluate_main", "render_main", "sweep_main", "calibrate_main", "train_main"]
 )
@@ -102,9 +122,9 @@ def test_the_package_list_holds_every_package_of_the_source_tree():
         for p in (REPO / top).rglob("__init__.py")
     }
     assert found <= listed, f"add to [tool.setuptools] packages: {sorted(found - listed)}"
-    assert listed - found == {"experiments.presets", "controllers.solvers.fast.codegen.c"}
-    assert setuptools["package-dir"] == {"experiments.presets": "configs"}
-    assert setuptools["package-data"]["experiments.presets"] == ["*.yaml"]
+    assert listed - found == {"lfm_env.presets", "controllers.solvers.fast.codegen.c"}
+    assert setuptools["package-dir"] == {"lfm_env.presets": "configs"}
+    assert setuptools["package-data"]["lfm_env.presets"] == ["*.yaml"]
 
 
 def test_the_c_files_are_package_data():

@@ -28,9 +28,9 @@ from lfm_env.cost import QuadraticCost
 from lfm_env.env import LatentForceEnv
 from lfm_env.gp import matern
 from lfm_env.model import LatentForceModel
-from lfm_env.system import ControlSystem
 from lfm_env.worlds import QuadrotorGustEnv, SineTrackEnv
 from lfm_env.xp import xp
+from tests.point_mass import point_mass_system
 
 ENV_ID = "lfm_env/SineTrack-v0"
 QUADROTOR_ID = "lfm_env/QuadrotorGust-v0"
@@ -58,28 +58,13 @@ def make_quadrotor(**kwargs) -> gym.Env:
 # ----------------------------------------------------------------------------- a second system
 
 
-def point_mass_rhs(x, u, w):
-    """A planar point mass ``[p_x, p_y, v_x, v_y]`` pushed by a force on both axes."""
-    _, _, vx, vy = xp.unstack(x)
-    ax, ay = xp.unstack(u)
-    wx, wy = xp.unstack(w)
-    return xp.stack([vx, vy, ax + wx, ay + wy])
-
-
 def point_mass_constraints(x):
     """``|p_x| <= 5 m`` and ``|v_x| <= 2 m/s``."""
     px, _, vx, _ = xp.unstack(x)
     return xp.stack([px - 5.0, -px - 5.0, vx - 2.0, -vx - 2.0])
 
 
-POINT_MASS = ControlSystem(
-    name="point_mass",
-    state_names=("p_x [m]", "p_y [m]", "v_x [m/s]", "v_y [m/s]"),
-    input_names=("a_x [m/s^2]", "a_y [m/s^2]"),
-    force_names=("w_x [m/s^2]", "w_y [m/s^2]"),
-    rhs=point_mass_rhs,
-    input_lower=(-1.0, -1.0),
-    input_upper=(1.0, 1.0),
+POINT_MASS = point_mass_system(
     constraints=point_mass_constraints,
     constraint_names=("x_max [m]", "x_min [m]", "vx_max [m/s]", "vx_min [m/s]"),
     constraint_groups={"position": (0, 1), "velocity": (2, 3)},
@@ -248,8 +233,11 @@ def test_spaces_are_in_physical_units():
     np.testing.assert_allclose(space.high, [5.0, math.radians(25.0)], rtol=1e-7)
     np.testing.assert_allclose(space.low, [-5.0, -math.radians(25.0)], rtol=1e-7)
     assert env.observation_space.dtype == np.float64 and env.observation_space.shape == (4,)
-    assert np.all(env.observation_space.low == -np.inf)
-    assert np.all(env.observation_space.high == np.inf)
+    # Positions [m] in the safety box (widened for the step that leaves it) plus the noise's
+    # reach; the speed and the heading have no bound of their own: float32's largest.
+    np.testing.assert_allclose(env.observation_space.low[:2], [-23.1, -26.1], rtol=1e-6)
+    np.testing.assert_allclose(env.observation_space.high[:2], [92.1, 26.1], rtol=1e-6)
+    assert np.all(env.observation_space.high[2:] == np.finfo(np.float32).max)
 
 
 def test_quadrotor_spaces_are_in_physical_units():
@@ -259,7 +247,9 @@ def test_quadrotor_spaces_are_in_physical_units():
     np.testing.assert_allclose(space.low, [0.0, -0.4], rtol=1e-7)  # [N, rad]
     np.testing.assert_allclose(space.high, [2.0 * 0.027 * 9.81, 0.4], rtol=1e-7)
     assert env.observation_space.dtype == np.float64 and env.observation_space.shape == (6,)
-    assert np.all(np.isinf(env.observation_space.low) & np.isinf(env.observation_space.high))
+    np.testing.assert_allclose(env.observation_space.low[:2], [-2.78, -2.13], rtol=1e-6)
+    np.testing.assert_allclose(env.observation_space.high[:2], [11.28, 4.13], rtol=1e-6)
+    assert np.all(env.observation_space.low[2:] == -np.finfo(np.float32).max)
 
 
 def test_spaces_follow_the_system():

@@ -1,7 +1,7 @@
 """Gymnasium conventions of the registered envs: the time limit is a ``TimeLimit`` wrapper
-(the config's length by default, ``max_episode_steps`` when given), an unbounded float64
-observation Box, a float32 action Box, ``info["cost"]``, ``RecordVideo`` and SB3's
-``check_env``."""
+(the config's length by default, ``max_episode_steps`` when given), a float64 observation
+Box with finite bounds that hold, a float32 action Box, ``info["cost"]``, ``RecordVideo``,
+Gymnasium's and SB3's ``check_env``."""
 
 from __future__ import annotations
 
@@ -108,11 +108,97 @@ def test_spaces_dtypes_and_observations_inside(env_id):
     assert env.action_space.dtype == np.float32
     space = env.observation_space
     assert space.dtype == np.float64
-    assert np.all(space.low == -np.inf) and np.all(space.high == np.inf)
+    # Finite bounds, float32-representable (a float32 copy of the space is the same box).
+    assert np.all(np.isfinite(space.low)) and np.all(np.isfinite(space.high))
+    assert np.array_equal(space.low.astype(np.float32), space.low)
+    assert np.array_equal(space.high.astype(np.float32), space.high)
     obs, _ = env.reset(seed=1)
     assert obs.dtype == np.float64 and space.contains(obs)
     obs, *_ = env.step(env.action_space.sample())
     assert obs.dtype == np.float64 and space.contains(obs)
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_the_observation_bounds_are_the_safety_box_plus_the_noises_reach(env_id):
+    """Issue 35, item 7: the observation space was Box(-inf, inf)."""
+    from lfm_env.env import FLOAT32_MAX, NOISE_REACH
+
+    env = gym.make(env_id).unwrapped
+    cfg, space = env.config, env.observation_space
+    std, m = env.measurement_std, cfg.safety_margin
+    x_low = cfg.x_min - 2 * m - NOISE_REACH * std[0]
+    assert space.low[0] == pytest.approx(x_low, rel=1e-6) and space.low[0] <= x_low
+    assert np.all(space.high[2:] == FLOAT32_MAX) and np.all(space.low[2:] == -FLOAT32_MAX)
+    # Every state the safety box keeps is observed inside the box, however unlucky the noise.
+    low, high = (b[:2] for b in env.state_bounds())
+    assert np.all(high + NOISE_REACH * std[:2] <= space.high[:2])
+    assert np.all(low - NOISE_REACH * std[:2] >= space.low[:2])
+    # A state beyond the box (only the last of a failed episode) is observed clipped to it.
+    state = np.array(env.initial_state)
+    state[0] = cfg.x_max + 1000.0
+    obs, _ = env.reset(seed=0, options={"initial_state": state})
+    assert obs[0] == space.high[0] and space.contains(obs)
+
+
+def test_numpys_normal_draws_stay_within_the_noise_reach():
+    """The reach holds: NumPy's ziggurat draws no float64 normal beyond 13.71 in magnitude."""
+    from lfm_env.env import NOISE_REACH
+
+    z = np.random.default_rng(0).standard_normal(2_000_000)
+    assert np.max(np.abs(z)) < 6.0 < 13.71 < NOISE_REACH  # the tail is out of a test's reach
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_gymnasiums_check_env_warns_only_about_the_physical_action_units(env_id):
+    """Gymnasium's checker on the envs: no warning, but the sine track's recommendation to
+    normalise its physical action space ([m/s^2, rad]); RescaleAction is the documented fix
+    (SB3's checker below), and then Gymnasium's checker only notes the wrapper."""
+    from gymnasium.utils.env_checker import check_env
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(gym.make(env_id).unwrapped, skip_render_check=True)
+    messages = [str(w.message) for w in caught]
+    if env_id == ENV_IDS[0]:
+        assert len(messages) == 1
+        assert "recommend using a symmetric and normalized space" in messages[0]
+    else:
+        assert messages == []
+    rescaled = gym.wrappers.RescaleAction(
+        gym.make(env_id).unwrapped, np.float32(-1.0), np.float32(1.0)
+    )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(rescaled, skip_render_check=True)
+    assert [m for m in map(str, (w.message for w in caught)) if "unwrapped" not in m] == []
+
+
+def test_check_env_headless_prints_no_sdl_error_and_offers_no_human_mode():
+    """Issue 35, item 8: check_env tried the human mode on a headless machine and SDL printed
+    "XDG_RUNTIME_DIR is invalid"."""
+    code = (
+        "import warnings, gymnasium as gym, lfm_env\n"
+        "from gymnasium.utils.env_checker import check_env\n"
+        "for env_id in ('lfm_env/SineTrack-v0', 'lfm_env/QuadrotorGust-v0'):\n"
+        "    env = gym.make(env_id)\n"
+        "    assert 'human' not in env.unwrapped.metadata['render_modes']\n"
+        "    with warnings.catch_warnings():\n"
+        "        warnings.simplefilter('ignore')\n"
+        "        check_env(env.unwrapped)  # with the render modes' check\n"
+        "try:\n"
+        "    gym.make('lfm_env/SineTrack-v0', render_mode='human')\n"
+        "except ValueError as exc:\n"
+        "    print(exc)\n"
+    )
+    environ = {k: v for k, v in os.environ.items() if not k.startswith("SDL_")}
+    for key in ("XDG_RUNTIME_DIR", "DISPLAY", "WAYLAND_DISPLAY"):
+        environ.pop(key, None)
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=environ, timeout=300
+    )
+    assert done.returncode == 0, done.stderr
+    assert "XDG_RUNTIME_DIR" not in done.stderr and "error" not in done.stderr.lower()
+    assert "render_mode='human': no display" in done.stdout
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)

@@ -9,27 +9,9 @@ import scipy.linalg
 
 from lfm_env.gp import matern
 from lfm_env.model import LatentForceModel
-from lfm_env.system import ControlSystem
-from lfm_env.xp import xp
+from tests.point_mass import point_mass_system
 
-
-def planar_rhs(x, u, w):
-    """A planar point mass ``[p_x, p_y, v_x, v_y]``, one force component per axis."""
-    _, _, vx, vy = xp.unstack(x)
-    ax, ay = xp.unstack(u)
-    wx, wy = xp.unstack(w)
-    return xp.stack([vx, vy, ax + wx, ay + wy])
-
-
-PLANAR = ControlSystem(
-    name="planar",
-    state_names=("p_x [m]", "p_y [m]", "v_x [m/s]", "v_y [m/s]"),
-    input_names=("a_x [m/s^2]", "a_y [m/s^2]"),
-    force_names=("w_x [m/s^2]", "w_y [m/s^2]"),
-    rhs=planar_rhs,
-    input_lower=(-1.0, -1.0),
-    input_upper=(1.0, 1.0),
-)
+PLANAR = point_mass_system("planar")
 PLANAR_KERNELS = (matern(2.5, 1.0, 2.0), matern(0.5, 0.5, 1.0))
 
 

@@ -145,6 +145,25 @@ def test_namespace_functions_agree_on_both_backends(name, values):
     assert float(atan2(-1.0, -2.0)) == pytest.approx(math.atan2(-1.0, -2.0), rel=1e-15)
 
 
+def test_the_piecewise_functions_agree_on_both_backends():
+    """Issue 35, item 8: xp lacked minimum, maximum, where and clip."""
+    x = np.array([-2.0, -0.5, 0.0, 0.7, 3.0])
+    s = ca.SX.sym("s", 5)
+    cases = {
+        "minimum": (lambda v: xp.minimum(v, 0.5), np.minimum(x, 0.5)),
+        "maximum": (lambda v: xp.maximum(v, 0.0), np.maximum(x, 0.0)),
+        "where": (lambda v: xp.where(v > 0.0, v * v, -v), np.where(x > 0.0, x * x, -x)),
+        "clip": (lambda v: xp.clip(v, -1.0, 1.0), np.clip(x, -1.0, 1.0)),
+    }
+    for name, (fun, expected) in cases.items():
+        symbolic = ca.Function(name, [s], [fun(s)])
+        np.testing.assert_array_equal(np.asarray(symbolic(x)).ravel(), expected, err_msg=name)
+        np.testing.assert_array_equal(fun(x), expected, err_msg=name)
+    # Single precision stays single (the particle transition's drift).
+    assert xp.clip(x.astype(np.float32), -1.0, 1.0).dtype == np.float32
+    assert xp.where(x.astype(np.float32) > 0, x.astype(np.float32), 0.0).dtype == np.float32
+
+
 def test_stack_and_unstack_keep_components_on_the_last_axis():
     x = np.arange(24.0).reshape(2, 3, 4)
     parts = xp.unstack(x)

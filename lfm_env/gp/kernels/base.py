@@ -28,29 +28,38 @@ def _frozen_copy(value: Any, name: str, ndim: int = 2) -> np.ndarray:
     return arr
 
 
+def _check_float(
+    value: Any,
+    name: str,
+    rule: str = "> 0",
+    kind: str = "float",
+    unit: str = "",
+    bools: bool = False,
+) -> float:
+    """Return ``value`` as a finite float that satisfies ``rule`` (``"> 0"`` or ``">= 0"``), or
+    raise ValueError naming ``name``: ``must be a finite <kind> <rule><unit>`` for what is no
+    number (a bool too, unless ``bools``), ``must be finite and <rule><unit>`` out of range."""
+    # bool is an int subclass; a True variance is almost certainly a bug, not 1.0.
+    if isinstance(value, bool) and not bools:
+        raise ValueError(f"{name}={value!r}: must be a finite {kind} {rule}{unit}")
+    try:
+        value_f = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}={value!r}: must be a finite {kind} {rule}{unit}") from None
+    in_range = value_f >= 0.0 if rule == ">= 0" else value_f > 0.0
+    if not (math.isfinite(value_f) and in_range):
+        raise ValueError(f"{name}={value!r}: must be finite and {rule}{unit}")
+    return value_f
+
+
 def _check_dt(dt: Any) -> float:
     """Return ``dt`` [s] as a float, or raise ValueError naming ``dt``."""
-    try:
-        dt_f = float(dt)
-    except (TypeError, ValueError):
-        raise ValueError(f"dt={dt!r}: must be a finite number > 0 [s]") from None
-    if not (math.isfinite(dt_f) and dt_f > 0.0):
-        raise ValueError(f"dt={dt!r}: must be finite and > 0 [s]")
-    return dt_f
+    return _check_float(dt, "dt", kind="number", unit=" [s]", bools=True)
 
 
 def _check_positive(value: Any, name: str) -> float:
     """Return ``value`` as a float, or raise ValueError naming ``name`` and the allowed range."""
-    # bool is an int subclass; a True variance is almost certainly a bug, not 1.0.
-    if isinstance(value, bool):
-        raise ValueError(f"{name}={value!r}: must be a finite float > 0")
-    try:
-        value_f = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}={value!r}: must be a finite float > 0") from None
-    if not (math.isfinite(value_f) and value_f > 0.0):
-        raise ValueError(f"{name}={value!r}: must be finite and > 0")
-    return value_f
+    return _check_float(value, name)
 
 
 def _psd_factor(cov: np.ndarray) -> np.ndarray:

@@ -4,6 +4,8 @@ by ``k1 + k2`` and ``k1 * k2``."""
 from __future__ import annotations
 
 import functools
+import operator
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -28,9 +30,32 @@ def _flatten_parts(parts: tuple[Any, ...], cls: type) -> tuple[StateSpaceKernel,
 
 
 class _CompositeKernel(StateSpaceKernel):
-    """Shared hyperparameter plumbing: part ``i``'s ``name`` is exposed as ``k{i}_name``."""
+    """What sums and products share: the parts (nested ones of the same kind flattened),
+    their hyperparameters exposed as ``k{i}_name`` (part ``i``'s ``name``), and the
+    covariances combined part by part with :attr:`_combine`. A subclass gives its symbol,
+    its ``_combine`` and :meth:`_matrices`."""
 
     parts: tuple[StateSpaceKernel, ...]
+    _symbol = ""  # between the parts in the repr
+    _combine: Callable[[Any, Any], Any]  # two parts' covariances -> the combination's
+
+    def __init__(self, *parts: StateSpaceKernel) -> None:
+        """Combine the parts' SDEs (:meth:`_matrices`).
+
+        Raises:
+            TypeError: if a part is not a :class:`StateSpaceKernel`.
+            ValueError: with fewer than two parts.
+        """
+        self.parts = _flatten_parts(parts, type(self))
+        super().__init__(*self._matrices(self.parts))
+
+    @staticmethod
+    def _matrices(parts: tuple[StateSpaceKernel, ...]) -> tuple[np.ndarray, ...]:
+        """``(F, L, Qc, H, Pinf)`` of the combination of ``parts``."""
+        raise NotImplementedError
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(" + f" {self._symbol} ".join(map(repr, self.parts)) + ")"
 
     @property
     def hyperparameters(self) -> dict[str, float]:
@@ -40,6 +65,14 @@ class _CompositeKernel(StateSpaceKernel):
             for i, part in enumerate(self.parts)
             for name, value in part.hyperparameters.items()
         }
+
+    def with_hyperparameters(self, **hyperparameters: float) -> _CompositeKernel:
+        """The same combination of the parts with some (prefixed) hyperparameters replaced.
+
+        Raises:
+            ValueError: naming an unknown or invalid hyperparameter.
+        """
+        return type(self)(*self._parts_with(hyperparameters))
 
     def _parts_with(self, hyperparameters: dict[str, float]) -> list[StateSpaceKernel]:
         _check_hyperparameter_names(self, hyperparameters)
@@ -52,53 +85,36 @@ class _CompositeKernel(StateSpaceKernel):
             for part, kw in zip(self.parts, per_part, strict=True)
         ]
 
+    def covariance(self, tau: Any) -> np.ndarray:
+        """The parts' :meth:`covariance` (exact closed forms), combined."""
+        return functools.reduce(self._combine, (k.covariance(tau) for k in self.parts))
+
+    def state_space_covariance(self, tau: Any) -> np.ndarray:
+        """The parts' :meth:`state_space_covariance`, combined (= ``H e^{F tau} Pinf H^T``)."""
+        return functools.reduce(self._combine, (k.state_space_covariance(tau) for k in self.parts))
+
 
 class SumKernel(_CompositeKernel):
     """Sum ``k1 + k2 + ...`` of independent state-space GPs.
 
     The states are stacked: ``F``, ``L``, ``Qc``, ``Pinf`` block-diagonal, ``H``
-    concatenated. Nested sums are flattened into :attr:`parts`.
+    concatenated. Nested sums are flattened into :attr:`parts`. Covariances add.
 
     Attributes:
         parts: the summed kernels.
     """
 
-    def __init__(self, *parts: StateSpaceKernel) -> None:
-        """Stack the parts' SDEs.
+    _symbol = "+"
+    _combine = staticmethod(operator.add)
 
-        Raises:
-            TypeError: if a part is not a :class:`StateSpaceKernel`.
-            ValueError: with fewer than two parts.
-        """
-        self.parts = _flatten_parts(parts, SumKernel)
-        super().__init__(
-            scipy.linalg.block_diag(*[k.F for k in self.parts]),
-            scipy.linalg.block_diag(*[k.L for k in self.parts]),
-            scipy.linalg.block_diag(*[k.Qc for k in self.parts]),
-            np.hstack([k.H for k in self.parts]),
-            scipy.linalg.block_diag(*[k.Pinf for k in self.parts]),
-        )
-
-    def __repr__(self) -> str:
-        return "SumKernel(" + " + ".join(repr(k) for k in self.parts) + ")"
-
-    def with_hyperparameters(self, **hyperparameters: float) -> SumKernel:
-        """Sum of the parts with some (prefixed) hyperparameters replaced.
-
-        Raises:
-            ValueError: naming an unknown or invalid hyperparameter.
-        """
-        return SumKernel(*self._parts_with(hyperparameters))
-
-    def covariance(self, tau: Any) -> np.ndarray:
-        """Sum of the parts' :meth:`covariance` (exact closed forms)."""
-        return sum((k.covariance(tau) for k in self.parts[1:]), self.parts[0].covariance(tau))
-
-    def state_space_covariance(self, tau: Any) -> np.ndarray:
-        """Sum of the parts' :meth:`state_space_covariance` (= ``H e^{F tau} Pinf H^T``)."""
-        return sum(
-            (k.state_space_covariance(tau) for k in self.parts[1:]),
-            self.parts[0].state_space_covariance(tau),
+    @staticmethod
+    def _matrices(parts: tuple[StateSpaceKernel, ...]) -> tuple[np.ndarray, ...]:
+        return (
+            scipy.linalg.block_diag(*[k.F for k in parts]),
+            scipy.linalg.block_diag(*[k.L for k in parts]),
+            scipy.linalg.block_diag(*[k.Qc for k in parts]),
+            np.hstack([k.H for k in parts]),
+            scipy.linalg.block_diag(*[k.Pinf for k in parts]),
         )
 
 
@@ -138,44 +154,15 @@ class ProductKernel(_CompositeKernel):
     (a Matern times a periodic kernel is the usual quasi-periodic case). The state
     dimension is the product of the parts'. Nested products are flattened into
     :attr:`parts`. Note that the parts' variances are only identifiable as a product.
+    Covariances multiply.
 
     Attributes:
         parts: the multiplied kernels.
     """
 
-    def __init__(self, *parts: StateSpaceKernel) -> None:
-        """Combine the parts' SDEs.
+    _symbol = "*"
+    _combine = staticmethod(operator.mul)
 
-        Raises:
-            TypeError: if a part is not a :class:`StateSpaceKernel`.
-            ValueError: with fewer than two parts.
-        """
-        self.parts = _flatten_parts(parts, ProductKernel)
-        mats = tuple((k.F, k.L, k.Qc, k.H, k.Pinf) for k in self.parts)
-        combined = functools.reduce(_kron_matrices, mats)
-        super().__init__(*combined)
-
-    def __repr__(self) -> str:
-        return "ProductKernel(" + " * ".join(repr(k) for k in self.parts) + ")"
-
-    def with_hyperparameters(self, **hyperparameters: float) -> ProductKernel:
-        """Product of the parts with some (prefixed) hyperparameters replaced.
-
-        Raises:
-            ValueError: naming an unknown or invalid hyperparameter.
-        """
-        return ProductKernel(*self._parts_with(hyperparameters))
-
-    def covariance(self, tau: Any) -> np.ndarray:
-        """Product of the parts' :meth:`covariance` (exact closed forms)."""
-        out = self.parts[0].covariance(tau)
-        for k in self.parts[1:]:
-            out = out * k.covariance(tau)
-        return out
-
-    def state_space_covariance(self, tau: Any) -> np.ndarray:
-        """Product of the parts' :meth:`state_space_covariance` (= ``H e^{F tau} Pinf H^T``)."""
-        out = self.parts[0].state_space_covariance(tau)
-        for k in self.parts[1:]:
-            out = out * k.state_space_covariance(tau)
-        return out
+    @staticmethod
+    def _matrices(parts: tuple[StateSpaceKernel, ...]) -> tuple[np.ndarray, ...]:
+        return functools.reduce(_kron_matrices, tuple((k.F, k.L, k.Qc, k.H, k.Pinf) for k in parts))

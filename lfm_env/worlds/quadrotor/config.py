@@ -7,7 +7,12 @@ import math
 from dataclasses import dataclass, field
 
 from lfm_env.config.loading import FieldChecker
-from lfm_env.config.world import MAX_STEPS, LatentForceConfig, WorldConfig
+from lfm_env.config.world import (
+    MAX_STEPS,
+    LatentForceConfig,
+    WorldConfig,
+    check_goal_and_start,
+)
 from lfm_env.worlds.quadrotor.system import (
     Corridor,
     attitude_euler_radius,
@@ -127,17 +132,8 @@ class QuadrotorGustConfig(WorldConfig):
             f"attitude loop diverges otherwise (|1 + dt lambda| = {radius:.4g} >= 1)",
         )
         c("x_max", self.x_max > self.x_min, f"> x_min={self.x_min}")
-        corridor = self.corridor
         inside = f"inside the tunnel (|p_z - centre_z(p_x)| <= {self.corridor_half_height} m)"
-        gx, gz = self.goal
-        c("goal", self.x_min <= gx <= self.x_max, f"inside x bounds [{self.x_min}, {self.x_max}]")
-        c("goal", float(corridor.corridor_excess(gx, gz)) == 0.0, inside)
-        x0, z0 = self.initial_state[:2]
-        c(
-            "initial_state",
-            self.x_min <= x0 <= self.x_max and float(corridor.corridor_excess(x0, z0)) == 0.0,
-            "a position inside the tunnel and the x bounds",
-        )
+        check_goal_and_start(c, self, self.corridor.corridor_excess, inside, "tunnel")
 
     @property
     def corridor(self):

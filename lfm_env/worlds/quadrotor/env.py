@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numpy as np
+
 from lfm_env.worlds.goal import GoalReachingEnv
 from lfm_env.worlds.quadrotor.config import QuadrotorGustConfig
 from lfm_env.worlds.quadrotor.scene import CorridorScene
@@ -46,7 +48,12 @@ class QuadrotorGustEnv(GoalReachingEnv):
     | 4   | ``v_z`` vertical velocity | m/s | 0.05 |
     | 5   | ``omega`` pitch rate | rad/s | 5 deg/s |
 
-    ``Box(-inf, inf, (6,), float64)``.
+    ``Box(low, high, (6,), float64)``: ``p_x`` within ``[x_min, x_max]`` and ``p_z`` within
+    ``corridor_centre +- (corridor_amplitude + corridor_half_height)``, each widened by
+    twice ``safety_margin`` (the safety box, and the step that leaves it) and by 14 noise
+    stds; the pitch, the velocities and the pitch rate have no bound of their own
+    (``+-3.4e38``, float32's largest). Defaults: ``p_x`` in ``[-2.78, 11.28]``, ``p_z`` in
+    ``[-2.13, 4.13]`` m.
 
     ## Rewards
     Minus the stage cost on the true state before the step and the applied action:
@@ -89,7 +96,7 @@ class QuadrotorGustEnv(GoalReachingEnv):
     ## Version History
     * v0: initial version; then Gymnasium's conventions: a float32 action space, an
       unbounded observation space, ``info["cost"]`` and the time limit as a ``TimeLimit``
-      wrapper (same episodes).
+      wrapper (same episodes); then finite observation bounds that hold (same episodes).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
@@ -112,6 +119,17 @@ class QuadrotorGustEnv(GoalReachingEnv):
         self.scaling = None if scaling is None else float(scaling)
         super().__init__(config, render_mode)
         self.corridor = self.config.corridor
+
+    def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """``p_x`` and ``p_z`` in the safety box widened once more by ``safety_margin`` (the
+        step that leaves it); the other states are not bounded by it."""
+        c, m = self.config, self.config.safety_margin
+        reach = abs(c.corridor_amplitude) + c.corridor_half_height + 2.0 * m
+        low = np.full(6, -np.inf)
+        high = np.full(6, np.inf)
+        low[:2] = c.x_min - 2.0 * m, c.corridor_centre - reach
+        high[:2] = c.x_max + 2.0 * m, c.corridor_centre + reach
+        return low, high
 
     def _make_scene(self) -> CorridorScene:
         """The tunnel, the goal and the vehicle drawn by matplotlib (:class:`CorridorScene`)."""

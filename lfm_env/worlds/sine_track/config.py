@@ -6,7 +6,12 @@ import math
 from dataclasses import dataclass, field
 
 from lfm_env.config.loading import FieldChecker
-from lfm_env.config.world import MAX_STEPS, LatentForceConfig, WorldConfig
+from lfm_env.config.world import (
+    MAX_STEPS,
+    LatentForceConfig,
+    WorldConfig,
+    check_goal_and_start,
+)
 from lfm_env.worlds.sine_track.system import SineTrack, sine_track_system
 
 
@@ -64,20 +69,8 @@ class SineTrackConfig(WorldConfig):
         c("speed_max", self.speed_max > self.speed_min, f"> speed_min={self.speed_min}")
         c("steer_max_deg", 0 < self.steer_max_deg < 90, "in (0, 90) deg")
         c("dt", self.dt <= 10.0, "<= 10 s")
-        track = self.track
-        gx, gy = self.goal
-        c("goal", self.x_min <= gx <= self.x_max, f"inside x bounds [{self.x_min}, {self.x_max}]")
-        c(
-            "goal",
-            float(track.track_excess(gx, gy)) == 0.0,
-            f"on the track (|y - centre_y(x)| <= {self.track_half_width} m)",
-        )
-        x0, y0 = self.initial_state[:2]
-        c(
-            "initial_state",
-            self.x_min <= x0 <= self.x_max and float(track.track_excess(x0, y0)) == 0.0,
-            "a position inside the track and the x bounds",
-        )
+        on_track = f"on the track (|y - centre_y(x)| <= {self.track_half_width} m)"
+        check_goal_and_start(c, self, self.track.track_excess, on_track, "track")
 
     @property
     def track(self) -> SineTrack:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 from lfm_env.worlds.goal import GoalReachingEnv, segment_point_distance
 from lfm_env.worlds.sine_track.config import SineTrackConfig
 
@@ -39,7 +41,11 @@ class SineTrackEnv(GoalReachingEnv):
     | 2   | ``v`` speed | m/s | 0.15 |
     | 3   | ``psi`` heading | rad | 0.5 deg |
 
-    ``Box(-inf, inf, (4,), float64)``.
+    ``Box(low, high, (4,), float64)``: ``p_x`` within ``[x_min, x_max]`` and ``p_y`` within
+    ``+-(track_amplitude + track_half_width)``, each widened by twice ``safety_margin`` (the
+    safety box, and the step that leaves it) and by 14 noise stds; the speed and the heading
+    have no bound of their own (``+-3.4e38``, float32's largest). Defaults:
+    ``[-23.1, -26.1, -3.4e38, -3.4e38]`` to ``[92.1, 26.1, 3.4e38, 3.4e38]``.
 
     ## Rewards
     Minus the paper's stage cost on the true state before the step and the applied
@@ -84,7 +90,8 @@ class SineTrackEnv(GoalReachingEnv):
     * v0: initial version (rebuilt on ``LatentForceEnv`` with the same episodes, bit for
       bit, and the added ``info["constraint_excess"]``); then Gymnasium's conventions: a
       float32 action space, an unbounded observation space, ``info["cost"]`` and the time
-      limit as a ``TimeLimit`` wrapper (same episodes).
+      limit as a ``TimeLimit`` wrapper (same episodes); then finite observation bounds
+      that hold (same episodes).
     """
 
     CONFIG = SineTrackConfig
@@ -103,6 +110,17 @@ class SineTrackEnv(GoalReachingEnv):
         self.follow = bool(follow)
         super().__init__(config, render_mode)
         self.track = self.config.track
+
+    def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """``p_x`` and ``p_y`` in the safety box widened once more by ``safety_margin`` (the
+        step that leaves it); the speed and the heading are not bounded by it."""
+        c, m = self.config, self.config.safety_margin
+        y = abs(c.track_amplitude) + c.track_half_width + 2.0 * m
+        inf = np.inf
+        return (
+            np.array([c.x_min - 2.0 * m, -y, -inf, -inf]),
+            np.array([c.x_max + 2.0 * m, y, inf, inf]),
+        )
 
     def _make_scene(self):
         """highway-env's road with the sine lane and the car (:class:`TrackScene`)."""

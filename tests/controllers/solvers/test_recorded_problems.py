@@ -17,16 +17,15 @@ asserted here.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from controllers.problem import ScenarioProblem
 from controllers.solvers import make_solver
 from experiments.benchmark.problems import problem_from_config
+from tests.controllers.solvers.recorded import load_problems
 
-DATA = dict(np.load(Path(__file__).resolve().parents[2] / "data" / "recorded_problems.npz"))
+DATA = load_problems()
 IDS = [f"seed{s}-step{k}" for s, k in zip(DATA["seed"], DATA["step"], strict=True)]
 RTOL = 1e-4  # objective agreement (the benchmark's target)
 IPOPT_RTOL = 1e-6  # IPOPT at tol 1e-10 against the reference (measured: <= 1.1e-8)

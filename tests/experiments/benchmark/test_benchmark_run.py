@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 
+from experiments.benchmark import failures as bench_failures
 from experiments.benchmark import report as bench_report
 from experiments.benchmark import solvers as bench_solvers
 from experiments.benchmark import targets as bench_targets
@@ -172,7 +173,7 @@ def test_every_failed_solve_is_listed_with_its_problem(quick_run: tuple[dict, st
     for f in failures:
         # horizon-sweep failures also give the problem's least slack over every input
         assert set(f) - keys <= {"least_slack"} and keys <= set(f)
-        assert f["kind"] == bench_solvers.classify_failure(f["status"])
+        assert f["kind"] == bench_failures.classify_failure(f["status"])
     # The list matches the success counts of every part, solver by solver.
     closed = data["closed_loop"]
     for name, s in closed["summary"].items():

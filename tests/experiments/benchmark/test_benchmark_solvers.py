@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from controllers.solvers import SOLVERS, make_solver
+from experiments.benchmark import failures as bench_failures
 from experiments.benchmark import problems as bench_problems
 from experiments.benchmark import solvers as bench_solvers
 from experiments.cli import benchmark as benchmark_cli
@@ -24,14 +25,14 @@ def test_failures_are_classified_by_kind() -> None:
         "Line_Search_Failed": "other",
     }
     for status, kind in kinds.items():
-        assert bench_solvers.classify_failure(status) == kind
+        assert bench_failures.classify_failure(status) == kind
     records = {
         "a": [
             {"seed": 2, "step": 0, "success": True, "status": "Solve_Succeeded"},
             {"seed": 2, "step": 1, "success": False, "status": "QP_Failed"},
         ]
     }
-    assert bench_solvers.failures_of(records, "part", 15, 150) == [
+    assert bench_failures.failures_of(records, "part", 15, 150) == [
         {
             "part": "part",
             "solver": "a",

@@ -58,3 +58,21 @@ def test_parse_seeds() -> None:
     for bad in ("", "3:1", "-1", "a"):
         with pytest.raises(ValueError, match="seeds="):
             benchmark_cli.parse_seeds(bad)
+
+
+def test_outputs_and_config_are_checked_before_the_benchmark_runs(tmp_path, capsys) -> None:
+    """Issue 35, item 8: --out DIR given an existing folder ran the whole benchmark (15
+    minutes) and then failed with "Is a directory"; --config took a path only."""
+    folder = tmp_path / "a_folder"
+    folder.mkdir()
+    with pytest.raises(SystemExit) as exc:
+        benchmark_cli.benchmark_main(["--out", str(folder), "--no-progress"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert f"--out {folder}: is a folder, expected a file name" in err
+    assert "wrote" not in err and not any(folder.iterdir())
+    with pytest.raises(SystemExit) as exc:
+        benchmark_cli.benchmark_main(["--config", "nope", "--out", str(tmp_path / "b.json")])
+    assert exc.value.code == 2
+    assert "presets: matlab_reference, paper, quadrotor, quick" in capsys.readouterr().err
+    assert "a preset's name (" in benchmark_cli.build_parser().format_help()

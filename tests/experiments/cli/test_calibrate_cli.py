@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 
 from controllers.agents import make_agent
+from controllers.config import load_config
 from experiments.cli import calibrate_main as main
 from lfm_env.config import load_env_config
 
@@ -29,3 +30,16 @@ def test_cli_rejects_a_bad_seed_range(capsys):
         main(["--seeds", "5:2"])
     assert exc.value.code == 2
     assert "5:2" in capsys.readouterr().err
+
+
+def test_cli_calibrates_the_quadrotor_preset(tmp_path, capsys):
+    """Issue 35, item 2: lfm-calibrate --config quadrotor crashed (a hard-coded sine track)."""
+    out = tmp_path / "learned.yaml"
+    assert main(["--config", "quadrotor", "--seeds", "1000:1003", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "samples of v_x [m/s] on lfm_env/QuadrotorGust-v0" in printed
+    cfg = load_config(str(out))
+    assert cfg.env_id == "lfm_env/QuadrotorGust-v0" and cfg.env == load_config("quadrotor").env
+    learned = cfg.agents.latent_force
+    # Three short episodes: the gust's std 2.5 m/s^2 and lengthscale 2.5 s, within a factor 3.
+    assert 6.25 / 9 < learned.variance < 6.25 * 9 and 2.5 / 3 < learned.lengthscale < 2.5 * 3

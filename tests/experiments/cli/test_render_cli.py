@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import yaml
 
+from experiments import plots
 from experiments.cli import render_main
-from experiments.plots import episode as plots
 from experiments.report.write import (
     load_results,
     load_trajectory,

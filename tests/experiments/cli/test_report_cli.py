@@ -50,3 +50,13 @@ def test_report_main_missing_folder_exits_2(tmp_path, capsys):
         report_main([str(tmp_path / "nowhere")])
     assert exc.value.code == 2
     assert "nowhere" in capsys.readouterr().err
+
+
+def test_report_main_checks_its_files_before_drawing(results_copy, capsys):
+    """Every command checks its outputs before it works (issue 35, item 8)."""
+    (results_copy / "figures").write_text("not a folder")
+    with pytest.raises(SystemExit) as exc:
+        report_main([str(results_copy), "--no-gif"])
+    assert exc.value.code == 2
+    assert "is a file, expected the report's figures folder" in capsys.readouterr().err
+    assert not (results_copy / "report.md").exists()

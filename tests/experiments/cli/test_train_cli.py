@@ -3,6 +3,7 @@ errors."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
@@ -39,4 +40,28 @@ def test_command_line_run(tmp_path, capsys):
     )
     assert code == 0
     assert json.loads((out / "policy.json").read_text())["seed"] == 5
-    assert f"policy: {out / 'policy.zip'}" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert f"policy: {out / 'policy.zip'}" in printed
+    assert f"evaluate it: lfm-evaluate --config {out / 'eval.yaml'} --agents rl," in printed
+
+
+def test_the_eval_config_beside_the_policy_evaluates_it_from_any_folder(
+    tmp_path, monkeypatch, capsys
+):
+    """Issue 35, item 5: evaluating a trained policy meant copying a preset by hand."""
+    from controllers.config import load_config
+    from experiments.evaluation import evaluate
+
+    out = tmp_path / "run"
+    argv = ["--config", "quick", "--set", "env.max_steps=15", "--timesteps", "64"]
+    assert main([*argv, "--n-envs", "1", "--out", str(out), "--no-progress"]) == 0
+    cfg = load_config(out / "eval.yaml")
+    assert cfg.agents.rl_policy == str((out / "policy.zip").resolve())
+    quick = load_config("quick", ["env.max_steps=15"])
+    assert cfg.env == quick.env
+    assert cfg.agents == dataclasses.replace(quick.agents, rl_policy=cfg.agents.rl_policy)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    rows = evaluate(["rl"], [0], config=str(out / "eval.yaml"), progress=False)
+    assert rows[0]["error"] == "" and rows[0]["steps"] > 0

@@ -7,18 +7,12 @@ from __future__ import annotations
 import numpy as np
 
 from lfm_env.system import ControlSystem, xp
+from tests.point_mass import point_mass_rhs
 
 WALL_Y = 2.0  # [m] the wall: y <= 2
 OBSTACLE = (2.0, 1.6, 0.4)  # [m] centre x, centre y and radius of the round obstacle
 SPEED_MAX = 1.5  # [m/s] bound on v_x
 DT = 0.1  # [s]
-
-
-def point_mass_rhs(x, u, w):
-    _, _, vx, vy = xp.unstack(x)
-    ax, ay = xp.unstack(u)
-    wx, wy = xp.unstack(w)
-    return xp.stack([vx, vy, ax + wx, ay + wy])
 
 
 def point_mass_constraints(x):

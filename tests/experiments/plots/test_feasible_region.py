@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from experiments.plots import episode as plots
+from experiments import plots
 from tests.experiments.plots.point_mass import GOAL, SPEED_MAX, SYSTEM, WALL_Y
 
 

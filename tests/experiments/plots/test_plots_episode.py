@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from experiments.plots import episode as plots
+from experiments import plots
 from experiments.plots import summary as summary_plots
 from lfm_env.system import ControlSystem
 from tests.experiments.plots.point_mass import (

@@ -8,7 +8,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from experiments.plots import episode as plots
+from experiments import plots
 from lfm_env import gp
 from lfm_env.env import LatentForceEnv
 from lfm_env.model import LatentForceModel

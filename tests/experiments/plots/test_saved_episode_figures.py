@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from experiments.plots import episode as plots
+from experiments import plots
 from experiments.report.write import (
     load_results,
     load_trajectory,

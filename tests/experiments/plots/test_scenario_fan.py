@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from experiments.plots import episode as plots
+from experiments import plots
 from experiments.plots import scenario_fan
 from tests.experiments.plots.point_mass import DT, GOAL, SYSTEM, synthetic_episode
 

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import yaml
 
+from experiments import plots
 from experiments.cli import report_main
 from experiments.evaluation import evaluate
-from experiments.plots import episode as plots
 from experiments.report.format import fmt_estimate
 from experiments.report.write import (
     bootstrap_ci,

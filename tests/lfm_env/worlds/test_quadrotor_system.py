@@ -39,6 +39,7 @@ from lfm_env.worlds.quadrotor.system import (
     quadrotor_rhs,
 )
 from lfm_env.worlds.sine_track.system import sine_track_system
+from tests.lfm_env.worlds.system_checks import assert_batched_step_equals_row_by_row
 
 DT = 0.1  # [s] the default sampling time
 SYSTEM = quadrotor_gust_system()
@@ -156,14 +157,7 @@ def test_an_unstable_attitude_loop_diverges_and_a_stable_one_does_not():
 
 
 def test_batched_step_equals_row_by_row():
-    rng = np.random.default_rng(0)
-    n = 50
-    states, actions = random_states(rng, n), random_actions(rng, n)
-    w = rng.normal(0.0, 1.5, size=(n, 1))
-    batch = SYSTEM.euler_step(states, actions, w, DT)
-    assert batch.shape == (n, 6)
-    for i in range(n):
-        np.testing.assert_array_equal(batch[i], SYSTEM.euler_step(states[i], actions[i], w[i], DT))
+    assert_batched_step_equals_row_by_row(SYSTEM, DT, random_states, random_actions, force_std=1.5)
 
 
 def test_casadi_equals_numpy():

@@ -21,6 +21,7 @@ from lfm_env.worlds.sine_track.system import (
     track_constraints,
     track_of,
 )
+from tests.lfm_env.worlds.system_checks import assert_batched_step_equals_row_by_row
 
 DT = 0.2  # [s] the paper's sampling time
 LENGTH = 0.5  # [m] the paper's car length
@@ -99,17 +100,12 @@ def test_steering_turns_with_the_slip_angle_formula():
 
 
 def test_batched_step_equals_row_by_row():
-    rng = np.random.default_rng(0)
-    n = 50
-    states, actions = random_states(rng, n), random_actions(rng, n)
-    w = rng.normal(0.0, 2.0, size=(n, 1))
-    batch = SYSTEM.euler_step(states, actions, w, DT)
-    assert batch.shape == (n, 4)
-    for i in range(n):
-        np.testing.assert_array_equal(batch[i], SYSTEM.euler_step(states[i], actions[i], w[i], DT))
+    states, actions = assert_batched_step_equals_row_by_row(
+        SYSTEM, DT, random_states, random_actions, force_std=2.0
+    )
     # One action and one force broadcast over all particles.
     shared = SYSTEM.euler_step(states, actions[0], [0.0], DT)
-    for i in range(n):
+    for i in range(len(states)):
         row = SYSTEM.euler_step(states[i], actions[0], [0.0], DT)
         np.testing.assert_array_equal(shared[i], row)
 

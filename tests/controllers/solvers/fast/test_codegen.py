@@ -30,6 +30,7 @@ from controllers.solvers.fast.codegen.build import CodegenUnavailable, forget_lo
 from controllers.solvers.fast.condensed import CondensedModel
 from experiments.benchmark.problems import problem_from_config
 from lfm_env.cost import QuadraticCost
+from tests.controllers.solvers.recorded import DATA_DIR, load_problems
 from tests.controllers.test_second_system import (
     COST,
     NS,
@@ -42,14 +43,9 @@ from tests.controllers.test_second_system import (
 )
 
 ROOT = Path(__file__).resolve().parents[4]
-DATA = dict(np.load(ROOT / "tests" / "data" / "recorded_problems.npz"))
+DATA = load_problems()
 IDS = [f"seed{s}-step{k}" for s, k in zip(DATA["seed"], DATA["step"], strict=True)]
 RTOL = 1e-12  # relative to the largest entry of each compared array
-
-
-@pytest.fixture(scope="module")
-def paper() -> ScenarioProblem:
-    return problem_from_config(n_scenarios=150)
 
 
 @pytest.fixture(scope="module")
@@ -355,7 +351,7 @@ print(m.backend, m.cache_hit, repr(float(ro.merit)), repr(float(np.abs(H).sum())
 def test_two_processes_compiling_at_once_leave_a_valid_library(paper, paper_models, tmp_path):
     env = {**os.environ, "LFM_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": str(ROOT)}
     env.pop("LFM_BACKEND", None)
-    cmd = [sys.executable, "-c", _BUILD, str(ROOT / "tests" / "data" / "recorded_problems.npz")]
+    cmd = [sys.executable, "-c", _BUILD, str(DATA_DIR / "recorded_problems.npz")]
     procs = [
         subprocess.Popen(cmd, env=env, cwd=ROOT, stdout=subprocess.PIPE, text=True)
         for _ in range(2)

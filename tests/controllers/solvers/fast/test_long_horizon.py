@@ -10,8 +10,6 @@ limit on all three problems, so its objective there is only an upper bound.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -19,10 +17,10 @@ from controllers.problem import ScenarioProblem
 from controllers.solvers.fast.qp.slot_qp import QP_SOLVERS
 from controllers.solvers.fast.solver import FastScenarioSolver
 from experiments.benchmark.problems import problem_from_config
+from tests.controllers.solvers.recorded import load_problems
 
-DATA_DIR = Path(__file__).resolve().parents[3] / "data"
-LONG = dict(np.load(DATA_DIR / "long_horizon_problems.npz"))
-RECORDED = dict(np.load(DATA_DIR / "recorded_problems.npz"))
+LONG = load_problems("long_horizon_problems.npz")
+RECORDED = load_problems()
 RTOL = 1e-4  # objective no more than this above IPOPT's (the benchmark's target)
 MAX_ITERATIONS = {15: 60, 30: 80}  # SQP iterations of all starts together
 # Open (issue 16): problem 0 at N = 30 is strongly infeasible (its best plan keeps slack)

@@ -12,15 +12,13 @@ or below the tolerance, every group with a row within the margin represented).
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from controllers.problem import ScenarioProblem
 from controllers.solvers.fast.condensed import CondensedModel
 from controllers.solvers.fast.screening import screen_rows, worst_rows
-from experiments.benchmark.problems import problem_from_config
+from tests.controllers.solvers.recorded import load_problems
 from tests.controllers.test_second_system import (
     COST,
     NS,
@@ -31,14 +29,8 @@ from tests.controllers.test_second_system import (
     sample_forces,
 )
 
-ROOT = Path(__file__).resolve().parents[4]
-DATA = dict(np.load(ROOT / "tests" / "data" / "recorded_problems.npz"))
+DATA = load_problems()
 KEEP = 4
-
-
-@pytest.fixture(scope="module")
-def paper() -> ScenarioProblem:
-    return problem_from_config(n_scenarios=150)
 
 
 @pytest.fixture(scope="module")
