@@ -25,6 +25,7 @@ from controllers.config import load_config
 from controllers.feedback import FeedbackLaw
 from controllers.problem import ScenarioProblem
 from controllers.solvers import make_solver
+from controllers.solvers.fast.condensed import BACKEND_ENV
 
 ROOT = Path(__file__).resolve().parents[3]
 DATA = dict(np.load(ROOT / "tests" / "data" / "feedback_problems.npz"))
@@ -153,3 +154,21 @@ def test_every_solver_reaches_ipopts_optimum_on_a_small_particle_problem(
     assert sol.success, sol.status
     assert sol.objective == pytest.approx(ref, rel=RTOL)
     assert sol.objective == pytest.approx(problem.objective(x0, W, sol.u, law=law), rel=1e-9)
+
+
+@pytest.mark.parametrize("backend", ["c", "numpy"])
+def test_the_fast_solvers_c_library_and_numpy_paths_reach_the_reference(
+    backend, monkeypatch
+) -> None:
+    # The augmented system gets its own C library (compiled once, cached); without it the
+    # fast solver runs on NumPy lanes: both reach the recorded optimum.
+    monkeypatch.setenv(BACKEND_ENV, backend)
+    name = "quadrotor"
+    problem = problem_of(name)
+    x0, W, law, _, ref = case(name, 0)
+    solver = make_solver(problem, "fast", restarts=())
+    assert solver.inner.backend == {"c": "compiled-c", "numpy": "numpy-lanes"}[backend]
+    sol = solver.solve(x0, W, u_guess=get(name, "reference_u")[0], law=law)
+    assert sol.success, sol.status
+    assert sol.extra["backend"] == solver.inner.backend
+    assert sol.objective == pytest.approx(ref, rel=RTOL)
