@@ -66,7 +66,7 @@ _SPECS = (
         short_label="nominal MPC",
         colour="tab:gray",
         order=0,
-        uses=("horizon", "solver"),
+        uses=("horizon", "solver", "prediction"),
     ),
     AgentSpec(
         "pf",
@@ -75,7 +75,7 @@ _SPECS = (
         short_label="PF + CE MPC",
         colour="tab:orange",
         order=1,
-        uses=("horizon", "solver", "estimator", "n_particles", "latent_force"),
+        uses=("horizon", "solver", "prediction", "estimator", "n_particles", "latent_force"),
     ),
     AgentSpec(
         "scenario",
@@ -84,7 +84,15 @@ _SPECS = (
         short_label="scenario MPC (paper)",
         colour="tab:blue",
         order=2,
-        uses=("horizon", "solver", "estimator", "n_particles", "n_scenarios", "latent_force"),
+        uses=(
+            "horizon",
+            "solver",
+            "prediction",
+            "estimator",
+            "n_particles",
+            "n_scenarios",
+            "latent_force",
+        ),
     ),
     AgentSpec(
         "scenario_particles",
@@ -93,7 +101,15 @@ _SPECS = (
         short_label="scenario MPC, particle starts",
         colour="tab:green",
         order=3,
-        uses=("horizon", "solver", "estimator", "n_particles", "n_scenarios", "latent_force"),
+        uses=(
+            "horizon",
+            "solver",
+            "prediction",
+            "estimator",
+            "n_particles",
+            "n_scenarios",
+            "latent_force",
+        ),
     ),
     AgentSpec(
         "robust",
@@ -102,7 +118,7 @@ _SPECS = (
         short_label="robust MPC (back-off)",
         colour="tab:red",
         order=4,
-        uses=("horizon", "solver", "robust", "latent_force"),
+        uses=("horizon", "solver", "prediction", "robust", "latent_force"),
     ),
     AgentSpec(
         "oracle",
@@ -112,7 +128,7 @@ _SPECS = (
         colour="tab:purple",
         order=5,
         reads_truth=True,
-        uses=("horizon", "solver"),
+        uses=("horizon", "solver", "prediction"),
     ),
     AgentSpec(
         "rl",

@@ -123,6 +123,8 @@ def _settings_text(results: Results) -> str:
             continue  # the UKF has no particles
         if key in used and key in settings:
             parts.append(f"{key} = {settings[key]}")
+    if "prediction" in used and settings.get("prediction", "open_loop") != "open_loop":
+        parts.append(f"prediction = {settings['prediction']}")  # (docs/feedback.md)
     robust = settings.get("robust")
     if "robust" in used and isinstance(robust, dict):
         est = robust.get("estimator", "ukf")
