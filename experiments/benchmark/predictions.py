@@ -1,15 +1,18 @@
 """The prediction sweep: the fast solver on open-loop and feedback scenario problems, N by N.
 
-At each horizon ``N`` the scenario agent (open loop, the config's otherwise) runs the
-config's episodes with ``agents.horizon = N`` and the problems ``(x0, W)`` it met are recorded
-(:func:`experiments.benchmark.problems.record_closed_loop`, the first ``steps_per_seed``
-steps of each seed). The fast solver then solves each recorded problem twice, in
-closed-loop order and warm-started from its own past: as the open-loop problem
+The scenario agent runs the config's episodes at the config's horizon, and its state
+estimates at steps ``first_step .. first_step + steps_per_seed - 1`` of each seed are the
+anchors (:func:`experiments.benchmark.problems.record_closed_loop`). At each horizon ``N``
+the ``Ns`` latent-force scenarios of each anchor are drawn as the agent draws them
+(:func:`~experiments.benchmark.problems.scenario_draws`, one generator seeded 0 per ``N``),
+so an ``N`` beyond the fast solver's practical horizon for agents (40) is measured too. The
+fast solver solves each problem twice, consecutive anchors in closed-loop order and
+warm-started from its own past, reset at each seed: as the open-loop problem
 (``prediction="open_loop"``, the paper's) and as the feedback one (``"feedback"``,
-:mod:`controllers.solvers.feedback`; its law along its previous plan shifted, the first
-problem of each seed along an open-loop solve whose time counts). Both see the same
-problems. Every figure is the solver's own: ``objective`` and ``slack`` of each problem's
-formulation, the feedback slack including the input slacks.
+:mod:`controllers.solvers.feedback`; its law along its previous plan shifted, at a seed's
+first problem along an open-loop solve whose time counts). Both see the same problems.
+Every figure is the solver's own: ``objective`` and ``slack`` of each problem's formulation,
+the feedback slack including the input slacks.
 
 A failed solve is one that did not converge (``success`` false); ``usable`` says whether it
 still returned a plan an agent applies (:attr:`controllers.problem.MPCSolution.usable`).
@@ -33,12 +36,15 @@ from experiments.benchmark.problems import (
     DEFAULT_SEEDS,
     experiment_config,
     record_closed_loop,
+    scenario_draws,
 )
 
 #: The horizons of the prediction sweep (issue 36).
 PREDICTION_HORIZONS = (7, 15, 30, 50)
 #: Problems per seed at each horizon.
 PREDICTION_STEPS = 4
+#: The first anchored step of each seed (the paper's car is on the track's first bend).
+PREDICTION_FIRST_STEP = 10
 #: [s] wall-clock limit of one solve (the agents' default ``max_solve_time``).
 PREDICTION_MAX_TIME_S = 10.0
 
@@ -99,6 +105,7 @@ def sweep_predictions(
     steps_per_seed: int = PREDICTION_STEPS,
     max_time: float = PREDICTION_MAX_TIME_S,
     progress: bool = False,
+    first_step: int = PREDICTION_FIRST_STEP,
 ) -> dict[str, Any]:
     """The fast solver on both predictions at each horizon (module docstring).
 
@@ -106,22 +113,27 @@ def sweep_predictions(
         horizons: prediction steps ``N``.
         config: a YAML path, a dict (whole file), an ExperimentConfig or ``None``.
         seeds: env seeds of the recorded episodes.
-        steps_per_seed: problems per seed at each ``N``.
+        steps_per_seed: problems per seed at each ``N`` (consecutive steps).
         max_time: wall-clock limit of one solve [s].
         progress: show progress bars.
+        first_step: the first anchored step of each seed (an episode that ends earlier
+            gives fewer).
 
     Returns:
-        ``{"config", "seeds", "steps_per_seed", "results": [{"horizon", "prediction",
+        ``{"config", "seeds", "steps_per_seed", "first_step", "results": [{"horizon", "prediction",
         "n_scenarios", "summary", "records", "failures"}]}``: one row per ``(N,
         prediction)``, times in milliseconds; ``failures`` lists every solve that did not
         converge (``seed``, ``step``, ``kind``, ``status``, ``usable``).
     """
     cfg = experiment_config(config)
+    last = first_step + steps_per_seed
+    _, anchors = record_closed_loop(cfg, seeds, last, progress)
+    anchors = [a for a in anchors if a.step >= first_step]
     rows = []
     for n in (int(h) for h in horizons):
-        problems, _ = record_closed_loop(cfg, seeds, steps_per_seed, progress, horizon=n)
+        problems = scenario_draws(cfg.make_problem(horizon=n), anchors, np.random.default_rng(0))
         for prediction in PREDICTIONS:
-            problem = experiment_config(cfg, horizon=n).make_problem(prediction=prediction)
+            problem = cfg.make_problem(horizon=n, prediction=prediction)
             solver = make_solver(problem, "fast", max_time=max_time)
             records, prev_seed = [], None
             for p in tqdm(problems, desc=f"N={n} {prediction}", disable=not progress):
@@ -154,6 +166,7 @@ def sweep_predictions(
         "config": str(config),
         "seeds": [int(s) for s in seeds],
         "steps_per_seed": int(steps_per_seed),
+        "first_step": int(first_step),
         "results": rows,
     }
 
@@ -167,7 +180,8 @@ def format_predictions(result: dict[str, Any]) -> str:
     )
     lines = [
         f"prediction sweep: fast solver, config {result['config']}, seeds "
-        f"{result['seeds']}, {result['steps_per_seed']} problems per seed",
+        f"{result['seeds']}, steps {result['first_step']}.."
+        f"{result['first_step'] + result['steps_per_seed'] - 1} of each",
         head,
         "-" * len(head),
     ]
@@ -190,6 +204,7 @@ def format_predictions(result: dict[str, Any]) -> str:
 
 
 __all__ = [
+    "PREDICTION_FIRST_STEP",
     "PREDICTION_HORIZONS",
     "PREDICTION_MAX_TIME_S",
     "PREDICTION_STEPS",
