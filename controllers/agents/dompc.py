@@ -51,13 +51,17 @@ per paper episode (the force enters the acceleration), the same track steps (6.3
 1 cm: those come from the state estimate's error, which do-mpc's tree does not carry) and
 9.27, 9.35, 9.40 s to the goal; on the quadrotor 3.7, 2.7, 2.8 corridor steps > 1 cm.
 
-What do-mpc cannot express of the project's problem (see :data:`APPROXIMATIONS`): a force
-that evolves randomly within a branch (the scenario agents' sampled paths; do-mpc would need
-``n_robust = N`` and ``3^N`` scenarios for it), one input sequence shared by all scenarios (it
-branches the inputs after ``n_robust`` steps, unless ``open_loop``), unequal scenario weights,
-one slack shared by all branches of a step, and the uncertainty of the physical state (its
-initial state is one point: the estimate's mean; the ``robust`` agent backs its constraints
-off by that spread).
+How it differs from the project's scenario problem (:data:`APPROXIMATIONS`; read in
+do-mpc 5.1.2's ``MPC._prepare_nlp``). Not expressible in do-mpc's multi-stage MPC: a force
+that evolves randomly within a branch (a scenario's uncertain parameter is constant along the
+horizon; the scenario agents' sampled paths would need ``n_robust = N``, ``3^N`` scenarios,
+2,187 at ``N = 7``), one slack shared by all branches at a step after the first (do-mpc's
+slacks are per scenario), and an uncertain initial state (every branch starts from one
+``x0``: the estimate's mean; no back-off, where the ``robust`` agent backs its constraints
+off by the estimate's spread). Equal weights are do-mpc's only ones (``1 / scenarios`` per
+step), as here. Chosen, not forced: the inputs branch after the first step (do-mpc's default
+recourse, ``open_loop = False``); ``open_loop = True`` would share one input sequence, as
+the project's problem does.
 
 do-mpc is an optional dependency (the ``peers`` extra); building the agent without it raises
 :class:`ImportError` with :data:`MISSING_DO_MPC`.
@@ -93,7 +97,7 @@ FORCE_MODELS = ("forecast", "constant")
 APPROXIMATIONS = (
     "force constant within a branch: forecast mean plus a constant offset (or held constant)",
     "2 nw + 1 branches at +- spread std of the current force; no future process noise",
-    "inputs branch after the first step (n_robust = 1, recourse), not one shared sequence",
+    "inputs branch after the first step (n_robust = 1, recourse; open_loop would share them)",
     "equal branch weights 1 / (2 nw + 1)",
     "slack per branch after the first step: average excess, not the largest",
     "initial state is the estimate's mean: no physical-state uncertainty, no back-off",
