@@ -55,8 +55,9 @@ from lfm_env.model import LatentForceModel
 
 #: ``beta`` of the design when the config gives ``n_scenarios`` and no ``agents.confidence``.
 DEFAULT_CONFIDENCE = 1.0e-3
-#: Draws of the true force and noise per recorded step of the offline check.
-DRAWS = 200
+#: Draws of the true force and noise per recorded step of the offline check (a run has
+#: thousands of steps: the draws' own noise is small beside the spread over episodes).
+DRAWS = 50
 #: A plan's total slack above this [constraint units] counts as needing slack (the solvers
 #: leave slacks of 1e-9 and below on feasible plans).
 SLACK_TOLERANCE = 1.0e-6
