@@ -194,10 +194,13 @@ class _EpisodeRecorder:
                 "fallback",
                 "filter_reset",
                 "estimator",
+                "plan",
+                "latent_state",
                 *self._excess_keys(),
             )
         }
         self.has_filter = False
+        self.latent_width = 0  # entries of the env's latent state (info["latent_state"])
         self.slack_reported: list[bool] = []  # per step: the agent gave its slack
         self.final_info: dict[str, Any] = {}
 
@@ -205,6 +208,25 @@ class _EpisodeRecorder:
         self.lists["true_state"].append(np.asarray(info["true_state"], dtype=float))
         self.lists["obs"].append(np.asarray(obs, dtype=float))
         self.lists["time"].append(float(info["time"]))
+        # The hidden latent state, for the offline chance-constraint check (the evaluation
+        # layer's, never an agent's); an env whose info lacks it records none.
+        self.latent_width = len(np.ravel(info.get("latent_state", ())))
+        self._record_latent(info)
+
+    def _record_latent(self, info: dict[str, Any]) -> None:
+        if self.latent_width:
+            self.lists["latent_state"].append(
+                np.asarray(info["latent_state"], dtype=float).reshape(self.latent_width)
+            )
+
+    def _plan(self, agent_info: dict[str, Any]) -> np.ndarray:
+        """The agent's planned inputs ``(N, nu)`` (``last_info["plan"]``), NaN if it gives
+        none of that shape."""
+        plan = agent_info.get("plan")
+        shape = (self.horizon, self.nu)
+        if plan is not None and np.shape(plan) == shape:
+            return np.array(plan, dtype=float)
+        return np.full(shape, np.nan)
 
     def step(
         self, agent_info: dict[str, Any], obs: np.ndarray, reward: float, info: dict[str, Any]
@@ -224,6 +246,7 @@ class _EpisodeRecorder:
         values.update((k, float(info[k])) for k in self._excess_keys())
         for k, v in values.items():
             self.lists[k].append(v)
+        self._record_latent(info)
         self.slack_reported.append(agent_info.get("slack") is not None)
         self.final_info = info
 
@@ -276,6 +299,7 @@ class _EpisodeRecorder:
             # The estimator's name, from agents that say which one they run (it may differ
             # from agents.estimator: the robust agent has its own).
             "estimator": str(get(agent_info, "estimator")),
+            "plan": self._plan(agent_info),
         }
 
     @staticmethod
@@ -354,6 +378,8 @@ class _EpisodeRecorder:
             "fallback": stack("fallback", (0,), str),
             "filter_reset": stack("filter_reset", (0,), bool),
             "estimator": stack("estimator", (0,), str),
+            "plan": stack("plan", (0, self.horizon, self.nu)),
+            **({"latent_state": stack("latent_state", (0,))} if self.latent_width else {}),
             **{k: stack(k, (0,)) for k in self._excess_keys()},
         }
 
@@ -493,9 +519,12 @@ def run_episode(
         states), ``solve_time (T,)`` [s], ``slack (T,)``, ``solver_success (T,)``,
         ``fallback (T,)`` ('' or the fallback used), ``estimator (T,)`` (the name the
         agent gives its estimator in ``last_info["estimator"]``, '' when it gives none),
-        and ``<group>_excess (T,)`` per constraint group of the system (its largest
+        ``<group>_excess (T,)`` per constraint group of the system (its largest
         excess after step k, in its unit; ``track_excess``, ``x_excess``, ``speed_excess``
-        on the sine track).
+        on the sine track), ``plan (T, N, nu)`` (the inputs the agent planned at step k,
+        its ``last_info["plan"]``; NaN when it gives none) and ``latent_state (T+1, p)``
+        (the env's hidden latent state acting in step k, ``info["latent_state"]``: for the
+        evaluation layer's offline checks, never given to an agent).
 
     Raises:
         ValueError: unknown agent or bad agent spec (naming it) or negative seed; any

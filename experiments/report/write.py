@@ -8,9 +8,11 @@ Reads a results folder written by the evaluation (it never re-runs an episode):
 * ``DIR/episodes/<agent>__seed<seed>.npz``: the arrays of that episode;
 * ``DIR/config.yaml``: the config of the run (``env_id``, ``env`` and ``agents``).
 
+It opens with the metrics that do not reward failing (:mod:`experiments.report.survival`).
 Besides the per-agent and paired tables (with the tolerance-aware violation counts of
 :func:`~experiments.evaluation.columns.row_columns`), it holds the estimators' calibration (2-sigma
-coverage and RMSE per state and for the latent force, from the saved trajectories) and,
+coverage and RMSE per state and for the latent force, from the saved trajectories), the
+chance constraint against its design (:mod:`experiments.report.chance`) and,
 when given a sweep folder of :mod:`experiments.sweep` (or when ``DIR`` holds one), the
 risk sweep's table and Pareto figure.
 
@@ -40,6 +42,7 @@ from controllers.agents.registry import AGENT_REGISTRY
 from experiments import plots
 from experiments.evaluation.columns import tolerance_columns
 from experiments.evaluation.storage import folder_in_use, warn, warnings_once
+from experiments.report.chance import chance_section
 from experiments.report.document import GIF_EMBED_LIMIT, Document, embedded_image
 from experiments.report.figures import check_figure_seed, figures_section
 from experiments.report.format import agent_label, fmt, fmt_estimate, long_label
@@ -73,6 +76,7 @@ from experiments.report.stats import (
     tolerance_metrics,
     zero_violation_metrics,
 )
+from experiments.report.survival import headline_section
 from experiments.report.sweep_summary import (
     FIGURE_CAPTION,
     SWEEP_TABLE,
@@ -619,12 +623,14 @@ def _write_report(
     )
     doc.bullets([f"`{a}`: {long_label(a)}" for a in results.agents])
     _model_section(doc, results)
+    headline_section(doc, results, baseline)  # survival-unbiased metrics, against robust
     _summary_section(doc, results, stats)
     _errors_section(doc, results)
     _paired_section(doc, results, baseline)
     if results.config.ENV_ID == PAPER_ENV_ID:
         _paper_vs_measured_section(doc, results, _pooled_solve_times(results, REFERENCE_AGENT))
     _calibration_section(doc, results)
+    chance_section(doc, results)  # the chance constraint against its design
     if sweep is not None:
         _sweep_section(doc, results, sweep, differences)
     figures_section(doc, results, figure_seed, gif)
