@@ -1,13 +1,15 @@
 """Typed, validated configuration of the agents and of a whole experiment.
 
-:class:`AgentConfig` is the ``agents:`` section of a config file; :class:`ExperimentConfig`
-joins it to the ``env:`` section and builds, once, what the agents need: their model of the
+:class:`AgentConfig` is the ``agents:`` section of a config file, :class:`EvaluationConfig`
+the ``evaluation:`` section (how a run goes: the episode time limit); :class:`ExperimentConfig`
+joins them to the ``env:`` section and builds, once, what the agents need: their model of the
 world (:meth:`ExperimentConfig.make_model`), their cost (:meth:`~ExperimentConfig.make_cost`)
 and the scenario problem (:meth:`~ExperimentConfig.make_problem`).
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -303,6 +305,33 @@ class AgentConfig:
         )
 
 
+#: Default and largest ``evaluation.episode_timeout`` [s].
+DEFAULT_EPISODE_TIMEOUT = 600.0
+MAX_EPISODE_TIMEOUT = 30 * 24 * 3600.0
+
+
+@dataclass(frozen=True)
+class EvaluationConfig:
+    """How an evaluation runs: the ``evaluation:`` section of a config file.
+
+    A run setting, not a property of the episodes: it is not part of
+    :meth:`ExperimentConfig.to_dict` (so neither of a results folder's ``config.yaml`` nor
+    of its config hash), and configs that differ only here compare equal.
+    """
+
+    # Wall-clock limit of one episode [s]: an episode that runs longer ends as an error row
+    # naming the limit (lfm-evaluate --episode-timeout overrides it); null: no limit.
+    episode_timeout: float | None = DEFAULT_EPISODE_TIMEOUT
+
+    def __post_init__(self) -> None:
+        c = FieldChecker(self)
+        c(
+            "episode_timeout",
+            self.episode_timeout is None or 0.0 < self.episode_timeout <= MAX_EPISODE_TIMEOUT,
+            f"null (no limit) or in (0, {MAX_EPISODE_TIMEOUT:g}] s",
+        )
+
+
 @dataclass(frozen=True)
 class ExperimentConfig:
     """A whole config (``env_id``, ``env`` and ``agents``), resolved and validated once.
@@ -316,6 +345,8 @@ class ExperimentConfig:
 
     env: WorldConfig = field(default_factory=lambda: load_env_config(None))  # default world
     agents: AgentConfig = field(default_factory=AgentConfig)
+    # How an evaluation runs (not part of to_dict, nor of equality: see EvaluationConfig).
+    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig, compare=False)
 
     @property
     def env_id(self) -> str:
@@ -325,8 +356,11 @@ class ExperimentConfig:
         return qualified_env_id(self.env.ENV_ID)
 
     def to_dict(self) -> dict:
-        """Plain, YAML-ready data that :func:`load_config` reads back to an equal config."""
-        return {"env_id": self.env_id, **to_dict(self)}
+        """Plain, YAML-ready data that :func:`load_config` reads back to an equal config
+        (``env_id``, ``env`` and ``agents``; the ``evaluation`` run settings are left out)."""
+        data = {"env_id": self.env_id, **to_dict(self)}
+        data.pop("evaluation", None)
+        return data
 
     def __post_init__(self) -> None:
         check_latent_step(self.env)
@@ -436,9 +470,31 @@ def load_config(config: Any = None, settings: Sequence[str] = ()) -> ExperimentC
     if isinstance(config, ExperimentConfig):
         if not settings:
             return config
-        config = config.to_dict()
-    data = read_config(config, settings)  # read once, both sections from it
-    return ExperimentConfig(env=load_env_config(data), agents=load_agent_config(data))
+        evaluation = config.evaluation  # (not in to_dict: a run setting)
+        data = read_config(config.to_dict(), settings)
+        return ExperimentConfig(
+            env=load_env_config(data), agents=load_agent_config(data), evaluation=evaluation
+        )
+    data = read_config(config, settings)  # read once, every section from it
+    return ExperimentConfig(
+        env=load_env_config(data),
+        agents=load_agent_config(data),
+        evaluation=load_evaluation_config(data),
+    )
+
+
+def load_evaluation_config(config: Any = None) -> EvaluationConfig:
+    """The ``evaluation`` section of a preset's name, a path or a whole-file dict (defaults
+    without one)."""
+    if isinstance(config, EvaluationConfig):
+        return config
+    if hasattr(config, "evaluation") and isinstance(config.evaluation, EvaluationConfig):
+        return config.evaluation
+    if isinstance(config, (str, os.PathLike)):
+        config = read_config(config)
+    if not isinstance(config, dict) or "evaluation" not in config:
+        return EvaluationConfig()
+    return from_dict(EvaluationConfig, read_section(config, "evaluation"), prefix="evaluation")
 
 
 def load_agent_config(config: Any = None) -> AgentConfig:
@@ -454,12 +510,16 @@ def load_agent_config(config: Any = None) -> AgentConfig:
 
 # --set agents.KEY=VALUE reads the value by the field's type (lfm_env cannot import this).
 SECTION_TYPES["agents"] = AgentConfig
+SECTION_TYPES["evaluation"] = EvaluationConfig
 
 __all__ = [
     "AgentConfig",
     "ConfigError",
+    "DEFAULT_EPISODE_TIMEOUT",
+    "EvaluationConfig",
     "ExperimentConfig",
     "load_agent_config",
     "load_config",
+    "load_evaluation_config",
     "SOLVERS",
 ]

@@ -18,6 +18,12 @@ resolved config of the training with ``agents.rl_policy`` set: ``lfm-evaluate --
 OUT/eval.yaml --agents rl,...`` evaluates the policy). The ``rl`` agent
 (:class:`controllers.agents.rl.RLAgent`) loads them from ``agents.rl_policy: OUT/policy.zip``.
 The evaluation tables use the env's own reward, not the training reward.
+
+One run owns ``OUT`` at a time (the folder lock of the evaluation,
+:class:`~experiments.evaluation.storage.FolderLock`: a second run is refused naming the
+first). A folder that holds a policy already is refused too, unless the run resumes it
+(``resume=True``: the saved policy, its observation statistics and its step count are
+trained further) or replaces it (``force=True``).
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ import numpy as np
 import lfm_env  # noqa: F401  (registers the envs)
 from controllers.agents.rl import policy_features
 from controllers.config import ExperimentConfig, load_config
+from experiments.evaluation.storage import FolderLock, ResultsFolderError
 
 ALGOS = ("ppo", "sac")
 MAX_TIMESTEPS = 10**9
@@ -141,6 +148,12 @@ class _Progress:
         return Callback()
 
 
+def _algorithm(algo: str) -> Any:
+    from stable_baselines3 import PPO, SAC
+
+    return PPO if algo == "ppo" else SAC
+
+
 def _make_model(algo: str, venv: Any, seed: int, timesteps: int) -> Any:
     """PPO (512 steps per env and update, minibatches of 256) or SAC (SB3's defaults, first
     update after 1000 steps); shorter for runs shorter than one such update (smoke tests)."""
@@ -175,6 +188,8 @@ def train(
     n_envs: int = DEFAULT_N_ENVS,
     cost_weight: float = 1.0,
     progress: bool = True,
+    resume: bool = False,
+    force: bool = False,
 ) -> dict[str, Any]:
     """Train a policy and save it under ``out``; returns the run's summary (``policy.json``).
 
@@ -190,28 +205,117 @@ def train(
         n_envs: envs stepped in lockstep in this process, >= 1.
         cost_weight: training penalty per violated constraint group and step, >= 0.
         progress: show a tqdm progress bar.
+        resume: train the policy saved in ``out`` further, for ``timesteps`` more steps (its
+            observation statistics too; ``policy.json`` then counts every step and the wall
+            time of every run). Its algorithm and world must be ``algo`` and the config's.
+            SAC starts with an empty replay buffer; a resumed run is not bit-identical to one
+            run of the whole length.
+        force: replace a policy saved in ``out``.
 
     Raises:
         ValueError: naming the bad argument and its allowed range.
+        ResultsFolderError: (a ``ValueError``) ``out`` is in use by another run (named),
+            holds a policy and neither ``resume`` nor ``force`` is given, or ``resume``
+            finds no policy there or one of another algorithm or world.
     """
     check_training_arguments(algo, timesteps, minutes, n_envs, cost_weight)
+    if resume and force:
+        raise ValueError("resume and force exclude each other")
+    cfg = load_config(config)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    hint = "wait for that training to end or choose another output folder"
+    with FolderLock(out, "training folder", hint):
+        previous = check_training_folder(out, cfg, algo, resume, force)
+        return _train(
+            cfg, algo, timesteps, minutes, out, seed, n_envs, cost_weight, progress, previous
+        )
+
+
+def check_training_folder(
+    out: Path, cfg: ExperimentConfig, algo: str, resume: bool, force: bool
+) -> dict[str, Any] | None:
+    """The summary of the policy in ``out`` to resume (``None`` to start anew).
+
+    Raises:
+        ResultsFolderError: ``out`` holds a policy and neither ``resume`` nor ``force``;
+            ``resume`` without a policy there, or with one of another algorithm or world.
+    """
+    policy = out / POLICY_FILE
+    if not policy.exists():
+        if resume:
+            raise ResultsFolderError(
+                f"training folder {str(out)!r} holds no policy to resume ({POLICY_FILE}); "
+                "run without --resume to train a new one"
+            )
+        return None
+    if force:
+        return None
+    try:
+        summary = json.loads(policy.with_suffix(".json").read_text())
+        steps, trained = int(summary["timesteps"]), str(summary["algo"])
+        world = (str(summary["env_id"]), str(summary["system"]))
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        if resume:
+            raise ResultsFolderError(
+                f"training folder {str(out)!r}: cannot resume, its policy.json is missing or "
+                f"damaged ({type(exc).__name__}); pass --force to replace the policy"
+            ) from exc
+        steps, trained, world = None, None, None
+    if not resume:
+        what = "a policy" if steps is None else f"a {trained} policy trained for {steps} steps"
+        raise ResultsFolderError(
+            f"training folder {str(out)!r} already holds {what} ({POLICY_FILE}); pass "
+            "--resume to train it further or --force to replace it"
+        )
+    if trained != algo:
+        raise ResultsFolderError(
+            f"training folder {str(out)!r} holds a {trained} policy: resume it with "
+            f"--algo {trained}"
+        )
+    here = (cfg.env_id, cfg.make_model().system.name)
+    if world != here:
+        raise ResultsFolderError(
+            f"training folder {str(out)!r} holds a policy of the world {world[0]} "
+            f"(system {world[1]}), not of this config's {here[0]} (system {here[1]})"
+        )
+    return summary
+
+
+def _train(
+    cfg: ExperimentConfig,
+    algo: str,
+    timesteps: int,
+    minutes: float | None,
+    out: Path,
+    seed: int,
+    n_envs: int,
+    cost_weight: float,
+    progress: bool,
+    previous: dict[str, Any] | None,
+) -> dict[str, Any]:
+    """The training of :func:`train` (``out`` locked, checked); ``previous``: the summary
+    of the policy in ``out`` to resume, or ``None``."""
     import torch
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     torch.set_num_threads(1)
-    cfg = load_config(config)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     venv = DummyVecEnv([lambda: make_training_env(cfg, cost_weight)] * n_envs)
     venv.seed(seed)
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=0.99)
-    model = _make_model(algo, venv, seed, int(timesteps))
+    if previous is None:
+        model = _make_model(algo, venv, seed, int(timesteps))
+    else:
+        model = _algorithm(algo).load(out / POLICY_FILE, env=venv, device="cpu")
+        _restore_statistics(venv, out / "policy.npz", int(previous["timesteps"]))
     callback = _Progress.make(timesteps, minutes, progress)
     t0 = time.perf_counter()
     try:
-        model.learn(total_timesteps=timesteps, callback=callback)
+        model.learn(
+            total_timesteps=timesteps, callback=callback, reset_num_timesteps=previous is None
+        )
     finally:  # Ctrl-C or an error: keep what was learnt
-        summary = _save(model, venv, cfg, out, algo, seed, cost_weight, t0, callback)
+        summary = _save(model, venv, cfg, out, algo, seed, cost_weight, t0, callback, previous)
         write_eval_config(cfg, out)
         venv.close()
     return summary
@@ -243,6 +347,19 @@ def write_eval_config(config: ExperimentConfig, out: str | Path) -> Path:
     return path
 
 
+def _restore_statistics(venv: Any, path: Path, steps: int) -> None:
+    """The observation (and reward) normalisation saved in ``policy.npz``, into ``venv``
+    (a file of an older version, without its counts, counts ``steps``)."""
+    with np.load(path, allow_pickle=False) as stats:
+        venv.obs_rms.mean = np.array(stats["mean"], dtype=float)
+        venv.obs_rms.var = np.array(stats["var"], dtype=float)
+        venv.obs_rms.count = float(stats["count"]) if "count" in stats else float(steps)
+        if "ret_var" in stats:
+            venv.ret_rms.mean = np.array(stats["ret_mean"], dtype=float)
+            venv.ret_rms.var = np.array(stats["ret_var"], dtype=float)
+            venv.ret_rms.count = float(stats["ret_count"])
+
+
 def check_training_arguments(
     algo: str, timesteps: int, minutes: float | None, n_envs: int, cost_weight: float
 ) -> None:
@@ -269,6 +386,7 @@ def _save(
     cost_weight: float,
     t0: float,
     callback: Any,
+    previous: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Write ``policy.zip``, ``policy.npz`` (observation normalisation) and ``policy.json``."""
     model.save(out / POLICY_FILE)
@@ -279,7 +397,12 @@ def _save(
         var=rms.var,
         epsilon=np.float64(venv.epsilon),
         clip_obs=np.float64(venv.clip_obs),
+        count=np.float64(rms.count),
+        ret_mean=np.asarray(venv.ret_rms.mean, dtype=float),
+        ret_var=np.asarray(venv.ret_rms.var, dtype=float),
+        ret_count=np.float64(venv.ret_rms.count),
     )
+    earlier = 0.0 if previous is None else float(previous.get("wall_time_s") or 0.0)
     returns = list(getattr(callback, "returns", []))
     successes = list(getattr(callback, "successes", []))
     summary = {
@@ -287,7 +410,8 @@ def _save(
         "env_id": cfg.env_id,
         "system": cfg.make_model().system.name,  # the rl agent refuses another system
         "timesteps": int(model.num_timesteps),
-        "wall_time_s": round(time.perf_counter() - t0, 1),
+        "wall_time_s": round(earlier + time.perf_counter() - t0, 1),
+        "resumed_from": 0 if previous is None else int(previous["timesteps"]),
         "seed": int(seed),
         "n_envs": int(venv.num_envs),
         "cost_weight": float(cost_weight),
@@ -308,6 +432,7 @@ __all__ = [
     "POLICY_FILE",
     "TrainingReward",
     "check_training_arguments",
+    "check_training_folder",
     "make_training_env",
     "reward_scale",
     "train",

@@ -155,6 +155,7 @@ def run_sweep(
     dask_workers: int | None = None,
     progress: bool = True,
     retry_failed: bool = True,
+    episode_timeout: float | None = None,
 ) -> SweepSummary:
     """Run the baseline and every value of ``setting``, then write ``sweep.md`` and ``.png``.
 
@@ -170,6 +171,9 @@ def run_sweep(
             (:func:`experiments.evaluation.run.evaluate`).
         progress: progress bars (one per evaluation, labelled with its value).
         retry_failed: re-run saved episodes that raised an error.
+        episode_timeout: wall-clock limit of one episode [s]; ``None`` for the base
+            config's ``evaluation.episode_timeout``, 0 for none (as
+            :func:`experiments.evaluation.run.evaluate`).
 
     Returns:
         The summary read back from the folder (:func:`load_sweep`).
@@ -182,6 +186,8 @@ def run_sweep(
     (baseline_name,) = _registered_agents([baseline])
     seed_list = check_seeds(seeds)
     base = evaluation.resolve_config(config, [baseline_name])
+    if episode_timeout is None:  # (the values' configs are built without the run settings)
+        episode_timeout = base.evaluation.episode_timeout or 0
     key, texts, configs = parse_setting(setting, base)
     for cfg in configs:
         evaluation.resolve_config(cfg, [agent_name])
@@ -225,6 +231,7 @@ def run_sweep(
             progress=progress,
             retry_failed=retry_failed,
             progress_label=label,
+            episode_timeout=episode_timeout,
         )
     summary = load_sweep(out_path)
     write_sweep(summary)

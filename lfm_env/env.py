@@ -12,13 +12,14 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any, Protocol
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from lfm_env.config.loading import show_value
 from lfm_env.cost import QuadraticCost
 from lfm_env.model import LatentForceModel, psd_factor
 from lfm_env.system import split_unit
@@ -145,6 +146,9 @@ class LatentForceEnv(gym.Env):
       step just taken (never, unless a subclass says so);
     * ``terminated`` with ``info["failure"]`` when :meth:`_is_failure` holds for the new
       state (by default: a state that is not finite);
+    * after ``terminated``, :meth:`step` raises ``gymnasium.error.ResetNeeded`` until
+      :meth:`reset` (Gymnasium's rule: when an episode ends, ``reset()`` is necessary; the
+      state would otherwise go on accumulating reward past its end);
     * the env never truncates: the time limit is Gymnasium's ``TimeLimit`` wrapper, applied
       by ``gym.make`` with ``max_steps`` steps unless ``max_episode_steps`` is given
       (:class:`lfm_env.wrappers.ConfigTimeLimit`); a directly constructed env runs until
@@ -173,8 +177,9 @@ class LatentForceEnv(gym.Env):
     ``render_mode="human"`` needs a display: on Linux without ``DISPLAY`` or
     ``WAYLAND_DISPLAY`` (nor ``SDL_VIDEODRIVER``) it is refused and not offered in
     ``metadata["render_modes"]``.
-    ``reset(options=...)`` accepts ``initial_state`` ``(nx,)`` and ``latent_state``
-    ``(p,)`` overrides.
+    ``reset(options=...)`` accepts a dict with ``initial_state`` ``(nx,)`` and
+    ``latent_state`` ``(p,)`` overrides (anything but a dict or ``None`` is a ``TypeError``
+    naming ``options``).
 
     ## Subclassing
     Override :meth:`_is_success` (the task's goal), :meth:`_is_failure` (e.g. a safety box)
@@ -275,6 +280,7 @@ class LatentForceEnv(gym.Env):
         self._latent_rng: np.random.Generator | None = None
         self._noise_rng: np.random.Generator | None = None
         self._steps = 0
+        self._terminated = False  # the episode ended (step refuses until reset)
         self._scene: Scene | None = None
 
     # ------------------------------------------------------------------ hidden truth
@@ -338,6 +344,11 @@ class LatentForceEnv(gym.Env):
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         super().reset(seed=seed)
+        if options is not None and not isinstance(options, Mapping):
+            raise TypeError(
+                f"reset(options={show_value(options)}): options must be a dict (keys "
+                "initial_state, latent_state) or None"
+            )
         options = dict(options or {})
         unknown = set(options) - {"initial_state", "latent_state"}
         if unknown:
@@ -368,6 +379,7 @@ class LatentForceEnv(gym.Env):
         else:
             self._state = self.initial_state.copy()
         self._steps = 0
+        self._terminated = False
         self._sync_scene()
         if self.render_mode == "human":
             self.render()
@@ -377,6 +389,12 @@ class LatentForceEnv(gym.Env):
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self._noise_rng is None:
             raise gym.error.ResetNeeded("call reset() before step()")
+        if self._terminated:
+            raise gym.error.ResetNeeded(
+                "step() after the episode terminated (info['is_success'] or "
+                "info['failure']): call reset() first (Gymnasium: after terminated=True, "
+                "reset() is necessary)"
+            )
         u = self._check_action(action)
         x = self._state
         w = self.model.latent_force(self._latent_at(self._steps))
@@ -390,6 +408,7 @@ class LatentForceEnv(gym.Env):
         success = bool(self._is_success(x, x_next))
         failure = (not success) and bool(self._is_failure(x_next))
         terminated = bool(success or failure)
+        self._terminated = terminated
         truncated = False  # the time limit is the TimeLimit wrapper's (gym.make)
         self._sync_scene()
         if self.render_mode == "human":

@@ -136,7 +136,7 @@ CACHE_NOTE = (
     "The fast solver compiles a C library once per system (about 1.5 s, with the system C "
     "compiler $CC, else cc or gcc) and caches it under $LFM_CACHE_DIR (default "
     "~/.cache/lfm-scenario-mpc); delete that folder to rebuild. Without a compiler it runs "
-    "on CasADi's functions, slower."
+    "its NumPy backend, slower."
 )
 
 
@@ -229,6 +229,31 @@ def run_episodes(
         return None
 
 
+def non_negative_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not (value >= 0.0 and value != float("inf")):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a finite number of seconds >= 0")
+    return value
+
+
+def add_episode_timeout_argument(parser: argparse.ArgumentParser) -> None:
+    """``--episode-timeout SECONDS``: the wall-clock limit of one episode."""
+    parser.add_argument(
+        "--episode-timeout",
+        type=non_negative_seconds,
+        default=None,
+        metavar="SECONDS",
+        help=(
+            "wall-clock limit of one episode: one that runs longer ends as an error row "
+            "naming the limit, in every executor; 0 for none (default: the config's "
+            "evaluation.episode_timeout, 600 s unless set)"
+        ),
+    )
+
+
 def registered_agents_help() -> str:
     """``name = label`` of every registered agent, for the agent options' help texts."""
     from controllers.agents import AGENT_REGISTRY
@@ -257,6 +282,7 @@ __all__ = [
     "DEFAULT_PRESET",
     "PRESETS_PACKAGE",
     "add_config_argument",
+    "add_episode_timeout_argument",
     "add_executor_arguments",
     "add_set_argument",
     "check_writable",
@@ -265,6 +291,7 @@ __all__ = [
     "config_file",
     "one_line_errors",
     "os_error_text",
+    "non_negative_seconds",
     "positive_int",
     "preset_names",
     "registered_agents_help",

@@ -12,6 +12,7 @@ from pathlib import Path
 from experiments.cli.common import (
     CACHE_NOTE,
     add_config_argument,
+    add_episode_timeout_argument,
     add_executor_arguments,
     add_set_argument,
     config_argument,
@@ -36,8 +37,11 @@ imported first; from the current folder too).
 
 Rerunning the same command resumes an interrupted run: finished episodes are
 skipped and episodes that raised an error are retried. A folder holds one config;
-resuming with another config is refused. Exit code 0 when every episode ran, 1 when
-some raised (they are in the table with their error), 2 on bad arguments.
+resuming with another config is refused; one run writes into a folder at a time.
+An episode that raises (SystemExit included), runs past --episode-timeout, or whose
+worker process dies (--jobs) is an error row naming why; the other episodes run on.
+Exit code 0 when every episode ran, 1 when some raised (they are in the table with
+their error), 2 on bad arguments, 130 when interrupted.
 
 Metrics (columns of episodes.csv): success, steps, time_to_goal [s], cost (sum of
 the true stage cost), then per constraint group G of the world's system
@@ -101,6 +105,7 @@ def _evaluate_parser() -> argparse.ArgumentParser:
         ),
     )
     add_executor_arguments(parser, "local worker processes (default: 1, serial)")
+    add_episode_timeout_argument(parser)
     parser.add_argument(
         "--out",
         metavar="DIR",
@@ -157,7 +162,16 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
         else Path("results") / (config_path.stem if config_path is not None else "defaults")
     )
 
-    rows = run_episodes(parser, args, out, evaluate, agents, seeds, config=config)
+    rows = run_episodes(
+        parser,
+        args,
+        out,
+        evaluate,
+        agents,
+        seeds,
+        config=config,
+        episode_timeout=args.episode_timeout,
+    )
     if rows is None:
         return 130
     n_errors = sum(r["error"] != "" for r in rows)

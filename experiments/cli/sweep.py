@@ -8,6 +8,7 @@ from pathlib import Path
 
 from experiments.cli.common import (
     add_config_argument,
+    add_episode_timeout_argument,
     add_executor_arguments,
     config_argument_path,
     one_line_errors,
@@ -76,6 +77,7 @@ def _sweep_parser() -> argparse.ArgumentParser:
         help="env seeds, e.g. 0:100, 3, 1,5,9 (end exclusive; default: 0:20)",
     )
     add_executor_arguments(parser, "local worker processes per evaluation (default: 1, serial)")
+    add_episode_timeout_argument(parser)
     parser.add_argument(
         "--out",
         metavar="DIR",
@@ -111,6 +113,7 @@ def sweep_main(argv: Sequence[str] | None = None) -> int:
         seeds,
         config=config_path,
         baseline=args.baseline.strip(),
+        episode_timeout=args.episode_timeout,
     )
     if summary is None:
         return 130

@@ -16,6 +16,7 @@ from experiments.cli.common import (
     config_argument_path,
     one_line_errors,
 )
+from experiments.evaluation.storage import ResultsFolderError
 from experiments.rl_training import (
     ALGOS,
     DEFAULT_N_ENVS,
@@ -36,7 +37,10 @@ def _train_parser() -> argparse.ArgumentParser:
             "--config OUT/eval.yaml --agents rl,nominal,scenario. Training stops after "
             "--timesteps steps or --minutes minutes, whichever comes first."
         ),
-        epilog="example (the README's run): lfm-train --config paper --algo ppo --minutes 28 "
+        epilog="One run owns OUT at a time; a folder that holds a policy is refused unless "
+        "--resume (train it further) or --force (replace it) is given. Exit code 0 when the "
+        "policy is saved, 2 on bad arguments or a folder that is refused. "
+        "example (the README's run): lfm-train --config paper --algo ppo --minutes 28 "
         "--n-envs 8 --seed 0 --out results/rl/ppo_paper",
     )
     add_config_argument(parser)
@@ -70,6 +74,16 @@ def _train_parser() -> argparse.ArgumentParser:
         help="training penalty per violated constraint group and step (default 1)",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    again = parser.add_mutually_exclusive_group()
+    again.add_argument(
+        "--resume",
+        action="store_true",
+        help="train the policy in OUT further, for --timesteps more steps (its algorithm "
+        "and world must match)",
+    )
+    again.add_argument(
+        "--force", action="store_true", help="replace the policy in OUT (default: refuse)"
+    )
     return parser
 
 
@@ -90,17 +104,22 @@ def train_main(argv: Sequence[str] | None = None) -> int:
         problem = check_writable(Path(args.out) / name, "--out")
         if problem is not None:
             parser.error(problem)
-    summary = train(
-        config,
-        algo=args.algo,
-        timesteps=args.timesteps,
-        minutes=args.minutes,
-        out=args.out,
-        seed=args.seed,
-        n_envs=args.n_envs,
-        cost_weight=args.cost_weight,
-        progress=not args.no_progress,
-    )
+    try:
+        summary = train(
+            config,
+            algo=args.algo,
+            timesteps=args.timesteps,
+            minutes=args.minutes,
+            out=args.out,
+            seed=args.seed,
+            n_envs=args.n_envs,
+            cost_weight=args.cost_weight,
+            progress=not args.no_progress,
+            resume=args.resume,
+            force=args.force,
+        )
+    except ResultsFolderError as exc:  # refused before any training
+        parser.error(" ".join(str(exc).split()))
     print(json.dumps(summary, indent=2))
     print(f"policy: {Path(args.out) / POLICY_FILE}")
     print(

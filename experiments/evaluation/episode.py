@@ -35,6 +35,8 @@ from experiments.evaluation.columns import (
     violation_counts,
 )
 from experiments.evaluation.interrupts import raise_if_interrupted
+from experiments.evaluation.limits import check_deadline
+from lfm_env.config import show_value
 
 # --------------------------------------------------------------------------- small helpers
 
@@ -193,10 +195,13 @@ class _EpisodeRecorder:
                 "fallback",
                 "filter_reset",
                 "estimator",
+                "plan",
+                "latent_state",
                 *self._excess_keys(),
             )
         }
         self.has_filter = False
+        self.latent_width = 0  # entries of the env's latent state (info["latent_state"])
         self.slack_reported: list[bool] = []  # per step: the agent gave its slack
         self.final_info: dict[str, Any] = {}
 
@@ -204,15 +209,30 @@ class _EpisodeRecorder:
         self.lists["true_state"].append(np.asarray(info["true_state"], dtype=float))
         self.lists["obs"].append(np.asarray(obs, dtype=float))
         self.lists["time"].append(float(info["time"]))
+        # The hidden latent state, for the offline chance-constraint check (the evaluation
+        # layer's, never an agent's); an env whose info lacks it records none.
+        self.latent_width = len(np.ravel(info.get("latent_state", ())))
+        self._record_latent(info)
+
+    def _record_latent(self, info: dict[str, Any]) -> None:
+        if self.latent_width:
+            self.lists["latent_state"].append(
+                np.asarray(info["latent_state"], dtype=float).reshape(self.latent_width)
+            )
+
+    def _plan(self, agent_info: dict[str, Any]) -> np.ndarray:
+        """The agent's planned inputs ``(N, nu)`` (``last_info["plan"]``), NaN if it gives
+        none of that shape."""
+        plan = agent_info.get("plan")
+        shape = (self.horizon, self.nu)
+        if plan is not None and np.shape(plan) == shape:
+            return np.array(plan, dtype=float)
+        return np.full(shape, np.nan)
 
     def step(
         self, agent_info: dict[str, Any], obs: np.ndarray, reward: float, info: dict[str, Any]
     ) -> None:
-        nan_pred = np.full((self.horizon + 1, self.nx), np.nan)
-        no_force = np.full(self.nw, np.nan)
-        predicted = agent_info.get("predicted")
         self.has_filter = self.has_filter or agent_info.get("latent_force") is not None
-        estimate, estimate_std = self._estimate(agent_info)
         values = {
             "true_state": np.asarray(info["true_state"], dtype=float),
             "obs": np.asarray(obs, dtype=float),
@@ -221,34 +241,69 @@ class _EpisodeRecorder:
             # w acting during this step: the quantity the agent estimated before it.
             "latent_force": self._force(info["latent_force"]),
             "reward": float(reward),
-            "estimate": estimate,
-            "estimate_std": estimate_std,
-            "latent_force_est": self._force(self._get(agent_info, "latent_force", no_force)),
-            "latent_force_std": self._force(self._get(agent_info, "latent_force_std", no_force)),
-            "predicted": nan_pred if predicted is None else np.array(predicted, dtype=float)[0],
-            # A compact fan: the first SAVED_SCENARIOS predicted trajectories, float32.
-            "predicted_scenarios": (
-                nan_pred[None] if predicted is None else np.asarray(predicted)[:SAVED_SCENARIOS]
-            ).astype(np.float32),
-            "solve_time": float(self._get(agent_info, "solve_time")),
-            "slack": float(self._get(agent_info, "slack")),
-            "solver_success": bool(self._get(agent_info, "success")),
-            # (an agent that does not say: usable exactly when it succeeded)
-            "solver_usable": bool(
-                self._get(agent_info, "usable", self._get(agent_info, "success"))
-            ),
-            "fallback": str(self._get(agent_info, "fallback")),
-            "filter_reset": bool(self._get(agent_info, "filter_reset")),
-            # The estimator's name, from agents that say which one they run (it may differ
-            # from agents.estimator: the robust agent has its own).
-            "estimator": str(self._get(agent_info, "estimator")),
+            **self._agent_values(agent_info),
         }
         # The largest excess of each constraint group after the step, in its unit.
         values.update((k, float(info[k])) for k in self._excess_keys())
         for k, v in values.items():
             self.lists[k].append(v)
+        self._record_latent(info)
         self.slack_reported.append(agent_info.get("slack") is not None)
         self.final_info = info
+
+    def _agent_values(self, agent_info: dict[str, Any]) -> dict[str, Any]:
+        """The step's values from the agent's ``last_info``, each converted and checked.
+
+        Raises:
+            ValueError: naming the key, for a value of the wrong kind or shape.
+        """
+        nan_pred = np.full((self.horizon + 1, self.nx), np.nan)
+        no_force = np.full(self.nw, np.nan)
+        get = self._get
+
+        def checked(key: str, convert: Callable[[], Any]) -> Any:
+            try:
+                return convert()
+            except (TypeError, ValueError, IndexError) as exc:
+                raise ValueError(
+                    f"last_info[{key!r}] of the agent is {show_value(agent_info.get(key))}: "
+                    f"{_one_line(exc)} (expected {INFO_EXPECTED.get(key, 'see AgentInfo')}; "
+                    "controllers.agents.protocol.AgentInfo)"
+                ) from None
+
+        predicted = agent_info.get("predicted")
+        if predicted is None:
+            first, fan = nan_pred, nan_pred[None]
+        else:
+            first = checked("predicted", lambda: np.array(predicted, dtype=float)[0])
+            fan = checked("predicted", lambda: np.asarray(predicted, dtype=float))
+            fan = fan[:SAVED_SCENARIOS]
+        estimate, estimate_std = self._estimate(agent_info, checked)
+        return {
+            "estimate": estimate,
+            "estimate_std": estimate_std,
+            "latent_force_est": checked(
+                "latent_force", lambda: self._force(get(agent_info, "latent_force", no_force))
+            ),
+            "latent_force_std": checked(
+                "latent_force_std",
+                lambda: self._force(get(agent_info, "latent_force_std", no_force)),
+            ),
+            "predicted": first,
+            # A compact fan: the first SAVED_SCENARIOS predicted trajectories, float32.
+            "predicted_scenarios": fan.astype(np.float32),
+            "solve_time": checked("solve_time", lambda: float(get(agent_info, "solve_time"))),
+            "slack": checked("slack", lambda: float(get(agent_info, "slack"))),
+            "solver_success": bool(get(agent_info, "success")),
+            # (an agent that does not say: usable exactly when it succeeded)
+            "solver_usable": bool(get(agent_info, "usable", get(agent_info, "success"))),
+            "fallback": str(get(agent_info, "fallback")),
+            "filter_reset": bool(get(agent_info, "filter_reset")),
+            # The estimator's name, from agents that say which one they run (it may differ
+            # from agents.estimator: the robust agent has its own).
+            "estimator": str(get(agent_info, "estimator")),
+            "plan": self._plan(agent_info),
+        }
 
     @staticmethod
     def _get(agent_info: dict[str, Any], key: str, default: Any = None) -> Any:
@@ -258,14 +313,22 @@ class _EpisodeRecorder:
             return value
         return INFO_DEFAULTS[key] if default is None else default
 
-    def _estimate(self, agent_info: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    def _estimate(
+        self, agent_info: dict[str, Any], checked: Callable[[str, Callable[[], Any]], Any]
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The step's estimate and its std, copied; NaN (of the episode's width) if absent."""
         previous = self.lists["estimate"]
         width = len(previous[0]) if previous else self.nx
         est = agent_info.get("estimate")
-        est = np.full(width, np.nan) if est is None else np.array(est, dtype=float)
+        if est is None:
+            est = np.full(width, np.nan)
+        else:
+            est = checked("estimate", lambda: _vector(est, width if previous else None))
         std = agent_info.get("estimate_std")
-        std = np.full(est.shape, np.nan) if std is None else np.array(std, dtype=float)
+        if std is None:
+            std = np.full(est.shape, np.nan)
+        else:
+            std = checked("estimate_std", lambda: _vector(std, est.size))
         return est, std
 
     def _fan(self) -> np.ndarray:
@@ -319,8 +382,31 @@ class _EpisodeRecorder:
             "fallback": stack("fallback", (0,), str),
             "filter_reset": stack("filter_reset", (0,), bool),
             "estimator": stack("estimator", (0,), str),
+            "plan": stack("plan", (0, self.horizon, self.nu)),
+            **({"latent_state": stack("latent_state", (0,))} if self.latent_width else {}),
             **{k: stack(k, (0,)) for k in self._excess_keys()},
         }
+
+
+#: What each ``last_info`` key must hold, for the error of a bad value.
+INFO_EXPECTED = {
+    "estimate": "a vector of d >= nx numbers, the same d at every step",
+    "estimate_std": "a vector as long as the estimate",
+    "latent_force": "nw numbers",
+    "latent_force_std": "nw numbers",
+    "predicted": "an array (S, N+1, nx) of predicted states",
+    "solve_time": "a number of seconds",
+    "slack": "a number >= 0",
+}
+
+
+def _vector(value: Any, size: int | None) -> np.ndarray:
+    """``value`` as a new 1-D float array (of ``size`` entries when given)."""
+    a = np.array(value, dtype=float)
+    if a.ndim != 1 or (size is not None and a.size != size):
+        shown = "" if size is None else f" of {size} entries"
+        raise ValueError(f"shape {a.shape}, not a vector{shown}")
+    return a
 
 
 def _simulate(
@@ -341,6 +427,7 @@ def _simulate(
         terminated = truncated = False
         while not (terminated or truncated):
             raise_if_interrupted()  # a Ctrl-C that a library swallowed
+            check_deadline()  # the episode's time limit, if a library swallowed it
             # The agent's estimate made with obs k is compared with the w of step k.
             action = agent.act(obs)
             agent_info = last_info(agent)
@@ -439,10 +526,14 @@ def run_episode(
         without a filter), ``predicted (T, N+1, nx)`` (first scenario's predicted
         states), ``solve_time (T,)`` [s], ``slack (T,)``, ``solver_success (T,)``
         (converged), ``solver_usable (T,)`` (a plan to apply), ``fallback (T,)`` ('' or
-        the fallback used), ``estimator (T,)`` (the name the agent gives its estimator
-        in ``last_info["estimator"]``, '' when it gives none), and ``<group>_excess (T,)``
-        per constraint group of the system (its largest excess after step k, in its unit;
-        ``track_excess``, ``x_excess``, ``speed_excess`` on the sine track).
+        the fallback used), ``estimator (T,)`` (the name the agent gives its estimator in
+        ``last_info["estimator"]``, '' when it gives none),
+        ``<group>_excess (T,)`` per constraint group of the system (its largest
+        excess after step k, in its unit; ``track_excess``, ``x_excess``, ``speed_excess``
+        on the sine track), ``plan (T, N, nu)`` (the inputs the agent planned at step k,
+        its ``last_info["plan"]``; NaN when it gives none) and ``latent_state (T+1, p)``
+        (the env's hidden latent state acting in step k, ``info["latent_state"]``: for the
+        evaluation layer's offline checks, never given to an agent).
 
     Raises:
         ValueError: unknown agent or bad agent spec (naming it) or negative seed; any

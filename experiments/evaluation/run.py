@@ -25,10 +25,12 @@ holds the traceback, its npz the steps done before the error); such rows are kep
 table but, with ``retry_failed=True`` (the default), re-run by the next call. A folder
 holds the results of one config only: :func:`evaluate` refuses to resume into a folder
 whose ``config.yaml`` differs or whose episodes carry another :func:`config_hash`. A
-folder is owned by one run at a time (``out/.lock`` holds its pid and host; a second run
-is refused naming it; the lock of a dead process is taken over). Every saved episode is
-verified before it is skipped on resume (its json names its own agent and seed, its npz
-loads with one step per row step); a damaged one is named on stderr and run again.
+folder is owned by one run at a time: an operating-system lock on ``out/.lock``
+(:class:`~experiments.evaluation.storage.FolderLock`), which the kernel releases when the
+run ends however it ends; a second run is refused naming the owner's pid and host. Every
+saved episode is verified before it is skipped on resume (its json names its own agent and
+seed, its npz loads with one step per row step); a damaged one is named on stderr and run
+again.
 
 An interrupt (Ctrl-C, or SIGTERM while :func:`evaluate` runs in the main thread) ends the
 workers at once, removes temporary files and rebuilds ``episodes.csv`` before
@@ -42,14 +44,26 @@ Agents are registered names, or a user's own agents
 ``"module:attribute"`` (:mod:`experiments.evaluation.agent_lookup`); an agent's
 ``last_info`` keys are all optional, read with their documented defaults.
 
-Runs are serial (``jobs=1``), on local processes (``jobs > 1``) or on a Dask cluster
-(``scheduler=`` an existing one, checked to answer as Dask within 5 s, or
-``dask_workers=`` a private local one: loopback, TLS, no HTTP endpoint,
-:mod:`experiments.evaluation.executors`). Every worker writes its own episode files, so the folder
-must be visible to all workers (any single machine; a shared file system for a
-multi-machine cluster, whose workers must also have this package installed). Serial,
-parallel and distributed runs give identical rows apart from the timing columns
-:data:`TIMING_COLUMNS`.
+Runs are serial (``jobs=1``), on local processes (``jobs > 1``,
+:mod:`experiments.evaluation.pool`) or on a Dask cluster (``scheduler=`` an existing one,
+checked to answer as Dask within 5 s, or ``dask_workers=`` a private local one: loopback,
+TLS, no HTTP endpoint, :mod:`experiments.evaluation.executors`). Every worker writes its own
+episode files, so the folder must be visible to all workers (any single machine; a shared
+file system for a multi-machine cluster, whose workers must also have this package
+installed). Serial, parallel and distributed runs give identical rows apart from the
+timing columns :data:`TIMING_COLUMNS`.
+
+One bad episode costs one episode, in every executor: an exception of the agent
+(``SystemExit`` included; Ctrl-C stays Ctrl-C) is its error row; an episode that runs past
+its time limit (``episode_timeout``, the config's ``evaluation.episode_timeout``, 600 s by
+default: :mod:`experiments.evaluation.limits`) is an error row naming the limit; a pool
+worker that dies (a crash in native code, SIGKILL) costs its own episode only, which is run
+once more and is then an error row naming the agent, the seed and the signal (Dask retries
+a task whose worker died on other workers). An episode stuck past its limit where Python
+cannot reach it (native code) is stopped by killing its process: a pool worker (by the
+parent), a Dask worker (by itself, its row saved first), or in a serial run the run's own
+process, after saving the row and the table, with exit code :data:`EXIT_STUCK`; a rerun
+runs the episodes never run before those whose row is an error.
 
 This module runs the episodes (serially, on a process pool or on Dask) and keeps the folder
 up to date; one episode is :mod:`experiments.evaluation.episode`, the table's columns
@@ -61,6 +75,7 @@ from __future__ import annotations
 
 import math
 import os
+import secrets
 import time
 import traceback
 from collections.abc import Iterable, Sequence
@@ -90,11 +105,8 @@ from experiments.evaluation.columns import (
 from experiments.evaluation.episode import (
     MAX_SEEDS,
     SAVED_SCENARIOS,
-    _episode_metrics,
-    _EpisodeRecorder,
     _error_row,
     _one_line,
-    _simulate,
     agent_seed,
     check_seeds,
     parse_seeds,
@@ -102,6 +114,10 @@ from experiments.evaluation.episode import (
     run_episode,
 )
 from experiments.evaluation.interrupts import raise_if_interrupted, remember_interrupts
+from experiments.evaluation.limits import (
+    check_limit,
+)
+from experiments.evaluation.pool import run_on_pool
 from experiments.evaluation.storage import (
     DamagedEpisodeError,
     FolderLock,
@@ -115,79 +131,14 @@ from experiments.evaluation.storage import (
     load_trajectory,
     save_episode,
     saved_rows,
+    stuck_row,
+    warnings_once,
     write_table,
 )
+from experiments.evaluation.task import _episode_task
 
 _SCHEDULER_TIMEOUT = 5.0  # [s] to connect to a Dask scheduler AND hear it answer as one
-_STOP_TIMEOUT = 5.0  # [s] for interrupted pool workers to end before they are killed
 _TABLE_REFRESH = 10.0  # [s] least time between rebuilds of episodes.csv during a run
-_POOL_RESTARTS = 3  # new process pools after a worker died, before lost episodes count as errors
-
-
-# --------------------------------------------------------------------------- evaluate
-
-
-def _episode_task(
-    agent: str | OwnAgentSpec,
-    config: ExperimentConfig,
-    seed: int,
-    out: str | None,
-    record: bool,
-    digest: str = "",
-) -> dict[str, Any]:
-    """Run and save one episode; never raises for an error of the episode itself.
-
-    Top-level (picklable by reference) so process pools and Dask workers can run it; the
-    resolved config travels with the task, so workers parse nothing. ``agent`` is a
-    registered name or a user agent's :class:`~experiments.evaluation.agent_lookup.OwnAgentSpec`.
-    """
-    name = name_of(agent)
-    t0 = time.perf_counter()
-    rec = _EpisodeRecorder(config)
-    tb = ""
-    try:
-        _simulate(agent, config, seed, rec)
-        arrays = rec.arrays()
-        row = {"agent": name, "seed": seed, **_episode_metrics(rec, arrays)}
-        row.update(wall_time=time.perf_counter() - t0, error="")
-        row = {c: row[c] for c in rec.columns}
-    except Exception as exc:  # one bad episode must not stop the others
-        raise_if_interrupted()  # a Ctrl-C a library turned into another error: no error row
-        tb = traceback.format_exc()
-        wall_time = time.perf_counter() - t0
-        row = _error_row(name, seed, _one_line(exc), wall_time, rec.columns)
-        try:
-            arrays = rec.arrays()  # the steps done before the error, for debugging
-        except Exception:
-            arrays = {}
-    if out is not None:
-        save_episode(out, row, arrays if record else None, tb, digest)
-    return row
-
-
-def _exit_with_parent() -> None:
-    """Process-pool initializer: end this worker as soon as the parent process ends.
-
-    Pool workers otherwise outlive a parent killed with SIGKILL (or by the OOM killer),
-    blocked forever on the task queue. A worker ended mid-write leaves only a temporary
-    file, which the next run removes.
-    """
-    import multiprocessing
-    import signal
-    import threading
-
-    # Ctrl-C goes to the whole process group: the parent alone handles it (and ends the
-    # workers), so workers print no KeyboardInterrupt tracebacks.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    parent = multiprocessing.parent_process()
-    if parent is None:
-        return
-
-    def watch() -> None:
-        parent.join()  # returns when the parent's end of the spawn pipe closes
-        os._exit(1)
-
-    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
 
 def _connect_dask(scheduler: str | None, dask_workers: int | None, stack: Any):
@@ -230,6 +181,7 @@ def evaluate(
     record: bool = True,
     retry_failed: bool = True,
     progress_label: str | None = None,
+    episode_timeout: float | None = None,
 ) -> list[dict[str, Any]]:
     """Run every (agent, env seed) episode and return one row of metrics per episode.
 
@@ -257,6 +209,10 @@ def evaluate(
         record: save each episode's trajectory (npz) next to its row.
         retry_failed: re-run saved episodes whose ``error`` is not empty.
         progress_label: text before the progress bar (e.g. the sweep's value).
+        episode_timeout: wall-clock limit of one episode [s]: one that runs longer ends as
+            an error row naming the limit, in every executor
+            (:mod:`experiments.evaluation.limits`); ``None`` for the config's
+            ``evaluation.episode_timeout`` (600 s unless set), 0 for no limit.
 
     Returns:
         The rows (:func:`row_columns` of the config's system) of the requested episodes,
@@ -273,13 +229,17 @@ def evaluate(
     specs, seed_list, cfg, columns = _checked_arguments(
         agents, seeds, config, jobs, scheduler, dask_workers
     )
+    limit = check_limit(
+        cfg.evaluation.episode_timeout if episode_timeout is None else episode_timeout
+    )
     out_path = None if out is None else Path(out).resolve()
-    run = _Run(specs, seed_list, cfg, columns, out_path, record, retry_failed)
+    run = _Run(specs, seed_list, cfg, columns, out_path, record, retry_failed, limit)
     if out_path is not None:
         check_folder(out_path, cfg)
 
     with ExitStack() as stack:
         stack.enter_context(remember_interrupts())
+        stack.enter_context(warnings_once())  # (the folder is read more than once)
         # Closed after the executor below (last in, first out): the folder is finished
         # and unlocked only once no worker writes into it any more.
         folder_stack = stack.enter_context(ExitStack())
@@ -347,15 +307,19 @@ class _Run:
         out: Path | None,
         record: bool,
         retry_failed: bool,
+        limit: float | None = None,
     ) -> None:
         names = [name_of(a) for a in specs]
         self.spec_of = dict(zip(names, specs, strict=True))
         # Seed-major order: an interrupted run leaves complete pairs of agents per seed.
         self.pairs = [(a, s) for s in seeds for a in names]
         self.rows: dict[tuple[str, int], dict[str, Any]] = {}
+        self.retried: set[tuple[str, int]] = set()  # pairs whose saved row is an error
         self.cfg, self.columns = cfg, columns
         self.out, self.record, self.retry_failed = out, record, retry_failed
         self.digest = config_hash(cfg)
+        self.limit = limit
+        self.token = secrets.token_hex(8)  # this call's (marks the rows of stuck episodes)
         self.bar: Any = None
         self.last_table = time.monotonic()
         self.n_errors = 0
@@ -363,19 +327,27 @@ class _Run:
     def load_finished(self) -> None:
         """The saved rows of this run's pairs (verified; an error row only without retry)."""
         self.rows.clear()
+        self.retried.clear()
         for a, s in self.pairs:
             row = finished_row(self.out, a, s, self.record, self.digest)
             if row is not None and (row["error"] == "" or not self.retry_failed):
                 self.rows[(a, s)] = row
+            elif (self.out / "episodes" / f"{episode_stem(a, s)}.json").exists():
+                self.retried.add((a, s))  # an error row, or a damaged or incomplete episode
 
     def todo(self) -> list[tuple[str, int]]:
-        """The pairs still to run, in seed-major order."""
-        return [p for p in self.pairs if p not in self.rows]
+        """The pairs still to run, in seed-major order: those never run first, then those
+        whose saved row is an error (so an episode that fails again, or ends a serial run
+        stuck past its limit, comes after the others)."""
+        todo = [p for p in self.pairs if p not in self.rows]
+        return [p for p in todo if p not in self.retried] + [p for p in todo if p in self.retried]
 
-    def task_args(self, agent: str, seed: int) -> tuple:
-        """The arguments of :func:`_episode_task` for one episode."""
+    def task_args(self, agent: str, seed: int, stuck: str = "") -> tuple:
+        """The arguments of :func:`_episode_task` for one episode (``stuck``: what ends
+        when it is stuck past its limit)."""
         out = None if self.out is None else str(self.out)
-        return self.spec_of[agent], self.cfg, seed, out, self.record, self.digest
+        spec = self.spec_of[agent]
+        return spec, self.cfg, seed, out, self.record, self.digest, self.limit, stuck, self.token
 
     def done(self, pair: tuple[str, int], row: dict[str, Any]) -> None:
         """Record a finished episode; rebuild the table now and then."""
@@ -388,16 +360,19 @@ class _Run:
             write_table(self.out, self.columns)
             self.last_table = time.monotonic()
 
-    def lost(self, pair: tuple[str, int], exc: BaseException) -> dict[str, Any]:
-        """The row of an episode whose worker died (or whose task was lost): an error row,
-        saved so that the rerun retries it, unless the episode was saved before the loss."""
+    def lost(self, pair: tuple[str, int], error: str, tb: str = "") -> dict[str, Any]:
+        """The row of an episode whose worker died (or whose task was lost), with the text
+        ``error``: an error row, saved so that the rerun retries it, unless the episode
+        was saved before the loss (or, stuck, saved its own)."""
         if self.out is not None:
             saved = finished_row(self.out, pair[0], pair[1], self.record, self.digest)
             if saved is not None and saved["error"] == "":
                 return saved
-        row = _error_row(pair[0], pair[1], _one_line(exc), math.nan, self.columns)
+            stuck = stuck_row(self.out, pair[0], pair[1], self.token)
+            if stuck is not None:
+                return stuck
+        row = _error_row(pair[0], pair[1], error, math.nan, self.columns)
         if self.out is not None:
-            tb = "".join(traceback.format_exception(exc))
             save_episode(self.out, row, None, tb, self.digest)
         return row
 
@@ -434,19 +409,21 @@ def _run_on_dask(run: _Run, client: Any, todo: Sequence[tuple[str, int]]) -> Non
     """Every episode of ``todo`` as a task of the Dask cluster; cancelled on an interrupt."""
     import distributed
 
-    futures = {
-        client.submit(_episode_task, *run.task_args(a, s), pure=False, key=f"episode-{a}-{s}"): (
-            a,
-            s,
-        )
-        for a, s in todo
-    }
+    futures = {}
+    for a, s in todo:
+        args = run.task_args(a, s, stuck="worker")
+        futures[client.submit(_episode_task, *args, pure=False, key=f"episode-{a}-{s}")] = (a, s)
     try:
         for fut in distributed.as_completed(futures):
             try:
                 row = fut.result()
-            except Exception as exc:
-                row = run.lost(futures[fut], exc)
+            except Exception as exc:  # its workers died (KilledWorker), or the task was lost
+                a, s = futures[fut]
+                text = (
+                    f"WorkerDied: the Dask workers running agent {a!r}, seed {s} died "
+                    f"({_one_line(exc)})"
+                )
+                row = run.lost(futures[fut], text, "".join(traceback.format_exception(exc)))
             run.done(futures[fut], row)
     except BaseException:
         client.cancel(list(futures), force=True)
@@ -454,61 +431,17 @@ def _run_on_dask(run: _Run, client: Any, todo: Sequence[tuple[str, int]]) -> Non
 
 
 def _run_on_pool(run: _Run, jobs: int, todo: Sequence[tuple[str, int]]) -> None:
-    """Every episode of ``todo`` on a process pool of ``jobs`` spawned workers.
-
-    A worker that dies (OOM killer, a crash in native code) breaks the whole pool and fails
-    every unfinished episode; those rerun on a new pool, a few times.
-    """
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
-    pending = list(todo)
-    for restart in range(_POOL_RESTARTS + 1):
-        pool = ProcessPoolExecutor(
-            max_workers=min(jobs, len(pending)),
-            mp_context=multiprocessing.get_context("spawn"),  # no forked CasADi state
-            initializer=_exit_with_parent,
-        )
-        try:
-            broken = _collect_from_pool(run, pool, pending, retry=restart < _POOL_RESTARTS)
-        except BaseException:
-            _stop_pool(pool)  # Ctrl-C or SIGTERM: end the workers now
-            raise
-        pool.shutdown(wait=True, cancel_futures=True)
-        if not broken:
-            break
-        pending = sorted(broken, key=run.pairs.index)
-
-
-def _collect_from_pool(
-    run: _Run, pool: Any, pending: Sequence[tuple[str, int]], retry: bool
-) -> list[tuple[str, int]]:
-    """Submit ``pending`` to ``pool`` and record each result as it comes; returns the
-    pairs a broken pool lost, to retry (with ``retry``; else they are recorded as lost)."""
-    from concurrent.futures import as_completed
-    from concurrent.futures.process import BrokenProcessPool
-
-    broken = []
-    futs = {pool.submit(_episode_task, *run.task_args(a, s)): (a, s) for a, s in pending}
-    for fut in as_completed(futs):
-        try:
-            row = fut.result()
-        except BrokenProcessPool as exc:
-            if retry:
-                broken.append(futs[fut])
-                continue
-            row = run.lost(futs[fut], exc)
-        except Exception as exc:
-            row = run.lost(futs[fut], exc)
-        run.done(futs[fut], row)
-    return broken
+    """Every episode of ``todo`` on ``jobs`` spawned worker processes, one episode per
+    worker at a time (:mod:`experiments.evaluation.pool`): a worker that dies, or is
+    stopped past the limit, costs its own episode only."""
+    run_on_pool(todo, jobs, lambda pair: run.task_args(*pair), run.done, run.lost, run.limit)
 
 
 def _run_serially(run: _Run, todo: Sequence[tuple[str, int]]) -> None:
     """Every episode of ``todo`` in this process, one after the other."""
     for a, s in todo:
         raise_if_interrupted()
-        run.done((a, s), _episode_task(*run.task_args(a, s)))
+        run.done((a, s), _episode_task(*run.task_args(a, s, stuck="run")))
 
 
 def _finish_folder(out: Path, columns: Sequence[str]) -> None:
@@ -517,21 +450,6 @@ def _finish_folder(out: Path, columns: Sequence[str]) -> None:
     # folder is locked, so every temporary file in it is of this run.
     _remove_stale_temp_files(out)
     write_table(out, columns)
-
-
-def _stop_pool(pool: Any) -> None:
-    """End a process pool's workers at once (SIGTERM, then SIGKILL after a grace time)."""
-    processes = list((getattr(pool, "_processes", None) or {}).values())
-    pool.shutdown(wait=False, cancel_futures=True)
-    for p in processes:
-        if p.is_alive():
-            p.terminate()
-    deadline = time.monotonic() + _STOP_TIMEOUT
-    for p in processes:
-        p.join(max(0.0, deadline - time.monotonic()))
-        if p.is_alive():
-            p.kill()
-            p.join()
 
 
 __all__ = [

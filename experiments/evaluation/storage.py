@@ -11,7 +11,9 @@ run writes into it. Downstream readers use
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import fcntl
 import hashlib
 import io
 import json
@@ -19,9 +21,10 @@ import math
 import os
 import secrets
 import socket
+import sys
 import time
 import zipfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -108,6 +111,7 @@ def save_episode(
     trajectory: dict[str, np.ndarray] | None,
     traceback_text: str = "",
     config_digest: str = "",
+    run_token: str = "",
 ) -> Path:
     """Save an episode as ``episodes/<agent>__seed<seed>.npz`` then ``.json``, atomically.
 
@@ -117,6 +121,8 @@ def save_episode(
         trajectory: arrays for the npz; ``None`` writes the json only.
         traceback_text: the traceback of a failed episode, kept in the json.
         config_digest: :func:`config_hash` of the episode's config, kept in the json.
+        run_token: the run's token, for the row of an episode that got stuck past its
+            limit and ended its process (:func:`stuck_row`); kept in the json as ``run``.
 
     Returns:
         The json's path (its presence marks the episode finished).
@@ -129,6 +135,8 @@ def save_episode(
     record["agent_seed"] = agent_seed(row["seed"], row["agent"])
     record["traceback"] = traceback_text
     record["config_hash"] = config_digest
+    if run_token:
+        record["run"] = run_token
     text = json.dumps(record, indent=1, allow_nan=False) + "\n"
     json_path = folder / f"{stem}.json"
     _atomic_write(json_path, lambda fh: fh.write(text.encode()))
@@ -139,6 +147,7 @@ _JSON_EXTRAS = (
     "agent_seed",
     "traceback",
     "config_hash",
+    "run",
 )  # keys of an episode json that are not columns
 
 
@@ -204,11 +213,32 @@ def _read_row(path: Path) -> dict[str, Any] | None:
     return {k: v for k, v in record.items() if k not in _JSON_EXTRAS}
 
 
-def _warn(message: str) -> None:
-    """One line on stderr: a damaged file is named, never dropped silently."""
-    import sys
+# The warnings printed in the current warnings_once() scope (innermost last).
+_WARNED: list[set[str]] = []
 
+
+@contextlib.contextmanager
+def warnings_once() -> Iterator[None]:
+    """Within it, each warning of :func:`warn` is printed once (an evaluation reads its
+    folder more than once; a report reads a trajectory in several sections)."""
+    _WARNED.append(set())
+    try:
+        yield
+    finally:
+        _WARNED.pop()
+
+
+def warn(message: str) -> None:
+    """One line ``warning: <message>`` on stderr (once per :func:`warnings_once` scope): a
+    damaged file is named, never dropped silently."""
+    if _WARNED:
+        if message in _WARNED[-1]:
+            return
+        _WARNED[-1].add(message)
     print(f"warning: {message}", file=sys.stderr, flush=True)
+
+
+_warn = warn
 
 
 def saved_rows(out: str | os.PathLike) -> list[dict[str, Any]]:
@@ -284,6 +314,22 @@ def finished_row(
         _warn(f"{exc}; running the episode again")
         return None
     return {k: v for k, v in record_.items() if k not in _JSON_EXTRAS}
+
+
+def stuck_row(out: str | os.PathLike, agent_name: str, seed: int, token: str) -> dict | None:
+    """The row an episode saved when it got stuck past its limit in the run of ``token``
+    and ended its process (``None`` if it did not): a task run again after that process
+    ended (a Dask worker's) returns it instead of running the episode again."""
+    path = Path(out) / _EPISODES / f"{episode_stem(agent_name, seed)}.json"
+    if not token or not path.is_file():
+        return None
+    try:
+        record = _read_record(path)
+    except DamagedEpisodeError:
+        return None
+    if record.get("run") != token:
+        return None
+    return {k: v for k, v in record.items() if k not in _JSON_EXTRAS}
 
 
 def _csv_value(v: Any) -> str:
@@ -390,61 +436,123 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
-class FolderLock:
-    """Ownership of a results folder by one run: ``out/.lock`` holds ``<pid> <host>``.
+def _lock_owner(fd: int) -> tuple[bool, str]:
+    """Whether the lock file names a live owner (a live process of this host, or one of
+    another host), and a text naming it for a message."""
+    try:
+        parts = os.pread(fd, 200, 0).decode(errors="replace").split()
+    except OSError:
+        parts = []
+    if len(parts) == 2 and parts[0].isdigit():
+        alive = parts[1] != socket.gethostname() or _pid_alive(int(parts[0]))
+        return alive, f"process {parts[0]} on {parts[1]}"
+    return False, "another process"
 
-    Taken with ``O_EXCL``; a lock of a process that no longer runs on this host is stale
-    and taken over. Another live owner gets a :class:`ResultsFolderError` naming it.
+
+def folder_in_use(out: str | os.PathLike) -> str | None:
+    """Who holds the lock of the folder ``out`` (a text naming the process), or ``None``
+    when no run writes into it. Looks without taking the lock for more than a moment
+    (a run that starts meanwhile tries again: :meth:`FolderLock.acquire`)."""
+    try:
+        fd = os.open(Path(out) / _LOCK, os.O_RDONLY | os.O_NOFOLLOW)
+    except OSError:
+        return None  # no lock file: no owner
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return _lock_owner(fd)[1]
+    except OSError:
+        return None
+    finally:
+        os.close(fd)  # (releases a lock taken)
+    return None
+
+
+class FolderLock:
+    """Ownership of a folder by one process: an operating-system lock on ``out/.lock``.
+
+    The lock is ``flock`` (exclusive, not waiting) on the open lock file, which the kernel
+    releases when its owner ends, however it ends (SIGKILL, the OOM killer, a crash): no
+    stale lock is ever taken over, and of any number of processes trying at once exactly
+    one owns the folder. The file holds ``<pid> <host>`` of the owner, for the message
+    another process gets: a :class:`ResultsFolderError` naming it. The owner removes the
+    file when it releases the lock (a lock file left by a killed owner is free to take).
+    The lock is local to one machine's kernel (and NFS with its lock manager).
+
+    Args:
+        out: the folder (it must exist).
+        what: how the messages call the folder.
+        hint: what the message of a refusal advises.
     """
 
-    def __init__(self, out: Path) -> None:
+    def __init__(
+        self,
+        out: Path,
+        what: str = "results folder",
+        hint: str = "wait for that run to end or choose another output folder",
+    ) -> None:
         self.path = Path(out) / _LOCK
+        self.what, self.hint = what, hint
         self.text = f"{os.getpid()} {socket.gethostname()}\n"
-
-    def _owner(self) -> tuple[int, str] | None:
-        for _ in range(10):  # the owner may be between creating and writing it
-            try:
-                parts = self.path.read_text().split()
-            except FileNotFoundError:
-                return None
-            if len(parts) == 2 and parts[0].isdigit():
-                return int(parts[0]), parts[1]
-            time.sleep(0.05)
-        return -1, ""  # garbage: treated as stale
+        self._fd: int | None = None
 
     def acquire(self) -> FolderLock:
-        for _ in range(3):
+        """Take the lock, or raise :class:`ResultsFolderError` naming its owner.
+
+        A lock held while the file names no live owner (an owner between taking the lock
+        and writing its name, or a reader's short look: :func:`folder_in_use`) is tried
+        again for a moment before the folder is refused.
+        """
+        folder = str(self.path.parent)
+        for attempt in range(40):
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
             try:
-                fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-            except FileExistsError:
-                owner = self._owner()
-                if owner is None:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                alive, owner = _lock_owner(fd)
+                os.close(fd)
+                if not alive and attempt < 39:
+                    time.sleep(0.01)
                     continue
-                pid, host = owner
-                if pid > 0 and (host != socket.gethostname() or _pid_alive(pid)):
-                    raise ResultsFolderError(
-                        f"results folder {str(self.path.parent)!r} is in use by process {pid} "
-                        f"on {host} (lock file {str(self.path)!r}); wait for that run to end "
-                        "or choose another output folder"
-                    ) from None
-                # Stale (its process is gone): move it aside, so only one taker wins.
-                try:
-                    os.rename(self.path, self.path.with_name(f"{_LOCK}.stale.{os.getpid()}"))
-                    self.path.with_name(f"{_LOCK}.stale.{os.getpid()}").unlink()
-                except FileNotFoundError:
-                    pass
+                raise ResultsFolderError(
+                    f"{self.what} {folder!r} is in use by {owner} (lock file "
+                    f"{str(self.path)!r}); {self.hint}"
+                ) from None
+            except BaseException:
+                os.close(fd)
+                raise
+            # Its previous owner may have removed the file between our open and our lock:
+            # the lock then holds a file no other process can find. Try again.
+            try:
+                current = os.stat(self.path)
+                mine = os.fstat(fd)
+                same = (current.st_dev, current.st_ino) == (mine.st_dev, mine.st_ino)
+            except FileNotFoundError:
+                same = False
+            if not same:
+                os.close(fd)
                 continue
-            with os.fdopen(fd, "w") as fh:
-                fh.write(self.text)
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, self.text.encode(), 0)
+            self._fd = fd
             return self
-        raise ResultsFolderError(f"results folder {str(self.path.parent)!r}: cannot take its lock")
+        raise ResultsFolderError(f"{self.what} {folder!r}: cannot take its lock {self.path}")
 
     def release(self) -> None:
+        """Remove the lock file and release the lock (nothing if not held)."""
+        if self._fd is None:
+            return
         try:
-            if self.path.read_text() == self.text:
-                self.path.unlink()
-        except FileNotFoundError:
-            pass
+            self.path.unlink(missing_ok=True)  # while still holding it
+        finally:
+            os.close(self._fd)
+            self._fd = None
+
+    def __enter__(self) -> FolderLock:
+        return self.acquire()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.release()
 
 
 def _prepare_folder(out: Path, config: ExperimentConfig) -> None:
@@ -467,9 +575,13 @@ __all__ = [
     "episode_stem",
     "finished_row",
     "FolderLock",
+    "folder_in_use",
     "load_trajectory",
     "ResultsFolderError",
     "save_episode",
     "saved_rows",
+    "stuck_row",
+    "warn",
+    "warnings_once",
     "write_table",
 ]

@@ -51,7 +51,12 @@ def _default_figure_seed(results: Results, agent: str) -> tuple[int | None, str]
     chosen only when no other has a trajectory, and the sentence says so.
     """
     rows = results.rows_of(agent, include_errors=True)
-    saved = [r for r in rows if results.trajectory_path(agent, r["seed"]).is_file()]
+    saved = [
+        r
+        for r in rows
+        if results.trajectory_path(agent, r["seed"]).is_file()
+        and results.trajectory_path(agent, r["seed"]) not in results.damaged
+    ]
     good = [r for r in saved if not r.get("error") and _steps(r) > 0]
     skipped = sorted({int(r["seed"]) for r in saved if r not in good})
     if good:
@@ -162,16 +167,28 @@ def _episode_section(doc: Document, results: Results, figure_seed: int | None, g
     main_agent = _main_agent(results)
 
     doc.heading("One episode")
-    figure_seed, why = _episode_seed(results, main_agent, figure_seed)
-    if figure_seed is None:
-        doc.paragraph(f"No saved trajectory of `{main_agent}`: no episode figures.")
-        return
-    traj = load_trajectory(results, main_agent, figure_seed)
-    if traj is None:
-        raise ValueError(
-            f"no saved trajectory of agent {main_agent!r} for seed {figure_seed}: "
-            f"{results.trajectory_path(main_agent, figure_seed)} does not exist"
-        )
+    chosen = figure_seed
+    while True:
+        figure_seed, why = _episode_seed(results, main_agent, chosen)
+        if figure_seed is None:
+            doc.paragraph(f"No saved trajectory of `{main_agent}`: no episode figures.")
+            return
+        traj = load_trajectory(results, main_agent, figure_seed)
+        if traj is not None:
+            break
+        path = results.trajectory_path(main_agent, figure_seed)
+        if path not in results.damaged:
+            raise ValueError(
+                f"no saved trajectory of agent {main_agent!r} for seed {figure_seed}: "
+                f"{path} does not exist"
+            )
+        if chosen is not None:  # the seed asked for: its file is damaged
+            doc.paragraph(
+                f"The episode file of `{main_agent}` on seed {figure_seed} is damaged and left "
+                f"out (`{path.name}`): no episode figures."
+            )
+            return
+        # the default seed's file is damaged: the next one (_default_figure_seed skips it)
     label = agent_label(main_agent)
     goal = _goal(results)
     doc.paragraph(

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import csv
 import math
-import zipfile
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -38,6 +37,8 @@ class Results:
     rows: list[dict[str, Any]]  # one per episode; numbers as float, agent/error as str
     config: WorldConfig  # the ``env`` section, as the config of the file's world (env_id)
     agent_settings: dict = field(default_factory=dict)  # the ``agents`` section, plain
+    # Episode files that did not load, each with why (left out, named once on stderr).
+    damaged: dict[Path, str] = field(default_factory=dict)
 
     @cached_property
     def system(self) -> ControlSystem:
@@ -147,28 +148,29 @@ def _complete_tolerance_columns(results: Results) -> None:
         missing = [c for c in columns if not np.isfinite(row.get(c, math.nan))]
         if not missing or row["error"]:
             continue
-        try:
-            traj = load_trajectory(results, row["agent"], row["seed"])
-        except (OSError, ValueError, zipfile.BadZipFile):  # unreadable: leave them missing
-            continue
-        if traj is None:
+        traj = load_trajectory(results, row["agent"], row["seed"])
+        if traj is None:  # not saved, or damaged: leave them missing
             continue
         counts = violation_counts(traj, results.system)
         row.update((c, float(counts[c])) for c in missing if c in counts)
 
 
 def load_trajectory(results: Results, agent: str, seed: int) -> dict[str, np.ndarray] | None:
-    """The saved arrays of one episode, or ``None`` if none were saved.
-
-    Raises:
-        DamagedEpisodeError: naming the file, if it exists but does not load (truncated).
-    """
+    """The saved arrays of one episode, or ``None`` if none were saved or its file is
+    damaged: a damaged file (truncated, not an npz) is left out, named in a warning on
+    stderr and recorded in :attr:`Results.damaged` (for the report to say so)."""
     path = results.trajectory_path(agent, seed)
-    if not path.is_file():
+    if not path.is_file() or path in results.damaged:
         return None
+    from experiments.evaluation.storage import DamagedEpisodeError, warn
     from experiments.evaluation.storage import load_trajectory as load_saved
 
-    return load_saved(path.parent.parent, agent, seed)
+    try:
+        return load_saved(path.parent.parent, agent, seed)
+    except DamagedEpisodeError as exc:
+        results.damaged[path] = str(exc)
+        warn(f"{exc}; left out")
+        return None
 
 
 __all__ = [

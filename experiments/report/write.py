@@ -8,9 +8,11 @@ Reads a results folder written by the evaluation (it never re-runs an episode):
 * ``DIR/episodes/<agent>__seed<seed>.npz``: the arrays of that episode;
 * ``DIR/config.yaml``: the config of the run (``env_id``, ``env`` and ``agents``).
 
+It opens with the metrics that do not reward failing (:mod:`experiments.report.survival`).
 Besides the per-agent and paired tables (with the tolerance-aware violation counts of
 :func:`~experiments.evaluation.columns.row_columns`), it holds the estimators' calibration (2-sigma
-coverage and RMSE per state and for the latent force, from the saved trajectories) and,
+coverage and RMSE per state and for the latent force, from the saved trajectories), the
+chance constraint against its design (:mod:`experiments.report.chance`) and,
 when given a sweep folder of :mod:`experiments.sweep` (or when ``DIR`` holds one), the
 risk sweep's table and Pareto figure.
 
@@ -32,13 +34,14 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from controllers.agents.registry import AGENT_REGISTRY
 from experiments import plots
 from experiments.evaluation.columns import tolerance_columns
+from experiments.evaluation.storage import folder_in_use, warn, warnings_once
+from experiments.report.chance import chance_section
 from experiments.report.document import GIF_EMBED_LIMIT, Document, embedded_image
 from experiments.report.figures import check_figure_seed, figures_section
 from experiments.report.format import agent_label, fmt, fmt_estimate, long_label
@@ -72,15 +75,8 @@ from experiments.report.stats import (
     tolerance_metrics,
     zero_violation_metrics,
 )
-from experiments.report.sweep_summary import (
-    FIGURE_CAPTION,
-    SWEEP_TABLE,
-    SweepSummary,
-    load_sweep,
-    sweep_description,
-    sweep_figure,
-    sweep_table,
-)
+from experiments.report.survival import headline_section
+from experiments.report.sweep_section import check_sweep_config, load_report_sweep, sweep_section
 from lfm_env.system import split_unit
 
 PAPER_ENV_ID = "lfm_env/SineTrack-v0"  # the paper's world: "paper vs measured" only there
@@ -214,6 +210,23 @@ def _errors_section(doc: Document, results: Results) -> None:
     doc.table(
         ["agent", "seed", "error"],
         [[agent_label(r["agent"]), str(r["seed"]), r["error"][:300]] for r in errors],
+    )
+
+
+def _damaged_section(doc: Document, results: Results) -> None:
+    """The episode files that did not load, left out of the figures (the table's rows of
+    those episodes are kept: the statistics read ``episodes.csv``)."""
+    if not results.damaged:
+        return
+    doc.heading("Damaged episode files")
+    doc.paragraph(
+        f"{len(results.damaged)} episode file(s) did not load and are left out of the figures "
+        "and of the pooled solve times (their rows in episodes.csv are kept); rerunning the "
+        "evaluation into this folder runs those episodes again."
+    )
+    doc.table(
+        ["file", "why"],
+        [[path.name, why[-300:]] for path, why in sorted(results.damaged.items())],
     )
 
 
@@ -432,99 +445,13 @@ def _pooled_solve_times(results: Results, agent: str) -> np.ndarray:
     chunks = []
     for row in results.rows_of(agent):
         traj = load_trajectory(results, agent, row["seed"])
+        if traj is None and results.trajectory_path(agent, row["seed"]) in results.damaged:
+            continue  # (named in the report)
         if traj is None or "solve_time" not in traj:
             return np.zeros(0)
         chunks.append(np.asarray(traj["solve_time"], dtype=float))
     st = np.concatenate(chunks) if chunks else np.zeros(0)
     return st[np.isfinite(st)]
-
-
-def _load_sweep(directory: Path, sweep_dir: str | Path | None) -> SweepSummary | None:
-    """The risk sweep to include: ``sweep_dir``'s, else the folder's own if it has one."""
-    if sweep_dir is None:
-        if not (directory / SWEEP_TABLE).is_file():
-            return None
-        sweep_dir = directory
-    return load_sweep(sweep_dir)
-
-
-def _flat(data: Any, prefix: str = "") -> dict[str, Any]:
-    """A nested config mapping as ``{dotted key: value}``."""
-    if not isinstance(data, dict):
-        return {prefix: data}
-    out: dict[str, Any] = {}
-    for key, value in data.items():
-        out.update(_flat(value, f"{prefix}.{key}" if prefix else str(key)))
-    return out
-
-
-def config_differences(ours: dict, theirs: dict) -> list[tuple[str, Any, Any]]:
-    """``(dotted key, our value, their value)`` of every field two resolved configs (their
-    :meth:`~controllers.config.ExperimentConfig.to_dict`) hold differently, sorted."""
-    a, b = _flat(ours), _flat(theirs)
-    missing = object()
-    return [
-        (k, a.get(k, "(none)"), b.get(k, "(none)"))
-        for k in sorted(set(a) | set(b))
-        if a.get(k, missing) != b.get(k, missing)
-    ]
-
-
-def _check_sweep_config(
-    results: Results, summary: SweepSummary, allow: bool
-) -> list[tuple[str, Any, Any]]:
-    """The fields where the sweep's base config differs from the report's; refused (a
-    ``ValueError`` listing them) unless ``allow``."""
-    from controllers.config import load_config
-
-    ours = load_config(results.directory / "config.yaml").to_dict()
-    diffs = config_differences(ours, summary.config)
-    if diffs and not allow:
-        shown = "; ".join(f"{k} ({_text(a)} here, {_text(b)} there)" for k, a, b in diffs[:8])
-        more = f"; and {len(diffs) - 8} more" if len(diffs) > 8 else ""
-        raise ValueError(
-            f"the sweep {summary.directory} ran on another config than {results.directory}: "
-            f"{shown}{more}. Rerun the sweep on this config, or include it anyway with "
-            "lfm-report --allow-other-config (the report then lists these fields)"
-        )
-    return diffs
-
-
-def _text(value: Any) -> str:
-    return str(value) if not isinstance(value, str) else repr(value)
-
-
-def _sweep_section(
-    doc: Document,
-    results: Results,
-    summary: SweepSummary,
-    differences: Sequence[tuple[str, Any, Any]] = (),
-) -> None:
-    """The risk sweep's table and Pareto figure (see :mod:`experiments.sweep`), with the
-    fields its config does not share with the report's, if any."""
-    doc.heading(f"Risk trade-off: `{summary.key}` of `{summary.agent}`")
-    world = summary.system.name
-    doc.paragraph(
-        f"From the sweep folder `{summary.directory}` (`lfm-sweep`, on the `{world}` system"
-        + ("" if world == results.system.name else ", not this report's world")
-        + "). "
-        + sweep_description(summary)
-    )
-    if differences:
-        doc.paragraph(
-            f"**The sweep ran on another config than this report** ({len(differences)} "
-            "fields differ; included with `--allow-other-config`): its numbers are not "
-            "comparable with the tables above."
-        )
-        doc.table(
-            ["field", "this report", "the sweep"],
-            [[f"`{k}`", _text(a), _text(b)] for k, a, b in differences],
-        )
-    header, rows = sweep_table(summary)
-    doc.table(header, rows)
-    rel = "figures/sweep.png"
-    plots.save_figure(sweep_figure(summary), results.directory / rel)
-    doc.image(rel, FIGURE_CAPTION)
 
 
 # --------------------------------------------------------------------------- entry point
@@ -563,11 +490,30 @@ def write_report(
             ``baseline`` is not an agent of the results (the message lists them), or the
             sweep ran on another config (the message lists the fields).
     """
+    with warnings_once():  # (a damaged file is read by several sections)
+        return _write_report(results_dir, figure_seed, gif, sweep_dir, baseline, allow_other_config)
+
+
+def _write_report(
+    results_dir: str | Path,
+    figure_seed: int | None,
+    gif: bool,
+    sweep_dir: str | Path | None,
+    baseline: str | None,
+    allow_other_config: bool,
+) -> Path:
+    """:func:`write_report`'s work."""
+    owner = folder_in_use(results_dir)
+    if owner is not None:
+        warn(
+            f"results folder {str(results_dir)!r} is still being written by {owner}; the "
+            "report holds the episodes finished so far"
+        )
     results = load_results(results_dir)
     baseline = choose_baseline(results, baseline)
     check_figure_seed(results, figure_seed)  # before writing any file
-    sweep = _load_sweep(results.directory, sweep_dir)
-    differences = [] if sweep is None else _check_sweep_config(results, sweep, allow_other_config)
+    sweep = load_report_sweep(results.directory, sweep_dir)
+    differences = [] if sweep is None else check_sweep_config(results, sweep, allow_other_config)
     stats = summarize(results)
     doc = Document()
     title = f"Evaluation report: {results.directory.name}"
@@ -582,15 +528,23 @@ def write_report(
     )
     doc.bullets([f"`{a}`: {long_label(a)}" for a in results.agents])
     _model_section(doc, results)
+    headline_section(doc, results, baseline)  # survival-unbiased metrics, against robust
     _summary_section(doc, results, stats)
     _errors_section(doc, results)
     _paired_section(doc, results, baseline)
     if results.config.ENV_ID == PAPER_ENV_ID:
         _paper_vs_measured_section(doc, results, _pooled_solve_times(results, REFERENCE_AGENT))
     _calibration_section(doc, results)
+    chance_section(doc, results)  # the chance constraint against its design
     if sweep is not None:
-        _sweep_section(doc, results, sweep, differences)
+        sweep_section(doc, results, sweep, differences)
     figures_section(doc, results, figure_seed, gif)
+    _damaged_section(doc, results)
+    if owner is not None:
+        doc.paragraph(
+            f"Written while the results folder was still being written by {owner}: the "
+            "report holds the episodes finished by then."
+        )
 
     md_path = results.directory / "report.md"
     md_path.write_text(doc.markdown())
@@ -611,7 +565,6 @@ __all__ = [
     "bootstrap_ci",
     "calibration",
     "choose_baseline",
-    "config_differences",
     "load_results",
     "load_trajectory",
     "group_metrics",

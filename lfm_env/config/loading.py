@@ -193,15 +193,18 @@ def load_yaml(path: str | os.PathLike) -> dict:
     return data
 
 
-TOP_LEVEL_KEYS = ("env_id", "env", "agents")
+#: The top level of a config file: the world (``env_id``, ``env``), the agents and how an
+#: evaluation runs (``evaluation``: :class:`controllers.config.EvaluationConfig`).
+TOP_LEVEL_KEYS = ("env_id", "env", "agents", "evaluation")
 
 
 def read_section(source: Any, section: str) -> dict | None:
     """The ``section`` mapping of a config given as a preset's name, a path, a dict or ``None``.
 
-    A dict that holds top-level keys (``env_id``, ``env``, ``agents``) gives the named
-    section; any other dict is taken as the section itself. A name, a path and a ``base:``
-    are resolved by :func:`lfm_env.config.compose.read_config`.
+    A dict that holds top-level keys (:data:`TOP_LEVEL_KEYS`) gives the named section; any
+    other dict is taken as the section itself.
+    A name, a path and a ``base:`` are resolved by
+    :func:`lfm_env.config.compose.read_config`.
     """
     if source is None:
         return None

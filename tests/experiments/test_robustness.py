@@ -39,6 +39,7 @@ from controllers.problem import ScenarioProblem
 from controllers.solvers import make_solver
 from experiments.cli import evaluate_main, render_main, report_main
 from experiments.evaluation import run as evaluation
+from experiments.evaluation import task as episode_task
 from experiments.evaluation.run import (
     ResultsFolderError,
     evaluate,
@@ -95,7 +96,7 @@ def no_work(monkeypatch):
 
     monkeypatch.setattr(agents_module, "make_solver", refuse)
     monkeypatch.setattr(evaluation, "_episode_task", refuse)
-    monkeypatch.setattr(evaluation, "_simulate", refuse)
+    monkeypatch.setattr(episode_task, "_simulate", refuse)
     monkeypatch.setattr(evaluation, "_connect_dask", refuse)
 
 
@@ -1176,11 +1177,11 @@ def test_pool_worker_killed_mid_run_the_table_ends_complete(tmp_path):
 def test_a_worker_killed_mid_write_leaves_no_temporary_file(tmp_path, monkeypatch):
     task = evaluation._episode_task
 
-    def task_after_a_torn_write(agent_name, config, seed, out, record, digest=""):
+    def task_after_a_torn_write(agent_name, config, seed, out, record, *rest):
         # What a worker killed inside an atomic write (its episode rerun elsewhere) leaves.
         torn = Path(out) / "episodes" / f".{agent_name}__seed{seed}.npz.4242.dead.tmp"
         torn.write_bytes(b"torn")
-        return task(agent_name, config, seed, out, record, digest)
+        return task(agent_name, config, seed, out, record, *rest)
 
     monkeypatch.setattr(evaluation, "_episode_task", task_after_a_torn_write)
     rows = evaluate(["nominal"], [0, 1], TINY, out=tmp_path, progress=False)
@@ -1421,8 +1422,11 @@ def test_results_loaders_refuse_pickled_arrays(tmp_path):
     with pytest.raises(ValueError, match="allow_pickle"):
         load_trajectory(folder, "nominal", 0)
     results = report.Results(folder, [], SineTrackConfig())
-    with pytest.raises(ValueError, match="allow_pickle"):
-        report.load_trajectory(results, "nominal", 0)
+    # The report's loader leaves such a file out (issue 34: one damaged file does not fail
+    # a report), naming why; the pickle is never run either way.
+    assert report.load_trajectory(results, "nominal", 0) is None
+    (reason,) = results.damaged.values()
+    assert "allow_pickle" in reason
     assert not marker.exists()
 
 

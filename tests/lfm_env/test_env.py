@@ -377,6 +377,8 @@ def test_pickle_round_trip_of_a_reset_env(make_env):
         np.testing.assert_array_equal(s1[0], s2[0])
         assert s1[1:4] == s2[1:4]
         assert_infos_equal(s1[4], s2[4])
+        if s1[2]:  # terminated: both refuse further steps
+            break
 
 
 def test_preview_does_not_change_the_episode_and_foretells_the_latent_force(make_env):
@@ -939,3 +941,23 @@ def test_render_without_render_mode_warns_and_returns_none(make_env):
     env.reset(seed=0)
     with pytest.warns(UserWarning, match="render_mode"):
         assert env.render() is None
+
+
+def test_step_after_the_episode_terminated_is_refused_until_reset():
+    """Lesser case: stepping on after ``terminated`` went on accumulating reward. Gymnasium
+    says reset() is then necessary: the env refuses, naming it, until reset."""
+    env = make()
+    reset_at(env, [60.0, 0.0, 20.0, 0.0])
+    _, _, terminated, _, _ = env.step([0.0, 0.0])
+    assert terminated
+    with pytest.raises(gym.error.ResetNeeded, match=r"terminated.*call reset\(\) first"):
+        env.step([0.0, 0.0])
+    reset_at(env, [60.0, 0.0, 20.0, 0.0])
+    assert env.step([0.0, 0.0])[2]  # after reset: steps again
+
+
+@pytest.mark.parametrize("options", [[1, 2], "initial_state", 3])
+def test_reset_options_that_are_not_a_dict_are_named(options):
+    """Lesser case: ``reset(options=[1, 2])`` gave a bare TypeError from ``dict()``."""
+    with pytest.raises(TypeError, match=r"reset\(options=.*\): options must be a dict"):
+        make().reset(seed=0, options=options)

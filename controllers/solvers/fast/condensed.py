@@ -19,11 +19,12 @@ environment variable ``LFM_BACKEND`` = ``auto`` (default), ``c``, ``numpy`` or `
 
 * ``"compiled-c"``: the whole per-iteration work (rollout, sensitivities, gradient,
   Hessian) in one C library generated from those expressions, compiled once per system
-  and cached on disk (:mod:`controllers.solvers.fast.codegen.build`); the default when a C
-  compiler is found (or the library is cached);
+  and compiler and cached on disk (:mod:`controllers.solvers.fast.codegen.build`); the
+  default when a C compiler is found;
 * ``"numpy-lanes"``: NumPy condensing, the pointwise derivatives generated as NumPy code
   evaluated on all ``Ns N`` points per call (:mod:`controllers.solvers.fast.lanes`); the
-  fallback when no compiler is found or compilation fails (:attr:`backend_error` says why);
+  fallback when no compiler is found or compilation fails (:attr:`backend_error` says why;
+  a one-line warning on stderr says so once per process);
 * ``"casadi-vm"``: the same NumPy condensing with the pointwise functions in CasADi's
   virtual machine (slow; used when the lanes lack an operation, or when asked for).
 
@@ -50,9 +51,10 @@ from controllers.solvers.fast.codegen.build import (
     CodegenUnavailable,
     address,
     build_library,
-    constraint_jacobian_pattern,
+    notice,
     ptr,
 )
+from controllers.solvers.fast.codegen.source import constraint_jacobian_pattern
 from controllers.solvers.fast.iterate import Linearisation, Rollout
 from controllers.solvers.fast.lanes import LaneFunction
 from controllers.solvers.fast.screening import (
@@ -80,8 +82,8 @@ class CondensedModel:
 
     Args:
         problem: the scenario problem (its model's system gives every expression).
-        backend: ``"auto"`` (compiled C if a compiler or a cached library is there, else
-            NumPy lanes), ``"c"`` (compiled C or :class:`CodegenUnavailable`), ``"numpy"``
+        backend: ``"auto"`` (compiled C if a compiler is there, else NumPy lanes),
+            ``"c"`` (compiled C or :class:`CodegenUnavailable`), ``"numpy"``
             or ``"vm"``; ``None`` reads ``$LFM_BACKEND`` (default ``"auto"``).
 
     A model serves one call at a time: its rollout arrays and the Hessian's scratch are its
@@ -133,6 +135,10 @@ class CondensedModel:
                 if choice == "c":
                     raise
                 self.backend_error = str(err)
+                notice(
+                    f"the fast solver's C library is not available ({err}); the fast solver "
+                    "uses its NumPy backend in this process (slower)"
+                )
             else:
                 self._lib, self.compile_time, self.cache_hit = (
                     built.lib,

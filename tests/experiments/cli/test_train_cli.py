@@ -65,3 +65,78 @@ def test_the_eval_config_beside_the_policy_evaluates_it_from_any_folder(
     monkeypatch.chdir(elsewhere)
     rows = evaluate(["rl"], [0], config=str(out / "eval.yaml"), progress=False)
     assert rows[0]["error"] == "" and rows[0]["steps"] > 0
+
+
+def _train(tmp_path, out, *extra: str) -> int:
+    config = tmp_path / "short.yaml"
+    config.write_text("env:\n  max_steps: 20\n")
+    argv = ["--config", str(config), "--timesteps", "64", "--n-envs", "1", "--out", str(out)]
+    return main([*argv, "--no-progress", *extra])
+
+
+def _steps(out) -> int:
+    return json.loads((out / "policy.json").read_text())["timesteps"]
+
+
+def test_a_folder_with_a_policy_is_refused_unless_resumed_or_replaced(tmp_path, capsys):
+    """Case 10: a rerun silently replaced a longer-trained policy. Now it is refused naming
+    --resume and --force, and the policy is kept; --resume trains it further, --force
+    replaces it."""
+    out = tmp_path / "run"
+    assert _train(tmp_path, out) == 0
+    first, policy = _steps(out), (out / "policy.zip").read_bytes()
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        _train(tmp_path, out)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("lfm-train: error: training folder")
+    assert f"ppo policy trained for {first} steps" in err
+    assert "--resume" in err and "--force" in err
+    assert (out / "policy.zip").read_bytes() == policy and _steps(out) == first
+    assert _train(tmp_path, out, "--resume") == 0
+    resumed = json.loads((out / "policy.json").read_text())
+    assert resumed["resumed_from"] == first and resumed["timesteps"] >= first + 64
+    assert (out / "policy.zip").read_bytes() != policy
+    with pytest.raises(SystemExit):
+        _train(tmp_path, out, "--resume", "--algo", "sac")
+    assert "resume it with --algo ppo" in capsys.readouterr().err
+    assert _train(tmp_path, out, "--force", "--seed", "9") == 0
+    replaced = json.loads((out / "policy.json").read_text())
+    assert replaced["resumed_from"] == 0 and replaced["seed"] == 9 and replaced["timesteps"] < 128
+    with pytest.raises(SystemExit):
+        _train(tmp_path, tmp_path / "empty", "--resume")
+    assert "holds no policy to resume" in capsys.readouterr().err
+
+
+def test_two_runs_into_one_folder_cannot_both_train(tmp_path, capsys):
+    """Case 10: two runs into one folder both succeeded (the last one's policy won). Now
+    the second is refused while the first trains, naming it."""
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    out = tmp_path / "run"
+    first = subprocess.Popen(
+        [str(Path(sys.executable).with_name("lfm-train")), "--timesteps", "100000000"]
+        + ["--n-envs", "1", "--out", str(out), "--no-progress", "--minutes", "5"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while not (out / ".lock").exists() or not (out / ".lock").read_text():
+            assert first.poll() is None, first.communicate()
+            assert time.monotonic() < deadline, "the first run never took its folder"
+            time.sleep(0.1)
+        with pytest.raises(SystemExit) as exc:
+            _train(tmp_path, out)
+        assert exc.value.code == 2
+        err = capsys.readouterr().err.strip().splitlines()[-1]
+        assert f"is in use by process {first.pid} on " in err
+        assert not (out / "policy.zip").exists()  # the second run trained nothing
+    finally:
+        first.kill()
+        first.wait()

@@ -79,9 +79,9 @@ def test_rerun_skips_finished_episodes_and_redoes_lost_ones(tmp_path, monkeypatc
     calls = []
     task = evaluation._episode_task
 
-    def counting(agent_name, config, seed, out, record, digest=""):
+    def counting(agent_name, config, seed, out, record, *rest):
         calls.append((agent_name, seed))
-        return task(agent_name, config, seed, out, record, digest)
+        return task(agent_name, config, seed, out, record, *rest)
 
     monkeypatch.setattr(evaluation, "_episode_task", counting)
     second = evaluate(["nominal"], range(3), TINY, out=tmp_path, progress=False)

@@ -217,6 +217,21 @@ def test_damaged_episode_files_are_named_and_run_again(tmp_path, counted_runs, c
     assert_folder_consistent(tmp_path)
 
 
+def test_each_damaged_file_is_named_once_per_run(tmp_path, capsys):
+    """Lesser case: every damaged-file warning printed twice (the folder is read before and
+    after its lock is taken). Now once per run."""
+    evaluate(["nominal"], range(3), SMALL, out=tmp_path, progress=False)
+    episodes = tmp_path / "episodes"
+    npz = episodes / "nominal__seed1.npz"
+    npz.write_bytes(npz.read_bytes()[:100])
+    (episodes / "nominal__seed2.json").write_text("{garbage")
+    capsys.readouterr()
+    evaluate(["nominal"], range(3), SMALL, out=tmp_path, progress=False)
+    err = capsys.readouterr().err
+    for name in ("nominal__seed1.npz", "nominal__seed2.json"):
+        assert err.count(name) == 1, err
+
+
 def test_a_copied_or_garbage_json_is_named_and_not_counted(tmp_path, capsys):
     """Case 4: a copy of an episode json counted once; garbage named, not dropped silently."""
     evaluate(["nominal"], range(3), SMALL, out=tmp_path, progress=False)

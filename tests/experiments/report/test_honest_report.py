@@ -22,7 +22,8 @@ from experiments.report.stats import (
     paired_ci,
     pooled_ratio_ci,
 )
-from experiments.report.write import config_differences, write_report
+from experiments.report.sweep_section import config_differences
+from experiments.report.write import write_report
 
 
 def scipy_bca(*data, statistic, paired=False):

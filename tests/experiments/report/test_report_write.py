@@ -273,3 +273,48 @@ def test_default_baseline_without_the_scenario_agent_and_agents_of_any_name(resu
     section = paired_section(md)
     assert section.startswith("nominal MPC")
     assert f"| metric | oracle (upper bound) | {own} |" in section  # the raw name as label
+
+
+def test_a_damaged_episode_file_is_left_out_named_once_and_said_so(results_copy, capsys):
+    """Lesser case: one damaged .npz failed the whole report. Now it is left out (the
+    episode figures take the next seed), named once on stderr and in the report."""
+    damaged = results_copy / "episodes" / "scenario__seed0.npz"
+    damaged.write_bytes(damaged.read_bytes()[:100])
+    assert report_main([str(results_copy), "--no-gif"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    named = [line for line in err if str(damaged) in line]
+    assert len(named) == 1 and named[0].startswith("warning: ") and "left out" in named[0]
+    md = (results_copy / "report.md").read_text()
+    section = md.split("## Damaged episode files")[1].split("\n## ")[0]
+    assert "| scenario__seed0.npz |" in section and "BadZipFile" in section
+    assert "Env seed 1 (" in md  # the episode figures: the next seed
+    write_report(results_copy, figure_seed=0, gif=False)  # that seed asked for: said
+    md = (results_copy / "report.md").read_text()
+    assert "on seed 0 is damaged and left out (`scenario__seed0.npz`)" in md
+
+
+def test_a_report_of_a_folder_still_being_written_says_so(results_copy, capsys):
+    """Lesser case: a report of a folder a run still writes into gave no warning. Now the
+    folder's lock, held by a live run, is named on stderr and in the report."""
+    import subprocess
+    import sys
+
+    hold = (
+        "import sys, time\nfrom pathlib import Path\n"
+        "from experiments.evaluation.storage import FolderLock\n"
+        "FolderLock(Path(sys.argv[1])).acquire()\nprint('held', flush=True)\ntime.sleep(600)\n"
+    )
+    owner = subprocess.Popen(
+        [sys.executable, "-c", hold, str(results_copy)], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert owner.stdout.readline().strip() == "held"
+        write_report(results_copy, gif=False)
+    finally:
+        owner.kill()
+        owner.wait()
+    (line,) = [x for x in capsys.readouterr().err.splitlines() if "still being written" in x]
+    assert f"by process {owner.pid} on " in line
+    assert f"still being written by process {owner.pid}" in (results_copy / "report.md").read_text()
+    write_report(results_copy, gif=False)  # its owner gone: no warning
+    assert "still being written" not in capsys.readouterr().err

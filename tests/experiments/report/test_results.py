@@ -41,16 +41,15 @@ def test_registered_agents_come_in_their_order_then_the_others_sorted(tmp_path):
 
 
 def test_the_report_names_a_truncated_episode_file_instead_of_a_bare_zip_error(tmp_path, capsys):
+    """The report leaves a truncated episode file out, naming it (it failed as a whole)."""
     from experiments.cli import report_main
 
     out = tmp_path / "results"
     evaluate(["nominal"], [0, 1], SMALL, out=out, progress=False)
     damaged = out / "episodes" / "nominal__seed1.npz"
     damaged.write_bytes(damaged.read_bytes()[:200])
-    try:
-        code = report_main([str(out)])
-    except SystemExit as exc:  # argparse's error path
-        code = exc.code
+    code = report_main([str(out)])
     err = capsys.readouterr().err
-    assert code == 2
-    assert "nominal__seed1.npz" in err and "Traceback" not in err
+    assert code == 0
+    assert err.count("nominal__seed1.npz") == 1 and "Traceback" not in err
+    assert "left out" in err

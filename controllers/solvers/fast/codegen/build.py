@@ -17,42 +17,62 @@ adjoint). This module generates that work as one C library:
   inputs before step ``k``).
 
 So one library serves a system and time step at every ``N`` and ``Ns``. It is compiled with
-the system C compiler (``$CC``, else ``cc``, else ``gcc``; ``-O3 -fPIC -shared``), cached on
-disk under ``$LFM_CACHE_DIR`` (default ``~/.cache/lfm-scenario-mpc``) by a hash of its C
-source and compile command, written atomically (two processes compiling the same library at
-once both end with a valid library), and called through ``ctypes`` on the NumPy arrays
-directly (no copies). :func:`build_library` raises :class:`CodegenUnavailable` when no
-compiler is found or compilation fails; the caller then falls back to NumPy.
+the system C compiler (``$CC``, else ``cc``, else ``gcc``; ``-O3 -fPIC -shared``) and called
+through ``ctypes`` on the NumPy arrays directly (no copies). :func:`build_library` raises
+:class:`CodegenUnavailable` when no compiler is found or compilation fails; the caller then
+falls back to NumPy. A build that failed is not tried again in the same process.
+
+The cache (:func:`load_library`): libraries are kept under ``$LFM_CACHE_DIR`` (default
+``~/.cache/lfm-scenario-mpc``) as ``<stem>_<key>.so``, the key a hash of the C source, the
+compiler (its command, the resolved executable with its size and modification time) and
+the flags of :data:`BUILDS`. Nothing is loaded from there unchecked:
+
+* the folder must be owned by the user and writable by no one else (it is created with mode
+  0700; a folder of the user's that others cannot write is tightened to 0700), and none of
+  its parents may be writable by others without the sticky bit. Otherwise a one-line
+  warning names it and this process builds in a private temporary folder (mode 0700,
+  removed at exit) instead; the same when the folder cannot be written;
+* a cached library must be a regular file of the user's that no one else can write, with
+  its record ``<stem>_<key>.json`` (written at build time) naming its key and the SHA-256
+  of its content, and the content must match;
+* then a short-lived child process loads it and checks its symbols, the key it was built
+  for and, for the system's library, the system's sizes (a damaged file can crash the child,
+  never the caller); only then this process loads it.
+
+A library failing a check is rebuilt, with a one-line notice naming it. Builds and loads
+of one key take a lock on ``<stem>_<key>.lock`` (exclusive to build, shared to load), so a
+library and its record are replaced together and two processes compiling the same library
+at once compile it once.
 """
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import ctypes
+import fcntl
 import hashlib
+import json
 import os
 import re
 import shlex
 import shutil
+import signal
+import stat
 import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 
-import casadi as ca
 import numpy as np
 
-from controllers.solvers.fast.codegen.inline import (
-    VECTOR_MATH_DECLARATIONS,
-    NotInlinable,
-    inline_con_jac,
-    inline_step,
-    inline_step_curv,
-    inline_step_jac,
+from controllers.solvers.fast.codegen.source import (
+    library_source,
 )
+from controllers.solvers.fast.codegen.trust import file_problem, folder_problem, sha256_of
 
 CACHE_ENV = "LFM_CACHE_DIR"
 FLAGS = ("-O3", "-fPIC", "-shared")
@@ -74,18 +94,31 @@ BUILDS = (
     (FLAGS, ()),
 )
 COMPILE_TIMEOUT = 120.0  # [s] a compile taking longer is abandoned (fallback)
+CHECK_TIMEOUT = 60.0  # [s] for the child process that checks a library before it is loaded
 
-# A line of a C file of c/ that stands for another file of that folder (c_source).
-_INCLUDE = re.compile(r'^#include "([\w.]+)"\n', re.MULTILINE)
-
-# Loaded libraries of this process, by source hash (a second build is free).
+# Loaded libraries of this process, by key (a second build is free).
 _LOADED: dict[str, ctypes.CDLL] = {}
+# Why the build of a key failed in this process: it is not tried again (a full disk or a
+# broken compiler would otherwise cost a compile attempt at every agent built).
+_FAILED: dict[str, str] = {}
+# The one-line notices this process printed (each is printed once).
+_NOTICED: set[str] = set()
+# This process's private build folder, when the cache folder cannot be used (removed at exit).
+_PRIVATE: list[Path] = []
 # The cache directories that replace the configured one inside fresh_cache() (innermost last).
 _CACHE_OVERRIDE: list[Path] = []
 
 
 class CodegenUnavailable(RuntimeError):
     """No C library: no compiler found, compilation failed or the library did not load."""
+
+
+def notice(message: str) -> None:
+    """Print ``warning: <message>`` on stderr, once per process for each message."""
+    if message in _NOTICED:
+        return
+    _NOTICED.add(message)
+    print(f"warning: {message}", file=sys.stderr, flush=True)
 
 
 def cache_dir() -> Path:
@@ -106,8 +139,9 @@ def fresh_cache() -> Iterator[Path]:
     benchmark measures compilation this way without touching the real cache. Solvers
     built inside keep their loaded library after the directory is removed.
     """
-    saved = dict(_LOADED)
+    saved, failed = dict(_LOADED), dict(_FAILED)
     _LOADED.clear()
+    _FAILED.clear()
     with tempfile.TemporaryDirectory(prefix="lfm-codegen-cache-") as tmp:
         _CACHE_OVERRIDE.append(Path(tmp))
         try:
@@ -116,6 +150,8 @@ def fresh_cache() -> Iterator[Path]:
             _CACHE_OVERRIDE.pop()
             _LOADED.clear()
             _LOADED.update(saved)
+            _FAILED.clear()
+            _FAILED.update(failed)
 
 
 def find_compiler() -> list[str]:
@@ -134,178 +170,191 @@ def find_compiler() -> list[str]:
     )
 
 
-def c_source(name: str) -> str:
-    """The text of the C file ``c/<name>`` beside this module, each of its ``#include "..."``
-    lines replaced by the text of that file of the folder (a whole translation unit)."""
-    text = (resources.files(__package__) / "c" / name).read_text(encoding="utf-8")
-    return _INCLUDE.sub(lambda m: c_source(m.group(1)), text)
-
-
-def pointwise_functions(system, dt: float) -> list[ca.Function]:
-    """The pointwise CasADi functions of ``system`` the driver calls (dense outputs).
-
-    ``lfm_step(x, u, w, p)`` (the next state ``F`` and, with constraints, ``g(F)`` after
-    it), ``lfm_step_jac(x, u, w, p)`` (``A`` then ``B``, each flattened row-major) and
-    ``lfm_step_curv(x, u, w, p, lam, v)``, each with ``*_pre(u) -> p``: the parts of its
-    expression that depend on the input alone (CasADi's ``extract_parametric``), computed once
-    per step instead of once per scenario. ``lfm_step_curv`` is one step of the Hessian's
-    backward recursion: with ``A``, ``B`` the step's Jacobians, ``M`` the Hessian of
-    ``lam' F`` in ``(x, u)`` and ``V`` = ``v`` read row-major ``(nx, nx)``, it returns
-    ``[A' V A + M_xx, A' V B + M_xu, B' V B + M_uu, A' lam]`` flattened row-major
-    (``nx^2 + nx nu + nu^2 + nx`` values). Written symbolically, the generated code skips
-    the Jacobians' structural zeros and shares their subexpressions with ``M``. With
-    constraints also ``lfm_con_jac(x)`` ``(ng, nx)`` row-major and ``lfm_con_hess(x, mu)``
-    ``(nx, nx)``.
-    """
-    nx, nu, nw, ng = system.nx, system.nu, system.nw, system.ng
-    x, u, w = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("w", nw)
-    lam, v = ca.SX.sym("lam", nx), ca.SX.sym("v", nx * nx)
-    F = system.casadi_step(dt)(x, u, w)
-    constraints = system.casadi_constraints() if ng else None
-    z = ca.vertcat(x, u)
-    d = ca.densify
-    J = ca.jacobian(F, z)
-    A, B = J[:, :nx], J[:, nx:]
-    M = ca.hessian(ca.dot(lam, F), z)[0]
-    V = ca.reshape(v, nx, nx).T  # row-major
-    AV, BV = ca.mtimes(A.T, V), ca.mtimes(B.T, V)
-
-    def rows(m: ca.SX) -> ca.SX:  # row-major flattening
-        return ca.vec(d(m).T)
-
-    curv = ca.vertcat(
-        rows(ca.mtimes(AV, A) + M[:nx, :nx]),
-        rows(ca.mtimes(AV, B) + M[:nx, nx:]),
-        rows(ca.mtimes(BV, B) + M[nx:, nx:]),
-        d(ca.mtimes(A.T, lam)),
-    )
-    fns = []
-    for name, expr, extra in (
-        ("lfm_step", ca.vertcat(F, constraints(F)) if ng else F, []),
-        ("lfm_step_jac", ca.vertcat(rows(A), rows(B)), []),
-        ("lfm_step_curv", curv, [lam, v]),
-    ):
-        # (cse: the derivatives repeat subexpressions; it shortens the generated code, with no
-        # measured change in speed: gcc already merged the repeated sines and cosines)
-        expr, symbols, values = ca.extract_parametric(ca.cse(d(expr)), u)
-        p = ca.vertcat(*symbols) if symbols else ca.SX(0, 1)
-        pre = ca.vertcat(*values) if values else ca.SX(0, 1)
-        fns.append(ca.Function(f"{name}_pre", [u], [pre]))
-        fns.append(ca.Function(name, [x, u, w, p, *extra], [d(expr)]))
-    if ng:
-        mu = ca.SX.sym("mu", ng)
-        g = constraints(x)
-        fns += [
-            ca.Function("lfm_con_jac", [x], [ca.cse(rows(ca.jacobian(g, x)))]),
-            ca.Function("lfm_con_hess", [x, mu], [ca.cse(d(ca.hessian(ca.dot(mu, g), x)[0]))]),
-        ]
-    return fns
-
-
-def step_jacobian_pattern(system, dt: float) -> str:
-    """C table ``A_NZ`` (``nx * nx``, row-major): 1 where the step's Jacobian ``dF/dx`` can be
-    nonzero (CasADi's structural sparsity), 0 where it is zero for every point.
-
-    The linearisation skips the zeros in ``A_k S_k`` (the bicycle's ``A`` has 9 of 16
-    nonzeros); the table is a compile-time constant the compiler can fold where it unrolls.
-    """
-    nx = system.nx
-    x, u, w = ca.SX.sym("x", nx), ca.SX.sym("u", system.nu), ca.SX.sym("w", system.nw)
-    sp = ca.jacobian(system.casadi_step(dt)(x, u, w), x).sparsity()
-    flags = [0] * (nx * nx)
-    for r, c in zip(*sp.get_triplet(), strict=True):
-        flags[r * nx + c] = 1
-    return f"static const char A_NZ[{nx * nx}] = {{{', '.join(map(str, flags))}}};"
-
-
-def constraint_jacobian_pattern(system) -> np.ndarray:
-    """``(ng, nx)`` bool: where the constraints' Jacobian ``dg/dx`` can be nonzero (CasADi's
-    structural sparsity), i.e. which states each constraint depends on.
-
-    The C library stores only these entries of each point's constraint Jacobian
-    (:func:`constraint_jacobian_table`); the bicycle's six constraints have 8 of 24.
-    """
-    nx, ng = system.nx, system.ng
-    pattern = np.zeros((ng, nx), dtype=bool)
-    if ng:
-        x = ca.SX.sym("x", nx)
-        rows, cols = ca.jacobian(system.casadi_constraints()(x), x).sparsity().get_triplet()
-        pattern[rows, cols] = True
-    return pattern
-
-
-def constraint_jacobian_table(system) -> str:
-    """C tables of the constraint Jacobian entries the C library stores per point, row by row.
-
-    ``G_NNZ`` entries (those of :func:`constraint_jacobian_pattern`, row-major), constraint
-    ``j``'s from ``G_PTR[j]`` to ``G_PTR[j + 1]`` (``G_PTR[NG] = G_NNZ``), each at state
-    ``G_COL[e]`` and at ``G_IDX[e]`` of the dense row-major ``(NG, NX)`` matrix (these two
-    with one unused entry more, so that neither is empty).
-    """
-    pattern = constraint_jacobian_pattern(system)
-    index = np.flatnonzero(pattern)
-    ptr = np.concatenate([[0], np.cumsum(pattern.sum(axis=1))])
-
-    def table(name: str, values) -> str:
-        items = ", ".join(str(int(v)) for v in values)
-        return f"static const int {name}[{len(values)}] = {{{items}}};"
-
-    lines = [f"#define G_NNZ {index.size}", table("G_PTR", ptr)]
-    lines += [table("G_COL", [*(index % system.nx), 0]), table("G_IDX", [*index, 0])]
-    return "\n".join(lines)
-
-
-def library_source(system, dt: float) -> str:
-    """The complete C source of ``system``'s C library at time step ``dt`` [s]."""
-    # (The generator's name prefixes the generated symbols: part of the source, so of the
-    # cache key; kept as it was.)
-    cg = ca.CodeGenerator("lfm_kernel.c", {"with_header": False, "casadi_real": "double"})
-    fns = pointwise_functions(system, dt)
-    for f in fns:
-        cg.add(f)
-    sizes = {"NX": system.nx, "NU": system.nu, "NW": system.nw, "NG": system.ng}
-    for f in fns:
-        if f.name().endswith("_pre"):
-            sizes["NP_" + f.name()[4:-4].upper()] = f.nnz_out(0)
-    defines = "\n".join(f"#define {k} {v}" for k, v in sizes.items())
-    defines += "\n" + step_jacobian_pattern(system, dt)
-    defines += "\n" + constraint_jacobian_table(system)
-    work = " ".join(f"W({f.name()});" for f in fns)
-    code = cg.dump()
-    by_name = {f.name(): f for f in fns}
-    # The vectorisable paths of the rollout, the Hessian and the linearisation (else a call
-    # per scenario).
-    inline = VECTOR_MATH_DECLARATIONS + "\n"
-    with contextlib.suppress(NotInlinable):
-        inline += inline_step(code, by_name["lfm_step"], system.nx)
-    with contextlib.suppress(NotInlinable):
-        inline += inline_step_curv(code, by_name["lfm_step_curv"])
-    with contextlib.suppress(NotInlinable):
-        inline += inline_step_jac(code, by_name["lfm_step_jac"])
-    if "lfm_con_jac" in by_name:
-        with contextlib.suppress(NotInlinable):
-            inline += inline_con_jac(code, by_name["lfm_con_jac"])
-    driver = c_source("driver.c").replace("@WORK@", work)  # (the work-size queries)
-    return code + "\n" + defines + "\n" + inline + "\n" + driver
-
-
 @dataclass
 class CompiledLibrary:
     """A loaded C library and how it was obtained."""
 
     lib: ctypes.CDLL
     path: Path
-    key: str  # hash of the C source and compile command
-    cache_hit: bool  # found on disk or already loaded (no compiler was run)
+    key: str  # hash of the C source, the compiler and its flags
+    cache_hit: bool  # found on disk or already loaded (no compiler was run by this call)
     build_time: float  # [s] generation + compilation (or cache lookup) + loading
 
 
+# The entry points of the system's C library (checked before it is loaded).
+LIBRARY_SYMBOLS = (
+    "lfm_rollout",
+    "lfm_linearise",
+    "lfm_hessian",
+    "lfm_hessian_scratch",
+    "lfm_openmp",
+    "lfm_vector_math",
+    "lfm_linear_change",
+    "lfm_rows",
+    "lfm_screen",
+    "lfm_violated",
+)
+
+# Appended to every cached library's source: the key it is built for (and, for a system's
+# library, its sizes), read back by the check before it is loaded.
+_KEY_FUNCTION = 'const char *lfm_cache_key(void) {{ return "{key}"; }}\n'
+_DIMS_FUNCTION = "void lfm_dims(long *d) { d[0] = NX; d[1] = NU; d[2] = NW; d[3] = NG; }\n"
+
+# The check of a library in a child process: loads it (its constructors run there, and a
+# damaged file crashes the child only), then checks its symbols, its key and its sizes.
+_CHECK = """
+import ctypes, sys
+path, key, symbols, dims = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4]
+lib = ctypes.CDLL(path)
+missing = [s for s in symbols.split(",") if s and not hasattr(lib, s)]
+if missing:
+    print("it lacks the symbol(s) " + ", ".join(missing)); sys.exit(3)
+if not hasattr(lib, "lfm_cache_key"):
+    print("it records no key (built by another version)"); sys.exit(3)
+lib.lfm_cache_key.restype = ctypes.c_char_p
+found = lib.lfm_cache_key().decode("ascii", "replace")
+if found != key:
+    print("it was built for the key " + found[:40]); sys.exit(3)
+if dims:
+    d = (ctypes.c_long * 4)()
+    lib.lfm_dims(d)
+    if ",".join(map(str, d)) != dims:
+        print("it is of a system of sizes " + ",".join(map(str, d)) + ", not " + dims)
+        sys.exit(3)
+print("ok")
+"""
+
+
+def _compiler_identity(compiler: list[str]) -> list[str]:
+    """The compiler as part of the cache key: its command, and its resolved executable with
+    that file's size and modification time (an upgraded compiler gets new libraries)."""
+    exe = os.path.realpath(compiler[0])
+    try:
+        st = os.stat(exe)
+        signature = f"{exe} {st.st_size} {st.st_mtime_ns}"
+    except OSError:
+        signature = exe
+    return [*compiler, signature]
+
+
+def cache_key(source: str, compiler: list[str]) -> str:
+    """The cache key of a library: a hash of its C source, the compiler (command, executable,
+    its size and modification time) and the flags of every build of :data:`BUILDS`."""
+    text = "\0".join([source, repr(BUILDS), *_compiler_identity(compiler)])
+    return hashlib.sha256(text.encode()).hexdigest()[:24]
+
+
+def _private_folder() -> Path:
+    """This process's private build folder (mode 0700, removed at exit), made once."""
+    if not _PRIVATE:
+        folder = Path(tempfile.mkdtemp(prefix="lfm-codegen-"))
+        _PRIVATE.append(folder)
+        atexit.register(shutil.rmtree, folder, True)
+    return _PRIVATE[0]
+
+
+def _cache_folder() -> Path:
+    """The cache folder to use: :func:`cache_dir`, created with mode 0700, if it can be
+    trusted (:func:`.trust.folder_problem`); otherwise, with a one-line warning naming it, this
+    process's private folder."""
+    folder = cache_dir()
+    try:
+        folder.mkdir(parents=True, exist_ok=True, mode=0o700)
+        problem = folder_problem(folder)
+        st = os.stat(folder)
+        if problem is None and stat.S_IMODE(st.st_mode) != 0o700:
+            os.chmod(folder, 0o700)  # the user's own, readable by others: made private
+    except OSError as err:
+        problem = f"cache folder {str(folder)!r} cannot be used ({err.strerror or err})"
+    if problem is None:
+        return folder
+    notice(f"{problem}; not using it: C libraries are built in a private temporary folder")
+    return _private_folder()
+
+
+@contextlib.contextmanager
+def _key_lock(folder: Path, name: str, exclusive: bool) -> Iterator[None]:
+    """Hold the lock ``folder/name`` (shared or exclusive) for the duration; without one
+    when it cannot be created or taken (a folder this process cannot write, which no other
+    process of the user's can write either; a file system without locks)."""
+    try:
+        fd = os.open(folder / name, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
+    except OSError:
+        yield
+        return
+    try:
+        with contextlib.suppress(OSError):  # (a file system without locks: none)
+            fcntl.flock(fd, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH)
+        yield
+    finally:
+        os.close(fd)  # (releases the lock)
+
+
+def _check_in_child(path: Path, key: str, symbols: tuple[str, ...], dims: str) -> str | None:
+    """Load ``path`` in a short-lived child process and check its symbols, key and sizes:
+    why it fails (a crash named by its signal), else ``None``."""
+    cmd = [sys.executable, "-I", "-S", "-c", _CHECK, str(path), key, ",".join(symbols), dims]
+    try:
+        out = subprocess.run(
+            cmd, capture_output=True, text=True, timeout=CHECK_TIMEOUT, check=False
+        )
+    except subprocess.TimeoutExpired:
+        return f"its check did not end within {CHECK_TIMEOUT:g} s"
+    except OSError as err:
+        return f"its check could not run ({err})"
+    if out.returncode == 0 and out.stdout.strip() == "ok":
+        return None
+    if out.returncode < 0:
+        try:
+            name = signal.Signals(-out.returncode).name
+        except ValueError:
+            name = f"signal {-out.returncode}"
+        return f"it crashed the process that loaded it ({name})"
+    lines = (out.stdout.strip() or out.stderr.strip() or "it does not load").splitlines()
+    return lines[-1][:300]
+
+
+def _library_problem(
+    path: Path, record: Path, key: str, symbols: tuple[str, ...], dims: str
+) -> str | None:
+    """Why the cached library ``path`` must not be loaded, else ``None`` (see the module
+    docstring: owner and mode, the record's key and content hash, the check in a child)."""
+    try:
+        problem = file_problem(path)
+        if problem is not None:
+            return problem
+        if not os.path.lexists(record):
+            return "has no record of its build"
+        problem = file_problem(record)
+    except OSError as err:
+        return f"cannot be read ({err.strerror or err})"
+    if problem is not None:
+        return f"has a record that {problem}"
+    try:
+        saved = json.loads(record.read_text())
+        recorded_key, digest = saved["key"], saved["sha256"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return "has a damaged record"
+    if recorded_key != key:
+        return "has the record of another library"
+    try:
+        actual = sha256_of(path)
+    except OSError as err:
+        return f"cannot be read ({err.strerror or err})"
+    if actual != digest:
+        return "is damaged (its content differs from the SHA-256 recorded when it was built)"
+    problem = _check_in_child(path, key, symbols, dims)
+    return None if problem is None else f"fails its check in a child process: {problem}"
+
+
 def _compile(source: str, target: Path, compiler: list[str]) -> None:
-    """Compile ``source`` to the shared library ``target``, atomically."""
+    """Compile ``source`` to the shared library ``target`` with its record (the key and
+    the content's SHA-256), both replaced at once (the caller holds the key's lock)."""
     target.parent.mkdir(parents=True, exist_ok=True)
     tag = f"{os.getpid()}-{os.urandom(4).hex()}"
     c_file = target.with_name(f"{target.stem}.{tag}.c")
     tmp = target.with_name(f"{target.stem}.{tag}.so.tmp")
+    record_tmp = target.with_name(f"{target.stem}.{tag}.json.tmp")
     try:
         c_file.write_text(source)
         for flags, libs in BUILDS:  # (without what the compiler or system does not have)
@@ -319,13 +368,32 @@ def _compile(source: str, target: Path, compiler: list[str]) -> None:
             if out.returncode == 0:
                 break
         if out.returncode != 0:
-            msg = (out.stderr or out.stdout).strip().splitlines()[:3]
-            raise CodegenUnavailable(f"compilation with {compiler[0]!r} failed: {msg}")
-        os.replace(tmp, target)  # atomic: a concurrent build replaces an equal file
+            why = _compiler_error(out.stderr or out.stdout)
+            raise CodegenUnavailable(f"compilation with {compiler[0]!r} failed: {why}")
+        os.chmod(tmp, 0o755)  # (whatever the umask: writable by this user only)
+        record = {
+            "key": target.stem.rpartition("_")[2],
+            "sha256": sha256_of(tmp),
+            "compiler": compiler,
+            "flags": [*flags, *libs],
+        }
+        fd = os.open(record_tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        with os.fdopen(fd, "w") as fh:
+            os.fchmod(fd, 0o644)
+            fh.write(json.dumps(record, indent=1) + "\n")
+        os.replace(record_tmp, target.with_suffix(".json"))
+        os.replace(tmp, target)
         os.replace(c_file, target.with_suffix(".c"))
     finally:
-        for leftover in (c_file, tmp):
+        for leftover in (c_file, tmp, record_tmp):
             leftover.unlink(missing_ok=True)
+
+
+def _compiler_error(output: str) -> str:
+    """The first error line of a compiler's output, without its ``file:line:col:`` start."""
+    lines = [line.strip() for line in output.strip().splitlines() if line.strip()]
+    line = next((x for x in lines if "error" in x.lower()), lines[0] if lines else "no output")
+    return re.sub(r"^\S+:\d+:(\d+:)?\s*", "", line)[:300]
 
 
 def build_library(system, dt: float) -> CompiledLibrary:
@@ -335,47 +403,102 @@ def build_library(system, dt: float) -> CompiledLibrary:
         CodegenUnavailable: no compiler found, compilation failed or the library did not load.
     """
     start = time.perf_counter()
-    library = load_library(library_source(system, dt), "lfm_codegen")
+    dims = (system.nx, system.nu, system.nw, system.ng)
+    library = load_library(
+        library_source(system, dt), "lfm_codegen", symbols=LIBRARY_SYMBOLS, dims=dims
+    )
     _declare(library.lib)
     library.build_time = time.perf_counter() - start
     return library
 
 
-def load_library(source: str, stem: str) -> CompiledLibrary:
+def load_library(
+    source: str,
+    stem: str,
+    symbols: tuple[str, ...] = (),
+    dims: tuple[int, int, int, int] | None = None,
+) -> CompiledLibrary:
     """The shared library of the C ``source``, compiled with the C library's compiler and
-    flags (:data:`BUILDS`) and cached under :func:`cache_dir` as ``<stem>_<hash>.so``
-    (loaded once per process).
+    flags (:data:`BUILDS`) and cached under :func:`cache_dir` as ``<stem>_<key>.so``
+    (:func:`cache_key`; loaded once per process; checked before it is loaded: see the module
+    docstring).
+
+    Args:
+        source: the C source.
+        stem: the start of the cached files' names.
+        symbols: the symbols the library must have (checked before it is loaded).
+        dims: ``(nx, nu, nw, ng)`` of a system's library, whose source defines ``NX``,
+            ``NU``, ``NW`` and ``NG`` (checked before it is loaded).
 
     Raises:
-        CodegenUnavailable: no compiler found, compilation failed or the library did not load.
+        CodegenUnavailable: no compiler found, compilation failed or the library did not
+            load (a failed build is not tried again in this process: the same error).
     """
     start = time.perf_counter()
-    compiler_env = os.environ.get("CC", "")
-    flags = " ".join((*FLAGS, OPENMP_FLAG))  # (a build without OpenMP keeps the same key)
-    key = hashlib.sha256((source + "\0" + flags).encode()).hexdigest()[:24]
+    compiler = find_compiler()
+    key = cache_key(source, compiler)
     lib = _LOADED.get(key)
     if lib is not None:
-        path = Path(lib._name)
-        return CompiledLibrary(lib, path, key, True, time.perf_counter() - start)
-    path = cache_dir() / f"{stem}_{key}.so"
-    hit = path.is_file()
-    if not hit:
-        try:
-            _compile(source, path, find_compiler())
-        except OSError:  # the cache is not writable: compile into a private directory
-            path = Path(tempfile.mkdtemp(prefix="lfm-codegen-")) / path.name
-            _compile(source, path, find_compiler())
+        return CompiledLibrary(lib, Path(lib._name), key, True, time.perf_counter() - start)
+    if key in _FAILED:
+        raise CodegenUnavailable(_FAILED[key])
+    source += "\n" + _KEY_FUNCTION.format(key=key) + (_DIMS_FUNCTION if dims else "")
+    check = (symbols, "" if dims is None else ",".join(map(str, dims)))
     try:
-        lib = ctypes.CDLL(str(path))
-    except OSError as err:
-        raise CodegenUnavailable(f"cannot load {path}: {err} (CC={compiler_env!r})") from err
+        lib, path, hit = _load_or_build(_cache_folder(), f"{stem}_{key}", source, compiler, check)
+    except CodegenUnavailable as err:
+        _FAILED[key] = str(err)
+        raise
     _LOADED[key] = lib
     return CompiledLibrary(lib, path, key, hit, time.perf_counter() - start)
 
 
+def _load_or_build(
+    folder: Path, name: str, source: str, compiler: list[str], check: tuple
+) -> tuple[ctypes.CDLL, Path, bool]:
+    """The checked library ``folder/name.so``: loaded if a valid one is there, else built
+    (in this process's private folder if ``folder`` cannot be written); with the cache
+    hit flag."""
+    path, record = folder / f"{name}.so", folder / f"{name}.json"
+    key = name.rpartition("_")[2]
+    with _key_lock(folder, f"{name}.lock", exclusive=False):
+        if os.path.lexists(path):
+            problem = _library_problem(path, record, key, *check)
+            if problem is None:
+                return _dlopen(path), path, True
+            notice(f"cached C library {str(path)!r} {problem}; building it again")
+    try:
+        with _key_lock(folder, f"{name}.lock", exclusive=True):
+            if os.path.lexists(path) and _library_problem(path, record, key, *check) is None:
+                return _dlopen(path), path, True  # built by another process meanwhile
+            _compile(source, path, compiler)
+            problem = _library_problem(path, record, key, *check)
+            if problem is not None:
+                raise CodegenUnavailable(f"the C library just built {problem}")
+            return _dlopen(path), path, False
+    except OSError as err:  # the folder cannot be written (full, read-only, ...)
+        private = _private_folder()
+        if folder == private:
+            raise CodegenUnavailable(f"cannot build the C library: {err}") from err
+        notice(
+            f"cache folder {str(folder)!r} cannot be written ({err.strerror or err}); "
+            "C libraries are built in a private temporary folder"
+        )
+        return _load_or_build(private, name, source, compiler, check)
+
+
+def _dlopen(path: Path) -> ctypes.CDLL:
+    try:
+        return ctypes.CDLL(str(path))
+    except OSError as err:
+        raise CodegenUnavailable(f"cannot load {path}: {err}") from err
+
+
 def forget_loaded() -> None:
-    """Forget the libraries loaded by this process (the next build looks at the disk again)."""
+    """Forget the libraries loaded by this process and the builds that failed in it (the
+    next build looks at the disk again and may compile)."""
     _LOADED.clear()
+    _FAILED.clear()
 
 
 # The driver's arrays (C order): x0T (NX, Ns); W any (strides sa, sk, si of force
@@ -433,13 +556,13 @@ __all__ = [
     "CodegenUnavailable",
     "CompiledLibrary",
     "address",
+    "LIBRARY_SYMBOLS",
     "build_library",
-    "c_source",
     "cache_dir",
+    "cache_key",
     "find_compiler",
     "forget_loaded",
     "fresh_cache",
-    "library_source",
     "load_library",
-    "pointwise_functions",
+    "notice",
 ]

@@ -52,9 +52,9 @@ import numpy as np
 from controllers.solvers.fast.codegen.build import (
     CodegenUnavailable,
     address,
-    c_source,
     load_library,
 )
+from controllers.solvers.fast.codegen.source import c_source
 
 # Dual regularisation delta: row scalings z / (v + delta z) stay below 1 / delta. On the
 # recorded elastic QPs of N = 15 (138): 0 left 38 unsolved (the dual residual grew in the
@@ -95,7 +95,8 @@ def _library() -> ctypes.CDLL | None:
     """The compiled solver, built at the first call (None when no compiler works)."""
     try:
         # (after a newline, as the library's cache key, a hash of the text, always had it)
-        lib = load_library("\n" + c_source("elastic_ipm.c"), "lfm_elastic_qp").lib
+        source = "\n" + c_source("elastic_ipm.c")
+        lib = load_library(source, "lfm_elastic_qp", symbols=("lfm_elastic_qp",)).lib
     except CodegenUnavailable:
         return None
     L, P, D = ctypes.c_long, ctypes.c_void_p, ctypes.c_double

@@ -5,9 +5,9 @@ Hessian either with a C library generated from the system's CasADi expressions
 (``"compiled-c"``) or with NumPy (``"numpy-lanes"``, ``"casadi-vm"``). Checked here: the
 backends agree to 1e-12 on the recorded paper problems and on the point mass of
 ``test_second_system.py``; without a working compiler the model really falls back to NumPy
-(the compiler is hidden, not mocked); the disk cache serves a second build without a
-compiler; two processes compiling the same library at once leave a valid library; the model
-and the solver pickle.
+(the compiler is hidden, not mocked); two processes compiling the same library at once leave
+a valid library; the model and the solver pickle. The cache's checks (a damaged, foreign or
+planted library, the key, failed builds) are test_codegen_cache.py's.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from controllers.problem import ScenarioProblem
 from controllers.solvers import make_solver
 from controllers.solvers.fast.codegen import build as compiled
 from controllers.solvers.fast.codegen import inline as codegen_inline
+from controllers.solvers.fast.codegen import source as codegen_source
 from controllers.solvers.fast.codegen.build import CodegenUnavailable, forget_loaded
 from controllers.solvers.fast.condensed import CondensedModel
 from experiments.benchmark.problems import problem_from_config
@@ -296,20 +297,6 @@ def test_an_unknown_backend_is_named(paper, monkeypatch) -> None:
 # ----------------------------------------------------------------------------- cache
 
 
-def test_the_disk_cache_serves_a_second_build_without_a_compiler(
-    paper, fresh_cache, tmp_path, monkeypatch
-) -> None:
-    first = CondensedModel(paper)
-    assert first.backend == "compiled-c" and not first.cache_hit
-    assert len(list(fresh_cache.glob("lfm_codegen_*.so"))) == 1
-    forget_loaded()
-    monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))  # compiling would fail
-    second = CondensedModel(paper)
-    assert second.backend == "compiled-c" and second.cache_hit
-    # And within the process, without looking at the disk again.
-    assert CondensedModel(paper).cache_hit
-
-
 def test_a_fresh_cache_compiles_anew_and_leaves_the_real_one(paper, paper_models) -> None:
     """Inside ``compiled.fresh_cache()`` the C library is compiled again into a temporary
     directory (the benchmark's cold first build); afterwards the configured cache and the
@@ -483,7 +470,7 @@ def test_the_rollout_is_vectorised_with_vector_math_where_glibc_has_it(paper_mod
     model = paper_models["c"]
     expected = 2 if ctypes.util.find_library("mvec") else 1
     assert model.vector_math == expected
-    source = compiled.library_source(model.problem.system, model.problem.dt)
+    source = codegen_source.library_source(model.problem.system, model.problem.dt)
     assert "lfm_vsin(" in source and "lfm_vcos(" in source  # the inlined body's names
 
 
@@ -540,8 +527,8 @@ def test_a_step_that_cannot_be_inlined_keeps_the_call_per_scenario(
 
     names = list(INLINERS) if refused == "all" else [refused]
     for name in names:
-        monkeypatch.setattr(compiled, name, refuse)
-    source = compiled.library_source(paper.system, paper.dt)
+        monkeypatch.setattr(codegen_source, name, refuse)
+    source = codegen_source.library_source(paper.system, paper.dt)
     for name in INLINERS:
         define = "#define LFM_" + name.removeprefix("inline_").upper() + "_INLINE"
         assert (define in source) == (name not in names), define
@@ -558,8 +545,8 @@ def test_a_step_that_cannot_be_inlined_keeps_the_call_per_scenario(
 def test_the_inline_rewrite_reads_and_writes_plain_strided_pointers(paper) -> None:
     """The rewritten step has no pointer-array access left and renames the vector-math
     functions; a function of another shape is refused."""
-    fns = compiled.pointwise_functions(paper.system, paper.dt)
-    code = compiled.library_source(paper.system, paper.dt)
+    fns = codegen_source.pointwise_functions(paper.system, paper.dt)
+    code = codegen_source.library_source(paper.system, paper.dt)
     step = next(f for f in fns if f.name() == "lfm_step")
     text = codegen_inline.inline_step(code, step, paper.system.nx)
     assert "arg[" not in text and "res[" not in text and "return" not in text

@@ -1,0 +1,153 @@
+"""One episode as a task of any executor (serial, the local pool's workers, Dask): run it,
+save its row and arrays, and turn whatever it raises into an error row.
+
+:func:`_episode_task` is top level (picklable by reference) so that every executor runs the
+same function; :mod:`experiments.evaluation.run` hands it out.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+import traceback
+from collections.abc import Sequence
+from typing import Any
+
+from controllers.config import ExperimentConfig
+from experiments.evaluation.agent_lookup import OwnAgentSpec
+from experiments.evaluation.agent_lookup import agent_name as name_of
+from experiments.evaluation.episode import (
+    _episode_metrics,
+    _EpisodeRecorder,
+    _error_row,
+    _one_line,
+    _simulate,
+)
+from experiments.evaluation.interrupts import raise_if_interrupted
+from experiments.evaluation.limits import EpisodeLimit, EpisodeTimeout, timeout_text
+from experiments.evaluation.storage import save_episode, stuck_row, write_table
+
+#: The exit code of a process whose episode is stuck past its limit (module docstring).
+EXIT_STUCK = 1
+
+
+def _episode_task(
+    agent: str | OwnAgentSpec,
+    config: ExperimentConfig,
+    seed: int,
+    out: str | None,
+    record: bool,
+    digest: str = "",
+    limit: float | None = None,
+    stuck: str = "",
+    token: str = "",
+) -> dict[str, Any]:
+    """Run and save one episode; never raises for an error of the episode itself.
+
+    Top-level (picklable by reference) so process pools and Dask workers can run it; the
+    resolved config travels with the task, so workers parse nothing. ``agent`` is a
+    registered name or a user agent's :class:`~experiments.evaluation.agent_lookup.OwnAgentSpec`.
+
+    Any exception of the episode (``SystemExit`` and any other ``BaseException`` too) is
+    its error row; only Ctrl-C (``KeyboardInterrupt``) propagates, in a serial
+    run (workers ignore Ctrl-C: there an agent's own ``KeyboardInterrupt`` is a row). ``limit``
+    [s] ends an episode that runs longer (:mod:`experiments.evaluation.limits`); one that
+    does not return to Python by then is stuck, and ``stuck`` says what then ends:
+    ``"run"`` (a serial run: its row and the table are saved, then this process ends with
+    :data:`EXIT_STUCK`), ``"worker"`` (a Dask worker: its row is saved, marked with the
+    run's ``token``, and the worker ends; the task, run again elsewhere, returns that row)
+    or ``""`` (a pool worker: its parent stops it).
+    """
+    name = name_of(agent)
+    if token and out is not None:
+        saved = stuck_row(out, name, seed, token)
+        if saved is not None:  # this episode got stuck in this run, in a worker it ended
+            return saved
+    t0 = time.perf_counter()
+    rec = _EpisodeRecorder(config)
+    tb = ""
+    on_stuck = None
+    if stuck:
+        on_stuck = _StuckEpisode(name, seed, out, digest, limit, rec.columns, stuck, token, t0)
+    try:
+        with EpisodeLimit(limit, on_stuck):
+            _simulate(agent, config, seed, rec)
+        arrays = rec.arrays()
+        row = {"agent": name, "seed": seed, **_episode_metrics(rec, arrays)}
+        row.update(wall_time=time.perf_counter() - t0, error="")
+        row = {c: row[c] for c in rec.columns}
+    except KeyboardInterrupt:
+        if stuck == "run":  # in this run's own process: Ctrl-C stays Ctrl-C
+            raise
+        # (workers ignore Ctrl-C: the agent raised it itself; an error like any other)
+        row, arrays, tb = _failed_episode(name, seed, rec, limit, t0)
+    except BaseException:  # one bad episode must not stop the others
+        raise_if_interrupted()  # a Ctrl-C a library turned into another error: no error row
+        row, arrays, tb = _failed_episode(name, seed, rec, limit, t0)
+    if out is not None:
+        save_episode(out, row, arrays if record else None, tb, digest)
+    return row
+
+
+def _failed_episode(
+    name: str, seed: int, rec: _EpisodeRecorder, limit: float | None, t0: float
+) -> tuple[dict[str, Any], dict[str, Any], str]:
+    """The error row, the arrays of the steps done and the traceback of the episode whose
+    exception is being handled."""
+    exc = sys.exc_info()[1]
+    tb = traceback.format_exc()
+    text = timeout_text(limit) if isinstance(exc, EpisodeTimeout) else _one_line(exc)
+    row = _error_row(name, seed, text, time.perf_counter() - t0, rec.columns)
+    try:
+        arrays = rec.arrays()  # the steps done before the error, for debugging
+    except Exception:
+        arrays = {}
+    return row, arrays, tb
+
+
+class _StuckEpisode:
+    """What ends an episode stuck past its limit where Python cannot reach it (called in a
+    watchdog thread): its error row is saved, a line on stderr says so, the process ends."""
+
+    def __init__(
+        self,
+        name: str,
+        seed: int,
+        out: str | None,
+        digest: str,
+        limit: float | None,
+        columns: Sequence[str],
+        mode: str,
+        token: str,
+        t0: float,
+    ) -> None:
+        self.name, self.seed, self.out, self.digest = name, seed, out, digest
+        self.limit, self.columns, self.mode, self.token, self.t0 = limit, columns, mode, token, t0
+
+    def __call__(self) -> None:
+        text = (
+            f"{timeout_text(self.limit)}; it did not return to Python (stuck in native code, "
+            "or blocking the signal), so its process was ended"
+        )
+        wall_time = time.perf_counter() - self.t0
+        row = _error_row(self.name, self.seed, text, wall_time, self.columns)
+        where = "its error row is not saved (no results folder)"
+        if self.out is not None:
+            save_episode(self.out, row, None, "", self.digest, run_token=self.token)
+            if self.mode == "run":
+                write_table(self.out)
+            where = "its error row is saved"
+        ending = (
+            "ending this run (rerun to run the other episodes; with --jobs 2 a run goes on "
+            "past such an episode)"
+            if self.mode == "run"
+            else "ending this worker process"
+        )
+        print(
+            f"error: the episode of agent {self.name!r}, seed {self.seed} ran past its limit "
+            f"of {self.limit:g} s and does not return to Python; {where}; {ending}",
+            file=sys.stderr,
+            flush=True,
+        )
+        os._exit(EXIT_STUCK)
