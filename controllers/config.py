@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from controllers.estimators.estimator import ESTIMATORS
+from controllers.problem import PREDICTIONS
 from controllers.solvers import SOLVER_SPECS, SOLVERS
 from controllers.solvers.fast.options import MAX_THREADS
 from lfm_env.config import (
@@ -182,7 +183,8 @@ class AgentConfig:
     # Solver iteration limit per step (the fast SQP's per start; its own default too: long
     # horizons need it, see FastSolverOptions.max_iter).
     max_iter: int = 150
-    # Wall-clock limit of one solve [s]: a solve that reaches it fails and the agent falls
+    # Wall-clock limit of one solve [s]: a solve that reaches it stops; the agent applies the
+    # plan reached if it is usable (below its warm start, MPCSolution.usable), else falls
     # back (the previous plan, else the system's fallback input), as on any failed solve.
     max_solve_time: float = 10.0
     # Threads of the fast solver's C library (FastSolverOptions.threads): it pays
@@ -191,6 +193,10 @@ class AgentConfig:
     # the cores already.
     solver_threads: int = 1
     scenario_initial_states: str = "estimate"  # "estimate" (paper) or "particles" (its remark)
+    # The scenarios' prediction: "open_loop" (one shared input sequence, the paper's) or
+    # "feedback" (u = v + K (x - r) per scenario, a TV-LQR law of the cost along the previous
+    # plan; docs/feedback.md says when it pays).
+    prediction: str = "open_loop"
     # Constraint back-off of the filtering agents: each state constraint g_j is tightened
     # by k * sqrt(dg_j' Sigma_x dg_j), k estimate stds along its gradient: one k for all,
     # or one per constraint group of the system (the sine track: track, x, speed).
@@ -264,6 +270,7 @@ class AgentConfig:
             self.scenario_initial_states in SCENARIO_INITIAL_STATES,
             f"one of {SCENARIO_INITIAL_STATES}",
         )
+        c("prediction", self.prediction in PREDICTIONS, f"one of {PREDICTIONS}")
 
     def check_scenario_count(self, n_inputs: int) -> None:
         """Raise ``ConfigError`` if the Campi-Garatti count of a system with ``n_inputs``
@@ -423,12 +430,18 @@ class ExperimentConfig:
         """The scenario count ``Ns`` of the scenario agents (explicit or Campi-Garatti)."""
         return self.agents.scenario_count(self.make_system().nu)
 
-    def make_problem(self, n_scenarios: int | None = None, horizon: int | None = None):
+    def make_problem(
+        self,
+        n_scenarios: int | None = None,
+        horizon: int | None = None,
+        prediction: str | None = None,
+    ):
         """The scenario problem of the agents' model and cost.
 
         Args:
             n_scenarios: ``Ns``; ``None`` for :meth:`scenario_count`.
             horizon: ``N``; ``None`` for ``agents.horizon``.
+            prediction: ``"open_loop"`` or ``"feedback"``; ``None`` for ``agents.prediction``.
         """
         from controllers.problem import ScenarioProblem
 
@@ -438,6 +451,7 @@ class ExperimentConfig:
             horizon=self.agents.horizon if horizon is None else int(horizon),
             n_scenarios=self.scenario_count() if n_scenarios is None else int(n_scenarios),
             slack_penalty=self.agents.slack_penalty,
+            prediction=self.agents.prediction if prediction is None else prediction,
         )
 
 

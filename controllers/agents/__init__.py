@@ -1,8 +1,10 @@
 """The agents: the MPC agents over any model (:mod:`~controllers.agents.mpc`), the agent
-that runs a trained policy (:mod:`~controllers.agents.rl`), the face every agent has
+that runs a trained policy (:mod:`~controllers.agents.rl`), a peer library's robust MPC
+(:mod:`~controllers.agents.dompc`, do-mpc, the ``peers`` extra), the face every agent has
 (:mod:`~controllers.agents.protocol`) and the registered agents, one record each, with
 :func:`make_agent` (:mod:`~controllers.agents.registry`)."""
 
+from controllers.agents.dompc import DoMpcAgent
 from controllers.agents.mpc import (
     CertaintyEquivalentMPCAgent,
     MPCAgent,
@@ -33,6 +35,7 @@ __all__ = [
     "Agent",
     "AgentSpec",
     "CertaintyEquivalentMPCAgent",
+    "DoMpcAgent",
     "MPCAgent",
     "NominalMPCAgent",
     "OracleMPCAgent",

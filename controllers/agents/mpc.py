@@ -21,6 +21,15 @@ full-state observation ``y = x + e``; every dimension is read from the model.
 * :class:`OracleMPCAgent` (``"oracle"``): an upper bound, NOT a controller one can build:
   it reads the true state and the true future latent force from the env.
 
+With ``settings.prediction == "feedback"`` every agent's scenario problem is the feedback
+one (:mod:`controllers.feedback`): its solver (``make_solver`` on that problem,
+:class:`~controllers.solvers.feedback.FeedbackScenarioSolver`) keeps the reference plan (the
+nominal inputs of its last usable plan, shifted), computes the law from it at every step
+(at the first step, and after a solve without a usable plan, from an open-loop solve of the
+same problem) and returns the decision, whose first input is applied; the agent keeps the
+plan's nominal inputs as its fallback plan. With one scenario (``nominal``, ``pf``,
+``oracle``, ``robust`` with ``forecast: mean``) the feedback only re-parametrises the plan.
+
 Agents draw their randomness from their own seed, independent of the env's, so the
 same env seed gives every agent the same latent force and noise. Every agent here follows
 :class:`controllers.agents.protocol.Agent` and has stable-baselines3's ``predict``
@@ -102,6 +111,7 @@ class MPCAgent(SB3Predict):
             horizon=self.settings.horizon,
             n_scenarios=n_scenarios,
             slack_penalty=self.settings.slack_penalty,
+            prediction=self.settings.prediction,
         )
         # A solve that reaches max_solve_time fails, and _choose_action falls back.
         threads = self.settings.solver_threads
@@ -144,12 +154,13 @@ class MPCAgent(SB3Predict):
             estimate_time=t_est,
             status=sol.status,
             success=bool(sol.success),
+            usable=bool(sol.usable),
             iterations=int(sol.iterations),
             solver_extra=dict(sol.extra or {}),
             slack=float(sol.slack),
             objective=float(sol.objective),
             fallback=fallback,
-            plan=sol.u.copy(),
+            plan=sol.plan.copy(),
             predicted=None if sol.predicted is None else sol.predicted.copy(),
             x0=np.asarray(x0, dtype=float).copy(),
             W=np.asarray(W).copy(),
@@ -161,10 +172,12 @@ class MPCAgent(SB3Predict):
     # ------------------------------------------------------------------ internals
 
     def _choose_action(self, sol: MPCSolution) -> tuple[np.ndarray, str]:
-        """First input of a good plan; otherwise the previous plan shifted, or the system's
-        fallback at the state estimate (the bicycle brakes to a standstill)."""
-        if sol.success and np.all(np.isfinite(sol.u)):
-            self._plan = self.system.clip_input(sol.u)
+        """First input of a usable plan (:attr:`MPCSolution.usable`: converged, or stopped
+        early below its warm start); otherwise the previous plan shifted, or the system's
+        fallback at the state estimate (the bicycle brakes to a standstill). The plan kept
+        is :attr:`MPCSolution.plan` (a feedback plan's nominal inputs)."""
+        if sol.usable:
+            self._plan = self.system.clip_input(sol.plan)
             return self._plan[0].copy(), ""
         if self._plan is not None and len(self._plan) > 1:
             self._plan = self._plan[1:]

@@ -22,7 +22,8 @@ latent_force_std  its standard deviation ``(nw,)``             NaN
 predicted         predicted states ``(S, N+1, nx)``            NaN
 solve_time        [s] time of the step's optimisation          not counted (NaN)
 slack             the plan's constraint slack (>= 0)           not counted (NaN)
-success           the step's solve succeeded                   True (no solver, no failure)
+success           the step's solve succeeded (converged)       True (no solver, no failure)
+usable            the solve returned a plan to apply           the value of success
 fallback          '' or the name of the fallback action used   '' (none)
 filter_reset      the estimator restarted after divergence     False
 estimator         the name of the agent's estimator            ''
@@ -68,7 +69,8 @@ class AgentInfo(TypedDict, total=False):
     predicted: np.ndarray  # (S, N+1, nx) predicted states of the plan's scenarios
     solve_time: float  # [s] the step's optimisation
     slack: float  # the plan's constraint slack (>= 0)
-    success: bool  # the step's solve succeeded
+    success: bool  # the step's solve succeeded (converged)
+    usable: bool  # the solve returned a plan to apply, converged or not
     fallback: str  # '' or the name of the fallback action used
     filter_reset: bool  # the estimator restarted after divergence
     estimator: str  # the name of the agent's estimator
@@ -85,6 +87,7 @@ INFO_DEFAULTS: dict[str, Any] = {
     "solve_time": math.nan,
     "slack": math.nan,
     "success": True,
+    "usable": None,  # (the step's success)
     "fallback": "",
     "filter_reset": False,
     "estimator": "",

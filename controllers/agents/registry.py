@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
 
+from controllers.agents.dompc import MISSING_DO_MPC, DoMpcAgent, do_mpc_installed
 from controllers.agents.mpc import (
     CertaintyEquivalentMPCAgent,
     NominalMPCAgent,
@@ -56,6 +57,12 @@ def _check_rl_policy(config: ExperimentConfig) -> None:
     check_rl_policy(config.agents.rl_policy)
 
 
+def _check_do_mpc(config: ExperimentConfig) -> None:
+    """do-mpc (the ``peers`` extra) must be installed; checked without importing it."""
+    if not do_mpc_installed():
+        raise ConfigError(MISSING_DO_MPC)
+
+
 # Colours follow the paper's captions where it names them (true path green dashed,
 # estimate red); each agent keeps its colour so plots can be compared.
 _SPECS = (
@@ -66,7 +73,7 @@ _SPECS = (
         short_label="nominal MPC",
         colour="tab:gray",
         order=0,
-        uses=("horizon", "solver"),
+        uses=("horizon", "solver", "prediction"),
     ),
     AgentSpec(
         "pf",
@@ -75,7 +82,7 @@ _SPECS = (
         short_label="PF + CE MPC",
         colour="tab:orange",
         order=1,
-        uses=("horizon", "solver", "estimator", "n_particles", "latent_force"),
+        uses=("horizon", "solver", "prediction", "estimator", "n_particles", "latent_force"),
     ),
     AgentSpec(
         "scenario",
@@ -84,7 +91,15 @@ _SPECS = (
         short_label="scenario MPC (paper)",
         colour="tab:blue",
         order=2,
-        uses=("horizon", "solver", "estimator", "n_particles", "n_scenarios", "latent_force"),
+        uses=(
+            "horizon",
+            "solver",
+            "prediction",
+            "estimator",
+            "n_particles",
+            "n_scenarios",
+            "latent_force",
+        ),
     ),
     AgentSpec(
         "scenario_particles",
@@ -93,7 +108,15 @@ _SPECS = (
         short_label="scenario MPC, particle starts",
         colour="tab:green",
         order=3,
-        uses=("horizon", "solver", "estimator", "n_particles", "n_scenarios", "latent_force"),
+        uses=(
+            "horizon",
+            "solver",
+            "prediction",
+            "estimator",
+            "n_particles",
+            "n_scenarios",
+            "latent_force",
+        ),
     ),
     AgentSpec(
         "robust",
@@ -102,7 +125,7 @@ _SPECS = (
         short_label="robust MPC (back-off)",
         colour="tab:red",
         order=4,
-        uses=("horizon", "solver", "robust", "latent_force"),
+        uses=("horizon", "solver", "prediction", "robust", "latent_force"),
     ),
     AgentSpec(
         "oracle",
@@ -112,7 +135,7 @@ _SPECS = (
         colour="tab:purple",
         order=5,
         reads_truth=True,
-        uses=("horizon", "solver"),
+        uses=("horizon", "solver", "prediction"),
     ),
     AgentSpec(
         "rl",
@@ -123,6 +146,16 @@ _SPECS = (
         order=6,
         check=_check_rl_policy,
         uses=("rl_policy",),
+    ),
+    # A peer library's robust MPC, after the project's agents (room is left for more).
+    AgentSpec(
+        "dompc",
+        DoMpcAgent,
+        label="do-mpc multi-stage MPC (peer, UKF)",
+        short_label="do-mpc multi-stage",
+        colour="tab:brown",
+        order=10,
+        check=_check_do_mpc,
     ),
 )
 
@@ -143,7 +176,7 @@ def agent_spec(name: str) -> AgentSpec:
         ValueError: naming the registered agents, for an unknown ``name``.
     """
     if name not in AGENT_REGISTRY:
-        raise ValueError(f"unknown agent {name!r}; choose one of {sorted(AGENT_REGISTRY)}")
+        raise ValueError(f"unknown agent {name!r}; choose one of {list(AGENT_REGISTRY)}")
     return AGENT_REGISTRY[name]
 
 
@@ -158,8 +191,9 @@ def check_agent_config(name: str, config: Any = None) -> ExperimentConfig:
 
     Cheap (builds no solver), so :func:`experiments.evaluation.run.evaluate` calls it for every
     agent before the first episode. Every agent with an estimator (``pf``, ``scenario``,
-    ``scenario_particles``, ``robust``: :func:`needs_measurement_noise`) weighs
-    measurements by their noise, which must not be zero.
+    ``scenario_particles``, ``robust``, ``dompc``: :func:`needs_measurement_noise`) weighs
+    measurements by their noise, which must not be zero. ``dompc`` needs do-mpc (the
+    ``peers`` extra): without it, one line naming the extra.
     """
     spec = agent_spec(name)
     config = load_config(config)
@@ -182,7 +216,7 @@ def make_agent(name: str, config: Any = None, env: Any = None) -> Any:
 
     Args:
         name: one of :data:`AGENT_REGISTRY` (``"nominal"``, ``"pf"``, ``"scenario"``,
-            ``"scenario_particles"``, ``"robust"``, ``"oracle"``, ``"rl"``).
+            ``"scenario_particles"``, ``"robust"``, ``"oracle"``, ``"rl"``, ``"dompc"``).
         config: an :class:`~controllers.config.ExperimentConfig`, a YAML path, a dict
             (whole file), or ``None`` for the paper's values; the ``env`` section is the
             agents' known model, the ``agents`` section their settings.

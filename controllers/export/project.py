@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from controllers.config import load_config
-from controllers.solvers.fast.codegen.build import c_source
+from controllers.solvers.fast.codegen.source import c_source
 from controllers.solvers.fast.compiled import SqpOptions, c_options, problem_arrays, sqp_source
 from controllers.solvers.fast.options import FastSolverOptions
 

@@ -5,6 +5,9 @@ class lives, what it is, how the common options reach it and what it can do).
 ``make_solver(problem, name, **options)`` builds any of them; each is a
 :class:`ScenarioSolver` (``solve(x0, W, u_guess=None, backoff=None) -> MPCSolution`` and
 ``reset()``) and minimises the same :meth:`controllers.problem.ScenarioProblem.objective`.
+On a problem with ``prediction="feedback"`` every one of them runs through the exact rewrite
+of :mod:`controllers.solvers.feedback` (whose ``solve`` also takes the feedback law,
+``law=``).
 ``"fast"``, the project's condensed SQP (:mod:`controllers.solvers.fast`), is the default;
 the others are built on CasADi's plugins (:mod:`controllers.solvers.casadi`).
 """
@@ -67,7 +70,13 @@ class SolverSpec:
     threaded: bool = False
 
     def build(self, problem: ScenarioProblem, **options: Any) -> ScenarioSolver:
-        """The solver for ``problem`` with ``options`` (see :func:`make_solver`)."""
+        """The solver for ``problem`` with ``options`` (see :func:`make_solver`); for a
+        feedback problem, this solver through the exact rewrite of
+        :class:`~controllers.solvers.feedback.FeedbackScenarioSolver`."""
+        if problem.prediction == "feedback":
+            from controllers.solvers.feedback import FeedbackScenarioSolver
+
+            return FeedbackScenarioSolver(problem, self, **options)
         module, _, name = self.entry_point.partition(":")
         cls = getattr(importlib.import_module(module), name)
         key = self.max_iter_option

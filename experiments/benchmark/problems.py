@@ -22,7 +22,7 @@ from tqdm.auto import tqdm
 from controllers.config import ExperimentConfig, load_config
 from controllers.problem import ScenarioProblem
 
-ENV_ID = "lfm_env/SineTrack-v0"  # the env whose episodes the benchmark records
+ENV_ID = "lfm_env/SineTrack-v0"  # the default config's env (recordings use the config's env_id)
 DEFAULT_CONFIG = "configs/paper.yaml"
 DEFAULT_SEEDS = (0, 1, 2, 3, 4, 5)  # the closed-loop problems: seeds 0..5
 RECORDING_SOLVER = "fast"  # the agent's solver while recording (the default controller)
@@ -114,7 +114,8 @@ def env_start(config: Any = DEFAULT_CONFIG, seed: int = 0) -> tuple[np.ndarray, 
 
     import lfm_env  # noqa: F401  (registers the env id)
 
-    env = gym.make(ENV_ID, config=experiment_config(config).env)
+    cfg = experiment_config(config)
+    env = gym.make(cfg.env_id, config=cfg.env)
     try:
         _, info = env.reset(seed=int(seed))
     finally:
@@ -159,7 +160,7 @@ def record_closed_loop(
     problems: list[RecordedProblem] = []
     anchors: list[SweepAnchor] = []
     for seed in tqdm(list(seeds), desc="record episodes", disable=not progress):
-        env = gym.make(ENV_ID, config=cfg.env)
+        env = gym.make(cfg.env_id, config=cfg.env)
         try:
             obs, _ = env.reset(seed=int(seed))
             agent = make_agent("scenario", cfg)

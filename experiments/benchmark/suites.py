@@ -30,7 +30,6 @@ from experiments.benchmark.failures import failures_of
 from experiments.benchmark.problems import (
     DEFAULT_CONFIG,
     DEFAULT_SEEDS,
-    ENV_ID,
     RECORDING_SOLVER,
     SweepAnchor,
     anchors_per_seed,
@@ -544,7 +543,7 @@ def time_episode(
 
     cfg = experiment_config(config, solver=solver)
     t0 = time.perf_counter()
-    env = gym.make(ENV_ID, config=cfg.env)
+    env = gym.make(cfg.env_id, config=cfg.env)
     agent = make_agent("scenario", cfg)
     setup = time.perf_counter() - t0
     solve, estimate, step_wall, successes = [], [], [], 0

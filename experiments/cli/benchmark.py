@@ -11,6 +11,11 @@ from pathlib import Path
 from typing import Any
 
 from controllers.solvers import SOLVERS
+from experiments.benchmark.predictions import (
+    PREDICTION_STEPS,
+    format_predictions,
+    sweep_predictions,
+)
 from experiments.benchmark.report import format_markdown, format_report, json_ready
 from experiments.benchmark.run import DEFAULT_MAX_STEPS, DEFAULT_SOLVERS, run_benchmark
 from experiments.benchmark.suites import DEFAULT_HORIZON_STEPS, DEFAULT_HORIZONS
@@ -181,8 +186,35 @@ def build_parser() -> argparse.ArgumentParser:
         help="leave out the compiled loop's plan agreement and the exported C controllers "
         "(built with make and timed from C); fast_c is still timed when among --solvers",
     )
+    parser.add_argument(
+        "--predictions",
+        default=None,
+        metavar="HORIZONS",
+        help="run the prediction sweep alone, e.g. 7,15,30,50: the fast solver on the "
+        "open-loop and the feedback scenario problem (agents.prediction) at each horizon N, "
+        f"on the closed-loop problems of --seeds ({PREDICTION_STEPS} per seed, or "
+        "--horizon-steps); prints median/p95 solve times and every failed solve",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     return parser
+
+
+def _prediction_sweep(args: argparse.Namespace, seeds: list[int], out: Path) -> int:
+    """``--predictions``: the prediction sweep alone, printed and written to ``out``."""
+    result = sweep_predictions(
+        parse_ints(args.predictions, "predictions"),
+        config=args.config or DEFAULT_PRESET,
+        seeds=seeds,
+        steps_per_seed=args.horizon_steps or PREDICTION_STEPS,
+        progress=not args.no_progress,
+    )
+    table = format_predictions(result)
+    print(table, flush=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(json_ready(result), indent=1, allow_nan=False) + "\n")
+    out.with_suffix(".md").write_text("```\n" + table + "\n```\n")
+    print(f"\nwrote {out} and {out.with_suffix('.md')}")
+    return 0
 
 
 def _solver_list(text: str, skip: Sequence[str]) -> list[str]:
@@ -206,6 +238,8 @@ def benchmark_main(argv: Sequence[str] | None = None) -> int:
         seeds = parse_seeds(args.seeds or (QUICK["seeds"] if args.quick else "0:6"))
         solvers = _solver_list(args.solvers, args.skip)
         horizons = parse_ints(args.horizons, "horizons")
+        if args.predictions is not None:
+            parse_ints(args.predictions, "predictions")
     except ValueError as exc:
         parser.error(str(exc))
     config_argument_path(parser, args.config)  # a preset's name or a file: exits 2 otherwise
@@ -214,6 +248,8 @@ def benchmark_main(argv: Sequence[str] | None = None) -> int:
         problem = check_writable(path, "--out")
         if problem is not None:
             parser.error(problem)
+    if args.predictions is not None:
+        return _prediction_sweep(args, seeds, out)
     options: dict[str, Any] = {}
     if args.quick:
         options = {k: v for k, v in QUICK.items() if k != "seeds"}

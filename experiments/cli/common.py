@@ -136,7 +136,7 @@ CACHE_NOTE = (
     "The fast solver compiles a C library once per system (about 1.5 s, with the system C "
     "compiler $CC, else cc or gcc) and caches it under $LFM_CACHE_DIR (default "
     "~/.cache/lfm-scenario-mpc); delete that folder to rebuild. Without a compiler it runs "
-    "on CasADi's functions, slower."
+    "its NumPy backend, slower."
 )
 
 

@@ -50,8 +50,10 @@ x [m], speed [m/s]; quadrotor: corridor [m], x [m]) and <G>_violation_steps_over
 per tolerance T of the group (steps with the excess above T; sine track: track and x
 0.01, 0.05 m, speed 0.05 m/s), failure (the env ended the
 episode as a failure), latent_rmse [force unit] and latent_coverage (2-sigma band;
-filter agents only), solve_time_median/p95/max [s], solver_failures,
-fallback_steps, filter_resets, slack_total, wall_time [s], error.
+filter agents only), solve_time_median/p95/max [s], solver_failures (steps whose
+solve gave no usable plan), unconverged_solves (steps that applied the usable plan
+of a solve that did not converge), fallback_steps, filter_resets, slack_total,
+wall_time [s], error.
 
 examples:
   lfm-evaluate                                   paper config, seeds 0:20, 3 agents

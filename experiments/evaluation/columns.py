@@ -32,7 +32,8 @@ TAIL_COLUMNS: tuple[str, ...] = (
     "solve_time_median",  # [s]
     "solve_time_p95",  # [s]
     "solve_time_max",  # [s]
-    "solver_failures",  # steps whose solve did not succeed
+    "solver_failures",  # steps whose solve returned no usable plan (the agent fell back)
+    "unconverged_solves",  # steps whose solve did not converge but gave a usable plan
     "fallback_steps",  # steps that applied a fallback action (previous plan or brake)
     "filter_resets",  # particle-filter restarts after divergence (filter agents)
     "slack_total",  # sum of the per-step constraint slack
@@ -49,7 +50,14 @@ TIMING_COLUMNS: tuple[str, ...] = (
 )
 
 _STR_COLUMNS = ("agent", "error")
-_INT_COLUMNS = ("seed", "steps", "solver_failures", "fallback_steps", "filter_resets")
+_INT_COLUMNS = (
+    "seed",
+    "steps",
+    "solver_failures",
+    "unconverged_solves",
+    "fallback_steps",
+    "filter_resets",
+)
 _BOOL_COLUMNS = ("success", "failure")
 _FIXED_COLUMNS = HEAD_COLUMNS + TAIL_COLUMNS
 _VIOLATION_SUFFIX = "_violation_steps"  # int columns of the constraint groups

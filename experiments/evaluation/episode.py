@@ -191,13 +191,17 @@ class _EpisodeRecorder:
                 "solve_time",
                 "slack",
                 "solver_success",
+                "solver_usable",
                 "fallback",
                 "filter_reset",
                 "estimator",
+                "plan",
+                "latent_state",
                 *self._excess_keys(),
             )
         }
         self.has_filter = False
+        self.latent_width = 0  # entries of the env's latent state (info["latent_state"])
         self.slack_reported: list[bool] = []  # per step: the agent gave its slack
         self.final_info: dict[str, Any] = {}
 
@@ -205,6 +209,25 @@ class _EpisodeRecorder:
         self.lists["true_state"].append(np.asarray(info["true_state"], dtype=float))
         self.lists["obs"].append(np.asarray(obs, dtype=float))
         self.lists["time"].append(float(info["time"]))
+        # The hidden latent state, for the offline chance-constraint check (the evaluation
+        # layer's, never an agent's); an env whose info lacks it records none.
+        self.latent_width = len(np.ravel(info.get("latent_state", ())))
+        self._record_latent(info)
+
+    def _record_latent(self, info: dict[str, Any]) -> None:
+        if self.latent_width:
+            self.lists["latent_state"].append(
+                np.asarray(info["latent_state"], dtype=float).reshape(self.latent_width)
+            )
+
+    def _plan(self, agent_info: dict[str, Any]) -> np.ndarray:
+        """The agent's planned inputs ``(N, nu)`` (``last_info["plan"]``), NaN if it gives
+        none of that shape."""
+        plan = agent_info.get("plan")
+        shape = (self.horizon, self.nu)
+        if plan is not None and np.shape(plan) == shape:
+            return np.array(plan, dtype=float)
+        return np.full(shape, np.nan)
 
     def step(
         self, agent_info: dict[str, Any], obs: np.ndarray, reward: float, info: dict[str, Any]
@@ -224,6 +247,7 @@ class _EpisodeRecorder:
         values.update((k, float(info[k])) for k in self._excess_keys())
         for k, v in values.items():
             self.lists[k].append(v)
+        self._record_latent(info)
         self.slack_reported.append(agent_info.get("slack") is not None)
         self.final_info = info
 
@@ -271,11 +295,14 @@ class _EpisodeRecorder:
             "solve_time": checked("solve_time", lambda: float(get(agent_info, "solve_time"))),
             "slack": checked("slack", lambda: float(get(agent_info, "slack"))),
             "solver_success": bool(get(agent_info, "success")),
+            # (an agent that does not say: usable exactly when it succeeded)
+            "solver_usable": bool(get(agent_info, "usable", get(agent_info, "success"))),
             "fallback": str(get(agent_info, "fallback")),
             "filter_reset": bool(get(agent_info, "filter_reset")),
             # The estimator's name, from agents that say which one they run (it may differ
             # from agents.estimator: the robust agent has its own).
             "estimator": str(get(agent_info, "estimator")),
+            "plan": self._plan(agent_info),
         }
 
     @staticmethod
@@ -351,9 +378,12 @@ class _EpisodeRecorder:
             "solve_time": stack("solve_time", (0,)),
             "slack": stack("slack", (0,)),
             "solver_success": stack("solver_success", (0,), bool),
+            "solver_usable": stack("solver_usable", (0,), bool),
             "fallback": stack("fallback", (0,), str),
             "filter_reset": stack("filter_reset", (0,), bool),
             "estimator": stack("estimator", (0,), str),
+            "plan": stack("plan", (0, self.horizon, self.nu)),
+            **({"latent_state": stack("latent_state", (0,))} if self.latent_width else {}),
             **{k: stack(k, (0,)) for k in self._excess_keys()},
         }
 
@@ -422,6 +452,9 @@ def _episode_metrics(rec: _EpisodeRecorder, arrays: dict[str, np.ndarray]) -> di
     else:
         latent_rmse = latent_coverage = math.nan
 
+    # Episodes saved before 'solver_usable' existed: usable exactly when it succeeded.
+    usable = arrays.get("solver_usable", arrays["solver_success"])
+
     def stat(fn: Callable[[np.ndarray], Any], x: np.ndarray) -> float:
         return float(fn(x)) if len(x) else math.nan
 
@@ -442,7 +475,8 @@ def _episode_metrics(rec: _EpisodeRecorder, arrays: dict[str, np.ndarray]) -> di
         "solve_time_median": stat(np.median, solve),
         "solve_time_p95": stat(lambda x: np.percentile(x, 95), solve),
         "solve_time_max": stat(np.max, solve),
-        "solver_failures": int(np.sum(~arrays["solver_success"])),
+        "solver_failures": int(np.sum(~usable)),
+        "unconverged_solves": int(np.sum(usable & ~arrays["solver_success"])),
         "fallback_steps": int(np.sum(arrays["fallback"] != "")),
         "filter_resets": int(np.sum(arrays["filter_reset"])) if rec.has_filter else 0,
         "slack_total": float(np.sum(slack)) if len(slack) else math.nan,
@@ -490,12 +524,16 @@ def run_episode(
         or nx + latent states for filter agents), ``latent_force_est`` and
         ``latent_force_std`` (its estimate of ``latent_force[k]``, shaped like it; NaN
         without a filter), ``predicted (T, N+1, nx)`` (first scenario's predicted
-        states), ``solve_time (T,)`` [s], ``slack (T,)``, ``solver_success (T,)``,
-        ``fallback (T,)`` ('' or the fallback used), ``estimator (T,)`` (the name the
-        agent gives its estimator in ``last_info["estimator"]``, '' when it gives none),
-        and ``<group>_excess (T,)`` per constraint group of the system (its largest
+        states), ``solve_time (T,)`` [s], ``slack (T,)``, ``solver_success (T,)``
+        (converged), ``solver_usable (T,)`` (a plan to apply), ``fallback (T,)`` ('' or
+        the fallback used), ``estimator (T,)`` (the name the agent gives its estimator in
+        ``last_info["estimator"]``, '' when it gives none),
+        ``<group>_excess (T,)`` per constraint group of the system (its largest
         excess after step k, in its unit; ``track_excess``, ``x_excess``, ``speed_excess``
-        on the sine track).
+        on the sine track), ``plan (T, N, nu)`` (the inputs the agent planned at step k,
+        its ``last_info["plan"]``; NaN when it gives none) and ``latent_state (T+1, p)``
+        (the env's hidden latent state acting in step k, ``info["latent_state"]``: for the
+        evaluation layer's offline checks, never given to an agent).
 
     Raises:
         ValueError: unknown agent or bad agent spec (naming it) or negative seed; any

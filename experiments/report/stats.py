@@ -142,7 +142,8 @@ def summary_metrics(system: ControlSystem) -> tuple[Metric, ...]:
         Metric("latent_coverage", "latent-force 2-sigma coverage", lower_is_better=False),
         Metric("solve_time_median", "solve time, episode median", "s"),
         Metric("solve_time_p95", "solve time, episode p95", "s"),
-        Metric("solver_failures", "solver failures", "steps"),
+        Metric("solver_failures", "solver failures (no usable plan)", "steps"),
+        Metric("unconverged_solves", "unconverged solves (usable plan applied)", "steps"),
         Metric("fallback_steps", "fallback steps", "steps"),
         Metric("filter_resets", "particle-filter restarts", "per episode"),
     )

@@ -8,9 +8,11 @@ Reads a results folder written by the evaluation (it never re-runs an episode):
 * ``DIR/episodes/<agent>__seed<seed>.npz``: the arrays of that episode;
 * ``DIR/config.yaml``: the config of the run (``env_id``, ``env`` and ``agents``).
 
+It opens with the metrics that do not reward failing (:mod:`experiments.report.survival`).
 Besides the per-agent and paired tables (with the tolerance-aware violation counts of
 :func:`~experiments.evaluation.columns.row_columns`), it holds the estimators' calibration (2-sigma
-coverage and RMSE per state and for the latent force, from the saved trajectories) and,
+coverage and RMSE per state and for the latent force, from the saved trajectories), the
+chance constraint against its design (:mod:`experiments.report.chance`) and,
 when given a sweep folder of :mod:`experiments.sweep` (or when ``DIR`` holds one), the
 risk sweep's table and Pareto figure.
 
@@ -32,7 +34,6 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -40,6 +41,7 @@ from controllers.agents.registry import AGENT_REGISTRY
 from experiments import plots
 from experiments.evaluation.columns import tolerance_columns
 from experiments.evaluation.storage import folder_in_use, warn, warnings_once
+from experiments.report.chance import chance_section
 from experiments.report.document import GIF_EMBED_LIMIT, Document, embedded_image
 from experiments.report.figures import check_figure_seed, figures_section
 from experiments.report.format import agent_label, fmt, fmt_estimate, long_label
@@ -73,15 +75,8 @@ from experiments.report.stats import (
     tolerance_metrics,
     zero_violation_metrics,
 )
-from experiments.report.sweep_summary import (
-    FIGURE_CAPTION,
-    SWEEP_TABLE,
-    SweepSummary,
-    load_sweep,
-    sweep_description,
-    sweep_figure,
-    sweep_table,
-)
+from experiments.report.survival import headline_section
+from experiments.report.sweep_section import check_sweep_config, load_report_sweep, sweep_section
 from lfm_env.system import split_unit
 
 PAPER_ENV_ID = "lfm_env/SineTrack-v0"  # the paper's world: "paper vs measured" only there
@@ -124,6 +119,8 @@ def _settings_text(results: Results) -> str:
             continue  # the UKF has no particles
         if key in used and key in settings:
             parts.append(f"{key} = {settings[key]}")
+    if "prediction" in used and settings.get("prediction", "open_loop") != "open_loop":
+        parts.append(f"prediction = {settings['prediction']}")  # (docs/feedback.md)
     robust = settings.get("robust")
     if "robust" in used and isinstance(robust, dict):
         est = robust.get("estimator", "ukf")
@@ -457,94 +454,6 @@ def _pooled_solve_times(results: Results, agent: str) -> np.ndarray:
     return st[np.isfinite(st)]
 
 
-def _load_sweep(directory: Path, sweep_dir: str | Path | None) -> SweepSummary | None:
-    """The risk sweep to include: ``sweep_dir``'s, else the folder's own if it has one."""
-    if sweep_dir is None:
-        if not (directory / SWEEP_TABLE).is_file():
-            return None
-        sweep_dir = directory
-    return load_sweep(sweep_dir)
-
-
-def _flat(data: Any, prefix: str = "") -> dict[str, Any]:
-    """A nested config mapping as ``{dotted key: value}``."""
-    if not isinstance(data, dict):
-        return {prefix: data}
-    out: dict[str, Any] = {}
-    for key, value in data.items():
-        out.update(_flat(value, f"{prefix}.{key}" if prefix else str(key)))
-    return out
-
-
-def config_differences(ours: dict, theirs: dict) -> list[tuple[str, Any, Any]]:
-    """``(dotted key, our value, their value)`` of every field two resolved configs (their
-    :meth:`~controllers.config.ExperimentConfig.to_dict`) hold differently, sorted."""
-    a, b = _flat(ours), _flat(theirs)
-    missing = object()
-    return [
-        (k, a.get(k, "(none)"), b.get(k, "(none)"))
-        for k in sorted(set(a) | set(b))
-        if a.get(k, missing) != b.get(k, missing)
-    ]
-
-
-def _check_sweep_config(
-    results: Results, summary: SweepSummary, allow: bool
-) -> list[tuple[str, Any, Any]]:
-    """The fields where the sweep's base config differs from the report's; refused (a
-    ``ValueError`` listing them) unless ``allow``."""
-    from controllers.config import load_config
-
-    ours = load_config(results.directory / "config.yaml").to_dict()
-    diffs = config_differences(ours, summary.config)
-    if diffs and not allow:
-        shown = "; ".join(f"{k} ({_text(a)} here, {_text(b)} there)" for k, a, b in diffs[:8])
-        more = f"; and {len(diffs) - 8} more" if len(diffs) > 8 else ""
-        raise ValueError(
-            f"the sweep {summary.directory} ran on another config than {results.directory}: "
-            f"{shown}{more}. Rerun the sweep on this config, or include it anyway with "
-            "lfm-report --allow-other-config (the report then lists these fields)"
-        )
-    return diffs
-
-
-def _text(value: Any) -> str:
-    return str(value) if not isinstance(value, str) else repr(value)
-
-
-def _sweep_section(
-    doc: Document,
-    results: Results,
-    summary: SweepSummary,
-    differences: Sequence[tuple[str, Any, Any]] = (),
-) -> None:
-    """The risk sweep's table and Pareto figure (see :mod:`experiments.sweep`), with the
-    fields its config does not share with the report's, if any."""
-    doc.heading(f"Risk trade-off: `{summary.key}` of `{summary.agent}`")
-    world = summary.system.name
-    doc.paragraph(
-        f"From the sweep folder `{summary.directory}` (`lfm-sweep`, on the `{world}` system"
-        + ("" if world == results.system.name else ", not this report's world")
-        + "). "
-        + sweep_description(summary)
-    )
-    if differences:
-        doc.paragraph(
-            f"**The sweep ran on another config than this report** ({len(differences)} "
-            "fields differ; included with `--allow-other-config`): its numbers are not "
-            "comparable with the tables above."
-        )
-        doc.table(
-            ["field", "this report", "the sweep"],
-            [[f"`{k}`", _text(a), _text(b)] for k, a, b in differences],
-        )
-    header, rows = sweep_table(summary)
-    doc.table(header, rows)
-    rel = "figures/sweep.png"
-    plots.save_figure(sweep_figure(summary), results.directory / rel)
-    doc.image(rel, FIGURE_CAPTION)
-
-
 # --------------------------------------------------------------------------- entry point
 
 
@@ -603,8 +512,8 @@ def _write_report(
     results = load_results(results_dir)
     baseline = choose_baseline(results, baseline)
     check_figure_seed(results, figure_seed)  # before writing any file
-    sweep = _load_sweep(results.directory, sweep_dir)
-    differences = [] if sweep is None else _check_sweep_config(results, sweep, allow_other_config)
+    sweep = load_report_sweep(results.directory, sweep_dir)
+    differences = [] if sweep is None else check_sweep_config(results, sweep, allow_other_config)
     stats = summarize(results)
     doc = Document()
     title = f"Evaluation report: {results.directory.name}"
@@ -619,14 +528,16 @@ def _write_report(
     )
     doc.bullets([f"`{a}`: {long_label(a)}" for a in results.agents])
     _model_section(doc, results)
+    headline_section(doc, results, baseline)  # survival-unbiased metrics, against robust
     _summary_section(doc, results, stats)
     _errors_section(doc, results)
     _paired_section(doc, results, baseline)
     if results.config.ENV_ID == PAPER_ENV_ID:
         _paper_vs_measured_section(doc, results, _pooled_solve_times(results, REFERENCE_AGENT))
     _calibration_section(doc, results)
+    chance_section(doc, results)  # the chance constraint against its design
     if sweep is not None:
-        _sweep_section(doc, results, sweep, differences)
+        sweep_section(doc, results, sweep, differences)
     figures_section(doc, results, figure_seed, gif)
     _damaged_section(doc, results)
     if owner is not None:
@@ -654,7 +565,6 @@ __all__ = [
     "bootstrap_ci",
     "calibration",
     "choose_baseline",
-    "config_differences",
     "load_results",
     "load_trajectory",
     "group_metrics",

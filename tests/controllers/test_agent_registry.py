@@ -20,6 +20,7 @@ COLOURS = {
     "robust": "tab:red",
     "oracle": "tab:purple",
     "rl": "tab:olive",
+    "dompc": "tab:brown",
 }
 
 

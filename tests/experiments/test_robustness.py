@@ -926,19 +926,36 @@ def test_unknown_key_anywhere_gives_config_error_naming_it(tmp_path, where, key,
 
 
 @pytest.mark.parametrize("solver", ["ipopt", "fast"])
-def test_solver_failures_and_fallbacks_are_counted_in_the_table(solver, tmp_path):
-    # One iteration cannot converge: every solve fails, and every step applies the
-    # system's fallback at the agent's estimate (the bicycle brakes to a standstill).
+def test_unconverged_solves_apply_their_usable_plan_and_are_counted(solver, tmp_path):
+    # One iteration cannot converge, but it lowers the objective below the warm start:
+    # every step applies that usable plan, counted apart from the failures.
     config = {"env": {"max_steps": 6}, "agents": {**TINY_AGENTS, "max_iter": 1, "solver": solver}}
+    rows = evaluate(["nominal", "pf"], [0], config, out=tmp_path, progress=False)
+    for row in rows:
+        assert row["error"] == "" and row["steps"] == 6
+        assert row["unconverged_solves"] == 6
+        assert row["solver_failures"] == row["fallback_steps"] == 0
+        traj = load_trajectory(tmp_path, row["agent"], 0)
+        assert not traj["solver_success"].any() and traj["solver_usable"].all()
+        assert set(traj["fallback"].tolist()) == {""}
+
+
+@pytest.mark.parametrize("solver", ["ipopt", "fast"])
+def test_solver_failures_and_fallbacks_are_counted_in_the_table(solver, tmp_path):
+    # No time for a single iteration: no solve gives a usable plan, and every step applies
+    # the system's fallback at the agent's estimate (the bicycle brakes to a standstill).
+    agents = {**TINY_AGENTS, "max_solve_time": 1e-9, "solver": solver}
+    config = {"env": {"max_steps": 6}, "agents": agents}
     rows = evaluate(["nominal", "pf"], [0], config, out=tmp_path, progress=False)
     with (tmp_path / "episodes.csv").open() as fh:
         table = list(csv.DictReader(fh))
     for row, saved in zip(rows, table, strict=True):
         assert row["error"] == "" and row["steps"] == 6
         assert row["solver_failures"] == row["fallback_steps"] == 6
+        assert row["unconverged_solves"] == 0
         assert int(saved["solver_failures"]) == int(saved["fallback_steps"]) == 6
         traj = load_trajectory(tmp_path, row["agent"], 0)
-        assert not traj["solver_success"].any()
+        assert not traj["solver_success"].any() and not traj["solver_usable"].any()
         assert set(traj["fallback"].tolist()) == {"fallback"}
         # a = clip(-v_hat / dt, -5, 5) with the agent's speed estimate, wheels straight.
         v_hat = traj["estimate"][:, 2]

@@ -10,13 +10,14 @@ scenario and copied to all of them by csnlp (``constraint_from_single``,
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Any
 
 import casadi as ca
 import numpy as np
 
-from controllers.problem import MPCSolution, ScenarioProblem
+from controllers.problem import MPCSolution, ScenarioProblem, is_usable
 from controllers.solvers.casadi.ipopt import DEFAULT_IPOPT_OPTIONS, check_max_time
 
 SHOOTINGS = ("multi", "single")
@@ -154,7 +155,8 @@ class CsnlpScenarioSolver:
         Returns:
             The solution; ``u`` is clipped into the input bounds, and ``objective`` and
             ``slack`` are evaluated on it by :class:`ScenarioProblem`. A failed solve does
-            not raise: it returns the last iterate with ``success=False``.
+            not raise: it returns the last iterate with ``success=False`` (``usable`` when
+            its objective is below the initial guess's).
 
         Raises:
             ValueError: on wrong shapes, non-finite data, or scenario-dependent initial states.
@@ -201,12 +203,14 @@ class CsnlpScenarioSolver:
         self._prev_u = u.copy()
         predicted = problem.rollout(x0, W, u)
         stats = sol.stats
+        objective, success = problem.objective(x0, W, u, b), bool(sol.success)
+        start = math.nan if success else problem.objective(x0, W, u0, b)
         return MPCSolution(
             u=u,
-            objective=problem.objective(x0, W, u, b),
+            objective=objective,
             slack=float(np.sum(problem.minimal_slack(predicted, b))),
             status=str(sol.status),
-            success=bool(sol.success),
+            success=success,
             solve_time=solve_time,
             iterations=int(stats.get("iter_count", 0)),
             predicted=predicted,
@@ -214,7 +218,9 @@ class CsnlpScenarioSolver:
                 "csnlp_objective": float(sol.f),
                 "wall_time_with_setup": time.perf_counter() - t_start,
                 "build_time": self.build_time,
+                "start_objective": start,
             },
+            usable=is_usable(success, objective, start),
         )
 
 

@@ -17,7 +17,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from controllers.problem import MPCSolution, ScenarioProblem
+from controllers.problem import MPCSolution, ScenarioProblem, is_usable
 from controllers.solvers.casadi.nlp import build_condensed, build_multiple_shooting, shift_blocks
 
 FORMULATIONS = ("condensed", "multiple_shooting")
@@ -203,7 +203,9 @@ class IpoptScenarioSolver:
             ``slack`` are :meth:`ScenarioProblem.objective` and the sum of
             :meth:`ScenarioProblem.minimal_slack` evaluated on it, so every solver is compared
             on the same function. A failed solve does not raise: it returns IPOPT's last
-            iterate with ``success=False`` and IPOPT's status. A failed warm-started solve
+            iterate with ``success=False`` and IPOPT's status (``usable`` when its objective
+            is below the initial guess's, ``extra["start_objective"]``; IPOPT's iterates
+            need not decrease it). A failed warm-started solve
             is retried once cold (``extra["cold_retry"]``); ``solve_time`` and
             ``iterations`` then cover both calls.
 
@@ -257,9 +259,12 @@ class IpoptScenarioSolver:
         if success and slack <= WARM_DUALS_MAX_SLACK:
             lam_x, lam_g = result["lam_x"].full().ravel(), result["lam_g"].full().ravel()
         self._prev = {"u": u, "lam_x": lam_x, "lam_g": lam_g}
+        objective = problem.objective(x0, W, u, b)
+        # Not converged: usable if below the warm start (IPOPT's iterates need not be).
+        start = math.nan if success else problem.objective(x0, W, z0[: nu * n], b)
         return MPCSolution(
             u=u,
-            objective=problem.objective(x0, W, u, b),
+            objective=objective,
             slack=slack,
             status=status,
             success=success,
@@ -272,7 +277,9 @@ class IpoptScenarioSolver:
                 "cold_retry": retried,
                 "ipopt_objective": math.nan if result is None else float(result["f"]),
                 "slacks": z[nu * n : (nu + ng) * n].reshape(n, ng).copy(),
+                "start_objective": start,
             },
+            usable=is_usable(success, objective, start),
         )
 
 

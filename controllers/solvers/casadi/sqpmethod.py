@@ -59,7 +59,8 @@ class SqpMethodScenarioSolver(IpoptScenarioSolver):
         warm_start_duals: pass the previous multipliers.
         max_time: wall-clock limit of one solve [s], ``None`` for none. ``sqpmethod`` has no
             time limit of its own, so it is judged after the solve: a solve that took longer
-            fails with status ``Maximum_WallTime_Exceeded`` (its plan came too late).
+            fails with status ``Maximum_WallTime_Exceeded`` and is not usable (its plan came
+            too late).
     """
 
     def __init__(
@@ -103,13 +104,14 @@ class SqpMethodScenarioSolver(IpoptScenarioSolver):
         """Solve as :meth:`IpoptScenarioSolver.solve` does, with ``sqpmethod``.
 
         ``extra["method"]`` is ``"sqpmethod"``; a solve longer than ``max_time`` fails with
-        status ``Maximum_WallTime_Exceeded``.
+        status ``Maximum_WallTime_Exceeded`` and ``usable=False``.
         """
         sol = super().solve(x0, W, u_guess=u_guess, backoff=backoff)
         sol.extra["method"] = "sqpmethod"
         if self.max_time is not None and sol.solve_time > self.max_time:
             sol.extra["sqpmethod_status"] = sol.status
-            sol.status, sol.success = WALL_TIME_STATUS, False
+            # The plan came after the limit: not usable in time (the agent falls back).
+            sol.status, sol.success, sol.usable = WALL_TIME_STATUS, False, False
             self._prev = {**self._prev, "lam_x": None, "lam_g": None}
         return sol
 

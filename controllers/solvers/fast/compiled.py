@@ -4,7 +4,7 @@
 :class:`~controllers.solvers.fast.solver.FastScenarioSolver` (the same options, the same
 iterations, tests and extra starts) inside the system's C library: the loop is
 ``controllers/solvers/fast/codegen/c/sqp.c``, appended to the generated library
-(:func:`~controllers.solvers.fast.codegen.build.library_source`), with the project's own QP
+(:func:`~controllers.solvers.fast.codegen.source.library_source`), with the project's own QP
 solvers in C (the elastic interior point of ``elastic_ipm.c`` for the QPs with slacks, the
 dual active-set method of ``dense.c`` for those without). Python checks the data, calls
 ``lfm_sqp_solve`` once and packs the :class:`~controllers.problem.MPCSolution`.
@@ -29,13 +29,11 @@ from typing import Any
 import numpy as np
 
 from controllers.problem import MPCSolution, ScenarioProblem
-from controllers.solvers.fast.codegen.build import (
-    CodegenUnavailable,
-    address,
+from controllers.solvers.fast.codegen.build import CodegenUnavailable, address, load_library
+from controllers.solvers.fast.codegen.source import (
     c_source,
     constraint_jacobian_pattern,
     library_source,
-    load_library,
 )
 from controllers.solvers.fast.options import FastSolverOptions
 from controllers.solvers.fast.screening import shared_linear_constraints

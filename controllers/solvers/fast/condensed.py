@@ -51,10 +51,10 @@ from controllers.solvers.fast.codegen.build import (
     CodegenUnavailable,
     address,
     build_library,
-    constraint_jacobian_pattern,
     notice,
     ptr,
 )
+from controllers.solvers.fast.codegen.source import constraint_jacobian_pattern
 from controllers.solvers.fast.iterate import Linearisation, Rollout
 from controllers.solvers.fast.lanes import LaneFunction
 from controllers.solvers.fast.screening import (

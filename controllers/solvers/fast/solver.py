@@ -72,7 +72,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.problem import MPCSolution, ScenarioProblem
+from controllers.problem import MPCSolution, ScenarioProblem, is_usable
 from controllers.solvers.fast.condensed import CondensedModel
 from controllers.solvers.fast.globalisation import Evaluate, GlobalisationMixin, ModelStep
 from controllers.solvers.fast.iterate import Linearisation, Rollout
@@ -192,10 +192,11 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin):
             ``{"qpoases": 12}``), gives the first start's ``{"status", "iterations"}``
             (``first_start``), and ``extra["restarts"]`` maps each extra start tried to
             ``"kept"`` or the status it ended with; ``iterations`` counts the iterations of
-            every start. A solve
+            every start; ``extra["start_merit"]`` is the warm start's merit. A solve
             that does not converge does not raise: it returns the best iterate (the merit
-            decreases monotonically) with ``success=False``. A start whose merit stagnates
-            (``acceptable_iter`` steps in a row, each lowering it by at most
+            decreases monotonically) with ``success=False``, and ``usable=True`` when that
+            iterate lies below the warm start (at least one accepted step). A start whose
+            merit stagnates (``acceptable_iter`` steps in a row, each lowering it by at most
             ``acceptable_tol`` of it) ends with status ``"Solved_To_Acceptable_Level"``, a
             success.
 
@@ -285,6 +286,7 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin):
             iterations=iterations,
             predicted=np.ascontiguousarray(ro.X.transpose(2, 0, 1)),
             extra=extra,
+            usable=is_usable(success, ro.merit, extra["start_merit"]),
         )
 
     # ------------------------------------------------------------------ SQP
@@ -332,6 +334,7 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin):
                 return model.evaluate(data.x0T, data.W, u, data.cost0, data.backoff)
 
         ro = evaluate(u0)
+        stats["start_merit"] = ro.merit  # the warm start's (MPCSolution.usable)
         if not math.isfinite(ro.merit):
             return ro, "Invalid_Initial_Point", False, 0, stats
         start = _Start(

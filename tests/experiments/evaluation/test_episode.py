@@ -157,6 +157,39 @@ def test_run_episode_row_trajectory_and_time_alignment():
     env.close()
 
 
+def test_the_plan_and_the_hidden_latent_state_are_recorded_aligned():
+    """``plan[k]`` is what the agent planned at step k (its first input applied when no
+    fallback), ``latent_state[k]`` the env's hidden latent state acting in step k."""
+    row, traj = run_episode("scenario", TINY, seed=2)
+    T, N = row["steps"], TINY["agents"]["horizon"]
+    env = gym.make("lfm_env/SineTrack-v0", config=TINY)
+    _, info = env.reset(seed=2)
+    model = env.unwrapped.model
+    assert traj["plan"].shape == (T, N, 2)
+    assert traj["latent_state"].shape == (T + 1, model.latent_dim)
+    planned = traj["fallback"] == ""
+    assert planned.any()
+    np.testing.assert_array_equal(traj["action"][planned], traj["plan"][planned, 0])
+    np.testing.assert_array_equal(traj["latent_state"][0], info["latent_state"])
+    forces = model.latent_force(traj["latent_state"][:T])[:, 0]
+    np.testing.assert_array_equal(forces, traj["latent_force"])
+    env.close()
+    # An agent without a plan (the protocol's minimum) records NaN.
+    _, bare = run_episode(lambda config: _Coast(), TINY, seed=2)
+    assert bare["plan"].shape == (len(bare["action"]), N, 2)
+    assert np.all(np.isnan(bare["plan"]))
+
+
+class _Coast:
+    name = "coast"
+
+    def reset(self, seed=None):
+        pass
+
+    def act(self, obs):
+        return np.zeros(2)
+
+
 def test_paired_design_and_determinism():
     nominal, traj_n = run_episode("nominal", TINY, seed=5)
     pf, traj_pf = run_episode("pf", TINY, seed=5)

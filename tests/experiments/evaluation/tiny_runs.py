@@ -31,7 +31,8 @@ SINE_TRACK_COLUMNS = (
     *("speed_violation_steps", "max_speed_excess", "speed_violation_steps_over_0.05"),
     *("failure", "latent_rmse", "latent_coverage"),
     *("solve_time_median", "solve_time_p95", "solve_time_max", "solver_failures"),
-    *("fallback_steps", "filter_resets", "slack_total", "wall_time", "error"),
+    *("unconverged_solves", "fallback_steps", "filter_resets", "slack_total", "wall_time"),
+    "error",
 )
 #: The columns of the group names alone (no system, so no tolerances).
 RAW_GROUP_COLUMNS = tuple(c for c in SINE_TRACK_COLUMNS if "_over_" not in c)

@@ -10,6 +10,7 @@ import warnings
 
 import numpy as np
 import pytest
+import yaml
 from scipy import stats as scipy_stats
 
 from experiments.report.stats import (
@@ -21,7 +22,8 @@ from experiments.report.stats import (
     paired_ci,
     pooled_ratio_ci,
 )
-from experiments.report.write import config_differences, write_report
+from experiments.report.sweep_section import config_differences
+from experiments.report.write import write_report
 
 
 def scipy_bca(*data, statistic, paired=False):
@@ -104,6 +106,17 @@ def test_the_full_settings_and_the_agents_that_model_the_force(report_path):
     assert "horizon = 5, n_scenarios = 5, n_particles = 300, solver = fast" in intro
     model = md.split("## Latent force: hidden truth and the agents' model")[1].split("\n## ")[0]
     assert "The agents that model the force (`pf`, `scenario`) know the hidden force's" in model
+
+
+def test_the_settings_name_a_feedback_prediction_and_only_that(results_copy, report_path):
+    # The open-loop default is not mentioned (the paper's formulation); feedback is.
+    assert "prediction" not in report_path.read_text().split("## Latent force")[0]
+    config = results_copy / "config.yaml"
+    data = yaml.safe_load(config.read_text())
+    data["agents"]["prediction"] = "feedback"
+    config.write_text(yaml.safe_dump(data))
+    md = write_report(results_copy, gif=False).read_text()
+    assert "solver = fast, prediction = feedback" in md.split("## Latent force")[0]
 
 
 def test_config_differences_list_every_field():

@@ -65,20 +65,14 @@ import tempfile
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 
-import casadi as ca
 import numpy as np
 
-from controllers.solvers.fast.codegen.inline import (
-    VECTOR_MATH_DECLARATIONS,
-    NotInlinable,
-    inline_con_jac,
-    inline_step,
-    inline_step_curv,
-    inline_step_jac,
+from controllers.solvers.fast.codegen.source import (
+    library_source,
 )
+from controllers.solvers.fast.codegen.trust import file_problem, folder_problem, sha256_of
 
 CACHE_ENV = "LFM_CACHE_DIR"
 FLAGS = ("-O3", "-fPIC", "-shared")
@@ -101,9 +95,6 @@ BUILDS = (
 )
 COMPILE_TIMEOUT = 120.0  # [s] a compile taking longer is abandoned (fallback)
 CHECK_TIMEOUT = 60.0  # [s] for the child process that checks a library before it is loaded
-
-# A line of a C file of c/ that stands for another file of that folder (c_source).
-_INCLUDE = re.compile(r'^#include "([\w.]+)"\n', re.MULTILINE)
 
 # Loaded libraries of this process, by key (a second build is free).
 _LOADED: dict[str, ctypes.CDLL] = {}
@@ -177,161 +168,6 @@ def find_compiler() -> list[str]:
     raise CodegenUnavailable(
         f"no C compiler found (CC={cc!r})" if cc else "no C compiler found (cc, gcc on PATH)"
     )
-
-
-def c_source(name: str) -> str:
-    """The text of the C file ``c/<name>`` beside this module, each of its ``#include "..."``
-    lines replaced by the text of that file of the folder (a whole translation unit)."""
-    text = (resources.files(__package__) / "c" / name).read_text(encoding="utf-8")
-    return _INCLUDE.sub(lambda m: c_source(m.group(1)), text)
-
-
-def pointwise_functions(system, dt: float) -> list[ca.Function]:
-    """The pointwise CasADi functions of ``system`` the driver calls (dense outputs).
-
-    ``lfm_step(x, u, w, p)`` (the next state ``F`` and, with constraints, ``g(F)`` after
-    it), ``lfm_step_jac(x, u, w, p)`` (``A`` then ``B``, each flattened row-major) and
-    ``lfm_step_curv(x, u, w, p, lam, v)``, each with ``*_pre(u) -> p``: the parts of its
-    expression that depend on the input alone (CasADi's ``extract_parametric``), computed once
-    per step instead of once per scenario. ``lfm_step_curv`` is one step of the Hessian's
-    backward recursion: with ``A``, ``B`` the step's Jacobians, ``M`` the Hessian of
-    ``lam' F`` in ``(x, u)`` and ``V`` = ``v`` read row-major ``(nx, nx)``, it returns
-    ``[A' V A + M_xx, A' V B + M_xu, B' V B + M_uu, A' lam]`` flattened row-major
-    (``nx^2 + nx nu + nu^2 + nx`` values). Written symbolically, the generated code skips
-    the Jacobians' structural zeros and shares their subexpressions with ``M``. With
-    constraints also ``lfm_con_jac(x)`` ``(ng, nx)`` row-major and ``lfm_con_hess(x, mu)``
-    ``(nx, nx)``.
-    """
-    nx, nu, nw, ng = system.nx, system.nu, system.nw, system.ng
-    x, u, w = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("w", nw)
-    lam, v = ca.SX.sym("lam", nx), ca.SX.sym("v", nx * nx)
-    F = system.casadi_step(dt)(x, u, w)
-    constraints = system.casadi_constraints() if ng else None
-    z = ca.vertcat(x, u)
-    d = ca.densify
-    J = ca.jacobian(F, z)
-    A, B = J[:, :nx], J[:, nx:]
-    M = ca.hessian(ca.dot(lam, F), z)[0]
-    V = ca.reshape(v, nx, nx).T  # row-major
-    AV, BV = ca.mtimes(A.T, V), ca.mtimes(B.T, V)
-
-    def rows(m: ca.SX) -> ca.SX:  # row-major flattening
-        return ca.vec(d(m).T)
-
-    curv = ca.vertcat(
-        rows(ca.mtimes(AV, A) + M[:nx, :nx]),
-        rows(ca.mtimes(AV, B) + M[:nx, nx:]),
-        rows(ca.mtimes(BV, B) + M[nx:, nx:]),
-        d(ca.mtimes(A.T, lam)),
-    )
-    fns = []
-    for name, expr, extra in (
-        ("lfm_step", ca.vertcat(F, constraints(F)) if ng else F, []),
-        ("lfm_step_jac", ca.vertcat(rows(A), rows(B)), []),
-        ("lfm_step_curv", curv, [lam, v]),
-    ):
-        # (cse: the derivatives repeat subexpressions; it shortens the generated code, with no
-        # measured change in speed: gcc already merged the repeated sines and cosines)
-        expr, symbols, values = ca.extract_parametric(ca.cse(d(expr)), u)
-        p = ca.vertcat(*symbols) if symbols else ca.SX(0, 1)
-        pre = ca.vertcat(*values) if values else ca.SX(0, 1)
-        fns.append(ca.Function(f"{name}_pre", [u], [pre]))
-        fns.append(ca.Function(name, [x, u, w, p, *extra], [d(expr)]))
-    if ng:
-        mu = ca.SX.sym("mu", ng)
-        g = constraints(x)
-        fns += [
-            ca.Function("lfm_con_jac", [x], [ca.cse(rows(ca.jacobian(g, x)))]),
-            ca.Function("lfm_con_hess", [x, mu], [ca.cse(d(ca.hessian(ca.dot(mu, g), x)[0]))]),
-        ]
-    return fns
-
-
-def step_jacobian_pattern(system, dt: float) -> str:
-    """C table ``A_NZ`` (``nx * nx``, row-major): 1 where the step's Jacobian ``dF/dx`` can be
-    nonzero (CasADi's structural sparsity), 0 where it is zero for every point.
-
-    The linearisation skips the zeros in ``A_k S_k`` (the bicycle's ``A`` has 9 of 16
-    nonzeros); the table is a compile-time constant the compiler can fold where it unrolls.
-    """
-    nx = system.nx
-    x, u, w = ca.SX.sym("x", nx), ca.SX.sym("u", system.nu), ca.SX.sym("w", system.nw)
-    sp = ca.jacobian(system.casadi_step(dt)(x, u, w), x).sparsity()
-    flags = [0] * (nx * nx)
-    for r, c in zip(*sp.get_triplet(), strict=True):
-        flags[r * nx + c] = 1
-    return f"static const char A_NZ[{nx * nx}] = {{{', '.join(map(str, flags))}}};"
-
-
-def constraint_jacobian_pattern(system) -> np.ndarray:
-    """``(ng, nx)`` bool: where the constraints' Jacobian ``dg/dx`` can be nonzero (CasADi's
-    structural sparsity), i.e. which states each constraint depends on.
-
-    The C library stores only these entries of each point's constraint Jacobian
-    (:func:`constraint_jacobian_table`); the bicycle's six constraints have 8 of 24.
-    """
-    nx, ng = system.nx, system.ng
-    pattern = np.zeros((ng, nx), dtype=bool)
-    if ng:
-        x = ca.SX.sym("x", nx)
-        rows, cols = ca.jacobian(system.casadi_constraints()(x), x).sparsity().get_triplet()
-        pattern[rows, cols] = True
-    return pattern
-
-
-def constraint_jacobian_table(system) -> str:
-    """C tables of the constraint Jacobian entries the C library stores per point, row by row.
-
-    ``G_NNZ`` entries (those of :func:`constraint_jacobian_pattern`, row-major), constraint
-    ``j``'s from ``G_PTR[j]`` to ``G_PTR[j + 1]`` (``G_PTR[NG] = G_NNZ``), each at state
-    ``G_COL[e]`` and at ``G_IDX[e]`` of the dense row-major ``(NG, NX)`` matrix (these two
-    with one unused entry more, so that neither is empty).
-    """
-    pattern = constraint_jacobian_pattern(system)
-    index = np.flatnonzero(pattern)
-    ptr = np.concatenate([[0], np.cumsum(pattern.sum(axis=1))])
-
-    def table(name: str, values) -> str:
-        items = ", ".join(str(int(v)) for v in values)
-        return f"static const int {name}[{len(values)}] = {{{items}}};"
-
-    lines = [f"#define G_NNZ {index.size}", table("G_PTR", ptr)]
-    lines += [table("G_COL", [*(index % system.nx), 0]), table("G_IDX", [*index, 0])]
-    return "\n".join(lines)
-
-
-def library_source(system, dt: float) -> str:
-    """The complete C source of ``system``'s C library at time step ``dt`` [s]."""
-    # (The generator's name prefixes the generated symbols: part of the source, so of the
-    # cache key; kept as it was.)
-    cg = ca.CodeGenerator("lfm_kernel.c", {"with_header": False, "casadi_real": "double"})
-    fns = pointwise_functions(system, dt)
-    for f in fns:
-        cg.add(f)
-    sizes = {"NX": system.nx, "NU": system.nu, "NW": system.nw, "NG": system.ng}
-    for f in fns:
-        if f.name().endswith("_pre"):
-            sizes["NP_" + f.name()[4:-4].upper()] = f.nnz_out(0)
-    defines = "\n".join(f"#define {k} {v}" for k, v in sizes.items())
-    defines += "\n" + step_jacobian_pattern(system, dt)
-    defines += "\n" + constraint_jacobian_table(system)
-    work = " ".join(f"W({f.name()});" for f in fns)
-    code = cg.dump()
-    by_name = {f.name(): f for f in fns}
-    # The vectorisable paths of the rollout, the Hessian and the linearisation (else a call
-    # per scenario).
-    inline = VECTOR_MATH_DECLARATIONS + "\n"
-    with contextlib.suppress(NotInlinable):
-        inline += inline_step(code, by_name["lfm_step"], system.nx)
-    with contextlib.suppress(NotInlinable):
-        inline += inline_step_curv(code, by_name["lfm_step_curv"])
-    with contextlib.suppress(NotInlinable):
-        inline += inline_step_jac(code, by_name["lfm_step_jac"])
-    if "lfm_con_jac" in by_name:
-        with contextlib.suppress(NotInlinable):
-            inline += inline_con_jac(code, by_name["lfm_con_jac"])
-    driver = c_source("driver.c").replace("@WORK@", work)  # (the work-size queries)
-    return code + "\n" + defines + "\n" + inline + "\n" + driver
 
 
 @dataclass
@@ -408,53 +244,6 @@ def cache_key(source: str, compiler: list[str]) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:24]
 
 
-def _mode(st: os.stat_result) -> str:
-    return f"mode {stat.S_IMODE(st.st_mode):04o}"
-
-
-def _folder_problem(folder: Path) -> str | None:
-    """Why ``folder`` (an existing directory) cannot hold trusted libraries, else ``None``.
-
-    It must be owned by this user and writable by no one else; each parent must be owned by
-    this user or root and, if others can write it, have the sticky bit (as ``/tmp``).
-    """
-    me = os.geteuid()
-    real = folder.resolve()
-    st = os.stat(real)
-    if not stat.S_ISDIR(st.st_mode):
-        return f"cache folder {str(folder)!r} is not a folder"
-    if st.st_uid != me:
-        return f"cache folder {str(folder)!r} is owned by user id {st.st_uid}, not by you"
-    if st.st_mode & 0o022:
-        return f"cache folder {str(folder)!r} is writable by other users ({_mode(st)})"
-    for parent in real.parents:
-        pst = os.stat(parent)
-        if pst.st_uid not in (0, me):
-            return (
-                f"cache folder {str(folder)!r}: its parent {str(parent)!r} is owned by user "
-                f"id {pst.st_uid}"
-            )
-        if pst.st_mode & 0o002 and not pst.st_mode & stat.S_ISVTX:
-            return (
-                f"cache folder {str(folder)!r}: its parent {str(parent)!r} is writable by "
-                f"other users ({_mode(pst)})"
-            )
-    return None
-
-
-def _file_problem(path: Path) -> str | None:
-    """Why the existing file ``path`` cannot be trusted (a link, another user's, writable by
-    others), else ``None``."""
-    st = os.lstat(path)
-    if not stat.S_ISREG(st.st_mode):
-        return "is not a regular file"
-    if st.st_uid != os.geteuid():
-        return f"is owned by user id {st.st_uid}, not by you"
-    if st.st_mode & 0o022:
-        return f"is writable by other users ({_mode(st)})"
-    return None
-
-
 def _private_folder() -> Path:
     """This process's private build folder (mode 0700, removed at exit), made once."""
     if not _PRIVATE:
@@ -466,12 +255,12 @@ def _private_folder() -> Path:
 
 def _cache_folder() -> Path:
     """The cache folder to use: :func:`cache_dir`, created with mode 0700, if it can be
-    trusted (:func:`_folder_problem`); otherwise, with a one-line warning naming it, this
+    trusted (:func:`.trust.folder_problem`); otherwise, with a one-line warning naming it, this
     process's private folder."""
     folder = cache_dir()
     try:
         folder.mkdir(parents=True, exist_ok=True, mode=0o700)
-        problem = _folder_problem(folder)
+        problem = folder_problem(folder)
         st = os.stat(folder)
         if problem is None and stat.S_IMODE(st.st_mode) != 0o700:
             os.chmod(folder, 0o700)  # the user's own, readable by others: made private
@@ -499,14 +288,6 @@ def _key_lock(folder: Path, name: str, exclusive: bool) -> Iterator[None]:
         yield
     finally:
         os.close(fd)  # (releases the lock)
-
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _check_in_child(path: Path, key: str, symbols: tuple[str, ...], dims: str) -> str | None:
@@ -539,12 +320,12 @@ def _library_problem(
     """Why the cached library ``path`` must not be loaded, else ``None`` (see the module
     docstring: owner and mode, the record's key and content hash, the check in a child)."""
     try:
-        problem = _file_problem(path)
+        problem = file_problem(path)
         if problem is not None:
             return problem
         if not os.path.lexists(record):
             return "has no record of its build"
-        problem = _file_problem(record)
+        problem = file_problem(record)
     except OSError as err:
         return f"cannot be read ({err.strerror or err})"
     if problem is not None:
@@ -557,7 +338,7 @@ def _library_problem(
     if recorded_key != key:
         return "has the record of another library"
     try:
-        actual = _sha256(path)
+        actual = sha256_of(path)
     except OSError as err:
         return f"cannot be read ({err.strerror or err})"
     if actual != digest:
@@ -592,7 +373,7 @@ def _compile(source: str, target: Path, compiler: list[str]) -> None:
         os.chmod(tmp, 0o755)  # (whatever the umask: writable by this user only)
         record = {
             "key": target.stem.rpartition("_")[2],
-            "sha256": _sha256(tmp),
+            "sha256": sha256_of(tmp),
             "compiler": compiler,
             "flags": [*flags, *libs],
         }
@@ -777,14 +558,11 @@ __all__ = [
     "address",
     "LIBRARY_SYMBOLS",
     "build_library",
-    "c_source",
     "cache_dir",
     "cache_key",
     "find_compiler",
     "forget_loaded",
     "fresh_cache",
-    "library_source",
     "load_library",
     "notice",
-    "pointwise_functions",
 ]

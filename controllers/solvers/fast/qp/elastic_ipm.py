@@ -52,9 +52,9 @@ import numpy as np
 from controllers.solvers.fast.codegen.build import (
     CodegenUnavailable,
     address,
-    c_source,
     load_library,
 )
+from controllers.solvers.fast.codegen.source import c_source
 
 # Dual regularisation delta: row scalings z / (v + delta z) stay below 1 / delta. On the
 # recorded elastic QPs of N = 15 (138): 0 left 38 unsolved (the dual residual grew in the

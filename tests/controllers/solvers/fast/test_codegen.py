@@ -26,6 +26,7 @@ from controllers.problem import ScenarioProblem
 from controllers.solvers import make_solver
 from controllers.solvers.fast.codegen import build as compiled
 from controllers.solvers.fast.codegen import inline as codegen_inline
+from controllers.solvers.fast.codegen import source as codegen_source
 from controllers.solvers.fast.codegen.build import CodegenUnavailable, forget_loaded
 from controllers.solvers.fast.condensed import CondensedModel
 from experiments.benchmark.problems import problem_from_config
@@ -469,7 +470,7 @@ def test_the_rollout_is_vectorised_with_vector_math_where_glibc_has_it(paper_mod
     model = paper_models["c"]
     expected = 2 if ctypes.util.find_library("mvec") else 1
     assert model.vector_math == expected
-    source = compiled.library_source(model.problem.system, model.problem.dt)
+    source = codegen_source.library_source(model.problem.system, model.problem.dt)
     assert "lfm_vsin(" in source and "lfm_vcos(" in source  # the inlined body's names
 
 
@@ -526,8 +527,8 @@ def test_a_step_that_cannot_be_inlined_keeps_the_call_per_scenario(
 
     names = list(INLINERS) if refused == "all" else [refused]
     for name in names:
-        monkeypatch.setattr(compiled, name, refuse)
-    source = compiled.library_source(paper.system, paper.dt)
+        monkeypatch.setattr(codegen_source, name, refuse)
+    source = codegen_source.library_source(paper.system, paper.dt)
     for name in INLINERS:
         define = "#define LFM_" + name.removeprefix("inline_").upper() + "_INLINE"
         assert (define in source) == (name not in names), define
@@ -544,8 +545,8 @@ def test_a_step_that_cannot_be_inlined_keeps_the_call_per_scenario(
 def test_the_inline_rewrite_reads_and_writes_plain_strided_pointers(paper) -> None:
     """The rewritten step has no pointer-array access left and renames the vector-math
     functions; a function of another shape is refused."""
-    fns = compiled.pointwise_functions(paper.system, paper.dt)
-    code = compiled.library_source(paper.system, paper.dt)
+    fns = codegen_source.pointwise_functions(paper.system, paper.dt)
+    code = codegen_source.library_source(paper.system, paper.dt)
     step = next(f for f in fns if f.name() == "lfm_step")
     text = codegen_inline.inline_step(code, step, paper.system.nx)
     assert "arg[" not in text and "res[" not in text and "return" not in text
