@@ -285,6 +285,11 @@ def export_controller(
     resolved = load_config(config)
     agent = make_agent(agent_name, resolved)
     problem, settings = agent.problem, agent.settings
+    if getattr(problem, "prediction", "open_loop") != "open_loop":
+        raise ValueError(
+            f"lfm-export: agents.prediction {problem.prediction!r} is not exported; the C "
+            "controller plans open loop only (set agents.prediction: open_loop)"
+        )
     options = solver_options(settings)
     program, notes = _agent_program(agent)
     model = agent.model

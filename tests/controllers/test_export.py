@@ -299,3 +299,12 @@ def test_the_command_line(tmp_path, capsys):
     assert export_main(["--agent", "nominal", "--out", str(out), "--force"]) == 0
     with pytest.raises(SystemExit):
         export_main(["--agent", "oracle", "--out", str(tmp_path / "x")])
+
+
+def test_a_feedback_agent_is_not_exported(tmp_path):
+    """The C controller plans open loop only: an agent with agents.prediction feedback is
+    refused by name, and nothing is written."""
+    config = load_config("paper", settings=["agents.prediction=feedback"])
+    with pytest.raises(ValueError, match="agents.prediction 'feedback' is not exported"):
+        export_controller(config, "robust", tmp_path / "out")
+    assert not (tmp_path / "out").exists()

@@ -256,6 +256,12 @@ class CompiledScenarioSolver:
         unknown = set(options) - set(FastSolverOptions.__dataclass_fields__)
         if unknown:
             raise ValueError(f"unknown {type(self).__name__} options: {sorted(unknown)}")
+        if getattr(problem, "prediction", "open_loop") != "open_loop":
+            raise ValueError(
+                f"fast_c: prediction={problem.prediction!r}: the C loop solves open-loop "
+                "problems only (make_solver(problem, 'fast_c') solves a feedback problem "
+                "through its open-loop rewrite)"
+            )
         self.problem = problem
         self.options = FastSolverOptions(**options)
         if self.options.qp_solver not in C_QP_SOLVERS:

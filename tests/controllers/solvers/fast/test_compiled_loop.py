@@ -287,3 +287,16 @@ def test_the_eigen_decomposition_matches_lapack() -> None:
             np.testing.assert_allclose(w, np.linalg.eigvalsh(M), rtol=0, atol=1e-13 * scale)
             np.testing.assert_allclose(V @ np.diag(w) @ V.T, M, rtol=0, atol=1e-13 * scale)
             np.testing.assert_allclose(V.T @ V, np.eye(n), rtol=0, atol=1e-13)
+
+
+def test_the_c_loop_refuses_a_feedback_problem_which_make_solver_rewrites():
+    """The C loop plans open loop only: built directly on a feedback problem it refuses;
+    make_solver runs it through the feedback problem's open-loop rewrite."""
+    from controllers.solvers.feedback import FeedbackScenarioSolver
+
+    problem = load_config("paper").make_problem(n_scenarios=10, prediction="feedback")
+    with pytest.raises(ValueError, match="open-loop problems only"):
+        CompiledScenarioSolver(problem, qp_solver="elastic_ipm")
+    solver = make_solver(problem, "fast_c", qp_solver="elastic_ipm")
+    assert isinstance(solver, FeedbackScenarioSolver)
+    assert isinstance(solver.inner, CompiledScenarioSolver)
