@@ -25,6 +25,7 @@ class LfmInfo(ctypes.Structure):
     _fields_ = [
         ("status", ctypes.c_int),
         ("success", ctypes.c_int),
+        ("usable", ctypes.c_int),
         ("action", ctypes.c_int),
         ("iterations", ctypes.c_long),
         ("objective", ctypes.c_double),
@@ -221,6 +222,7 @@ class ExportedController:
         out = {name: getattr(raw, name) for name, _ in LfmInfo._fields_}
         out["status"] = self.status_name(raw.status)
         out["success"] = bool(raw.success)
+        out["usable"] = bool(raw.usable)
         out["action"] = ACTIONS[raw.action] if 0 <= raw.action < len(ACTIONS) else "?"
         return out
 

@@ -17,6 +17,7 @@
 
 #define CFG (&lfm_exported_config)
 #define N_STATS 32
+#define LFM_STAT_START_MERIT 16 /* sqp.c's ST_START_MERIT: the warm start's merit */
 
 struct lfm_controller {
   lfm_sqp* sqp;
@@ -369,6 +370,9 @@ static int solve(lfm_controller* c, const double* bk) {
   c->info.solve_time = now() - t0;
   c->info.status = status;
   c->info.success = status == LFM_SOLVED || status == LFM_ACCEPTABLE;
+  /* usable (MPCSolution.usable): converged, or a finite merit below the warm start's */
+  c->info.usable = c->info.success ||
+                   (isfinite(c->stats[0]) && c->stats[0] < c->stats[LFM_STAT_START_MERIT]);
   c->info.objective = c->stats[0];
   c->info.slack = c->stats[1];
   c->info.iterations = (long)c->stats[2];
@@ -388,13 +392,13 @@ int lfm_controller_solve(lfm_controller* c, const double* x0, const double* W, d
   c->has_backoff = 0;
   const int status = solve(c, NULL);
   memcpy(plan, c->plan, sizeof(c->plan));
-  c->plan_at = c->info.success ? 0 : LFM_N;
+  c->plan_at = c->info.usable ? 0 : LFM_N;
   return status;
 }
 
 /* The input after a solve (MPCAgent._choose_action). */
 static void choose(lfm_controller* c, double* u, const double* last, long last_at) {
-  if (c->info.success && all_finite(c->plan, LFM_N * LFM_NU)) {
+  if (c->info.usable && all_finite(c->plan, LFM_N * LFM_NU)) {
     c->plan_at = 0;
     c->info.action = LFM_FROM_PLAN;
     for (int q = 0; q < LFM_NU; ++q) {
@@ -428,7 +432,7 @@ int lfm_controller_step(lfm_controller* c, const double* y, double* u) {
   int status;
   if (scenarios(c) || backoff(c)) {
     status = LFM_OUT_OF_MEMORY; /* (a factor failed: no plan) */
-    c->info.status = status, c->info.success = 0;
+    c->info.status = status, c->info.success = 0, c->info.usable = 0;
   } else {
     status = solve(c, c->has_backoff ? c->backoff : NULL);
   }

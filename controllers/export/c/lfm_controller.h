@@ -40,14 +40,16 @@ typedef struct lfm_controller lfm_controller;
 #define LFM_OUT_OF_MEMORY (-3)
 
 /* Where the last step's input came from. */
-#define LFM_FROM_PLAN 0          /* the first input of the new plan (a successful solve) */
-#define LFM_FROM_PREVIOUS_PLAN 1 /* the solve failed: the next input of the last good plan */
+#define LFM_FROM_PLAN 0          /* the first input of the new plan (a usable solve) */
+#define LFM_FROM_PREVIOUS_PLAN 1 /* no usable plan: the next input of the last good plan */
 #define LFM_FROM_FALLBACK 2      /* the solve failed and no plan was left: the system's
                                     fallback input (lfm_config.h LFM_FALLBACK_INPUT) */
 
 typedef struct {
   int status;          /* of the last solve */
   int success;         /* 1 if status is LFM_SOLVED or LFM_ACCEPTABLE */
+  int usable;          /* 1 if success, or the plan's objective is below its warm start's
+                          (a solve stopped early: its plan is applied) */
   int action;          /* LFM_FROM_PLAN, LFM_FROM_PREVIOUS_PLAN or LFM_FROM_FALLBACK */
   long iterations;     /* SQP iterations of the last solve (all its starts) */
   double objective;    /* its exact-penalty objective */

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.problem import MPCSolution, ScenarioProblem
+from controllers.problem import MPCSolution, ScenarioProblem, is_usable
 from controllers.solvers.fast.codegen.build import CodegenUnavailable, address, load_library
 from controllers.solvers.fast.codegen.source import (
     c_source,
@@ -72,6 +72,7 @@ STATS = (
     "restart_mirror",
     "restart_straight",
     "qp_elastic",
+    "start_merit",
 )
 # The C loop's QP solvers: the only choices it has (the others are Python packages).
 C_QP_SOLVERS = ("auto", "elastic_ipm")
@@ -402,16 +403,19 @@ class CompiledScenarioSolver:
             qp_solver=self.options.qp_solver,
         )
         merit = stats["merit"]
+        extra["start_merit"] = stats["start_merit"]  # the warm start's (MPCSolution.usable)
+        success = status in SUCCESS
         return MPCSolution(
             u=self._u.reshape(p.horizon, p.nu).copy(),
             objective=merit if math.isfinite(merit) else math.inf,
             slack=stats["slack"],
             status=status,
-            success=status in SUCCESS,
+            success=success,
             solve_time=elapsed,
             iterations=int(stats["iterations"]),
             predicted=np.ascontiguousarray(self._X.transpose(2, 0, 1)),
             extra=extra,
+            usable=is_usable(success, merit, stats["start_merit"]),
         )
 
 

@@ -164,6 +164,28 @@ def test_the_time_limit_stops_the_c_loop() -> None:
     assert np.all(np.isfinite(sol.u))
 
 
+def test_a_plan_stopped_early_is_usable_as_in_python() -> None:
+    """MPCSolution.usable: a solve stopped before convergence (here after one iteration)
+    gives a plan the agents apply when its merit is below the warm start's. The C loop
+    reports the warm start's merit as the Python loop does, so both call the same plans
+    usable; a plan stopped before any iteration (no time) is not usable."""
+    problem = problem_from_config(n_scenarios=150)
+    python = FastScenarioSolver(problem, max_iter=1, **SAME_QP)
+    compiled = CompiledScenarioSolver(problem, max_iter=1, **SAME_QP)
+    seen_usable = 0
+    for x0, W in zip(RECORDED["x0"][:6], RECORDED["W"][:6], strict=True):
+        python.reset()
+        compiled.reset()
+        a, b = python.solve(x0, W), compiled.solve(x0, W)
+        assert b.status == a.status and not b.success
+        assert b.extra["start_merit"] == pytest.approx(a.extra["start_merit"], rel=1e-12)
+        assert b.usable == a.usable and b.usable == (b.objective < b.extra["start_merit"])
+        seen_usable += b.usable
+    assert seen_usable > 0  # one iteration does lower the merit on these problems
+    late = CompiledScenarioSolver(problem, max_time=1e-7).solve(RECORDED["x0"][1], RECORDED["W"][1])
+    assert not late.usable and late.objective == late.extra["start_merit"]
+
+
 def test_other_qp_solvers_are_refused() -> None:
     problem = problem_from_config(n_scenarios=2)
     with pytest.raises(ValueError, match="qp_solver='qpoases'"):

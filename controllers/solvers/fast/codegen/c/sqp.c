@@ -37,7 +37,8 @@ enum {
 enum {
   ST_MERIT, ST_SLACK, ST_ITERATIONS, ST_QP_SOLVES, ST_QP_HARD, ST_QP_HARD_REJECTED, ST_QP_ROWS,
   ST_QP_RETRIES, ST_QP_ROUNDS_EXHAUSTED, ST_SOC_STEPS, ST_MERIT_EVALS, ST_FIRST_STATUS,
-  ST_FIRST_ITERATIONS, ST_RESTART_MIRROR, ST_RESTART_STRAIGHT, ST_QP_ELASTIC, ST_COUNT
+  ST_FIRST_ITERATIONS, ST_RESTART_MIRROR, ST_RESTART_STRAIGHT, ST_QP_ELASTIC, ST_START_MERIT,
+  ST_COUNT
 };
 #define ST_STATS 11 /* the first entries summed over the starts (ST_QP_ROWS: the largest) */
 
@@ -1001,6 +1002,8 @@ static int sq_sqp(lfm_sqp* s, const double* u0, double abandon_above, const doub
   ro_t* ro = sq_evaluate(s, u0);
   *out = ro;
   if (!ro) return SQ_OUT_OF_MEMORY;
+  /* the first start's is the warm start's merit (MPCSolution.usable; extra starts have a rival) */
+  if (!rival) s->stats[ST_START_MERIT] = ro->merit;
   if (!isfinite(ro->merit)) return SQ_INVALID_START;
   memset(s->mu, 0, sizeof(double) * (NG * s->n * s->ns + 1));
   s->act.r = 0, s->n_act_shared = 0;
@@ -1052,6 +1055,7 @@ CASADI_SYMBOL_EXPORT int lfm_sqp_solve(lfm_sqp* s, const double* x0, const doubl
   const long n = s->n, ns = s->ns, nut = s->nut;
   s->deadline = isfinite(s->o.max_time) ? t_start + s->o.max_time : INFINITY;
   memset(s->stats, 0, sizeof(s->stats));
+  s->stats[ST_START_MERIT] = INFINITY; /* (no start evaluated) */
   for (int i = 0; i < SQ_POOL; ++i) s->pool[i].used = 0;
   double c0[ns + 1];
   for (long i = 0; i < ns; ++i) {
