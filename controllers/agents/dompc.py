@@ -77,8 +77,8 @@ import warnings
 from typing import Any
 
 import numpy as np
-from scipy import special
 
+from controllers.agents.estimation import EstimatorLoop
 from controllers.agents.protocol import SB3Predict
 from controllers.config import AgentConfig, check_filter_memory
 from controllers.estimators.estimator import make_estimator
@@ -102,11 +102,6 @@ APPROXIMATIONS = (
     "slack per branch after the first step: average excess, not the largest",
     "initial state is the estimate's mean: no physical-state uncertainty, no back-off",
 )
-
-# Tail probability of the divergence test, as the project's filtering agents
-# (controllers.agents.DIVERGENCE_TAIL): a measurement whose normalised innovation exceeds the
-# chi^2 (nx dof) quantile at 1 - 1e-6 means the estimator lost the state.
-_DIVERGENCE_TAIL = 1.0e-6
 
 # Warnings do-mpc 5.1 raises that are no concern of the agent: its optional ONNX and OPC UA
 # features at import, and CasADi 3.8's notice on do-mpc's own np.any of a DM in setup().
@@ -141,7 +136,7 @@ def import_do_mpc() -> Any:
     return do_mpc
 
 
-class DoMpcAgent(SB3Predict):
+class DoMpcAgent(EstimatorLoop, SB3Predict):
     """do-mpc's robust multi-stage MPC on the agent's estimate (see the module docstring).
 
     Same face as the project's agents (:class:`controllers.protocol.Agent`, ``last_info`` with
@@ -207,12 +202,10 @@ class DoMpcAgent(SB3Predict):
             resampling=s.resampling,
             ess_threshold=s.ess_threshold,
         )
-        self._divergence_nis = float(special.chdtri(nx, _DIVERGENCE_TAIL))
         self.mpc = self._build(do_mpc)
         self.last_info: dict[str, Any] = {}
         self.rng = np.random.default_rng()
-        self._started = False
-        self.n_filter_resets = 0
+        self._init_estimator_loop()
         self._u_prev: np.ndarray | None = None
         self._plan: np.ndarray | None = None
         self._guess_needed = True
@@ -361,8 +354,7 @@ class DoMpcAgent(SB3Predict):
     def reset(self, seed: int | None = None) -> None:
         """Start a new episode; ``seed`` fixes the agent's own randomness (its estimator's)."""
         self.rng = np.random.default_rng(seed)
-        self._started = False
-        self.n_filter_resets = 0
+        self._init_estimator_loop()
         self._u_prev = None
         self._plan = None
         self._guess_needed = True  # the episode's first solve starts from a fresh guess
@@ -407,29 +399,8 @@ class DoMpcAgent(SB3Predict):
     # ------------------------------------------------------------------ internals
 
     def _estimate(self, y: np.ndarray) -> dict[str, Any]:
-        """Estimator step (start on the episode's first observation); restart on divergence."""
-        est = self.estimator
-        if not self._started:
-            rec = est.start(y, self.rng)
-            self._started = True
-        else:
-            rec = est.step(self._u_prev, y)
-        diverged = rec.degenerate or rec.nis > self._divergence_nis
-        if diverged:
-            est.start(y, self.rng)
-            self.n_filter_resets += 1
-        nx, H = self.system.nx, self.model.H
-        mean, cov = est.mean, est.covariance
-        return {
-            "estimate": mean.copy(),
-            "estimate_std": np.sqrt(np.maximum(np.diag(cov), 0.0)),
-            "latent_force": H @ mean[nx:],
-            "latent_force_std": np.sqrt(np.maximum(np.diag(H @ cov[nx:, nx:] @ H.T), 0.0)),
-            "estimator": est.name,
-            "filter_degenerate": bool(rec.degenerate),
-            "filter_reset": diverged,
-            "filter_resets": self.n_filter_resets,
-        }
+        """Estimator step (:class:`~controllers.agents.estimation.EstimatorLoop`)."""
+        return self._estimator_step(y)[0]
 
     def _choose_action(self, sol: MPCSolution, x_hat: np.ndarray) -> tuple[np.ndarray, str]:
         """As the project's agents: the first input of a good plan; otherwise the previous

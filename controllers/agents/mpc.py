@@ -43,8 +43,8 @@ import time
 from typing import Any
 
 import numpy as np
-from scipy import special
 
+from controllers.agents.estimation import EstimatorLoop
 from controllers.agents.protocol import SB3Predict
 from controllers.config import (
     AgentConfig,
@@ -58,11 +58,6 @@ from controllers.solvers import make_solver
 from lfm_env.model import LatentForceModel
 from lfm_env.system import QuadraticCost
 from lfm_env.validation import real_vector
-
-# Tail probability of the filter's divergence test: a measurement whose normalised
-# innovation to the closest particle exceeds the chi^2 (nx degrees of freedom) quantile
-# at 1 - 1e-6 means the filter has lost the state.
-DIVERGENCE_TAIL = 1.0e-6
 
 
 class MPCAgent(SB3Predict):
@@ -213,7 +208,7 @@ class NominalMPCAgent(MPCAgent):
         return self._x, self._no_force()
 
 
-class _FilteringAgent(MPCAgent):
+class _FilteringAgent(EstimatorLoop, MPCAgent):
     """An agent that estimates physical and latent states with ``settings.estimator``.
 
     Built like :class:`MPCAgent`; ``measurement_std`` must be all > 0. The estimator is one
@@ -225,13 +220,11 @@ class _FilteringAgent(MPCAgent):
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        nx = self.system.nx
         if not np.all(self.measurement_std > 0.0):
             raise ValueError(
                 f"measurement_std={self.measurement_std.tolist()}: must be all > 0 for the "
                 f"{self.name!r} agent (its estimator weighs each measurement by this noise)"
             )
-        self._divergence_nis = float(special.chdtri(nx, DIVERGENCE_TAIL))  # chi2 upper quantile
         s = self.settings
         # k_j per constraint, once: a back-off of the wrong length is refused here, not at act().
         self._factors = self._backoff_factors
@@ -245,42 +238,15 @@ class _FilteringAgent(MPCAgent):
             resampling=s.resampling,
             ess_threshold=s.ess_threshold,
         )
-        self._started = False
-        self.n_filter_resets = 0
+        self._init_estimator_loop()
 
     def reset(self, seed: int | None = None) -> None:
         super().reset(seed)
-        self._started = False
-        self.n_filter_resets = 0
+        self._init_estimator_loop()
 
     def _estimate(self, y: np.ndarray) -> dict[str, Any]:
-        est = self.estimator
-        if not self._started:
-            rec = est.start(y, self.rng)
-            self._started = True
-        else:
-            rec = est.step(self._u_prev, y)
-        # Divergence check: if the measurement is a 1e-6 tail event even for the closest
-        # particle (or the UKF's innovation), the estimate has lost the state (a bootstrap
-        # filter's cloud can collapse far from the truth); restart around y and say so.
-        diverged = rec.degenerate or rec.nis > self._divergence_nis
-        if diverged:
-            est.start(y, self.rng)
-            self.n_filter_resets += 1
-        nx = self.system.nx
-        mean, cov = est.mean, est.covariance
-        H = self.model.H  # (nw, p)
-        self._mean, self._cov = mean, cov
-        return {
-            "estimate": mean.copy(),
-            "estimate_std": np.sqrt(np.maximum(np.diag(cov), 0.0)),
-            "latent_force": H @ mean[nx:],
-            "latent_force_std": np.sqrt(np.maximum(np.diag(H @ cov[nx:, nx:] @ H.T), 0.0)),
-            "estimator": est.name,
-            "filter_degenerate": bool(rec.degenerate),
-            "filter_reset": diverged,
-            "filter_resets": self.n_filter_resets,
-        }
+        info, self._mean, self._cov = self._estimator_step(y)
+        return info
 
     def _mean_forecast_scenario(self) -> tuple[np.ndarray, np.ndarray]:
         """One scenario: the estimate's mean, the force's mean forecast ``H A^k z_hat``."""
