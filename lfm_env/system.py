@@ -2,13 +2,13 @@
 
 A :class:`ControlSystem` is the physics of one case study: named states and inputs with
 units, the right-hand side ``dx/dt = f(x, u, w)`` with a latent force ``w``, hard input
-bounds and named state constraints ``g(x) <= 0``. A :class:`QuadraticCost` is the
-control objective. The environment (truth simulation and reward), the estimators, the
+bounds and named state constraints ``g(x) <= 0``. A :class:`~lfm_env.cost.QuadraticCost`
+is the control objective. The environment (truth simulation and reward), the estimators, the
 scenario problem and every solver read these two objects; nothing else writes the
 dynamics, a constraint or the cost again.
 
 The functions a system is made of are written once and work on both kinds of data. Write
-them with the array namespace :data:`lfm_env.xp.xp` (also importable from here); the module
+them with the array namespace :data:`lfm_env.xp.xp`; the module
 :mod:`lfm_env.xp` shows a right-hand side written so, and the shapes it gets and returns on
 NumPy batches and on CasADi columns. Constraints ``g(x)`` follow the same rule with ``ng``
 components (feasible where ``<= 0``).
@@ -24,9 +24,8 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from lfm_env.cost import QuadraticCost
 from lfm_env.validation import frozen_vector
-from lfm_env.xp import is_symbolic, xp
+from lfm_env.xp import is_symbolic
 
 _UNIT = re.compile(r"^\s*(?P<name>[^\[]+?)\s*(\[(?P<unit>[^\]]*)\])?\s*$")
 
@@ -309,5 +308,4 @@ class ControlSystem:
         self.__dict__.update(state)
 
 
-# QuadraticCost (lfm_env.cost) and xp (lfm_env.xp) are re-exported for old imports.
-__all__ = ["ControlSystem", "QuadraticCost", "is_symbolic", "split_unit", "xp"]
+__all__ = ["ControlSystem", "split_unit"]

@@ -83,8 +83,8 @@ from controllers.agents.protocol import SB3Predict
 from controllers.config import AgentConfig, check_filter_memory
 from controllers.estimators.estimator import make_estimator
 from controllers.problem import MPCSolution
+from lfm_env.cost import QuadraticCost
 from lfm_env.model import LatentForceModel
-from lfm_env.system import QuadraticCost
 from lfm_env.validation import real_vector
 
 #: The one-line error of building the agent without do-mpc.
@@ -139,8 +139,8 @@ def import_do_mpc() -> Any:
 class DoMpcAgent(EstimatorLoop, SB3Predict):
     """do-mpc's robust multi-stage MPC on the agent's estimate (see the module docstring).
 
-    Same face as the project's agents (:class:`controllers.protocol.Agent`, ``last_info`` with
-    every key, stable-baselines3's ``predict``); built as they are.
+    Same face as the project's agents (:class:`controllers.agents.protocol.Agent`,
+    ``last_info`` with every key, stable-baselines3's ``predict``); built as they are.
 
     Args:
         model: the agent's latent-force model of the world.

@@ -4,7 +4,7 @@ Every agent has ``reset(seed=None)``, ``act(obs) -> action`` and ``last_info`` (
 solve time [s], solver status, iterations, slack, state estimate and its standard
 deviation, latent-force estimate, the plan and the predicted trajectories). An agent is
 built from a :class:`~lfm_env.model.LatentForceModel` (its belief about the world: the
-system, the latent force's kernel, the noise), a :class:`~lfm_env.system.QuadraticCost`,
+system, the latent force's kernel, the noise), a :class:`~lfm_env.cost.QuadraticCost`,
 its :class:`~controllers.config.AgentConfig` and the std of the measurement noise of the
 full-state observation ``y = x + e``; every dimension is read from the model.
 
@@ -55,8 +55,8 @@ from controllers.config import (
 from controllers.estimators.estimator import make_estimator
 from controllers.problem import MPCSolution, ScenarioProblem
 from controllers.solvers import make_solver
+from lfm_env.cost import QuadraticCost
 from lfm_env.model import LatentForceModel
-from lfm_env.system import QuadraticCost
 from lfm_env.validation import real_vector
 
 

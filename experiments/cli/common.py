@@ -12,9 +12,10 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from controllers.config import DEFAULT_PRESET
 from experiments.evaluation.interrupts import remember_interrupts
 from lfm_env.config import ConfigError
-from lfm_env.config.compose import DEFAULT_PRESET, PRESETS_PACKAGE, config_path, preset_names
+from lfm_env.config.presets import PRESETS_PACKAGE, config_path, preset_names
 
 
 def os_error_text(exc: OSError) -> str:
@@ -88,11 +89,10 @@ def positive_int(text: str) -> int:
 def config_file(given: str | os.PathLike | None) -> Path:
     """The config file of a ``--config`` value: a path to a YAML file, or a preset's name.
 
-    Every command with ``--config`` resolves it here, through the one resolver of every
-    function that takes a config (:func:`lfm_env.config.compose.config_path`): a path that
-    names an existing file wins; otherwise ``given`` is looked up among the presets shipped
-    in the package (``paper``, ``quick``, ``quadrotor``, with or without ``.yaml``), from
-    any folder.
+    Every command with ``--config`` finds its file here, as every function that takes a
+    config does (:func:`lfm_env.config.presets.config_path`): a path that names an existing
+    file wins; otherwise ``given`` is looked up among the presets shipped in the package
+    (``paper``, ``quick``, ``quadrotor``, with or without ``.yaml``), from any folder.
 
     Args:
         given: the option's value; ``None`` for the default preset (``paper``).
@@ -101,7 +101,7 @@ def config_file(given: str | os.PathLike | None) -> Path:
         ValueError: naming ``given`` and the preset names, if it is neither.
     """
     try:
-        return config_path(given)
+        return config_path(DEFAULT_PRESET if given is None else given)
     except ConfigError:
         raise ValueError(
             f"--config {str(given)[:200]}: no such file and no preset of that name; presets: "

@@ -43,7 +43,7 @@ from scipy import optimize, special
 
 from controllers.agents.mpc import RobustMPCAgent
 from controllers.agents.registry import AGENT_REGISTRY
-from controllers.config import ExperimentConfig, load_config
+from controllers.config import ExperimentConfig
 from experiments.evaluation.episode import agent_seed
 from experiments.plots.chance import chance_figure
 from experiments.plots.style import agent_colour, save_figure
@@ -273,7 +273,7 @@ def offline_calibration(
 
 def chance_calibration(results: Results, n_draws: int = DRAWS) -> list[ChanceCalibration]:
     """Every agent's closed-loop and offline violation probabilities beside its design."""
-    config = load_config(results.directory / "config.yaml")
+    config = results.experiment
     truth = results.config.make_model()  # the env's own force and noise: the truth
     groups = tuple(results.system.constraint_groups)
     out = []

@@ -14,7 +14,6 @@ Functions with an operation this module does not know fall back to CasADi's ``ma
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 
 import casadi as ca
 import numpy as np
@@ -186,9 +185,4 @@ class LaneFunction:
         ]
 
 
-def lane_functions(fns: Sequence[ca.Function]) -> list[LaneFunction]:
-    """:class:`LaneFunction` of each function."""
-    return [LaneFunction(f) for f in fns]
-
-
-__all__ = ["LaneFunction", "lane_functions"]
+__all__ = ["LaneFunction"]

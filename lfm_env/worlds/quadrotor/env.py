@@ -87,7 +87,7 @@ class QuadrotorGustEnv(GoalReachingEnv):
     ## Arguments
     ``gym.make("lfm_env/QuadrotorGust-v0", config=None, render_mode=None,
     screen_size=(600, 300), scaling=None)``: ``config`` is a YAML path, a dict (whole file
-    or its ``env`` section) or a :class:`~lfm_env.config.QuadrotorGustConfig`;
+    or its ``env`` section) or a :class:`~lfm_env.worlds.quadrotor.config.QuadrotorGustConfig`;
     ``scaling`` is pixels per metre with the view centred on the vehicle, or ``None`` to
     show the whole tunnel. ``reset(options=...)`` accepts ``initial_state`` (``[m, m,
     rad, m/s, m/s, rad/s]``) and ``latent_state`` overrides. The env exposes ``config``,

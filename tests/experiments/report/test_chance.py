@@ -26,7 +26,8 @@ from experiments.report.results import load_results, load_trajectory
 from experiments.report.stats import pooled_ratio_ci
 from lfm_env import gp
 from lfm_env.model import LatentForceModel
-from lfm_env.system import ControlSystem, xp
+from lfm_env.system import ControlSystem
+from lfm_env.xp import xp
 
 
 @pytest.mark.parametrize("ns, d, beta", [(150, 14, 1e-3), (50, 20, 0.05), (400, 7, 1e-6)])

@@ -19,7 +19,7 @@ from experiments.report.write import (
     pooled_ratio_ci,
     write_report,
 )
-from lfm_env.config import load_env_config
+from lfm_env.worlds.registry import load_env_config
 from tests.experiments.saved_results import csv_values, table_line
 
 
