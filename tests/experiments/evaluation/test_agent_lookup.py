@@ -11,8 +11,6 @@ import numpy as np
 import pytest
 
 from controllers.agents.protocol import Agent
-from controllers.config import ExperimentConfig
-from experiments.evaluation import run as evaluation
 from controllers.agents.registry import (
     AGENT_REGISTRY,
     AgentSpec,
@@ -20,6 +18,8 @@ from controllers.agents.registry import (
     register_agent,
     resolve_agent,
 )
+from controllers.config import ExperimentConfig
+from experiments.evaluation import run as evaluation
 from experiments.evaluation.run import (
     agent_seed,
     evaluate,

@@ -15,7 +15,7 @@ from controllers.solvers import make_solver
 from controllers.solvers.fast.condensed import CondensedModel
 from controllers.solvers.fast.solver import FastScenarioSolver
 from experiments.benchmark.timing import latent_force_scenarios
-from lfm_env.config import SineTrackConfig
+from lfm_env.worlds.sine_track.config import SineTrackConfig
 
 RTOL = 1e-4  # objective agreement with the reference
 VIOLATION_TOL = 1e-6  # [m or m/s] allowed constraint violation where the reference has none
