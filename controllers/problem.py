@@ -29,7 +29,7 @@ Conventions (shared by every solver), with the dimensions of the model's system:
 **Feedback prediction** (``prediction="feedback"``; ``"open_loop"``, the default, is the
 paper's formulation above). Scenario ``i`` applies ``u_{i,0} = v_0`` and, for ``k >= 1``,
 ``u_{i,k} = v_k + K_k (x_k^(i) - r_k)`` with the shared decision ``v`` ``(N, nu)`` and a
-:class:`~controllers.feedback.FeedbackLaw` ``(K, r)`` frozen during a solve (``K_0 = 0``: the
+:class:`~controllers.feedback_law.FeedbackLaw` ``(K, r)`` frozen during a solve (``K_0 = 0``: the
 first input is applied now, before any scenario's deviation is known). The objective is the
 scenario average of ``sum_k (x_k - x_g)' Q (x_k - x_g) + u_{i,k}' R u_{i,k}`` plus the
 terminal cost, plus ``slack_penalty`` times the state slacks (as above) and the *input
@@ -50,7 +50,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from controllers.feedback import FeedbackLaw
+from controllers.feedback_law import FeedbackLaw
 from lfm_env.cost import QuadraticCost
 from lfm_env.model import LatentForceModel
 from lfm_env.system import ControlSystem
@@ -261,7 +261,7 @@ class ScenarioProblem:
                 "needs ScenarioProblem(..., prediction='feedback')"
             )
         if not isinstance(law, FeedbackLaw):
-            raise ValueError(f"law must be a controllers.feedback.FeedbackLaw, got {law!r}")
+            raise ValueError(f"law must be a controllers.feedback_law.FeedbackLaw, got {law!r}")
         return law.check(self)
 
     def rollout(

@@ -148,9 +148,9 @@ class LatentForceEnv(gym.Env):
     taken, at reset the one that acts next; a float when ``nw == 1``, else ``(nw,)``),
     ``latent_state`` (z), ``<group>_excess`` for each of ``system.constraint_groups`` (the
     largest excess ``max(g, 0)`` in the group, in its unit), ``constraint_excess`` (ng,) in
-    ``system.constraint_names`` order, ``cost`` (the safe-RL constraint cost: the number of
-    constraint groups violated by the new state, dimensionless, 0 when every constraint
-    holds), ``is_success``, ``failure``, ``applied_action``, ``time`` [s].
+    ``system.constraint_names`` order, ``violated_groups`` (the number of constraint groups
+    violated by the new state, dimensionless, 0 when every constraint holds: the safe-RL
+    constraint cost), ``is_success``, ``failure``, ``applied_action``, ``time`` [s].
 
     ## Arguments
     ``LatentForceEnv(model, cost, initial_state, measurement_std, max_steps=200,
@@ -434,7 +434,7 @@ class LatentForceEnv(gym.Env):
             violated += info[f"{group}_excess"] > 0.0
         info.update(
             constraint_excess=excess,
-            cost=float(violated),
+            violated_groups=float(violated),
             is_success=bool(success),
             failure=bool(failure),
             applied_action=np.asarray(action, dtype=float).copy(),

@@ -206,7 +206,7 @@ _SPECS = (
     AgentSpec(
         "robust",
         RobustMPCAgent,
-        label="robust: calibrated estimator + MPC with constraint back-off",
+        label="robust: estimator whose 2-sigma band covers + MPC with constraint back-off",
         short_label="robust MPC (back-off)",
         colour="tab:red",
         order=4,

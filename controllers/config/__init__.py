@@ -2,7 +2,7 @@
 config file is read.
 
 :func:`load_config` (the resolver) reads a whole config (a preset's name, a path, a dict:
-``env_id``, ``env``, ``agents``, ``evaluation``, with ``base:`` and ``--set`` settings) into an
+``env_id``, ``env``, ``agents``, ``evaluation``, with ``base:`` and ``--set`` overrides) into an
 :class:`ExperimentConfig`, which builds, once, what the agents need: their model of the
 world (:meth:`ExperimentConfig.make_model`), their cost (:meth:`~ExperimentConfig.make_cost`)
 and the scenario problem (:meth:`~ExperimentConfig.make_problem`).
@@ -20,7 +20,7 @@ from controllers.config.experiment import (
     DEFAULT_PRESET,
     TOP_LEVEL_KEYS,
     ExperimentConfig,
-    apply_settings,
+    apply_overrides,
     load_config,
     merge,
     read_document,
@@ -50,7 +50,7 @@ __all__ = [
     "EvaluationConfig",
     "ExperimentConfig",
     "RobustConfig",
-    "apply_settings",
+    "apply_overrides",
     "check_filter_memory",
     "check_problem_memory",
     "load_config",

@@ -14,7 +14,7 @@ config is read, the same way for every caller:
   (a preset's name, or a path relative to the file's folder) and overrides some: mappings
   are merged key by key, any other value (a list, a number, a text) replaces the base's. A
   base may have a base; a cycle is an error;
-* **settings** (:func:`apply_settings`): ``KEY=VALUE`` texts (``lfm-evaluate --set``) with a
+* **overrides** (:func:`apply_overrides`): ``KEY=VALUE`` texts (``lfm-evaluate --set``) with a
   dotted key (``agents.horizon=10``, ``env.latent_force.variance=2.0``, ``env_id=...``),
   each value read by its field's type (``1e-3`` is a number, ``[1, 2]`` a list, ``null``
   where allowed).
@@ -262,17 +262,17 @@ def _check_top_level(data: dict, where: str) -> None:
             raise ConfigError(f"config section {name!r} must be a mapping")
 
 
-def read_document(source: Any = None, settings: Sequence[Any] = ()) -> dict:
-    """The plain data of a whole config, its ``base:`` resolved and ``settings`` applied.
+def read_document(source: Any = None, overrides: Sequence[Any] = ()) -> dict:
+    """The plain data of a whole config, its ``base:`` resolved and ``overrides`` applied.
 
     Args:
         source: a preset's name or a path (:func:`~lfm_env.config.presets.config_path`), a
             dict (a whole config), or ``None`` (no file: the defaults).
-        settings: ``KEY=VALUE`` texts (or ``(key, text)`` pairs) for :func:`apply_settings`.
+        overrides: ``KEY=VALUE`` texts (or ``(key, text)`` pairs) for :func:`apply_overrides`.
 
     Raises:
         ConfigError: for a missing file or preset, a bad ``base:``, an unknown top-level
-            key or a bad setting.
+            key or a bad override.
     """
     if isinstance(source, (str, os.PathLike)):
         path = config_path(source)
@@ -288,16 +288,16 @@ def read_document(source: Any = None, settings: Sequence[Any] = ()) -> dict:
             "config must be a preset's name, a path, a dict or an ExperimentConfig, got "
             f"{type(source).__name__}"
         )
-    return apply_settings(data, settings) if settings else data
+    return apply_overrides(data, overrides) if overrides else data
 
 
-def load_config(config: Any = None, settings: Sequence[Any] = ()) -> ExperimentConfig:
+def load_config(config: Any = None, overrides: Sequence[Any] = ()) -> ExperimentConfig:
     """The resolver: an :class:`ExperimentConfig` from a preset's name (``"paper"``,
     ``"quick"``, ...), a YAML path, a dict (a whole config: ``env_id``, ``env``, ``agents``,
-    ``evaluation``), an ``ExperimentConfig`` (returned as it is without settings), or
+    ``evaluation``), an ``ExperimentConfig`` (returned as it is without overrides), or
     ``None`` (the defaults: the paper's values).
 
-    A file (or dict) may inherit from another with ``base:``, and ``settings`` (``KEY=VALUE``
+    A file (or dict) may inherit from another with ``base:``, and ``overrides`` (``KEY=VALUE``
     texts, as ``lfm-evaluate --set``) override single fields. The commands and the public
     functions that take a config call this once; everything below takes the result.
 
@@ -305,12 +305,12 @@ def load_config(config: Any = None, settings: Sequence[Any] = ()) -> ExperimentC
         ConfigError: naming the first bad field (``env.dt``, ``agents.Q``, ...).
     """
     if isinstance(config, ExperimentConfig):
-        if not settings:
+        if not overrides:
             return config
         evaluation = config.evaluation  # (not in to_dict: a run setting)
-        data = read_document(config.to_dict(), settings)
+        data = read_document(config.to_dict(), overrides)
         return _experiment(data, evaluation)
-    return _experiment(read_document(config, settings))
+    return _experiment(read_document(config, overrides))
 
 
 def _experiment(data: dict, evaluation: EvaluationConfig | None = None) -> ExperimentConfig:
@@ -325,7 +325,7 @@ def _experiment(data: dict, evaluation: EvaluationConfig | None = None) -> Exper
     )
 
 
-# --------------------------------------------------------------------------- settings
+# --------------------------------------------------------------------------- overrides (--set)
 
 
 def split_values(text: str) -> list[str]:
@@ -405,20 +405,20 @@ def parse_value(text: str, tp: Any) -> Any:
     return _yaml(text)
 
 
-def split_setting(setting: Any) -> tuple[str, str]:
+def split_override(override: Any) -> tuple[str, str]:
     """``"KEY=VALUE"`` (or a ``(key, value)`` pair) as ``(key, value text)``.
 
     Raises:
         ConfigError: for a text without ``=`` or with an empty key.
     """
-    if isinstance(setting, tuple) and len(setting) == 2:
-        key, text = str(setting[0]).strip(), str(setting[1])
+    if isinstance(override, tuple) and len(override) == 2:
+        key, text = str(override[0]).strip(), str(override[1])
     else:
-        key, sep, text = str(setting).partition("=")
+        key, sep, text = str(override).partition("=")
         key = key.strip()
         if not sep or not key:
             raise ConfigError(
-                f"--set {str(setting)[:200]!r}: expected KEY=VALUE, e.g. agents.horizon=10 or "
+                f"--set {str(override)[:200]!r}: expected KEY=VALUE, e.g. agents.horizon=10 or "
                 "env.latent_force.variance=2.0"
             )
     return key, text
@@ -432,8 +432,8 @@ def _section_class(data: dict, top: str) -> type:
     return SECTIONS[top]
 
 
-def _check_setting_key(key: str, parts: list[str]) -> None:
-    """A setting's key starts with a top-level key, and names a value of a section."""
+def _check_override_key(key: str, parts: list[str]) -> None:
+    """An override's key starts with a top-level key, and names a value of a section."""
     top = parts[0]
     if top not in TOP_LEVEL_KEYS or not all(parts):
         raise ConfigError(
@@ -461,7 +461,7 @@ def _field_type(key: str, parts: list[str], depth: int, cls: type) -> Any:
 def _set_one(data: dict, key: str, text: str) -> None:
     """Set the dotted ``key`` of ``data`` (a whole config) to ``text`` read by its field's type."""
     parts = key.split(".")
-    _check_setting_key(key, parts)
+    _check_override_key(key, parts)
     if parts[0] == "env_id":
         data["env_id"] = text.strip()
         return
@@ -487,21 +487,21 @@ def _set_one(data: dict, key: str, text: str) -> None:
     node[parts[-1]] = parse_value(text, field)
 
 
-def apply_settings(data: Mapping, settings: Sequence[Any]) -> dict:
-    """A copy of ``data`` (a whole config) with each ``KEY=VALUE`` of ``settings`` set.
+def apply_overrides(data: Mapping, overrides: Sequence[Any]) -> dict:
+    """A copy of ``data`` (a whole config) with each ``KEY=VALUE`` of ``overrides`` set.
 
     ``KEY`` is dotted from the top level: ``env_id``, ``env.<field>[.<field>]`` (the
-    fields of the config's world, after an ``env_id`` setting), ``agents.<field>...``,
+    fields of the config's world, after an ``env_id`` override), ``agents.<field>...``,
     ``evaluation.<field>``. Each value is read by its field's type (:func:`parse_value`);
-    later settings win.
+    later overrides win.
 
     Raises:
-        ConfigError: naming the key, for a malformed setting, an unknown key, or a section
+        ConfigError: naming the key, for a malformed override, an unknown key, or a section
             given where a value is expected (the values themselves are checked when the
             config is built, naming the field).
     """
     out = copy.deepcopy(dict(data))
-    pairs = [split_setting(s) for s in settings]
+    pairs = [split_override(s) for s in overrides]
     # env_id first: the env section's keys are the fields of the world it names.
     for key, text in sorted(pairs, key=lambda p: p[0] != "env_id"):
         _set_one(out, key, text)
@@ -512,7 +512,7 @@ __all__ = [
     "DEFAULT_PRESET",
     "TOP_LEVEL_KEYS",
     "ExperimentConfig",
-    "apply_settings",
+    "apply_overrides",
     "load_config",
     "merge",
     "parse_value",

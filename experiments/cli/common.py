@@ -144,7 +144,7 @@ def add_set_argument(parser: argparse.ArgumentParser) -> None:
     """``--set KEY=VALUE`` (repeatable): a field of the config, set on top of ``--config``."""
     parser.add_argument(
         "--set",
-        dest="settings",
+        dest="overrides",
         action="append",
         default=[],
         metavar="KEY=VALUE",
@@ -160,7 +160,7 @@ def add_set_argument(parser: argparse.ArgumentParser) -> None:
 def config_argument(
     parser: argparse.ArgumentParser, args: argparse.Namespace, agents: Sequence[str] = ()
 ) -> tuple[Path, object]:
-    """The ``--config`` file and the config it gives with the ``--set`` settings applied
+    """The ``--config`` file and the config it gives with the ``--set`` overrides applied
     (an :class:`~controllers.config.ExperimentConfig`, checked for ``agents``); exits 2
     with one line naming the field otherwise."""
     from experiments.evaluation import resolve_config
@@ -169,7 +169,7 @@ def config_argument(
     try:
         from controllers.config import load_config
 
-        config = resolve_config(load_config(path, getattr(args, "settings", ())), agents)
+        config = resolve_config(load_config(path, getattr(args, "overrides", ())), agents)
     except ValueError as exc:  # ConfigError: the loaders name the key
         parser.error(" ".join(str(exc).split()))
     return path, config

@@ -316,7 +316,7 @@ def test_agents_solver_threads_reach_the_fast_solver_with_the_same_actions():
     one, _, _ = run("scenario", cfg, max_steps=4)
     cfg["agents"]["solver_threads"] = 2
     agent = make_agent("scenario", cfg)
-    assert agent.mpc.options.threads == 2 and agent.mpc.model.threads == 2
+    assert agent.solver.options.threads == 2 and agent.solver.condensed.threads == 2
     two, _, est = run("scenario", cfg, max_steps=4)
     assert all(rec["success"] for rec in est)
     np.testing.assert_allclose(two, one, atol=1e-7)

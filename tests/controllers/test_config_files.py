@@ -1,4 +1,4 @@
-"""Configs by name from any folder, ``base:`` inheritance and ``KEY=VALUE`` settings: a whole
+"""Configs by name from any folder, ``base:`` inheritance and ``KEY=VALUE`` overrides: a whole
 config is read in one place (``controllers.config``), a world reads its ``env:`` section
 (``lfm_env.worlds.registry.load_env_config``)."""
 
@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 import lfm_env  # noqa: F401  (registers the envs)
-from controllers.config import apply_settings, load_config, read_document
+from controllers.config import apply_overrides, load_config, read_document
 from lfm_env.config import ConfigError, config_path, preset_names
 from lfm_env.worlds.registry import load_env_config
 
@@ -91,14 +91,14 @@ def test_bad_bases_are_one_line_errors(tmp_path):
         load_config(tmp_path / "e.yaml")
 
 
-def test_settings_are_read_by_their_fields_type():
-    data = apply_settings(
+def test_overrides_are_read_by_their_fields_type():
+    data = apply_overrides(
         {"env": {"dt": 0.1}},
         [
             "env.latent_force.variance=1e-3",  # YAML alone would read text
             "env.measurement_noise_std=[0.1, 0.1, 0.1, 1]",
             "env.max_steps=20",
-            "env.dt=0.2",  # later settings win over the file
+            "env.dt=0.2",  # later overrides win over the file
         ],
     )
     assert data["env"]["latent_force"] == {"variance": 1e-3}
@@ -106,7 +106,7 @@ def test_settings_are_read_by_their_fields_type():
     assert (cfg.dt, cfg.max_steps, cfg.latent_force.variance) == (0.2, 20, 1e-3)
     assert cfg.measurement_noise_std == (0.1, 0.1, 0.1, 1.0)
     # env_id first: the env keys are the fields of the world it names.
-    quad = apply_settings({}, ["env.pitch_max=0.3", "env_id=lfm_env/QuadrotorGust-v0"])
+    quad = apply_overrides({}, ["env.pitch_max=0.3", "env_id=lfm_env/QuadrotorGust-v0"])
     assert load_env_config(quad).pitch_max == 0.3
 
 
@@ -121,9 +121,9 @@ def test_settings_are_read_by_their_fields_type():
         ("horizon", "expected KEY=VALUE"),
     ],
 )
-def test_bad_settings_name_the_key(setting, message):
+def test_bad_overrides_name_the_key(setting, message):
     with pytest.raises(ConfigError, match=message):
-        apply_settings({}, [setting])
+        apply_overrides({}, [setting])
 
 
 def test_a_bad_value_names_the_field():

@@ -45,7 +45,7 @@ def counting(functions: tuple[Callable, ...] = READERS) -> Iterator[Counter]:
 def test_make_agent_meets_the_resolver_once_from_a_preset_to_the_solver():
     with counting() as calls:
         agent = make_agent("scenario", "quick")
-    assert agent.mpc is not None and agent.problem.n_scenarios == 20  # built to the solver
+    assert agent.solver is not None and agent.problem.n_scenarios == 20  # built to the solver
     assert calls == {"load_config": 1, "read_document": 1, "load_env_config": 1, "load_yaml": 1}
 
 

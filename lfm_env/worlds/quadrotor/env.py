@@ -95,7 +95,7 @@ class QuadrotorGustEnv(GoalReachingEnv):
 
     ## Version History
     * v0: initial version; then Gymnasium's conventions: a float32 action space, an
-      unbounded observation space, ``info["cost"]`` and the time limit as a ``TimeLimit``
+      unbounded observation space, ``info["violated_groups"]`` and the time limit as a ``TimeLimit``
       wrapper (same episodes); then finite observation bounds that hold (same episodes).
     """
 

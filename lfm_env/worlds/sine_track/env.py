@@ -90,7 +90,7 @@ class SineTrackEnv(GoalReachingEnv):
     ## Version History
     * v0: initial version (rebuilt on ``LatentForceEnv`` with the same episodes, bit for
       bit, and the added ``info["constraint_excess"]``); then Gymnasium's conventions: a
-      float32 action space, an unbounded observation space, ``info["cost"]`` and the time
+      float32 action space, an unbounded observation space, ``info["violated_groups"]`` and the time
       limit as a ``TimeLimit`` wrapper (same episodes); then finite observation bounds
       that hold (same episodes).
     """

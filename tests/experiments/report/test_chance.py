@@ -17,7 +17,7 @@ from experiments.evaluation import evaluate
 from experiments.report.chance import (
     DEFAULT_CONFIDENCE,
     agent_design,
-    chance_calibration,
+    chance_check,
     closed_loop_first_step,
     design_epsilon,
     plan_violations,
@@ -181,7 +181,7 @@ def test_offline_draws_are_aligned_with_the_recorded_episodes(tmp_path):
                 np.testing.assert_array_equal(per_group[:, 0, j], recorded)
                 checked += int(recorded.sum())
     assert checked > 0  # some recorded violations were reproduced
-    cals = {c.agent: c for c in chance_calibration(results, n_draws=20)}
+    cals = {c.agent: c for c in chance_check(results, n_draws=20)}
     scenario = cals["scenario"]
     assert scenario.design.n_scenarios == 10 and cals["pf"].design.n_scenarios is None
     assert scenario.offline_steps == scenario.steps  # every plan of this run was applied
