@@ -101,7 +101,7 @@ class ExperimentConfig:
         check_latent_step(self.env)
         if self.agents.latent_force is not None:
             check_latent_step(self.env, self.agents.latent_force, where="agents.latent_force")
-        self.make_cost()  # vector lengths against the system, with the field's name
+        self.make_cost()  # the cost's own checks of its weights and goal
         system = self.make_system()
         self.agents.check_scenario_count(system.nu)
         model = self.make_model()
