@@ -131,7 +131,10 @@ def no_scenarios(**kwargs: Any) -> dict:
 BAD_CONFIGS = [
     # --- env section: unknown keys, wrong types
     env_case("unknown-key", {"dtt": 0.2}, "env.dtt", "allowed keys"),
-    BadConfig("env-unknown-section", {"env": {}, "environment": {}}, ("environment", "allowed")),
+    # (a whole config's top level: read by the agents' builders, not by the world alone)
+    BadConfig(
+        "env-unknown-section", {"env": {}, "environment": {}}, ("environment", "allowed"), "agents"
+    ),
     BadConfig("env-not-a-mapping", {"env": [0.2]}, ("'env'", "mapping")),
     env_case("dt-text", {"dt": "fast"}, "env.dt", "expected a number"),
     env_case("dt-bool", {"dt": True}, "env.dt", "expected a number"),
