@@ -483,7 +483,7 @@ def test_bad_reset_options_raise(make_env, options, match):
 @pytest.mark.parametrize(
     "kwargs, match",
     [
-        ({"initial_state": [0.0, 0.0, 0.0]}, r"initial_state=.*\[p_x m, p_y m, v_x m/s, v_y m/s\]"),
+        ({"initial_state": [0.0, 0.0, 0.0]}, r"initial_state.*\[p_x m, p_y m, v_x m/s, v_y m/s\]"),
         ({"measurement_std": [0.1, 0.1, -0.1, 0.1]}, "measurement_std"),
         ({"measurement_std": [0.1, 0.1, math.inf, 0.1]}, "measurement_std"),
         ({"max_steps": 0}, "max_steps"),
