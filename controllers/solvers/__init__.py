@@ -22,6 +22,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from controllers.problem import MPCSolution, ScenarioProblem
+from controllers.threads import limit_blas_threads
 
 
 class ScenarioSolver(Protocol):
@@ -72,7 +73,9 @@ class SolverSpec:
     def build(self, problem: ScenarioProblem, **options: Any) -> ScenarioSolver:
         """The solver for ``problem`` with ``options`` (see :func:`make_solver`); for a
         feedback problem, this solver through the exact rewrite of
-        :class:`~controllers.solvers.feedback.FeedbackScenarioSolver`."""
+        :class:`~controllers.solvers.feedback.FeedbackScenarioSolver`. Sets the process's
+        BLAS threads first (:func:`controllers.threads.limit_blas_threads`)."""
+        limit_blas_threads()
         if problem.prediction == "feedback":
             from controllers.solvers.feedback import FeedbackScenarioSolver
 

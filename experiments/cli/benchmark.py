@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from controllers.solvers import SOLVERS
+from controllers.threads import limit_blas_threads
 from experiments.benchmark.predictions import (
     PREDICTION_STEPS,
     format_predictions,
@@ -234,6 +235,7 @@ def benchmark_main(argv: Sequence[str] | None = None) -> int:
     """
     parser = build_parser()
     args = parser.parse_args(argv)
+    limit_blas_threads()  # the filter and the IPOPT references too, not only make_solver's
     try:
         seeds = parse_seeds(args.seeds or (QUICK["seeds"] if args.quick else "0:6"))
         solvers = _solver_list(args.solvers, args.skip)

@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from controllers.config import ExperimentConfig
+from controllers.threads import limit_blas_threads
 from experiments.evaluation.agent_lookup import OwnAgentSpec
 from experiments.evaluation.agent_lookup import agent_name as name_of
 from experiments.evaluation.episode import (
@@ -59,6 +60,7 @@ def _episode_task(
     run's ``token``, and the worker ends; the task, run again elsewhere, returns that row)
     or ``""`` (a pool worker: its parent stops it).
     """
+    limit_blas_threads()  # every executor's worker (serial, pool, Dask) runs this first
     name = name_of(agent)
     if token and out is not None:
         saved = stuck_row(out, name, seed, token)
