@@ -64,7 +64,8 @@ class Braking:  # no solver: only the task itself can have set the threads
         return np.array([-1.0, 0.0])
 
 before = blas_thread_counts()
-row = _episode_task(OwnAgentSpec("braking", Braking, "braking"), load_config("quick"), 0, None, False)
+spec = OwnAgentSpec("braking", Braking, "braking")
+row = _episode_task(spec, load_config("quick"), 0, None, False)
 assert row["error"] == "", row["error"]
 print(json.dumps({"before": before, "inside": seen[0]}))
 """
