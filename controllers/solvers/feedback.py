@@ -202,6 +202,14 @@ class FeedbackScenarioSolver:
             self._open_loop = self.spec.build(problem, **self.options)
         return self._open_loop
 
+    def set_max_time(self, seconds: float) -> None:
+        """The wall-clock limit [s] of the next solves of the inner solver and of the
+        open-loop reference solve (for solvers that take one: ``set_max_time``)."""
+        self.options["max_time"] = float(seconds)
+        for solver in (self.inner, self._open_loop):
+            if solver is not None and hasattr(solver, "set_max_time"):
+                solver.set_max_time(seconds)
+
     def reset(self) -> None:
         """Forget the warm start and the reference plan."""
         self.inner.reset()

@@ -27,7 +27,9 @@ QP solvers (:data:`QP_SOLVERS`):
 A failed call is retried by the elastic interior point (unless it was the one that
 failed), then by a cold qpOASES, then by CasADi's qrqp (which solves some degenerate QPs on
 which qpOASES's factorisation breaks down), then both with a small proximal term on the
-step (:meth:`SlotQP.solve`).
+step (:meth:`SlotQP.solve`). Every call, retries included, gets an iteration or time limit
+from what is left of the solve (:mod:`~controllers.solvers.fast.qp.budget`), and none is
+made once nothing is left.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ import contextlib
 import math
 import os
 import sys
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -43,6 +46,7 @@ import casadi as ca
 import numpy as np
 
 from controllers.solvers.fast.qp import elastic_ipm
+from controllers.solvers.fast.qp.budget import QPBudget
 
 QP_SOLVERS = ("auto", "daqp", "elastic_ipm", "piqp", "qpoases")
 # Proximal terms on the step (relative to the largest Hessian diagonal entry) of the
@@ -62,6 +66,8 @@ PIQP_EPS_REL = 1e-12
 # 76 (N = 15) 0.53 / 1.18 ms; 92 (N = 15) 2.8 / 1.8 ms; 181 (N = 30, ~400 rows, cold,
 # offline) 124 / 9.2 ms.
 AUTO_PIQP_VARIABLES = 80
+# qrqp's iteration limit when time is no object (CasADi's default).
+QRQP_MAX_ITER = 1000
 # "auto" with it: QPs with slacks and at least this many variables go to the elastic
 # interior point (elastic_ipm). On the recorded elastic QPs of the paper's closed loop
 # (median per call, offline, against PIQP on the same QP): N = 7 (36-53 variables) 0.19 ms
@@ -93,6 +99,12 @@ def resolve_qp_solver(solver: str, n_var: int, elastic: bool = True) -> str:
     if solver == "elastic_ipm" or (n_var >= AUTO_IPM_VARIABLES and _available("elastic_ipm")):
         return "elastic_ipm"
     return "piqp" if n_var >= AUTO_PIQP_VARIABLES and _available("piqp") else "qpoases"
+
+
+def _daqp_time_limit(left: float, max_time: float) -> float:
+    """DAQP's ``time_limit`` [s] from the solve's time left and the QP's own limit (0: none)."""
+    limit = min(left, max_time)
+    return limit if math.isfinite(limit) else 0.0
 
 
 def _available(package: str) -> bool:
@@ -194,7 +206,13 @@ class SlotQP:
         self.n_var = n_u + n_slack
         self.capacity = self.n_speed + row_capacity
         self.max_time = max_time
+        # Each call's iteration or time limit, from what is left of the solve (solve()).
+        self.budget = QPBudget()
         nv, cap, nu = self.n_var, self.capacity, self.n_u
+        # qpOASES's working-set recalculations per call: its own default, 5 (nv + rows),
+        # fewer when the time left allows fewer (the conic is rebuilt for that).
+        self._nwsr_default = 5 * (nv + cap)
+        self._nwsr = self._nwsr_default
         # Dense inputs are column-major nonzeros; H is symmetric, A is viewed transposed.
         self._h = np.zeros(nv * nv)
         self.H = self._h.reshape(nv, nv)
@@ -239,11 +257,13 @@ class SlotQP:
     def _build_conic(self) -> None:
         """A fresh qpOASES conic on this object's arrays (no hot-start information)."""
         nv, cap = self.n_var, self.capacity
-        opts: dict[str, Any] = {"error_on_fail": False, "printLevel": "none"}
-        if math.isfinite(self.max_time):
-            # One QP cannot be interrupted from Python: let qpOASES stop itself, so a
-            # solve overruns its wall-clock limit by at most one QP's limit [s].
-            opts["CPUtime"] = float(self.max_time)
+        # One QP cannot be interrupted from Python: qpOASES stops itself after nWSR
+        # working-set changes (its CPUtime option was not honoured through CasADi).
+        opts: dict[str, Any] = {
+            "error_on_fail": False,
+            "printLevel": "none",
+            "nWSR": int(self._nwsr),
+        }
         self._buffer, self._spent = None, []  # (dropping the old conic frees its memories)
         with silenced_stdout():  # qpOASES prints a banner whenever a memory is created
             self._conic = ca.conic(
@@ -413,38 +433,54 @@ class SlotQP:
         """Change only the constant terms of the given rows (second-order correction)."""
         self.uba[row] = -g_pos
 
-    def solve(self) -> tuple[np.ndarray, np.ndarray, bool]:
+    def solve(self, deadline: float = math.inf) -> tuple[np.ndarray, np.ndarray, bool]:
         """Solve the QP: ``(z, row multipliers >= 0, success)``.
+
+        ``deadline`` (a ``time.perf_counter()`` value, the solve's end): every call below
+        gets its iteration or time limit from the time left until then, and none is made
+        once it has passed (:class:`~controllers.solvers.fast.qp.budget.QPBudget`; the
+        calls refused are counted in ``budget.refused``).
 
         A failed attempt is retried by the elastic interior point (when it is not the
         solver that failed and a C compiler works: measured on the quadrotor's one
         ``QP_Failed`` solve, it solved the QP that qpOASES hot and cold and three qrqp
-        calls failed on, in milliseconds instead of 2.9-4.4 s), then by qpOASES cold (a
-        fresh memory), then by qrqp; then both again with a proximal term on the step of
-        ``1e-8``, then ``1e-4``, times the largest Hessian diagonal entry (degenerate QPs).
+        calls failed on, in milliseconds instead of 2.9-4.4 s), then by the same with a
+        proximal term on the step of ``1e-8``, then ``1e-4``, times the largest Hessian
+        diagonal entry (as the compiled loop retries), then by qpOASES cold (a fresh
+        memory) and by qrqp, each without and with those proximal terms (degenerate QPs).
         The arrays of the problem are left as they were.
         """
+        self.budget.deadline = deadline
         ok = self._attempt(self.solver)
         if ok or not self.elastic:  # (a hard QP may well be infeasible: no retries)
             return self.x.copy(), np.maximum(self.lam_a, 0.0), ok
         self.failures += 1
-        if self.solver != "elastic_ipm" and _available("elastic_ipm"):
+        ipm = _available("elastic_ipm")
+        if self.solver != "elastic_ipm" and ipm:
             self.retried_with_ipm += 1
-            if self._attempt("elastic_ipm"):
-                return self.x.copy(), np.maximum(self.lam_a, 0.0), True
-        nu = self.n_u
-        diag = self.H[np.arange(nu), np.arange(nu)].copy()
-        scale = max(float(np.max(np.abs(diag))), 1.0)
-        for prox in PROXIMAL_STEPS:
-            self.H[np.arange(nu), np.arange(nu)] = diag + prox * scale
-            try:
-                self._fresh_memory()
-                ok = self._attempt("qpoases") or self._attempt("qrqp")
-            finally:
-                self.H[np.arange(nu), np.arange(nu)] = diag
-            if ok:
+        retries = [("elastic_ipm", 0.0)] if self.solver != "elastic_ipm" and ipm else []
+        retries += [("elastic_ipm", p) for p in PROXIMAL_STEPS[1:] if ipm]
+        retries += [(solver, p) for p in PROXIMAL_STEPS for solver in ("qpoases", "qrqp")]
+        for solver, prox in retries:
+            if self.budget.remaining() <= 0.0:
                 break
-        return self.x.copy(), np.maximum(self.lam_a, 0.0), ok
+            if self._retry(solver, prox):
+                return self.x.copy(), np.maximum(self.lam_a, 0.0), True
+        return self.x.copy(), np.maximum(self.lam_a, 0.0), False
+
+    def _retry(self, solver: str, prox: float) -> bool:
+        """One retry of a failed QP by ``solver`` (qpOASES from a fresh memory) with
+        ``prox`` times the largest Hessian diagonal entry added to the step's diagonal."""
+        nu = self.n_u
+        idx = np.arange(nu)
+        diag = self.H[idx, idx].copy()
+        self.H[idx, idx] = diag + prox * max(float(np.max(np.abs(diag))), 1.0)
+        try:
+            if solver == "qpoases":
+                self._fresh_memory()
+            return self._attempt(solver)
+        finally:
+            self.H[idx, idx] = diag
 
     def _attempt(self, solver: str) -> bool:
         """One call of ``solver`` on the current arrays; True on success."""
@@ -456,11 +492,28 @@ class SlotQP:
             return self._solve_elastic_ipm()
         if solver == "qrqp":
             return self._solve_qrqp()
+        return self._solve_qpoases()
+
+    def _solve_qpoases(self) -> bool:
+        """qpOASES on every slot, hot-started when it can, with at most the working-set
+        changes the time left allows."""
+        nwsr = self.budget.iterations("qpoases", self.n_var, self.capacity, self._nwsr_default)
+        if nwsr < 1:
+            self._stale = True
+            self.x[:] = np.nan
+            self.lam_a[:] = 0.0
+            return False
+        if nwsr < self._nwsr or nwsr > 1.25 * self._nwsr:  # another limit: another conic
+            self._nwsr = nwsr
+            self._build_conic()
         if self._stale and self._hot:
             self._fresh_memory()
         self._stale, self._hot = False, True
+        t0 = time.perf_counter()
         self._evaluate()
         ok = self._buffer.ret() == 0 and bool(np.isfinite(self.x).all())
+        if not ok:  # (then it has usually spent its nWSR: learn their cost)
+            self.budget.record("qpoases", self.n_var, self.capacity, time.perf_counter() - t0, nwsr)
         # qpOASES cannot hot-start from a QP it failed on: the next call starts afresh.
         self._stale = not ok
         return ok
@@ -469,16 +522,28 @@ class SlotQP:
         """CasADi's active-set QP solver qrqp on the rows in use (a fallback)."""
         rows = np.flatnonzero(self.uba < np.inf)
         nv, m = self.n_var, rows.size
+        max_iter = self.budget.iterations("qrqp", nv, m, QRQP_MAX_ITER)
+        self.lam_a[:] = 0.0
+        if max_iter < 1:
+            self.x[:] = np.nan
+            return False
+        t0 = time.perf_counter()
         conic = ca.conic(
             "fast_sqp_qrqp",
             "qrqp",
             {"h": ca.Sparsity.dense(nv, nv), "a": ca.Sparsity.dense(m, nv)},
-            {"print_iter": False, "print_header": False, "error_on_fail": False},
+            {
+                "print_iter": False,
+                "print_header": False,
+                "error_on_fail": False,
+                "max_iter": int(max_iter),
+            },
         )
         a = self.A[rows]
         res = conic(h=self.H, g=self.g, a=a, uba=self.uba[rows], lbx=self.lbx, ubx=self.ubx)
+        iters = int(conic.stats().get("iter_count", max_iter))
+        self.budget.record("qrqp", nv, m, time.perf_counter() - t0, iters)
         x = np.asarray(res["x"]).ravel()
-        self.lam_a[:] = 0.0
         if not conic.stats()["success"] or not np.all(np.isfinite(x)):
             self.x[:] = np.nan
             return False
@@ -492,6 +557,10 @@ class SlotQP:
 
         rows = self._rows_and_bounds()
         nv, m = self.n_var, rows.size
+        left = self.budget.remaining()
+        if left <= 0.0:
+            self.budget.refused += 1
+            return self._store(False, self.x, rows, self.lam_a)
         bu, bl = self._bu[: nv + m], self._bl[: nv + m]
         bu[nv:] = self.uba[rows]
         bl[nv:] = -INF_BOUND
@@ -502,7 +571,7 @@ class SlotQP:
             bu,
             bl,
             primal_tol=DAQP_PRIMAL_TOL,
-            time_limit=self.max_time if math.isfinite(self.max_time) else 0,
+            time_limit=_daqp_time_limit(left, self.max_time),
         )
         # flag 1, 2: optimal, soft-optimal; < 0: infeasible, cycling, limits
         return self._store(flag in (1, 2), x, rows, info["lam"][nv:])
@@ -514,8 +583,13 @@ class SlotQP:
         rows = self._rows_and_bounds()
         nv = self.n_var
         qp = piqp.DenseSolver()
+        max_iter = self.budget.iterations("piqp", nv, rows.size, qp.settings.max_iter)
+        if max_iter < 1:
+            return self._store(False, self.x, rows, self.lam_a)
+        qp.settings.max_iter = max_iter
         qp.settings.eps_abs = PIQP_EPS_ABS
         qp.settings.eps_rel = PIQP_EPS_REL
+        t0 = time.perf_counter()
         qp.setup(
             np.asfortranarray(self.H),
             self.g,
@@ -528,16 +602,22 @@ class SlotQP:
             self._bu[:nv],
         )
         solved = qp.solve() == piqp.PIQP_SOLVED
+        seconds = time.perf_counter() - t0
+        self.budget.record("piqp", nv, rows.size, seconds, int(qp.result.info.iter))
         return self._store(solved, qp.result.x, rows, qp.result.z_u)
 
     def _solve_elastic_ipm(self) -> bool:
         """The project's structured interior point (:mod:`~controllers.solvers.fast.qp.elastic_ipm`)
         on the rows in use, cold started: the slacks eliminated, an ``n_u x n_u`` system
-        per iteration. It has no time limit of its own (``max_time``): at most
+        per iteration. It has no time limit of its own: at most
         :data:`~controllers.solvers.fast.qp.elastic_ipm.MAX_ITERATIONS` iterations (~0.1 ms each
-        at N = 30)."""
+        at N = 30), fewer when the time left allows fewer."""
         rows = np.flatnonzero(self.uba < np.inf)
         nu = self.n_u
+        max_iter = self.budget.iterations("elastic_ipm", nu, rows.size, elastic_ipm.MAX_ITERATIONS)
+        if max_iter < 1:
+            return self._store(False, self.x, rows, self.lam_a)
+        t0 = time.perf_counter()
         used, col = np.unique(self._slack_of_row[rows], return_inverse=True)
         slack = nu + used
         res = elastic_ipm.solve_elastic_qp(
@@ -552,7 +632,10 @@ class SlotQP:
             self.H[slack, slack],
             eps_abs=PIQP_EPS_ABS,
             eps_rel=PIQP_EPS_REL,
+            max_iter=max_iter,
         )
+        seconds = time.perf_counter() - t0
+        self.budget.record("elastic_ipm", nu, rows.size, seconds, res.iterations)
         x = np.zeros(self.n_var)
         x[:nu] = res.d
         x[slack] = res.s
