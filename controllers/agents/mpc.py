@@ -117,6 +117,14 @@ class MPCAgent(SB3Predict):
             max_time=self.settings.max_solve_time,
             **({"threads": threads} if threads > 1 else {}),
         )
+        # agents.deadline: the step budget [s] (None: none), enforced through the solver's
+        # per-solve time limit.
+        self._deadline = self.settings.deadline_seconds(model.dt)
+        if self._deadline is not None and not hasattr(self.mpc, "set_max_time"):
+            raise ConfigError(
+                f"agents.deadline={self.settings.deadline!r}: solver {self.settings.solver!r} "
+                "takes no per-solve time limit; use solver 'fast' or 'fast_c', or deadline null"
+            )
         self.last_info: dict[str, Any] = {}
         self.rng = np.random.default_rng()
         self._u_prev: np.ndarray | None = None
@@ -141,8 +149,12 @@ class MPCAgent(SB3Predict):
         self._x_hat = np.asarray(info["estimate"][: self.system.nx], dtype=float)
         x0, W = self._scenarios()
         backoff = self._backoff()
+        limited = self._limit_solve(t0)
         sol = self.mpc.solve(x0, W) if backoff is None else self.mpc.solve(x0, W, backoff=backoff)
         u, fallback = self._choose_action(sol)
+        # The budget stopped this solve: what the agent applied instead of a converged plan.
+        stopped = limited and sol.status == "Maximum_WallTime_Exceeded"
+        deadline_stop = (fallback or "plan") if stopped else ""
         self._u_prev = u
         info.update(
             solve_time=sol.solve_time,
@@ -155,6 +167,7 @@ class MPCAgent(SB3Predict):
             slack=float(sol.slack),
             objective=float(sol.objective),
             fallback=fallback,
+            deadline_stop=deadline_stop,
             plan=sol.plan.copy(),
             predicted=None if sol.predicted is None else sol.predicted.copy(),
             x0=np.asarray(x0, dtype=float).copy(),
@@ -165,6 +178,17 @@ class MPCAgent(SB3Predict):
         return u
 
     # ------------------------------------------------------------------ internals
+
+    def _limit_solve(self, t0: float) -> bool:
+        """With ``agents.deadline``: give the solve what the step has left of its budget
+        (at least a microsecond: the solver then returns its warm start, not usable, and
+        the agent falls back); ``True`` when that is less than ``agents.max_solve_time``."""
+        if self._deadline is None:
+            return False
+        left = self._deadline - (time.perf_counter() - t0)
+        limit = min(self.settings.max_solve_time, max(left, 1e-6))
+        self.mpc.set_max_time(limit)
+        return limit < self.settings.max_solve_time
 
     def _choose_action(self, sol: MPCSolution) -> tuple[np.ndarray, str]:
         """First input of a usable plan (:attr:`MPCSolution.usable`: converged, or stopped
