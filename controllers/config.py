@@ -180,7 +180,9 @@ class AgentConfig:
     R: tuple[float, ...] = (0.5, 10.0)  # input weights (diagonal), e.g. on [a, delta (rad)]
     goal_state: tuple[float, ...] = (62.83, 0.0, 4.0, 0.0)  # e.g. [m, m, m/s, deg]
     slack_penalty: float = 1.0e4  # exact L1 penalty per unit of state-constraint slack
-    solver: str = "fast"  # one of controllers.solvers.SOLVERS
+    # One of controllers.solvers.SOLVERS: "fast_c", the fast SQP with its loop compiled (the
+    # Python loop, "fast", with a one-line notice where no C compiler works).
+    solver: str = "fast_c"
     # Solver iteration limit per step (the fast SQP's per start; its own default too: long
     # horizons need it, see FastSolverOptions.max_iter).
     max_iter: int = 150
