@@ -13,6 +13,7 @@ from typing import Any
 from controllers.solvers import SOLVERS
 from controllers.threads import limit_blas_threads
 from experiments.benchmark.closed_loop import (
+    CLOSED_LOOP_AGENT,
     CLOSED_LOOP_STEPS,
     closed_loop_steps,
     format_closed_loop,
@@ -203,6 +204,11 @@ def build_parser() -> argparse.ArgumentParser:
         "prints median/p95/max per-step times (estimator + solve) and every failed step",
     )
     parser.add_argument(
+        "--agent",
+        default=CLOSED_LOOP_AGENT,
+        help="the registered agent whose steps --predictions times (default: %(default)s)",
+    )
+    parser.add_argument(
         "--predictions-replay",
         default=None,
         metavar="HORIZONS",
@@ -224,6 +230,7 @@ def _prediction_sweep(args: argparse.Namespace, seeds: list[int], out: Path) -> 
             config=args.config or DEFAULT_PRESET,
             seeds=seeds,
             steps=args.horizon_steps or CLOSED_LOOP_STEPS,
+            agent=args.agent,
             progress=not args.no_progress,
         )
         table = format_closed_loop(result)
