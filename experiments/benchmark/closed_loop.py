@@ -56,12 +56,14 @@ def _episode_steps(config: Any, agent_name: str, seed: int, steps: int) -> list[
 
     import lfm_env  # noqa: F401  (registers the envs)
     from controllers.agents import make_agent
+    from controllers.agents.registry import AGENT_REGISTRY
 
     env = gym.make(config.env_id, config=config.env)
     records: list[dict[str, Any]] = []
     try:
         obs, _ = env.reset(seed=int(seed))
-        agent = make_agent(agent_name, config)
+        truth = AGENT_REGISTRY[agent_name].reads_truth  # the oracle reads the env
+        agent = make_agent(agent_name, config, env=env if truth else None)
         agent.reset(seed=int(seed))
         for step in range(steps):
             t0, c0 = time.perf_counter(), time.thread_time()
