@@ -120,6 +120,9 @@ class MPCAgent(SB3Predict):
         # agents.deadline: the step budget [s] (None: none), enforced through the solver's
         # per-solve time limit.
         self._deadline = self.settings.deadline_seconds(model.dt)
+        # [s] how far a stopped solve ran past its limit (the solver checks it between
+        # iterations): kept back from the next budgets, so that steps end by the deadline.
+        self._overrun = 0.0
         if self._deadline is not None and not hasattr(self.mpc, "set_max_time"):
             raise ConfigError(
                 f"agents.deadline={self.settings.deadline!r}: solver {self.settings.solver!r} "
@@ -136,6 +139,7 @@ class MPCAgent(SB3Predict):
         """Start a new episode; ``seed`` fixes the agent's own randomness."""
         self.rng = np.random.default_rng(seed)
         self.mpc.reset()
+        self._overrun = 0.0
         self._u_prev = None
         self._plan = None
         self.last_info = {}
@@ -149,11 +153,13 @@ class MPCAgent(SB3Predict):
         self._x_hat = np.asarray(info["estimate"][: self.system.nx], dtype=float)
         x0, W = self._scenarios()
         backoff = self._backoff()
-        limited = self._limit_solve(t0)
+        limit = self._limit_solve(t0)
         sol = self.mpc.solve(x0, W) if backoff is None else self.mpc.solve(x0, W, backoff=backoff)
         u, fallback = self._choose_action(sol)
         # The budget stopped this solve: what the agent applied instead of a converged plan.
-        stopped = limited and sol.status == "Maximum_WallTime_Exceeded"
+        stopped = limit is not None and sol.status == "Maximum_WallTime_Exceeded"
+        if stopped:  # the largest recent overrun, decaying
+            self._overrun = max(sol.solve_time - limit, 0.8 * self._overrun, 0.0)
         deadline_stop = (fallback or "plan") if stopped else ""
         self._u_prev = u
         info.update(
@@ -179,16 +185,17 @@ class MPCAgent(SB3Predict):
 
     # ------------------------------------------------------------------ internals
 
-    def _limit_solve(self, t0: float) -> bool:
-        """With ``agents.deadline``: give the solve what the step has left of its budget
-        (at least a microsecond: the solver then returns its warm start, not usable, and
-        the agent falls back); ``True`` when that is less than ``agents.max_solve_time``."""
+    def _limit_solve(self, t0: float) -> float | None:
+        """With ``agents.deadline``: give the solve what the step has left of its budget, less
+        the recent overrun of stopped solves (at least a microsecond: the solver then
+        returns its warm start, not usable, and the agent falls back). Returns that limit
+        [s] when it is below ``agents.max_solve_time``, else ``None``."""
         if self._deadline is None:
-            return False
-        left = self._deadline - (time.perf_counter() - t0)
+            return None
+        left = self._deadline - (time.perf_counter() - t0) - self._overrun
         limit = min(self.settings.max_solve_time, max(left, 1e-6))
         self.mpc.set_max_time(limit)
-        return limit < self.settings.max_solve_time
+        return limit if limit < self.settings.max_solve_time else None
 
     def _choose_action(self, sol: MPCSolution) -> tuple[np.ndarray, str]:
         """First input of a usable plan (:attr:`MPCSolution.usable`: converged, or stopped
