@@ -169,7 +169,9 @@ class _EpisodeRecorder:
     def __init__(self, config: ExperimentConfig) -> None:
         system = config.make_system()
         self.horizon = config.agents.horizon
-        self.dt = float(config.make_model().dt)  # [s] the control period (deadline misses)
+        # [s] the control period (deadline misses; NaN for a config without a model)
+        make_model = getattr(config, "make_model", None)
+        self.dt = float(make_model().dt) if make_model is not None else math.nan
         self.nx, self.nu, self.nw = system.nx, system.nu, system.nw
         self.system = system
         self.groups = tuple(system.constraint_groups)
