@@ -77,7 +77,7 @@ def test_a_plan_is_shifted_under_the_budget_once_one_exists():
     agent.reset(seed=0)
     obs, *_ = env.step(agent.act(obs))  # a converged plan of N = 7 steps
     plan = agent.last_info["plan"].copy()
-    agent.mpc.set_max_time(1e-9)  # the agent's own limit takes over from here:
+    agent.solver.set_max_time(1e-9)  # the agent's own limit takes over from here:
     agent._deadline = 1e-9  # (the budget agents.deadline sets, after one free step)
     stops, actions = [], []
     for _ in range(8):

@@ -18,11 +18,11 @@ from controllers.solvers.feedback import FeedbackScenarioSolver
 def test_the_agents_default_is_the_compiled_loop():
     assert AgentConfig().solver == "fast_c"
     agent = make_agent("scenario", load_config("quick"))
-    assert isinstance(agent.mpc, CompiledScenarioSolver) and agent.mpc.loop == "c"
+    assert isinstance(agent.solver, CompiledScenarioSolver) and agent.solver.loop == "c"
     cfg = load_config("quick", ["agents.prediction=feedback"])
     agent = make_agent("scenario", cfg)  # feedback: the compiled loop through the rewrite
-    assert isinstance(agent.mpc, FeedbackScenarioSolver)
-    assert isinstance(agent.mpc.inner, CompiledScenarioSolver) and agent.mpc.inner.loop == "c"
+    assert isinstance(agent.solver, FeedbackScenarioSolver)
+    assert isinstance(agent.solver.inner, CompiledScenarioSolver) and agent.solver.inner.loop == "c"
 
 
 def test_without_a_compiler_the_default_agent_runs_the_python_loop_after_one_notice(
@@ -40,5 +40,5 @@ def test_without_a_compiler_the_default_agent_runs_the_python_loop_after_one_not
             obs, *_ = env.step(agent.act(obs))
     notices = [w for w in caught if issubclass(w.category, RuntimeWarning)]
     assert len(notices) == 1 and str(notices[0].message).startswith(FALLBACK_NOTICE[:8])
-    assert agent.mpc.loop == "python"
+    assert agent.solver.loop == "python"
     assert agent.last_info["solver_extra"]["loop"] == "python" and agent.last_info["usable"]

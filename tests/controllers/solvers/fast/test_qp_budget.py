@@ -41,7 +41,7 @@ from controllers.config import load_config
 d = np.load("tests/data/hang_feedback_n30.npz")
 cfg = load_config({{"base": "paper", "agents": {{"horizon": 30, "prediction": "feedback",
                                                  "solver": "fast", "max_solve_time": 120}}}})
-mpc = make_agent("scenario", cfg).mpc
+mpc = make_agent("scenario", cfg).solver
 first = mpc.solve(d["x0_first"], d["W_first"])  # converges (1.3 s on a quiet machine)
 mpc.set_max_time({LIMIT})
 sol = mpc.solve(d["x0"], d["W"])  # stalled for minutes in qrqp before the QP budgets
