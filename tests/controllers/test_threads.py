@@ -49,7 +49,7 @@ import json
 import numpy as np
 from controllers.config import load_config
 from controllers.threads import blas_thread_counts
-from experiments.evaluation.agent_lookup import OwnAgentSpec
+from controllers.agents.registry import resolve_agents
 from experiments.evaluation.task import _episode_task
 
 seen = []
@@ -64,7 +64,7 @@ class Braking:  # no solver: only the task itself can have set the threads
         return np.array([-1.0, 0.0])
 
 before = blas_thread_counts()
-spec = OwnAgentSpec("braking", Braking, "braking")
+(spec,) = resolve_agents([Braking])
 row = _episode_task(spec, load_config("quick"), 0, None, False)
 assert row["error"] == "", row["error"]
 print(json.dumps({"before": before, "inside": seen[0]}))
