@@ -9,8 +9,8 @@ the median per problem is printed with the BLAS thread count the solve ran with
 ``--python OTHER``) the same with another environment's Python, e.g. a checkout from before
 the solvers set their threads:
 
-    python scripts/blas_threads.py --horizon 30 --repeats 3
-    python scripts/blas_threads.py --python /path/to/old/.venv/bin/python
+    python -m experiments.benchmark.blas_threads --horizon 30 --repeats 3
+    python -m experiments.benchmark.blas_threads --python /path/to/old/.venv/bin/python
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]  # the checkout (tests/data)
 
 CHILD = """
 import json, sys, time
