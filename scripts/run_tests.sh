@@ -6,6 +6,8 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup_env.sh test
 # Tiny LAPACK calls dominate here; OpenBLAS threads spin-waiting on them slowed the suite 10x.
+# The solvers set their own BLAS threads, but many tests call NumPy before any solver is
+# built, and torch (the RL tests) reads OMP_NUM_THREADS: so the suite keeps both.
 export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 # Lint first (pyproject's [tool.ruff]: pycodestyle, pyflakes, pyupgrade, isort, bugbear and
 # the complexity rule C901 at 15), then the format; either failing fails the run.

@@ -11,6 +11,13 @@ from pathlib import Path
 from typing import Any
 
 from controllers.solvers import SOLVERS
+from controllers.threads import limit_blas_threads
+from experiments.benchmark.closed_loop import (
+    CLOSED_LOOP_AGENT,
+    CLOSED_LOOP_STEPS,
+    closed_loop_steps,
+    format_closed_loop,
+)
 from experiments.benchmark.predictions import (
     PREDICTION_STEPS,
     format_predictions,
@@ -190,25 +197,52 @@ def build_parser() -> argparse.ArgumentParser:
         "--predictions",
         default=None,
         metavar="HORIZONS",
-        help="run the prediction sweep alone, e.g. 7,15,30,50: the fast solver on the "
-        "open-loop and the feedback scenario problem (agents.prediction) at each horizon N, "
-        f"on the closed-loop problems of --seeds ({PREDICTION_STEPS} per seed, or "
-        "--horizon-steps); prints median/p95 solve times and every failed solve",
+        help="run the closed-loop sweep alone, e.g. 7,15,30,50: the scenario agent (the "
+        "config's solver) at each horizon N, with open-loop and feedback predictions "
+        "(agents.prediction) and each iteration mode (agents.iterations, where it exists), "
+        f"the first {CLOSED_LOOP_STEPS} steps (or --horizon-steps) of each of --seeds; "
+        "prints median/p95/max per-step times (estimator + solve) and every failed step",
+    )
+    parser.add_argument(
+        "--agent",
+        default=CLOSED_LOOP_AGENT,
+        help="the registered agent whose steps --predictions times (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--predictions-replay",
+        default=None,
+        metavar="HORIZONS",
+        help="run the solver sweep alone: the fast solver on the open-loop and the feedback "
+        "problem at each horizon N, drawn around the estimates of a closed loop at the "
+        f"config's horizon ({PREDICTION_STEPS} per seed, or --horizon-steps); median/p95 "
+        "solve times and every failed solve",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     return parser
 
 
 def _prediction_sweep(args: argparse.Namespace, seeds: list[int], out: Path) -> int:
-    """``--predictions``: the prediction sweep alone, printed and written to ``out``."""
-    result = sweep_predictions(
-        parse_ints(args.predictions, "predictions"),
-        config=args.config or DEFAULT_PRESET,
-        seeds=seeds,
-        steps_per_seed=args.horizon_steps or PREDICTION_STEPS,
-        progress=not args.no_progress,
-    )
-    table = format_predictions(result)
+    """``--predictions`` (the closed-loop sweep) or ``--predictions-replay`` (the solver
+    sweep) alone, printed and written to ``out``."""
+    if args.predictions is not None:
+        result = closed_loop_steps(
+            parse_ints(args.predictions, "predictions"),
+            config=args.config or DEFAULT_PRESET,
+            seeds=seeds,
+            steps=args.horizon_steps or CLOSED_LOOP_STEPS,
+            agent=args.agent,
+            progress=not args.no_progress,
+        )
+        table = format_closed_loop(result)
+    else:
+        result = sweep_predictions(
+            parse_ints(args.predictions_replay, "predictions-replay"),
+            config=args.config or DEFAULT_PRESET,
+            seeds=seeds,
+            steps_per_seed=args.horizon_steps or PREDICTION_STEPS,
+            progress=not args.no_progress,
+        )
+        table = format_predictions(result)
     print(table, flush=True)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(json_ready(result), indent=1, allow_nan=False) + "\n")
@@ -234,12 +268,15 @@ def benchmark_main(argv: Sequence[str] | None = None) -> int:
     """
     parser = build_parser()
     args = parser.parse_args(argv)
+    limit_blas_threads()  # the filter and the IPOPT references too, not only make_solver's
     try:
         seeds = parse_seeds(args.seeds or (QUICK["seeds"] if args.quick else "0:6"))
         solvers = _solver_list(args.solvers, args.skip)
         horizons = parse_ints(args.horizons, "horizons")
         if args.predictions is not None:
             parse_ints(args.predictions, "predictions")
+        if args.predictions_replay is not None:
+            parse_ints(args.predictions_replay, "predictions-replay")
     except ValueError as exc:
         parser.error(str(exc))
     config_argument_path(parser, args.config)  # a preset's name or a file: exits 2 otherwise
@@ -248,7 +285,7 @@ def benchmark_main(argv: Sequence[str] | None = None) -> int:
         problem = check_writable(path, "--out")
         if problem is not None:
             parser.error(problem)
-    if args.predictions is not None:
+    if args.predictions is not None or args.predictions_replay is not None:
         return _prediction_sweep(args, seeds, out)
     options: dict[str, Any] = {}
     if args.quick:

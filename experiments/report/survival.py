@@ -215,10 +215,20 @@ def _difference(d: PairedDifference, scale: float = 1.0, unit_n: bool = True) ->
     return text + (f" (n={len(d.seeds)})" if unit_n else "")
 
 
-def _median_solve_ms(rows: Sequence[dict[str, Any]]) -> str:
-    values = np.array([_number(r, "solve_time_median") for r in rows])
+def _median_solve_ms(rows: Sequence[dict[str, Any]], column: str = "solve_time_median") -> str:
+    values = np.array([_number(r, column) for r in rows])
     values = values[np.isfinite(values)]
     return fmt(1e3 * float(np.median(values))) if len(values) else "n/a"
+
+
+def _deadline_misses(rows: Sequence[dict[str, Any]]) -> str:
+    """``misses of steps`` over the episodes that counted them (``n/a`` for rows written
+    before the column existed)."""
+    pairs = [(_number(r, "deadline_misses"), _number(r, "steps")) for r in rows]
+    pairs = [(m, s) for m, s in pairs if np.isfinite(m) and np.isfinite(s)]
+    if not pairs:
+        return "n/a"
+    return f"{int(sum(m for m, _ in pairs))} of {int(sum(s for _, s in pairs))}"
 
 
 def _overview_table(doc: Document, results: Results, reference: str, kept: Survivors) -> None:
@@ -244,6 +254,8 @@ def _overview_table(doc: Document, results: Results, reference: str, kept: Survi
                 time_diff,
                 cost_diff,
                 _median_solve_ms(mine),
+                _median_solve_ms(mine, "step_time_median"),
+                _deadline_misses(mine),
             ]
         )
     doc.table(
@@ -255,6 +267,8 @@ def _overview_table(doc: Document, results: Results, reference: str, kept: Survi
             f"time to goal vs `{reference}` [s] (seeds both reach it)",
             f"cost vs `{reference}` (survivor seeds)",
             "median solve [ms]",
+            "median step [ms]",
+            f"steps over dt = {results.config.dt:g} s",
         ],
         rows,
     )

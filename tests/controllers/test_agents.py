@@ -312,7 +312,7 @@ def test_max_solve_time_out_of_range_is_refused(value):
 def test_agents_solver_threads_reach_the_fast_solver_with_the_same_actions():
     """agents.solver_threads gives the fast solver's C library that many threads; the closed
     loop acts as with one (plans equal to rounding)."""
-    cfg = {"env": {"max_steps": 4}, "agents": {"n_scenarios": 300}}
+    cfg = {"env": {"max_steps": 4}, "agents": {"n_scenarios": 300, "solver": "fast"}}
     one, _, _ = run("scenario", cfg, max_steps=4)
     cfg["agents"]["solver_threads"] = 2
     agent = make_agent("scenario", cfg)
