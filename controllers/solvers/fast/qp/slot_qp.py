@@ -32,17 +32,14 @@ step (:meth:`SlotQP.solve`).
 
 from __future__ import annotations
 
-import contextlib
 import math
-import os
-import sys
-from collections.abc import Iterator
 from typing import Any
 
 import casadi as ca
 import numpy as np
 
 from controllers.solvers.fast.qp import elastic_ipm
+from controllers.solvers.quiet import silenced_output
 
 QP_SOLVERS = ("auto", "daqp", "elastic_ipm", "piqp", "qpoases")
 # Proximal terms on the step (relative to the largest Hessian diagonal entry) of the
@@ -108,34 +105,6 @@ def _available(package: str) -> bool:
     except ImportError:
         return False
     return True
-
-
-@contextlib.contextmanager
-def silenced_stdout() -> Iterator[None]:
-    """Send the process' C-level stdout to /dev/null (for chatty native libraries)."""
-    sys.stdout.flush()
-    try:
-        fd = sys.stdout.fileno()
-    except (AttributeError, OSError, ValueError):  # no real stdout (e.g. some notebooks)
-        yield
-        return
-    saved = os.dup(fd)
-    try:
-        os.dup2(_devnull(), fd)
-        yield
-    finally:
-        os.dup2(saved, fd)
-        os.close(saved)
-
-
-_DEVNULL: list[int] = []  # the descriptor of /dev/null, opened once per process
-
-
-def _devnull() -> int:
-    """A write descriptor of ``os.devnull`` (opened at the first call, then reused)."""
-    if not _DEVNULL:
-        _DEVNULL.append(os.open(os.devnull, os.O_WRONLY))
-    return _DEVNULL[0]
 
 
 class SlotQP:
@@ -245,7 +214,7 @@ class SlotQP:
             # solve overruns its wall-clock limit by at most one QP's limit [s].
             opts["CPUtime"] = float(self.max_time)
         self._buffer, self._spent = None, []  # (dropping the old conic frees its memories)
-        with silenced_stdout():  # qpOASES prints a banner whenever a memory is created
+        with silenced_output():  # qpOASES prints a banner whenever a memory is created
             self._conic = ca.conic(
                 "fast_sqp_qp",
                 "qpoases",
@@ -279,7 +248,7 @@ class SlotQP:
                 self._build_conic()
                 return
             self._spent.append((self._buffer, self._evaluate))
-        with silenced_stdout():  # the banner again, for the new memory
+        with silenced_output():  # the banner again, for the new memory
             self._buffer, self._evaluate = self._conic.buffer()
         inputs = {
             "h": self._h,
@@ -578,4 +547,4 @@ class SlotQP:
         return bool(np.all(np.isfinite(self.x)))
 
 
-__all__ = ["AUTO_PIQP_VARIABLES", "QP_SOLVERS", "SlotQP", "resolve_qp_solver", "silenced_stdout"]
+__all__ = ["AUTO_PIQP_VARIABLES", "QP_SOLVERS", "SlotQP", "resolve_qp_solver"]
