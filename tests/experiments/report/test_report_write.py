@@ -128,7 +128,7 @@ def test_report_of_a_folder_written_before_x_violation_steps(results_copy):
     assert "| max x excess [m] | 0 [0, 0] |" in md
 
 
-QUADROTOR_ID = "lfm_env/QuadrotorGust-v0"
+QUADROTOR_ID = "lfm_env/QuadrotorGust-v1"
 
 
 @pytest.mark.skipif(QUADROTOR_ID not in gym.registry, reason="no quadrotor world")
