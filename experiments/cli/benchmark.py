@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from controllers.solvers import SOLVERS
+from experiments.benchmark.checks import DEFAULT_THRESHOLDS, check_thresholds, failed_checks
 from experiments.benchmark.predictions import (
     PREDICTION_STEPS,
     format_predictions,
@@ -19,7 +20,6 @@ from experiments.benchmark.predictions import (
 from experiments.benchmark.report import format_markdown, format_report, json_ready
 from experiments.benchmark.run import DEFAULT_MAX_STEPS, DEFAULT_SOLVERS, run_benchmark
 from experiments.benchmark.suites import DEFAULT_HORIZON_STEPS, DEFAULT_HORIZONS
-from experiments.benchmark.targets import DEFAULT_THRESHOLDS, check_thresholds, failed_targets
 from experiments.cli.common import (
     CACHE_NOTE,
     DEFAULT_PRESET,
@@ -111,7 +111,8 @@ def build_parser() -> argparse.ArgumentParser:
             f"Benchmark the scenario MPC solvers ({', '.join(SOLVERS)}) side by side on "
             "closed-loop problems, at several horizons and scenario counts, the particle "
             "filter and one episode; print the speed table, every failed solve and "
-            "PASS/FAIL per target, write JSON and the speed table as Markdown."
+            "PASS/FAIL/SKIP per check (named bounds on the figures, docs/benchmark.md), "
+            "write JSON and the speed table as Markdown."
         ),
         epilog=CACHE_NOTE,
     )
@@ -160,12 +161,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         type=parse_threshold,
         metavar="KEY=VALUE",
-        help="change a target's threshold (repeatable); keys: " + ", ".join(DEFAULT_THRESHOLDS),
+        help="change a check's bound (repeatable), e.g. fast_c_median_ms=3; keys and "
+        "defaults: " + ", ".join(f"{k}={v:g}" for k, v in DEFAULT_THRESHOLDS.items()),
     )
     parser.add_argument(
         "--check",
         action="store_true",
-        help="exit with status 1 when any target FAILS (SKIP is no failure)",
+        help="exit with status 1 when any check FAILS (SKIP, a figure not measured, is no failure)",
     )
     parser.add_argument(
         "--quick",
@@ -275,9 +277,9 @@ def benchmark_main(argv: Sequence[str] | None = None) -> int:
     markdown = out.with_suffix(".md")
     markdown.write_text(format_markdown(results))
     print(f"\nwrote {out} and {markdown}; {results['meta']['total_time_s']:.0f} s in all")
-    failed = failed_targets(results["targets"])
+    failed = failed_checks(results["checks"])
     if args.check and failed:
-        print(f"--check: {len(failed)} target(s) FAIL: " + "; ".join(t["key"] for t in failed))
+        print(f"--check: {len(failed)} check(s) FAIL: " + "; ".join(c["key"] for c in failed))
         return 1
     return 0
 

@@ -420,7 +420,7 @@ def _simulate(
         if isinstance(agent_spec, OwnAgentSpec):
             agent = agent_spec.build(config)
         else:
-            reads_truth = AGENT_REGISTRY[name].reads_truth  # the oracle: an upper bound
+            reads_truth = AGENT_REGISTRY[name].reads_truth  # the oracle
             agent = make_agent(name, config, env=env if reads_truth else None)
         agent.reset(seed=agent_seed(seed, name))
         rec.start(obs, info)
@@ -500,7 +500,7 @@ def run_episode(
 
     The env is the config's world, ``gym.make(cfg.env_id, config=cfg.env)``, reset with
     ``seed``; the agent's own randomness is seeded with :func:`agent_seed` (paired
-    design). The oracle (an upper bound that reads the hidden truth) is given the env.
+    design). The oracle (certainty-equivalent MPC that reads the hidden truth) is given the env.
 
     Args:
         agent: a registered name (``"nominal"``, ``"pf"``, ``"scenario"``, ``"oracle"``,
