@@ -56,6 +56,7 @@ from experiments.benchmark.suites import (
     DEFAULT_PF_SIZES,
     DEFAULT_SWEEP_NS,
     DEFAULT_SWEEP_STEPS,
+    HORIZON_SOLVERS,
     first_solve,
     sweep_horizons,
     sweep_scenarios,
@@ -106,6 +107,7 @@ def run_benchmark(
     horizons: Sequence[int] = DEFAULT_HORIZONS,
     horizon_steps: dict[int, int] | int | None = None,
     horizon_max_time: dict[str, float] | float | None = None,
+    horizon_solvers: Sequence[str] = HORIZON_SOLVERS,
     sweep_ns: Sequence[int] = DEFAULT_SWEEP_NS,
     sweep_steps_per_seed: int | None = DEFAULT_SWEEP_STEPS,
     pf_sizes: Sequence[int] = DEFAULT_PF_SIZES,
@@ -128,6 +130,8 @@ def run_benchmark(
         horizon_max_time: wall-clock limit of one solve in the horizon sweep [s], one for
             both solvers or a dict by name (default
             :data:`experiments.benchmark.suites.HORIZON_MAX_TIME_S`).
+        horizon_solvers: the solvers of the horizon sweep (default ``fast`` and ``ipopt``,
+            the objective reference; ``("fast",)`` for a smoke run).
         sweep_ns: scenario counts of the sweep (empty: no sweep).
         sweep_steps_per_seed: anchors per seed in the sweep.
         pf_sizes: particle-filter sizes (empty: no filter timing).
@@ -157,6 +161,7 @@ def run_benchmark(
         "seeds": list(seeds),
         "max_steps": int(max_steps),
         "solvers": list(solvers),
+        "horizon_solvers": list(horizon_solvers),
         "recording_solver": RECORDING_SOLVER,
         "thresholds": thresholds,
         "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
@@ -192,6 +197,7 @@ def run_benchmark(
             max_time=horizon_max_time,
             progress=progress,
             closed_loop_problems=problems,
+            solvers=horizon_solvers,
         )
     if sweep_ns:
         results["sweep"] = timed(
