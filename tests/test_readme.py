@@ -125,7 +125,16 @@ def registries_restored():
         del gym.envs.registry[env_id]
 
 
-@pytest.mark.parametrize("page", [p for p in PAGES if fenced_blocks(p, "python")], ids=page_id)
+# The export page builds C projects with make (1-2 minutes): with the slow tests (CI runs them).
+SLOW_PAGES = ("docs/export.md",)
+PYTHON_PAGES = [
+    pytest.param(p, marks=pytest.mark.slow) if page_id(p) in SLOW_PAGES else p
+    for p in PAGES
+    if fenced_blocks(p, "python")
+]
+
+
+@pytest.mark.parametrize("page", PYTHON_PAGES, ids=page_id)
 def test_every_python_block_runs(page, in_an_empty_folder, registries_restored):
     blocks = fenced_blocks(page, "python")
     claims = {text: check for (name, text), check in CLAIMS.items() if name == page_id(page)}

@@ -198,7 +198,7 @@ CHECKS: tuple[Check, ...] = (
     ),
     Check(
         "violation_no_slack",
-        "fast's largest violation where the textbook needs no slack",
+        "fast's largest violation where the reference (IPOPT) needs no slack",
         "<=",
         1e-6,
         "",

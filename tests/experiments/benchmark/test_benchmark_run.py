@@ -18,9 +18,10 @@ from experiments.benchmark import report as bench_report
 from experiments.cli import benchmark as benchmark_cli
 
 TIMING_KEYS = ("solve_ms_median", "solve_ms_p95", "solve_ms_max", "wall_ms_median")
-# The textbook and csnlp are slow; sqpmethod (the anchor) is in, JIT compilation included,
-# and the compiled loop (fast_c) beside the Python loop (fast).
-QUICK_SOLVERS = ("fast", "fast_c", "ipopt", "sqpmethod")
+# --quick's solvers: the compiled loop (fast_c) beside the Python loop (fast) and IPOPT, the
+# objective reference (the textbook, sqpmethod's JIT build and csnlp are slow; sqpmethod's
+# JIT is tested in tests/controllers/solvers/casadi/test_ipopt_solver.py).
+QUICK_SOLVERS = ("fast", "fast_c", "ipopt")
 # A threshold no run can meet: the quick run must still exit 0 (no --check) and say FAIL.
 IMPOSSIBLE = "fast_median_ms=1e-9"
 
@@ -78,9 +79,8 @@ def test_quick_run_writes_complete_json(quick_run: tuple[dict, str]) -> None:
     for name in closed["summary"]:
         assert closed["summary"][name]["n_cold"] == n_loops
         assert _finite(closed["summary"][name]["cold_solve_ms_max"])
-    # The anchor: compiled at build, its solves timed like the others'.
-    assert closed["solvers"]["sqpmethod"]["build_time_s"] > 0
-    assert _finite(closed["speedup"]["sqpmethod"]["median_ratio"])
+    # The C library's build time of each solver, its solves timed like the others'.
+    assert closed["solvers"]["fast_c"]["build_time_s"] > 0
     # The fast solver's closed loop again, alone: same problems, the same plans.
     assert set(closed["alone"]) == {"fast", "fast_c"}
     for alone in closed["alone"].values():
@@ -309,8 +309,7 @@ def test_quick_run_compares_the_compiled_loop_and_times_the_export(quick_run) ->
     summary = closed["summary"]
     assert by_key["fast_c_median_ms"]["value"] == summary["fast_c"]["solve_ms_median"]
     assert by_key["fast_c_p95_ms"]["value"] == summary["fast_c"]["solve_ms_p95"]
-    anchor = summary["sqpmethod"]["solve_ms_median"] / summary["fast_c"]["solve_ms_median"]
-    assert by_key["anchor_over_fast_c"]["value"] == pytest.approx(anchor)
+    assert by_key["anchor_over_fast_c"]["passed"] is None  # sqpmethod not run: SKIP
     assert by_key["robust_step_ms"]["value"] == pytest.approx(robust["c_step_us_median"] / 1e3)
     assert by_key["export_plan_diff"]["value"] == export["plan_diff_max"]
     assert by_key["export_dependencies"]["value"] == 0 and by_key["export_dependencies"]["passed"]

@@ -18,7 +18,7 @@ LOOSE = [f"{c.key}={-1e9 if c.op == '>=' else 1e9}" for c in bench_checks.CHECKS
 
 def test_check_exits_1_when_a_check_fails_and_0_when_all_pass(tmp_path) -> None:
     """--check on a small real run: an impossible threshold fails it, loose ones pass."""
-    small = ["--quick", "--solvers", "fast", "--horizons", "7", "--max-steps", "2"]
+    small = ["--quick", "--solvers", "fast", "--horizons", "7", "--max-steps", "2", "--no-compiled"]
     small += ["--no-progress", "--out", str(tmp_path / "c.json")]
     assert benchmark_cli.benchmark_main([*small, "--check", "--threshold", IMPOSSIBLE]) == 1
     data = json.loads((tmp_path / "c.json").read_text())
