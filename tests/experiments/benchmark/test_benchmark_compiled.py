@@ -11,7 +11,7 @@ import math
 
 import pytest
 
-from experiments.benchmark import compiled as bench_compiled
+from experiments.benchmark import compiled as benchmark_compiled
 from experiments.benchmark.checks import run_checks
 from experiments.benchmark.problems import (
     DEFAULT_CONFIG,
@@ -37,7 +37,7 @@ DRAWN_NS = 40  # a scenario count of the drawn problems (the full run: 1000 and 
 def tiny() -> tuple[dict, list, list]:
     cfg = experiment_config(DEFAULT_CONFIG)
     problems, anchors = record_closed_loop(cfg, [0, 1], 3)
-    out = bench_compiled.time_compiled(cfg, problems, anchors, (DRAWN_NS,), export=False)
+    out = benchmark_compiled.time_compiled(cfg, problems, anchors, (DRAWN_NS,), export=False)
     return out, problems, anchors
 
 
@@ -48,11 +48,11 @@ def test_the_compiled_loop_gives_the_python_loops_plans(tiny) -> None:
     assert (main["horizon"], main["n_scenarios"]) == (7, 150)
     assert main["n_problems"] == len(problems) == 6
     assert (drawn["horizon"], drawn["n_scenarios"]) == (7, DRAWN_NS)
-    chosen = anchors_per_seed(anchors, bench_compiled.AGREEMENT_STEPS)
+    chosen = anchors_per_seed(anchors, benchmark_compiled.AGREEMENT_STEPS)
     assert drawn["n_problems"] == len(chosen) == 4  # two per seed
     for row in (main, drawn):
         assert row["loop"] == "c"  # compiled here, not the Python fallback
-        assert 0.0 <= row["max_abs_diff"] <= bench_compiled.PLAN_TOL
+        assert 0.0 <= row["max_abs_diff"] <= benchmark_compiled.PLAN_TOL
         assert row["n_above_tol"] == 0
         assert row["rel_gap_abs_max"] <= 1e-9
         assert 0 <= row["n_same_iterations"] <= row["n_problems"]
@@ -71,7 +71,7 @@ def test_the_checks_without_the_solvers_and_export_are_skipped(tiny) -> None:
 
 def test_the_printed_part_has_a_row_per_agreement(tiny) -> None:
     out, _, _ = tiny
-    lines = bench_compiled.compiled_lines({"compiled": out})
+    lines = benchmark_compiled.compiled_lines({"compiled": out})
     assert lines[0].startswith("Compiled loop (fast_c) against the Python loop")
     rows = [line for line in lines if line.startswith("  N=7, Ns=")]
     assert [row.split(",")[1].strip().split()[0] for row in rows] == ["Ns=150", f"Ns={DRAWN_NS}"]
@@ -79,4 +79,4 @@ def test_the_printed_part_has_a_row_per_agreement(tiny) -> None:
         assert f"{agreement['n_problems']} problems, loop c" in row
         assert f"plans max abs difference {agreement['max_abs_diff']:.2e}" in row
     assert not any(line.startswith("Exported controllers") for line in lines)
-    assert bench_compiled.compiled_lines({}) == []
+    assert benchmark_compiled.compiled_lines({}) == []

@@ -11,10 +11,10 @@ import shutil
 import numpy as np
 import pytest
 
-from experiments.benchmark import checks as bench_checks
-from experiments.benchmark import compiled as bench_compiled
-from experiments.benchmark import failures as bench_failures
-from experiments.benchmark import report as bench_report
+from experiments.benchmark import checks as benchmark_checks
+from experiments.benchmark import compiled as benchmark_compiled
+from experiments.benchmark import failures as benchmark_failures
+from experiments.benchmark import report as benchmark_report
 from experiments.cli import benchmark as benchmark_cli
 
 TIMING_KEYS = ("solve_ms_median", "solve_ms_p95", "solve_ms_max", "wall_ms_median")
@@ -171,7 +171,7 @@ def test_quick_run_says_which_problems_no_input_can_satisfy(quick_run) -> None:
     assert f30["bound_median"] > 10.0
     assert f30["slack_over_bound_median"] >= 1.0 - 1e-9
     assert rows[15]["feasibility"]["n_infeasible"] == 0
-    report = bench_report.format_report(data)
+    report = benchmark_report.format_report(data)
     assert "Infeasible for every input" in report
     assert "N = 30: 2/2 problems (seeds 0)" in report
     least = {(f["seed"], f["step"]): f["least_slack"] for f in f30["infeasible"]}
@@ -188,7 +188,7 @@ def test_every_failed_solve_is_listed_with_its_problem(quick_run: tuple[dict, st
     for f in failures:
         # horizon-sweep failures also give the problem's least slack over every input
         assert set(f) - keys <= {"least_slack"} and keys <= set(f)
-        assert f["kind"] == bench_failures.classify_failure(f["status"])
+        assert f["kind"] == benchmark_failures.classify_failure(f["status"])
     # The list matches the success counts of every part, solver by solver.
     closed = data["closed_loop"]
     for name, s in closed["summary"].items():
@@ -214,7 +214,7 @@ def test_every_failed_solve_is_listed_with_its_problem(quick_run: tuple[dict, st
                 if f["part"] == "ns_sweep" and f["solver"] == name and f["Ns"] == row["n_scenarios"]
             ]
             assert len(listed) == s["n_problems"] - s["n_success"]
-    report = bench_report.format_report(data)
+    report = benchmark_report.format_report(data)
     assert "Failed solves: " in report
     for f in failures:
         assert f"{f['part']:<20}{f['solver']:<25}{f['seed']:>5}{f['step']:>6}" in report
@@ -223,7 +223,7 @@ def test_every_failed_solve_is_listed_with_its_problem(quick_run: tuple[dict, st
 def test_checks_of_the_run_follow_from_its_figures(quick_run: tuple[dict, str]) -> None:
     data, _ = quick_run
     checks = data["checks"]
-    assert [c["key"] for c in checks] == list(bench_checks.DEFAULT_THRESHOLDS)
+    assert [c["key"] for c in checks] == list(benchmark_checks.DEFAULT_THRESHOLDS)
     for c in checks:
         assert c["passed"] in (True, False, None)
         assert c["threshold"] == data["meta"]["thresholds"][c["key"]]
@@ -270,17 +270,17 @@ def test_json_is_strict_and_the_markdown_has_the_speed_table(quick_run) -> None:
     assert "sqpmethod / fast:" in markdown
     # The checks, then the compiled part as printed, each in a text block.
     checks, compiled = (b.split("\n```\n")[0] for b in markdown.split("\n```text\n")[1:3])
-    assert checks == "\n".join(bench_checks.check_lines(data["checks"]))
-    assert compiled == "\n".join(bench_compiled.compiled_lines(data))
+    assert checks == "\n".join(benchmark_checks.check_lines(data["checks"]))
+    assert compiled == "\n".join(benchmark_compiled.compiled_lines(data))
 
 
 def test_report_shows_the_speed_table_and_every_check(quick_run: tuple[dict, str]) -> None:
     data, _ = quick_run
-    report = bench_report.format_report(data)
+    report = benchmark_report.format_report(data)
     assert report.startswith("Speed (N = 7, Ns = 150")
     for name in QUICK_SOLVERS:
         assert f"\n{name} " in report
-    for line in bench_checks.check_lines(data["checks"]):
+    for line in benchmark_checks.check_lines(data["checks"]):
         assert f"\n  {line}" in report
 
 
@@ -295,15 +295,15 @@ def test_quick_run_compares_the_compiled_loop_and_times_the_export(quick_run) ->
     closed, compiled = data["closed_loop"], data["compiled"]
     (row,) = compiled["agreement"]  # the quick sweep has no Ns = 1000 or 5000
     assert row["n_problems"] == closed["n_problems"] and row["loop"] == "c"
-    assert row["max_abs_diff"] <= bench_compiled.PLAN_TOL and row["n_above_tol"] == 0
+    assert row["max_abs_diff"] <= benchmark_compiled.PLAN_TOL and row["n_above_tol"] == 0
     export = compiled["export"]
     assert export["available"], export["reason"]
     assert export["n_problems"] == closed["n_problems"] and export["n_failed"] == 0
-    assert export["plan_diff_max"] <= bench_compiled.EXPORT_PLAN_TOL
+    assert export["plan_diff_max"] <= benchmark_compiled.EXPORT_PLAN_TOL
     assert export["dependencies"]["ok"] and export["dependencies"]["other_libraries"] == []
     robust = export["robust"]
     assert robust["example_returncode"] == 0 and robust["steps"] > 0
-    assert robust["input_diff_max"] <= bench_compiled.EXPORT_PLAN_TOL
+    assert robust["input_diff_max"] <= benchmark_compiled.EXPORT_PLAN_TOL
     assert _finite(robust["c_step_us_median"]) and _finite(export["solve_us"]["median"])
     by_key = {c["key"]: c for c in data["checks"]}
     summary = closed["summary"]
@@ -313,6 +313,6 @@ def test_quick_run_compares_the_compiled_loop_and_times_the_export(quick_run) ->
     assert by_key["robust_step_ms"]["value"] == pytest.approx(robust["c_step_us_median"] / 1e3)
     assert by_key["export_plan_diff"]["value"] == export["plan_diff_max"]
     assert by_key["export_dependencies"]["value"] == 0 and by_key["export_dependencies"]["passed"]
-    report = bench_report.format_report(data)
+    report = benchmark_report.format_report(data)
     assert "\nCompiled loop (fast_c) against the Python loop" in report
     assert "\nExported controllers (make: scenario " in report

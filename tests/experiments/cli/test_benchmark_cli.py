@@ -7,13 +7,13 @@ import json
 
 import pytest
 
-from experiments.benchmark import checks as bench_checks
+from experiments.benchmark import checks as benchmark_checks
 from experiments.cli import benchmark as benchmark_cli
 
 # A threshold no run can meet: the quick run must still exit 0 (no --check) and say FAIL.
 IMPOSSIBLE = "fast_median_ms=1e-9"
 # Bounds every measured figure meets: with --check such a run exits 0.
-LOOSE = [f"{c.key}={-1e9 if c.op == '>=' else 1e9}" for c in bench_checks.CHECKS]
+LOOSE = [f"{c.key}={-1e9 if c.op == '>=' else 1e9}" for c in benchmark_checks.CHECKS]
 
 
 def test_check_exits_1_when_a_check_fails_and_0_when_all_pass(tmp_path) -> None:
