@@ -13,8 +13,8 @@ export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" OMP_NUM_THREADS="${OMP_
 # the complexity rule C901 at 15), then the format; either failing fails the run.
 .venv/bin/ruff check .
 .venv/bin/ruff format --check .
-# Two workers; the tests of a module-scoped fixture stay together (tests/conftest.py).
-defaults=(-n "${LFM_TEST_WORKERS:-2}" --dist loadgroup)
+# Two workers, each test to whichever is free (a module fixture may be built in both).
+defaults=(-n "${LFM_TEST_WORKERS:-2}" --dist load)
 if [ "${CI:-}" = "true" ]; then
   defaults+=(-m "slow or not slow")  # every test, the slow ones too
 fi

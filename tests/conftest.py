@@ -36,17 +36,3 @@ def paper_model(
 ) -> LatentForceModel:
     """The paper's latent-force model (the env's truth): Matern 5/2 force, exact steps."""
     return paper_config.make_model(system=sine_track_system)
-
-
-def pytest_collection_modifyitems(config, items):
-    """For pytest-xdist's ``--dist loadgroup`` (``scripts/run_tests.sh``): the tests that use a
-    module-scoped fixture run in one worker per module, so each such fixture (a quick benchmark
-    run, three exported C projects, ...) is built once; every other test goes to whichever
-    worker is free, which balances the two workers better than one file per worker."""
-    if getattr(config.option, "dist", "no") != "loadgroup":
-        return
-    for item in items:
-        info = getattr(item, "_fixtureinfo", None)
-        defs = getattr(info, "name2fixturedefs", {}) if info is not None else {}
-        if any(d.scope == "module" for chain in defs.values() for d in chain):
-            item.add_marker(pytest.mark.xdist_group(item.module.__name__))
