@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
-# Set up .venv, lint with ruff, and run the default test suite (slow seed sweeps excluded; add
-# -m slow for them). Extra arguments go to pytest. Fails when ruff finds a problem or when no
-# test ran (pytest exit code 5).
+# Set up .venv, lint with ruff, and run the test suite on two worker processes (pytest-xdist).
+# Locally the default run leaves out the long seed sweeps and trainings (@pytest.mark.slow; add
+# -m slow for them alone); with CI=true (.ci/run) every test runs, the slow ones included.
+# Extra arguments go to pytest (after the defaults, so they win). Fails when ruff finds a
+# problem or when no test ran (pytest exit code 5).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup_env.sh test
@@ -13,8 +15,13 @@ export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" OMP_NUM_THREADS="${OMP_
 # the complexity rule C901 at 15), then the format; either failing fails the run.
 .venv/bin/ruff check .
 .venv/bin/ruff format --check .
+# Two workers, each test to whichever is free (a module fixture may be built in both).
+defaults=(-n "${LFM_TEST_WORKERS:-2}" --dist load)
+if [ "${CI:-}" = "true" ]; then
+  defaults+=(-m "slow or not slow")  # every test, the slow ones too
+fi
 set +e
-.venv/bin/python -m pytest "$@"
+.venv/bin/python -m pytest "${defaults[@]}" "$@"
 code=$?
 set -e
 if [ "$code" -eq 5 ]; then

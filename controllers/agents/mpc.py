@@ -18,8 +18,10 @@ full-state observation ``y = x + e``; every dimension is read from the model.
 * :class:`ParticleScenarioMPCAgent` (``"scenario_particles"``): the same, with each
   scenario starting from a particle (the paper's remark): the plan also carries the
   estimate's uncertainty.
-* :class:`OracleMPCAgent` (``"oracle"``): an upper bound, NOT a controller one can build:
-  it reads the true state and the true future latent force from the env.
+* :class:`OracleMPCAgent` (``"oracle"``): certainty-equivalent MPC that reads the truth
+  (the true state and the true future latent force, from the env): a reference no
+  controller can be built as, but not an upper bound (its short horizon plans no margin,
+  and it can violate or fail where an agent with margins does not).
 
 With ``settings.prediction == "feedback"`` every agent's scenario problem is the feedback
 one (:mod:`controllers.feedback_law`): its solver (``make_solver`` on that problem,
@@ -424,9 +426,12 @@ class RobustMPCAgent(ScenarioMPCAgent):
 
 
 class OracleMPCAgent(MPCAgent):
-    """UPPER BOUND, not a realisable controller: reads the true state and future force.
+    """Certainty-equivalent MPC that reads the truth: the true state and future force.
 
-    It gets the env (``make_agent("oracle", env=env)``) and reads
+    Not a controller one can build, and not an upper bound: it plans one scenario, the
+    true force over its horizon, with no margin, so what lies beyond the horizon or
+    between the samples can still make it violate or fail where an agent with margins
+    does not. It gets the env (``make_agent("oracle", env=env)``) and reads
     ``env.unwrapped.true_state`` and ``env.unwrapped.preview_latent_force(N)``, which do
     not change the episode. The observation passed to :meth:`act` is ignored.
     """

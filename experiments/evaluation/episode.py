@@ -505,7 +505,7 @@ def run_episode(
 
     The env is the config's world, ``gym.make(cfg.env_id, config=cfg.env)``, reset with
     ``seed``; the agent's own randomness is seeded with :func:`agent_seed` (paired
-    design). The oracle (an upper bound that reads the hidden truth) is given the env.
+    design). The oracle (certainty-equivalent MPC that reads the hidden truth) is given the env.
 
     Args:
         agent: a registered name (``"nominal"``, ``"pf"``, ``"scenario"``, ``"oracle"``,

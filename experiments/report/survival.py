@@ -18,8 +18,8 @@ from the rows of ``episodes.csv`` (``steps``, ``failure`` and the constraint gro
 
 Failures stay a metric of their own (the failure rate). A constraint group's headline count
 is its smallest tolerance (``track`` steps more than 1 cm outside the band on the sine track,
-:func:`headline_counts`), else its raw count. Paired differences are against
-:data:`HEADLINE_REFERENCE` (the ``robust`` agent) when the results hold it.
+:func:`headline_counts`), else its raw count. Paired differences are against the report's
+baseline (:func:`experiments.report.write.choose_baseline`), as in every paired table.
 """
 
 from __future__ import annotations
@@ -45,8 +45,6 @@ from experiments.report.stats import (
     pooled_ratio_ci,
 )
 
-#: The agent the headline's paired differences are taken against, when the results hold it.
-HEADLINE_REFERENCE = "robust"
 #: Violation rates are shown per this many steps survived.
 PER_STEPS = 100
 
@@ -192,11 +190,6 @@ def survivor_difference(
     return paired_rows_difference(rows, ref, metric, agent, reference)
 
 
-def headline_reference(results: Results, baseline: str) -> str:
-    """:data:`HEADLINE_REFERENCE` when the results hold it, else ``baseline``."""
-    return HEADLINE_REFERENCE if HEADLINE_REFERENCE in results.agents else baseline
-
-
 # --------------------------------------------------------------------------- the section
 
 
@@ -330,12 +323,12 @@ def _group_table(
 
 def headline_section(doc: Document, results: Results, baseline: str) -> Survivors:
     """The report's headline: every agent's constraint metrics in forms that do not reward
-    failing, with paired differences against :func:`headline_reference`.
+    failing, with paired differences against ``baseline``.
 
     Returns:
         The survivor seeds of every agent of the results (which the tables used).
     """
-    reference = headline_reference(results, baseline)
+    reference = baseline
     kept = survivors(results)
     n_seeds = len(kept.seeds) + len(kept.dropped)
     doc.heading("Headline: metrics that do not reward failing")
@@ -367,14 +360,12 @@ def headline_section(doc: Document, results: Results, baseline: str) -> Survivor
 
 
 __all__ = [
-    "HEADLINE_REFERENCE",
     "PER_STEPS",
     "HeadlineCount",
     "PerStepRate",
     "Survivors",
     "ViolationOrFailure",
     "headline_counts",
-    "headline_reference",
     "headline_section",
     "step_rate",
     "survivor_difference",

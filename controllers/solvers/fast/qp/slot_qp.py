@@ -34,12 +34,8 @@ made once nothing is left.
 
 from __future__ import annotations
 
-import contextlib
 import math
-import os
-import sys
 import time
-from collections.abc import Iterator
 from typing import Any
 
 import casadi as ca
@@ -55,6 +51,7 @@ from controllers.solvers.fast.qp.cold import (  # (the constants also from here,
     ColdSolvers,
     _daqp_time_limit,
 )
+from controllers.solvers.quiet import silenced_output
 
 QP_SOLVERS = ("auto", "daqp", "elastic_ipm", "piqp", "qpoases")
 # Proximal terms on the step (relative to the largest Hessian diagonal entry) of the
@@ -113,34 +110,6 @@ def _available(package: str) -> bool:
     except ImportError:
         return False
     return True
-
-
-@contextlib.contextmanager
-def silenced_stdout() -> Iterator[None]:
-    """Send the process' C-level stdout to /dev/null (for chatty native libraries)."""
-    sys.stdout.flush()
-    try:
-        fd = sys.stdout.fileno()
-    except (AttributeError, OSError, ValueError):  # no real stdout (e.g. some notebooks)
-        yield
-        return
-    saved = os.dup(fd)
-    try:
-        os.dup2(_devnull(), fd)
-        yield
-    finally:
-        os.dup2(saved, fd)
-        os.close(saved)
-
-
-_DEVNULL: list[int] = []  # the descriptor of /dev/null, opened once per process
-
-
-def _devnull() -> int:
-    """A write descriptor of ``os.devnull`` (opened at the first call, then reused)."""
-    if not _DEVNULL:
-        _DEVNULL.append(os.open(os.devnull, os.O_WRONLY))
-    return _DEVNULL[0]
 
 
 class SlotQP(ColdSolvers):
@@ -258,7 +227,7 @@ class SlotQP(ColdSolvers):
             "nWSR": int(self._nwsr),
         }
         self._buffer, self._spent = None, []  # (dropping the old conic frees its memories)
-        with silenced_stdout():  # qpOASES prints a banner whenever a memory is created
+        with silenced_output():  # qpOASES prints a banner whenever a memory is created
             self._conic = ca.conic(
                 "fast_sqp_qp",
                 "qpoases",
@@ -292,7 +261,7 @@ class SlotQP(ColdSolvers):
                 self._build_conic()
                 return
             self._spent.append((self._buffer, self._evaluate))
-        with silenced_stdout():  # the banner again, for the new memory
+        with silenced_output():  # the banner again, for the new memory
             self._buffer, self._evaluate = self._conic.buffer()
         inputs = {
             "h": self._h,
@@ -522,5 +491,4 @@ __all__ = [
     "SlotQP",
     "_daqp_time_limit",
     "resolve_qp_solver",
-    "silenced_stdout",
 ]
