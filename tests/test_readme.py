@@ -267,3 +267,100 @@ def test_the_layout_table_matches_the_tree():
         folders = [f if f.is_dir() else f.parent for f in folders]
         missing += [f"{n} ({row[:60]}...)" for n in paths if not _existing(n, folders)]
     assert missing == []
+
+
+# --- the links between the pages, and no development record in the manual or the code ---
+
+
+def heading_anchors(text: str) -> set[str]:
+    """The anchors GitHub gives a page's headings: lower case, punctuation dropped, spaces
+    as hyphens, a repeated anchor numbered (``-1``, ``-2``)."""
+    text = re.sub(r"^```.*?^```", "", text, flags=re.S | re.M)  # not in code blocks
+    anchors: set[str] = set()
+    for title in re.findall(r"^#{1,6} +(.+?) *#*$", text, flags=re.M):
+        slug = re.sub(r"[^\w\- ]", "", title.strip().lower()).replace(" ", "-")
+        n, anchor = 0, slug
+        while anchor in anchors:
+            n += 1
+            anchor = f"{slug}-{n}"
+        anchors.add(anchor)
+    return anchors
+
+
+def relative_links(page: Path) -> list[str]:
+    """The targets of the page's Markdown links and images that are not web addresses."""
+    text = re.sub(r"^```.*?^```", "", page.read_text(), flags=re.S | re.M)
+    text = re.sub(r"`[^`\n]*`", "", text)  # code spans are not links
+    targets = re.findall(r"\]\(([^)\s]+)\)", text)
+    return [t for t in targets if not re.match(r"[a-z][a-z0-9+.-]*:", t)]
+
+
+def test_every_relative_link_resolves():
+    """Each link of the README and of docs/ to a file names an existing file, and each
+    ``#anchor`` a heading of its page."""
+    broken = []
+    for page in PAGES:
+        for target in relative_links(page):
+            path, _, anchor = target.partition("#")
+            goal = (page.parent / path).resolve() if path else page
+            if not goal.exists():
+                broken.append(f"{page_id(page)}: {target} (no such file)")
+            elif anchor and goal.suffix == ".md" and anchor not in heading_anchors(goal.read_text()):
+                broken.append(f"{page_id(page)}: {target} (no such heading)")
+    assert broken == []
+
+
+def test_heading_anchors_follow_github():
+    text = "# A page\n## Real time: `agents.deadline`\n```\n# not a heading\n```\n"
+    assert heading_anchors(text + "## Real time: `agents.deadline`\n") == {
+        "a-page",
+        "real-time-agentsdeadline",
+        "real-time-agentsdeadline-1",
+    }
+
+
+# What the manual and the code must not hold: tracker issues, development phases and branches,
+# machine paths; and in the manual, commit hashes (the history of a figure goes to
+# docs/history.md or CHANGELOG.md, told by change and version).
+RECORD = re.compile(r"\bissue #?[0-9]+|ISSUE_[0-9]|\bphase [12]\b|development branch|/work/", re.I)
+COMMIT = re.compile(r"\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,40}\b")
+CODE_FOLDERS = ("lfm_env", "controllers", "experiments", "configs", "scripts", "docs")
+CODE_SUFFIXES = (".py", ".md", ".c", ".h", ".yaml", ".sh")
+
+
+def project_files() -> list[Path]:
+    """The project's own source, config and documentation files (not the tests, not the
+    changelog, which is the record)."""
+    files = [p for p in REPO.glob("*.md") if p.name != "CHANGELOG.md"]
+    for folder in CODE_FOLDERS:
+        files += [p for p in (REPO / folder).rglob("*") if p.suffix in CODE_SUFFIXES]
+    return sorted(p for p in files if p.is_file() and "__pycache__" not in p.parts)
+
+
+def test_no_development_record_in_code_or_docs():
+    hits = [
+        f"{p.relative_to(REPO)}:{n}: {line.strip()[:100]}"
+        for p in project_files()
+        for n, line in enumerate(p.read_text(errors="replace").splitlines(), start=1)
+        if RECORD.search(line)
+    ]
+    assert hits == []
+
+
+def test_no_commit_hash_in_the_manual():
+    hits = [
+        f"{page_id(p)}:{n}: {m.group()}"
+        for p in PAGES
+        for n, line in enumerate(p.read_text().splitlines(), start=1)
+        for m in COMMIT.finditer(line)
+    ]
+    assert hits == []
+
+
+def test_the_record_patterns_find_a_record():
+    """The two patterns catch what they are for, and leave numbers and words alone."""
+    assert RECORD.search("tuned for issue 13") and RECORD.search("ISSUE_37_KEYS")
+    assert RECORD.search("Phase 2 must explain") and RECORD.search("at /work/main/configs")
+    assert not RECORD.search("an issue of the solver, phase [rad]")
+    assert COMMIT.search("the run at 632d6c2") and COMMIT.search("44133a1")
+    assert not COMMIT.search("1000000 steps, 9007199254740992, deadbeefed, decade")
