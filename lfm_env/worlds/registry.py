@@ -20,6 +20,7 @@ later ``lfm-report``, finds the world again (:func:`qualified_env_id`).
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import os
 import sys
@@ -33,6 +34,7 @@ from lfm_env.config.compose import read_config
 from lfm_env.config.loading import (
     TOP_LEVEL_KEYS,
     ConfigError,
+    annotation_problem,
     from_dict,
     read_section,
     show_value,
@@ -78,8 +80,12 @@ class WorldSpec:
 
     @property
     def config_class(self) -> type[WorldConfig]:
-        """The config dataclass (imported on first use)."""
-        return _load(self.config)
+        """The config dataclass (imported on first use, and then checked as
+        :func:`register_world` checks a class)."""
+        cls = _load(self.config)
+        if isinstance(self.config, str):
+            _check_config_class(cls, self.env_id)
+        return cls
 
     @property
     def env_class(self) -> type:
@@ -122,7 +128,9 @@ def register_world(env_id: str, config: Any, env: Any, module: str | None = None
 
     Raises:
         ValueError: for an id that is not a non-empty string, holds a ``:``, or is
-            registered already to other classes.
+            registered already to other classes; for a config class with a field that a
+            config file cannot be read into (named ``Class.field``, e.g. one annotated with a
+            bare ``tuple``: write ``tuple[float, ...]``).
     """
     if not isinstance(env_id, str) or not env_id.strip():
         raise ValueError(f"register_world: env_id={env_id!r} must be a non-empty string")
@@ -135,6 +143,8 @@ def register_world(env_id: str, config: Any, env: Any, module: str | None = None
         module = _caller_module()
     if module is not None and (module == "lfm_env" or module.startswith("lfm_env.")):
         module = None  # the built-in worlds: import lfm_env registers them
+    if not isinstance(config, str):
+        _check_config_class(config, env_id)
     spec = WorldSpec(env_id, config, env, module)
     known = WORLDS.get(env_id)
     if known is not None and replace(known, module=None) != replace(spec, module=None):
@@ -149,6 +159,26 @@ def register_world(env_id: str, config: Any, env: Any, module: str | None = None
         additional_wrappers=(_CONFIG_TIME_LIMIT,),
     )
     return spec
+
+
+def _check_config_class(cls: Any, env_id: str) -> None:
+    """Refuse a world's config class that a config file cannot be read into, naming the
+    field (a bare ``tuple`` would run its episodes and then fail every reader of the folder's
+    ``config.yaml``)."""
+    if cls in _CHECKED:
+        return
+    if not (isinstance(cls, type) and dataclasses.is_dataclass(cls)):
+        raise ValueError(
+            f"register_world({env_id!r}): config={cls!r} must be a WorldConfig dataclass "
+            "(or 'module:Class')"
+        )
+    problem = annotation_problem(cls)
+    if problem is not None:
+        raise ValueError(f"register_world({env_id!r}): {problem}")
+    _CHECKED.add(cls)
+
+
+_CHECKED: set[type] = set()  # config classes checked already
 
 
 def import_world_module(module: str, env_id: str = "") -> None:

@@ -78,3 +78,29 @@ def test_register_world_refuses_a_bad_id(env_id):
 
     with pytest.raises(ValueError, match="register_world: env_id="):
         register_world(env_id, SineTrackConfig, "lfm_env.worlds.sine_track.env:SineTrackEnv")
+
+
+@pytest.mark.parametrize("annotation", ["tuple", "list", "list[float]", "dict", "object"])
+def test_a_config_field_no_file_can_be_read_into_is_refused_at_registration(annotation):
+    """A world config with a bare ``tuple`` annotation registered and ran its episodes, then
+    crashed ``lfm-report`` reading its ``config.yaml`` (``TypeError: unsupported config type
+    <class 'tuple'> for env.initial_state``, a traceback calling itself a bug). Now
+    ``register_world`` refuses it, naming the class, the field and the annotations a file
+    can be read into."""
+    import dataclasses
+
+    from lfm_env.worlds.sine_track.config import SineTrackConfig
+
+    namespace: dict = {}
+    exec(f"kind = {annotation}", namespace)  # the annotation object itself
+    bare = dataclasses.make_dataclass(
+        "BareConfig",
+        [("extra_state", namespace["kind"], dataclasses.field(default=None))],
+        bases=(SineTrackConfig,),
+        frozen=True,
+    )
+    env_id = f"Bare/Annotation{len(WORLDS)}-v0"
+    with pytest.raises(ValueError, match=r"BareConfig\.extra_state") as exc:
+        register_world(env_id, bare, "lfm_env.worlds.sine_track.env:SineTrackEnv")
+    assert "tuple[float, ...]" in str(exc.value)
+    assert env_id not in WORLDS and env_id not in gym.registry
