@@ -373,7 +373,7 @@ class _Run:
                 return stuck
         row = _error_row(pair[0], pair[1], error, math.nan, self.columns)
         if self.out is not None:
-            save_episode(self.out, row, None, tb, self.digest)
+            save_episode(self.out, row, None, tb, self.digest, config=self.cfg.to_dict())
         return row
 
     def sorted_rows(self) -> list[dict[str, Any]]:

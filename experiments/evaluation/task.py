@@ -86,7 +86,7 @@ def _episode_task(
         raise_if_interrupted()  # a Ctrl-C a library turned into another error: no error row
         row, arrays, tb = _failed_episode(name, seed, rec, limit, t0)
     if out is not None:
-        save_episode(out, row, arrays if record else None, tb, digest)
+        save_episode(out, row, arrays if record else None, tb, digest, config=config.to_dict())
     return row
 
 

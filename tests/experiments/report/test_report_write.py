@@ -29,8 +29,10 @@ from tests.experiments.saved_results import (
     AGENTS,
     PNG_MAGIC,
     REPO,
+    add_error_row,
     csv_values,
     referenced_files,
+    rewrite_episodes,
     table_line,
 )
 
@@ -82,12 +84,7 @@ def test_report_has_agent_table_and_existing_figures(report_path):
 
 
 def test_errors_are_listed_not_dropped(results_copy):
-    table = results_copy / "episodes.csv"
-    with table.open(newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    bad = dict(rows[0], agent="pf", seed="7", success="False", error="RuntimeError: boom")
-    with table.open("a", newline="") as fh:
-        csv.DictWriter(fh, list(rows[0])).writerow(bad)
+    add_error_row(results_copy, "pf", 7, "RuntimeError: boom")
     md = write_report(results_copy, gif=False).read_text()
     section = md.split("## Episodes with errors")[1].split("##")[0]
     assert "RuntimeError: boom" in section and "| PF + CE MPC | 7 |" in section
@@ -256,16 +253,8 @@ def test_unknown_baseline_names_the_agents(results_copy, capsys):
 def test_default_baseline_without_the_scenario_agent_and_agents_of_any_name(results_copy):
     from experiments.report import choose_baseline
 
-    table = results_copy / "episodes.csv"
-    with table.open(newline="") as fh:
-        rows = [r for r in csv.DictReader(fh) if r["agent"] != "scenario"]
-    own = "tests.experiments.own_agents:Factory"  # a user's agent, named by its import path
-    for r in rows:
-        r["agent"] = own if r["agent"] == "pf" else r["agent"]
-    with table.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    own = "tests.experiments.own_agents.Factory"  # a user's agent, named by its import path
+    rewrite_episodes(results_copy, {"nominal": "nominal", "pf": own, "oracle": "oracle"})
     results = load_results(results_copy)
     assert results.agents == ["nominal", "oracle", own]
     assert choose_baseline(results) == "nominal"
