@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import textwrap
 from collections.abc import Sequence
@@ -153,10 +152,8 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     seeds = seeds_and_executor(parser, args)
+    # (a module:attribute agent's module is found in the working folder too, last: by name)
     agents = [a.strip() for a in args.agents.split(",")]
-    if any(":" in a for a in agents) and os.getcwd() not in sys.path:
-        # As `python -m` does: `module:attribute` agents import from the current folder.
-        sys.path.insert(0, os.getcwd())
     config_path, config = config_argument(parser, args)
     out = (
         Path(args.out)

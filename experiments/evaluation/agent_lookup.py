@@ -13,8 +13,9 @@
   agents never read the hidden truth. An agent object (not a class) is also accepted and
   used as it is, reset before every episode;
 * a text ``"module:attribute"`` (``"mypkg.agents:ProportionalAgent"``): the module is
-  imported with :func:`importlib.import_module` and its attribute is a factory or an
-  agent, as above.
+  imported as Python finds it or, if Python finds it nowhere, from the working folder, last
+  (:func:`lfm_env.working_folder.import_named`: a file there never shadows an installed or
+  standard module), and its attribute is a factory or an agent, as above.
 
 Each agent is named, for the table's ``agent`` column, its files (``<name>__seed<S>``)
 and its seed (:func:`experiments.evaluation.run.agent_seed`), by the ``name`` attribute of
@@ -34,7 +35,6 @@ factory's module installed.
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import pickle
 import re
 import sys
@@ -44,6 +44,7 @@ from typing import Any
 from controllers.agents.protocol import Agent, is_agent
 from controllers.agents.registry import AGENT_REGISTRY
 from controllers.config import ExperimentConfig
+from lfm_env import working_folder
 
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._+-]{0,99}")
 _SPEC_TEXT = re.compile(r"[A-Za-z_][\w.]*:[A-Za-z_][\w.]*")
@@ -102,7 +103,7 @@ def _import(text: str) -> Any:
     """The attribute ``"module:attribute"`` names (a dotted attribute path is followed)."""
     module_name, _, attr = text.partition(":")
     try:
-        module = importlib.import_module(module_name)
+        module = working_folder.import_named(module_name)
     except Exception as exc:  # ImportError, or an error while running the module
         raise AgentSpecError(
             f"agent {text!r}: cannot import module {module_name!r} ({_one_line(exc)})"
@@ -247,6 +248,24 @@ def check_agent(agent: str | OwnAgentSpec, config: ExperimentConfig) -> None:
         agent.build(config)
 
 
+def sendable_problem(agent: str | OwnAgentSpec) -> str | None:
+    """Why ``agent`` should not be sent to a fresh worker process that does not import the
+    main script (a serial run's worker), else ``None``: an agent object (used as it is, in
+    this process), a factory that does not pickle, or one that comes from ``__main__``."""
+    if not isinstance(agent, OwnAgentSpec) or isinstance(agent.target, str):
+        return None
+    if is_agent(agent.target):  # used as it is: its own state stays in this process
+        return f"agent {agent.text!r} is an agent object (run in this process, as it is)"
+    module = getattr(agent.target, "__module__", None) or type(agent.target).__module__
+    if module in ("__main__", "__mp_main__"):
+        return f"agent {agent.text!r} is defined in the main script"
+    try:
+        pickle.dumps(agent)
+    except Exception as exc:
+        return f"agent {agent.text!r} cannot be pickled ({_one_line(exc)})"
+    return None
+
+
 def check_picklable(agent: str | OwnAgentSpec, how: str) -> None:
     """Refuse a user agent that cannot travel to the workers of ``how``.
 
@@ -292,4 +311,5 @@ __all__ = [
     "check_picklable",
     "resolve_agent",
     "resolve_agents",
+    "sendable_problem",
 ]

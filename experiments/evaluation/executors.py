@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import distributed
+from distributed.diagnostics.plugin import WorkerPlugin
 from distributed.http.routing import RoutingApplication
 from tornado.httpserver import HTTPServer
 
@@ -55,6 +56,29 @@ class QuietWorker(_NoHttpServer, distributed.Worker):
         if threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGINT, signal.SIG_IGN)
         super().__init__(*args, **kwargs)
+
+
+class _NamedModules(WorkerPlugin):
+    """Each worker of the cluster (also one started later in place of a dead one) finds the
+    modules the run named in the working folder, and only those
+    (:func:`lfm_env.working_folder.install`), before it unpickles a task."""
+
+    name = "lfm-named-modules"
+
+    def __init__(self, named: tuple) -> None:
+        self.named = named
+
+    def setup(self, worker: Any) -> None:
+        from lfm_env import working_folder
+
+        working_folder.install(self.named)
+
+
+def find_named_modules(client: distributed.Client, named: tuple) -> None:
+    """Give every worker of ``client``'s cluster the run's named modules (``named``:
+    :func:`lfm_env.working_folder.state`)."""
+    register = getattr(client, "register_plugin", None) or client.register_worker_plugin
+    register(_NamedModules(named))
 
 
 def _one_line(exc: BaseException) -> str:

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-import os
 import sys
 from dataclasses import dataclass, replace
 from typing import Any
@@ -40,6 +39,7 @@ from lfm_env.config.loading import (
     show_value,
 )
 from lfm_env.config.world import WorldConfig
+from lfm_env.working_folder import import_named
 
 #: The world a config means when it names none: the paper's case study.
 DEFAULT_ENV_ID = "lfm_env/SineTrack-v0"
@@ -185,23 +185,16 @@ def import_world_module(module: str, env_id: str = "") -> None:
     """Import the module that registers a world (the ``module`` of ``module:EnvId``).
 
     As ``gym.make`` does, the module is imported as Python finds it; a module that Python
-    does not find is looked for in the working folder too (as ``python -m`` would), so a
-    ``mine.py`` beside the config works from a console script.
+    does not find is looked for in the working folder too, by its name and last
+    (:func:`lfm_env.working_folder.import_named`), so a ``mine.py`` beside the config works
+    from a console script while a ``random.py`` there never shadows the real one.
 
     Raises:
         ConfigError: naming the env id and the module, when it cannot be imported.
     """
     what = f"env_id={show_value(f'{module}:{env_id}' if env_id else module)}"
     try:
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError as exc:
-            top = module.partition(".")[0]
-            cwd = os.getcwd()
-            if exc.name not in (module, top) or cwd in sys.path or "" in sys.path:
-                raise
-            sys.path.append(cwd)  # last: never shadows an installed module
-            importlib.import_module(module)
+        import_named(module)  # (the working folder too, last, and that module alone)
     except ConfigError:
         raise
     except Exception as exc:

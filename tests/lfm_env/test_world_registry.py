@@ -53,10 +53,17 @@ def test_a_module_is_found_in_the_working_folder_too(own_world, tmp_path, monkey
         "class Env(UnicycleEnv):\n    CONFIG = Config\n"
         "register_world('Mine/Fallback-v0', Config, Env)\n"
     )
+    (tmp_path / "json.py").write_text("raise ImportError('the working folder json.py')\n")
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", str(tmp_path))])
     assert world_spec("fallback_world:Mine/Fallback-v0").module == "fallback_world"
-    assert sys.path[-1] == str(tmp_path)  # appended last: never shadows an installed module
+    # That module alone, last: the folder is not on sys.path, and its json.py (a standard
+    # module's name) is never imported.
+    assert str(tmp_path) not in sys.path
+    assert sys.modules["fallback_world"].__file__ == str(tmp_path / "fallback_world.py")
+    with pytest.raises(ConfigError, match="registered no world"):
+        world_spec("json:Mine/Other-v0")
+    sys.modules.pop("fallback_world", None)
 
 
 @pytest.mark.parametrize(
