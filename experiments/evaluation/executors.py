@@ -29,6 +29,8 @@ from distributed.diagnostics.plugin import WorkerPlugin
 from distributed.http.routing import RoutingApplication
 from tornado.httpserver import HTTPServer
 
+from lfm_env.validation import one_line
+
 
 class _NoHttpServer:
     """Mixin: a Dask server whose HTTP application is built but never listens."""
@@ -81,11 +83,6 @@ def find_named_modules(client: distributed.Client, named: tuple) -> None:
     register(_NamedModules(named))
 
 
-def _one_line(exc: BaseException) -> str:
-    msg = " ".join(str(exc).split())
-    return f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__
-
-
 def check_scheduler(
     address: str, timeout: float, security: distributed.Security | None = None
 ) -> None:
@@ -122,8 +119,7 @@ def check_scheduler(
         ) from exc
     except Exception as exc:
         raise ConnectionError(
-            f"cannot reach the Dask scheduler at {address!r} within {timeout:g} s "
-            f"({_one_line(exc)})"
+            f"cannot reach the Dask scheduler at {address!r} within {timeout:g} s ({one_line(exc)})"
         ) from exc
     if not isinstance(reply, dict) or not str(reply.get("type", "")).endswith("Scheduler"):
         raise ConnectionError(f"{address!r} answers, but not as a Dask scheduler")

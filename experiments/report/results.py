@@ -21,9 +21,10 @@ from typing import Any
 import numpy as np
 
 from controllers.agents.registry import AGENT_REGISTRY
+from controllers.config import ExperimentConfig, load_config
 from experiments.evaluation.columns import tolerance_columns, violation_counts
 from experiments.evaluation.storage import episode_stem, write_table
-from lfm_env.config import WorldConfig, load_env_config, load_yaml
+from lfm_env.config import WorldConfig, load_yaml, to_dict
 from lfm_env.system import ControlSystem
 
 _TEXT_COLUMNS = ("agent", "error")
@@ -40,6 +41,8 @@ class Results:
     agent_settings: dict = field(default_factory=dict)  # the ``agents`` section, plain
     # Episode files that did not load, each with why (left out, named once on stderr).
     damaged: dict[Path, str] = field(default_factory=dict)
+    # The whole config of the run (config.yaml, read once by load_results).
+    experiment: ExperimentConfig | None = None
 
     @cached_property
     def system(self) -> ControlSystem:
@@ -240,9 +243,9 @@ def load_results(results_dir: str | Path) -> Results:
         read_episodes_csv(directory / "episodes.csv")  # (a missing or empty table first)
         raise FileNotFoundError(f"no config.yaml in {directory} (needed for dt and the system)")
     rows, records = _trusted_rows(directory)
-    data = _checked_config(directory, records)
-    config = load_env_config(data)
-    results = Results(directory, rows, config, dict(data.get("agents") or {}))
+    experiment = load_config(_checked_config(directory, records))  # read once
+    agents_section = to_dict(experiment.agents)
+    results = Results(directory, rows, experiment.env, agents_section, experiment=experiment)
     _complete_tolerance_columns(results)
     return results
 

@@ -157,7 +157,7 @@ def test_the_exported_robust_step_is_the_python_agents_step(robust_export):
     env = gym.make(config.env_id, config=config.env)
     agent = make_agent("robust", config)
     options = dataclasses.asdict(solver_options(agent.settings))
-    agent.mpc = make_solver(agent.problem, "fast", **options)
+    agent.solver = make_solver(agent.problem, "fast", **options)
     controller = ExportedController(robust_export)
     obs, _ = env.reset(seed=1)
     agent.reset(seed=1)
@@ -304,7 +304,7 @@ def test_the_command_line(tmp_path, capsys):
 def test_a_feedback_agent_is_not_exported(tmp_path):
     """The C controller plans open loop only: an agent with agents.prediction feedback is
     refused by name, and nothing is written."""
-    config = load_config("paper", settings=["agents.prediction=feedback"])
+    config = load_config("paper", ["agents.prediction=feedback"])
     with pytest.raises(ValueError, match="agents.prediction 'feedback' is not exported"):
         export_controller(config, "robust", tmp_path / "out")
     assert not (tmp_path / "out").exists()

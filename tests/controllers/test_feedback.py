@@ -15,7 +15,7 @@ import pytest
 import scipy.linalg
 
 from controllers.config import load_config
-from controllers.feedback import (
+from controllers.feedback_law import (
     FeedbackLaw,
     feedback_law,
     nominal_inputs,
@@ -372,7 +372,7 @@ def test_the_config_gives_every_scenario_agent_the_feedback_prediction(config, a
     cfg = dataclasses.replace(cfg, agents=agents)
     built = make_agent(agent, cfg)
     assert built.problem.prediction == "feedback"
-    assert isinstance(built.mpc, FeedbackScenarioSolver)
+    assert isinstance(built.solver, FeedbackScenarioSolver)
     env = gym.make(cfg.env_id, config=cfg.env)
     try:
         infos = _check_feedback_steps(built, env, steps=6)

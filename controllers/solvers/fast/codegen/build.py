@@ -51,7 +51,7 @@ interrupted, or the compiler is slower than :func:`compile_wait` (120 s,
 ``$LFM_COMPILE_TIMEOUT``), after which the asking process (and any other that needs the
 library while that build runs) gets :class:`CodegenUnavailable`, and the fast solver its
 NumPy backend, with one notice. The evaluation compiles the libraries its agents need before
-the first episode's clock starts (:func:`compile_ahead`).
+the first episode's clock starts (:func:`controllers.solvers.fast.prepare.compile_ahead`).
 """
 
 from __future__ import annotations
@@ -484,37 +484,6 @@ def _dlopen(path: Path) -> ctypes.CDLL:
         raise CodegenUnavailable(f"cannot load {path}: {err}") from err
 
 
-def compile_ahead(system, dt: float, compiled_loop: bool = False) -> list[str]:
-    """Compile (or find in the cache) the C libraries the fast solvers load for ``system`` at
-    ``dt`` [s]: the system's library, the elastic QP solver's and, with ``compiled_loop``
-    (``fast_c``), the compiled SQP loop's; each as :func:`load_library`, so later builds in
-    this process, and in processes started later, find them loaded or cached.
-
-    Returns:
-        Why each library that is not available is not (the fast solvers fall back as
-        they would in an episode, announced once).
-    """
-    from controllers.solvers.fast.compiled import sqp_library
-    from controllers.solvers.fast.qp.elastic_ipm import _library as elastic_library
-
-    missing = []
-    builds = [lambda: build_library(system, dt)]
-    if compiled_loop:
-        builds.append(lambda: sqp_library(system, dt))
-    for make in builds:
-        try:
-            make()
-        except CodegenUnavailable as err:
-            missing.append(str(err))
-    if missing:
-        notice(
-            f"the fast solver's C library is not available ({missing[0]}); the fast solver "
-            "uses its NumPy backend in this process (slower)"
-        )
-    elastic_library()  # (None without a compiler: the QP solvers in Python are used)
-    return missing
-
-
 def forget_loaded() -> None:
     """Forget the libraries loaded by this process and the builds that failed in it (the
     next build looks at the disk again and may compile)."""
@@ -575,7 +544,6 @@ def address(a: np.ndarray) -> int:
 __all__ = [
     "CACHE_ENV",
     "COMPILE_WAIT",
-    "compile_ahead",
     "compile_wait",
     "CodegenUnavailable",
     "CompiledLibrary",
