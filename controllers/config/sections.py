@@ -142,11 +142,13 @@ class AgentConfig:
 
     The agents' *model* of the world (dynamics, bounds, GP hyperparameters, noise levels)
     is the ``env`` section: it is the known structure the paper gives the controller.
+    The agents' cost is the world's own by default: ``Q``, ``R`` and ``goal_state`` left out
+    (``None``) are the ``env`` section's, ``Qf`` is ``Q``; a whole config resolves them
+    (:class:`~controllers.config.ExperimentConfig`, whose ``agents`` hold the values used).
     Vectors over the state (``Q``, ``Qf``, ``goal_state``) have one entry per state of the
     system and are given in the config's units (the sine track's heading in degrees, as
     in the ``env`` section); ``R`` has one entry per input. Their lengths are checked
-    against the system when the cost is built
-    (:meth:`~controllers.config.ExperimentConfig.make_cost`).
+    against the world's when the config is resolved.
     """
 
     RENAMED_KEYS = {"disturbance": "latent_force"}  # old name -> new (read with a warning)
@@ -159,10 +161,11 @@ class AgentConfig:
     n_particles: int = 7000  # particle filter size (bootstrap and rbpf)
     resampling: str = "systematic"  # one of RESAMPLING
     ess_threshold: float | None = None  # null: resample every step (paper); else in (0, 1]
-    Q: tuple[float, ...] = (2.0, 2.0, 1.0, 0.0)  # stage weights on x - x_g (diagonal)
-    Qf: tuple[float, ...] = (2.0, 2.0, 1.0, 0.0)  # terminal weights (diagonal)
-    R: tuple[float, ...] = (0.5, 10.0)  # input weights (diagonal), e.g. on [a, delta (rad)]
-    goal_state: tuple[float, ...] = (62.83, 0.0, 4.0, 0.0)  # e.g. [m, m, m/s, deg]
+    # The agents' cost, null for the world's own (its env.Q, env.R, env.goal_state; Qf: Q):
+    Q: tuple[float, ...] | None = None  # stage weights on x - x_g (diagonal)
+    Qf: tuple[float, ...] | None = None  # terminal weights (diagonal)
+    R: tuple[float, ...] | None = None  # input weights (diagonal), e.g. on [a, delta (rad)]
+    goal_state: tuple[float, ...] | None = None  # e.g. [m, m, m/s, deg]
     slack_penalty: float = 1.0e4  # exact L1 penalty per unit of state-constraint slack
     solver: str = "fast"  # one of controllers.solvers.SOLVERS
     # Solver iteration limit per step (the fast SQP's per start; its own default too: long
@@ -229,7 +232,7 @@ class AgentConfig:
             self.ess_threshold is None or 0.0 < self.ess_threshold <= 1.0,
             "null or in (0, 1]",
         )
-        c.non_negative("Q", "Qf", "R")
+        c.non_negative(*(n for n in ("Q", "Qf", "R") if getattr(self, n) is not None))
         c.positive("slack_penalty")
         check_backoff(c, self.backoff)
         c("solver", self.solver in SOLVERS, f"one of {SOLVERS}")

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+import os
 import shutil
 from dataclasses import dataclass, field
 from importlib import resources
@@ -31,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.config import load_config
+from controllers.config import ExperimentConfig, load_config
 from controllers.solvers.fast.codegen.source import c_source
 from controllers.solvers.fast.compiled import SqpOptions, c_options, problem_arrays, sqp_source
 from controllers.solvers.fast.options import FastSolverOptions
@@ -250,7 +251,7 @@ def _config_source(agent: Any, problem: Any, options: FastSolverOptions, program
 
 
 def export_controller(
-    config: Any,
+    config: ExperimentConfig | str | os.PathLike | dict,
     agent_name: str,
     out: str | Path,
     overwrite: bool = False,

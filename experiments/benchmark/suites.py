@@ -336,8 +336,8 @@ def sweep_horizons(
 
 
 def _compile_info(solver: Any) -> dict[str, Any]:
-    """What a fast solver says about its C library (read defensively)."""
-    model = getattr(solver, "model", None)
+    """What a fast solver says about its C library (read defensively): its condensed model's."""
+    model = getattr(solver, "condensed", None)
     info: dict[str, Any] = {"backend": getattr(solver, "backend", None)}
     for key in ("compile_time", "build_time"):
         value = getattr(model, key, None)

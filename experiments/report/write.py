@@ -131,6 +131,19 @@ def _settings_text(results: Results) -> str:
     return ", ".join(parts)
 
 
+def _cost_text(results: Results) -> str:
+    """The MPC agents' cost as resolved (config.yaml's agents section), and whether it is the
+    world's own."""
+    a, env = results.agent_settings, results.config
+    if not all(a.get(k) is not None for k in ("Q", "Qf", "R", "goal_state")):
+        return "The agents' cost: the world's own (config.yaml names none)."
+    values = {k: tuple(a[k]) for k in ("Q", "Qf", "R", "goal_state")}
+    own = values == {"Q": env.Q, "Qf": env.Q, "R": env.R, "goal_state": env.goal_state}
+    shown = ", ".join(f"`{k}` {list(v)}" for k, v in values.items())
+    origin = "the world's own" if own else "set in the config's agents section"
+    return f"The MPC agents' cost: {shown} ({origin}; the reward is the world's)."
+
+
 def _model_section(doc: Document, results: Results) -> None:
     """The hidden force's kernel beside the agents' belief (learned or given), when some
     agent models the force; the hidden force alone otherwise."""
@@ -527,6 +540,7 @@ def _write_report(
         "faces the same hidden latent force and noise." + _caveat(len(seeds)) + " Agents:"
     )
     doc.bullets([f"`{a}`: {long_label(a)}" for a in results.agents])
+    doc.paragraph(_cost_text(results))
     _model_section(doc, results)
     headline_section(doc, results, baseline)  # survival-unbiased metrics, against robust
     _summary_section(doc, results, stats)

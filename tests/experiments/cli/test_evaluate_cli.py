@@ -95,7 +95,11 @@ def _command_line() -> list[str]:
     script = Path(sys.executable).with_name("lfm-evaluate")
     if script.is_file():
         return [str(script)]
-    return [sys.executable, str(REPO / "scripts" / "evaluate.py")]
+    return [
+        sys.executable,
+        "-c",
+        "import sys; from experiments.cli import evaluate_main; sys.exit(evaluate_main())",
+    ]
 
 
 def _run_cli(tmp_path: Path, agents: str) -> subprocess.CompletedProcess:
