@@ -71,8 +71,10 @@ class _NamedModules(WorkerPlugin):
         self.named = named
 
     def setup(self, worker: Any) -> None:
+        from experiments.evaluation.pool import restore_environment
         from lfm_env import working_folder
 
+        restore_environment()
         working_folder.install(self.named)
 
 

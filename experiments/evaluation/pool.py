@@ -85,6 +85,7 @@ def _exit_with_parent() -> None:
 def _worker(conn: Any, named: tuple = ()) -> None:
     """A ``"spawn"`` worker: ends with its parent, finds the named modules, then serves."""
     _exit_with_parent()
+    restore_environment()
     working_folder.install(named)
     _serve(conn)
 
@@ -102,6 +103,7 @@ def _exec_worker(fd: int, parent_fd: int) -> None:
         os._exit(1)
 
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+    restore_environment()
     conn = Connection(fd)
     working_folder.install(conn.recv())
     _serve(conn)
@@ -120,10 +122,28 @@ def _serve(conn: Any) -> None:
         if args is None:
             return
         conn.send(_TAKEN)
-        conn.send(_episode_task(*args))
+        try:
+            row = _episode_task(*args)
+        except Exception as exc:  # not the episode's (a row): the run's, e.g. a full disk
+            conn.send(_raised(exc))
+            continue
+        conn.send(row)
 
 
 _TAKEN = "taken"  # a worker's word that it runs the episode just given (its limit starts)
+_RAISED = "raised"  # a worker's word that its task raised: the run stops with that error
+
+
+def _raised(exc: Exception) -> tuple[str, Exception]:
+    """The message that carries an error of a worker's task to the run's process (the error
+    itself when it pickles, else a RuntimeError with its text)."""
+    import pickle
+
+    try:
+        pickle.dumps(exc)
+    except Exception:
+        exc = RuntimeError(f"{type(exc).__name__}: {exc}")
+    return _RAISED, exc
 
 
 class _ExecProcess:
@@ -191,13 +211,30 @@ def safe_child_path() -> Iterator[None]:
     a ``signal.py`` there cannot replace the real module before their first line runs."""
     previous = os.environ.get("PYTHONSAFEPATH")
     os.environ["PYTHONSAFEPATH"] = "1"
+    os.environ[_SAFEPATH_BEFORE] = "" if previous is None else f"={previous}"
     try:
         yield
     finally:
+        os.environ.pop(_SAFEPATH_BEFORE, None)
         if previous is None:
             os.environ.pop("PYTHONSAFEPATH", None)
         else:
             os.environ["PYTHONSAFEPATH"] = previous
+
+
+_SAFEPATH_BEFORE = "LFM_PYTHONSAFEPATH_BEFORE"  # the user's own value ("=value"; "": none)
+
+
+def restore_environment() -> None:
+    """In a worker, once started: ``PYTHONSAFEPATH`` as the user had it (:func:`safe_child_path`
+    set it for the worker's own start only), for the processes an agent starts."""
+    before = os.environ.pop(_SAFEPATH_BEFORE, None)
+    if before is None:
+        return
+    if before.startswith("="):
+        os.environ["PYTHONSAFEPATH"] = before[1:]
+    else:
+        os.environ.pop("PYTHONSAFEPATH", None)
 
 
 def death_text(pair: Pair, exitcode: int | None, attempts: int = 1) -> str:
@@ -248,17 +285,26 @@ class _Slot:
 
     def row(self) -> dict | None:
         """The row the worker sent, if one is there (never waits); the word that it took
-        its episode starts the episode's deadline."""
-        try:
-            while self.conn.poll():
+        its episode starts the episode's deadline.
+
+        Raises:
+            Exception: the error the worker's task raised outside its episode (the row
+                could not be saved: a full disk), so that the run stops with it as a run in
+                one process would.
+        """
+        while True:
+            try:
+                if not self.conn.poll():
+                    return None
                 message = self.conn.recv()
-                if message != _TAKEN:
-                    return message
-                if self.hard_limit is not None:
-                    self.deadline = time.monotonic() + self.hard_limit
-        except (EOFError, OSError):
-            pass
-        return None
+            except (EOFError, OSError):
+                return None
+            if isinstance(message, tuple) and message[0] == _RAISED:
+                raise message[1]  # (the run stops: a full disk is not an episode's error)
+            if message != _TAKEN:
+                return message
+            if self.hard_limit is not None:
+                self.deadline = time.monotonic() + self.hard_limit
 
     def stop(self, polite: bool) -> None:
         """End the worker: asked to (an idle one, ``polite``), else or if it does not end
@@ -375,4 +421,4 @@ def _collect(
     done(pair, lost(pair, text))
 
 
-__all__ = ["death_text", "run_on_pool", "safe_child_path"]
+__all__ = ["death_text", "restore_environment", "run_on_pool", "safe_child_path"]
