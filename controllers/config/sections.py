@@ -24,6 +24,7 @@ MAX_SCENARIOS = 100_000
 MAX_ITER = 2**31 - 1
 FAST_MAX_HORIZON = SOLVER_SPECS["fast"].max_horizon  # longest horizon of the fast solver
 MAX_SOLVE_TIME = 3600.0  # [s] largest agents.max_solve_time
+CONTROL_PERIOD = "control_period"  # agents.deadline: the world's dt
 
 #: Memory budget [bytes] of an agent's filter and, separately, of its scenario problem:
 #: settings whose estimate (below) exceeds it are refused before anything is built.
@@ -167,7 +168,9 @@ class AgentConfig:
     R: tuple[float, ...] | None = None  # input weights (diagonal), e.g. on [a, delta (rad)]
     goal_state: tuple[float, ...] | None = None  # e.g. [m, m, m/s, deg]
     slack_penalty: float = 1.0e4  # exact L1 penalty per unit of state-constraint slack
-    solver: str = "fast"  # one of controllers.solvers.SOLVERS
+    # One of controllers.solvers.SOLVERS: "fast_c", the fast SQP with its loop compiled (the
+    # Python loop, "fast", with a one-line notice where no C compiler works).
+    solver: str = "fast_c"
     # Solver iteration limit per step (the fast SQP's per start; its own default too: long
     # horizons need it, see FastSolverOptions.max_iter).
     max_iter: int = 150
@@ -175,6 +178,13 @@ class AgentConfig:
     # plan reached if it is usable (below its warm start, MPCSolution.usable), else falls
     # back (the previous plan, else the system's fallback input), as on any failed solve.
     max_solve_time: float = 10.0
+    # Wall-clock budget of one control step's compute (estimator + solve) for real-time
+    # runs: null (the default: no budget, the run stays deterministic; steps longer than
+    # the control period are only counted, episodes.csv's deadline_misses), "control_period"
+    # (the world's dt) or a number of seconds. With a budget the solve gets what the
+    # estimator left of it and stops there: the agent applies the best usable plan reached,
+    # else its previous plan shifted, else the system's fallback input, each counted.
+    deadline: float | str | None = None
     # Threads of the fast solver's C library (FastSolverOptions.threads): it pays
     # for many scenarios (Ns >= 500; 0.6x the solve time at Ns = 5000 with two) when the
     # agent has the cores to itself; keep 1 under lfm-evaluate --jobs, whose processes take
@@ -243,6 +253,16 @@ class AgentConfig:
             0.0 < self.max_solve_time <= MAX_SOLVE_TIME,
             f"in (0, {MAX_SOLVE_TIME:g}] s",
         )
+        d = self.deadline
+        c(
+            "deadline",
+            d is None
+            or d == CONTROL_PERIOD
+            or (
+                isinstance(d, (int, float)) and not isinstance(d, bool) and 0 < d <= MAX_SOLVE_TIME
+            ),
+            f"null (no budget), {CONTROL_PERIOD!r} or seconds in (0, {MAX_SOLVE_TIME:g}]",
+        )
         c(
             "solver_threads",
             1 <= self.solver_threads <= MAX_THREADS,
@@ -259,6 +279,13 @@ class AgentConfig:
             f"one of {SCENARIO_INITIAL_STATES}",
         )
         c("prediction", self.prediction in PREDICTIONS, f"one of {PREDICTIONS}")
+
+    def deadline_seconds(self, dt: float) -> float | None:
+        """The step budget [s] of :attr:`deadline` for a world of control period ``dt`` [s];
+        ``None`` without one."""
+        if self.deadline is None:
+            return None
+        return float(dt) if self.deadline == CONTROL_PERIOD else float(self.deadline)
 
     def check_scenario_count(self, n_inputs: int) -> None:
         """Raise ``ConfigError`` if the Campi-Garatti count of a system with ``n_inputs``

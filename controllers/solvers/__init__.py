@@ -8,8 +8,10 @@ class lives, what it is, how the common options reach it and what it can do).
 On a problem with ``prediction="feedback"`` every one of them runs through the exact rewrite
 of :mod:`controllers.solvers.feedback` (whose ``solve`` also takes the feedback law,
 ``law=``).
-``"fast"``, the project's condensed SQP (:mod:`controllers.solvers.fast`), is the default;
-the others are built on CasADi's plugins (:mod:`controllers.solvers.casadi`).
+``"fast"``, the project's condensed SQP (:mod:`controllers.solvers.fast`), is
+``make_solver``'s default, and ``"fast_c"``, the same SQP with its loop compiled, the agents'
+(``agents.solver``); the others are built on CasADi's plugins
+(:mod:`controllers.solvers.casadi`).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from controllers.problem import MPCSolution, ScenarioProblem
+from controllers.threads import limit_blas_threads
 
 
 class ScenarioSolver(Protocol):
@@ -72,7 +75,9 @@ class SolverSpec:
     def build(self, problem: ScenarioProblem, **options: Any) -> ScenarioSolver:
         """The solver for ``problem`` with ``options`` (see :func:`make_solver`); for a
         feedback problem, this solver through the exact rewrite of
-        :class:`~controllers.solvers.feedback.FeedbackScenarioSolver`."""
+        :class:`~controllers.solvers.feedback.FeedbackScenarioSolver`. Sets the process's
+        BLAS threads first (:func:`controllers.threads.limit_blas_threads`)."""
+        limit_blas_threads()
         if problem.prediction == "feedback":
             from controllers.solvers.feedback import FeedbackScenarioSolver
 
@@ -96,7 +101,7 @@ SOLVER_SPECS: dict[str, SolverSpec] = {
             "fast",
             "controllers.solvers.fast.solver:FastScenarioSolver",
             "the condensed exact-Hessian SQP whose derivatives CasADi generates from the "
-            "system definition (the default)",
+            "system definition, its loop in Python (make_solver's default; every QP solver)",
             # Its work per iteration grows steeply with N (measured with 150 scenarios: one
             # step 1.2 s at N = 20, 11 s at N = 40 against the 10 s solve limit, 21 s at
             # N = 60 and 84 s at N = 100): beyond this a single iteration overruns any solve
@@ -108,7 +113,8 @@ SOLVER_SPECS: dict[str, SolverSpec] = {
             "fast_c",
             "controllers.solvers.fast.compiled:CompiledScenarioSolver",
             "the same SQP with its whole loop compiled (one C call per solve; the project's "
-            "own QP solvers in C; the Python loop, with a notice, where no compiler works)",
+            "own QP solvers in C; the Python loop, with a notice, where no compiler works): "
+            "the agents' default",
             max_horizon=40,
             threaded=True,
         ),

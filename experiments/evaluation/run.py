@@ -183,7 +183,7 @@ def evaluate(
 
     Args:
         agents: the agents, each a registered name (``"nominal"``, ``"pf"``,
-            ``"scenario"``, ``"oracle"``; the oracle is an upper bound that reads the
+            ``"scenario"``, ``"oracle"``; the oracle is certainty-equivalent MPC that reads the
             hidden truth), an agent factory called as ``factory(config)`` with the
             resolved :class:`~controllers.config.ExperimentConfig`, an agent object, or
             ``"module:attribute"`` of a factory (:mod:`controllers.agents.registry`: how

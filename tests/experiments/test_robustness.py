@@ -1064,6 +1064,7 @@ def episode_of_key(key: str) -> tuple[str, int]:
     return agent_name, int(seed)
 
 
+@pytest.mark.slow  # a Dask cluster and a killed worker (about a minute)
 def test_dask_worker_killed_mid_run_the_table_ends_complete(tmp_path):
     distributed = pytest.importorskip("distributed")
     config = {"agents": TINY_AGENTS}
@@ -1210,6 +1211,7 @@ def assert_folder_consistent(out: Path) -> None:
             list(csv.DictReader(fh))
 
 
+@pytest.mark.slow  # a soak: many killed runs (1-2 minutes)
 @pytest.mark.parametrize("jobs", [1, 2])
 def test_run_killed_at_random_moments_resumes_to_every_episode_once(
     jobs, tmp_path, undisturbed_rows

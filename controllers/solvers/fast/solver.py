@@ -65,6 +65,7 @@ the extra starts here.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -142,6 +143,12 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin):
     def reset(self) -> None:
         """Forget the warm start: the next solve starts from zero inputs."""
         self._prev_u = None
+
+    def set_max_time(self, seconds: float) -> None:
+        """The wall-clock limit of the next solves [s] (``FastSolverOptions.max_time``;
+        an agent with a deadline sets it at every step)."""
+        if seconds != self.options.max_time:
+            self.options = dataclasses.replace(self.options, max_time=float(seconds))
 
     def __getstate__(self) -> dict[str, Any]:
         # The QP objects hold raw buffers of a CasADi function, the model generated code:

@@ -156,7 +156,9 @@ def trajectories(out: Path) -> dict[str, dict[str, np.ndarray]]:
     found = {}
     for path in sorted((out / "episodes").glob("*.npz")):
         with np.load(path, allow_pickle=False) as data:
-            found[path.stem] = {k: data[k] for k in data.files if k != "solve_time"}
+            found[path.stem] = {
+                k: data[k] for k in data.files if k not in ("solve_time", "step_time")
+            }
     return found
 
 
