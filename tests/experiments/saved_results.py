@@ -127,3 +127,24 @@ def add_error_row(folder: Path, agent: str, seed: int, error: str) -> None:
     digest = json.loads(_records(folder)[0].read_text())["config_hash"]
     save_episode(folder, _error_row(agent, seed, error, math.nan, columns), None, "", digest)
     write_table(folder)
+
+
+def copy_episodes(folder: Path, agent: str, new: str) -> None:
+    """Add the episodes of ``agent`` again as those of an agent ``new`` (records and
+    trajectories), and rebuild ``episodes.csv``."""
+    import json
+    import shutil
+
+    from experiments.evaluation.storage import episode_stem, write_table
+
+    for record_path in _records(folder):
+        record = json.loads(record_path.read_text())
+        if record["agent"] != agent:
+            continue
+        stem = episode_stem(new, record["seed"])
+        record["agent"] = new
+        (folder / "episodes" / f"{stem}.json").write_text(json.dumps(record, indent=1))
+        npz = record_path.with_suffix(".npz")
+        if npz.exists():
+            shutil.copyfile(npz, folder / "episodes" / f"{stem}.npz")
+    write_table(folder)

@@ -30,6 +30,7 @@ from tests.experiments.saved_results import (
     PNG_MAGIC,
     REPO,
     add_error_row,
+    copy_episodes,
     csv_values,
     referenced_files,
     rewrite_episodes,
@@ -318,27 +319,13 @@ def md_section(md: str, title: str) -> str:
 
 
 def rename_agents(results_dir: Path, names: dict[str, str], copies: int = 0) -> None:
-    """Rename agents in ``episodes.csv`` (and their trajectory files); with ``copies``, add
-    that many more agents ``extra1``, ... holding the first agent's rows."""
-    table = results_dir / "episodes.csv"
-    with table.open(newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    first = rows[0]["agent"]
-    extra = [
-        dict(r, agent=f"extra{i}")
-        for i in range(1, copies + 1)
-        for r in rows
-        if r["agent"] == first
-    ]
-    for r in rows:
-        r["agent"] = names.get(r["agent"], r["agent"])
-    for old, new in names.items():
-        for path in (results_dir / "episodes").glob(f"{old}__seed*.npz"):
-            path.rename(path.with_name(path.name.replace(f"{old}__", f"{new}__", 1)))
-    with table.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows + extra)
+    """Rename agents in the episode records (their trajectory files too, and the table);
+    with ``copies``, add that many more agents ``extra1``, ... holding the first agent's
+    episodes (the report checks the table against the records: both change)."""
+    agents = sorted({r["agent"] for r in load_results(results_dir).rows})
+    rewrite_episodes(results_dir, {a: names.get(a, a) for a in agents})
+    for i in range(1, copies + 1):
+        copy_episodes(results_dir, names.get(agents[0], agents[0]), f"extra{i}")
 
 
 def test_one_baseline_robust_by_default_in_every_paired_table(results_copy):
@@ -356,22 +343,13 @@ def test_sections_only_for_what_was_run(results_copy):
     """No "Paper vs measured: not available" without the scenario agent, no calibration
     section without a filtering agent, no error section without errors, no paired table
     with one agent."""
-    table = results_copy / "episodes.csv"
-    with table.open(newline="") as fh:
-        rows = [r for r in csv.DictReader(fh) if r["agent"] in ("nominal", "oracle")]
-    with table.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    rewrite_episodes(results_copy, {"nominal": "nominal", "oracle": "oracle"})
     md = write_report(results_copy, gif=False).read_text()
     for absent in ("Paper vs measured", "Estimator calibration", "Episodes with errors"):
         assert f"## {absent}" not in md, absent
     assert "not available" not in md.lower()
     assert "## Paired differences against nominal MPC" in md
-    with table.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, list(rows[0]))
-        writer.writeheader()
-        writer.writerows(r for r in rows if r["agent"] == "oracle")
+    rewrite_episodes(results_copy, {"oracle": "oracle"})
     md = write_report(results_copy, gif=False).read_text()
     assert "## Paired differences" not in md
 
