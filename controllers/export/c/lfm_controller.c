@@ -385,8 +385,19 @@ static int all_finite(const double* a, long n) {
   return 1;
 }
 
+/* No plan (bad input, or no step exported): the fallback input, recorded as such. */
+static void no_plan(lfm_controller* c, int status, double* u) {
+  c->info.status = status, c->info.success = 0, c->info.usable = 0;
+  c->info.action = LFM_FROM_FALLBACK;
+  c->plan_at = LFM_N;
+  memcpy(u, CFG->fallback_input, sizeof(double) * LFM_NU);
+}
+
 int lfm_controller_solve(lfm_controller* c, const double* x0, const double* W, double* plan) {
-  if (!all_finite(x0, LFM_NX) || !all_finite(W, (long)LFM_NS * LFM_N * LFM_NW)) return LFM_BAD_INPUT;
+  if (!all_finite(x0, LFM_NX) || !all_finite(W, (long)LFM_NS * LFM_N * LFM_NW)) {
+    for (long k = 0; k < LFM_N; ++k) no_plan(c, LFM_BAD_INPUT, plan + k * LFM_NU);
+    return LFM_BAD_INPUT;
+  }
   for (long i = 0; i < LFM_NS; ++i) memcpy(c->x0 + i * LFM_NX, x0, sizeof(double) * LFM_NX);
   memcpy(c->W, W, sizeof(c->W));
   c->has_backoff = 0;
@@ -422,8 +433,17 @@ static void choose(lfm_controller* c, double* u, const double* last, long last_a
 }
 
 int lfm_controller_step(lfm_controller* c, const double* y, double* u) {
-  if (CFG->estimator == LFM_ESTIMATOR_OTHER) return LFM_NO_STEP;
-  if (!all_finite(y, LFM_NX)) return LFM_BAD_INPUT;
+  if (CFG->estimator == LFM_ESTIMATOR_OTHER) {
+    no_plan(c, LFM_NO_STEP, u);
+    return LFM_NO_STEP;
+  }
+  if (!all_finite(y, LFM_NX)) { /* the fallback input; the estimate moves one step on */
+    if (CFG->estimator != LFM_ESTIMATOR_NONE && c->started && ukf_predict(c, c->u_prev))
+      c->started = 0; /* (a failed factor: the next measurement starts it again) */
+    no_plan(c, LFM_BAD_INPUT, u);
+    memcpy(c->u_prev, u, sizeof(c->u_prev));
+    return LFM_BAD_INPUT;
+  }
   const double t0 = now();
   estimate(c, y);
   double last[LFM_N * LFM_NU];
