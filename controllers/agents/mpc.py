@@ -121,6 +121,7 @@ class MPCAgent(SB3Predict):
         self.rng = np.random.default_rng()
         self._u_prev: np.ndarray | None = None
         self._plan: np.ndarray | None = None  # remaining planned inputs (fallback)
+        self._rti_ready = False  # a usable plan to take real-time iterations from
 
     # ------------------------------------------------------------------ public face
 
@@ -130,6 +131,7 @@ class MPCAgent(SB3Predict):
         self.mpc.reset()
         self._u_prev = None
         self._plan = None
+        self._rti_ready = False
         self.last_info = {}
 
     def act(self, obs: Any) -> np.ndarray:
@@ -141,7 +143,7 @@ class MPCAgent(SB3Predict):
         self._x_hat = np.asarray(info["estimate"][: self.system.nx], dtype=float)
         x0, W = self._scenarios()
         backoff = self._backoff()
-        sol = self.mpc.solve(x0, W) if backoff is None else self.mpc.solve(x0, W, backoff=backoff)
+        sol, iterations = self._solve(x0, W, backoff)
         u, fallback = self._choose_action(sol)
         self._u_prev = u
         info.update(
@@ -155,6 +157,7 @@ class MPCAgent(SB3Predict):
             slack=float(sol.slack),
             objective=float(sol.objective),
             fallback=fallback,
+            sqp_iterations=iterations,
             plan=sol.plan.copy(),
             predicted=None if sol.predicted is None else sol.predicted.copy(),
             x0=np.asarray(x0, dtype=float).copy(),
@@ -165,6 +168,32 @@ class MPCAgent(SB3Predict):
         return u
 
     # ------------------------------------------------------------------ internals
+
+    def _solve(
+        self, x0: np.ndarray, W: np.ndarray, backoff: np.ndarray | None
+    ) -> tuple[MPCSolution, str]:
+        """The step's solve, and how its iterations went (``last_info["sqp_iterations"]``):
+        ``"converged"``; with ``settings.iterations == "rti"`` and a usable plan from the last
+        step, ``"rti"`` (``settings.rti_iterations`` SQP iterations from that plan shifted),
+        or ``"rti_fallback:<why>"`` when that step was bad (:func:`rti_step_problem`) and the
+        problem was solved again to convergence from it (the times and iterations of both
+        solves counted)."""
+        kwargs = {} if backoff is None else {"backoff": backoff}
+        if self.settings.iterations != "rti" or not self._rti_ready:
+            sol = self.mpc.solve(x0, W, **kwargs)
+            self._rti_ready = bool(sol.usable)
+            return sol, "converged"
+        rti = self.mpc.solve(x0, W, iterations=self.settings.rti_iterations, **kwargs)
+        why = rti_step_problem(rti)
+        if not why:
+            return rti, "rti"
+        if rti.law is not None:  # (a feedback plan: the same law, from the RTI iterate)
+            kwargs["law"] = rti.law
+        sol = self.mpc.solve(x0, W, u_guess=rti.u, **kwargs)
+        sol.solve_time += rti.solve_time
+        sol.iterations += rti.iterations
+        self._rti_ready = bool(sol.usable)
+        return sol, f"rti_fallback:{why}"
 
     def _choose_action(self, sol: MPCSolution) -> tuple[np.ndarray, str]:
         """First input of a usable plan (:attr:`MPCSolution.usable`: converged, or stopped
@@ -193,6 +222,19 @@ class MPCAgent(SB3Predict):
 
     def _scenarios(self) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
+
+
+def rti_step_problem(sol: MPCSolution, slack_tol: float = 1e-6) -> str:
+    """Why a real-time iteration's plan is not to be applied, or ``""``: ``"not_usable"`` (its
+    merit did not fall below that of the plan shifted by one step, ``extra["start_merit"]``),
+    or ``"slack"`` (its slack grew beyond the shifted plan's, ``extra["start_slack"]``, by
+    more than ``slack_tol`` times ``1 + `` that slack, in the constraints' units)."""
+    if not sol.usable:
+        return "not_usable"
+    start = float(sol.extra.get("start_slack", np.inf))
+    if sol.slack > start + slack_tol * (1.0 + start):
+        return "slack"
+    return ""
 
 
 class NominalMPCAgent(MPCAgent):
@@ -405,6 +447,7 @@ class OracleMPCAgent(MPCAgent):
 
 
 __all__ = [
+    "rti_step_problem",
     "CertaintyEquivalentMPCAgent",
     "MPCAgent",
     "NominalMPCAgent",

@@ -5,9 +5,10 @@ class lives, what it is, how the common options reach it and what it can do).
 ``make_solver(problem, name, **options)`` builds any of them; each is a
 :class:`ScenarioSolver` (``solve(x0, W, u_guess=None, backoff=None) -> MPCSolution`` and
 ``reset()``) and minimises the same :meth:`controllers.problem.ScenarioProblem.objective`.
-On a problem with ``prediction="feedback"`` every one of them runs through the exact rewrite
-of :mod:`controllers.solvers.feedback` (whose ``solve`` also takes the feedback law,
-``law=``).
+On a problem with ``prediction="feedback"`` the fast SQP (``"fast"``, ``"fast_c"``) solves it
+natively (:mod:`controllers.solvers.fast.closed_loop`); the others run through the exact
+rewrite of :mod:`controllers.solvers.feedback` (the fast SQP too where no C compiler works).
+Every one's ``solve`` then also takes the feedback law (``law=``).
 ``"fast"``, the project's condensed SQP (:mod:`controllers.solvers.fast`), is the default;
 the others are built on CasADi's plugins (:mod:`controllers.solvers.casadi`).
 """
@@ -59,6 +60,9 @@ class SolverSpec:
         max_horizon: the longest horizon ``N`` it is practical at (the config refuses
             longer ones up front); ``None``: no such limit.
         threaded: it takes ``threads=T`` (its C library's threads; ``agents.solver_threads``).
+        native_feedback: it solves a feedback problem itself (else through the rewrite).
+        real_time: its ``solve`` takes ``iterations=`` (a per-call SQP iteration limit without
+            extra starts: real-time iterations, ``agents.iterations: rti``).
     """
 
     name: str
@@ -68,15 +72,31 @@ class SolverSpec:
     max_iter_option: str | None = None
     max_horizon: int | None = None
     threaded: bool = False
+    native_feedback: bool = False
+    real_time: bool = False
 
     def build(self, problem: ScenarioProblem, **options: Any) -> ScenarioSolver:
         """The solver for ``problem`` with ``options`` (see :func:`make_solver`); for a
-        feedback problem, this solver through the exact rewrite of
+        feedback problem, this solver itself if it solves those natively (and its C library
+        can be built), else through the exact rewrite of
         :class:`~controllers.solvers.feedback.FeedbackScenarioSolver`."""
         if problem.prediction == "feedback":
+            from controllers.solvers.fast.codegen.build import CodegenUnavailable, notice
             from controllers.solvers.feedback import FeedbackScenarioSolver
 
+            if self.native_feedback:
+                try:
+                    return self._build(problem, **options)
+                except CodegenUnavailable as err:
+                    notice(
+                        f"{self.name}: a feedback problem without the C library ({err}); "
+                        "solving it through the exact open-loop rewrite"
+                    )
             return FeedbackScenarioSolver(problem, self, **options)
+        return self._build(problem, **options)
+
+    def _build(self, problem: ScenarioProblem, **options: Any) -> ScenarioSolver:
+        """The class of :attr:`entry_point` on ``problem``, with the options routed."""
         module, _, name = self.entry_point.partition(":")
         cls = getattr(importlib.import_module(module), name)
         key = self.max_iter_option
@@ -103,6 +123,8 @@ SOLVER_SPECS: dict[str, SolverSpec] = {
             # limit.
             max_horizon=40,
             threaded=True,
+            native_feedback=True,
+            real_time=True,
         ),
         SolverSpec(
             "fast_c",
@@ -111,6 +133,8 @@ SOLVER_SPECS: dict[str, SolverSpec] = {
             "own QP solvers in C; the Python loop, with a notice, where no compiler works)",
             max_horizon=40,
             threaded=True,
+            native_feedback=True,
+            real_time=True,
         ),
         SolverSpec(
             "ipopt",

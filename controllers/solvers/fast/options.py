@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -18,6 +19,9 @@ HESSIAN_MODIFICATIONS = ("floor", "abs", "augmented")
 # infeasible or a multiplier (a group's sum) exceeds the slack penalty; "always": with them.
 ELASTIC_MODES = ("on_demand", "always")
 MAX_THREADS = 256  # threads above this is surely a mistake
+# Which nominal inputs v_k of a feedback problem keep the input bounds (see
+# FastSolverOptions.feedback_bounds): "first" only v_0, the input applied now; "all" every v_k.
+FEEDBACK_BOUNDS = ("first", "all")
 
 
 @dataclass(frozen=True)
@@ -112,6 +116,26 @@ class FastSolverOptions:
     # reaches it returns its best iterate with success=False, status
     # "Maximum_WallTime_Exceeded" (IPOPT's name), and tries no further start.
     max_time: float = math.inf
+    # Feedback problems (ScenarioProblem(..., prediction="feedback")): the decision is the
+    # nominal inputs v, every scenario applies u_{s,k} = v_k + K_k (x_{s,k} - r_k) and each of
+    # those inputs is bounded by a soft row. "first": v_0 (applied now, shared by the
+    # scenarios) keeps the input bounds and v_k (k >= 1) is free (the trust region still
+    # measures steps in the inputs' ranges); "all": every v_k keeps them (the formulation
+    # of the exact open-loop rewrite the other solvers run, controllers.solvers.feedback).
+    feedback_bounds: str = "first"
+
+    def limited(self, iterations: int | None) -> FastSolverOptions:
+        """These options for one solve of at most ``iterations`` SQP iterations and no extra
+        starts (real-time iterations); ``None``: these options.
+
+        Raises:
+            ValueError: for ``iterations`` not ``None`` or an int >= 1.
+        """
+        if iterations is None:
+            return self
+        if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
+            raise ValueError(f"iterations={iterations!r}: must be None or an int >= 1")
+        return dataclasses.replace(self, max_iter=iterations, restarts=())
 
     def __post_init__(self) -> None:
         def check(name: str, ok: bool, allowed: str) -> None:
@@ -170,6 +194,8 @@ class FastSolverOptions:
         ok = self.hessian_modification in HESSIAN_MODIFICATIONS
         check("hessian_modification", ok, f"one of {HESSIAN_MODIFICATIONS}")
         check("elastic_qp", self.elastic_qp in ELASTIC_MODES, f"one of {ELASTIC_MODES}")
+        ok = self.feedback_bounds in FEEDBACK_BOUNDS
+        check("feedback_bounds", ok, f"one of {FEEDBACK_BOUNDS}")
         ok = isinstance(self.max_expand, int) and not isinstance(self.max_expand, bool)
         check("max_expand", ok and self.max_expand >= 0, "an int >= 0")
         check("expand_ratio", 0 < self.expand_ratio <= 1, "in (0, 1]")
@@ -185,4 +211,10 @@ class FastSolverOptions:
         check("restart_threshold", ok, "in (0, 1]")
 
 
-__all__ = ["ELASTIC_MODES", "HESSIAN_MODIFICATIONS", "RESTARTS", "FastSolverOptions"]
+__all__ = [
+    "ELASTIC_MODES",
+    "FEEDBACK_BOUNDS",
+    "HESSIAN_MODIFICATIONS",
+    "RESTARTS",
+    "FastSolverOptions",
+]

@@ -396,16 +396,18 @@ def _compiler_error(output: str) -> str:
     return re.sub(r"^\S+:\d+:(\d+:)?\s*", "", line)[:300]
 
 
-def build_library(system, dt: float) -> CompiledLibrary:
-    """The C library of ``system`` at time step ``dt`` [s], from the cache if there.
+def build_library(system, dt: float, feedback: bool = False) -> CompiledLibrary:
+    """The C library of ``system`` at time step ``dt`` [s], from the cache if there (with
+    ``feedback``, the library of its feedback prediction: ``library_source``).
 
     Raises:
         CodegenUnavailable: no compiler found, compilation failed or the library did not load.
     """
     start = time.perf_counter()
     dims = (system.nx, system.nu, system.nw, system.ng)
+    stem = "lfm_feedback" if feedback else "lfm_codegen"
     library = load_library(
-        library_source(system, dt), "lfm_codegen", symbols=LIBRARY_SYMBOLS, dims=dims
+        library_source(system, dt, feedback), stem, symbols=LIBRARY_SYMBOLS, dims=dims
     )
     _declare(library.lib)
     library.build_time = time.perf_counter() - start
