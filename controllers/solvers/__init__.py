@@ -121,7 +121,7 @@ SOLVER_SPECS: dict[str, SolverSpec] = {
             # step 1.2 s at N = 20, 11 s at N = 40 against the 10 s solve limit, 21 s at
             # N = 60 and 84 s at N = 100): beyond this a single iteration overruns any solve
             # limit.
-            max_horizon=40,
+            max_horizon=50,
             threaded=True,
             native_feedback=True,
             real_time=True,
@@ -131,7 +131,7 @@ SOLVER_SPECS: dict[str, SolverSpec] = {
             "controllers.solvers.fast.compiled:CompiledScenarioSolver",
             "the same SQP with its whole loop compiled (one C call per solve; the project's "
             "own QP solvers in C; the Python loop, with a notice, where no compiler works)",
-            max_horizon=40,
+            max_horizon=50,
             threaded=True,
             native_feedback=True,
             real_time=True,

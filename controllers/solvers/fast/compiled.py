@@ -407,6 +407,12 @@ class CompiledScenarioSolver:
         merit = stats["merit"]
         extra["start_merit"] = stats["start_merit"]  # the warm start's (MPCSolution.usable)
         extra["start_slack"] = stats["start_slack"]
+        # [s] where the time went (the C loop's timers)
+        extra["time"] = {
+            key: stats[f"time_{key}"]
+            for key in ("rollout", "linearise", "hessian", "convexify", "qp", "rows")
+        }
+        extra["qp_ipm_iterations"] = int(stats["qp_ipm_iterations"])
         success = status in SUCCESS
         return MPCSolution(
             u=self._u.reshape(p.horizon, p.nu).copy(),

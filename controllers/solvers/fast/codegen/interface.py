@@ -164,6 +164,13 @@ STATS: tuple[tuple[str, str, str], ...] = (
     ("ST_REFERENCE_TIME", "reference_time", "feedback: [s] the reference solve's"),
     ("ST_GAIN_TIME", "gain_time", "feedback: [s] computing the law"),
     ("ST_INPUT_SLACK", "input_slack", "feedback: the input rows' slack"),
+    ("ST_TIME_ROLLOUT", "time_rollout", "[s] in rollouts and merits"),
+    ("ST_TIME_LINEARISE", "time_linearise", "[s] in linearisations (S, Jg, gradient)"),
+    ("ST_TIME_HESSIAN", "time_hessian", "[s] in exact Hessians"),
+    ("ST_TIME_CONVEXIFY", "time_convexify", "[s] in convexifications"),
+    ("ST_TIME_QP", "time_qp", "[s] in QP solvers"),
+    ("ST_TIME_ROWS", "time_rows", "[s] in the row selection and the rows' Jacobians"),
+    ("ST_QP_IPM_ITERATIONS", "qp_ipm_iterations", "the elastic interior point's iterations"),
 )
 # The first statistics summed over the starts (ST_QP_ROWS: the largest).
 SUMMED_STATS = 11

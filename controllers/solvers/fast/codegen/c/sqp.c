@@ -89,6 +89,14 @@ struct lfm_sqp {
 #ifdef LFM_FEEDBACK
 static long fb_work_size(long n); /* (feedback.c) */
 #endif
+/* The timed parts (their definitions below, "where the time goes"). */
+static ro_t* sq_evaluate(lfm_sqp* s, const double* u);
+static int sq_linearise(lfm_sqp* s, const ro_t* ro);
+static void sq_hessian(lfm_sqp* s, const ro_t* ro);
+static void sq_rows(lfm_sqp* s, const ro_t* ro, rows_t* r, long from);
+static double sq_convexify(lfm_sqp* s, const ro_t* ro);
+static int sq_solve_elastic(lfm_sqp* s);
+static int sq_solve_hard(lfm_sqp* s);
 
 /* What the driver reads as the inputs u (N NU): u itself, or with feedback the law's data
    rows with u as the nominal inputs. */
@@ -384,7 +392,7 @@ static double sq_input_cost(const lfm_sqp* s, const double* u) {
 
 /* The rollout of all scenarios under u and its merit (CondensedModel.evaluate) into a
    rollout of the pool; NULL if the pool is empty. */
-static ro_t* sq_evaluate(lfm_sqp* s, const double* u) {
+static ro_t* sq_evaluate_(lfm_sqp* s, const double* u) {
   ro_t* ro = ro_take(s);
   if (!ro) return NULL;
   const long n = s->n, ns = s->ns;
@@ -422,7 +430,7 @@ static ro_t* sq_evaluate(lfm_sqp* s, const double* u) {
 
 /* ------------------------------------------------------------------ linearisation */
 
-static int sq_linearise(lfm_sqp* s, const ro_t* ro) {
+static int sq_linearise_(lfm_sqp* s, const ro_t* ro) {
   const long n = s->n, ns = s->ns;
   if (lfm_linearise(n, ns, ro->X, s->W, n * ns, ns, 1, sq_data(s, ro->u), s->goal, s->Wq,
                     2.0 / ns, s->S, s->Jg, s->grad, s->o.threads))
@@ -439,7 +447,7 @@ static int sq_linearise(lfm_sqp* s, const ro_t* ro) {
   return 0;
 }
 
-static void sq_hessian(lfm_sqp* s, const ro_t* ro) {
+static void sq_hessian_(lfm_sqp* s, const ro_t* ro) {
   const long n = s->n, ns = s->ns, nut = s->nut;
   int any = 0;
   for (long e = 0; e < NGR * n * ns && !any; ++e) any = s->mu[e] != 0.0;
@@ -453,7 +461,7 @@ static void sq_hessian(lfm_sqp* s, const ro_t* ro) {
 }
 
 /* The Jacobian rows and values of rows r->pos[from..r->r) (CondensedModel.rows). */
-static void sq_rows(lfm_sqp* s, const ro_t* ro, rows_t* r, long from) {
+static void sq_rows_(lfm_sqp* s, const ro_t* ro, rows_t* r, long from) {
   const long q = r->r - from;
   if (q <= 0) return;
   lfm_rows(s->n, s->ns, s->S, s->Jg, q, r->pos + 3 * from, r->a + from * s->nut);
@@ -469,7 +477,7 @@ static void sq_rows(lfm_sqp* s, const ro_t* ro, rows_t* r, long from) {
    s->Hq; returns sigma (0: no augmentation), -1 when the eigen-decomposition failed. The
    Jacobian rows of the predicted active scenario rows (s->act) are filled when there are
    any. */
-static double sq_convexify(lfm_sqp* s, const ro_t* ro) {
+static double sq_convexify_(lfm_sqp* s, const ro_t* ro) {
   const long nut = s->nut;
   const double floor = s->o.hessian_floor;
   double *H = s->H, *w = s->eig_w, *V = s->eig_V, *M = s->Hw, *work = s->Hw2;
@@ -553,7 +561,7 @@ static void sq_load(lfm_sqp* s, const double* bpos) {
 /* The elastic QP of the loaded rows (SlotQP._solve_elastic_ipm; a failure retried with a
    proximal term on the step, as SlotQP.solve retries, but by the same interior point):
    the step into qd, the slacks into qs (qG), the multipliers into qlam; 1 if solved. */
-static int sq_solve_elastic(lfm_sqp* s) {
+static int sq_solve_elastic_(lfm_sqp* s) {
   const long nut = s->nut, nsh = s->nsh, r = s->rows.r, n = s->n;
   long ng = 0;
   for (long e = 0; e < r; ++e) s->groups[e] = s->rows.pos[3 * e] * n + s->rows.pos[3 * e + 1];
@@ -572,6 +580,7 @@ static int sq_solve_elastic(lfm_sqp* s) {
                             s->col, s->qrho, s->qreg, 1e-9, 1e-12, 1e-12, 0.995, 100, s->qd,
                             s->qs, s->qlam, &it);
   s->stats[ST_QP_ELASTIC] += 1;
+  s->stats[ST_QP_IPM_ITERATIONS] += (double)it;
   if (code == 0) return 1;
   s->stats[ST_QP_RETRIES] += 1;
   double scale = 1.0;
@@ -588,7 +597,7 @@ static int sq_solve_elastic(lfm_sqp* s) {
 }
 
 /* The QP without slacks of the loaded rows: the step into qd, multipliers into qlam. */
-static int sq_solve_hard(lfm_sqp* s) {
+static int sq_solve_hard_(lfm_sqp* s) {
   long steps = 0;
   const int code = lfm_dense_qp(s->nut, s->qm, s->Hq, s->grad, s->lo, s->hi, s->qA, s->qb,
                                 1e-10, 50 * (s->nut + s->qm) + 100, s->qd, s->qlam, &steps);
@@ -664,9 +673,11 @@ static int sq_solve_qp(lfm_sqp* s, const ro_t* ro) {
       memcpy(s->s_shared, s->qs, sizeof(double) * nsh);
       s->slack_sum = sq_slack_sum(s, s->qG - nsh);
     }
+    const double t_rows = sq_now();
     const long got = lfm_violated(n, s->ns, s->nsc, s->screened, s->S, s->Jg, ro->G, s->qd,
                                   s->s_pos, r, s->rows.pos, s->o.add_tol, s->o.screen_rows,
                                   s->missing, s->missing_cap);
+    s->stats[ST_TIME_ROWS] += sq_now() - t_rows;
     if (got < 0) return 0;
     if (got == 0) break;
     if (round == s->o.max_qp_rounds - 1) {
@@ -704,8 +715,10 @@ static int sq_newton_step(lfm_sqp* s, const ro_t* ro, double damping) {
     const long keep = s->o.screen_rows, most = keep + 1 + 2 * NX;
     const long cap = s->nsc * n * (ns < most ? ns : most);
     if (rows_reserve(&s->scr, cap, nut)) return -SQ_OUT_OF_MEMORY;
+    const double t_rows = sq_now();
     const long got = lfm_screen(n, ns, s->nsc, s->screened, ro->G, ro->X, s->depends,
                                 s->o.screen_margin, keep, s->scr.pos, cap);
+    s->stats[ST_TIME_ROWS] += sq_now() - t_rows;
     if (got < 0) return -SQ_OUT_OF_MEMORY;
     s->scr.r = got;
   }
@@ -782,6 +795,38 @@ static int sq_newton_step(lfm_sqp* s, const ro_t* ro, double damping) {
   (void)nsh;
   return 1;
 }
+
+/* ------------------------------------------------------------------ where the time goes */
+
+/* The parts above, each timed into its statistic (ST_TIME_*; sq_now costs ~25 ns). */
+#define SQ_TIMED(stat, type, call)      \
+  const double t_ = sq_now();           \
+  type r_ = call;                       \
+  s->stats[stat] += sq_now() - t_;      \
+  return r_;
+
+static ro_t* sq_evaluate(lfm_sqp* s, const double* u) {
+  SQ_TIMED(ST_TIME_ROLLOUT, ro_t*, sq_evaluate_(s, u))
+}
+static int sq_linearise(lfm_sqp* s, const ro_t* ro) {
+  SQ_TIMED(ST_TIME_LINEARISE, int, sq_linearise_(s, ro))
+}
+static void sq_hessian(lfm_sqp* s, const ro_t* ro) {
+  const double t_ = sq_now();
+  sq_hessian_(s, ro);
+  s->stats[ST_TIME_HESSIAN] += sq_now() - t_;
+}
+static void sq_rows(lfm_sqp* s, const ro_t* ro, rows_t* r, long from) {
+  const double t_ = sq_now();
+  sq_rows_(s, ro, r, from);
+  s->stats[ST_TIME_ROWS] += sq_now() - t_;
+}
+static double sq_convexify(lfm_sqp* s, const ro_t* ro) {
+  SQ_TIMED(ST_TIME_CONVEXIFY, double, sq_convexify_(s, ro))
+}
+static int sq_solve_elastic(lfm_sqp* s) { SQ_TIMED(ST_TIME_QP, int, sq_solve_elastic_(s)) }
+static int sq_solve_hard(lfm_sqp* s) { SQ_TIMED(ST_TIME_QP, int, sq_solve_hard_(s)) }
+#undef SQ_TIMED
 
 /* ------------------------------------------------------------------ one start */
 
