@@ -292,9 +292,10 @@ class CompiledScenarioSolver:
             self._set_options(self.options)
 
     def _set_options(self, options: FastSolverOptions) -> None:
-        """The options of the C solver's next solves: the iteration limit and extra starts."""
+        """The options of the C solver's next solves: the iteration limit, extra starts and
+        trust radius (what :meth:`FastSolverOptions.limited` changes)."""
         values = c_options(options)
-        for name in ("max_iter", "restart_mirror", "restart_straight"):
+        for name in ("max_iter", "restart_mirror", "restart_straight", "trust_radius"):
             code = self._lib.lfm_sqp_set_option(
                 self._handle.ptr, name.encode(), float(getattr(values, name))
             )

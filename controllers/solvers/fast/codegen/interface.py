@@ -119,8 +119,9 @@ OPTIONS: tuple[COption, ...] = (
 )
 
 # FastSolverOptions fields that are no C field of their own: the QP solver (the C loop has its
-# own), and the choices the C fields above map (restarts, elastic_qp).
-PYTHON_ONLY = frozenset({"qp_solver", "restarts", "elastic_qp"})
+# own), the choices the C fields above map (restarts, elastic_qp), and the trust radius of a
+# limited solve (set as trust_radius for that solve).
+PYTHON_ONLY = frozenset({"qp_solver", "restarts", "elastic_qp", "rti_trust_radius"})
 
 # The C loop's return codes (sqp.c), in order: (C constant, the Python loop's status name).
 STATUSES: tuple[tuple[str, str], ...] = (
