@@ -2,14 +2,13 @@
 controller's export as C (:mod:`controllers.export`; :func:`write_problem` writes a scenario
 problem for the exported ``example``)."""
 
-from controllers.agents import AGENT_LABELS, AGENTS, make_agent
+from controllers.agents import AGENT_REGISTRY, make_agent
 from controllers.estimators.particle_filter import ParticleFilter, gaussian_log_likelihood
 from controllers.export.project import write_problem
 from controllers.problem import MPCSolution, ScenarioProblem
 
 __all__ = [
-    "AGENTS",
-    "AGENT_LABELS",
+    "AGENT_REGISTRY",
     "MPCSolution",
     "ParticleFilter",
     "ScenarioProblem",

@@ -29,7 +29,7 @@ Conventions (shared by every solver), with the dimensions of the model's system:
 **Feedback prediction** (``prediction="feedback"``; ``"open_loop"``, the default, is the
 paper's formulation above). Scenario ``i`` applies ``u_{i,0} = v_0`` and, for ``k >= 1``,
 ``u_{i,k} = v_k + K_k (x_k^(i) - r_k)`` with the shared decision ``v`` ``(N, nu)`` and a
-:class:`~controllers.feedback.FeedbackLaw` ``(K, r)`` frozen during a solve (``K_0 = 0``: the
+:class:`~controllers.feedback_law.FeedbackLaw` ``(K, r)`` frozen during a solve (``K_0 = 0``: the
 first input is applied now, before any scenario's deviation is known). The objective is the
 scenario average of ``sum_k (x_k - x_g)' Q (x_k - x_g) + u_{i,k}' R u_{i,k}`` plus the
 terminal cost, plus ``slack_penalty`` times the state slacks (as above) and the *input
@@ -53,7 +53,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from controllers.feedback import FeedbackLaw
+from controllers.feedback_law import FeedbackLaw
 from lfm_env.cost import QuadraticCost
 from lfm_env.model import LatentForceModel
 from lfm_env.system import ControlSystem
@@ -264,7 +264,7 @@ class ScenarioProblem:
                 "needs ScenarioProblem(..., prediction='feedback')"
             )
         if not isinstance(law, FeedbackLaw):
-            raise ValueError(f"law must be a controllers.feedback.FeedbackLaw, got {law!r}")
+            raise ValueError(f"law must be a controllers.feedback_law.FeedbackLaw, got {law!r}")
         return law.check(self)
 
     def rollout(
@@ -427,49 +427,6 @@ def is_usable(success: bool, merit: float, start_merit: float) -> bool:
     return bool(success) or (math.isfinite(merit) and merit < start_merit)
 
 
-# Module-level forms of the reference functions (``problem.rollout(x0, W, u)`` and so on).
-def rollout(problem: ScenarioProblem, x0: np.ndarray, W: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """:meth:`ScenarioProblem.rollout`."""
-    return problem.rollout(x0, W, u)
-
-
-def constraint_values(problem: ScenarioProblem, X: np.ndarray) -> np.ndarray:
-    """:meth:`ScenarioProblem.constraint_values`."""
-    return problem.constraint_values(X)
-
-
-def constraint_violation(problem: ScenarioProblem, X: np.ndarray) -> float:
-    """:meth:`ScenarioProblem.constraint_violation`."""
-    return problem.constraint_violation(X)
-
-
-def minimal_slack(problem: ScenarioProblem, X: np.ndarray) -> np.ndarray:
-    """:meth:`ScenarioProblem.minimal_slack`."""
-    return problem.minimal_slack(X)
-
-
-def objective(problem: ScenarioProblem, x0: np.ndarray, W: np.ndarray, u: np.ndarray) -> float:
-    """:meth:`ScenarioProblem.objective`."""
-    return problem.objective(x0, W, u)
-
-
-__all__ = [
-    "PREDICTIONS",
-    "EulerModel",
-    "FeedbackLaw",
-    "MPCSolution",
-    "PredictionModel",
-    "ScenarioProblem",
-    "constraint_violation",
-    "constraint_values",
-    "is_usable",
-    "largest_local_descent",
-    "minimal_slack",
-    "objective",
-    "rollout",
-]
-
-
 def largest_local_descent(
     problem: ScenarioProblem,
     x0: np.ndarray,
@@ -479,7 +436,8 @@ def largest_local_descent(
     n_random: int = 40,
     seed: int = 0,
 ) -> float:
-    """The lowest change of :func:`objective` found next to ``u`` (``>= 0``: none lower).
+    """The lowest change of :meth:`ScenarioProblem.objective` found next to ``u`` (``>= 0``:
+    none lower).
 
     A solver-independent check of local optimality: ``u`` is moved along every input
     coordinate in both directions and along ``n_random`` random directions (unit norm),
@@ -492,7 +450,7 @@ def largest_local_descent(
         ``min(objective(u') - objective(u))`` over the probed points ``u'``.
     """
     u = np.asarray(u, dtype=float)
-    base = objective(problem, x0, W, u)
+    base = problem.objective(x0, W, u)
     n_u = u.size
     rng = np.random.default_rng(seed)
     directions = np.concatenate([np.eye(n_u), -np.eye(n_u), rng.standard_normal((n_random, n_u))])
@@ -503,5 +461,16 @@ def largest_local_descent(
     for radius in radii:
         for d in directions:
             trial = np.clip(u + radius * d.reshape(u.shape), lower, upper)
-            lowest = min(lowest, objective(problem, x0, W, trial) - base)
+            lowest = min(lowest, problem.objective(x0, W, trial) - base)
     return float(lowest)
+
+
+__all__ = [
+    "PREDICTIONS",
+    "EulerModel",
+    "MPCSolution",
+    "PredictionModel",
+    "ScenarioProblem",
+    "is_usable",
+    "largest_local_descent",
+]

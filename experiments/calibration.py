@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from controllers.config import ExperimentConfig, load_config
 from lfm_env.config import LatentForceConfig, WorldConfig, to_dict
 
 LEARNABLE = ("variance", "lengthscale")
@@ -69,13 +70,12 @@ class CalibrationResult:
 
 
 def record_calibration_episodes(
-    config: Any = None, seeds: range | list[int] = range(5), agent: str = "nominal"
+    config: ExperimentConfig, seeds: range | list[int] = range(5), agent: str = "nominal"
 ) -> list[CalibrationRecord]:
     """Run calibration episodes with a simple controller and record states and inputs.
 
     Args:
-        config: the world and the controller's settings: a preset's name, a path, a dict
-            or an :class:`~controllers.config.ExperimentConfig` (any registered world).
+        config: the world and the controller's settings (any registered world).
         seeds: env seeds of the calibration episodes.
         agent: the controller; ``"nominal"`` needs no latent force model.
     """
@@ -83,9 +83,7 @@ def record_calibration_episodes(
 
     import lfm_env  # noqa: F401  (registers the envs)
     from controllers.agents import make_agent
-    from controllers.config import load_config
 
-    config = load_config(config)  # read and checked once for all episodes
     records = []
     for seed in seeds:
         env = gym.make(config.env_id, config=config.env)
@@ -213,15 +211,24 @@ def fit_latent_force(
     )
 
 
-def calibrate(config: Any = None, seeds: range | list[int] = range(5)) -> CalibrationResult:
-    """Calibration episodes under the nominal MPC, then a maximum-likelihood fit."""
-    from controllers.config import load_config
+def calibrate(
+    config: ExperimentConfig | str | os.PathLike | None = None,
+    seeds: range | list[int] = range(5),
+) -> CalibrationResult:
+    """Calibration episodes under the nominal MPC, then a maximum-likelihood fit.
 
+    Args:
+        config: an :class:`~controllers.config.ExperimentConfig`, or a preset's name, a path,
+            a dict or ``None`` (resolved once by :func:`~controllers.config.load_config`).
+        seeds: env seeds of the calibration episodes.
+    """
     config = load_config(config)
     return fit_latent_force(record_calibration_episodes(config, seeds), config.env)
 
 
-def write_learned_config(config: Any, result: CalibrationResult, path: str | os.PathLike) -> None:
+def write_learned_config(
+    config: ExperimentConfig, result: CalibrationResult, path: str | os.PathLike
+) -> None:
     """Write the resolved ``config`` with ``agents.latent_force`` set to the learned values.
 
     The file holds the whole config (``env_id``, ``env``, ``agents``), so it evaluates the
@@ -229,9 +236,7 @@ def write_learned_config(config: Any, result: CalibrationResult, path: str | os.
     """
     import yaml
 
-    from controllers.config import load_config
-
-    data = load_config(config).to_dict()
+    data = config.to_dict()
     data["agents"]["latent_force"] = to_dict(result.latent_force)
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)

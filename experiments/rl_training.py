@@ -4,8 +4,8 @@ same ``gym.make`` step API as the MPC agents.
 ``lfm-train`` builds ``n_envs`` copies of ``gym.make(config.env_id, config=config.env)``
 (the config's time limit), rescales the actions to ``[-1, 1]`` (``RescaleAction``), and
 trains on a *training* reward (:class:`TrainingReward`): the env's reward divided by the
-stage cost at the start state, minus ``cost_weight`` times ``info["cost"]`` (the number of
-violated constraint groups), and on a failure the current step's penalty once for every
+stage cost at the start state, minus ``cost_weight`` times ``info["violated_groups"]`` (the
+number of violated constraint groups), and on a failure the current step's penalty once for every
 step the time limit had left, so that leaving the safety box never pays. Observations are
 normalised by running statistics (``VecNormalize``), which are saved with the policy.
 
@@ -54,7 +54,7 @@ DEFAULT_N_ENVS = 8  # envs stepped in lockstep (the README's measured run)
 class TrainingReward(gym.Wrapper):
     """The reward RL trains on (the evaluation keeps the env's own reward).
 
-    ``r = reward / scale - cost_weight * info["cost"]``; when the env ends the episode as
+    ``r = reward / scale - cost_weight * info["violated_groups"]``; when the env ends the episode as
     a failure, ``r`` is added once more for each step the time limit had left
     (``max_steps - t``), so that ending an episode early by leaving the safety box costs at
     least as much as staying there.
@@ -62,7 +62,7 @@ class TrainingReward(gym.Wrapper):
     Args:
         env: the env (rewards are minus stage costs, ``info`` has ``cost`` and ``failure``).
         scale: divisor of the env's reward, > 0 (the stage cost at the start state).
-        cost_weight: weight of ``info["cost"]`` [per violated constraint group], >= 0.
+        cost_weight: weight of ``info["violated_groups"]`` [per violated constraint group], >= 0.
         max_steps: the episode's time limit [steps], >= 1.
     """
 
@@ -84,7 +84,7 @@ class TrainingReward(gym.Wrapper):
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         obs, reward, terminated, truncated, info = self.env.step(action)
         self._t += 1
-        r = float(reward) / self.scale - self.cost_weight * float(info["cost"])
+        r = float(reward) / self.scale - self.cost_weight * float(info["violated_groups"])
         if terminated and info.get("failure", False):
             r += r * max(0, self.max_steps - self._t)
         return obs, r, terminated, truncated, info

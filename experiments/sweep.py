@@ -18,17 +18,16 @@ the same sweep resumes it. The sweep folder may be a results folder of ``lfm-eva
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from controllers.agents.registry import AGENT_REGISTRY
+from controllers.agents.registry import AGENT_REGISTRY, resolve_agents
 from controllers.config import ConfigError, ExperimentConfig, load_config
+from controllers.config.experiment import split_values
 from experiments.evaluation import run as evaluation
-from experiments.evaluation.agent_lookup import OwnAgentSpec, resolve_agents
 from experiments.evaluation.episode import check_seeds
 from experiments.evaluation.storage import check_folder
 from experiments.report.sweep_summary import (
@@ -41,26 +40,17 @@ from experiments.report.sweep_summary import (
     write_sweep,
 )
 
-# The old import path: the folder's reading (experiments.report.sweep_summary) was part of this
-# module, so its public names stay importable from here too.
-from experiments.report.sweep_summary import SweepValue as SweepValue
-from experiments.report.sweep_summary import sweep_errors as sweep_errors
-from experiments.report.sweep_summary import sweep_figure as sweep_figure
-from experiments.report.sweep_summary import sweep_metrics as sweep_metrics
-from experiments.report.sweep_summary import sweep_table as sweep_table
-from lfm_env.config.compose import field_types, optional_type, parse_value, split_values
-
 SECTION = "agents"  # the sweep varies agent settings only: the episodes stay the same
 
 
 # --------------------------------------------------------------------------- the setting
 
 
-def config_with(config: Any, key: str, text: str) -> ExperimentConfig:
+def config_with(config: ExperimentConfig, key: str, text: str) -> ExperimentConfig:
     """The config with one dotted key of the ``agents`` section set to a value.
 
     Args:
-        config: the base config (a path, a dict, an ``ExperimentConfig`` or ``None``).
+        config: the base config.
         key: a dotted key under ``agents``, e.g. ``"agents.backoff"`` or
             ``"agents.robust.backoff"``.
         text: the value as written, read by the field's type (``"2"`` for a list field
@@ -70,7 +60,6 @@ def config_with(config: Any, key: str, text: str) -> ExperimentConfig:
         ConfigError: naming the key, for a key outside ``agents``, an unknown key, a
             section given as the key, or a value the config refuses.
     """
-    base = load_config(config)
     parts = key.split(".")
     if len(parts) < 2 or parts[0] != SECTION or not all(parts):
         raise ConfigError(
@@ -78,38 +67,18 @@ def config_with(config: Any, key: str, text: str) -> ExperimentConfig:
             "agents.robust.backoff (a sweep compares agents on the same episodes, so env "
             "settings are not swept)"
         )
-    data = base.to_dict()
-    node, obj = data[SECTION], base.agents
-    for depth, name in enumerate(parts[1:], start=1):
-        where = ".".join(parts[:depth])
-        fields = field_types(obj)
-        if name not in fields:
-            raise ConfigError(
-                f"--set {key}: {where} has no key {name!r}; its keys are {sorted(fields)}"
-            )
-        tp, _ = optional_type(fields[name])
-        last = depth == len(parts) - 1
-        if not last:
-            if not dataclasses.is_dataclass(tp):
-                raise ConfigError(f"--set {key}: {where}.{name} is a value, not a section")
-            current = getattr(obj, name)
-            obj = current if current is not None else tp()
-            if not isinstance(node.get(name), dict):
-                node[name] = {}
-            node = node[name]
-        elif dataclasses.is_dataclass(tp):
-            raise ConfigError(
-                f"--set {key}: {key} is a section; set one of its keys {sorted(field_types(tp()))}"
-            )
-        else:
-            node[name] = parse_value(text, fields[name])
     try:
-        return load_config(data)
+        return load_config(config, [(key, text)])
     except ConfigError as exc:
-        raise ConfigError(f"--set {key}={text}: {' '.join(str(exc).split())}") from None
+        message = " ".join(str(exc).split())
+        if message.startswith("--set "):  # the key itself: named already
+            raise ConfigError(message) from None
+        raise ConfigError(f"--set {key}={text}: {message}") from None
 
 
-def parse_setting(text: str, config: Any = None) -> tuple[str, list[str], list[ExperimentConfig]]:
+def parse_setting(
+    text: str, config: ExperimentConfig
+) -> tuple[str, list[str], list[ExperimentConfig]]:
     """``"agents.backoff=0,1,2"`` -> the key, the value texts and the config of each value.
 
     Raises:
@@ -125,8 +94,7 @@ def parse_setting(text: str, config: Any = None) -> tuple[str, list[str], list[E
         raise ConfigError(f"--set {text!r}: a value of {key} is empty")
     if len(set(texts)) != len(texts):
         raise ConfigError(f"--set {text!r}: the values of {key} repeat")
-    base = load_config(config)
-    return key, texts, [config_with(base, key, t) for t in texts]
+    return key, texts, [config_with(config, key, t) for t in texts]
 
 
 # --------------------------------------------------------------------------- running
@@ -135,12 +103,12 @@ def parse_setting(text: str, config: Any = None) -> tuple[str, list[str], list[E
 def _registered_agents(agents: Any) -> list[str]:
     """Registered agent names only: the sweep's manifest stores the agents by name."""
     specs = resolve_agents(agents)
-    own = [s.text for s in specs if isinstance(s, OwnAgentSpec)]
+    own = [s.text for s in specs if s.agent_class is None]
     if own:
         raise ValueError(
             f"agents {own}: only registered agents here; choose from {sorted(AGENT_REGISTRY)}"
         )
-    return specs
+    return [s.name for s in specs]
 
 
 def run_sweep(
@@ -238,4 +206,4 @@ def run_sweep(
     return summary
 
 
-__all__ = ["config_with", "parse_setting", "run_sweep", "split_values"]
+__all__ = ["config_with", "parse_setting", "run_sweep"]

@@ -2,7 +2,7 @@
 
 :class:`LatentForceEnv` simulates a :class:`~lfm_env.system.ControlSystem` pushed by a
 hidden Gaussian-process force (a :class:`~lfm_env.model.LatentForceModel`, the truth) and
-rewards a :class:`~lfm_env.system.QuadraticCost`. It holds the state, the randomness and
+rewards a :class:`~lfm_env.cost.QuadraticCost`. It holds the state, the randomness and
 the Gymnasium protocol only: the physics, the constraints and the cost come from the
 model and the cost objects. A case study subclasses it to say when an episode succeeds or
 fails and how to draw the scene (:class:`lfm_env.worlds.sine_track.env.SineTrackEnv`).
@@ -80,18 +80,6 @@ def _labelled(labels: tuple[str, ...]) -> str:
     return "[" + ", ".join(parts) + "]"
 
 
-def _vector(value: Any, n: int, name: str, labels: tuple[str, ...] = ()) -> np.ndarray:
-    """``value`` as a finite float vector ``(n,)``, or a ``ValueError`` naming ``name``."""
-    layout = f" {_labelled(labels)}" if labels else ""
-    try:
-        v = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}={value!r}: must be {n} finite numbers{layout}") from None
-    if v.shape != (n,) or not np.all(np.isfinite(v)):
-        raise ValueError(f"{name}={value!r}: must be {n} finite numbers{layout}")
-    return v.copy()
-
-
 def has_display() -> bool:
     """Whether a window can open: on Linux, ``DISPLAY``, ``WAYLAND_DISPLAY`` or a video driver
     the user chose (``SDL_VIDEODRIVER``) is set; elsewhere always."""
@@ -160,9 +148,9 @@ class LatentForceEnv(gym.Env):
     taken, at reset the one that acts next; a float when ``nw == 1``, else ``(nw,)``),
     ``latent_state`` (z), ``<group>_excess`` for each of ``system.constraint_groups`` (the
     largest excess ``max(g, 0)`` in the group, in its unit), ``constraint_excess`` (ng,) in
-    ``system.constraint_names`` order, ``cost`` (the safe-RL constraint cost: the number of
-    constraint groups violated by the new state, dimensionless, 0 when every constraint
-    holds), ``is_success``, ``failure``, ``applied_action``, ``time`` [s].
+    ``system.constraint_names`` order, ``violated_groups`` (the number of constraint groups
+    violated by the new state, dimensionless, 0 when every constraint holds: the safe-RL
+    constraint cost), ``is_success``, ``failure``, ``applied_action``, ``time`` [s].
 
     ## Arguments
     ``LatentForceEnv(model, cost, initial_state, measurement_std, max_steps=200,
@@ -187,7 +175,8 @@ class LatentForceEnv(gym.Env):
     """
 
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 5}
-    #: The case study's settings (e.g. an :class:`~lfm_env.config.SineTrackConfig`); ``None`` here.
+    #: The case study's settings (a world's config, e.g. a
+    #: :class:`~lfm_env.worlds.sine_track.config.SineTrackConfig`); ``None`` here.
     config: Any = None
 
     def __init__(
@@ -208,12 +197,12 @@ class LatentForceEnv(gym.Env):
             raise ValueError(f"cost must be a QuadraticCost, got {type(cost).__name__}")
         system = model.system
         cost.check_system(system)
-        names = system.state_names
+        states = _labelled(system.state_names)
         self.model = model
         self.system = system
         self.cost = cost
-        self.initial_state = _vector(initial_state, system.nx, "initial_state", names)
-        std = _vector(measurement_std, system.nx, "measurement_std", names)
+        self.initial_state = real_vector(initial_state, system.nx, "initial_state", states)
+        std = real_vector(measurement_std, system.nx, "measurement_std", states)
         if np.any(std < 0.0):
             raise ValueError(f"measurement_std={std.tolist()}: must be >= 0")
         self.measurement_std = std
@@ -265,10 +254,10 @@ class LatentForceEnv(gym.Env):
         # Finite bounds that hold: the states' range plus the noise's reach (float32 numbers).
         if state_bounds is None:
             state_bounds = (np.full(system.nx, -np.inf), np.full(system.nx, np.inf))
-        lo = _vector(np.nan_to_num(state_bounds[0], neginf=-FLOAT32_MAX), system.nx,
-                     "state_bounds[0]", names)  # fmt: skip
-        hi = _vector(np.nan_to_num(state_bounds[1], posinf=FLOAT32_MAX), system.nx,
-                     "state_bounds[1]", names)  # fmt: skip
+        lo = real_vector(np.nan_to_num(state_bounds[0], neginf=-FLOAT32_MAX), system.nx,
+                         "state_bounds[0]", states)  # fmt: skip
+        hi = real_vector(np.nan_to_num(state_bounds[1], posinf=FLOAT32_MAX), system.nx,
+                         "state_bounds[1]", states)  # fmt: skip
         if np.any(lo > hi):
             raise ValueError(f"state_bounds: low {lo.tolist()} must be <= high {hi.tolist()}")
         low, high = observation_bounds(lo, hi, std)
@@ -363,18 +352,18 @@ class LatentForceEnv(gym.Env):
         m = self.model
         p = m.latent_dim
         if "latent_state" in options:
-            z0 = _vector(options["latent_state"], p, "reset option latent_state")
+            z0 = real_vector(options["latent_state"], p, "reset option latent_state")
         elif self.latent_start == "stationary":
             z0 = psd_factor(m.stationary_latent_covariance()) @ self._latent_rng.standard_normal(p)
         else:
             z0 = np.zeros(p)
         self._latent = z0.reshape(1, -1).copy()
         if "initial_state" in options:
-            self._state = _vector(
+            self._state = real_vector(
                 options["initial_state"],
                 self.system.nx,
                 "reset option initial_state",
-                self.system.state_names,
+                _labelled(self.system.state_names),
             )
         else:
             self._state = self.initial_state.copy()
@@ -445,7 +434,7 @@ class LatentForceEnv(gym.Env):
             violated += info[f"{group}_excess"] > 0.0
         info.update(
             constraint_excess=excess,
-            cost=float(violated),
+            violated_groups=float(violated),
             is_success=bool(success),
             failure=bool(failure),
             applied_action=np.asarray(action, dtype=float).copy(),

@@ -2,13 +2,13 @@
 
 A :class:`ControlSystem` is the physics of one case study: named states and inputs with
 units, the right-hand side ``dx/dt = f(x, u, w)`` with a latent force ``w``, hard input
-bounds and named state constraints ``g(x) <= 0``. A :class:`QuadraticCost` is the
-control objective. The environment (truth simulation and reward), the estimators, the
+bounds and named state constraints ``g(x) <= 0``. A :class:`~lfm_env.cost.QuadraticCost`
+is the control objective. The environment (truth simulation and reward), the estimators, the
 scenario problem and every solver read these two objects; nothing else writes the
 dynamics, a constraint or the cost again.
 
 The functions a system is made of are written once and work on both kinds of data. Write
-them with the array namespace :data:`lfm_env.xp.xp` (also importable from here); the module
+them with the array namespace :data:`lfm_env.xp.xp`; the module
 :mod:`lfm_env.xp` shows a right-hand side written so, and the shapes it gets and returns on
 NumPy batches and on CasADi columns. Constraints ``g(x)`` follow the same rule with ``ng``
 components (feasible where ``<= 0``).
@@ -24,9 +24,8 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from lfm_env.cost import QuadraticCost
 from lfm_env.validation import frozen_vector
-from lfm_env.xp import is_symbolic, xp
+from lfm_env.xp import is_symbolic
 
 _UNIT = re.compile(r"^\s*(?P<name>[^\[]+?)\s*(\[(?P<unit>[^\]]*)\])?\s*$")
 
@@ -111,6 +110,17 @@ class ControlSystem:
     _cache: dict = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self) -> None:
+        self._set_names()
+        if self.fallback_law is not None and not callable(self.fallback_law):
+            raise ValueError("ControlSystem.fallback_law must be callable: law(x, dt) -> u")
+        if not callable(self.rhs):
+            raise ValueError("ControlSystem.rhs must be callable: f(x, u, w) -> dx/dt")
+        self._set_inputs()
+        self._set_groups()
+        self._check_shapes()
+
+    def _set_names(self) -> None:
+        """The states', inputs', forces' and constraints' names, checked."""
         if not isinstance(self.name, str) or not self.name:
             raise ValueError(f"ControlSystem.name={self.name!r}: must be a non-empty string")
         for name in ("state_names", "input_names", "force_names"):
@@ -119,10 +129,9 @@ class ControlSystem:
             raise ValueError("ControlSystem.constraint_names given without constraints")
         names = () if self.constraints is None else self.constraint_names
         object.__setattr__(self, "constraint_names", _names(names, "constraint_names"))
-        if self.fallback_law is not None and not callable(self.fallback_law):
-            raise ValueError("ControlSystem.fallback_law must be callable: law(x, dt) -> u")
-        if not callable(self.rhs):
-            raise ValueError("ControlSystem.rhs must be callable: f(x, u, w) -> dx/dt")
+
+    def _set_inputs(self) -> None:
+        """The input bounds, the mirrored inputs and the fallback input, checked."""
         nu = len(self.input_names)
         lo = frozen_vector(self.input_lower, nu, "ControlSystem.input_lower")
         hi = frozen_vector(self.input_upper, nu, "ControlSystem.input_upper")
@@ -144,6 +153,9 @@ class ControlSystem:
                 raise ValueError("ControlSystem.fallback_input must lie inside the input bounds")
         fallback.flags.writeable = False
         object.__setattr__(self, "fallback_input", fallback)
+
+    def _set_groups(self) -> None:
+        """The constraint groups and their violation tolerances, checked."""
         groups = self.constraint_groups
         if groups is None:
             groups = {label: (j,) for j, label in enumerate(self.constraint_labels)}
@@ -167,7 +179,6 @@ class ControlSystem:
                 f"groups {sorted(groups)} and values finite excesses > 0"
             )
         object.__setattr__(self, "violation_tolerances", tolerances)
-        self._check_shapes()
 
     def _check_shapes(self) -> None:
         """Evaluate ``f`` and ``g`` once on NumPy batches and CasADi symbols."""
@@ -309,5 +320,4 @@ class ControlSystem:
         self.__dict__.update(state)
 
 
-# QuadraticCost (lfm_env.cost) and xp (lfm_env.xp) are re-exported for old imports.
-__all__ = ["ControlSystem", "QuadraticCost", "is_symbolic", "split_unit", "xp"]
+__all__ = ["ControlSystem", "split_unit"]

@@ -1,4 +1,4 @@
-"""Checks of user-supplied arrays, shared by the env and the agents."""
+"""Checks of user-supplied vectors, and errors on one line: shared by every layer."""
 
 from __future__ import annotations
 
@@ -7,40 +7,55 @@ from typing import Any
 import numpy as np
 
 
-def real_vector(value: Any, size: int, name: str, layout: str) -> np.ndarray:
-    """``value`` as a finite float vector of ``size`` entries, or a ``ValueError``.
+def real_vector(
+    value: Any, size: int | None, name: str, layout: str = "", finite: bool = True
+) -> np.ndarray:
+    """``value`` as a new float vector of ``size`` entries, or a ``ValueError``.
 
     Args:
         value: what the user passed (list, array, ...).
-        size: required number of entries.
+        size: required number of entries; ``None`` for any.
         name: the argument's name in messages (e.g. ``"action"``).
         layout: what the entries are, e.g. ``"[a m/s^2, delta rad]"``.
+        finite: refuse NaN and inf entries (``False``: bounds may be infinite, an estimate
+            may be NaN).
 
     Raises:
         ValueError: naming ``name``, for text, objects or complex numbers (which NumPy would
             convert or truncate silently), a wrong shape, or NaN/inf entries.
     """
+    count = "" if size is None else f"{size} "
+    layout = f" {layout}" if layout else ""
     try:
         arr = np.asarray(value)
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name}={value!r}: must be {size} numbers {layout}") from exc
+        raise ValueError(f"{name}={value!r}: must be {count}numbers{layout}") from exc
     if arr.dtype.kind not in "biuf":
         raise ValueError(
-            f"{name}={value!r}: must be {size} real numbers {layout}, not dtype {arr.dtype}"
+            f"{name}={value!r}: must be {count}real numbers{layout}, not dtype {arr.dtype}"
         )
     arr = arr.astype(float)
-    if arr.shape != (size,):
-        raise ValueError(f"{name} has shape {arr.shape}: must be ({size},) = {layout}")
-    if not np.all(np.isfinite(arr)):
+    if arr.ndim != 1 or (size is not None and arr.shape != (size,)):
+        shape = "(n,)" if size is None else f"({size},)"
+        raise ValueError(f"{name} has shape {arr.shape}: must be {shape}{layout and ' =' + layout}")
+    if finite and not np.all(np.isfinite(arr)):
         raise ValueError(f"{name}={arr.tolist()}: must be finite (no NaN or inf)")
     return arr
 
 
 def frozen_vector(value: Any, n: int, name: str) -> np.ndarray:
-    """``value`` as a read-only float vector of ``n`` entries; a ``ValueError`` names ``name``."""
-    arr = np.asarray(value, dtype=float).reshape(-1) if value is not None else None
-    if arr is None or arr.shape != (n,):
-        raise ValueError(f"{name}={value!r}: must be {n} numbers")
-    arr = arr.copy()
+    """:func:`real_vector` of ``n`` entries (a column flattened; infinite entries allowed, as
+    for unbounded inputs), read-only."""
+    arr = real_vector(np.ravel(value), n, name, finite=False)
     arr.flags.writeable = False
     return arr
+
+
+def one_line(exc: BaseException) -> str:
+    """``"Type: message"`` on one line, so an error fits a CSV cell, a log line and a
+    message that names it."""
+    msg = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__
+
+
+__all__ = ["frozen_vector", "one_line", "real_vector"]

@@ -9,9 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from lfm_env.config import SineTrackConfig, load_env_config
 from lfm_env.model import LatentForceModel
 from lfm_env.system import ControlSystem
+from lfm_env.worlds.registry import load_env_config
+from lfm_env.worlds.sine_track.config import SineTrackConfig
 
 #: The paper's configuration file (``configs/paper.yaml``), independent of the working dir.
 PAPER_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "paper.yaml"

@@ -219,3 +219,32 @@ def test_every_command_is_shown():
 
     shown = {words[0] for _, words in COMMAND_LINES}
     assert shown == set(COMMAND_PARSERS)
+
+
+def layout_rows() -> list[str]:
+    """The rows of the README's layout table (question | where)."""
+    text = (REPO / "README.md").read_text()
+    section = text.split("\n## Layout\n", 1)[1].split("\n## ", 1)[0]
+    return [line for line in section.splitlines() if line.startswith("| ") and "`" in line]
+
+
+def _existing(name: str, folders: list[Path]) -> list[Path]:
+    """The paths ``name`` may mean: from the root or from ``folders``; a placeholder
+    (``<world>``) stands for any one name."""
+    pattern = re.sub(r"<\w+>", "*", name.rstrip("/"))
+    return [p for base in [REPO, *folders] for p in base.glob(pattern)]
+
+
+def test_the_layout_table_matches_the_tree():
+    """Every path of the README's layout table exists: from the repository's root, or in a
+    folder the same row names (``kernels/`` beside ``lfm_env/gp/``)."""
+    rows = layout_rows()
+    assert len(rows) >= 20
+    missing = []
+    for row in rows:
+        names = [n for n in re.findall(r"`([^`\s]+)`", row) if re.fullmatch(r"[\w./<>-]+", n)]
+        paths = [n for n in names if re.search(r"/|\.(py|c|h|yaml|md)$", n)]
+        folders = [f for n in paths if "/" in n for f in _existing(n, [])]
+        folders = [f if f.is_dir() else f.parent for f in folders]
+        missing += [f"{n} ({row[:60]}...)" for n in paths if not _existing(n, folders)]
+    assert missing == []

@@ -1,8 +1,8 @@
 """The agents: the MPC agents over any model (:mod:`~controllers.agents.mpc`), the agent
 that runs a trained policy (:mod:`~controllers.agents.rl`), a peer library's robust MPC
 (:mod:`~controllers.agents.dompc`, do-mpc, the ``peers`` extra), the face every agent has
-(:mod:`~controllers.agents.protocol`) and the registered agents, one record each, with
-:func:`make_agent` (:mod:`~controllers.agents.registry`)."""
+(:mod:`~controllers.agents.protocol`) and every agent's record, the registered ones and a
+user's own, with :func:`make_agent` (:mod:`~controllers.agents.registry`)."""
 
 from controllers.agents.dompc import DoMpcAgent
 from controllers.agents.mpc import (
@@ -16,24 +16,25 @@ from controllers.agents.mpc import (
 )
 from controllers.agents.protocol import INFO_DEFAULTS, Agent, is_agent, last_info
 from controllers.agents.registry import (
-    AGENT_LABELS,
     AGENT_REGISTRY,
-    AGENTS,
     AgentSpec,
+    AgentSpecError,
     agent_spec,
     check_agent_config,
     make_agent,
     needs_measurement_noise,
+    register_agent,
+    resolve_agent,
+    resolve_agents,
 )
 from controllers.agents.rl import RLAgent
 
 __all__ = [
-    "AGENTS",
-    "AGENT_LABELS",
     "AGENT_REGISTRY",
     "INFO_DEFAULTS",
     "Agent",
     "AgentSpec",
+    "AgentSpecError",
     "CertaintyEquivalentMPCAgent",
     "DoMpcAgent",
     "MPCAgent",
@@ -49,4 +50,7 @@ __all__ = [
     "last_info",
     "make_agent",
     "needs_measurement_noise",
+    "register_agent",
+    "resolve_agent",
+    "resolve_agents",
 ]

@@ -39,8 +39,11 @@ The formulation (one do-mpc ``MPC``, built in the constructor and re-solved ever
 * **Solver**: do-mpc's IPOPT (``nlpsol_opts``: output off, ``max_iter`` and ``max_wall_time``
   from the settings, IPOPT's default ``tol`` 1e-8), warm-started by do-mpc from its previous
   solution (not shifted); an episode's first solve starts from every state at the estimate
-  and every input at the middle of its bounds. A failed solve falls back as the project's
-  agents do (the previous nominal plan shifted, else the system's fallback input).
+  and every input at the middle of its bounds. The action is chosen as the project's agents
+  choose it (:class:`~controllers.agents.mpc.PlanChoice`): a usable plan is applied (converged,
+  or stopped early with a merit below its warm start's: the exact-penalty objective of the
+  nominal branch's inputs rolled out along the nominal force), else the previous nominal plan
+  shifted, else the system's fallback input.
 
 The defaults were chosen on env seeds 1000..1019 (never on evaluation seeds). ``force``: the
 forecast and the constant force differ little (paper: the same counts but on one seed, the
@@ -71,6 +74,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
+import math
 import sys
 import time
 import warnings
@@ -79,12 +83,13 @@ from typing import Any
 import numpy as np
 
 from controllers.agents.estimation import EstimatorLoop
+from controllers.agents.mpc import PlanChoice
 from controllers.agents.protocol import SB3Predict
 from controllers.config import AgentConfig, check_filter_memory
 from controllers.estimators.estimator import make_estimator
-from controllers.problem import MPCSolution
+from controllers.problem import MPCSolution, ScenarioProblem, is_usable
+from lfm_env.cost import QuadraticCost
 from lfm_env.model import LatentForceModel
-from lfm_env.system import QuadraticCost
 from lfm_env.validation import real_vector
 
 #: The one-line error of building the agent without do-mpc.
@@ -136,11 +141,11 @@ def import_do_mpc() -> Any:
     return do_mpc
 
 
-class DoMpcAgent(EstimatorLoop, SB3Predict):
+class DoMpcAgent(EstimatorLoop, PlanChoice, SB3Predict):
     """do-mpc's robust multi-stage MPC on the agent's estimate (see the module docstring).
 
-    Same face as the project's agents (:class:`controllers.protocol.Agent`, ``last_info`` with
-    every key, stable-baselines3's ``predict``); built as they are.
+    Same face as the project's agents (:class:`controllers.agents.protocol.Agent`,
+    ``last_info`` with every key, stable-baselines3's ``predict``); built as they are.
 
     Args:
         model: the agent's latent-force model of the world.
@@ -202,7 +207,12 @@ class DoMpcAgent(EstimatorLoop, SB3Predict):
             resampling=s.resampling,
             ess_threshold=s.ess_threshold,
         )
-        self.mpc = self._build(do_mpc)
+        self.solver = self._build(do_mpc)
+        # The merit a plan is judged by (usable: below its warm start's): the exact-penalty
+        # objective of the nominal branch's inputs along the nominal force, rolled out.
+        self._merit = ScenarioProblem(
+            model, cost, horizon=self.horizon, n_scenarios=1, slack_penalty=s.slack_penalty
+        )
         self.last_info: dict[str, Any] = {}
         self.rng = np.random.default_rng()
         self._init_estimator_loop()
@@ -288,9 +298,12 @@ class DoMpcAgent(EstimatorLoop, SB3Predict):
             The nominal branch's inputs ``u`` ``(N, nu)`` (its first row is the action), the
             objective of do-mpc's NLP, the total slack, IPOPT's status, the wall time of
             ``make_step`` [s], and ``predicted`` ``(2 nw + 1, N+1, nx)`` (the nominal branch
-            first); ``extra["branch_inputs"]`` ``(2 nw + 1, N, nu)``, ``extra["offsets"]``.
+            first); ``extra["branch_inputs"]`` ``(2 nw + 1, N, nu)``, ``extra["offsets"]``,
+            and the merits ``extra["merit"]``, ``extra["start_merit"]`` of the plan and of its
+            warm start (the exact-penalty objective of the nominal branch's inputs along
+            ``W``): a plan stopped early is usable when its merit is below its warm start's.
         """
-        mpc, N, nw = self.mpc, self.horizon, self.system.nw
+        mpc, N, nw = self.solver, self.horizon, self.system.nw
         x0 = np.asarray(x0, dtype=float).reshape(self.system.nx)
         W = np.asarray(W, dtype=float).reshape(N, nw)
         offsets = self.branch_offsets(force_std)
@@ -304,25 +317,42 @@ class DoMpcAgent(EstimatorLoop, SB3Predict):
             mpc.set_initial_guess()  # every state x0, every input the bounds' midpoint
             mpc.opt_x_num["_eps"] = 0.0
             self._guess_needed = False
+        start = self._branches()[0][0]  # the warm start's nominal inputs (do-mpc's own guess)
         t0 = time.perf_counter()
         with _quiet_do_mpc():
             mpc.make_step(x0)
         solve_time = time.perf_counter() - t0
         stats = mpc.solver_stats
         U, X, slack = self._branches()
-        objective = float(self._objective(mpc.opt_x_num, mpc.opt_p_num))
         success = bool(stats.get("success", False)) and bool(np.all(np.isfinite(U)))
+        merit, start_merit = self._merits(x0, W, U[0], start, success)
         return MPCSolution(
             u=U[0].copy(),
-            objective=objective,
+            objective=float(self._objective(mpc.opt_x_num, mpc.opt_p_num)),
             slack=slack,
             status=str(stats.get("return_status", "")),
             success=success,
             solve_time=solve_time,
             iterations=int(stats.get("iter_count", 0)),
             predicted=X,
-            extra={"branch_inputs": U, "offsets": offsets},
+            extra={
+                "branch_inputs": U,
+                "offsets": offsets,
+                "merit": merit,
+                "start_merit": start_merit,
+            },  # fmt: skip
+            usable=is_usable(success, merit, start_merit),
         )
+
+    def _merits(
+        self, x0: np.ndarray, W: np.ndarray, u: np.ndarray, start: np.ndarray, success: bool
+    ) -> tuple[float, float]:
+        """The merits of the plan's and of the warm start's nominal inputs (NaN: not needed,
+        the solve converged; or not finite)."""
+        if success or not (np.all(np.isfinite(u)) and np.all(np.isfinite(start))):
+            return math.nan, math.nan
+        clip = self.system.clip_input
+        return tuple(float(self._merit.objective(x0, W[None], clip(v))) for v in (u, start))
 
     def _branches(self) -> tuple[np.ndarray, np.ndarray, float]:
         """The solution's inputs ``(S, N, nu)`` and states ``(S, N+1, nx)`` of every branch
@@ -332,7 +362,7 @@ class DoMpcAgent(EstimatorLoop, SB3Predict):
         NLP, in no constraint), so every branch starts from it; the slacks in use are the
         first step's shared one and one per branch after it.
         """
-        opt, N, S = self.mpc.opt_x_num_unscaled, self.horizon, self.n_branches
+        opt, N, S = self.solver.opt_x_num_unscaled, self.horizon, self.n_branches
 
         def node(k: int, s: int) -> int:
             return 0 if k == 0 else s
@@ -358,7 +388,7 @@ class DoMpcAgent(EstimatorLoop, SB3Predict):
         self._u_prev = None
         self._plan = None
         self._guess_needed = True  # the episode's first solve starts from a fresh guess
-        self.mpc.reset_history()
+        self.solver.reset_history()
         self.last_info = {}
 
     def act(self, obs: Any) -> np.ndarray:
@@ -375,24 +405,11 @@ class DoMpcAgent(EstimatorLoop, SB3Predict):
         else:
             W = np.broadcast_to(info["latent_force"], (N, self.system.nw))
         sol = self.solve(x_hat, W, info["latent_force_std"])
-        u, fallback = self._choose_action(sol, x_hat)
+        self._x_hat = x_hat
+        u, fallback = self._choose_action(sol)
         self._u_prev = u
-        info.update(
-            solve_time=sol.solve_time,
-            estimate_time=t_est,
-            status=sol.status,
-            success=bool(sol.success),
-            iterations=int(sol.iterations),
-            solver_extra={"offsets": sol.extra["offsets"].copy()},
-            slack=float(sol.slack),
-            objective=float(sol.objective),
-            fallback=fallback,
-            plan=sol.u.copy(),
-            predicted=sol.predicted,
-            branch_inputs=sol.extra["branch_inputs"],
-            x0=x_hat.copy(),
-            W=np.array(W, dtype=float),
-        )
+        info.update(self._solve_info(sol, t_est, fallback, x_hat, W))
+        info["branch_inputs"] = sol.extra["branch_inputs"]
         self.last_info = info
         return u
 
@@ -401,18 +418,6 @@ class DoMpcAgent(EstimatorLoop, SB3Predict):
     def _estimate(self, y: np.ndarray) -> dict[str, Any]:
         """Estimator step (:class:`~controllers.agents.estimation.EstimatorLoop`)."""
         return self._estimator_step(y)[0]
-
-    def _choose_action(self, sol: MPCSolution, x_hat: np.ndarray) -> tuple[np.ndarray, str]:
-        """As the project's agents: the first input of a good plan; otherwise the previous
-        (nominal) plan shifted, or the system's fallback at the state estimate."""
-        if sol.success:
-            self._plan = self.system.clip_input(sol.u)
-            return self._plan[0].copy(), ""
-        if self._plan is not None and len(self._plan) > 1:
-            self._plan = self._plan[1:]
-            return self._plan[0].copy(), "previous_plan"
-        self._plan = None
-        return self.system.fallback(x_hat, self.model.dt), "fallback"
 
 
 def make_dompc_agent(config: Any) -> DoMpcAgent:

@@ -4,7 +4,7 @@ Every agent has ``reset(seed=None)``, ``act(obs) -> action`` and ``last_info`` (
 solve time [s], solver status, iterations, slack, state estimate and its standard
 deviation, latent-force estimate, the plan and the predicted trajectories). An agent is
 built from a :class:`~lfm_env.model.LatentForceModel` (its belief about the world: the
-system, the latent force's kernel, the noise), a :class:`~lfm_env.system.QuadraticCost`,
+system, the latent force's kernel, the noise), a :class:`~lfm_env.cost.QuadraticCost`,
 its :class:`~controllers.config.AgentConfig` and the std of the measurement noise of the
 full-state observation ``y = x + e``; every dimension is read from the model.
 
@@ -22,7 +22,7 @@ full-state observation ``y = x + e``; every dimension is read from the model.
   it reads the true state and the true future latent force from the env.
 
 With ``settings.prediction == "feedback"`` every agent's scenario problem is the feedback
-one (:mod:`controllers.feedback`): its solver (``make_solver`` on that problem,
+one (:mod:`controllers.feedback_law`): its solver (``make_solver`` on that problem,
 :class:`~controllers.solvers.feedback.FeedbackScenarioSolver`) keeps the reference plan (the
 nominal inputs of its last usable plan, shifted), computes the law from it at every step
 (at the first step, and after a solve without a usable plan, from an open-loop solve of the
@@ -55,12 +55,62 @@ from controllers.config import (
 from controllers.estimators.estimator import make_estimator
 from controllers.problem import MPCSolution, ScenarioProblem
 from controllers.solvers import make_solver
+from lfm_env.cost import QuadraticCost
 from lfm_env.model import LatentForceModel
-from lfm_env.system import QuadraticCost
 from lfm_env.validation import real_vector
 
 
-class MPCAgent(SB3Predict):
+class PlanChoice:
+    """What every MPC agent does with a solve (a mixin): the action it applies and the step's
+    ``last_info`` values of the solve. The agent owns ``self.system``, ``self.model`` (its
+    ``dt``) and ``self._x_hat`` (the step's state estimate) and keeps ``self._plan``."""
+
+    def _choose_action(self, sol: MPCSolution) -> tuple[np.ndarray, str]:
+        """First input of a usable plan (:attr:`MPCSolution.usable`: converged, or stopped
+        early below its warm start); otherwise the previous plan shifted, or the system's
+        fallback at the state estimate (the bicycle brakes to a standstill). The plan kept
+        is :attr:`MPCSolution.plan` (a feedback plan's nominal inputs)."""
+        if sol.usable:
+            self._plan = self.system.clip_input(sol.plan)
+            return self._plan[0].copy(), ""
+        if self._plan is not None and len(self._plan) > 1:
+            self._plan = self._plan[1:]
+            return self._plan[0].copy(), "previous_plan"
+        self._plan = None
+        return self.system.fallback(self._x_hat, self.model.dt), "fallback"
+
+    @staticmethod
+    def _solve_info(
+        sol: MPCSolution,
+        estimate_time: float,
+        fallback: str,
+        x0: Any,
+        W: Any,
+        backoff: np.ndarray | None = None,
+    ) -> dict[str, Any]:
+        """The ``last_info`` values of a solve: its times [s], status, success and usability,
+        iterations, statistics, slack, objective, the fallback used, the plan, the predicted
+        states and the solve's data (``x0``, ``W``, ``backoff``), copied."""
+        return {
+            "solve_time": sol.solve_time,
+            "estimate_time": estimate_time,
+            "status": sol.status,
+            "success": bool(sol.success),
+            "usable": bool(sol.usable),
+            "iterations": int(sol.iterations),
+            "solver_extra": dict(sol.extra or {}),
+            "slack": float(sol.slack),
+            "objective": float(sol.objective),
+            "fallback": fallback,
+            "plan": sol.plan.copy(),
+            "predicted": None if sol.predicted is None else sol.predicted.copy(),
+            "x0": np.asarray(x0, dtype=float).copy(),
+            "W": np.array(W, dtype=float),
+            "backoff": None if backoff is None else backoff.copy(),
+        }
+
+
+class MPCAgent(PlanChoice, SB3Predict):
     """Common receding-horizon loop: estimate, build scenarios, solve, apply ``u_0``.
 
     An :class:`~controllers.agents.protocol.Agent` with every ``last_info`` key, and with
@@ -110,7 +160,7 @@ class MPCAgent(SB3Predict):
         )
         # A solve that reaches max_solve_time fails, and _choose_action falls back.
         threads = self.settings.solver_threads
-        self.mpc = make_solver(
+        self.solver = make_solver(
             self.problem,
             self.settings.solver,
             max_iter=self.settings.max_iter,
@@ -128,7 +178,7 @@ class MPCAgent(SB3Predict):
     def reset(self, seed: int | None = None) -> None:
         """Start a new episode; ``seed`` fixes the agent's own randomness."""
         self.rng = np.random.default_rng(seed)
-        self.mpc.reset()
+        self.solver.reset()
         self._u_prev = None
         self._plan = None
         self._rti_ready = False
@@ -146,24 +196,8 @@ class MPCAgent(SB3Predict):
         sol, iterations = self._solve(x0, W, backoff)
         u, fallback = self._choose_action(sol)
         self._u_prev = u
-        info.update(
-            solve_time=sol.solve_time,
-            estimate_time=t_est,
-            status=sol.status,
-            success=bool(sol.success),
-            usable=bool(sol.usable),
-            iterations=int(sol.iterations),
-            solver_extra=dict(sol.extra or {}),
-            slack=float(sol.slack),
-            objective=float(sol.objective),
-            fallback=fallback,
-            sqp_iterations=iterations,
-            plan=sol.plan.copy(),
-            predicted=None if sol.predicted is None else sol.predicted.copy(),
-            x0=np.asarray(x0, dtype=float).copy(),
-            W=np.asarray(W).copy(),
-            backoff=None if backoff is None else backoff.copy(),
-        )
+        info.update(self._solve_info(sol, t_est, fallback, x0, W, backoff))
+        info["sqp_iterations"] = iterations
         self.last_info = info
         return u
 
@@ -180,34 +214,20 @@ class MPCAgent(SB3Predict):
         solves counted)."""
         kwargs = {} if backoff is None else {"backoff": backoff}
         if self.settings.iterations != "rti" or not self._rti_ready:
-            sol = self.mpc.solve(x0, W, **kwargs)
+            sol = self.solver.solve(x0, W, **kwargs)
             self._rti_ready = bool(sol.usable)
             return sol, "converged"
-        rti = self.mpc.solve(x0, W, iterations=self.settings.rti_iterations, **kwargs)
+        rti = self.solver.solve(x0, W, iterations=self.settings.rti_iterations, **kwargs)
         why = rti_step_problem(rti)
         if not why:
             return rti, "rti"
         if rti.law is not None:  # (a feedback plan: the same law, from the RTI iterate)
             kwargs["law"] = rti.law
-        sol = self.mpc.solve(x0, W, u_guess=rti.u, **kwargs)
+        sol = self.solver.solve(x0, W, u_guess=rti.u, **kwargs)
         sol.solve_time += rti.solve_time
         sol.iterations += rti.iterations
         self._rti_ready = bool(sol.usable)
         return sol, f"rti_fallback:{why}"
-
-    def _choose_action(self, sol: MPCSolution) -> tuple[np.ndarray, str]:
-        """First input of a usable plan (:attr:`MPCSolution.usable`: converged, or stopped
-        early below its warm start); otherwise the previous plan shifted, or the system's
-        fallback at the state estimate (the bicycle brakes to a standstill). The plan kept
-        is :attr:`MPCSolution.plan` (a feedback plan's nominal inputs)."""
-        if sol.usable:
-            self._plan = self.system.clip_input(sol.plan)
-            return self._plan[0].copy(), ""
-        if self._plan is not None and len(self._plan) > 1:
-            self._plan = self._plan[1:]
-            return self._plan[0].copy(), "previous_plan"
-        self._plan = None
-        return self.system.fallback(self._x_hat, self.model.dt), "fallback"
 
     def _backoff(self) -> np.ndarray | None:
         """Constraint tightening ``(ng,)`` for this solve; ``None`` for none (the default)."""
@@ -450,6 +470,7 @@ __all__ = [
     "rti_step_problem",
     "CertaintyEquivalentMPCAgent",
     "MPCAgent",
+    "PlanChoice",
     "NominalMPCAgent",
     "OracleMPCAgent",
     "ParticleScenarioMPCAgent",

@@ -11,7 +11,7 @@ the plan back. The rewrite is exact: its objective equals
 :meth:`ScenarioProblem.objective` with the law for every decision inside the input bounds.
 
 For any :class:`~lfm_env.system.ControlSystem` ``f(x, u, w)`` (``nx, nu, nw, ng``) and a
-:class:`~controllers.feedback.FeedbackLaw` ``(K, r)``:
+:class:`~controllers.feedback_law.FeedbackLaw` ``(K, r)``:
 
 * state ``x' = [x, y]`` (``nx + nu``): ``y_{k+1} = u_{s,k}``, the input scenario ``s``
   applied at step ``k`` (``y_0 = 0``);
@@ -45,7 +45,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from controllers.feedback import FeedbackLaw, feedback_law, nominal_inputs
+from controllers.feedback_law import FeedbackLaw, feedback_law, nominal_inputs
 from controllers.problem import EulerModel, MPCSolution, ScenarioProblem
 from lfm_env.cost import QuadraticCost
 from lfm_env.system import ControlSystem, split_unit
@@ -167,7 +167,7 @@ class FeedbackScenarioSolver:
     """A registered solver on a feedback problem (``make_solver`` builds it; module docstring).
 
     The law of a solve (:meth:`solve`'s ``law``) is, when not given, the TV-LQR of
-    :func:`~controllers.feedback.feedback_law` along a reference plan: ``u_guess`` when
+    :func:`~controllers.feedback_law.feedback_law` along a reference plan: ``u_guess`` when
     given, else the nominal inputs (:attr:`MPCSolution.nominal_u`) of this solver's last
     usable plan shifted by one step, else (first solve, after :meth:`reset` or after a
     solve without a usable plan) the plan of the same problem in open loop, solved first

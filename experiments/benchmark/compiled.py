@@ -151,7 +151,7 @@ def _robust_episode(config: Any, seed: int) -> dict[str, Any]:
     env = gym.make(getattr(config, "env_id", ENV_ID), config=config.env)
     agent = make_agent("robust", config)
     options = dataclasses.asdict(solver_options(agent.settings))
-    agent.mpc = make_solver(agent.problem, "fast", **options)
+    agent.solver = make_solver(agent.problem, "fast", **options)
     obs, _ = env.reset(seed=seed)
     agent.reset(seed=seed)
     ys, us, times = [], [], []

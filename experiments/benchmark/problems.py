@@ -53,7 +53,7 @@ def config_path(config: Any) -> Any:
     """A config as :func:`~controllers.config.load_config` takes it (a preset's name, a path,
     ...); a relative ``configs/NAME.yaml`` that is missing here (the repository's presets
     folder, named from another folder) is the preset ``NAME``."""
-    from lfm_env.config.compose import preset_path
+    from lfm_env.config.presets import preset_path
 
     if isinstance(config, (str, os.PathLike)) and not Path(config).is_file():
         path = Path(config)

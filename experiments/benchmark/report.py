@@ -1,4 +1,5 @@
-"""The benchmark's report: text, Markdown and JSON (the verdicts: :mod:`bench_targets`).
+"""The benchmark's report: text, Markdown and JSON (the verdicts:
+:mod:`experiments.benchmark.targets`).
 
 :func:`format_report` prints the speed table, the detailed tables (closed loop, horizons,
 scenario sweep, first solve, filter, episode), every failed solve and the targets;

@@ -39,7 +39,7 @@ SOLVER_LABELS = {
 FAST_SOLVERS = ("fast", "fast_c")  # timed again alone, without IPOPT in between
 # Variants of a registered solver with options, by the name the tables give them: the fast
 # solver with its C library on two threads (FastSolverOptions.threads), timed in the
-# scenario sweep (bench_suites.sweep_scenarios).
+# scenario sweep (experiments.benchmark.suites.sweep_scenarios).
 SOLVER_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "fast_2threads": ("fast", {"threads": 2}),
 }

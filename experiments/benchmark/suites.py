@@ -65,8 +65,8 @@ HORIZON_SOLVERS = ("fast", "ipopt")  # the second is the objective reference
 HORIZON_MAX_TIME_S = {"fast": 10.0, "ipopt": 30.0}
 SWEEP_SOLVERS = ("fast", "fast_c")  # timed at every Ns
 # Timed from this Ns on, and at the largest Ns of a shorter sweep: the solver variants
-# (bench_solvers.SOLVER_VARIANTS; the fast solver's C library on two threads, which pays for
-# many scenarios).
+# (experiments.benchmark.solvers.SOLVER_VARIANTS; the fast solver's C library on two threads,
+# which pays for many scenarios).
 SWEEP_VARIANTS_MIN_NS = 500
 SWEEP_REFERENCE = "ipopt"  # timed, and the objective reference, up to ipopt_max_ns
 SWEEP_IPOPT_MAX_NS = 150

@@ -12,9 +12,10 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from controllers.config import DEFAULT_PRESET
 from experiments.evaluation.interrupts import remember_interrupts
 from lfm_env.config import ConfigError
-from lfm_env.config.compose import DEFAULT_PRESET, PRESETS_PACKAGE, config_path, preset_names
+from lfm_env.config.presets import PRESETS_PACKAGE, config_path, preset_names
 
 
 def os_error_text(exc: OSError) -> str:
@@ -88,11 +89,10 @@ def positive_int(text: str) -> int:
 def config_file(given: str | os.PathLike | None) -> Path:
     """The config file of a ``--config`` value: a path to a YAML file, or a preset's name.
 
-    Every command with ``--config`` resolves it here, through the one resolver of every
-    function that takes a config (:func:`lfm_env.config.compose.config_path`): a path that
-    names an existing file wins; otherwise ``given`` is looked up among the presets shipped
-    in the package (``paper``, ``quick``, ``quadrotor``, with or without ``.yaml``), from
-    any folder.
+    Every command with ``--config`` finds its file here, as every function that takes a
+    config does (:func:`lfm_env.config.presets.config_path`): a path that names an existing
+    file wins; otherwise ``given`` is looked up among the presets shipped in the package
+    (``paper``, ``quick``, ``quadrotor``, with or without ``.yaml``), from any folder.
 
     Args:
         given: the option's value; ``None`` for the default preset (``paper``).
@@ -101,7 +101,7 @@ def config_file(given: str | os.PathLike | None) -> Path:
         ValueError: naming ``given`` and the preset names, if it is neither.
     """
     try:
-        return config_path(given)
+        return config_path(DEFAULT_PRESET if given is None else given)
     except ConfigError:
         raise ValueError(
             f"--config {str(given)[:200]}: no such file and no preset of that name; presets: "
@@ -144,7 +144,7 @@ def add_set_argument(parser: argparse.ArgumentParser) -> None:
     """``--set KEY=VALUE`` (repeatable): a field of the config, set on top of ``--config``."""
     parser.add_argument(
         "--set",
-        dest="settings",
+        dest="overrides",
         action="append",
         default=[],
         metavar="KEY=VALUE",
@@ -160,7 +160,7 @@ def add_set_argument(parser: argparse.ArgumentParser) -> None:
 def config_argument(
     parser: argparse.ArgumentParser, args: argparse.Namespace, agents: Sequence[str] = ()
 ) -> tuple[Path, object]:
-    """The ``--config`` file and the config it gives with the ``--set`` settings applied
+    """The ``--config`` file and the config it gives with the ``--set`` overrides applied
     (an :class:`~controllers.config.ExperimentConfig`, checked for ``agents``); exits 2
     with one line naming the field otherwise."""
     from experiments.evaluation import resolve_config
@@ -169,7 +169,7 @@ def config_argument(
     try:
         from controllers.config import load_config
 
-        config = resolve_config(load_config(path, getattr(args, "settings", ())), agents)
+        config = resolve_config(load_config(path, getattr(args, "overrides", ())), agents)
     except ValueError as exc:  # ConfigError: the loaders name the key
         parser.error(" ".join(str(exc).split()))
     return path, config

@@ -100,7 +100,7 @@ def _render_episode(
     config: object, agent_name: str, seed: int, max_steps: int | None, size: tuple[int, int]
 ) -> tuple[list, float]:
     """Frames ``(H, W, 3)`` of one episode rendered step by step, and ``dt`` [s]."""
-    from controllers.agents import AGENT_REGISTRY, make_agent
+    from controllers.agents import agent_spec
     from experiments.evaluation.run import agent_seed, resolve_config
     from experiments.plots.replay import annotate_frame, make_render_env, world_draws
 
@@ -110,8 +110,8 @@ def _render_episode(
     # The same drawing options as the report's replay (experiments.plots.replay.replay_frames).
     env = make_render_env(cfg, screen_size=size)  # each world's own view
     try:
-        reads_truth = AGENT_REGISTRY[agent_name].reads_truth
-        agent = make_agent(agent_name, cfg, env=env if reads_truth else None)
+        spec = agent_spec(agent_name)
+        agent = spec.build(cfg, env=env if spec.reads_truth else None)
         dt = env.unwrapped.model.dt
         obs, info = env.reset(seed=seed)
         agent.reset(seed=agent_seed(seed, agent_name))

@@ -16,7 +16,7 @@ files written (DIR is the results folder):
                                    at four steps), across-seed plots
   DIR/figures/episode.gif          the episode replayed from its saved true states, with
                                    the estimate and the scenario fan below the scene
-  DIR/figures/estimator_calibration.png   coverage and RMSE of the filtering agents
+  DIR/figures/estimator_coverage.png      coverage and RMSE of the filtering agents
   DIR/figures/sweep.png            the risk sweep's Pareto picture (with --sweep, or
                                    when DIR holds a sweep.md of lfm-sweep)
 

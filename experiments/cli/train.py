@@ -97,7 +97,7 @@ def train_main(argv: Sequence[str] | None = None) -> int:
         check_training_arguments(
             args.algo, args.timesteps, args.minutes, args.n_envs, args.cost_weight
         )
-        config = load_config(path, args.settings)
+        config = load_config(path, args.overrides)
     except ValueError as exc:
         parser.error(" ".join(str(exc).split()))
     for name in (POLICY_FILE, EVAL_CONFIG_FILE):  # before the training, not after it

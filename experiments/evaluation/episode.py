@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 import re
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -21,13 +22,8 @@ import numpy as np
 
 import lfm_env  # noqa: F401  (registers the envs, also in spawned workers)
 from controllers.agents.protocol import INFO_DEFAULTS, last_info
-from controllers.agents.registry import AGENT_REGISTRY, check_agent_config, make_agent
+from controllers.agents.registry import AgentSpec, resolve_agents
 from controllers.config import ExperimentConfig, load_config
-from experiments.evaluation.agent_lookup import (
-    OwnAgentSpec,
-    resolve_agents,
-)
-from experiments.evaluation.agent_lookup import agent_name as name_of
 from experiments.evaluation.columns import (
     _metric_columns,
     group_columns,
@@ -37,6 +33,7 @@ from experiments.evaluation.columns import (
 from experiments.evaluation.interrupts import raise_if_interrupted
 from experiments.evaluation.limits import check_deadline
 from lfm_env.config import show_value
+from lfm_env.validation import one_line, real_vector
 
 # --------------------------------------------------------------------------- small helpers
 
@@ -54,26 +51,26 @@ def agent_seed(seed: int, agent_name: str) -> int:
 
 
 def resolve_config(
-    config: Any = None, agent_names: Iterable[str | OwnAgentSpec] = ()
+    config: ExperimentConfig | str | os.PathLike | dict | None = None, agents: Any = ()
 ) -> ExperimentConfig:
-    """The full config, read and validated once: workers get this object, not a path.
+    """The full config, resolved once (:func:`~controllers.config.load_config`) and checked
+    for the agents that will run on it: workers get this object, not a path.
 
     Args:
-        config: a YAML path, a dict (whole file), an
-            :class:`~controllers.config.ExperimentConfig`, or ``None`` for the built-in
-            defaults (the paper's values). Missing keys take their defaults.
-        agent_names: agents that will run on it; what each registered agent needs is
-            checked too (user agents,
-            :class:`~experiments.evaluation.agent_lookup.OwnAgentSpec`, are checked by
-            building one: :func:`~experiments.evaluation.agent_lookup.check_agent`).
+        config: an :class:`~controllers.config.ExperimentConfig`, a preset's name, a YAML
+            path, a dict (whole file), or ``None`` for the built-in defaults (the paper's
+            values). Missing keys take their defaults.
+        agents: the agents that will run on it (names or records,
+            :func:`~controllers.agents.registry.resolve_agents`); what each needs is checked
+            (:meth:`~controllers.agents.registry.AgentSpec.check_config`: a user's agent is
+            built once).
 
     Raises:
         ConfigError: (a ``ValueError``) for unknown keys or out-of-range values.
     """
-    resolved = load_config(config)
-    for name in agent_names:
-        if isinstance(name, str):
-            check_agent_config(name, resolved)
+    resolved = config if isinstance(config, ExperimentConfig) else load_config(config)
+    for spec in resolve_agents(list(agents)) if agents else ():
+        spec.check_config(resolved)
     return resolved
 
 
@@ -141,12 +138,6 @@ def check_seeds(seeds: int | str | Iterable[int]) -> list[int]:
     if len(set(out)) != len(out):
         raise ValueError(f"seeds: {out} holds duplicates")
     return out
-
-
-def _one_line(exc: BaseException) -> str:
-    """``"Type: message"`` on one line, so the error fits a CSV cell and a log line."""
-    msg = " ".join(str(exc).split())
-    return f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__
 
 
 # --------------------------------------------------------------------------- one episode
@@ -267,7 +258,7 @@ class _EpisodeRecorder:
             except (TypeError, ValueError, IndexError) as exc:
                 raise ValueError(
                     f"last_info[{key!r}] of the agent is {show_value(agent_info.get(key))}: "
-                    f"{_one_line(exc)} (expected {INFO_EXPECTED.get(key, 'see AgentInfo')}; "
+                    f"{one_line(exc)} (expected {INFO_EXPECTED.get(key, 'see AgentInfo')}; "
                     "controllers.agents.protocol.AgentInfo)"
                 ) from None
 
@@ -323,12 +314,17 @@ class _EpisodeRecorder:
         if est is None:
             est = np.full(width, np.nan)
         else:
-            est = checked("estimate", lambda: _vector(est, width if previous else None))
+            est = checked(
+                "estimate",
+                lambda: real_vector(est, width if previous else None, "estimate", finite=False),
+            )
         std = agent_info.get("estimate_std")
         if std is None:
             std = np.full(est.shape, np.nan)
         else:
-            std = checked("estimate_std", lambda: _vector(std, est.size))
+            std = checked(
+                "estimate_std", lambda: real_vector(std, est.size, "estimate_std", finite=False)
+            )
         return est, std
 
     def _fan(self) -> np.ndarray:
@@ -400,29 +396,13 @@ INFO_EXPECTED = {
 }
 
 
-def _vector(value: Any, size: int | None) -> np.ndarray:
-    """``value`` as a new 1-D float array (of ``size`` entries when given)."""
-    a = np.array(value, dtype=float)
-    if a.ndim != 1 or (size is not None and a.size != size):
-        shown = "" if size is None else f" of {size} entries"
-        raise ValueError(f"shape {a.shape}, not a vector{shown}")
-    return a
-
-
-def _simulate(
-    agent_spec: str | OwnAgentSpec, config: ExperimentConfig, seed: int, rec: _EpisodeRecorder
-) -> None:
+def _simulate(spec: AgentSpec, config: ExperimentConfig, seed: int, rec: _EpisodeRecorder) -> None:
     """Run one episode into ``rec``; exceptions propagate with ``rec`` holding the steps done."""
-    name = name_of(agent_spec)
     env = gym.make(config.env_id, config=config.env)
     try:
         obs, info = env.reset(seed=seed)
-        if isinstance(agent_spec, OwnAgentSpec):
-            agent = agent_spec.build(config)
-        else:
-            reads_truth = AGENT_REGISTRY[name].reads_truth  # the oracle: an upper bound
-            agent = make_agent(name, config, env=env if reads_truth else None)
-        agent.reset(seed=agent_seed(seed, name))
+        agent = spec.build(config, env=env if spec.reads_truth else None)  # the oracle's truth
+        agent.reset(seed=agent_seed(seed, spec.name))
         rec.start(obs, info)
         terminated = truncated = False
         while not (terminated or truncated):
@@ -505,7 +485,7 @@ def run_episode(
     Args:
         agent: a registered name (``"nominal"``, ``"pf"``, ``"scenario"``, ``"oracle"``,
             ...), an agent factory called as ``factory(config)``, an agent, or
-            ``"module:attribute"`` (:mod:`experiments.evaluation.agent_lookup`; the row's ``agent``
+            ``"module:attribute"`` (:mod:`controllers.agents.registry`; the row's ``agent``
             is the agent's name there).
         config: a YAML path, a dict (whole file), an ``ExperimentConfig`` or ``None``
             (paper defaults).
@@ -546,7 +526,7 @@ def run_episode(
     rec = _EpisodeRecorder(cfg)
     _simulate(spec, cfg, seed, rec)
     arrays = rec.arrays()
-    row = {"agent": name_of(spec), "seed": seed, **_episode_metrics(rec, arrays)}
+    row = {"agent": spec.name, "seed": seed, **_episode_metrics(rec, arrays)}
     row.update(wall_time=time.perf_counter() - t0, error="")
     return {c: row[c] for c in rec.columns}, (arrays if record else {})
 

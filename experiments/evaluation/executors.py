@@ -25,6 +25,8 @@ import distributed
 from distributed.http.routing import RoutingApplication
 from tornado.httpserver import HTTPServer
 
+from lfm_env.validation import one_line
+
 
 class _NoHttpServer:
     """Mixin: a Dask server whose HTTP application is built but never listens."""
@@ -52,11 +54,6 @@ class QuietWorker(_NoHttpServer, distributed.Worker):
         if threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGINT, signal.SIG_IGN)
         super().__init__(*args, **kwargs)
-
-
-def _one_line(exc: BaseException) -> str:
-    msg = " ".join(str(exc).split())
-    return f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__
 
 
 def check_scheduler(
@@ -95,8 +92,7 @@ def check_scheduler(
         ) from exc
     except Exception as exc:
         raise ConnectionError(
-            f"cannot reach the Dask scheduler at {address!r} within {timeout:g} s "
-            f"({_one_line(exc)})"
+            f"cannot reach the Dask scheduler at {address!r} within {timeout:g} s ({one_line(exc)})"
         ) from exc
     if not isinstance(reply, dict) or not str(reply.get("type", "")).endswith("Scheduler"):
         raise ConnectionError(f"{address!r} answers, but not as a Dask scheduler")

@@ -41,7 +41,7 @@ errors raised inside its type conversions) still stops the run.
 
 Agents are registered names, or a user's own agents
 (:class:`controllers.agents.protocol.Agent`) given as factories, agent objects or
-``"module:attribute"`` (:mod:`experiments.evaluation.agent_lookup`); an agent's
+``"module:attribute"`` (:mod:`controllers.agents.registry`); an agent's
 ``last_info`` keys are all optional, read with their documented defaults.
 
 Runs are serial (``jobs=1``), on local processes (``jobs > 1``,
@@ -84,14 +84,8 @@ from pathlib import Path
 from typing import Any
 
 import lfm_env  # noqa: F401  (registers the envs, also in spawned workers)
+from controllers.agents.registry import AgentSpec, resolve_agents
 from controllers.config import ExperimentConfig
-from experiments.evaluation.agent_lookup import (
-    OwnAgentSpec,
-    check_agent,
-    check_picklable,
-    resolve_agents,
-)
-from experiments.evaluation.agent_lookup import agent_name as name_of
 from experiments.evaluation.columns import (
     HEAD_COLUMNS,
     TAIL_COLUMNS,
@@ -106,7 +100,6 @@ from experiments.evaluation.episode import (
     MAX_SEEDS,
     SAVED_SCENARIOS,
     _error_row,
-    _one_line,
     agent_seed,
     check_seeds,
     parse_seeds,
@@ -135,7 +128,8 @@ from experiments.evaluation.storage import (
     warnings_once,
     write_table,
 )
-from experiments.evaluation.task import _episode_task
+from experiments.evaluation.task import _episode_task, check_picklable
+from lfm_env.validation import one_line
 
 _SCHEDULER_TIMEOUT = 5.0  # [s] to connect to a Dask scheduler AND hear it answer as one
 _TABLE_REFRESH = 10.0  # [s] least time between rebuilds of episodes.csv during a run
@@ -161,7 +155,7 @@ def _connect_dask(scheduler: str | None, dask_workers: int | None, stack: Any):
         except Exception as exc:  # OSError or TimeoutError, depending on the failure
             raise ConnectionError(
                 f"cannot reach the Dask scheduler at {scheduler!r} within "
-                f"{_SCHEDULER_TIMEOUT:g} s ({_one_line(exc)})"
+                f"{_SCHEDULER_TIMEOUT:g} s ({one_line(exc)})"
             ) from exc
         return stack.enter_context(client)
     # Loopback only, mutual TLS with a temporary certificate, no HTTP endpoint.
@@ -190,7 +184,7 @@ def evaluate(
             ``"scenario"``, ``"oracle"``; the oracle is an upper bound that reads the
             hidden truth), an agent factory called as ``factory(config)`` with the
             resolved :class:`~controllers.config.ExperimentConfig`, an agent object, or
-            ``"module:attribute"`` of a factory (:mod:`experiments.evaluation.agent_lookup`: how
+            ``"module:attribute"`` of a factory (:mod:`controllers.agents.registry`: how
             they are named, and what ``jobs > 1`` and Dask need); or one comma list of
             names and ``module:attribute`` texts. A user agent follows
             :class:`controllers.agents.protocol.Agent`; it is built once before any episode,
@@ -271,12 +265,12 @@ def _checked_arguments(
     jobs: int,
     scheduler: str | None,
     dask_workers: int | None,
-) -> tuple[list[str | OwnAgentSpec], list[int], ExperimentConfig, tuple[str, ...]]:
+) -> tuple[list[AgentSpec], list[int], ExperimentConfig, tuple[str, ...]]:
     """The run's agents, seeds, config and table columns, every argument checked (and
     every user agent built once) before any episode runs."""
     specs = resolve_agents(agents)
     seed_list = check_seeds(seeds)
-    cfg = resolve_config(config, specs)
+    cfg = resolve_config(config, specs)  # every agent checked on it (a user's built once)
     columns = row_columns(cfg.make_system())
     modes = sum([jobs != 1, scheduler is not None, dask_workers is not None])
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
@@ -287,10 +281,9 @@ def _checked_arguments(
         raise ValueError(f"dask_workers={dask_workers!r}: must be an integer >= 1")
     if modes > 1:
         raise ValueError("choose one of jobs > 1, scheduler and dask_workers")
-    for spec in specs:
-        if jobs > 1 or scheduler is not None or dask_workers is not None:
+    if jobs > 1 or scheduler is not None or dask_workers is not None:
+        for spec in specs:
             check_picklable(spec, "pool" if jobs > 1 else "dask")
-        check_agent(spec, cfg)
     return specs, seed_list, cfg, columns
 
 
@@ -300,7 +293,7 @@ class _Run:
 
     def __init__(
         self,
-        specs: Sequence[str | OwnAgentSpec],
+        specs: Sequence[AgentSpec],
         seeds: Sequence[int],
         cfg: ExperimentConfig,
         columns: Sequence[str],
@@ -309,7 +302,7 @@ class _Run:
         retry_failed: bool,
         limit: float | None = None,
     ) -> None:
-        names = [name_of(a) for a in specs]
+        names = [a.name for a in specs]
         self.spec_of = dict(zip(names, specs, strict=True))
         # Seed-major order: an interrupted run leaves complete pairs of agents per seed.
         self.pairs = [(a, s) for s in seeds for a in names]
@@ -421,7 +414,7 @@ def _run_on_dask(run: _Run, client: Any, todo: Sequence[tuple[str, int]]) -> Non
                 a, s = futures[fut]
                 text = (
                     f"WorkerDied: the Dask workers running agent {a!r}, seed {s} died "
-                    f"({_one_line(exc)})"
+                    f"({one_line(exc)})"
                 )
                 row = run.lost(futures[fut], text, "".join(traceback.format_exception(exc)))
             run.done(futures[fut], row)

@@ -41,11 +41,11 @@ from experiments.evaluation.columns import (
     row_columns,
 )
 from experiments.evaluation.episode import (
-    _one_line,
     agent_seed,
     resolve_config,
 )
 from lfm_env.config import load_yaml
+from lfm_env.validation import one_line
 
 _EPISODES = "episodes"
 _TABLE = "episodes.csv"
@@ -189,28 +189,19 @@ def _read_record(path: Path) -> dict[str, Any]:
     try:
         record = json.loads(path.read_text())
     except (OSError, ValueError) as exc:
-        raise DamagedEpisodeError(f"episode file {str(path)!r}: {_one_line(exc)}") from exc
+        raise DamagedEpisodeError(f"episode file {str(path)!r}: {one_line(exc)}") from exc
     if not isinstance(record, dict) or "agent" not in record or "seed" not in record:
         raise DamagedEpisodeError(f"episode file {str(path)!r}: not an episode record")
     try:
         stem = episode_stem(str(record["agent"]), int(record["seed"]))
         row = _normalise_row(record)
     except (TypeError, ValueError) as exc:
-        raise DamagedEpisodeError(f"episode file {str(path)!r}: {_one_line(exc)}") from exc
+        raise DamagedEpisodeError(f"episode file {str(path)!r}: {one_line(exc)}") from exc
     if path.name != f"{stem}.json":
         raise DamagedEpisodeError(
             f"episode file {str(path)!r} holds the row of {stem} (a copy or a renamed file)"
         )
     return {**row, **{k: record.get(k) for k in _JSON_EXTRAS}}
-
-
-def _read_row(path: Path) -> dict[str, Any] | None:
-    """The row of an episode json, or ``None`` if it is missing or damaged."""
-    try:
-        record = _read_record(path)
-    except DamagedEpisodeError:
-        return None
-    return {k: v for k, v in record.items() if k not in _JSON_EXTRAS}
 
 
 # The warnings printed in the current warnings_once() scope (innermost last).
@@ -277,7 +268,7 @@ def load_trajectory(out: str | os.PathLike, agent_name: str, seed: int) -> dict[
         with np.load(path, allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise DamagedEpisodeError(f"episode file {str(path)!r}: {_one_line(exc)}") from exc
+        raise DamagedEpisodeError(f"episode file {str(path)!r}: {one_line(exc)}") from exc
     # Episodes saved before 0.2 call the true force "disturbance".
     if "disturbance" in arrays and "latent_force" not in arrays:
         arrays["latent_force"] = arrays.pop("disturbance")

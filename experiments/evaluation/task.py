@@ -8,32 +8,32 @@ same function; :mod:`experiments.evaluation.run` hands it out.
 from __future__ import annotations
 
 import os
+import pickle
 import sys
 import time
 import traceback
 from collections.abc import Sequence
 from typing import Any
 
+from controllers.agents.registry import AgentSpec, AgentSpecError
 from controllers.config import ExperimentConfig
-from experiments.evaluation.agent_lookup import OwnAgentSpec
-from experiments.evaluation.agent_lookup import agent_name as name_of
 from experiments.evaluation.episode import (
     _episode_metrics,
     _EpisodeRecorder,
     _error_row,
-    _one_line,
     _simulate,
 )
 from experiments.evaluation.interrupts import raise_if_interrupted
 from experiments.evaluation.limits import EpisodeLimit, EpisodeTimeout, timeout_text
 from experiments.evaluation.storage import save_episode, stuck_row, write_table
+from lfm_env.validation import one_line
 
 #: The exit code of a process whose episode is stuck past its limit (module docstring).
 EXIT_STUCK = 1
 
 
 def _episode_task(
-    agent: str | OwnAgentSpec,
+    agent: AgentSpec,
     config: ExperimentConfig,
     seed: int,
     out: str | None,
@@ -46,8 +46,8 @@ def _episode_task(
     """Run and save one episode; never raises for an error of the episode itself.
 
     Top-level (picklable by reference) so process pools and Dask workers can run it; the
-    resolved config travels with the task, so workers parse nothing. ``agent`` is a
-    registered name or a user agent's :class:`~experiments.evaluation.agent_lookup.OwnAgentSpec`.
+    resolved config travels with the task, so workers parse nothing. ``agent`` is the agent's
+    record (:class:`~controllers.agents.registry.AgentSpec`, a registered agent's or a user's).
 
     Any exception of the episode (``SystemExit`` and any other ``BaseException`` too) is
     its error row; only Ctrl-C (``KeyboardInterrupt``) propagates, in a serial
@@ -59,7 +59,7 @@ def _episode_task(
     run's ``token``, and the worker ends; the task, run again elsewhere, returns that row)
     or ``""`` (a pool worker: its parent stops it).
     """
-    name = name_of(agent)
+    name = agent.name
     if token and out is not None:
         saved = stuck_row(out, name, seed, token)
         if saved is not None:  # this episode got stuck in this run, in a worker it ended
@@ -97,7 +97,7 @@ def _failed_episode(
     exception is being handled."""
     exc = sys.exc_info()[1]
     tb = traceback.format_exc()
-    text = timeout_text(limit) if isinstance(exc, EpisodeTimeout) else _one_line(exc)
+    text = timeout_text(limit) if isinstance(exc, EpisodeTimeout) else one_line(exc)
     row = _error_row(name, seed, text, time.perf_counter() - t0, rec.columns)
     try:
         arrays = rec.arrays()  # the steps done before the error, for debugging
@@ -151,3 +151,40 @@ class _StuckEpisode:
             flush=True,
         )
         os._exit(EXIT_STUCK)
+
+
+def check_picklable(agent: AgentSpec, how: str) -> None:
+    """Refuse a user's agent that cannot travel to the workers of ``how``.
+
+    Args:
+        agent: a resolved agent.
+        how: ``"pool"`` (spawned processes: :mod:`pickle`, by reference) or ``"dask"``
+            (``cloudpickle``, which also sends lambdas and ``__main__`` code by value).
+
+    Raises:
+        AgentSpecError: naming the agent and why.
+    """
+    if agent.factory is None or isinstance(agent.factory, str):
+        return
+    if how == "dask":
+        import cloudpickle
+
+        dumps = cloudpickle.dumps
+    else:
+        dumps = pickle.dumps
+    try:
+        dumps(agent)
+    except Exception as exc:
+        raise AgentSpecError(
+            f"agent {agent.text!r}: cannot be sent to worker processes ({one_line(exc)}); "
+            "define the factory at the top level of an importable module and pass it or "
+            "'module:attribute', or run with jobs=1"
+        ) from exc
+    module = getattr(agent.factory, "__module__", None) or type(agent.factory).__module__
+    main = sys.modules.get("__main__")
+    if how == "pool" and module == "__main__" and not getattr(main, "__file__", None):
+        raise AgentSpecError(
+            f"agent {agent.text!r}: defined in an interactive session, which spawned "
+            "workers cannot import; put it in a module and pass 'module:attribute', or "
+            "run with jobs=1"
+        )

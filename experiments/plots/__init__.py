@@ -33,7 +33,7 @@ from experiments.plots.style import (
     unit_of,
 )
 from experiments.plots.summary import (
-    calibration_figure,
+    coverage_figure,
     distribution_axes,
     metric_distributions_figure,
     pareto_figure,
@@ -44,7 +44,7 @@ from experiments.plots.summary import (
 __all__ = [
     "agent_colour",
     "annotate_frame",
-    "calibration_figure",
+    "coverage_figure",
     "constraint_dependencies",
     "constraint_excess_figure",
     "constraints_on",

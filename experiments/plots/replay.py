@@ -38,8 +38,8 @@ def _world(config: Any) -> tuple[str, Any]:
     env_id = getattr(config, "ENV_ID", "")
     if not env_id:
         raise ValueError(
-            f"config of type {type(config).__name__}: expected an ExperimentConfig or a world "
-            "config (e.g. lfm_env.config.SineTrackConfig) that names its env (ENV_ID)"
+            f"config of type {type(config).__name__}: expected an ExperimentConfig or a "
+            "registered world's config (e.g. a SineTrackConfig) that names its env (ENV_ID)"
         )
     return env_id, config
 

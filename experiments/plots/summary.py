@@ -1,5 +1,5 @@
 """Across-seed figures: metric distributions per agent, solve times, estimator
-calibration and the risk sweep's Pareto picture.
+coverage and the risk sweep's Pareto picture.
 """
 
 from __future__ import annotations
@@ -149,7 +149,7 @@ def _interval_errors(values: np.ndarray) -> np.ndarray:
     return np.vstack([v[:, 0] - v[:, 1], v[:, 2] - v[:, 0]])
 
 
-def calibration_figure(
+def coverage_figure(
     quantities: Sequence[str],
     agents: Mapping[str, str],
     coverage: np.ndarray,
@@ -188,7 +188,7 @@ def calibration_figure(
     axes[0, 0].set_ylabel(f"2-sigma coverage\n(dashed: {nominal:g})", fontsize=8)
     handles = [Patch(color=c, alpha=0.8, label=a) for a, c in agents.items()]
     fig.legend(handles=handles, loc="outside lower center", ncols=min(len(labels), 4), fontsize=8)
-    fig.suptitle("Estimator calibration (bars: pooled over steps; whiskers: 95% over episodes)")
+    fig.suptitle("Estimator coverage (bars: pooled over steps; whiskers: 95% over episodes)")
     return fig
 
 

@@ -19,7 +19,7 @@ agent survived after which the true state violated the group (excess above 0), p
 episodes with a bootstrap over whole episodes. It is the probability the chance
 constraint bounds at the plan's first step, averaged over the states met.
 
-**Offline, every k** (:func:`plan_violations`, :func:`offline_calibration`): for each saved
+**Offline, every k** (:func:`plan_violations`, :func:`offline_violations`): for each saved
 step with a plan that was applied (``plan[k]`` of the trajectory, no fallback), the plan is
 rolled out open loop from the true state under :data:`DRAWS` draws of the true force's
 conditional law given the env's hidden latent state (the truth the evaluation recorded in
@@ -43,7 +43,7 @@ from scipy import optimize, special
 
 from controllers.agents.mpc import RobustMPCAgent
 from controllers.agents.registry import AGENT_REGISTRY
-from controllers.config import ExperimentConfig, load_config
+from controllers.config import ExperimentConfig
 from experiments.evaluation.episode import agent_seed
 from experiments.plots.chance import chance_figure
 from experiments.plots.style import agent_colour, save_figure
@@ -186,11 +186,11 @@ def plan_violations(
     return per_group, joint
 
 
-# --------------------------------------------------------------------------- calibration
+# --------------------------------------------------------------------------- the check
 
 
 @dataclass(frozen=True)
-class ChanceCalibration:
+class ChanceCheck:
     """One agent's violation probabilities beside its design.
 
     ``closed_loop[g]``: the closed-loop probability of group ``g`` at step 1 (all steps
@@ -234,7 +234,7 @@ def _applied_plans(traj: dict[str, np.ndarray]) -> np.ndarray:
     return np.flatnonzero(ok)
 
 
-def offline_calibration(
+def offline_violations(
     results: Results, agent: str, model: LatentForceModel, n_draws: int = DRAWS
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """The offline sums of one agent's error-free episodes with saved plans.
@@ -271,9 +271,9 @@ def offline_calibration(
     return np.array(sums_g), np.array(sums_j), np.array(used, dtype=float), slack
 
 
-def chance_calibration(results: Results, n_draws: int = DRAWS) -> list[ChanceCalibration]:
+def chance_check(results: Results, n_draws: int = DRAWS) -> list[ChanceCheck]:
     """Every agent's closed-loop and offline violation probabilities beside its design."""
-    config = load_config(results.directory / "config.yaml")
+    config = results.experiment
     truth = results.config.make_model()  # the env's own force and noise: the truth
     groups = tuple(results.system.constraint_groups)
     out = []
@@ -282,7 +282,7 @@ def chance_calibration(results: Results, n_draws: int = DRAWS) -> list[ChanceCal
         if not rows:
             continue
         closed = tuple(closed_loop_first_step(rows, g) for g in groups)
-        sums_g, sums_j, used, slack = offline_calibration(results, agent, truth, n_draws)
+        sums_g, sums_j, used, slack = offline_violations(results, agent, truth, n_draws)
         offline: tuple[tuple[Estimate, ...], ...] = ()
         joint: tuple[Estimate, ...] = ()
         if len(used):
@@ -294,7 +294,7 @@ def chance_calibration(results: Results, n_draws: int = DRAWS) -> list[ChanceCal
             joint = tuple(pooled_ratio_ci(sums_j[:, k], used) for k in range(N))
         has_slack = any(np.isfinite(float(r.get("slack_total", math.nan))) for r in rows)
         out.append(
-            ChanceCalibration(
+            ChanceCheck(
                 agent=agent,
                 design=agent_design(agent, config),
                 groups=groups,
@@ -325,7 +325,7 @@ def _verdict(e: Estimate, level: float) -> str:
     return "not distinguishable from"
 
 
-def _readings(cals: Sequence[ChanceCalibration]) -> list[str]:
+def _readings(cals: Sequence[ChanceCheck]) -> list[str]:
     """One sentence per agent with a design: its worst group at k = 1 and its joint event
     against epsilon."""
     out = []
@@ -356,7 +356,7 @@ def _readings(cals: Sequence[ChanceCalibration]) -> list[str]:
     return out
 
 
-def _first_step_table(doc: Document, cals: Sequence[ChanceCalibration]) -> None:
+def _first_step_table(doc: Document, cals: Sequence[ChanceCheck]) -> None:
     groups = cals[0].groups
     header = ["agent", "design epsilon"]
     for g in groups:
@@ -377,7 +377,7 @@ def _first_step_table(doc: Document, cals: Sequence[ChanceCalibration]) -> None:
     doc.table(header, rows)
 
 
-def _horizon_table(doc: Document, cals: Sequence[ChanceCalibration]) -> list[str]:
+def _horizon_table(doc: Document, cals: Sequence[ChanceCheck]) -> list[str]:
     """Offline means at every k: per agent its groups that are ever violated, and the
     joint event. Returns the groups never violated (left out)."""
     with_plans = [c for c in cals if c.has_offline]
@@ -397,7 +397,7 @@ def _horizon_table(doc: Document, cals: Sequence[ChanceCalibration]) -> list[str
     return [groups[j] for j in range(len(groups)) if j not in shown]
 
 
-def _figure(doc: Document, results: Results, cals: Sequence[ChanceCalibration]) -> None:
+def _figure(doc: Document, results: Results, cals: Sequence[ChanceCheck]) -> None:
     groups = cals[0].groups
     N = max((len(c.joint) for c in cals), default=1)
     panels = [f"`{g}` group" for g in groups] + ["joint: any group at steps 1..k"]
@@ -431,12 +431,10 @@ def _figure(doc: Document, results: Results, cals: Sequence[ChanceCalibration]) 
     )
 
 
-def chance_section(
-    doc: Document, results: Results, n_draws: int = DRAWS
-) -> list[ChanceCalibration]:
+def chance_section(doc: Document, results: Results, n_draws: int = DRAWS) -> list[ChanceCheck]:
     """The report's section: the closed-loop and offline tables, readings and the figure."""
     doc.heading("The chance constraint against its design")
-    cals = chance_calibration(results, n_draws)
+    cals = chance_check(results, n_draws)
     if not cals:
         doc.paragraph("No error-free episode: nothing to check.")
         return cals
@@ -481,14 +479,14 @@ __all__ = [
     "DRAWS",
     "SEED",
     "SLACK_TOLERANCE",
-    "ChanceCalibration",
+    "ChanceCheck",
     "Design",
     "agent_design",
-    "chance_calibration",
+    "chance_check",
     "chance_section",
     "closed_loop_first_step",
     "design_epsilon",
-    "offline_calibration",
+    "offline_violations",
     "plan_violations",
     "scenario_count",
 ]

@@ -20,9 +20,10 @@ from typing import Any
 import numpy as np
 
 from controllers.agents.registry import AGENT_REGISTRY
+from controllers.config import ExperimentConfig, load_config
 from experiments.evaluation.columns import tolerance_columns, violation_counts
 from experiments.evaluation.storage import episode_stem
-from lfm_env.config import WorldConfig, load_env_config, load_yaml
+from lfm_env.config import WorldConfig, to_dict
 from lfm_env.system import ControlSystem
 
 _TEXT_COLUMNS = ("agent", "error")
@@ -39,6 +40,8 @@ class Results:
     agent_settings: dict = field(default_factory=dict)  # the ``agents`` section, plain
     # Episode files that did not load, each with why (left out, named once on stderr).
     damaged: dict[Path, str] = field(default_factory=dict)
+    # The whole config of the run (config.yaml, read once by load_results).
+    experiment: ExperimentConfig | None = None
 
     @cached_property
     def system(self) -> ControlSystem:
@@ -134,9 +137,9 @@ def load_results(results_dir: str | Path) -> Results:
     config_path = directory / "config.yaml"
     if not config_path.is_file():
         raise FileNotFoundError(f"no config.yaml in {directory} (needed for dt and the system)")
-    config = load_env_config(config_path)
-    agents_section = load_yaml(config_path).get("agents") or {}
-    results = Results(directory, rows, config, dict(agents_section))
+    experiment = load_config(config_path)  # the folder's config, read once
+    agents_section = to_dict(experiment.agents)
+    results = Results(directory, rows, experiment.env, agents_section, experiment=experiment)
     _complete_tolerance_columns(results)
     return results
 

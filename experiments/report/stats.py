@@ -1,5 +1,5 @@
 """The numbers of a report: its metrics, bootstrap intervals, paired differences and
-the estimators' calibration, computed from a loaded results folder
+the estimators' coverage, computed from a loaded results folder
 (:func:`experiments.report.results.load_results`); :mod:`experiments.report.write` writes them down.
 
 The metrics are the columns of ``episodes.csv``
@@ -469,7 +469,7 @@ def pooled_ratio_ci(
 
 
 @dataclass(frozen=True)
-class Calibration:
+class EstimatorCoverage:
     """How well one agent's estimator knows what it does not see, over its episodes.
 
     ``quantities`` are the system's states then its latent-force components (labels with
@@ -524,8 +524,9 @@ def _estimator_name(results: Results, recorded: Iterable[str], agent: str = "") 
     return str(settings.get("estimator", "bootstrap")), "config.yaml"
 
 
-def calibration(results: Results) -> list[Calibration]:
-    """The estimator calibration of every agent with a filter (saved trajectories only).
+def estimator_coverage(results: Results) -> list[EstimatorCoverage]:
+    """The estimator coverage (2-sigma coverage and RMSE) of every agent with a filter (saved
+    trajectories only).
 
     An agent counts when some error-free episode of it has a saved trajectory with a
     finite latent-force estimate (the nominal MPC and the oracle have none).
@@ -551,7 +552,7 @@ def calibration(results: Results) -> list[Calibration]:
         name, source = _estimator_name(results, recorded, agent)
         columns = range(len(labels))
         out.append(
-            Calibration(
+            EstimatorCoverage(
                 agent=agent,
                 estimator=name,
                 estimator_source=source,
@@ -572,12 +573,12 @@ __all__ = [
     "BOOTSTRAP_SEED",
     "REFERENCE_AGENT",
     "TWO_SIGMA_COVERAGE",
-    "Calibration",
+    "EstimatorCoverage",
     "Estimate",
     "Metric",
     "PairedDifference",
     "bootstrap_ci",
-    "calibration",
+    "estimator_coverage",
     "few_seeds_caveat",
     "group_metrics",
     "paired_ci",

@@ -58,9 +58,7 @@ def check_sweep_config(
 ) -> list[tuple[str, Any, Any]]:
     """The fields where the sweep's base config differs from the report's; refused (a
     ``ValueError`` listing them) unless ``allow``."""
-    from controllers.config import load_config
-
-    ours = load_config(results.directory / "config.yaml").to_dict()
+    ours = results.experiment.to_dict()
     diffs = config_differences(ours, summary.config)
     if diffs and not allow:
         shown = "; ".join(f"{k} ({_text(a)} here, {_text(b)} there)" for k, a, b in diffs[:8])

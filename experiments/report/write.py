@@ -10,7 +10,7 @@ Reads a results folder written by the evaluation (it never re-runs an episode):
 
 It opens with the metrics that do not reward failing (:mod:`experiments.report.survival`).
 Besides the per-agent and paired tables (with the tolerance-aware violation counts of
-:func:`~experiments.evaluation.columns.row_columns`), it holds the estimators' calibration (2-sigma
+:func:`~experiments.evaluation.columns.row_columns`), it holds the estimators' coverage (2-sigma
 coverage and RMSE per state and for the latent force, from the saved trajectories), the
 chance constraint against its design (:mod:`experiments.report.chance`) and,
 when given a sweep folder of :mod:`experiments.sweep` (or when ``DIR`` holds one), the
@@ -56,14 +56,14 @@ from experiments.report.stats import (
     BOOTSTRAP_SEED,
     REFERENCE_AGENT,
     TWO_SIGMA_COVERAGE,
-    Calibration,
     Estimate,
+    EstimatorCoverage,
     Metric,
     PairedDifference,
     _beyond,
     _key,
     bootstrap_ci,
-    calibration,
+    estimator_coverage,
     few_seeds_caveat,
     group_metrics,
     paired_differences,
@@ -371,17 +371,17 @@ def _paper_vs_measured_section(doc: Document, results: Results, solve_times: np.
     )
 
 
-def _calibration_section(doc: Document, results: Results) -> None:
+def _coverage_section(doc: Document, results: Results) -> None:
     """The estimators' 2-sigma coverage and RMSE per state and force, table and figure."""
-    doc.heading("Estimator calibration")
-    cals = calibration(results)
+    doc.heading("Estimator coverage")
+    cals = estimator_coverage(results)
     if not cals:
-        doc.paragraph("No agent with a filter has saved trajectories: nothing to calibrate.")
+        doc.paragraph("No agent with a filter has saved trajectories: no coverage to measure.")
         return
     doc.paragraph(
         "How well each filtering agent's estimator knows the state and the latent force it "
         "does not see: the fraction of steps with the truth inside the estimate's 2-sigma "
-        f"band (a calibrated Gaussian band covers {TWO_SIGMA_COVERAGE:g}; less is "
+        f"band (a Gaussian band of the right width covers {TWO_SIGMA_COVERAGE:g}; less is "
         "overconfident) and the root-mean-square error, both pooled over steps and "
         f"episodes, with a 95% BCa bootstrap interval over whole episodes ({BOOTSTRAP_RESAMPLES} "
         "resamples). The estimate made from the measurement at step k is compared with the "
@@ -405,13 +405,13 @@ def _calibration_section(doc: Document, results: Results) -> None:
     coverage = np.array([[[e.mean, e.low, e.high] for e in c.coverage] for c in cals])
     rmse = np.array([[[e.mean, e.low, e.high] for e in c.rmse] for c in cals])
     agents = {f"{agent_label(c.agent)} ({c.estimator})": plots.agent_colour(c.agent) for c in cals}
-    fig = plots.calibration_figure(cals[0].quantities, agents, coverage, rmse, TWO_SIGMA_COVERAGE)
-    rel = "figures/estimator_calibration.png"
+    fig = plots.coverage_figure(cals[0].quantities, agents, coverage, rmse, TWO_SIGMA_COVERAGE)
+    rel = "figures/estimator_coverage.png"
     plots.save_figure(fig, results.directory / rel)
     doc.image(
         rel,
-        "Estimator calibration side by side: 2-sigma coverage (top, dashed: a calibrated "
-        "band) and RMSE (bottom) per state and for the latent force.",
+        "Estimator coverage side by side: 2-sigma coverage (top, dashed: that of a band of "
+        "the right width) and RMSE (bottom) per state and for the latent force.",
     )
 
 
@@ -534,7 +534,7 @@ def _write_report(
     _paired_section(doc, results, baseline)
     if results.config.ENV_ID == PAPER_ENV_ID:
         _paper_vs_measured_section(doc, results, _pooled_solve_times(results, REFERENCE_AGENT))
-    _calibration_section(doc, results)
+    _coverage_section(doc, results)
     chance_section(doc, results)  # the chance constraint against its design
     if sweep is not None:
         sweep_section(doc, results, sweep, differences)
@@ -560,10 +560,10 @@ __all__ = [
     "Estimate",
     "PairedDifference",
     "Results",
-    "Calibration",
+    "EstimatorCoverage",
     "agent_label",
     "bootstrap_ci",
-    "calibration",
+    "estimator_coverage",
     "choose_baseline",
     "load_results",
     "load_trajectory",

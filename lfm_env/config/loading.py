@@ -4,7 +4,8 @@ YAML is plain data, read with ``yaml.safe_load``'s loader under limits that make
 however hostile, cheap to read. :func:`from_dict` builds a config dataclass from it: unknown
 keys, wrong types, non-finite and out-of-range values are errors that name the key and the
 allowed range. The sections themselves are defined elsewhere (:mod:`lfm_env.config.world`,
-each world's ``config.py``, :mod:`controllers.config`).
+each world's ``config.py``, :mod:`controllers.config`); what a whole file holds is read
+above this layer (:func:`controllers.config.load_config`).
 """
 
 from __future__ import annotations
@@ -191,45 +192,6 @@ def load_yaml(path: str | os.PathLike) -> dict:
     if not isinstance(data, dict):
         raise ConfigError(f"config file {str(path)!r}: top level must be a mapping of sections")
     return data
-
-
-#: The top level of a config file: the world (``env_id``, ``env``), the agents and how an
-#: evaluation runs (``evaluation``: :class:`controllers.config.EvaluationConfig`).
-TOP_LEVEL_KEYS = ("env_id", "env", "agents", "evaluation")
-
-
-def read_section(source: Any, section: str) -> dict | None:
-    """The ``section`` mapping of a config given as a preset's name, a path, a dict or ``None``.
-
-    A dict that holds top-level keys (:data:`TOP_LEVEL_KEYS`) gives the named section; any
-    other dict is taken as the section itself.
-    A name, a path and a ``base:`` are resolved by
-    :func:`lfm_env.config.compose.read_config`.
-    """
-    if source is None:
-        return None
-    if isinstance(source, (str, os.PathLike)) or (isinstance(source, dict) and "base" in source):
-        from lfm_env.config.compose import read_config  # a preset, a path, base: resolved
-
-        source = read_config(source)
-    if not isinstance(source, dict):
-        raise ConfigError(
-            f"config must be a path, a dict or a dataclass, got {type(source).__name__}"
-        )
-    top = set(TOP_LEVEL_KEYS)
-    unknown_top = {_key(k) for k in source} - top
-    if {_key(k) for k in source} & top:
-        if unknown_top:
-            raise ConfigError(
-                f"unknown top-level config section(s) {sorted(unknown_top)}; allowed: {sorted(top)}"
-            )
-        sec = source.get(section)
-        if sec is None:
-            return {}
-        if not isinstance(sec, dict):
-            raise ConfigError(f"config section {section!r} must be a mapping")
-        return sec
-    return source
 
 
 def _is_float_text(text: str) -> bool:
@@ -488,12 +450,10 @@ __all__ = [
     "MAX_CONFIG_BYTES",
     "MAX_CONFIG_DEPTH",
     "MAX_CONFIG_VALUES",
-    "TOP_LEVEL_KEYS",
     "ConfigError",
     "FieldChecker",
     "from_dict",
     "load_yaml",
-    "read_section",
     "show_value",
     "to_dict",
     "to_dict_fields",

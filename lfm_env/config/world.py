@@ -241,12 +241,8 @@ def check_goal_and_start(
     )
 
 
-#: The name this class had before the project said "latent force" throughout (old imports).
-DisturbanceConfig = LatentForceConfig
-
 __all__ = [
     "DISCRETIZATIONS",
-    "DisturbanceConfig",
     "KERNELS",
     "MATERN_NUS",
     "MAX_STEPS",

@@ -20,6 +20,7 @@ later ``lfm-report``, finds the world again (:func:`qualified_env_id`).
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import os
 import sys
@@ -29,15 +30,9 @@ from typing import Any
 import gymnasium as gym
 from gymnasium.envs.registration import WrapperSpec
 
-from lfm_env.config.compose import read_config
-from lfm_env.config.loading import (
-    TOP_LEVEL_KEYS,
-    ConfigError,
-    from_dict,
-    read_section,
-    show_value,
-)
-from lfm_env.config.world import WorldConfig
+from lfm_env.config.loading import ConfigError, from_dict, load_yaml, show_value
+from lfm_env.config.presets import config_path
+from lfm_env.validation import one_line
 
 #: The world a config means when it names none: the paper's case study.
 DEFAULT_ENV_ID = "lfm_env/SineTrack-v0"
@@ -77,7 +72,7 @@ class WorldSpec:
     module: str | None = None
 
     @property
-    def config_class(self) -> type[WorldConfig]:
+    def config_class(self) -> type:
         """The config dataclass (imported on first use)."""
         return _load(self.config)
 
@@ -175,8 +170,9 @@ def import_world_module(module: str, env_id: str = "") -> None:
     except ConfigError:
         raise
     except Exception as exc:
-        problem = " ".join(f"{type(exc).__name__}: {exc}".split())
-        raise ConfigError(f"{what}: cannot import the module {module!r} ({problem})") from None
+        raise ConfigError(
+            f"{what}: cannot import the module {module!r} ({one_line(exc)})"
+        ) from None
 
 
 def split_env_id(env_id: str) -> tuple[str | None, str]:
@@ -218,12 +214,12 @@ def qualified_env_id(env_id: str) -> str:
     return f"{module}:{name}" if module else name
 
 
-def world_config_class(env_id: Any) -> type[WorldConfig]:
+def world_config_class(env_id: Any) -> type:
     """The config class of the world whose env is ``env_id``."""
     return world_spec(env_id).config_class
 
 
-def env_id_of(config: WorldConfig | type[WorldConfig]) -> str:
+def env_id_of(config: Any) -> str:
     """The env id of the world a config (or config class) belongs to.
 
     Raises:
@@ -236,34 +232,55 @@ def env_id_of(config: WorldConfig | type[WorldConfig]) -> str:
     raise ConfigError(f"{cls.__name__} is the config of no registered world (register_world)")
 
 
-def read_env_id(config: Any) -> Any:
-    """The top-level ``env_id`` of a config (path or whole-file dict); ``None`` if absent."""
-    config = read_config(config)  # a preset's name, a path, base: resolved
-    if isinstance(config, dict) and any(k in TOP_LEVEL_KEYS for k in config):
-        read_section(config, "env")  # unknown top-level keys are an error
-        return config.get("env_id")
-    return None
+#: The keys of a whole config this layer reads: the world (``env_id``) and its section
+#: (``env``). The rest of a whole config is read above this layer
+#: (:func:`controllers.config.load_config`).
+WORLD_KEYS = ("env_id", "env")
 
 
-def load_env_config(config: Any = None, env_id: str | None = None) -> WorldConfig:
-    """A world config from a preset's name or a path (``"paper"``, ``"my/config.yaml"``), a
-    dict (whole file or the ``env`` section), a world config, or ``None`` for the defaults.
+def _env_file(given: str | os.PathLike) -> dict:
+    """The ``env_id`` and ``env`` of a config file (a preset's name or a path)."""
+    data = load_yaml(config_path(given))
+    if "base" in data:
+        raise ConfigError(
+            f"config {str(given)[:200]!r} inherits (base: {show_value(data['base'])}): a world "
+            "reads one file's env section; read the whole file with "
+            "controllers.config.load_config and pass its env (config=cfg.env)"
+        )
+    return {k: data[k] for k in WORLD_KEYS if k in data}
 
-    Names, paths and ``base:`` are resolved by :func:`lfm_env.config.compose.read_config`.
-    The world is the file's top-level ``env_id`` (default :data:`DEFAULT_ENV_ID`, the
-    paper's case study; ``module:EnvId`` imports the module first), or ``env_id`` when
-    given (an env reading its own config); the two must agree.
 
-    Raises:
-        ConfigError: for an unknown ``env_id``, a file of another world, or a bad field.
-    """
-    if isinstance(config, WorldConfig):
-        own = env_id_of(config)
-        if env_id is not None and own != split_env_id(env_id)[1]:
-            raise ConfigError(f"a config of {own!r} given to {env_id!r}")
-        return config
-    config = read_config(config)
-    file_id = read_env_id(config)
+def _env_section(config: Any) -> tuple[Any, dict]:
+    """``(env_id or None, the env section)`` of a config given as a file, a dict (a whole
+    config: its ``env_id`` and ``env``; else the section itself), an object with an ``env``
+    attribute (an experiment's config), or ``None``."""
+    if config is None:
+        return None, {}
+    if isinstance(config, (str, os.PathLike)):
+        config = _env_file(config)
+    elif not isinstance(config, dict):
+        raise ConfigError(
+            f"config must be a world config, a dict, a preset's name or a path, got "
+            f"{type(config).__name__}"
+        )
+    if "base" in config:
+        raise ConfigError(
+            "a config with base: is read whole by controllers.config.load_config; pass its "
+            "env (config=cfg.env)"
+        )
+    if not any(k in config for k in WORLD_KEYS):
+        return None, config  # the env section itself
+    section = config.get("env")
+    if section is None:
+        section = {}
+    if not isinstance(section, dict):
+        raise ConfigError(f"env={show_value(section)}: the env section must be a mapping")
+    return config.get("env_id"), section
+
+
+def _world_of(file_id: Any, env_id: str | None) -> str:
+    """The plain id of the world a config means: the file's ``env_id`` (its module
+    imported), else ``env_id``, else :data:`DEFAULT_ENV_ID`; the two must agree."""
     if file_id is not None:
         file_id = world_spec(file_id).env_id  # its module imported; the plain id
     if env_id is not None:
@@ -273,8 +290,35 @@ def load_env_config(config: Any = None, env_id: str | None = None) -> WorldConfi
             f"env_id={show_value(file_id)}: the config is for another env than {env_id!r}"
         )
     chosen = env_id if env_id is not None else file_id
-    cls = world_config_class(DEFAULT_ENV_ID if chosen is None else chosen)
-    return from_dict(cls, read_section(config, "env"), prefix="env")
+    return DEFAULT_ENV_ID if chosen is None else chosen
+
+
+def load_env_config(config: Any = None, env_id: str | None = None) -> Any:
+    """A world's config (its ``env:`` section, a :class:`~lfm_env.config.WorldConfig`) from
+    a world config, a dict of its fields, a whole config (a dict, a preset's name or a path
+    such as ``"quadrotor"`` or ``"my/config.yaml"``: its ``env_id`` and ``env`` are read, the
+    other sections left to the layers above), an object with an ``env`` attribute, or
+    ``None`` for the world's defaults.
+
+    The world is the config's top-level ``env_id`` (default :data:`DEFAULT_ENV_ID`, the
+    paper's case study; ``module:EnvId`` imports the module first), or ``env_id`` when given
+    (an env reading its own config); the two must agree. A file that inherits from another
+    (``base:``) is read whole by :func:`controllers.config.load_config`, not here.
+
+    Raises:
+        ConfigError: for an unknown ``env_id``, a config of another world, or a bad field.
+    """
+    own = getattr(config, "env", None)
+    if own is not None and not isinstance(config, dict) and dataclasses.is_dataclass(own):
+        config = own  # an experiment's config: its world
+    if dataclasses.is_dataclass(config) and not isinstance(config, type):
+        world = env_id_of(config)
+        if env_id is not None and world != split_env_id(env_id)[1]:
+            raise ConfigError(f"a config of {world!r} given to {env_id!r}")
+        return config
+    file_id, section = _env_section(config)
+    cls = world_config_class(_world_of(file_id, env_id))
+    return from_dict(cls, section, prefix="env")
 
 
 __all__ = [
@@ -285,7 +329,6 @@ __all__ = [
     "import_world_module",
     "load_env_config",
     "qualified_env_id",
-    "read_env_id",
     "register_world",
     "split_env_id",
     "world_config_class",

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import pytest
 
-from controllers.agents import AGENT_LABELS, AGENTS
-from controllers.agents.mpc import MPCAgent
 from controllers.agents.registry import AGENT_REGISTRY, AgentSpec, agent_spec, make_agent
 from lfm_env.config import ConfigError
 
@@ -34,13 +32,9 @@ def test_each_record_names_its_class_and_the_registry_is_in_table_order():
     assert len({s.colour for s in AGENT_REGISTRY.values()}) == len(AGENT_REGISTRY)
 
 
-def test_the_old_tables_are_read_only_views_of_the_registry():
-    assert dict(AGENTS) == {n: s.agent_class for n, s in AGENT_REGISTRY.items()}
-    assert dict(AGENT_LABELS) == {n: s.label for n, s in AGENT_REGISTRY.items()}
+def test_the_registry_is_read_only():
     with pytest.raises(TypeError):
-        AGENTS["mine"] = MPCAgent  # type: ignore[index]
-    with pytest.raises(TypeError):
-        AGENT_LABELS["nominal"] = "changed"  # type: ignore[index]
+        AGENT_REGISTRY["mine"] = AGENT_REGISTRY["nominal"]  # type: ignore[index]
 
 
 def test_only_the_agent_that_reads_the_truth_gets_the_env():

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import lfm_env  # noqa: F401  (registers the env)
-from controllers.agents import AGENTS, make_agent
+from controllers.agents import AGENT_REGISTRY, make_agent
 from controllers.agents.mpc import ScenarioMPCAgent
 from controllers.config import AgentConfig, load_config
 from controllers.scenario_count import campi_garatti_scenarios
@@ -40,7 +40,7 @@ def run(agent_name: str, config, seed: int = 0, max_steps: int | None = None):
     return np.array(actions), infos, est
 
 
-@pytest.mark.parametrize("name", sorted(set(AGENTS) - {"rl"}))  # rl: test_rl_agent.py
+@pytest.mark.parametrize("name", sorted(set(AGENT_REGISTRY) - {"rl"}))  # rl: test_rl_agent.py
 def test_each_agent_reaches_the_goal_on_the_quick_config(name):
     actions, infos, est = run(name, QUICK, seed=0)
     assert infos[-1]["is_success"], f"{name} did not reach the goal"
@@ -251,7 +251,7 @@ def test_agents_run_on_a_system_defined_in_this_file(name):
         R=(0.1, 0.1),
         goal_state=(3.0, 0.3, 0.0, 0.0),
     )
-    agent = AGENTS[name](model, cost, settings, measurement_std=std)
+    agent = AGENT_REGISTRY[name].agent_class(model, cost, settings, measurement_std=std)
     obs, _ = env.reset(seed=4)
     agent.reset(seed=5)
     for _ in range(40):
@@ -316,7 +316,7 @@ def test_agents_solver_threads_reach_the_fast_solver_with_the_same_actions():
     one, _, _ = run("scenario", cfg, max_steps=4)
     cfg["agents"]["solver_threads"] = 2
     agent = make_agent("scenario", cfg)
-    assert agent.mpc.options.threads == 2 and agent.mpc.model.threads == 2
+    assert agent.solver.options.threads == 2 and agent.solver.condensed.threads == 2
     two, _, est = run("scenario", cfg, max_steps=4)
     assert all(rec["success"] for rec in est)
     np.testing.assert_allclose(two, one, atol=1e-7)

@@ -186,9 +186,11 @@ def test_a_force_of_two_components_gets_five_branches() -> None:
     _do_mpc()
     from controllers.config import AgentConfig
     from lfm_env import gp
+    from lfm_env.cost import QuadraticCost
     from lfm_env.env import LatentForceEnv
     from lfm_env.model import LatentForceModel
-    from lfm_env.system import ControlSystem, QuadraticCost, xp
+    from lfm_env.system import ControlSystem
+    from lfm_env.xp import xp
 
     def rhs(x, u, w):
         px, py, vx, vy = xp.unstack(x)

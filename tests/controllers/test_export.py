@@ -157,7 +157,7 @@ def test_the_exported_robust_step_is_the_python_agents_step(robust_export):
     env = gym.make(config.env_id, config=config.env)
     agent = make_agent("robust", config)
     options = dataclasses.asdict(solver_options(agent.settings))
-    agent.mpc = make_solver(agent.problem, "fast", **options)
+    agent.solver = make_solver(agent.problem, "fast", **options)
     controller = ExportedController(robust_export)
     obs, _ = env.reset(seed=1)
     agent.reset(seed=1)
@@ -305,7 +305,7 @@ FEEDBACK = dict(np.load(REPO / "tests" / "data" / "feedback_problems.npz"))
 
 
 def _feedback_python(agent_name: str):
-    config = load_config("paper", settings=["agents.prediction=feedback"])
+    config = load_config("paper", ["agents.prediction=feedback"])
     agent = make_agent(agent_name, config)
     options = dataclasses.asdict(solver_options(agent.settings))
     return config, agent, make_solver(agent.problem, "fast", **options)
@@ -344,7 +344,7 @@ def test_the_exported_feedback_robust_step_is_the_python_agents_step(tmp_path):
     out = tmp_path / "robust_feedback"
     assert export_controller(config, "robust", out, config_name="paper_feedback").step_available
     _make(out)
-    agent.mpc = solver
+    agent.solver = solver
     env = gym.make(config.env_id, config=config.env)
     controller = ExportedController(out)
     obs, _ = env.reset(seed=1)

@@ -7,7 +7,7 @@ import pytest
 
 from controllers.feasibility import SharedConstraints, shared_slack_bound
 from controllers.problem import ScenarioProblem
-from lfm_env.config import SineTrackConfig
+from lfm_env.worlds.sine_track.config import SineTrackConfig
 
 N = 10
 SPEED = 2  # the bicycle's speed state

@@ -15,7 +15,7 @@ import pytest
 import scipy.linalg
 
 from controllers.config import load_config
-from controllers.feedback import (
+from controllers.feedback_law import (
     FeedbackLaw,
     feedback_law,
     nominal_inputs,
@@ -253,7 +253,7 @@ def test_the_fast_solver_and_the_rewrite_keep_the_solvers_protocol(native) -> No
     problem = cart_problem(n=5, ns=4)
     if native:  # make_solver's: the fast SQP on the feedback problem itself
         solver = make_solver(problem, "fast")
-        assert isinstance(solver, FastScenarioSolver) and solver.model.feedback
+        assert isinstance(solver, FastScenarioSolver) and solver.condensed.feedback
     else:  # the exact rewrite every other solver runs through
         solver = FeedbackScenarioSolver(problem, solver_spec("fast"))
         assert solver.augmented.prediction == "open_loop"
@@ -378,7 +378,7 @@ def test_the_config_gives_every_scenario_agent_the_feedback_prediction(config, a
     cfg = dataclasses.replace(cfg, agents=agents)
     built = make_agent(agent, cfg)
     assert built.problem.prediction == "feedback"
-    assert isinstance(built.mpc, FastScenarioSolver) and built.mpc.model.feedback
+    assert isinstance(built.solver, FastScenarioSolver) and built.solver.condensed.feedback
     env = gym.make(cfg.env_id, config=cfg.env)
     try:
         infos = _check_feedback_steps(built, env, steps=6)

@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 import lfm_env  # noqa: F401  (registers the envs)
-from controllers.agents import AGENTS, make_agent
+from controllers.agents import AGENT_REGISTRY, make_agent
 from controllers.agents.protocol import (
     INFO_DEFAULTS,
     Agent,
@@ -152,12 +152,12 @@ def test_every_agent_with_an_estimator_refuses_zero_measurement_noise():
     from controllers.agents import check_agent_config, needs_measurement_noise
 
     config = {"env": {"measurement_noise_std": [0.15, 0.0, 0.15, 0.5]}}
-    needing = sorted(n for n in AGENTS if needs_measurement_noise(n))
+    needing = sorted(n for n in AGENT_REGISTRY if needs_measurement_noise(n))
     assert {"pf", "scenario", "scenario_particles", "robust"} <= set(needing)
     for name in needing:
         with pytest.raises(ValueError, match=rf"env\.measurement_noise_std=.*all > 0.*'{name}'"):
             check_agent_config(name, config)
-    for name in sorted(set(AGENTS) - set(needing) - {"rl"}):
+    for name in sorted(set(AGENT_REGISTRY) - set(needing) - {"rl"}):
         check_agent_config(name, config)  # nominal and oracle read no noise
     # rl reads no noise either; it stops only at its missing policy (agents.rl_policy).
     with pytest.raises(ValueError, match=r"agents\.rl_policy"):

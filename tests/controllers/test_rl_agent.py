@@ -12,7 +12,7 @@ import pytest
 
 pytest.importorskip("stable_baselines3")
 
-from controllers.agents import AGENTS, make_agent  # noqa: E402
+from controllers.agents import AGENT_REGISTRY, make_agent  # noqa: E402
 from controllers.agents.rl import RLAgent, policy_features  # noqa: E402
 from controllers.config import load_config  # noqa: E402
 from experiments.evaluation.run import evaluate  # noqa: E402
@@ -36,7 +36,7 @@ def config_with(policy: str | None) -> dict:
 
 
 def test_rl_is_an_agent_name():
-    assert AGENTS["rl"] is RLAgent
+    assert AGENT_REGISTRY["rl"].agent_class is RLAgent
 
 
 def test_agent_acts_in_the_inputs_units_from_the_observation(policy):

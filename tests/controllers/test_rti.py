@@ -72,9 +72,9 @@ def test_a_step_without_a_decrease_is_not_usable() -> None:
 def test_the_agent_solves_a_bad_step_again_to_convergence() -> None:
     _, x0, W, _ = _bad_case()
     settings = ["agents.horizon=15", "agents.n_scenarios=20", "agents.iterations=rti"]
-    agent = make_agent("scenario", load_config("paper", settings=settings))
+    agent = make_agent("scenario", load_config("paper", settings))
     # the last step's plan, which the solver shifts into the bad case's warm start
-    agent.mpc._prev_u = DATA["prev"]
+    agent.solver._prev_u = DATA["prev"]
     agent._rti_ready = True
     sol, how = agent._solve(x0, W, None)
     assert how == "rti_fallback:slack"
@@ -91,7 +91,7 @@ def test_rti_steers_a_paper_episode_to_the_goal_as_converged_solves_do() -> None
     settings = ["agents.horizon=15", "agents.prediction=feedback", "agents.solver=fast_c"]
     finished = {}
     for mode in ("converged", "rti"):
-        cfg = load_config("paper", settings=[*settings, f"agents.iterations={mode}"])
+        cfg = load_config("paper", [*settings, f"agents.iterations={mode}"])
         env = gym.make(cfg.env_id, config=cfg.env)
         agent = make_agent("scenario", cfg)
         obs, _ = env.reset(seed=0)

@@ -13,7 +13,7 @@ seed the env seed): the problem the agent met at the listed steps of the listed 
 * ``quadrotor``: the quadrotor config with ``scenario_particles`` (N = 10, Ns = 50): every
   scenario starts from its own particle, so the shared first input and ``K_0 = 0`` matter.
 
-For each problem the law is :func:`controllers.feedback.feedback_law` along the open-loop
+For each problem the law is :func:`controllers.feedback_law.feedback_law` along the open-loop
 plan of the fast solver (cold, from zero inputs): the agent's first-step rule. ``u_guess``
 is that plan (the decision's warm start). The reference is the textbook IPOPT formulation
 (``ipopt_multiple_shooting``, ``tol`` = :data:`REFERENCE_TOL`) on the feedback problem with
@@ -39,7 +39,7 @@ import numpy as np
 import lfm_env  # noqa: F401  (registers the env ids)
 from controllers.agents import make_agent
 from controllers.config import load_config
-from controllers.feedback import feedback_law
+from controllers.feedback_law import feedback_law
 from controllers.solvers import make_solver
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from controllers.solvers import make_solver
-from experiments.benchmark import problems as bench_problems
+from experiments.benchmark import problems as benchmark_problems
 
 SEEDS = range(6)
 MAX_STEPS = 45
@@ -38,14 +38,14 @@ OUT = Path(__file__).with_name("long_horizon_problems.npz")
 
 
 def main() -> None:
-    cfg = bench_problems.experiment_config(bench_problems.DEFAULT_CONFIG)
-    _, anchors = bench_problems.record_closed_loop(cfg, seeds=SEEDS, max_steps=MAX_STEPS)
+    cfg = benchmark_problems.experiment_config(benchmark_problems.DEFAULT_CONFIG)
+    _, anchors = benchmark_problems.record_closed_loop(cfg, seeds=SEEDS, max_steps=MAX_STEPS)
     by_key = {(a.seed, a.step): a for a in anchors}
     out: dict[str, np.ndarray] = {}
     for n, points in CHOSEN.items():
         problem = cfg.make_problem(n_scenarios=N_SCENARIOS, horizon=n)
         rng = np.random.default_rng([DRAW_SEED, n])
-        drawn = bench_problems.scenario_draws(problem, [by_key[k] for k in points], rng)
+        drawn = benchmark_problems.scenario_draws(problem, [by_key[k] for k in points], rng)
         ipopt = make_solver(problem, "ipopt", ipopt_options={"tol": REFERENCE_TOL})
         guess = np.clip(np.zeros((n, problem.nu)), problem.input_lower, problem.input_upper)
         rows = []

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from controllers.solvers import make_solver
-from experiments.benchmark import problems as bench_problems
+from experiments.benchmark import problems as benchmark_problems
 
 SEEDS = range(6)
 MAX_STEPS = 120
@@ -39,8 +39,8 @@ OUT = Path(__file__).with_name("recorded_problems.npz")
 
 def record(problem) -> dict[str, np.ndarray]:
     """Record the episodes and keep problems by the rule of the module docstring."""
-    problems = bench_problems.record_problems(
-        bench_problems.DEFAULT_CONFIG, seeds=SEEDS, max_steps=MAX_STEPS
+    problems = benchmark_problems.record_problems(
+        benchmark_problems.DEFAULT_CONFIG, seeds=SEEDS, max_steps=MAX_STEPS
     )
     solver = make_solver(problem, "fast")
     rows, previous_seed, previous_u = [], None, None
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> None:
         help="reuse the problems of the existing file; recompute only the references",
     )
     args = parser.parse_args(argv)
-    problem = bench_problems.problem_from_config(n_scenarios=N_SCENARIOS)
+    problem = benchmark_problems.problem_from_config(n_scenarios=N_SCENARIOS)
     if args.keep_problems:
         with np.load(OUT) as old:
             data = {k: old[k] for k in ("seed", "step", "x0", "W", "u_guess", "slack")}

@@ -14,8 +14,8 @@ from experiments.calibration import (
     forced_states,
     record_calibration_episodes,
 )
-from lfm_env.config import SineTrackConfig
 from lfm_env.gp import driven_log_likelihood, matern
+from lfm_env.worlds.sine_track.config import SineTrackConfig
 
 
 def simulate(cfg: SineTrackConfig, n_steps: int, rng: np.random.Generator) -> CalibrationRecord:
@@ -58,7 +58,7 @@ def test_the_quadrotors_data_carries_the_pitch_noise():
     """dv_x/dt = T sin(theta) / m + w: the pitch's measurement noise adds process noise."""
     cfg = load_config("quadrotor").env
     model = cfg.make_model()
-    rec = record_calibration_episodes("quadrotor", [1000])[0]
+    rec = record_calibration_episodes(load_config("quadrotor"), [1000])[0]
     states = forced_states(model, [rec])
     assert [model.system.state_names[i] for i in states] == ["v_x [m/s]"]
     data = force_observations(model, rec, cfg.measurement_std_rad, states)

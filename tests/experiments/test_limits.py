@@ -24,7 +24,9 @@ import lfm_env.config as env_config
 from controllers.config import load_config
 from experiments.evaluation.run import _error_row, evaluate, row_columns, save_episode, write_table
 from experiments.report import write_report
-from lfm_env.config import ConfigError, SineTrackConfig, from_dict, load_env_config
+from lfm_env.config import ConfigError, from_dict
+from lfm_env.worlds.registry import load_env_config
+from lfm_env.worlds.sine_track.config import SineTrackConfig
 
 REPO = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
@@ -99,7 +101,8 @@ def test_alias_bomb_as_a_value_is_refused_promptly(tmp_path):
     assert path.stat().st_size < 2000
     proc = run_python(
         f"""
-        from lfm_env.config import ConfigError, load_env_config
+        from lfm_env.config import ConfigError
+        from lfm_env.worlds.registry import load_env_config
         try:
             load_env_config({str(path)!r})
         except ConfigError as exc:
@@ -118,7 +121,8 @@ def test_show_of_a_shared_huge_value_is_bounded():
     YAML involved) shows a short repr instead of expanding it."""
     proc = run_python(
         """
-        from lfm_env.config import ConfigError, SineTrackConfig, from_dict
+        from lfm_env.config import ConfigError, from_dict
+        from lfm_env.worlds.sine_track.config import SineTrackConfig
         v = ["lol"] * 9
         for _ in range(8):
             v = [v] * 9

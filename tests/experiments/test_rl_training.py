@@ -77,8 +77,8 @@ def test_training_reward_scales_penalises_violations_and_failure():
     env.reset(seed=1, options=start)
     _, r_raw, term_raw, _, info = raw.step([0.0, 0.0])
     _, r, terminated, _, _ = env.step([0.0, 0.0])
-    assert term_raw and terminated and info["failure"] and info["cost"] >= 1.0
-    per_step = r_raw / scale - 0.5 * info["cost"]
+    assert term_raw and terminated and info["failure"] and info["violated_groups"] >= 1.0
+    per_step = r_raw / scale - 0.5 * info["violated_groups"]
     assert r == pytest.approx(per_step * 30)  # this step and the 29 the limit had left
     # Inside every constraint: the scaled reward only.
     raw.reset(seed=2)

@@ -31,9 +31,9 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 import lfm_env  # noqa: F401  (registers the env id)
-from controllers.agents import AGENTS, make_agent
+from controllers.agents import AGENT_REGISTRY, make_agent
 from controllers.agents import mpc as agents_module
-from controllers.config import AgentConfig, load_agent_config, load_config
+from controllers.config import AgentConfig, load_config
 from controllers.estimators.particle_filter import ParticleFilter, gaussian_log_likelihood
 from controllers.problem import ScenarioProblem
 from controllers.solvers import make_solver
@@ -49,18 +49,12 @@ from experiments.evaluation.run import (
     saved_rows,
 )
 from experiments.report import write as report
-from lfm_env.config import (
-    DEFAULT_ENV_ID as ENV_ID,
-)
-from lfm_env.config import (
-    ConfigError,
-    LatentForceConfig,
-    SineTrackConfig,
-    load_env_config,
-    load_yaml,
-)
+from lfm_env.config import ConfigError, LatentForceConfig, load_yaml
+from lfm_env.cost import QuadraticCost
 from lfm_env.model import psd_factor
-from lfm_env.system import QuadraticCost
+from lfm_env.worlds.registry import DEFAULT_ENV_ID as ENV_ID
+from lfm_env.worlds.registry import load_env_config
+from lfm_env.worlds.sine_track.config import SineTrackConfig
 from tests.experiments.evaluation.tiny_runs import comparable
 
 REPO = Path(__file__).resolve().parents[2]
@@ -497,7 +491,7 @@ BAD_OBSERVATIONS = [
     ("none", None, "real numbers"),
 ]
 # The rl agent needs a trained policy; its bad observations: tests/controllers/test_rl_agent.py.
-MPC_AGENTS = sorted(set(AGENTS) - {"rl"})
+MPC_AGENTS = sorted(set(AGENT_REGISTRY) - {"rl"})
 OBSERVATION_PARAMS = [
     pytest.param(name, obs, match, id=f"obs-{name}-{i}")
     for name in MPC_AGENTS
@@ -914,7 +908,8 @@ def test_unknown_key_anywhere_gives_config_error_naming_it(tmp_path, where, key,
         assume(yaml.safe_load(text) == source)
         source = tmp_path / "unknown.yaml"
         source.write_text(text)
-    loader = load_agent_config if where == "agents" else load_env_config
+    # A world reads its env section; a whole config (its top level, agents) is read above.
+    loader = load_env_config if where.startswith("env") else load_config
     with pytest.raises(ConfigError, match="unknown") as exc:
         loader(source)
     shown = key if isinstance(key, str) else repr(key)
@@ -1294,7 +1289,7 @@ def read_config_via_results_folder(path: Path, tmp_path: Path) -> None:
 YAML_READERS = {
     "load_yaml": lambda path, tmp: load_yaml(path),
     "load_env_config": lambda path, tmp: load_env_config(path),
-    "load_agent_config": lambda path, tmp: load_agent_config(path),
+    "load_config": lambda path, tmp: load_config(path),
     "results-folder": read_config_via_results_folder,
 }
 

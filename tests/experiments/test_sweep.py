@@ -13,9 +13,11 @@ import numpy as np
 import pytest
 
 from controllers.config import ConfigError
+from controllers.config.experiment import split_values
 from experiments import sweep
 from experiments.cli import report_main, sweep_main
 from experiments.evaluation import run as evaluation
+from experiments.report import sweep_summary
 from experiments.report.format import fmt_estimate
 from experiments.report.stats import bootstrap_ci
 from experiments.report.sweep_summary import metric_key
@@ -85,9 +87,9 @@ def test_sweep_writes_every_folder_the_table_and_the_figure(sweep_dir):
 def test_paired_intervals_match_a_direct_computation(sweep_dir):
     """Each cell's paired difference is the bootstrap interval of value - baseline per seed,
     computed here from the episode files themselves."""
-    summary = sweep.load_sweep(sweep_dir)
+    summary = sweep_summary.load_sweep(sweep_dir)
     base = json_rows(sweep_dir / "baseline", "pf")
-    header, table = sweep.sweep_table(summary)
+    header, table = sweep_summary.sweep_table(summary)
     md = (sweep_dir / "sweep.md").read_text()
     column = "track_violation_steps_over_0.01"
     checked = 0
@@ -149,7 +151,7 @@ def test_another_sweep_into_the_same_folder_is_refused(sweep_dir, tmp_path, monk
 
 
 def test_values_are_read_by_the_keys_own_type():
-    assert sweep.split_values("0, [1,2,0] ,3") == ["0", "[1,2,0]", "3"]
+    assert split_values("0, [1,2,0] ,3") == ["0", "[1,2,0]", "3"]
     cfg = sweep.config_with(QUICK, "agents.robust.backoff", "2")
     assert cfg.agents.robust.backoff == (2.0,)  # one value for a list key: a list of one
     assert sweep.config_with(QUICK, "agents.backoff", "[1, 2, 0]").agents.backoff == (1, 2, 0)
@@ -160,7 +162,7 @@ def test_values_are_read_by_the_keys_own_type():
     key, texts, configs = sweep.parse_setting("agents.n_scenarios=5,10", QUICK)
     assert (key, texts) == ("agents.n_scenarios", ["5", "10"])
     assert [c.agents.n_scenarios for c in configs] == [5, 10]
-    assert sweep.value_folder("agents.backoff", "[1, 2, 0]") == "agents.backoff=[1,2,0]"
+    assert sweep_summary.value_folder("agents.backoff", "[1, 2, 0]") == "agents.backoff=[1,2,0]"
 
 
 @pytest.mark.parametrize(
@@ -192,8 +194,8 @@ def test_bad_setting_names_the_key(setting, words, tmp_path, capsys):
 
 
 def test_pareto_figure_has_one_point_per_value_and_the_baseline(sweep_dir):
-    summary = sweep.load_sweep(sweep_dir)
-    fig = sweep.sweep_figure(summary)
+    summary = sweep_summary.load_sweep(sweep_dir)
+    fig = sweep_summary.sweep_figure(summary)
     ax = fig.axes[0]
     labels = ax.get_legend_handles_labels()[1]
     assert labels == ["PF + CE MPC (baseline)", "backoff=0", "backoff=2"]
@@ -215,7 +217,7 @@ def test_report_includes_the_sweep(sweep_dir, tmp_path, capsys):
     md = (results / "report.md").read_text()
     assert "## Risk trade-off: `agents.backoff` of `scenario`" in md
     assert "| metric | PF + CE MPC (baseline) | backoff=0 | backoff=2 |" in md
-    header, rows = sweep.sweep_table(sweep.load_sweep(sweep_dir))
+    header, rows = sweep_summary.sweep_table(sweep_summary.load_sweep(sweep_dir))
     for row in rows:
         assert "| " + " | ".join(row) + " |" in md
     assert (results / "figures" / "sweep.png").is_file() and "(figures/sweep.png)" in md

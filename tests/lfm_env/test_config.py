@@ -12,14 +12,10 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from lfm_env.config import (
-    ConfigError,
-    LatentForceConfig,
-    SineTrackConfig,
-    from_dict,
-    load_env_config,
-    to_dict,
-)
+from controllers.config import load_config
+from lfm_env.config import ConfigError, LatentForceConfig, from_dict, to_dict
+from lfm_env.worlds.registry import load_env_config
+from lfm_env.worlds.sine_track.config import SineTrackConfig
 from lfm_env.worlds.sine_track.system import track_of
 
 
@@ -44,7 +40,8 @@ def test_config_error_is_a_value_error():
 
 @pytest.mark.parametrize("source", [None, {}, {"env": {}}, {"env": None}, {"agents": {}}])
 def test_defaults_are_the_papers_case_study(source):
-    cfg = load_env_config(source)
+    # A world reads its env section; a whole config's other sections are read above it.
+    cfg = load_env_config(source) if "agents" not in (source or {}) else load_config(source).env
     assert cfg == SineTrackConfig()
     # REFERENCE.md: vehicle, track, start, goal, bounds, noise, latent force, MPC weights.
     assert cfg.dt == 0.2
@@ -148,15 +145,16 @@ def test_missing_file_and_non_mapping_top_level(tmp_path):
 @pytest.mark.parametrize(
     "source, key",
     [
-        ({"env": {}, "envv": {}}, "envv"),
+        ({"env": {}, "envv": {}}, "envv"),  # a whole config's top level: read above the world
         ({"env": {"dtt": 0.2}}, "env.dtt"),
         ({"dtt": 0.2}, "env.dtt"),
         ({"env": {"latent_force": {"foo": 1.0}}}, "env.latent_force.foo"),
     ],
 )
 def test_unknown_keys(source, key):
+    read = load_config if key == "envv" else load_env_config
     with pytest.raises(ConfigError, match="unknown") as exc:
-        load_env_config(source)
+        read(source)
     assert_names_key(exc, key)
 
 
@@ -239,7 +237,7 @@ def test_huge_integer_for_a_float_field_is_a_config_error(tmp_path):
 @pytest.mark.parametrize("source", [{"env": {1: 2.0, "foo": 3.0}}, {"env": {}, 1: 2, "x": 3}])
 def test_unknown_keys_of_mixed_types_are_a_config_error(source):
     with pytest.raises(ConfigError, match="unknown"):
-        load_env_config(source)
+        load_config(source)
 
 
 # ----------------------------------------------------------------------------- properties
@@ -498,7 +496,7 @@ def test_state_from_config_converts_the_heading_only():
 
 
 def test_the_world_is_chosen_by_the_top_level_env_id():
-    from lfm_env.config import DEFAULT_ENV_ID, WORLDS, world_config_class
+    from lfm_env.worlds.registry import DEFAULT_ENV_ID, WORLDS, world_config_class
 
     assert load_env_config({"env_id": "lfm_env/SineTrack-v0", "env": {"dt": 0.1}}).dt == 0.1
     assert type(load_env_config({"env": {"dt": 0.1}})).ENV_ID == DEFAULT_ENV_ID

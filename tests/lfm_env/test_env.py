@@ -23,12 +23,13 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import lfm_env  # noqa: F401  (registers lfm_env/SineTrack-v0 and lfm_env/QuadrotorGust-v0)
-from lfm_env.config import QuadrotorGustConfig, SineTrackConfig
 from lfm_env.cost import QuadraticCost
 from lfm_env.env import LatentForceEnv
 from lfm_env.gp import matern
 from lfm_env.model import LatentForceModel
 from lfm_env.worlds import QuadrotorGustEnv, SineTrackEnv
+from lfm_env.worlds.quadrotor.config import QuadrotorGustConfig
+from lfm_env.worlds.sine_track.config import SineTrackConfig
 from lfm_env.xp import xp
 from tests.point_mass import point_mass_system
 

@@ -11,8 +11,8 @@ import pytest
 
 from controllers.config import load_config
 from lfm_env import register_world
-from lfm_env.config import ConfigError, load_env_config
-from lfm_env.worlds.registry import WORLDS, qualified_env_id, world_spec
+from lfm_env.config import ConfigError
+from lfm_env.worlds.registry import WORLDS, load_env_config, qualified_env_id, world_spec
 
 OWN_WORLD = Path(__file__).resolve().parents[1] / "data" / "own_world"
 

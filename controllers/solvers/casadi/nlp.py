@@ -15,7 +15,7 @@ and differ only in how the predicted states enter the NLP:
 The NLPs are built from the problem's model alone: the Euler step
 (:meth:`ControlSystem.casadi_step`), the state constraints
 (:meth:`ControlSystem.casadi_constraints`, possibly none) and the cost
-(:class:`~lfm_env.system.QuadraticCost`, any PSD weights), with the dimensions
+(:class:`~lfm_env.cost.QuadraticCost`, any PSD weights), with the dimensions
 ``nx, nu, nw, ng`` of the system; the initial states ``x0`` (``Ns x nx``), the latent forces
 ``W`` (``Ns x N x nw``) and the back-off are parameters, so one NLP serves every step. The
 solvers built on them: :mod:`controllers.solvers.casadi.ipopt` (IPOPT, both formulations) and

@@ -18,7 +18,7 @@ formulation of the exact rewrite in :mod:`controllers.solvers.feedback`, which t
 solvers run and the tests use as the oracle).
 
 :class:`FeedbackMixin` chooses the law of a solve as the rewrite does: given (``law=``), or
-the TV-LQR (:func:`~controllers.feedback.feedback_law`) along a reference plan: ``u_guess``,
+the TV-LQR (:func:`~controllers.feedback_law.feedback_law`) along a reference plan: ``u_guess``,
 else the nominal inputs of the last usable plan shifted by one step, else the plan of the
 same problem in open loop. That open-loop reference is solved by the same condensed SQP with
 the zero law and every ``v_k`` bounded, which is exactly the open-loop problem (each
@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.feedback import FeedbackLaw, feedback_law, nominal_inputs
+from controllers.feedback_law import FeedbackLaw, feedback_law, nominal_inputs
 from controllers.problem import MPCSolution, ScenarioProblem, is_usable
 from controllers.solvers.fast.condensed import CondensedModel
 from controllers.solvers.fast.iterate import Rollout
@@ -62,7 +62,7 @@ class FeedbackMixin:
 
     problem: ScenarioProblem
     options: FastSolverOptions
-    model: CondensedModel
+    condensed: CondensedModel
     _lower: np.ndarray
     _upper: np.ndarray
 
@@ -72,7 +72,7 @@ class FeedbackMixin:
     def _init_feedback(self) -> None:
         """The bounds of the two kinds of solve, and the memory of the last plans."""
         nu = self.problem.nu
-        lower, upper = self.model.lower, self.model.upper
+        lower, upper = self.condensed.lower, self.condensed.upper
         free_lower, free_upper = lower.copy(), upper.copy()
         free_lower[nu:], free_upper[nu:] = -np.inf, np.inf
         self._phase_bounds = {"all": (lower, upper), "first": (free_lower, free_upper)}
@@ -92,7 +92,7 @@ class FeedbackMixin:
         if bounds == "all":
             bounded[:] = True
         zero = ~np.any(K.reshape(K.shape[0], -1) != 0.0, axis=1)
-        self.model.set_law(K, r, ~(bounded & zero))
+        self.condensed.set_law(K, r, ~(bounded & zero))
 
     def _start(self, guess: np.ndarray | None, last: np.ndarray | None) -> np.ndarray:
         """The first iterate: ``guess``, else ``last`` shifted, else zeros, in the bounds."""

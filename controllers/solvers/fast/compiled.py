@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.feedback import FeedbackLaw
+from controllers.feedback_law import FeedbackLaw
 from controllers.problem import MPCSolution, ScenarioProblem, is_usable
 from controllers.solvers.fast.closed_loop import applied_inputs
 from controllers.solvers.fast.codegen import interface

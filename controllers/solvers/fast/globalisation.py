@@ -144,7 +144,7 @@ class GlobalisationMixin(SolverAttributes):
         is a candidate like any other, kept by the caller only if the merit falls.)
         """
         pos, d = qp_step.pos, qp_step.d
-        a_pos, _ = self.model.rows(lin, pos)
+        a_pos, _ = self.condensed.rows(lin, pos)
         g_try = trial.G[pos[:, 0], pos[:, 1], pos[:, 2]]
         qp_step.qp.set_position_bounds(qp_step.row, g_try - a_pos @ d)
         z_soc, _, ok_soc = qp_step.qp.solve()

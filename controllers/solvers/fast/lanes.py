@@ -14,7 +14,7 @@ Functions with an operation this module does not know fall back to CasADi's ``ma
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable
 
 import casadi as ca
 import numpy as np
@@ -105,25 +105,37 @@ def _source(fn: ca.Function) -> str:
         if op == ca.OP_OUTPUT:
             lines.append(f"    o{outs[0]}[{dense_out[outs[0]][outs[1]]}] = {register[ins[0]]}")
             continue
-        if op == ca.OP_INPUT:
-            pos = dense_in[ins[0]][ins[1]]
-            name = value(("in", ins[0], pos), f"i{ins[0]}[{pos}]")
-        elif op == ca.OP_CONST:
-            c = float(fn.instruction_constant(k))
-            name = value(("const", c), repr(c))
-        elif op == ca.OP_ASSIGN:
-            name = register[ins[0]]
-        elif op in _BINARY:
-            a, b = register[ins[0]], register[ins[1]]
-            name = value((op, a, b), _BINARY[op].format(a=a, b=b))
-        elif op in _UNARY:
-            a = register[ins[0]]
-            name = value((op, a), _UNARY[op].format(a=a))
-        else:
-            raise NotImplementedError(f"CasADi operation {op} has no NumPy lane form")
-        register[outs[0]] = name
+        register[outs[0]] = _instruction_value(fn, k, op, ins, register, dense_in, value)
     lines.append("    return outputs")
     return "\n".join(lines) + "\n"
+
+
+def _instruction_value(
+    fn: ca.Function,
+    k: int,
+    op: int,
+    ins: list[int],
+    register: dict[int, str],
+    dense_in: list[list[int]],
+    value: Callable[[tuple, str], str],
+) -> str:
+    """The name of the value instruction ``k`` (operation ``op`` on the work registers
+    ``ins``) computes; ``value(key, expr)`` emits a new one once."""
+    if op == ca.OP_INPUT:
+        pos = dense_in[ins[0]][ins[1]]
+        return value(("in", ins[0], pos), f"i{ins[0]}[{pos}]")
+    if op == ca.OP_CONST:
+        c = float(fn.instruction_constant(k))
+        return value(("const", c), repr(c))
+    if op == ca.OP_ASSIGN:
+        return register[ins[0]]
+    if op in _BINARY:
+        a, b = register[ins[0]], register[ins[1]]
+        return value((op, a, b), _BINARY[op].format(a=a, b=b))
+    if op in _UNARY:
+        a = register[ins[0]]
+        return value((op, a), _UNARY[op].format(a=a))
+    raise NotImplementedError(f"CasADi operation {op} has no NumPy lane form")
 
 
 class LaneFunction:
@@ -186,9 +198,4 @@ class LaneFunction:
         ]
 
 
-def lane_functions(fns: Sequence[ca.Function]) -> list[LaneFunction]:
-    """:class:`LaneFunction` of each function."""
-    return [LaneFunction(f) for f in fns]
-
-
-__all__ = ["LaneFunction", "lane_functions"]
+__all__ = ["LaneFunction"]

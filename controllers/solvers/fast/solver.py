@@ -74,7 +74,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.feedback import FeedbackLaw
+from controllers.feedback_law import FeedbackLaw
 from controllers.problem import MPCSolution, ScenarioProblem, is_usable
 from controllers.solvers.fast.closed_loop import FeedbackMixin, Run
 from controllers.solvers.fast.condensed import CondensedModel
@@ -108,7 +108,7 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin, Feed
             raise ValueError(f"unknown {type(self).__name__} options: {sorted(unknown)}")
         self.problem = problem
         self.options = FastSolverOptions(**options)
-        self.model = m = CondensedModel(problem)
+        self.condensed = m = CondensedModel(problem)
         m.threads = self.options.threads
         n = problem.horizon
         self._n_u = m.n_u
@@ -141,7 +141,7 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin, Feed
     @property
     def backend(self) -> str:
         """How the derivatives are evaluated: :attr:`CondensedModel.backend`."""
-        return self.model.backend
+        return self.condensed.backend
 
     # ------------------------------------------------------------------ public API
 
@@ -149,7 +149,7 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin, Feed
         """Forget the warm start: the next solve starts from zero inputs (with feedback,
         also the reference plan)."""
         self._prev_u = None
-        if self.model.feedback:
+        if self.condensed.feedback:
             self._reset_feedback()
 
     def __getstate__(self) -> dict[str, Any]:
@@ -157,14 +157,14 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin, Feed
         # rebuild them after unpickling (e.g. in a worker process).
         state = self.__dict__.copy()
         state["_qps"] = {}
-        state["model"] = None
+        state["condensed"] = None
         state["_spare_lin"] = None
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
-        self.model = CondensedModel(self.problem)
-        self.model.threads = self.options.threads
+        self.condensed = CondensedModel(self.problem)
+        self.condensed.threads = self.options.threads
 
     def solve(
         self,
@@ -237,7 +237,7 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin, Feed
                 law for an open-loop problem.
         """
         with self._limited(iterations):
-            if self.model.feedback:
+            if self.condensed.feedback:
                 return self._feedback_solve(x0, W, u_guess, backoff, law)
             return self._open_loop_solve(x0, W, u_guess, backoff, law)
 
@@ -300,7 +300,7 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin, Feed
             x0T=np.ascontiguousarray(x0.T),
             W=np.ascontiguousarray(W.transpose(1, 0, 2)),
             W_lanes=np.ascontiguousarray(W.transpose(2, 1, 0)),
-            cost0=self.model.state_cost0(x0),
+            cost0=self.condensed.state_cost0(x0),
             backoff=None if b is None else np.ascontiguousarray(b.T[:, :, None]),
         )
         deadline = t_start + self.options.max_time
@@ -340,8 +340,8 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin, Feed
             if keep:
                 ro, status, success = ro2, status2, success2
         extra["backend"] = self.backend
-        extra["threads"] = self.model.threads if self.model.openmp else 1
-        extra["vector_math"] = getattr(self.model, "vector_math", 0)
+        extra["threads"] = self.condensed.threads if self.condensed.openmp else 1
+        extra["vector_math"] = getattr(self.condensed, "vector_math", 0)
         extra["qp_solver"] = self.options.qp_solver
         extra["first_start"] = {"status": first_status, "iterations": first_iterations}
         return ro, status, success, iterations, extra
@@ -373,7 +373,7 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin, Feed
         QP solve or line-search trial with status ``"Maximum_WallTime_Exceeded"`` (not a
         success) and the last accepted iterate.
         """
-        p, opt, model = self.problem, self.options, self.model
+        p, opt, condensed = self.problem, self.options, self.condensed
         stats: dict[str, Any] = {
             "qp_solves": 0,
             "qp_hard": 0,
@@ -388,7 +388,7 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin, Feed
 
         def evaluate(u: np.ndarray) -> Rollout:
             with np.errstate(all="ignore"):
-                return model.evaluate(data.x0T, data.W, u, data.cost0, data.backoff)
+                return condensed.evaluate(data.x0T, data.W, u, data.cost0, data.backoff)
 
         ro = evaluate(u0)
         stats["start_merit"] = ro.merit  # the warm start's (MPCSolution.usable)
@@ -399,7 +399,7 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin, Feed
             ro=ro,
             evaluate=evaluate,
             stats=stats,
-            mu=np.zeros((model.n_rows, p.horizon, data.x0T.shape[1])),
+            mu=np.zeros((condensed.n_rows, p.horizon, data.x0T.shape[1])),
             lin=self._spare_lin,  # the last linearisation (its arrays are reused)
         )
         status, success, iterations = "Maximum_Iterations_Exceeded", False, 0
@@ -449,10 +449,10 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin, Feed
         """The linearisation and Hessian at ``start.ro`` and the QP step from them, with the
         multipliers and the hard-active rows of that QP kept in ``start`` for the next
         convexification; ``(None, status)`` when the derivatives or the QP fail."""
-        opt, model, ro = self.options, self.model, start.ro
+        opt, condensed, ro = self.options, self.condensed, start.ro
         with np.errstate(all="ignore"):
-            start.lin = lin = model.linearise(ro, data.W_lanes, recycle=start.lin)
-            H = model.hessian(lin, start.mu, data.W_lanes)
+            start.lin = lin = condensed.linearise(ro, data.W_lanes, recycle=start.lin)
+            H = condensed.hessian(lin, start.mu, data.W_lanes)
         if not (np.isfinite(H).all() and np.isfinite(lin.grad).all()):
             return None, "Invalid_Derivatives"
         try:

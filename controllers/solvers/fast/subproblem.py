@@ -47,12 +47,12 @@ class QPStep:
 
 class SolverAttributes:
     """What the mixins of :class:`~controllers.solvers.fast.solver.FastScenarioSolver` read
-    of it: its problem, options, model, input bounds and trust radius (set by the solver's
-    ``__init__`` and SQP loop), and its deadline check."""
+    of it: its problem, options, condensed model (``condensed``), input bounds and trust radius
+    (set by the solver's ``__init__`` and SQP loop), and its deadline check."""
 
     problem: ScenarioProblem
     options: FastSolverOptions
-    model: CondensedModel
+    condensed: CondensedModel
     _n_u: int  # inputs of the horizon, N nu
     _lower: np.ndarray  # (N nu,) input bounds
     _upper: np.ndarray
@@ -120,7 +120,7 @@ class SubproblemMixin(SolverAttributes):
             return H, 0.0, j_pos
         rows = []
         if active_pos.shape[0]:
-            j_pos = self.model.rows(lin, active_pos)[0]
+            j_pos = self.condensed.rows(lin, active_pos)[0]
             rows.append(j_pos)
         if active_shared.size:
             rows.append(self._a_shared[active_shared])
@@ -196,7 +196,7 @@ class SubproblemMixin(SolverAttributes):
         similar paths, so a step can make the other end of that family the worst one).
         """
         opt = self.options
-        return self.model.screen(ro, opt.screen_margin, opt.screen_rows)
+        return self.condensed.screen(ro, opt.screen_margin, opt.screen_rows)
 
     def _missing_rows(
         self, lin: Linearisation, d: np.ndarray, s_pos: np.ndarray, pos: np.ndarray
@@ -207,7 +207,7 @@ class SubproblemMixin(SolverAttributes):
         are close together enter in one round.
         """
         opt = self.options
-        return self.model.violated_rows(lin, d, s_pos, pos, opt.add_tol, opt.screen_rows)
+        return self.condensed.violated_rows(lin, d, s_pos, pos, opt.add_tol, opt.screen_rows)
 
     def _solve_qp(
         self,
@@ -230,7 +230,7 @@ class SubproblemMixin(SolverAttributes):
         Otherwise this round and the rest of the iteration use the QP with slacks.
         """
         p, nu, n_sh = self.problem, self._n_u, self._n_shared
-        n, ng = p.horizon, self.model.n_rows  # (with feedback: the input rows too)
+        n, ng = p.horizon, self.condensed.n_rows  # (with feedback: the input rows too)
         n_scen = lin.ro.X.shape[2]
         hard = self._hard_first
         lo, hi = self._lower - u, self._upper - u
@@ -238,7 +238,7 @@ class SubproblemMixin(SolverAttributes):
             lo = np.maximum(lo, -self._radius * self._range)
             hi = np.minimum(hi, self._radius * self._range)
         # The rows' Jacobians and values, extended by each round's new rows only.
-        a_pos, g_pos = self.model.rows(lin, pos)
+        a_pos, g_pos = self.condensed.rows(lin, pos)
         for round_ in range(self.options.max_qp_rounds):
             self._check_time()
             group = pos[:, 0] * n + pos[:, 1]
@@ -278,7 +278,7 @@ class SubproblemMixin(SolverAttributes):
                 stats["qp_rounds_exhausted"] += 1
                 break
             pos = np.concatenate([pos, missing])
-            a_new, g_new = self.model.rows(lin, missing)
+            a_new, g_new = self.condensed.rows(lin, missing)
             a_pos, g_pos = np.concatenate([a_pos, a_new]), np.concatenate([g_pos, g_new])
         stats["qp_rows"] = max(stats["qp_rows"], pos.shape[0])
         return QPStep(
@@ -337,10 +337,10 @@ class SubproblemMixin(SolverAttributes):
         and the QP re-solved. ``damping`` (Levenberg-Marquardt) is added to the Hessian.
         """
         p = self.problem
-        mu = np.zeros((self.model.n_rows, p.horizon, lin.ro.X.shape[2]))
+        mu = np.zeros((self.condensed.n_rows, p.horizon, lin.ro.X.shape[2]))
         bounds = np.nonzero((u <= self._lower + 1e-12) | (u >= self._upper - 1e-12))[0]
         screened = self._screen(lin.ro)
-        g_shared = lin.ro.G[self.model.shared].max(axis=2).T.ravel()
+        g_shared = lin.ro.G[self.condensed.shared].max(axis=2).T.ravel()
         for attempt in range(4):
             if attempt == 3:  # give up predicting: plain eigenvalue clipping
                 active_pos, active_shared, bounds = active_pos[:0], active_shared[:0], bounds[:0]

@@ -23,11 +23,16 @@ from hyperparameters:
 
 Inference (likelihood and fitting) lives in :mod:`lfm_env.gp.inference`. One module per
 family: :mod:`.base` (:class:`StateSpaceKernel`), :mod:`.matern_kernel`,
-:mod:`.squared_exponential_kernel`, :mod:`.periodic_kernel`, :mod:`.composite`.
+:mod:`.squared_exponential_kernel`, :mod:`.periodic_kernel` (sums and products in :mod:`.base`).
 """
 
-from lfm_env.gp.kernels.base import DISCRETIZATION_METHODS, START_MODES, StateSpaceKernel
-from lfm_env.gp.kernels.composite import ProductKernel, SumKernel
+from lfm_env.gp.kernels.base import (
+    DISCRETIZATION_METHODS,
+    START_MODES,
+    ProductKernel,
+    StateSpaceKernel,
+    SumKernel,
+)
 from lfm_env.gp.kernels.matern_kernel import Matern, matern
 from lfm_env.gp.kernels.periodic_kernel import Periodic, periodic
 from lfm_env.gp.kernels.squared_exponential_kernel import (

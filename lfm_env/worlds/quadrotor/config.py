@@ -165,7 +165,4 @@ class QuadrotorGustConfig(WorldConfig):
         )
 
 
-#: The name this class had before the project said "latent force" throughout (old imports).
-GustConfig = QuadrotorLatentForceConfig
-
-__all__ = ["GustConfig", "QuadrotorGustConfig", "QuadrotorLatentForceConfig"]
+__all__ = ["QuadrotorGustConfig", "QuadrotorLatentForceConfig"]

@@ -87,7 +87,7 @@ class QuadrotorGustEnv(GoalReachingEnv):
     ## Arguments
     ``gym.make("lfm_env/QuadrotorGust-v0", config=None, render_mode=None,
     screen_size=(600, 300), scaling=None)``: ``config`` is a YAML path, a dict (whole file
-    or its ``env`` section) or a :class:`~lfm_env.config.QuadrotorGustConfig`;
+    or its ``env`` section) or a :class:`~lfm_env.worlds.quadrotor.config.QuadrotorGustConfig`;
     ``scaling`` is pixels per metre with the view centred on the vehicle, or ``None`` to
     show the whole tunnel. ``reset(options=...)`` accepts ``initial_state`` (``[m, m,
     rad, m/s, m/s, rad/s]``) and ``latent_state`` overrides. The env exposes ``config``,
@@ -95,7 +95,7 @@ class QuadrotorGustEnv(GoalReachingEnv):
 
     ## Version History
     * v0: initial version; then Gymnasium's conventions: a float32 action space, an
-      unbounded observation space, ``info["cost"]`` and the time limit as a ``TimeLimit``
+      unbounded observation space, ``info["violated_groups"]`` and the time limit as a ``TimeLimit``
       wrapper (same episodes); then finite observation bounds that hold (same episodes).
     """
 

@@ -235,7 +235,8 @@ def quadrotor_gust_system(
     The fallback input, applied when a solve fails with no plan left, is the hover
     thrust ``m g`` with the pitch command 0. The Euler stability of the attitude loop
     depends on the step, so it is checked where ``dt`` is known
-    (:class:`lfm_env.config.QuadrotorGustConfig`, with :func:`attitude_frequency_bound`).
+    (:class:`lfm_env.worlds.quadrotor.config.QuadrotorGustConfig`, with
+    :func:`attitude_frequency_bound`).
     """
     corridor = Corridor() if corridor is None else corridor
     _check_positive(

@@ -100,7 +100,4 @@ class SineTrackConfig(WorldConfig):
         )
 
 
-#: The name this class had before it moved here (kept for old imports).
-EnvConfig = SineTrackConfig
-
-__all__ = ["EnvConfig", "SineTrackConfig"]
+__all__ = ["SineTrackConfig"]

@@ -80,7 +80,8 @@ class SineTrackEnv(GoalReachingEnv):
     ## Arguments
     ``gym.make("lfm_env/SineTrack-v0", config=None, render_mode=None,
     screen_size=(600, 300), scaling=25.0, follow=True)``: ``config`` is a YAML path, a
-    dict (whole file or its ``env`` section) or an :class:`~lfm_env.config.SineTrackConfig`;
+    dict (whole file or its ``env`` section) or a
+    :class:`~lfm_env.worlds.sine_track.config.SineTrackConfig`;
     ``scaling`` is pixels per metre; ``follow`` centres the view on the car (else the
     whole track is shown). ``reset(options=...)`` accepts ``initial_state``
     (``[m, m, m/s, rad]``) and ``latent_state`` overrides. The env exposes ``config``,
@@ -89,7 +90,7 @@ class SineTrackEnv(GoalReachingEnv):
     ## Version History
     * v0: initial version (rebuilt on ``LatentForceEnv`` with the same episodes, bit for
       bit, and the added ``info["constraint_excess"]``); then Gymnasium's conventions: a
-      float32 action space, an unbounded observation space, ``info["cost"]`` and the time
+      float32 action space, an unbounded observation space, ``info["violated_groups"]`` and the time
       limit as a ``TimeLimit`` wrapper (same episodes); then finite observation bounds
       that hold (same episodes).
     """

@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 
 from controllers.config import load_config
-from controllers.feedback import FeedbackLaw
+from controllers.feedback_law import FeedbackLaw
 from controllers.problem import ScenarioProblem
 from controllers.solvers import make_solver, solver_spec
 from controllers.solvers.fast.condensed import BACKEND_ENV

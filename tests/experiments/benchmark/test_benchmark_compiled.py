@@ -10,7 +10,7 @@ import math
 
 import pytest
 
-from experiments.benchmark import compiled as bench_compiled
+from experiments.benchmark import compiled as benchmark_compiled
 from experiments.benchmark.problems import (
     DEFAULT_CONFIG,
     anchors_per_seed,
@@ -37,7 +37,7 @@ DRAWN_NS = 40  # a scenario count of the drawn problems (the full run: 1000 and 
 def tiny() -> tuple[dict, list, list]:
     cfg = experiment_config(DEFAULT_CONFIG)
     problems, anchors = record_closed_loop(cfg, [0, 1], 3)
-    out = bench_compiled.time_compiled(cfg, problems, anchors, (DRAWN_NS,), export=False)
+    out = benchmark_compiled.time_compiled(cfg, problems, anchors, (DRAWN_NS,), export=False)
     return out, problems, anchors
 
 
@@ -48,11 +48,11 @@ def test_the_compiled_loop_gives_the_python_loops_plans(tiny) -> None:
     assert (main["horizon"], main["n_scenarios"]) == (7, 150)
     assert main["n_problems"] == len(problems) == 6
     assert (drawn["horizon"], drawn["n_scenarios"]) == (7, DRAWN_NS)
-    chosen = anchors_per_seed(anchors, bench_compiled.AGREEMENT_STEPS)
+    chosen = anchors_per_seed(anchors, benchmark_compiled.AGREEMENT_STEPS)
     assert drawn["n_problems"] == len(chosen) == 4  # two per seed
     for row in (main, drawn):
         assert row["loop"] == "c"  # compiled here, not the Python fallback
-        assert 0.0 <= row["max_abs_diff"] <= bench_compiled.PLAN_TOL
+        assert 0.0 <= row["max_abs_diff"] <= benchmark_compiled.PLAN_TOL
         assert row["n_above_tol"] == 0
         assert row["rel_gap_abs_max"] <= 1e-9
         assert 0 <= row["n_same_iterations"] <= row["n_problems"]
@@ -66,7 +66,7 @@ def test_the_targets_without_the_solvers_and_export_are_skipped(tiny) -> None:
     out, _, _ = tiny
     targets = [
         t
-        for t in bench_compiled.compiled_targets({"compiled": out}, DEFAULT_THRESHOLDS)
+        for t in benchmark_compiled.compiled_targets({"compiled": out}, DEFAULT_THRESHOLDS)
         if t["key"] in set(ISSUE_37_KEYS)
     ]
     assert [t["key"] for t in targets] == list(ISSUE_37_KEYS)
@@ -82,9 +82,9 @@ def test_the_printed_part_has_a_row_per_agreement_and_target(tiny) -> None:
     out, _, _ = tiny
     results = {
         "compiled": out,
-        "targets": bench_compiled.compiled_targets({"compiled": out}, DEFAULT_THRESHOLDS),
+        "targets": benchmark_compiled.compiled_targets({"compiled": out}, DEFAULT_THRESHOLDS),
     }
-    lines = bench_compiled.compiled_lines(results)
+    lines = benchmark_compiled.compiled_lines(results)
     assert lines[0].startswith("Compiled loop (fast_c) against the Python loop")
     rows = [line for line in lines if line.startswith("  N=7, Ns=")]
     assert [row.split(",")[1].strip().split()[0] for row in rows] == ["Ns=150", f"Ns={DRAWN_NS}"]
@@ -98,4 +98,4 @@ def test_the_printed_part_has_a_row_per_agreement_and_target(tiny) -> None:
     assert [line.split()[0] for line in table] == list(ISSUE_37_KEYS)
     assert all(line.split()[1] == "-" for line in table)  # measured: nothing
     assert all(" SKIP " in line for line in table)
-    assert bench_compiled.compiled_lines({}) == []
+    assert benchmark_compiled.compiled_lines({}) == []

@@ -11,11 +11,11 @@ import shutil
 import numpy as np
 import pytest
 
-from experiments.benchmark import compiled as bench_compiled
-from experiments.benchmark import failures as bench_failures
-from experiments.benchmark import report as bench_report
-from experiments.benchmark import solvers as bench_solvers
-from experiments.benchmark import targets as bench_targets
+from experiments.benchmark import compiled as benchmark_compiled
+from experiments.benchmark import failures as benchmark_failures
+from experiments.benchmark import report as benchmark_report
+from experiments.benchmark import solvers as benchmark_solvers
+from experiments.benchmark import targets as benchmark_targets
 from experiments.cli import benchmark as benchmark_cli
 
 TIMING_KEYS = ("solve_ms_median", "solve_ms_p95", "solve_ms_max", "wall_ms_median")
@@ -139,7 +139,7 @@ def test_quick_run_sweeps_the_horizons(quick_run: tuple[dict, str]) -> None:
         ok = row["summary"]["ipopt"]["n_success"]
         assert agreement["n_compared"] == ok == len(agreement["gaps"])
         gaps = [g["rel_gap"] for g in agreement["gaps"]]
-        within = sum(g is not None and g <= bench_solvers.GAP_TOL for g in gaps)
+        within = sum(g is not None and g <= benchmark_solvers.GAP_TOL for g in gaps)
         assert agreement["n_within"] == within
         if ok:
             assert agreement["share_within_pct"] == pytest.approx(100.0 * within / ok)
@@ -160,7 +160,7 @@ def test_quick_run_says_which_problems_no_input_can_satisfy(quick_run) -> None:
     assert f30["bound_median"] > 10.0
     assert f30["slack_over_bound_median"] >= 1.0 - 1e-9
     assert rows[15]["feasibility"]["n_infeasible"] == 0
-    report = bench_report.format_report(data)
+    report = benchmark_report.format_report(data)
     assert "Infeasible for every input" in report
     assert "N = 30: 2/2 problems (seeds 0)" in report
     least = {(f["seed"], f["step"]): f["least_slack"] for f in f30["infeasible"]}
@@ -177,7 +177,7 @@ def test_every_failed_solve_is_listed_with_its_problem(quick_run: tuple[dict, st
     for f in failures:
         # horizon-sweep failures also give the problem's least slack over every input
         assert set(f) - keys <= {"least_slack"} and keys <= set(f)
-        assert f["kind"] == bench_failures.classify_failure(f["status"])
+        assert f["kind"] == benchmark_failures.classify_failure(f["status"])
     # The list matches the success counts of every part, solver by solver.
     closed = data["closed_loop"]
     for name, s in closed["summary"].items():
@@ -203,7 +203,7 @@ def test_every_failed_solve_is_listed_with_its_problem(quick_run: tuple[dict, st
                 if f["part"] == "ns_sweep" and f["solver"] == name and f["Ns"] == row["n_scenarios"]
             ]
             assert len(listed) == s["n_problems"] - s["n_success"]
-    report = bench_report.format_report(data)
+    report = benchmark_report.format_report(data)
     assert "Failed solves: " in report
     for f in failures:
         assert f"{f['part']:<20}{f['solver']:<25}{f['seed']:>5}{f['step']:>6}" in report
@@ -214,7 +214,7 @@ def test_targets_of_the_run_follow_from_its_figures(quick_run: tuple[dict, str])
     targets = data["targets"]
     keys = [t["key"] for t in targets]
     assert len(keys) == len(set(keys))  # one target per key
-    assert {t["key"] for t in targets} == set(bench_targets.DEFAULT_THRESHOLDS)
+    assert {t["key"] for t in targets} == set(benchmark_targets.DEFAULT_THRESHOLDS)
     for t in targets:
         assert t["passed"] in (True, False, None)
         assert t["threshold"] == data["meta"]["thresholds"][t["key"]]
@@ -265,7 +265,7 @@ def test_json_is_strict_and_the_markdown_has_the_speed_table(quick_run) -> None:
     assert "sqpmethod / fast:" in markdown
     # The compiled part as printed, in a text block after the targets.
     block = markdown.split("\n```text\n")[1].split("\n```\n")[0]
-    assert block == "\n".join(bench_compiled.compiled_lines(data))
+    assert block == "\n".join(benchmark_compiled.compiled_lines(data))
     assert markdown.count("- PASS") + markdown.count("- FAIL") + markdown.count("- SKIP") == len(
         data["targets"]
     )
@@ -273,7 +273,7 @@ def test_json_is_strict_and_the_markdown_has_the_speed_table(quick_run) -> None:
 
 def test_report_shows_the_speed_table_and_every_target(quick_run: tuple[dict, str]) -> None:
     data, _ = quick_run
-    report = bench_report.format_report(data)
+    report = benchmark_report.format_report(data)
     assert report.startswith("Speed (N = 7, Ns = 150")
     for name in QUICK_SOLVERS:
         assert f"\n{name} " in report
@@ -292,15 +292,15 @@ def test_quick_run_compares_the_compiled_loop_and_times_the_export(quick_run) ->
     closed, compiled = data["closed_loop"], data["compiled"]
     (row,) = compiled["agreement"]  # the quick sweep has no Ns = 1000 or 5000
     assert row["n_problems"] == closed["n_problems"] and row["loop"] == "c"
-    assert row["max_abs_diff"] <= bench_compiled.PLAN_TOL and row["n_above_tol"] == 0
+    assert row["max_abs_diff"] <= benchmark_compiled.PLAN_TOL and row["n_above_tol"] == 0
     export = compiled["export"]
     assert export["available"], export["reason"]
     assert export["n_problems"] == closed["n_problems"] and export["n_failed"] == 0
-    assert export["plan_diff_max"] <= bench_compiled.EXPORT_PLAN_TOL
+    assert export["plan_diff_max"] <= benchmark_compiled.EXPORT_PLAN_TOL
     assert export["dependencies"]["ok"] and export["dependencies"]["other_libraries"] == []
     robust = export["robust"]
     assert robust["example_returncode"] == 0 and robust["steps"] > 0
-    assert robust["input_diff_max"] <= bench_compiled.EXPORT_PLAN_TOL
+    assert robust["input_diff_max"] <= benchmark_compiled.EXPORT_PLAN_TOL
     assert _finite(robust["c_step_us_median"]) and _finite(export["solve_us"]["median"])
     by_key = {t["key"]: t for t in data["targets"]}
     summary = closed["summary"]
@@ -311,13 +311,13 @@ def test_quick_run_compares_the_compiled_loop_and_times_the_export(quick_run) ->
     assert by_key["robust_step_ms"]["value"] == pytest.approx(robust["c_step_us_median"] / 1e3)
     assert by_key["export_plan_diff"]["value"] == export["plan_diff_max"]
     assert by_key["export_dependencies"]["value"] == 0 and by_key["export_dependencies"]["passed"]
-    report = bench_report.format_report(data)
+    report = benchmark_report.format_report(data)
     assert "\nCompiled loop (fast_c) against the Python loop" in report
     assert "\nExported controllers (make: scenario " in report
     table = report.split("Targets of issue 37 (the compiled loop and the export)\n")[1]
     rows = table.split("\n\n")[0].splitlines()[1:]
     assert [r.split()[0] for r in rows] == [
-        k for k in bench_targets.DEFAULT_THRESHOLDS if k in bench_compiled.ISSUE_37_KEYS
+        k for k in benchmark_targets.DEFAULT_THRESHOLDS if k in benchmark_compiled.ISSUE_37_KEYS
     ]
     for r in rows:
         verdict = {True: "PASS", False: "FAIL", None: "SKIP"}[by_key[r.split()[0]]["passed"]]

@@ -6,8 +6,8 @@ import math
 
 import pytest
 
-from experiments.benchmark import report as bench_report
-from experiments.benchmark import targets as bench_targets
+from experiments.benchmark import report as benchmark_report
+from experiments.benchmark import targets as benchmark_targets
 
 
 def _verdicts(targets: list[dict]) -> list[bool | None]:
@@ -18,7 +18,7 @@ def test_speed_targets_are_judged_from_the_given_figures() -> None:
     worse = [{"seed": 1, "step": 7, "rel_gap": 3e-4}]
     # fast 1.2 ms (p95 4), sqpmethod 15x, textbook 400x, 1 of 50 problems (2%).
     medians = {"fast": 1.2, "sqpmethod": 18.0, "ipopt_multiple_shooting": 480.0}
-    targets = bench_report.speed_targets(medians, 4.0, worse, 50)
+    targets = benchmark_report.speed_targets(medians, 4.0, worse, 50)
     assert [t["key"] for t in targets] == [
         "fast_median_ms",
         "fast_p95_ms",
@@ -31,33 +31,33 @@ def test_speed_targets_are_judged_from_the_given_figures() -> None:
     assert "seed 1 step 7 (+3.0e-04)" in targets[4]["note"]
     # The limits themselves pass; just past them fails.
     at_limits = {"fast": 1.5, "sqpmethod": 15.0, "ipopt_multiple_shooting": 450.0}
-    assert _verdicts(bench_report.speed_targets(at_limits, 5.0, [], 10)) == [True] * 5
+    assert _verdicts(benchmark_report.speed_targets(at_limits, 5.0, [], 10)) == [True] * 5
     past = {"fast": 1.6, "sqpmethod": 15.9, "ipopt_multiple_shooting": 479.0}
-    failing = bench_report.speed_targets(past, 5.1, worse * 2, 50)
+    failing = benchmark_report.speed_targets(past, 5.1, worse * 2, 50)
     assert _verdicts(failing) == [False] * 5
     # Other thresholds, by key.
-    relaxed = bench_report.speed_targets(past, 5.1, worse * 2, 50, {"fast_median_ms": 2.0})
+    relaxed = benchmark_report.speed_targets(past, 5.1, worse * 2, 50, {"fast_median_ms": 2.0})
     assert _verdicts(relaxed)[0] is True and relaxed[0]["threshold"] == 2.0
 
 
 def test_speed_targets_skip_what_was_not_measured() -> None:
-    targets = bench_report.speed_targets({"fast": 6.0, "sqpmethod": math.nan}, None, None, None)
+    targets = benchmark_report.speed_targets({"fast": 6.0, "sqpmethod": math.nan}, None, None, None)
     assert _verdicts(targets) == [False, None, None, None, None]
     assert "not run" in targets[4]["note"]
     # No problem compared: no share, even with an empty list.
-    assert bench_report.speed_targets({"fast": 1.0}, 1.0, [], 0)[4]["passed"] is None
+    assert benchmark_report.speed_targets({"fast": 1.0}, 1.0, [], 0)[4]["passed"] is None
 
 
 def test_thresholds_are_checked_by_key() -> None:
-    th = bench_targets.check_thresholds({"pf_step_ms": "0.5"})
+    th = benchmark_targets.check_thresholds({"pf_step_ms": "0.5"})
     assert th["pf_step_ms"] == 0.5 and th["fast_median_ms"] == 1.5
     with pytest.raises(ValueError, match="'pf_step'"):
-        bench_targets.check_thresholds({"pf_step": 1.0})
+        benchmark_targets.check_thresholds({"pf_step": 1.0})
     with pytest.raises(ValueError, match="pf_step_ms"):
-        bench_targets.check_thresholds({"pf_step_ms": math.inf})
+        benchmark_targets.check_thresholds({"pf_step_ms": math.inf})
 
 
 def test_target_rejects_an_unknown_comparison() -> None:
-    assert bench_targets.target("x", 1.0, 1.0, ">")["passed"] is False
+    assert benchmark_targets.target("x", 1.0, 1.0, ">")["passed"] is False
     with pytest.raises(ValueError, match="op="):
-        bench_targets.target("x", 1.0, 1.0, "<")
+        benchmark_targets.target("x", 1.0, 1.0, "<")

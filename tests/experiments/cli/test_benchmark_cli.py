@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from experiments.benchmark import targets as bench_targets
+from experiments.benchmark import targets as benchmark_targets
 from experiments.cli import benchmark as benchmark_cli
 
 # A threshold no run can meet: the quick run must still exit 0 (no --check) and say FAIL.
@@ -15,7 +15,7 @@ IMPOSSIBLE = "fast_median_ms=1e-9"
 # Thresholds every measured figure meets: with --check such a run exits 0.
 LOOSE = [
     f"{key}={-1e9 if key.endswith(('_over_fast', '_share_pct')) else 1e9}"
-    for key in bench_targets.DEFAULT_THRESHOLDS
+    for key in benchmark_targets.DEFAULT_THRESHOLDS
     if key != "worse_share_pct"
 ] + ["worse_share_pct=100"]
 

@@ -8,7 +8,7 @@ import pytest
 from controllers.agents import make_agent
 from controllers.config import load_config
 from experiments.cli import calibrate_main as main
-from lfm_env.config import load_env_config
+from lfm_env.worlds.registry import load_env_config
 
 
 def test_cli_writes_a_config_whose_agents_model_the_learned_force(tmp_path, capsys):

@@ -1,6 +1,6 @@
-"""Evaluating agents that are not registered (``experiments.evaluation.agent_lookup``):
-factories, agent objects and 'module:attribute', how they are named, checked and sent to
-workers, and how the evaluation runs them."""
+"""Evaluating a user's agents (``controllers.agents.registry``: one record for every agent):
+factories, agent objects, 'module:attribute' and registered ones, how they are named,
+checked and sent to workers, and how the evaluation runs them."""
 
 from __future__ import annotations
 
@@ -11,9 +11,15 @@ import numpy as np
 import pytest
 
 from controllers.agents.protocol import Agent
+from controllers.agents.registry import (
+    AGENT_REGISTRY,
+    AgentSpec,
+    AgentSpecError,
+    register_agent,
+    resolve_agent,
+)
 from controllers.config import ExperimentConfig
 from experiments.evaluation import run as evaluation
-from experiments.evaluation.agent_lookup import AgentSpecError, OwnAgentSpec, resolve_agent
 from experiments.evaluation.run import (
     agent_seed,
     evaluate,
@@ -147,11 +153,11 @@ class Unnamed:
 
 
 def test_names_come_from_the_name_attribute_else_the_spec():
-    assert resolve_agent("scenario") == "scenario"
+    assert resolve_agent("scenario") is AGENT_REGISTRY["scenario"]
     assert resolve_agent(f"{OWN}:ProportionalAgent").name == "proportional"
     assert resolve_agent(f" {OWN}:ConstantAgent").name == f"{OWN}.ConstantAgent"
     spec = resolve_agent(Unnamed)
-    assert isinstance(spec, OwnAgentSpec) and spec.name == "Unnamed"
+    assert isinstance(spec, AgentSpec) and spec.name == "Unnamed" and spec.agent_class is None
     assert isinstance(spec.build(evaluation.resolve_config(TINY)), Agent)
 
 
@@ -187,3 +193,22 @@ def test_bad_agent_specs_fail_before_any_episode_naming_the_spec(
         evaluate(agents, [0], TINY, out=tmp_path / "out", progress=False)
     assert "\n" not in str(exc.value)
     assert not (tmp_path / "out").exists()
+
+
+def test_a_registered_users_agent_runs_by_name_with_its_labels(monkeypatch):
+    """A user's agent joins the registry: its name, label and colour are the registered
+    agents' kind, and 'module:attribute' of its factory finds the same record."""
+    from controllers.agents import registry
+
+    monkeypatch.setattr(registry, "_REGISTERED", dict(registry._REGISTERED))
+    monkeypatch.setattr(registry, "AGENT_REGISTRY", registry.MappingProxyType(registry._REGISTERED))
+    spec = register_agent("braking", BrakingAgent, label="brakes", colour="black")
+    assert registry.AGENT_REGISTRY["braking"] is spec and spec.short_label == "brakes"
+    assert list(registry.AGENT_REGISTRY)[-1] == "braking"  # after the project's agents
+    assert register_agent("braking", BrakingAgent) is spec  # registered again: the same
+    (row,) = evaluate("braking", [0], TINY, progress=False)
+    assert row["agent"] == "braking" and row["error"] == ""
+    with pytest.raises(AgentSpecError, match="is a registered agent's"):
+        register_agent("braking", ProportionalAgent)
+    with pytest.raises(AgentSpecError, match="must be 1 to 100 letters"):
+        register_agent("a b", ProportionalAgent)

@@ -19,9 +19,9 @@ from experiments.evaluation.run import (
     run_episode,
 )
 from lfm_env import gp
+from lfm_env.cost import QuadraticCost
 from lfm_env.env import LatentForceEnv
 from lfm_env.model import LatentForceModel
-from lfm_env.system import QuadraticCost
 from tests.experiments.evaluation.tiny_runs import (
     SINE_TRACK_COLUMNS,
     TINY,

@@ -11,7 +11,8 @@ import numpy as np
 import yaml
 
 from experiments.evaluation.run import TIMING_COLUMNS
-from lfm_env.system import ControlSystem, xp
+from lfm_env.system import ControlSystem
+from lfm_env.xp import xp
 
 # The quick world with short episodes and small agents: about 0.3 s per episode.
 TINY = {

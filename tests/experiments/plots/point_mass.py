@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from lfm_env.system import ControlSystem, xp
+from lfm_env.system import ControlSystem
+from lfm_env.xp import xp
 from tests.point_mass import point_mass_rhs
 
 WALL_Y = 2.0  # [m] the wall: y <= 2

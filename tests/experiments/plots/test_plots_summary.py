@@ -14,7 +14,7 @@ def test_calibration_figure_sets_estimators_side_by_side():
     coverage = np.sort(rng.uniform(0.6, 1.0, size=(2, len(quantities), 3)), axis=-1)[..., [1, 0, 2]]
     rmse = np.sort(rng.uniform(0.1, 1.0, size=(2, len(quantities), 3)), axis=-1)[..., [1, 0, 2]]
     agents = {"PF (bootstrap)": "tab:orange", "robust (rbpf)": "tab:red"}
-    fig = plots.calibration_figure(quantities, agents, coverage, rmse)
+    fig = plots.coverage_figure(quantities, agents, coverage, rmse)
     axes = np.array(fig.axes).reshape(2, len(quantities))
     for q, name in enumerate(quantities):
         top, bottom = axes[:, q]

@@ -10,9 +10,9 @@ import pytest
 
 from experiments import plots
 from lfm_env import gp
+from lfm_env.cost import QuadraticCost
 from lfm_env.env import LatentForceEnv
 from lfm_env.model import LatentForceModel
-from lfm_env.system import QuadraticCost
 from tests.experiments.plots.point_mass import DT, GOAL, SYSTEM
 
 

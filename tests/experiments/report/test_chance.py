@@ -17,7 +17,7 @@ from experiments.evaluation import evaluate
 from experiments.report.chance import (
     DEFAULT_CONFIDENCE,
     agent_design,
-    chance_calibration,
+    chance_check,
     closed_loop_first_step,
     design_epsilon,
     plan_violations,
@@ -26,7 +26,8 @@ from experiments.report.results import load_results, load_trajectory
 from experiments.report.stats import pooled_ratio_ci
 from lfm_env import gp
 from lfm_env.model import LatentForceModel
-from lfm_env.system import ControlSystem, xp
+from lfm_env.system import ControlSystem
+from lfm_env.xp import xp
 
 
 @pytest.mark.parametrize("ns, d, beta", [(150, 14, 1e-3), (50, 20, 0.05), (400, 7, 1e-6)])
@@ -180,7 +181,7 @@ def test_offline_draws_are_aligned_with_the_recorded_episodes(tmp_path):
                 np.testing.assert_array_equal(per_group[:, 0, j], recorded)
                 checked += int(recorded.sum())
     assert checked > 0  # some recorded violations were reproduced
-    cals = {c.agent: c for c in chance_calibration(results, n_draws=20)}
+    cals = {c.agent: c for c in chance_check(results, n_draws=20)}
     scenario = cals["scenario"]
     assert scenario.design.n_scenarios == 10 and cals["pf"].design.n_scenarios is None
     assert scenario.offline_steps == scenario.steps  # every plan of this run was applied

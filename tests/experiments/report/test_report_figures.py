@@ -11,7 +11,7 @@ from experiments.report.write import (
     load_trajectory,
     write_report,
 )
-from lfm_env.config import load_env_config
+from lfm_env.worlds.registry import load_env_config
 from tests.experiments.saved_results import TINY, is_car, is_road
 
 

@@ -1,5 +1,5 @@
 """The report's statistics (``experiments.report.stats``): bootstrap intervals, paired
-differences, pooled ratios and the estimators' calibration."""
+differences, pooled ratios and the estimators' coverage."""
 
 from __future__ import annotations
 
@@ -13,13 +13,13 @@ from experiments.report.format import fmt_estimate
 from experiments.report.write import (
     Results,
     bootstrap_ci,
-    calibration,
+    estimator_coverage,
     load_results,
     paired_differences,
     pooled_ratio_ci,
     write_report,
 )
-from lfm_env.config import load_env_config
+from lfm_env.worlds.registry import load_env_config
 from tests.experiments.saved_results import csv_values, table_line
 
 
@@ -81,7 +81,7 @@ def test_calibration_pools_the_evaluations_per_episode_metrics(results_dir, repo
     """The pooled latent-force coverage and RMSE agree with the rows' per-episode values
     weighted by their steps (computed by the evaluation, another code path)."""
     results = load_results(results_dir)
-    cals = {c.agent: c for c in calibration(results)}
+    cals = {c.agent: c for c in estimator_coverage(results)}
     assert list(cals) == ["pf", "scenario"]  # the nominal MPC and the oracle have no filter
     for agent, cal in cals.items():
         steps = csv_values(results_dir, agent, "steps")
@@ -97,15 +97,15 @@ def test_calibration_pools_the_evaluations_per_episode_metrics(results_dir, repo
             assert e.low <= e.mean <= e.high
     md = report_path.read_text()
     assert "| quantity | PF + CE MPC: `bootstrap` | scenario MPC (paper): `bootstrap` |" in md
-    row = table_line(md, "2-sigma coverage, latent force w", "## Estimator calibration")
+    row = table_line(md, "2-sigma coverage, latent force w", "## Estimator coverage")
     assert row == [
         fmt_estimate(cals["pf"].coverage[-1]),
         fmt_estimate(cals["scenario"].coverage[-1]),
     ]
-    assert table_line(md, "RMSE, p_x [m]", "## Estimator calibration")[0] == fmt_estimate(
+    assert table_line(md, "RMSE, p_x [m]", "## Estimator coverage")[0] == fmt_estimate(
         cals["pf"].rmse[0]
     )
-    assert (report_path.parent / "figures" / "estimator_calibration.png").is_file()
+    assert (report_path.parent / "figures" / "estimator_coverage.png").is_file()
 
 
 def test_calibration_names_the_configs_estimator_when_none_was_recorded(results_copy):
@@ -116,7 +116,7 @@ def test_calibration_names_the_configs_estimator_when_none_was_recorded(results_
     config = yaml.safe_load((results_copy / "config.yaml").read_text())
     config["agents"]["estimator"] = "ukf"  # as if the run had used it
     (results_copy / "config.yaml").write_text(yaml.safe_dump(config))
-    cals = {c.agent: c for c in calibration(load_results(results_copy))}
+    cals = {c.agent: c for c in estimator_coverage(load_results(results_copy))}
     assert (cals["pf"].estimator, cals["pf"].estimator_source) == ("ukf", "config.yaml")
     assert (cals["scenario"].estimator, cals["scenario"].estimator_source) == (
         "bootstrap",

@@ -23,7 +23,7 @@ from experiments.report.survival import (
     survivors,
     violation_or_failure,
 )
-from lfm_env.config import load_env_config
+from lfm_env.worlds.registry import load_env_config
 
 COUNT = "track_violation_steps_over_0.01"
 RATE = 0.2  # every episode is in violation on a fifth of the steps it lasts

@@ -1,6 +1,6 @@
 """Tests of the second case study as a system and a world config: the attitude-controlled
 planar quadrotor in a bending tunnel (``lfm_env.worlds.quadrotor.system``) and
-:class:`~lfm_env.config.QuadrotorGustConfig` (``configs/quadrotor.yaml``)."""
+:class:`~lfm_env.worlds.quadrotor.config.QuadrotorGustConfig` (``configs/quadrotor.yaml``)."""
 
 from __future__ import annotations
 
@@ -14,17 +14,9 @@ import numpy as np
 import pytest
 import yaml
 
-from lfm_env.config import (
-    WORLDS,
-    ConfigError,
-    QuadrotorGustConfig,
-    QuadrotorLatentForceConfig,
-    SineTrackConfig,
-    load_env_config,
-    to_dict,
-    world_config_class,
-)
+from lfm_env.config import ConfigError, to_dict
 from lfm_env.system import ControlSystem
+from lfm_env.worlds.quadrotor.config import QuadrotorGustConfig, QuadrotorLatentForceConfig
 from lfm_env.worlds.quadrotor.system import (
     CONSTRAINT_NAMES,
     GRAVITY,
@@ -38,6 +30,8 @@ from lfm_env.worlds.quadrotor.system import (
     quadrotor_gust_system,
     quadrotor_rhs,
 )
+from lfm_env.worlds.registry import WORLDS, load_env_config, world_config_class
+from lfm_env.worlds.sine_track.config import SineTrackConfig
 from lfm_env.worlds.sine_track.system import sine_track_system
 from tests.lfm_env.worlds.system_checks import assert_batched_step_equals_row_by_row
 

@@ -55,6 +55,7 @@ from controllers.solvers.fast.codegen.build import (
     load_library,
 )
 from controllers.solvers.fast.codegen.source import c_source
+from lfm_env.validation import real_vector
 
 # Dual regularisation delta: row scalings z / (v + delta z) stay below 1 / delta. On the
 # recorded elastic QPs of N = 15 (138): 0 left 38 unsolved (the dual residual grew in the
@@ -110,13 +111,6 @@ def available() -> bool:
     return _library() is not None
 
 
-def _vector(name: str, value: np.ndarray, size: int) -> np.ndarray:
-    a = np.ascontiguousarray(value, dtype=float)
-    if a.shape != (size,):
-        raise ValueError(f"{name}: expected shape ({size},), got {a.shape}")
-    return a
-
-
 def solve_elastic_qp(
     H: np.ndarray,
     g: np.ndarray,
@@ -162,8 +156,9 @@ def solve_elastic_qp(
     col = np.ascontiguousarray(col, dtype=np.int64)
     if col.shape != (m,) or (m and (col.min() < 0 or col.max() >= G)):
         raise ValueError(f"col: expected {m} slack columns in [0, {G}), got {col}")
-    args = [_vector("g", g, n), _vector("lo", lo, n), _vector("hi", hi, n)]
-    b, reg = _vector("b", b, m), _vector("reg", reg, G)
+    args = [real_vector(g, n, "g", finite=False), real_vector(lo, n, "lo", finite=False)]
+    args.append(real_vector(hi, n, "hi", finite=False))
+    b, reg = real_vector(b, m, "b", finite=False), real_vector(reg, G, "reg", finite=False)
     d, s, z = np.zeros(n), np.zeros(G), np.zeros(m)
     iterations = np.zeros(1, dtype=np.int64)
     code = lib.lfm_elastic_qp(

@@ -59,13 +59,13 @@ def nominal_slsqp(problem: ScenarioProblem, x0: np.ndarray, W: np.ndarray) -> np
 
     def cost(z: np.ndarray) -> float:
         u = z.reshape(n, nu)
-        X = mp.rollout(problem, x0, W, u)
-        return mp.objective(problem, x0, W, u) - problem.slack_penalty * float(
-            np.sum(mp.minimal_slack(problem, X))
+        X = problem.rollout(x0, W, u)
+        return problem.objective(x0, W, u) - problem.slack_penalty * float(
+            np.sum(problem.minimal_slack(X))
         )
 
     def g(z: np.ndarray) -> np.ndarray:
-        return -mp.constraint_values(problem, mp.rollout(problem, x0, W, z.reshape(n, nu))).ravel()
+        return -problem.constraint_values(problem.rollout(x0, W, z.reshape(n, nu))).ravel()
 
     bounds = Bounds(np.tile(problem.input_lower, n), np.tile(problem.input_upper, n))
     result = minimize(
@@ -102,8 +102,8 @@ def test_nominal_problem_agrees_across_formulations_and_scipy(x0: np.ndarray) ->
     np.testing.assert_allclose(cond.u, rep.u, atol=1e-4)
 
     u_ref = nominal_slsqp(one, x0, W)
-    assert mp.constraint_violation(one, mp.rollout(one, x0, W, u_ref)) < 1e-6
-    assert rel_diff(cond.objective, mp.objective(one, x0, W, u_ref)) < 1e-6
+    assert one.constraint_violation(one.rollout(x0, W, u_ref)) < 1e-6
+    assert rel_diff(cond.objective, one.objective(x0, W, u_ref)) < 1e-6
     np.testing.assert_allclose(cond.u, u_ref, atol=1e-4)
 
 
@@ -131,10 +131,10 @@ def test_returned_objective_and_input_bounds(
     sol = solve_cold(solvers[formulation], START, W)
     assert sol.success
     assert sol.u.shape == (N, problem.nu)
-    assert sol.objective == mp.objective(problem, START, W, sol.u)
+    assert sol.objective == problem.objective(START, W, sol.u)
     assert rel_diff(sol.objective, sol.extra["ipopt_objective"]) < 1e-6
     assert np.all(sol.u >= problem.input_lower) and np.all(sol.u <= problem.input_upper)
-    np.testing.assert_allclose(sol.predicted, mp.rollout(problem, START, W, sol.u))
+    np.testing.assert_allclose(sol.predicted, problem.rollout(START, W, sol.u))
     assert sol.iterations > 0 and sol.solve_time > 0.0
 
 
@@ -152,7 +152,7 @@ def test_per_scenario_initial_states_match_shared_initial_state(
     spread = solve_cold(solvers["condensed"], x0s, W)
     assert spread.success
     np.testing.assert_allclose(spread.predicted[:, 0], x0s)
-    assert spread.objective == mp.objective(problem, x0s, W, spread.u)
+    assert spread.objective == problem.objective(x0s, W, spread.u)
 
 
 # --- the NLP is the reference problem, for any weights ---
@@ -185,10 +185,10 @@ def test_nlp_objective_and_constraints_are_the_reference(
     for x0 in (MID_TRACK, np.tile(START, (NS, 1)) + rng.normal(0.0, 0.1, (NS, 4))):
         W = rng.normal(0.0, 3.0, size=(NS, N))
         u = rng.uniform(problem.input_lower, problem.input_upper, size=(N, problem.nu))
-        X = mp.rollout(problem, x0, W, u)
-        assert np.sum(mp.minimal_slack(problem, X)) > 1e-3  # the penalty term is exercised
+        X = problem.rollout(x0, W, u)
+        assert np.sum(problem.minimal_slack(X)) > 1e-3  # the penalty term is exercised
         f, g = nlp_values(solver, x0, W, u)
-        assert f == pytest.approx(mp.objective(problem, x0, W, u), rel=1e-12)
+        assert f == pytest.approx(problem.objective(x0, W, u), rel=1e-12)
         n_dyn = problem.nx * N * NS if formulation == "multiple_shooting" else 0
         assert g.size == n_dyn + problem.ng * N * NS
         np.testing.assert_allclose(g[:n_dyn], 0.0, atol=1e-9)  # the states are the rollout
@@ -239,10 +239,7 @@ def test_full_weight_matrices_give_the_reference_objective(
         n_scenarios=NS,
     )
     # The off-diagonal weights matter, so a solver that dropped them would be caught.
-    assert (
-        rel_diff(mp.objective(problem, MID_TRACK, W, u), mp.objective(diagonal, MID_TRACK, W, u))
-        > 1e-3
-    )
+    assert rel_diff(problem.objective(MID_TRACK, W, u), diagonal.objective(MID_TRACK, W, u)) > 1e-3
 
     sols = {}
     for formulation in FORMULATIONS:
@@ -251,10 +248,10 @@ def test_full_weight_matrices_give_the_reference_objective(
         )
         assert solver.formulation == formulation
         f, _ = nlp_values(solver, MID_TRACK, W, u)
-        assert f == pytest.approx(mp.objective(problem, MID_TRACK, W, u), rel=1e-12)
+        assert f == pytest.approx(problem.objective(MID_TRACK, W, u), rel=1e-12)
         sol = solver.solve(MID_TRACK, W)
         assert sol.success, sol.status
-        assert sol.objective == mp.objective(problem, MID_TRACK, W, sol.u)
+        assert sol.objective == problem.objective(MID_TRACK, W, sol.u)
         assert rel_diff(sol.objective, sol.extra["ipopt_objective"]) < 1e-6
         assert mp.largest_local_descent(problem, MID_TRACK, W, sol.u) >= -1e-9 * sol.objective
         sols[formulation] = sol
@@ -283,7 +280,7 @@ def test_feasible_problem_needs_no_slack(
         sol = solve_cold(solvers[formulation], x0, W)
         assert sol.success
         assert sol.slack < 1e-6
-        assert mp.constraint_violation(problem, sol.predicted) < 1e-6
+        assert problem.constraint_violation(sol.predicted) < 1e-6
 
 
 def fast_off_track_start(problem: ScenarioProblem) -> np.ndarray:
@@ -324,7 +321,7 @@ def test_infeasible_problem_minimises_exact_penalty(
                 problem.input_lower,
                 problem.input_upper,
             )
-            assert mp.objective(problem, x0, W, u) >= sol.objective * (1.0 - 1e-9)
+            assert problem.objective(x0, W, u) >= sol.objective * (1.0 - 1e-9)
 
 
 # --- warm start, reset, failures ---
@@ -362,7 +359,7 @@ def test_failed_solve_returns_iterate_without_raising(problem: ScenarioProblem) 
     assert sol.status == "Maximum_Iterations_Exceeded"
     assert sol.iterations == 2
     assert np.all(sol.u >= problem.input_lower) and np.all(sol.u <= problem.input_upper)
-    assert sol.objective == mp.objective(problem, START, W, sol.u)
+    assert sol.objective == problem.objective(START, W, sol.u)
 
 
 def test_failed_warm_start_is_retried_cold(problem: ScenarioProblem) -> None:

@@ -457,7 +457,7 @@ def test_the_fast_solver_with_threads_reaches_the_same_plan(paper) -> None:
     assert two.objective == pytest.approx(one.objective, rel=1e-9)
     np.testing.assert_allclose(two.u, one.u, atol=1e-6)
     clone = pickle.loads(pickle.dumps(make_solver(paper, "fast", threads=2)))
-    assert clone.model.threads == 2
+    assert clone.condensed.threads == 2
 
 
 # --------------------------------------------------------------------------- vectorised rollout

@@ -10,13 +10,12 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from controllers import problem as mpc_problem
 from controllers.problem import MPCSolution, ScenarioProblem
 from controllers.solvers import make_solver
 from controllers.solvers.fast.condensed import CondensedModel
 from controllers.solvers.fast.solver import FastScenarioSolver
 from experiments.benchmark.timing import latent_force_scenarios
-from lfm_env.config import SineTrackConfig
+from lfm_env.worlds.sine_track.config import SineTrackConfig
 
 RTOL = 1e-4  # objective agreement with the reference
 VIOLATION_TOL = 1e-6  # [m or m/s] allowed constraint violation where the reference has none
@@ -71,13 +70,13 @@ def assert_matches_reference(
     assert sol.success, sol.status
     assert ref.success, ref.status
     assert sol.objective == pytest.approx(ref.objective, rel=RTOL)
-    assert sol.objective == pytest.approx(mpc_problem.objective(problem, x0, W, sol.u), rel=1e-12)
+    assert sol.objective == pytest.approx(problem.objective(x0, W, sol.u), rel=1e-12)
     assert np.all(sol.u >= problem.input_lower) and np.all(sol.u <= problem.input_upper)
-    X = mpc_problem.rollout(problem, x0, W, sol.u)
+    X = problem.rollout(x0, W, sol.u)
     np.testing.assert_allclose(sol.predicted, X, rtol=0, atol=1e-12)
-    assert sol.slack == pytest.approx(np.sum(mpc_problem.minimal_slack(problem, X)), abs=1e-9)
+    assert sol.slack == pytest.approx(np.sum(problem.minimal_slack(X)), abs=1e-9)
     if ref.slack <= VIOLATION_TOL:
-        assert mpc_problem.constraint_violation(problem, X) <= VIOLATION_TOL
+        assert problem.constraint_violation(X) <= VIOLATION_TOL
 
 
 # --------------------------------------------------------------------------- agreement
@@ -272,7 +271,7 @@ def test_the_stagnation_stop_counts_accepted_steps_in_a_row() -> None:
         assert sol.success
         assert sol.status == "Solved_To_Acceptable_Level"
         assert sol.iterations == count
-        assert sol.objective < mpc_problem.objective(problem, x0, W, np.zeros((7, 2)))
+        assert sol.objective < problem.objective(x0, W, np.zeros((7, 2)))
 
 
 # One closed-loop problem of the paper evaluation's certainty-equivalent agent ("pf", env seed
@@ -310,7 +309,7 @@ def test_a_poor_accepted_step_gets_the_second_order_correction() -> None:
 def test_iteration_limit_returns_best_iterate_without_raising() -> None:
     problem = PROBLEM_30
     x0, W = STARTS["start"], draw_W(10, 30)
-    start_objective = mpc_problem.objective(problem, x0, W, np.zeros((7, 2)))
+    start_objective = problem.objective(x0, W, np.zeros((7, 2)))
     sol = FastScenarioSolver(problem, max_iter=1, restarts=()).solve(x0, W)
     assert not sol.success
     assert sol.status == "Maximum_Iterations_Exceeded"

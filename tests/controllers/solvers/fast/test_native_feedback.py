@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from controllers.config import load_config
-from controllers.feedback import FeedbackLaw
+from controllers.feedback_law import FeedbackLaw
 from controllers.problem import ScenarioProblem
 from controllers.solvers import make_solver, solver_spec
 from controllers.solvers.fast.closed_loop import applied_inputs
@@ -71,7 +71,7 @@ def test_with_every_nominal_input_bounded_the_native_plans_are_the_rewrites(name
     x0, W, law = case(name, i)
     ref, ref_u = get(name, "reference_objective")[i], get(name, "reference_u")[i]
     solver = make_solver(problem, "fast", feedback_bounds="all")
-    assert isinstance(solver, FastScenarioSolver) and solver.model.feedback
+    assert isinstance(solver, FastScenarioSolver) and solver.condensed.feedback
     sol = solver.solve(x0, W, u_guess=get(name, "u_guess")[i], law=law)
     assert sol.success, sol.status
     assert sol.objective == pytest.approx(problem.objective(x0, W, sol.u, law=law), rel=1e-9)
@@ -124,7 +124,7 @@ def _model_at(name: str, i: int, bounds: str = "first"):
     x0, W, law = case(name, i)
     x0, W = problem.check_data(x0, W)
     solver._use_law(law.K, law.r, bounds)
-    m = solver.model
+    m = solver.condensed
     data = (
         np.ascontiguousarray(x0.T),
         np.ascontiguousarray(W.transpose(1, 0, 2)),
@@ -203,7 +203,7 @@ def test_the_first_steps_input_rows_and_a_zero_law_repeat_the_bounds() -> None:
     x0, W = get("paper_n7", "x0")[0], get("paper_n7", "W")[0]
     solver = make_solver(problem, "fast", feedback_bounds="all")
     solver._use_law(zero.K, zero.r, "all")
-    ro = solver.model.evaluate(x0T, Wn, u, c0)
+    ro = solver.condensed.evaluate(x0T, Wn, u, c0)
     assert np.all(ro.G[problem.ng :] == -np.inf)
     assert ro.merit == pytest.approx(open_loop.objective(x0, W, u), rel=1e-12)
 

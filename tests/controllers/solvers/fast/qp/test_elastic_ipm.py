@@ -128,11 +128,11 @@ def test_the_iteration_limit_is_reported_not_hidden() -> None:
 @pytest.mark.parametrize(
     ("field", "value", "message"),
     [
-        ("g", np.zeros(5), r"g: expected shape \(6,\)"),
-        ("hi", np.zeros((6, 1)), r"hi: expected shape \(6,\)"),
+        ("g", np.zeros(5), r"g has shape \(5,\): must be \(6,\)"),
+        ("hi", np.zeros((6, 1)), r"hi has shape \(6, 1\): must be \(6,\)"),
         ("H", np.zeros((6, 5)), "H: expected a square matrix"),
         ("col", np.full(15, 4), r"col: expected 15 slack columns in \[0, 4\)"),
-        ("reg", np.zeros(3), r"reg: expected shape \(4,\)"),
+        ("reg", np.zeros(3), r"reg has shape \(3,\): must be \(4,\)"),
     ],
 )
 def test_bad_arrays_are_errors_naming_the_field(field, value, message) -> None:

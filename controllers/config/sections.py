@@ -1,38 +1,22 @@
-"""Typed, validated configuration of the agents and of a whole experiment.
+"""The ``agents:`` and ``evaluation:`` sections of a config, typed and checked.
 
-:class:`AgentConfig` is the ``agents:`` section of a config file, :class:`EvaluationConfig`
-the ``evaluation:`` section (how a run goes: the episode time limit); :class:`ExperimentConfig`
-joins them to the ``env:`` section and builds, once, what the agents need: their model of the
-world (:meth:`ExperimentConfig.make_model`), their cost (:meth:`~ExperimentConfig.make_cost`)
-and the scenario problem (:meth:`~ExperimentConfig.make_problem`).
+:class:`AgentConfig` is the ``agents:`` section (with :class:`RobustConfig`, its ``robust:``
+part), :class:`EvaluationConfig` the ``evaluation:`` section (how a run goes: the episode
+time limit). The memory estimates here refuse settings that would not fit before anything
+is built. A whole config joins them to the world's ``env:`` section
+(:mod:`controllers.config.experiment`).
 """
 
 from __future__ import annotations
 
-import os
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
-
-import numpy as np
 
 from controllers.estimators.estimator import ESTIMATORS
 from controllers.problem import PREDICTIONS
 from controllers.solvers import SOLVER_SPECS, SOLVERS
 from controllers.solvers.fast.options import MAX_THREADS
-from lfm_env.config import (
-    ConfigError,
-    FieldChecker,
-    LatentForceConfig,
-    WorldConfig,
-    check_latent_step,
-    from_dict,
-    read_config,
-    read_section,
-    to_dict,
-)
-from lfm_env.config.compose import SECTION_TYPES
-from lfm_env.worlds.registry import load_env_config, qualified_env_id
+from lfm_env.config import ConfigError, FieldChecker, LatentForceConfig
 
 RESAMPLING = ("systematic", "stratified", "residual", "multinomial")
 SCENARIO_INITIAL_STATES = ("estimate", "particles")
@@ -163,7 +147,8 @@ class AgentConfig:
     Vectors over the state (``Q``, ``Qf``, ``goal_state``) have one entry per state of the
     system and are given in the config's units (the sine track's heading in degrees, as
     in the ``env`` section); ``R`` has one entry per input. Their lengths are checked
-    against the system when the cost is built (:meth:`ExperimentConfig.make_cost`).
+    against the system when the cost is built
+    (:meth:`~controllers.config.ExperimentConfig.make_cost`).
     """
 
     RENAMED_KEYS = {"disturbance": "latent_force"}  # old name -> new (read with a warning)
@@ -354,194 +339,15 @@ class EvaluationConfig:
         )
 
 
-@dataclass(frozen=True)
-class ExperimentConfig:
-    """A whole config (``env_id``, ``env`` and ``agents``), resolved and validated once.
-
-    ``env`` is the world's config (the paper's sine track by default, or another world's,
-    chosen by the file's top-level ``env_id``: :mod:`lfm_env.worlds.registry`). The builders
-    below are what every agent, solver benchmark and worker process uses, so a config file is
-    read and checked in one place; the object pickles, so workers get it instead of a path or a
-    dict to parse again.
-    """
-
-    env: WorldConfig = field(default_factory=lambda: load_env_config(None))  # default world
-    agents: AgentConfig = field(default_factory=AgentConfig)
-    # How an evaluation runs (not part of to_dict, nor of equality: see EvaluationConfig).
-    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig, compare=False)
-
-    @property
-    def env_id(self) -> str:
-        """The Gymnasium id of the world's env (``gym.make(cfg.env_id, config=cfg.env)``):
-        ``module:EnvId`` for a world registered by a module of one's own, so that any
-        process (a worker, a later report) imports the module and finds the world."""
-        return qualified_env_id(self.env.ENV_ID)
-
-    def to_dict(self) -> dict:
-        """Plain, YAML-ready data that :func:`load_config` reads back to an equal config
-        (``env_id``, ``env`` and ``agents``; the ``evaluation`` run settings are left out)."""
-        data = {"env_id": self.env_id, **to_dict(self)}
-        data.pop("evaluation", None)
-        return data
-
-    def __post_init__(self) -> None:
-        check_latent_step(self.env)
-        if self.agents.latent_force is not None:
-            check_latent_step(self.env, self.agents.latent_force, where="agents.latent_force")
-        self.make_cost()  # vector lengths against the system, with the field's name
-        system = self.make_system()
-        self.agents.check_scenario_count(system.nu)
-        model = self.make_model()
-        a = self.agents
-        # Memory up front, for the largest problem and each filter any agent builds.
-        r = a.robust
-        robust_ns = 1 if r.forecast == "mean" else (r.n_scenarios or self.scenario_count())
-        check_problem_memory(model, a.horizon, max(self.scenario_count(), robust_ns))
-        check_filter_memory(model, a.n_particles, a.estimator)
-        check_filter_memory(model, r.n_particles, r.estimator, "agents.robust.n_particles")
-        groups = list(system.constraint_groups)
-        for name, k in (
-            ("backoff", self.agents.backoff),
-            ("robust.backoff", self.agents.robust.backoff),
-        ):
-            if len(k) not in (1, len(groups)):
-                raise ConfigError(
-                    f"agents.{name}={list(k)}: must be one number or {len(groups)}, one per "
-                    f"constraint group {groups} of the {system.name} system"
-                )
-
-    def make_system(self):
-        """The controlled system (:class:`~lfm_env.system.ControlSystem`) of the env section."""
-        return self.env.make_system()
-
-    def make_model(self):
-        """The agents' model: the env's system with the agents' belief about the force.
-
-        ``agents.latent_force`` when set (e.g. learned by ``lfm-calibrate``), otherwise the
-        env's own latent force, known a priori as in the paper.
-        """
-        return self.env.make_model(self.agents.latent_force)
-
-    def make_cost(self):
-        """The agents' :class:`~lfm_env.system.QuadraticCost` (``Q``, ``R``, ``Qf``, goal)."""
-        from lfm_env.cost import QuadraticCost
-
-        system = self.make_system()
-        a = self.agents
-        for name, n, what in (
-            ("Q", system.nx, "states"),
-            ("Qf", system.nx, "states"),
-            ("goal_state", system.nx, "states"),
-            ("R", system.nu, "inputs"),
-        ):
-            value = getattr(a, name)
-            if len(value) != n:
-                names = system.state_names if what == "states" else system.input_names
-                raise ConfigError(
-                    f"agents.{name}={list(value)}: must have {n} values, one per {what[:-1]} "
-                    f"of the {system.name} system {list(names)}"
-                )
-        return QuadraticCost(Q=a.Q, R=a.R, Qf=a.Qf, x_goal=self.env.state_from_config(a.goal_state))
-
-    @property
-    def measurement_std(self) -> np.ndarray:
-        """Std of the full-state measurement noise, in SI units (the filter's likelihood)."""
-        return self.env.measurement_std_rad
-
-    def scenario_count(self) -> int:
-        """The scenario count ``Ns`` of the scenario agents (explicit or Campi-Garatti)."""
-        return self.agents.scenario_count(self.make_system().nu)
-
-    def make_problem(
-        self,
-        n_scenarios: int | None = None,
-        horizon: int | None = None,
-        prediction: str | None = None,
-    ):
-        """The scenario problem of the agents' model and cost.
-
-        Args:
-            n_scenarios: ``Ns``; ``None`` for :meth:`scenario_count`.
-            horizon: ``N``; ``None`` for ``agents.horizon``.
-            prediction: ``"open_loop"`` or ``"feedback"``; ``None`` for ``agents.prediction``.
-        """
-        from controllers.problem import ScenarioProblem
-
-        return ScenarioProblem(
-            self.make_model(),
-            self.make_cost(),
-            horizon=self.agents.horizon if horizon is None else int(horizon),
-            n_scenarios=self.scenario_count() if n_scenarios is None else int(n_scenarios),
-            slack_penalty=self.agents.slack_penalty,
-            prediction=self.agents.prediction if prediction is None else prediction,
-        )
-
-
-def load_config(config: Any = None, settings: Sequence[str] = ()) -> ExperimentConfig:
-    """An :class:`ExperimentConfig` from a preset's name (``"paper"``, ``"quick"``, ...), a
-    YAML path, a dict with ``env``/``agents`` sections, an ``ExperimentConfig``, or ``None``
-    (the paper's values).
-
-    A file (or dict) may inherit from another with ``base:``, and ``settings`` (``KEY=VALUE``
-    texts, as ``lfm-evaluate --set``) override single fields
-    (:mod:`lfm_env.config.compose`).
-
-    Raises:
-        ConfigError: naming the first bad field (``env.dt``, ``agents.Q``, ...).
-    """
-    if isinstance(config, ExperimentConfig):
-        if not settings:
-            return config
-        evaluation = config.evaluation  # (not in to_dict: a run setting)
-        data = read_config(config.to_dict(), settings)
-        return ExperimentConfig(
-            env=load_env_config(data), agents=load_agent_config(data), evaluation=evaluation
-        )
-    data = read_config(config, settings)  # read once, every section from it
-    return ExperimentConfig(
-        env=load_env_config(data),
-        agents=load_agent_config(data),
-        evaluation=load_evaluation_config(data),
-    )
-
-
-def load_evaluation_config(config: Any = None) -> EvaluationConfig:
-    """The ``evaluation`` section of a preset's name, a path or a whole-file dict (defaults
-    without one)."""
-    if isinstance(config, EvaluationConfig):
-        return config
-    if hasattr(config, "evaluation") and isinstance(config.evaluation, EvaluationConfig):
-        return config.evaluation
-    if isinstance(config, (str, os.PathLike)):
-        config = read_config(config)
-    if not isinstance(config, dict) or "evaluation" not in config:
-        return EvaluationConfig()
-    return from_dict(EvaluationConfig, read_section(config, "evaluation"), prefix="evaluation")
-
-
-def load_agent_config(config: Any = None) -> AgentConfig:
-    """An :class:`AgentConfig` from a preset's name, a path, a dict (whole file or its
-    ``agents`` section), an ``AgentConfig`` or ``None`` (paper defaults)."""
-    if isinstance(config, AgentConfig):
-        return config
-    if hasattr(config, "agents") and isinstance(config.agents, AgentConfig):
-        return config.agents
-    section = read_section(config, "agents")
-    return from_dict(AgentConfig, section, prefix="agents")
-
-
-# --set agents.KEY=VALUE reads the value by the field's type (lfm_env cannot import this).
-SECTION_TYPES["agents"] = AgentConfig
-SECTION_TYPES["evaluation"] = EvaluationConfig
-
 __all__ = [
-    "AgentConfig",
-    "ConfigError",
     "DEFAULT_EPISODE_TIMEOUT",
+    "FAST_MAX_HORIZON",
+    "MEMORY_BUDGET",
+    "AgentConfig",
     "EvaluationConfig",
-    "ExperimentConfig",
-    "load_agent_config",
-    "load_config",
-    "load_evaluation_config",
-    "SOLVERS",
+    "RobustConfig",
+    "check_filter_memory",
+    "check_problem_memory",
+    "filter_memory",
+    "problem_memory",
 ]

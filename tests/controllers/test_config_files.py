@@ -1,5 +1,6 @@
-"""Configs by name from any folder, ``base:`` inheritance and ``KEY=VALUE`` settings
-(``lfm_env.config.compose``): the one resolver every function that takes a config uses."""
+"""Configs by name from any folder, ``base:`` inheritance and ``KEY=VALUE`` overrides: a whole
+config is read in one place (``controllers.config``), a world reads its ``env:`` section
+(``lfm_env.worlds.registry.load_env_config``)."""
 
 from __future__ import annotations
 
@@ -10,14 +11,9 @@ import pytest
 import yaml
 
 import lfm_env  # noqa: F401  (registers the envs)
-from lfm_env.config import (
-    ConfigError,
-    apply_settings,
-    config_path,
-    load_env_config,
-    preset_names,
-    read_config,
-)
+from controllers.config import apply_overrides, load_config, read_document
+from lfm_env.config import ConfigError, config_path, preset_names
+from lfm_env.worlds.registry import load_env_config
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -42,7 +38,7 @@ def test_a_file_wins_over_a_preset_and_an_unknown_name_lists_the_presets(tmp_pat
     with pytest.raises(ConfigError, match=r"'nope': does not exist and names no preset; presets: "):
         load_env_config("nope")
     with pytest.raises(ConfigError, match="names no preset"):
-        read_config("sub/quick.yaml")  # a relative path is a path, not a name
+        read_document("sub/quick.yaml")  # a relative path is a path, not a name
 
 
 def test_base_inherits_a_preset_and_overrides_fields(tmp_path):
@@ -51,7 +47,7 @@ def test_base_inherits_a_preset_and_overrides_fields(tmp_path):
         "base: paper\nenv:\n  latent_force:\n    variance: 9.0\n"
         "agents:\n  Q: [1.0, 1.0, 1.0, 1.0]\n"
     )
-    data = read_config(path)
+    data = read_document(path)
     paper = yaml.safe_load((REPO / "configs" / "paper.yaml").read_text())
     assert "base" not in data
     lf = data["env"]["latent_force"]
@@ -59,43 +55,50 @@ def test_base_inherits_a_preset_and_overrides_fields(tmp_path):
     assert lf["lengthscale"] == paper["env"]["latent_force"]["lengthscale"]
     assert data["agents"]["Q"] == [1.0, 1.0, 1.0, 1.0]  # a list replaces the base's
     assert data["agents"]["robust"] == paper["agents"]["robust"]  # untouched sections kept
-    assert load_env_config(path).latent_force.variance == 9.0
+    assert load_config(path).env.latent_force.variance == 9.0
+    # A world alone reads one file's env section: a file that inherits is read whole above.
+    with pytest.raises(ConfigError, match=r"inherits \(base: 'paper'\).*load_config"):
+        load_env_config(path)
+    with pytest.raises(ConfigError, match=r"inherits \(base: 'paper'\)"):
+        gym.make("lfm_env/SineTrack-v0", config=str(path))
+    env = gym.make("lfm_env/SineTrack-v0", config=load_config(path).env)
+    assert env.unwrapped.config.latent_force.variance == 9.0
 
 
 def test_base_paths_are_relative_to_the_file_and_chain(tmp_path):
     (tmp_path / "sub").mkdir()
     (tmp_path / "sub" / "a.yaml").write_text("base: quadrotor\nenv:\n  max_steps: 50\n")
     (tmp_path / "b.yaml").write_text("base: sub/a.yaml\nenv:\n  dt: 0.05\n")
-    cfg = load_env_config(tmp_path / "b.yaml")
+    cfg = load_config(tmp_path / "b.yaml").env
     assert (cfg.ENV_ID, cfg.max_steps, cfg.dt) == ("lfm_env/QuadrotorGust-v0", 50, 0.05)
     # A dict may inherit too (a relative base path is then relative to the working folder).
-    assert load_env_config({"base": "quadrotor"}).ENV_ID == "lfm_env/QuadrotorGust-v0"
+    assert load_config({"base": "quadrotor"}).env.ENV_ID == "lfm_env/QuadrotorGust-v0"
 
 
 def test_bad_bases_are_one_line_errors(tmp_path):
     (tmp_path / "a.yaml").write_text("base: b.yaml\n")
     (tmp_path / "b.yaml").write_text("base: a.yaml\n")
     with pytest.raises(ConfigError, match="inherits from itself"):
-        read_config(tmp_path / "a.yaml")
+        read_document(tmp_path / "a.yaml")
     (tmp_path / "c.yaml").write_text("base: [paper]\n")
     with pytest.raises(ConfigError, match=r"base=\['paper'\].*must be a preset's name"):
-        read_config(tmp_path / "c.yaml")
+        read_document(tmp_path / "c.yaml")
     (tmp_path / "d.yaml").write_text("base: nope\n")
     with pytest.raises(ConfigError, match="base: config 'nope': does not exist"):
-        read_config(tmp_path / "d.yaml")
+        read_document(tmp_path / "d.yaml")
     (tmp_path / "e.yaml").write_text("base: paper\nenvv: {}\n")
     with pytest.raises(ConfigError, match=r"unknown top-level config section\(s\) \['envv'\]"):
-        load_env_config(tmp_path / "e.yaml")
+        load_config(tmp_path / "e.yaml")
 
 
-def test_settings_are_read_by_their_fields_type():
-    data = apply_settings(
+def test_overrides_are_read_by_their_fields_type():
+    data = apply_overrides(
         {"env": {"dt": 0.1}},
         [
             "env.latent_force.variance=1e-3",  # YAML alone would read text
             "env.measurement_noise_std=[0.1, 0.1, 0.1, 1]",
             "env.max_steps=20",
-            "env.dt=0.2",  # later settings win over the file
+            "env.dt=0.2",  # later overrides win over the file
         ],
     )
     assert data["env"]["latent_force"] == {"variance": 1e-3}
@@ -103,7 +106,7 @@ def test_settings_are_read_by_their_fields_type():
     assert (cfg.dt, cfg.max_steps, cfg.latent_force.variance) == (0.2, 20, 1e-3)
     assert cfg.measurement_noise_std == (0.1, 0.1, 0.1, 1.0)
     # env_id first: the env keys are the fields of the world it names.
-    quad = apply_settings({}, ["env.pitch_max=0.3", "env_id=lfm_env/QuadrotorGust-v0"])
+    quad = apply_overrides({}, ["env.pitch_max=0.3", "env_id=lfm_env/QuadrotorGust-v0"])
     assert load_env_config(quad).pitch_max == 0.3
 
 
@@ -118,11 +121,15 @@ def test_settings_are_read_by_their_fields_type():
         ("horizon", "expected KEY=VALUE"),
     ],
 )
-def test_bad_settings_name_the_key(setting, message):
+def test_bad_overrides_name_the_key(setting, message):
     with pytest.raises(ConfigError, match=message):
-        apply_settings({}, [setting])
+        apply_overrides({}, [setting])
 
 
 def test_a_bad_value_names_the_field():
     with pytest.raises(ConfigError, match=r"env.max_steps='many': expected an integer"):
-        load_env_config(read_config("paper", ["env.max_steps=many"]))
+        load_env_config(read_document("paper", ["env.max_steps=many"]))
+    with pytest.raises(ConfigError, match=r"agents.horizon='x': expected an integer"):
+        load_config("paper", ["agents.horizon=x"])
+    with pytest.raises(ConfigError, match=r"evaluation.episode_timeout='x': expected a number"):
+        load_config("paper", ["evaluation.episode_timeout=x"])
