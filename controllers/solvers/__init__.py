@@ -117,10 +117,10 @@ SOLVER_SPECS: dict[str, SolverSpec] = {
             "controllers.solvers.fast.solver:FastScenarioSolver",
             "the condensed exact-Hessian SQP whose derivatives CasADi generates from the "
             "system definition (the default)",
-            # Its work per iteration grows steeply with N (measured with 150 scenarios: one
-            # step 1.2 s at N = 20, 11 s at N = 40 against the 10 s solve limit, 21 s at
-            # N = 60 and 84 s at N = 100): beyond this a single iteration overruns any solve
-            # limit.
+            # Its work per iteration grows steeply with N. Measured with 150 scenarios (the
+            # paper's scenario agent, feedback prediction, the compiled loop, CPU time): at
+            # N = 50 a real-time iteration takes about 0.12 s per step and the agent reaches
+            # the goal; beyond, not measured (docs/solvers.md, "Real-time iterations").
             max_horizon=50,
             threaded=True,
             native_feedback=True,
