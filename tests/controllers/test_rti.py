@@ -112,3 +112,21 @@ def test_rti_steers_a_paper_episode_to_the_goal_as_converged_solves_do() -> None
             assert how["converged"] == 1  # the first step
             assert how["rti"] >= 0.8 * finished[mode]
     assert abs(finished["rti"] - finished["converged"]) <= 2
+
+
+@pytest.mark.parametrize("prediction", ["open_loop", "feedback"])
+def test_both_loops_take_the_same_real_time_iterations(prediction) -> None:
+    # a converged solve, then one iteration per problem (the limited options: no extra
+    # starts, the whole range as trust region, the QP without slacks first only after a
+    # QP that needed none, two screened rows per group) on the recorded closed-loop problems
+    data = dict(np.load(Path(__file__).resolve().parents[1] / "data" / "recorded_problems.npz"))
+    problem = load_config("paper").make_problem(prediction=prediction)
+    loops = [make_solver(problem, name, qp_solver="elastic_ipm") for name in ("fast", "fast_c")]
+    for i, (x0, W) in enumerate(zip(data["x0"][:6], data["W"][:6], strict=True)):
+        a, b = (s.solve(x0, W, iterations=None if i == 0 else 1) for s in loops)
+        assert (a.status, a.iterations) == (b.status, b.iterations), i
+        assert a.extra["qp_solves"] == b.extra["qp_solves"], i
+        np.testing.assert_allclose(a.u, b.u, atol=1e-9)
+        assert i == 0 or a.iterations == 1
+    # the limit is for that call only: the next solve converges
+    assert loops[1].solve(x0, W).success

@@ -295,7 +295,15 @@ class CompiledScenarioSolver:
         """The options of the C solver's next solves: the iteration limit, extra starts and
         trust radius (what :meth:`FastSolverOptions.limited` changes)."""
         values = c_options(options)
-        for name in ("max_iter", "restart_mirror", "restart_straight", "trust_radius"):
+        limited = (
+            "max_iter",
+            "restart_mirror",
+            "restart_straight",
+            "trust_radius",
+            "elastic_on_demand",
+            "screen_rows",
+        )
+        for name in limited:
             code = self._lib.lfm_sqp_set_option(
                 self._handle.ptr, name.encode(), float(getattr(values, name))
             )

@@ -129,7 +129,7 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin, Feed
         span = self._upper - self._lower
         self._range = np.where(np.isfinite(span) & (span > 0), span, np.inf)
         self._radius = 0.0  # current trust radius (fraction of the range; 0: none)
-        self._hard_first = False  # the next QP is tried without slacks first
+        self._hard_first = True  # the next QP is tried without slacks first
         # The last start's linearisation: its arrays (every entry rewritten) serve the next
         # start's first one, so large problems do not fault in fresh pages at every start.
         self._spare_lin: Linearisation | None = None
@@ -149,6 +149,7 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin, Feed
         """Forget the warm start: the next solve starts from zero inputs (with feedback,
         also the reference plan)."""
         self._prev_u = None
+        self._hard_first = True
         if self.condensed.feedback:
             self._reset_feedback()
 
@@ -405,7 +406,8 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin, Feed
         status, success, iterations = "Maximum_Iterations_Exceeded", False, 0
         self._radius = opt.trust_radius
         self._deadline = deadline
-        self._hard_first = opt.elastic_qp == "on_demand"
+        if opt.elastic_qp != "carried":  # (carried: as the last QP of the last solve left it)
+            self._hard_first = opt.elastic_qp == "on_demand"
         self._spare_lin = None
         try:
             while iterations < opt.max_iter:
@@ -466,7 +468,8 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin, Feed
         pos, mu = qp_step.pos, start.mu
         # Slack needed now: likely next time too (e.g. a problem infeasible for every
         # input), so the next QP gets its slacks at once.
-        self._hard_first = opt.elastic_qp == "on_demand" and qp_step.slack_sum <= opt.add_tol
+        on_demand = opt.elastic_qp != "always"
+        self._hard_first = on_demand and qp_step.slack_sum <= opt.add_tol
         # Hard-active constraints of this QP: the prediction for the next convexification.
         hard = (mu[pos[:, 0], pos[:, 1], pos[:, 2]] > 1e-9) & (
             qp_step.s_pos[pos[:, 0], pos[:, 1]] <= 1e-9

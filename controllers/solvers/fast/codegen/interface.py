@@ -28,6 +28,8 @@ from typing import Any
 # The choices of FastSolverOptions.hessian_modification, by their C code (options.py
 # HESSIAN_MODIFICATIONS in order).
 HESSIAN_MODIFICATION_CODES = {"floor": 0, "abs": 1, "augmented": 2}
+# FastSolverOptions.elastic_qp, by their C code.
+ELASTIC_CODES = {"always": 0, "on_demand": 1, "carried": 2}
 # FastSolverOptions.feedback_bounds, by their C code.
 FEEDBACK_BOUNDS_CODES = {"first": 0, "all": 1}
 
@@ -93,8 +95,8 @@ OPTIONS: tuple[COption, ...] = (
     COption(
         "elastic_on_demand",
         "long",
-        'elastic_qp == "on_demand"',
-        lambda o: int(o.elastic_qp == "on_demand"),
+        'elastic_qp: 0 "always", 1 "on_demand", 2 "carried"',
+        lambda o: ELASTIC_CODES[o.elastic_qp],
     ),
     COption("max_expand", "long", "doublings of a good full step"),
     COption("expand_ratio", "double", "decrease ratio that allows an expansion"),
@@ -121,7 +123,9 @@ OPTIONS: tuple[COption, ...] = (
 # FastSolverOptions fields that are no C field of their own: the QP solver (the C loop has its
 # own), the choices the C fields above map (restarts, elastic_qp), and the trust radius of a
 # limited solve (set as trust_radius for that solve).
-PYTHON_ONLY = frozenset({"qp_solver", "restarts", "elastic_qp", "rti_trust_radius"})
+PYTHON_ONLY = frozenset(
+    {"qp_solver", "restarts", "elastic_qp", "rti_trust_radius", "rti_screen_rows"}
+)
 
 # The C loop's return codes (sqp.c), in order: (C constant, the Python loop's status name).
 STATUSES: tuple[tuple[str, str], ...] = (

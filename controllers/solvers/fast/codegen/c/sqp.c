@@ -235,6 +235,7 @@ static int sq_reserve_qp(lfm_sqp* s, long r) {
 CASADI_SYMBOL_EXPORT lfm_sqp* lfm_sqp_new(const lfm_sqp_problem* p, const lfm_sqp_options* o) {
   lfm_sqp* s = calloc(1, sizeof(lfm_sqp));
   if (!s) return NULL;
+  s->hard_first = 1;
   int fail = 0;
   const long n = p->n, ns = p->ns, nut = n * NU, nL = p->n_shared;
   s->n = n, s->ns = ns, s->nut = nut, s->nL = nL, s->nsh = nL * n, s->nsc = p->n_screened;
@@ -359,6 +360,7 @@ CASADI_SYMBOL_EXPORT lfm_sqp* lfm_sqp_new(const lfm_sqp_problem* p, const lfm_sq
 
 CASADI_SYMBOL_EXPORT void lfm_sqp_reset(lfm_sqp* s) {
   s->has_prev = 0;
+  s->hard_first = 1;
   s->has_ref = s->has_last_v = s->has_last_open = s->law_given = 0;
 }
 
@@ -1098,7 +1100,8 @@ static int sq_sqp(lfm_sqp* s, const double* u0, double abandon_above, const doub
   start_t st = {ro, INFINITY, 0, 0.0};
   int status = SQ_MAX_ITER;
   s->radius = o->trust_radius;
-  s->hard_first = o->elastic_on_demand != 0;
+  if (o->elastic_on_demand != 2) /* (2, carried: as the last QP of the last solve left it) */
+    s->hard_first = o->elastic_on_demand != 0;
   while (*iterations < o->max_iter) {
     if (sq_now() >= s->deadline) {
       status = SQ_WALL_TIME;
