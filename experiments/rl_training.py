@@ -179,7 +179,7 @@ def _make_model(algo: str, venv: Any, seed: int, timesteps: int) -> Any:
 
 
 def train(
-    config: Any = None,
+    config: ExperimentConfig | str | os.PathLike | dict | None = None,
     algo: str = "ppo",
     timesteps: int = 1_000_000,
     minutes: float | None = None,

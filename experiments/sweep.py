@@ -115,7 +115,7 @@ def run_sweep(
     agent: str,
     setting: str,
     seeds: Iterable[int] | str,
-    config: Any = None,
+    config: ExperimentConfig | str | os.PathLike | dict | None = None,
     out: str | os.PathLike = "results/sweep",
     baseline: str = "pf",
     jobs: int = 1,

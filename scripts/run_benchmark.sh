@@ -6,6 +6,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup_env.sh test,bench
-# One BLAS thread: the solvers' matrices are small, and a second thread only adds noise.
-export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
+# (No OPENBLAS_NUM_THREADS needed: the solvers and every evaluation task set BLAS to one
+# thread themselves, LFM_BLAS_THREADS overrides it; the C library's OpenMP threads are
+# agents.solver_threads.)
 .venv/bin/lfm-benchmark "$@"

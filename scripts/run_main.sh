@@ -5,7 +5,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup_env.sh dist
-# One BLAS thread per process: episodes run in parallel processes instead.
-export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
+# (No OPENBLAS_NUM_THREADS needed: the solvers and every evaluation task set BLAS to one
+# thread themselves, LFM_BLAS_THREADS overrides it; the C library's OpenMP threads are
+# agents.solver_threads.)
 .venv/bin/lfm-evaluate --config configs/paper.yaml --agents nominal,pf,scenario,scenario_particles,robust,oracle \
   --seeds 0:50 --jobs 2 --out results/paper "$@"

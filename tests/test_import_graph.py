@@ -198,6 +198,50 @@ def test_the_graph_holds_the_imports_it_should():
     assert "lfm_env.worlds.sine_track.env" in graph["lfm_env.worlds"]
 
 
+def _root(node: ast.AST) -> str | None:
+    """The name at the root of ``a.b[c].d``."""
+    while isinstance(node, (ast.Attribute, ast.Subscript)):
+        node = node.value
+    return node.id if isinstance(node, ast.Name) else None
+
+
+#: Methods that change a table in place.
+MUTATORS = ("update", "append", "extend", "setdefault", "add", "insert", "pop", "clear")
+
+
+def foreign_writes(path: Path, module: str) -> list[str]:
+    """Module-level statements that change a table of another top-level package: an item or
+    attribute set on a name imported from it, or one of :data:`MUTATORS` called on it."""
+    tree = ast.parse(path.read_text(), str(path))
+    top = module.partition(".")[0]
+    foreign = set()
+    for node in tree.body:
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            if node.module.partition(".")[0] in LAYERS and not node.module.startswith(top):
+                foreign.update(a.asname or a.name for a in node.names)
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.partition(".")[0] in LAYERS and not a.name.startswith(top):
+                    foreign.add(a.asname or a.name.partition(".")[0])
+    found = []
+    for node in tree.body:
+        targets = []
+        if isinstance(node, (ast.Assign, ast.AugAssign, ast.AnnAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            targets = [t for t in targets if isinstance(t, (ast.Attribute, ast.Subscript))]
+        elif isinstance(node, ast.Expr) and isinstance(node.value, ast.Call):
+            func = node.value.func
+            if isinstance(func, ast.Attribute) and func.attr in MUTATORS:
+                targets = [func.value]
+        found += [f"{module}:{node.lineno}" for t in targets if _root(t) in foreign]
+    return found
+
+
+def test_no_module_writes_into_another_packages_tables():
+    files = module_files()
+    assert [w for m, p in files.items() for w in foreign_writes(p, m)] == []
+
+
 # --------------------------------------------------------------------------- the checks themselves
 
 
@@ -228,3 +272,18 @@ def test_the_checks_find_circles_and_wrong_arrows(tmp_path):
     assert circles(graph) == [["lfm_env.a", "lfm_env.b"]]
     assert upward_arrows(graph) == ["lfm_env.worlds.w -> controllers.c"]
     assert gp_knows(graph) == ["lfm_env.gp -> lfm_env.worlds.w"]
+
+
+def test_the_check_finds_a_write_into_another_packages_table(tmp_path):
+    source = tmp_path / "config.py"
+    source.write_text(
+        "from lfm_env.config.compose import SECTION_TYPES\n"
+        "from controllers.local import TABLE\n"
+        "SECTION_TYPES['agents'] = object\n"
+        "TABLE['mine'] = 1\n"  # its own package's: allowed
+        "SECTION_TYPES.update(x=1)\n"
+    )
+    assert foreign_writes(source, "controllers.config") == [
+        "controllers.config:3",
+        "controllers.config:5",
+    ]

@@ -18,8 +18,10 @@ full-state observation ``y = x + e``; every dimension is read from the model.
 * :class:`ParticleScenarioMPCAgent` (``"scenario_particles"``): the same, with each
   scenario starting from a particle (the paper's remark): the plan also carries the
   estimate's uncertainty.
-* :class:`OracleMPCAgent` (``"oracle"``): an upper bound, NOT a controller one can build:
-  it reads the true state and the true future latent force from the env.
+* :class:`OracleMPCAgent` (``"oracle"``): certainty-equivalent MPC that reads the truth
+  (the true state and the true future latent force, from the env): a reference no
+  controller can be built as, but not an upper bound (its short horizon plans no margin,
+  and it can violate or fail where an agent with margins does not).
 
 With ``settings.prediction == "feedback"`` every agent's scenario problem is the feedback
 one (:mod:`controllers.feedback_law`): its solver (``make_solver`` on that problem,
@@ -167,6 +169,17 @@ class MPCAgent(PlanChoice, SB3Predict):
             max_time=self.settings.max_solve_time,
             **({"threads": threads} if threads > 1 else {}),
         )
+        # agents.deadline: the step budget [s] (None: none), enforced through the solver's
+        # per-solve time limit.
+        self._deadline = self.settings.deadline_seconds(model.dt)
+        # [s] how far a stopped solve ran past its limit (the solver checks it between
+        # iterations): kept back from the next budgets, so that steps end by the deadline.
+        self._overrun = 0.0
+        if self._deadline is not None and not hasattr(self.solver, "set_max_time"):
+            raise ConfigError(
+                f"agents.deadline={self.settings.deadline!r}: solver {self.settings.solver!r} "
+                "takes no per-solve time limit; use solver 'fast' or 'fast_c', or deadline null"
+            )
         self.last_info: dict[str, Any] = {}
         self.rng = np.random.default_rng()
         self._u_prev: np.ndarray | None = None
@@ -179,6 +192,7 @@ class MPCAgent(PlanChoice, SB3Predict):
         """Start a new episode; ``seed`` fixes the agent's own randomness."""
         self.rng = np.random.default_rng(seed)
         self.solver.reset()
+        self._overrun = 0.0
         self._u_prev = None
         self._plan = None
         self._rti_ready = False
@@ -193,10 +207,16 @@ class MPCAgent(PlanChoice, SB3Predict):
         self._x_hat = np.asarray(info["estimate"][: self.system.nx], dtype=float)
         x0, W = self._scenarios()
         backoff = self._backoff()
-        sol, iterations = self._solve(x0, W, backoff)
+        sol, iterations, limit = self._solve(x0, W, backoff, t0)
         u, fallback = self._choose_action(sol)
+        # The budget stopped this solve: what the agent applied instead of a converged plan.
+        stopped = limit is not None and sol.status == "Maximum_WallTime_Exceeded"
+        if stopped:  # the largest recent overrun, decaying
+            self._overrun = max(sol.solve_time - limit, 0.8 * self._overrun, 0.0)
+        deadline_stop = (fallback or "plan") if stopped else ""
         self._u_prev = u
         info.update(self._solve_info(sol, t_est, fallback, x0, W, backoff))
+        info["deadline_stop"] = deadline_stop
         info["sqp_iterations"] = iterations
         self.last_info = info
         return u
@@ -204,30 +224,45 @@ class MPCAgent(PlanChoice, SB3Predict):
     # ------------------------------------------------------------------ internals
 
     def _solve(
-        self, x0: np.ndarray, W: np.ndarray, backoff: np.ndarray | None
-    ) -> tuple[MPCSolution, str]:
-        """The step's solve, and how its iterations went (``last_info["sqp_iterations"]``):
-        ``"converged"``; with ``settings.iterations == "rti"`` and a usable plan from the last
-        step, ``"rti"`` (``settings.rti_iterations`` SQP iterations from that plan shifted),
-        or ``"rti_fallback:<why>"`` when that step was bad (:func:`rti_step_problem`) and the
-        problem was solved again to convergence from it (the times and iterations of both
-        solves counted)."""
+        self, x0: np.ndarray, W: np.ndarray, backoff: np.ndarray | None, t0: float
+    ) -> tuple[MPCSolution, str, float | None]:
+        """The step's solve (the step started at ``t0``), how its iterations went
+        (``last_info["sqp_iterations"]``) and its time limit from the deadline
+        (:meth:`_limit_solve`): ``"converged"``; with ``settings.iterations == "rti"`` and a
+        usable plan from the last step, ``"rti"`` (``settings.rti_iterations`` SQP iterations
+        from that plan shifted), or ``"rti_fallback:<why>"`` when that step was bad
+        (:func:`rti_step_problem`) and the problem was solved again to convergence from it,
+        within what the step has left (the times and iterations of both solves counted)."""
         kwargs = {} if backoff is None else {"backoff": backoff}
+        limit = self._limit_solve(t0)
         if self.settings.iterations != "rti" or not self._rti_ready:
             sol = self.solver.solve(x0, W, **kwargs)
             self._rti_ready = bool(sol.usable)
-            return sol, "converged"
+            return sol, "converged", limit
         rti = self.solver.solve(x0, W, iterations=self.settings.rti_iterations, **kwargs)
         why = rti_step_problem(rti)
         if not why:
-            return rti, "rti"
+            return rti, "rti", limit
         if rti.law is not None:  # (a feedback plan: the same law, from the RTI iterate)
             kwargs["law"] = rti.law
+        limit = self._limit_solve(t0)
         sol = self.solver.solve(x0, W, u_guess=rti.u, **kwargs)
         sol.solve_time += rti.solve_time
         sol.iterations += rti.iterations
         self._rti_ready = bool(sol.usable)
-        return sol, f"rti_fallback:{why}"
+        return sol, f"rti_fallback:{why}", limit
+
+    def _limit_solve(self, t0: float) -> float | None:
+        """With ``agents.deadline``: give the solve what the step has left of its budget, less
+        the recent overrun of stopped solves (at least a microsecond: the solver then
+        returns its warm start, not usable, and the agent falls back). Returns that limit
+        [s] when it is below ``agents.max_solve_time``, else ``None``."""
+        if self._deadline is None:
+            return None
+        left = self._deadline - (time.perf_counter() - t0) - self._overrun
+        limit = min(self.settings.max_solve_time, max(left, 1e-6))
+        self.solver.set_max_time(limit)
+        return limit if limit < self.settings.max_solve_time else None
 
     def _backoff(self) -> np.ndarray | None:
         """Constraint tightening ``(ng,)`` for this solve; ``None`` for none (the default)."""
@@ -434,9 +469,12 @@ class RobustMPCAgent(ScenarioMPCAgent):
 
 
 class OracleMPCAgent(MPCAgent):
-    """UPPER BOUND, not a realisable controller: reads the true state and future force.
+    """Certainty-equivalent MPC that reads the truth: the true state and future force.
 
-    It gets the env (``make_agent("oracle", env=env)``) and reads
+    Not a controller one can build, and not an upper bound: it plans one scenario, the
+    true force over its horizon, with no margin, so what lies beyond the horizon or
+    between the samples can still make it violate or fail where an agent with margins
+    does not. It gets the env (``make_agent("oracle", env=env)``) and reads
     ``env.unwrapped.true_state`` and ``env.unwrapped.preview_latent_force(N)``, which do
     not change the episode. The observation passed to :meth:`act` is ignored.
     """

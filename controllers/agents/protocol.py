@@ -27,6 +27,7 @@ usable            the solve returned a plan to apply           the value of succ
 fallback          '' or the name of the fallback action used   '' (none)
 filter_reset      the estimator restarted after divergence     False
 estimator         the name of the agent's estimator            ''
+deadline_stop     what the step's budget made it apply         '' (no budget stopped it)
 ================  ===========================================  ===========================
 
 The MPC agents of :mod:`controllers.agents.mpc` fill every key. They also have
@@ -74,6 +75,9 @@ class AgentInfo(TypedDict, total=False):
     fallback: str  # '' or the name of the fallback action used
     filter_reset: bool  # the estimator restarted after divergence
     estimator: str  # the name of the agent's estimator
+    # '' or, when agents.deadline stopped the step's solve, what was applied: "plan" (the
+    # best usable plan reached), "previous_plan" (shifted) or "fallback"
+    deadline_stop: str
 
 
 #: Every optional ``last_info`` key and the value evaluation assumes when it is absent.
@@ -91,6 +95,7 @@ INFO_DEFAULTS: dict[str, Any] = {
     "fallback": "",
     "filter_reset": False,
     "estimator": "",
+    "deadline_stop": "",
 }
 
 

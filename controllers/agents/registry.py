@@ -215,8 +215,10 @@ _SPECS = (
     AgentSpec(
         "oracle",
         OracleMPCAgent,
-        label="oracle MPC (upper bound, reads hidden truth)",
-        short_label="oracle (upper bound)",  # an upper bound everywhere it appears
+        # Certainty-equivalent MPC on the truth: it knows what no estimator can, but it is
+        # no upper bound (a short horizon and no margins can still lose to another agent).
+        label="oracle MPC (certainty-equivalent MPC that reads the true state and force)",
+        short_label="oracle (reads the truth)",
         colour="tab:purple",
         order=5,
         reads_truth=True,

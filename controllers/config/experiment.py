@@ -97,10 +97,11 @@ class ExperimentConfig:
         return data
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "agents", _with_world_cost(self.env, self.agents))
         check_latent_step(self.env)
         if self.agents.latent_force is not None:
             check_latent_step(self.env, self.agents.latent_force, where="agents.latent_force")
-        self.make_cost()  # vector lengths against the system, with the field's name
+        self.make_cost()  # the cost's own checks of its weights and goal
         system = self.make_system()
         self.agents.check_scenario_count(system.nu)
         model = self.make_model()
@@ -138,21 +139,7 @@ class ExperimentConfig:
         """The agents' :class:`~lfm_env.cost.QuadraticCost` (``Q``, ``R``, ``Qf``, goal)."""
         from lfm_env.cost import QuadraticCost
 
-        system = self.make_system()
         a = self.agents
-        for name, n, what in (
-            ("Q", system.nx, "states"),
-            ("Qf", system.nx, "states"),
-            ("goal_state", system.nx, "states"),
-            ("R", system.nu, "inputs"),
-        ):
-            value = getattr(a, name)
-            if len(value) != n:
-                names = system.state_names if what == "states" else system.input_names
-                raise ConfigError(
-                    f"agents.{name}={list(value)}: must have {n} values, one per {what[:-1]} "
-                    f"of the {system.name} system {list(names)}"
-                )
         return QuadraticCost(Q=a.Q, R=a.R, Qf=a.Qf, x_goal=self.env.state_from_config(a.goal_state))
 
     @property
@@ -187,6 +174,39 @@ class ExperimentConfig:
             slack_penalty=self.agents.slack_penalty,
             prediction=self.agents.prediction if prediction is None else prediction,
         )
+
+
+def _with_world_cost(env: WorldConfig, agents: AgentConfig) -> AgentConfig:
+    """``agents`` with its cost resolved: ``Q``, ``R``, ``goal_state`` not given are the world's
+    own (``env.Q``, ...), ``Qf`` not given is ``Q``; every vector as long as the world's.
+
+    Raises:
+        ConfigError: naming the ``agents`` field and the world's dimension (and its ``env``
+            field), for a vector of another length.
+    """
+    system = env.make_system()
+    nx, nu = len(system.state_names), len(system.input_names)
+    world = {"Q": env.Q, "R": env.R, "goal_state": env.goal_state}
+    values = {k: w if getattr(agents, k) is None else getattr(agents, k) for k, w in world.items()}
+    values["Qf"] = values["Q"] if agents.Qf is None else agents.Qf
+    for name, n, what, names in (
+        ("Q", nx, "states", system.state_names),
+        ("Qf", nx, "states", system.state_names),
+        ("goal_state", nx, "states", system.state_names),
+        ("R", nu, "inputs", system.input_names),
+    ):
+        value = values[name]
+        if len(value) != n:
+            own = "Q" if name == "Qf" else name
+            raise ConfigError(
+                f"agents.{name}={list(value)}: has {len(value)} values, but the world "
+                f"{env.ENV_ID!r} (system {system.name!r}) has {n} {what} {list(names)}, as its "
+                f"env.{own}={list(world[own])}; give {n} values, or leave agents.{name} out for "
+                "the world's own"
+            )
+    if all(getattr(agents, k) == v for k, v in values.items()):
+        return agents
+    return dataclasses.replace(agents, **values)
 
 
 # --------------------------------------------------------------------------- reading a file

@@ -26,6 +26,7 @@ MAX_SCENARIOS = 100_000
 MAX_ITER = 2**31 - 1
 FAST_MAX_HORIZON = SOLVER_SPECS["fast"].max_horizon  # longest horizon of the fast solver
 MAX_SOLVE_TIME = 3600.0  # [s] largest agents.max_solve_time
+CONTROL_PERIOD = "control_period"  # agents.deadline: the world's dt
 
 #: Memory budget [bytes] of an agent's filter and, separately, of its scenario problem:
 #: settings whose estimate (below) exceeds it are refused before anything is built.
@@ -144,11 +145,13 @@ class AgentConfig:
 
     The agents' *model* of the world (dynamics, bounds, GP hyperparameters, noise levels)
     is the ``env`` section: it is the known structure the paper gives the controller.
+    The agents' cost is the world's own by default: ``Q``, ``R`` and ``goal_state`` left out
+    (``None``) are the ``env`` section's, ``Qf`` is ``Q``; a whole config resolves them
+    (:class:`~controllers.config.ExperimentConfig`, whose ``agents`` hold the values used).
     Vectors over the state (``Q``, ``Qf``, ``goal_state``) have one entry per state of the
     system and are given in the config's units (the sine track's heading in degrees, as
     in the ``env`` section); ``R`` has one entry per input. Their lengths are checked
-    against the system when the cost is built
-    (:meth:`~controllers.config.ExperimentConfig.make_cost`).
+    against the world's when the config is resolved.
     """
 
     RENAMED_KEYS = {"disturbance": "latent_force"}  # old name -> new (read with a warning)
@@ -161,12 +164,15 @@ class AgentConfig:
     n_particles: int = 7000  # particle filter size (bootstrap and rbpf)
     resampling: str = "systematic"  # one of RESAMPLING
     ess_threshold: float | None = None  # null: resample every step (paper); else in (0, 1]
-    Q: tuple[float, ...] = (2.0, 2.0, 1.0, 0.0)  # stage weights on x - x_g (diagonal)
-    Qf: tuple[float, ...] = (2.0, 2.0, 1.0, 0.0)  # terminal weights (diagonal)
-    R: tuple[float, ...] = (0.5, 10.0)  # input weights (diagonal), e.g. on [a, delta (rad)]
-    goal_state: tuple[float, ...] = (62.83, 0.0, 4.0, 0.0)  # e.g. [m, m, m/s, deg]
+    # The agents' cost, null for the world's own (its env.Q, env.R, env.goal_state; Qf: Q):
+    Q: tuple[float, ...] | None = None  # stage weights on x - x_g (diagonal)
+    Qf: tuple[float, ...] | None = None  # terminal weights (diagonal)
+    R: tuple[float, ...] | None = None  # input weights (diagonal), e.g. on [a, delta (rad)]
+    goal_state: tuple[float, ...] | None = None  # e.g. [m, m, m/s, deg]
     slack_penalty: float = 1.0e4  # exact L1 penalty per unit of state-constraint slack
-    solver: str = "fast"  # one of controllers.solvers.SOLVERS
+    # One of controllers.solvers.SOLVERS: "fast_c", the fast SQP with its loop compiled (the
+    # Python loop, "fast", with a one-line notice where no C compiler works).
+    solver: str = "fast_c"
     # Solver iteration limit per step (the fast SQP's per start; its own default too: long
     # horizons need it, see FastSolverOptions.max_iter).
     max_iter: int = 150
@@ -174,6 +180,13 @@ class AgentConfig:
     # plan reached if it is usable (below its warm start, MPCSolution.usable), else falls
     # back (the previous plan, else the system's fallback input), as on any failed solve.
     max_solve_time: float = 10.0
+    # Wall-clock budget of one control step's compute (estimator + solve) for real-time
+    # runs: null (the default: no budget, the run stays deterministic; steps longer than
+    # the control period are only counted, episodes.csv's deadline_misses), "control_period"
+    # (the world's dt) or a number of seconds. With a budget the solve gets what the
+    # estimator left of it and stops there: the agent applies the best usable plan reached,
+    # else its previous plan shifted, else the system's fallback input, each counted.
+    deadline: float | str | None = None
     # Threads of the fast solver's C library (FastSolverOptions.threads): it pays
     # for many scenarios (Ns >= 500; 0.6x the solve time at Ns = 5000 with two) when the
     # agent has the cores to itself; keep 1 under lfm-evaluate --jobs, whose processes take
@@ -238,7 +251,7 @@ class AgentConfig:
             self.ess_threshold is None or 0.0 < self.ess_threshold <= 1.0,
             "null or in (0, 1]",
         )
-        c.non_negative("Q", "Qf", "R")
+        c.non_negative(*(n for n in ("Q", "Qf", "R") if getattr(self, n) is not None))
         c.positive("slack_penalty")
         check_backoff(c, self.backoff)
         c("solver", self.solver in SOLVERS, f"one of {SOLVERS}")
@@ -248,6 +261,16 @@ class AgentConfig:
             "max_solve_time",
             0.0 < self.max_solve_time <= MAX_SOLVE_TIME,
             f"in (0, {MAX_SOLVE_TIME:g}] s",
+        )
+        d = self.deadline
+        c(
+            "deadline",
+            d is None
+            or d == CONTROL_PERIOD
+            or (
+                isinstance(d, (int, float)) and not isinstance(d, bool) and 0 < d <= MAX_SOLVE_TIME
+            ),
+            f"null (no budget), {CONTROL_PERIOD!r} or seconds in (0, {MAX_SOLVE_TIME:g}]",
         )
         c(
             "solver_threads",
@@ -278,6 +301,13 @@ class AgentConfig:
             ok and 1 <= self.rti_iterations <= self.max_iter,
             "an int in [1, max_iter]",
         )
+
+    def deadline_seconds(self, dt: float) -> float | None:
+        """The step budget [s] of :attr:`deadline` for a world of control period ``dt`` [s];
+        ``None`` without one."""
+        if self.deadline is None:
+            return None
+        return float(dt) if self.deadline == CONTROL_PERIOD else float(self.deadline)
 
     def check_scenario_count(self, n_inputs: int) -> None:
         """Raise ``ConfigError`` if the Campi-Garatti count of a system with ``n_inputs``

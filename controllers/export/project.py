@@ -22,6 +22,7 @@ The exported step runs the agent's estimator in C where that is the UKF (or none
 from __future__ import annotations
 
 import math
+import os
 import shutil
 from dataclasses import dataclass, field
 from importlib import resources
@@ -30,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.config import load_config
+from controllers.config import ExperimentConfig, load_config
 from controllers.solvers.fast.codegen.interface import OPTIONS, c_options
 from controllers.solvers.fast.codegen.source import c_source
 from controllers.solvers.fast.compiled import problem_arrays, sqp_source
@@ -252,7 +253,7 @@ def _config_source(agent: Any, problem: Any, options: FastSolverOptions, program
 
 
 def export_controller(
-    config: Any,
+    config: ExperimentConfig | str | os.PathLike | dict,
     agent_name: str,
     out: str | Path,
     overwrite: bool = False,

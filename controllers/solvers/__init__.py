@@ -9,8 +9,10 @@ On a problem with ``prediction="feedback"`` the fast SQP (``"fast"``, ``"fast_c"
 natively (:mod:`controllers.solvers.fast.closed_loop`); the others run through the exact
 rewrite of :mod:`controllers.solvers.feedback` (the fast SQP too where no C compiler works).
 Every one's ``solve`` then also takes the feedback law (``law=``).
-``"fast"``, the project's condensed SQP (:mod:`controllers.solvers.fast`), is the default;
-the others are built on CasADi's plugins (:mod:`controllers.solvers.casadi`).
+``"fast"``, the project's condensed SQP (:mod:`controllers.solvers.fast`), is
+``make_solver``'s default, and ``"fast_c"``, the same SQP with its loop compiled, the agents'
+(``agents.solver``); the others are built on CasADi's plugins
+(:mod:`controllers.solvers.casadi`).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from controllers.problem import MPCSolution, ScenarioProblem
+from controllers.threads import limit_blas_threads
 
 
 class ScenarioSolver(Protocol):
@@ -79,7 +82,9 @@ class SolverSpec:
         """The solver for ``problem`` with ``options`` (see :func:`make_solver`); for a
         feedback problem, this solver itself if it solves those natively (and its C library
         can be built), else through the exact rewrite of
-        :class:`~controllers.solvers.feedback.FeedbackScenarioSolver`."""
+        :class:`~controllers.solvers.feedback.FeedbackScenarioSolver`. Sets the process's
+        BLAS threads first (:func:`controllers.threads.limit_blas_threads`)."""
+        limit_blas_threads()
         if problem.prediction == "feedback":
             from controllers.solvers.fast.codegen.build import CodegenUnavailable, notice
             from controllers.solvers.feedback import FeedbackScenarioSolver
@@ -116,7 +121,7 @@ SOLVER_SPECS: dict[str, SolverSpec] = {
             "fast",
             "controllers.solvers.fast.solver:FastScenarioSolver",
             "the condensed exact-Hessian SQP whose derivatives CasADi generates from the "
-            "system definition (the default)",
+            "system definition, its loop in Python (make_solver's default; every QP solver)",
             # Its work per iteration grows steeply with N. Measured with 150 scenarios (the
             # paper's scenario agent, feedback prediction, the compiled loop, CPU time): at
             # N = 50 a real-time iteration takes about 0.12 s per step and the agent reaches
@@ -130,7 +135,8 @@ SOLVER_SPECS: dict[str, SolverSpec] = {
             "fast_c",
             "controllers.solvers.fast.compiled:CompiledScenarioSolver",
             "the same SQP with its whole loop compiled (one C call per solve; the project's "
-            "own QP solvers in C; the Python loop, with a notice, where no compiler works)",
+            "own QP solvers in C; the Python loop, with a notice, where no compiler works): "
+            "the agents' default",
             max_horizon=50,
             threaded=True,
             native_feedback=True,

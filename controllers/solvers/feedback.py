@@ -38,8 +38,11 @@ row depend on the scenario).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import math
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -204,6 +207,14 @@ class FeedbackScenarioSolver:
             self._open_loop = self.spec.build(problem, **self.options)
         return self._open_loop
 
+    def set_max_time(self, seconds: float) -> None:
+        """The wall-clock limit [s] of the next solves of the inner solver and of the
+        open-loop reference solve (for solvers that take one: ``set_max_time``)."""
+        self.options["max_time"] = float(seconds)
+        for solver in (self.inner, self._open_loop):
+            if solver is not None and hasattr(solver, "set_max_time"):
+                solver.set_max_time(seconds)
+
     def reset(self) -> None:
         """Forget the warm start and the reference plan."""
         self.inner.reset()
@@ -265,8 +276,23 @@ class FeedbackScenarioSolver:
             gain_time = time.perf_counter() - t1
         guess = None if ref is None else p.system.clip_input(ref)
         x0a, Wa = augmented_data(p, x0, W, law)
-        sol = self.inner.solve(x0a, Wa, u_guess=guess, backoff=augmented_backoff(p, b))
+        with self._time_left(t0 if open_loop is not None else None):
+            sol = self.inner.solve(x0a, Wa, u_guess=guess, backoff=augmented_backoff(p, b))
         return self._result(sol, x0, W, b, law, t0, source, open_loop, gain_time)
+
+    @contextlib.contextmanager
+    def _time_left(self, t0: float | None) -> Iterator[None]:
+        """After an open-loop reference solve begun at ``t0``: the inner solve gets what is
+        left of ``max_time`` (one limit for the whole step), where it takes a limit."""
+        limit = float(self.options.get("max_time", math.inf))
+        if t0 is None or not math.isfinite(limit) or not hasattr(self.inner, "set_max_time"):
+            yield
+            return
+        self.inner.set_max_time(max(limit - (time.perf_counter() - t0), 1e-6))
+        try:
+            yield
+        finally:
+            self.inner.set_max_time(limit)
 
     def _result(
         self,

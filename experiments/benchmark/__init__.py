@@ -1,6 +1,7 @@
 """The benchmark (``lfm-benchmark``): the solvers side by side on recorded closed-loop
-problems, the horizon and scenario sweeps, the filter and one episode, and its targets."""
+problems, the horizon and scenario sweeps, the filter and one episode, and its checks."""
 
+from experiments.benchmark.checks import CHECKS, run_checks
 from experiments.benchmark.problems import DEFAULT_CONFIG, problem_from_config, record_problems
 from experiments.benchmark.run import (
     DEFAULT_MAX_STEPS,
@@ -9,9 +10,9 @@ from experiments.benchmark.run import (
     run_benchmark,
 )
 from experiments.benchmark.solvers import build_solver
-from experiments.benchmark.targets import speed_targets
 
 __all__ = [
+    "CHECKS",
     "DEFAULT_CONFIG",
     "DEFAULT_MAX_STEPS",
     "DEFAULT_SOLVERS",
@@ -20,5 +21,5 @@ __all__ = [
     "problem_from_config",
     "record_problems",
     "run_benchmark",
-    "speed_targets",
+    "run_checks",
 ]

@@ -1,4 +1,4 @@
-"""The compiled SQP loop and the exported controller in the benchmark (issue 37's targets).
+"""The compiled SQP loop and the exported controller in the benchmark.
 
 The compiled loop (``fast_c``) is timed beside the Python loop and the anchors in the main
 closed-loop comparison and the scenario sweep (:mod:`~experiments.benchmark.solvers`,
@@ -12,7 +12,6 @@ closed-loop comparison and the scenario sweep (:mod:`~experiments.benchmark.solv
   problems, its plans against the Python loop's, the robust agent's whole step timed from C
   on an episode's measurements and compared with the Python agent, and the libraries'
   run-time dependencies (``ldd``, ``nm``);
-* :func:`compiled_targets`: the issue's targets table, judged from a run.
 """
 
 from __future__ import annotations
@@ -36,29 +35,16 @@ from experiments.benchmark.problems import (
     anchors_per_seed,
     scenario_draws,
 )
-from experiments.benchmark.targets import ANCHOR, TEXTBOOK, target
 from experiments.evaluation.interrupts import raise_if_interrupted
 
 COMPILED = "fast_c"
 SAME_QP = {"qp_solver": "elastic_ipm"}  # the Python loop's choice closest to the C loop's
-PLAN_TOL = 1e-9  # the issue's plan agreement of the two loops
-EXPORT_PLAN_TOL = 1e-8  # the issue's plan agreement of the exported example with Python
+PLAN_TOL = 1e-9  # [input units] plan agreement of the two loops counted as equal
+EXPORT_PLAN_TOL = 1e-8  # [input units] the exported example's plans against Python's
 EXPORT_REPEATS = 5  # example --time K per problem
 STEP_REPEATS = 20  # example --steps --time K over the robust episode
 AGREEMENT_NS = (1000, 5000)  # scenario counts of the plan agreement beyond the main size
 AGREEMENT_STEPS = 2  # anchors per seed at those counts
-# The targets of issue 37, in the order of its table (keys of DEFAULT_THRESHOLDS).
-ISSUE_37_KEYS = (
-    "fast_c_median_ms",
-    "fast_c_p95_ms",
-    "anchor_over_fast_c",
-    "textbook_over_fast_c",
-    "fast_c_ns1000_median_ms",
-    "fast_c_ns5000_median_ms",
-    "robust_step_ms",
-    "export_plan_diff",
-    "export_dependencies",
-)
 
 
 def _stats(values: Sequence[float]) -> dict[str, float]:
@@ -271,136 +257,8 @@ def time_compiled(
     return out
 
 
-# --------------------------------------------------------------------------- targets
-
-
-def _median(results: Mapping[str, Any], name: str, key: str = "solve_ms_median") -> Any:
-    return results.get("closed_loop", {}).get("summary", {}).get(name, {}).get(key)
-
-
-def _sweep_median(results: Mapping[str, Any], name: str, ns: int) -> Any:
-    for row in results.get("sweep", {}).get("results", []):
-        if row["n_scenarios"] == ns and name in row["summary"]:
-            return row["summary"][name]["solve_ms_median"]
-    return None
-
-
-def compiled_targets(results: Mapping[str, Any], th: Mapping[str, float]) -> list[dict]:
-    """The issue's targets (issue 37) from a run: the compiled loop's latency and ratios,
-    large Ns, the robust whole step in C, the exported plans and dependencies."""
-
-    def ratio(a: Any, b: Any) -> float | None:
-        ok = a is not None and b is not None and math.isfinite(a) and math.isfinite(b) and b > 0
-        return a / b if ok else None
-
-    def fmt(x: Any, spec: str = ".2f") -> str:
-        return "-" if x is None or not math.isfinite(x) else format(x, spec)
-
-    c_med, c_p95 = _median(results, COMPILED), _median(results, COMPILED, "solve_ms_p95")
-    py = _median(results, "fast")
-    compiled = results.get("compiled", {})
-    export = compiled.get("export", {})
-    robust = export.get("robust", {})
-    deps = export.get("dependencies")
-    step_ms = robust.get("c_step_us_median")
-    step_ms = step_ms / 1e3 if step_ms is not None and math.isfinite(step_ms) else None
-    where = "N=7, Ns=150, side by side"
-    note = f"Python loop (fast) {fmt(py)} ms"
-    targets = [
-        target(
-            f"fast_c median solve <= {th['fast_c_median_ms']:g} ms ({where})",
-            c_med,
-            th["fast_c_median_ms"],
-            "<=",
-            "ms",
-            note,
-            "fast_c_median_ms",
-        ),
-        target(
-            f"fast_c p95 solve <= {th['fast_c_p95_ms']:g} ms ({where})",
-            c_p95,
-            th["fast_c_p95_ms"],
-            "<=",
-            "ms",
-            f"Python loop {fmt(_median(results, 'fast', 'solve_ms_p95'))} ms",
-            "fast_c_p95_ms",
-        ),
-    ]
-    for key, name in (("anchor_over_fast_c", ANCHOR), ("textbook_over_fast_c", TEXTBOOK)):
-        value = ratio(_median(results, name), c_med)
-        targets.append(
-            target(
-                f"{name} / fast_c median solve time >= {th[key]:g} ({where})",
-                value,
-                th[key],
-                ">=",
-                "x",
-                f"{name} {fmt(_median(results, name))} ms; over the Python loop: "
-                f"{fmt(ratio(_median(results, name), py), '.1f')}x",
-                key,
-            )
-        )
-    for ns in (1000, 5000):
-        key = f"fast_c_ns{ns}_median_ms"
-        targets.append(
-            target(
-                f"fast_c median solve <= {th[key]:g} ms at N=7, Ns={ns}",
-                _sweep_median(results, COMPILED, ns),
-                th[key],
-                "<=",
-                "ms",
-                f"Python loop {fmt(_sweep_median(results, 'fast', ns))} ms",
-                key,
-            )
-        )
-    targets += [
-        target(
-            f"robust agent, whole step (estimate + scenarios + solve) in the exported C, "
-            f"median <= {th['robust_step_ms']:g} ms",
-            step_ms,
-            th["robust_step_ms"],
-            "<=",
-            "ms",
-            (
-                f"Python agent {fmt(robust['python_step_ms']['median'])} ms; inputs within "
-                f"{fmt(robust['input_diff_max'], '.1e')} of it over {robust['steps']} steps"
-                if robust
-                else export.get("reason", "export not run")
-            ),
-            "robust_step_ms",
-        ),
-        target(
-            f"exported example vs Python plan, closed-loop problems, max abs difference "
-            f"<= {th['export_plan_diff']:g}",
-            export.get("plan_diff_max"),
-            th["export_plan_diff"],
-            "<=",
-            "",
-            (
-                f"{export.get('n_plan_above_tol')} of {export.get('n_problems')} above; worst "
-                f"seed {export['plan_diff_worst']['seed']} step "
-                f"{export['plan_diff_worst']['step']}"
-                if export.get("plan_diff_worst")
-                else export.get("reason", "export not run")
-            ),
-            "export_plan_diff",
-        ),
-        target(
-            "exported library: run-time dependencies beyond libc and libm "
-            f"<= {th['export_dependencies']:g} (ldd, nm)",
-            float(len(deps["other_libraries"]) + len(deps["outside_libc_libm"])) if deps else None,
-            th["export_dependencies"],
-            "<=",
-            "",
-            ", ".join(deps["libraries"]) if deps else export.get("reason", "export not run"),
-            "export_dependencies",
-        ),
-    ]
-    return targets
-
-
 def compiled_lines(results: Mapping[str, Any]) -> list[str]:
-    """The report's lines of this part: plan agreement, the exports, the targets table."""
+    """The report's lines of this part: the plan agreement and the exports."""
     compiled = results.get("compiled")
     if not compiled:
         return []
@@ -430,25 +288,12 @@ def compiled_lines(results: Mapping[str, Any]) -> list[str]:
         )
     elif export is not None:
         lines.append(f"Exported controllers: not run ({export.get('reason')})")
-    lines += ["", "Targets of issue 37 (the compiled loop and the export)"]
-    width = max(len(k) for k in ISSUE_37_KEYS)
-    lines.append(f"  {'figure':<{width}} {'measured':>12} {'target':>12}  verdict")
-    for t in results.get("targets", []):
-        if t["key"] not in ISSUE_37_KEYS:
-            continue
-        verdict = {True: "PASS", False: "FAIL", None: "SKIP"}[t["passed"]]
-        value = t["value"]
-        shown = "-" if value is None or not math.isfinite(value) else f"{value:.3g}{t['unit']}"
-        wanted = f"{t['op']}{t['threshold']:g}{t['unit']}"
-        lines.append(f"  {t['key']:<{width}} {shown:>12} {wanted:>12}  {verdict}  {t['note']}")
     return lines
 
 
 __all__ = [
     "COMPILED",
-    "ISSUE_37_KEYS",
     "compiled_lines",
-    "compiled_targets",
     "plan_agreement",
     "time_compiled",
     "time_export",

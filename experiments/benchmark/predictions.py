@@ -39,7 +39,7 @@ from experiments.benchmark.problems import (
     scenario_draws,
 )
 
-#: The horizons of the prediction sweep (issue 36).
+#: The horizons of the prediction sweep.
 PREDICTION_HORIZONS = (7, 15, 30, 50)
 #: Problems per seed at each horizon.
 PREDICTION_STEPS = 4

@@ -24,7 +24,7 @@ from controllers.problem import ScenarioProblem
 
 ENV_ID = "lfm_env/SineTrack-v0"  # the default config's env (recordings use the config's env_id)
 DEFAULT_CONFIG = "configs/paper.yaml"
-DEFAULT_SEEDS = (0, 1, 2, 3, 4, 5)  # the closed-loop problems: seeds 0..5
+DEFAULT_SEEDS = (0, 1, 2, 3, 4, 5)  # the closed-loop problems: paper episodes of seeds 0..5
 RECORDING_SOLVER = "fast"  # the agent's solver while recording (the default controller)
 
 

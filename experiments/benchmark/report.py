@@ -1,11 +1,9 @@
-"""The benchmark's report: text, Markdown and JSON (the verdicts:
-:mod:`experiments.benchmark.targets`).
+"""The benchmark's report: text, Markdown and JSON (the checks: :mod:`.checks`).
 
 :func:`format_report` prints the speed table, the detailed tables (closed loop, horizons,
-scenario sweep, first solve, filter, episode), every failed solve and the targets;
-:func:`format_markdown` gives the speed table and the targets as Markdown (for docs/benchmark.md);
-:func:`json_ready` makes a result strict JSON. :func:`evaluate_targets` and
-:func:`speed_targets` are :mod:`experiments.benchmark.targets`'.
+scenario sweep, first solve, filter, episode), every failed solve and the checks;
+:func:`format_markdown` gives the speed table and the checks as Markdown (for
+docs/benchmark.md); :func:`json_ready` makes a result strict JSON.
 """
 
 from __future__ import annotations
@@ -15,18 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from experiments.benchmark.checks import ANCHOR, LARGE_NS, TEXTBOOK, check_lines, large_ns_median
 from experiments.benchmark.solvers import GAP_TOL, NO_SLACK_TOL, SOLVER_VARIANTS
-from experiments.benchmark.targets import (
-    ANCHOR,
-    LARGE_NS,
-    TEXTBOOK,
-    _get,
-    _ratio,
-    evaluate_targets,
-    large_ns_median,
-    speed_targets,
-    target,
-)
 
 SPEED_TABLE_SOLVERS = ("fast", "fast_c", ANCHOR, "ipopt", TEXTBOOK, "csnlp")
 
@@ -38,6 +26,16 @@ def _fmt(x: Any, spec: str = ".1f") -> str:
     if x is None or (isinstance(x, float) and not math.isfinite(x)):
         return "-"
     return format(x, spec)
+
+
+def _get(d: dict | None, key: str) -> Any:
+    return None if d is None else d.get(key)
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    if a is None or b is None or not (math.isfinite(a) and math.isfinite(b)) or b <= 0:
+        return None
+    return a / b
 
 
 def _objective_column(s: dict[str, Any], name: str, reference: str | None) -> str:
@@ -127,7 +125,7 @@ def format_speed_table(results: dict[str, Any]) -> str:
 
 
 def format_markdown(results: dict[str, Any]) -> str:
-    """The speed table and the targets as Markdown (e.g. for docs/benchmark.md)."""
+    """The speed table and the checks as Markdown (e.g. for docs/benchmark.md)."""
     lines = [
         f"| solver ({_speed_title(results)}) | median [ms] | p95 [ms] | x fast (median) "
         "| objective vs reference |",
@@ -136,24 +134,12 @@ def format_markdown(results: dict[str, Any]) -> str:
     for name, median, p95_, ratio, objective in speed_rows(results):
         lines.append(f"| {name} | {median} | {p95_} | {ratio} | {objective} |")
     lines += ["", _ratio_line(results) + ".", ""]
-    for t in results.get("targets", []):
-        lines.append(f"- {_target_line(t)}")
+    lines += ["```text", *check_lines(results.get("checks", [])), "```"]
     if results.get("compiled"):
         from experiments.benchmark.compiled import compiled_lines
 
         lines += ["", "```text", *compiled_lines(results), "```"]
     return "\n".join(lines) + "\n"
-
-
-def _target_line(t: dict[str, Any]) -> str:
-    verdict = {True: "PASS", False: "FAIL", None: "SKIP"}[t["passed"]]
-    if t["passed"] is None:
-        measured = "not measured"
-    else:
-        unit = f" {t['unit']}" if t["unit"] and t["unit"] not in ("x", "%") else t["unit"]
-        measured = f"measured {_fmt(t['value'], '.3g')}{unit}"
-    note = f"  ({t['note']})" if t["note"] else ""
-    return f"{verdict}  {t['target']}: {measured}{note}"
 
 
 def _timing_columns(s: dict[str, Any]) -> str:
@@ -364,7 +350,7 @@ def _first_solve_lines(first: dict[str, Any]) -> list[str]:
 
 
 def format_report(results: dict[str, Any]) -> str:
-    """The printed report: speed table, closed-loop details, sweep, filter, episode, targets."""
+    """The printed report: speed table, closed-loop details, sweep, filter, episode, checks."""
     lines = []
     if results.get("closed_loop"):
         lines += [format_speed_table(results), ""]
@@ -413,8 +399,8 @@ def format_report(results: dict[str, Any]) -> str:
         from experiments.benchmark.compiled import compiled_lines
 
         lines += compiled_lines(results) + [""]
-    lines.append("Targets")
-    lines += [f"  {_target_line(t)}" for t in results.get("targets", [])]
+    lines.append("Checks (lfm-benchmark --check fails on a FAIL; --threshold KEY=VALUE)")
+    lines += [f"  {line}" for line in check_lines(results.get("checks", []))]
     return "\n".join(lines)
 
 
@@ -438,13 +424,4 @@ def json_ready(obj: Any) -> Any:
     return obj
 
 
-__all__ = [
-    "LARGE_NS",
-    "evaluate_targets",
-    "format_markdown",
-    "format_report",
-    "format_speed_table",
-    "json_ready",
-    "speed_targets",
-    "target",
-]
+__all__ = ["format_markdown", "format_report", "format_speed_table", "json_ready"]

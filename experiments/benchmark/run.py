@@ -1,6 +1,6 @@
 """Speed and accuracy benchmark of the scenario MPC solvers, the particle filter and an episode.
 
-The benchmark answers the solver issues' questions with measurements, never with asserts
+The benchmark answers questions of speed and accuracy with measurements, never with asserts
 (:func:`run_benchmark`; the command line ``lfm-benchmark`` is :mod:`experiments.cli.benchmark`):
 
 * **Closed-loop problems** (:mod:`experiments.benchmark.problems`): paper episodes with the
@@ -21,14 +21,14 @@ The benchmark answers the solver issues' questions with measurements, never with
   against the Python loop with the same QP solvers, plan by plan; the exported C projects
   built with ``make`` and timed from C, their plans and run-time dependencies.
 * **Failures**: every failed solve of every solver and part, with its problem's id.
-* **Verdicts and report** (:mod:`experiments.benchmark.targets`,
-  :mod:`experiments.benchmark.report`): PASS/FAIL per target with the measured figure,
-  JSON (``--out``) and the speed table and targets as Markdown (beside it, ``.md``).
-  ``--check`` exits 1 when a target fails.
+* **Checks and report** (:mod:`experiments.benchmark.checks`,
+  :mod:`experiments.benchmark.report`): PASS/FAIL/SKIP of each named check with the measured
+  figure, JSON (``--out``) and the speed table and checks as Markdown (beside it, ``.md``).
+  ``--check`` exits 1 when a check fails.
 
 Timing is noisy on a shared machine: the figures are medians and percentiles of one run.
 A solver that cannot be built (an optional package missing) is listed as unavailable with
-the reason, and its targets are SKIP.
+the reason, and its checks are SKIP.
 """
 
 from __future__ import annotations
@@ -41,7 +41,8 @@ from importlib import metadata
 from typing import Any
 
 from controllers.solvers import SOLVERS
-from experiments.benchmark.compiled import AGREEMENT_NS, compiled_targets, time_compiled
+from experiments.benchmark.checks import check_thresholds, run_checks
+from experiments.benchmark.compiled import AGREEMENT_NS, time_compiled
 from experiments.benchmark.problems import (
     DEFAULT_CONFIG,
     DEFAULT_SEEDS,
@@ -55,13 +56,13 @@ from experiments.benchmark.suites import (
     DEFAULT_PF_SIZES,
     DEFAULT_SWEEP_NS,
     DEFAULT_SWEEP_STEPS,
+    HORIZON_SOLVERS,
     first_solve,
     sweep_horizons,
     sweep_scenarios,
     time_episode,
     time_particle_filter,
 )
-from experiments.benchmark.targets import check_thresholds, evaluate_targets
 
 # Recorded steps per seed: a paper episode with the fast solver takes ~45 steps, so 50 keeps
 # whole episodes while capping a failing one (151 steps).
@@ -106,6 +107,7 @@ def run_benchmark(
     horizons: Sequence[int] = DEFAULT_HORIZONS,
     horizon_steps: dict[int, int] | int | None = None,
     horizon_max_time: dict[str, float] | float | None = None,
+    horizon_solvers: Sequence[str] = HORIZON_SOLVERS,
     sweep_ns: Sequence[int] = DEFAULT_SWEEP_NS,
     sweep_steps_per_seed: int | None = DEFAULT_SWEEP_STEPS,
     pf_sizes: Sequence[int] = DEFAULT_PF_SIZES,
@@ -114,7 +116,7 @@ def run_benchmark(
     progress: bool = True,
     compiled: bool = True,
 ) -> dict[str, Any]:
-    """Run every part of the benchmark and judge the targets.
+    """Run every part of the benchmark and judge the checks.
 
     Args:
         config: a YAML path, a dict (whole file), an ExperimentConfig or ``None``.
@@ -128,12 +130,14 @@ def run_benchmark(
         horizon_max_time: wall-clock limit of one solve in the horizon sweep [s], one for
             both solvers or a dict by name (default
             :data:`experiments.benchmark.suites.HORIZON_MAX_TIME_S`).
+        horizon_solvers: the solvers of the horizon sweep (default ``fast`` and ``ipopt``,
+            the objective reference; ``("fast",)`` for a smoke run).
         sweep_ns: scenario counts of the sweep (empty: no sweep).
         sweep_steps_per_seed: anchors per seed in the sweep.
         pf_sizes: particle-filter sizes (empty: no filter timing).
         pf_steps: timed filter steps per size.
-        thresholds: target thresholds to change, by key
-            (:data:`experiments.benchmark.targets.DEFAULT_THRESHOLDS`).
+        thresholds: check bounds to change, by key
+            (:data:`experiments.benchmark.checks.DEFAULT_THRESHOLDS`).
         progress: show progress bars.
         compiled: the compiled loop's plan agreement and the exported controllers
             (:func:`experiments.benchmark.compiled.time_compiled`; ``fast_c`` itself is timed
@@ -141,7 +145,7 @@ def run_benchmark(
 
     Returns:
         All figures: ``meta``, ``closed_loop``, ``horizons``, ``sweep``, ``first_solve``,
-        ``particle_filter``, ``episode``, ``compiled``, ``failures`` and ``targets``.
+        ``particle_filter``, ``episode``, ``compiled``, ``failures`` and ``checks``.
 
     Raises:
         ValueError: for an unknown solver name or threshold key, or a bad config.
@@ -157,6 +161,7 @@ def run_benchmark(
         "seeds": list(seeds),
         "max_steps": int(max_steps),
         "solvers": list(solvers),
+        "horizon_solvers": list(horizon_solvers),
         "recording_solver": RECORDING_SOLVER,
         "thresholds": thresholds,
         "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
@@ -192,6 +197,7 @@ def run_benchmark(
             max_time=horizon_max_time,
             progress=progress,
             closed_loop_problems=problems,
+            solvers=horizon_solvers,
         )
     if sweep_ns:
         results["sweep"] = timed(
@@ -215,9 +221,7 @@ def run_benchmark(
         large = tuple(ns for ns in AGREEMENT_NS if ns in sweep_ns)
         results["compiled"] = timed("compiled", time_compiled, cfg, problems, anchors, large)
     results["failures"] = all_failures(results)
-    results["targets"] = evaluate_targets(results, thresholds) + compiled_targets(
-        results, thresholds
-    )
+    results["checks"] = run_checks(results, thresholds)
     meta["load_average_end"] = _load()
     meta["total_time_s"] = time.perf_counter() - t0
     return results

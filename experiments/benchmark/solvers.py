@@ -47,7 +47,7 @@ SOLVER_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
 REFERENCES = ("ipopt_multiple_shooting", "ipopt", "csnlp")
 
 NO_SLACK_TOL = 1e-6  # total slack below which a reference solution "needs no slack"
-GAP_TOL = 1e-4  # relative objective gap of the issue's accuracy target
+GAP_TOL = 1e-4  # relative objective gap of the accuracy checks
 LOCAL_OPTIMUM_RTOL = 1e-9  # a probed descent above -this * |J| certifies a local optimum
 
 Problem = tuple[int, int, np.ndarray, np.ndarray]  # (seed, step, x0, W)
@@ -215,7 +215,7 @@ def p95(a: np.ndarray) -> float:
 def timing_summary(records: list[dict[str, Any]]) -> dict[str, Any]:
     """Medians, percentiles and counts of one solver's records (times in ms).
 
-    Times and iterations are those of the warm-started solves (the issue's targets are for
+    Times and iterations are those of the warm-started solves (the checks are of
     closed-loop warm-started problems); the first problem of each closed loop starts from
     the solver's default guess and is summarised apart (``n_cold``, ``cold_solve_ms_max``).
     Counts and accuracy figures cover every problem.

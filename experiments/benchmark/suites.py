@@ -268,6 +268,7 @@ def sweep_horizons(
     max_time: dict[str, float] | float | None = None,
     progress: bool = False,
     closed_loop_problems: Sequence[Any] | None = None,
+    solvers: Sequence[str] = HORIZON_SOLVERS,
 ) -> dict[str, Any]:
     """The fast solver and IPOPT (condensed) side by side at several horizons ``N``.
 
@@ -292,6 +293,8 @@ def sweep_horizons(
         progress: show progress bars.
         closed_loop_problems: the problems of ``closed_loop`` (for its row's
             feasibility figures).
+        solvers: the solvers timed (default :data:`HORIZON_SOLVERS`; ``("fast",)`` leaves
+            IPOPT out, and with it the objective agreement: ``lfm-benchmark --quick``).
 
     Returns:
         ``{"results": [{"horizon", "n_scenarios", "n_problems", "source", "solvers",
@@ -307,10 +310,10 @@ def sweep_horizons(
         n = int(n)
         reuse = closed_loop or {}
         if reuse.get("problem", {}).get("horizon") == n and all(
-            name in reuse.get("records", {}) for name in HORIZON_SOLVERS
+            name in reuse.get("records", {}) for name in solvers
         ):
-            records = {name: reuse["records"][name] for name in HORIZON_SOLVERS}
-            info = {name: reuse["solvers"][name] for name in HORIZON_SOLVERS}
+            records = {name: reuse["records"][name] for name in solvers}
+            info = {name: reuse["solvers"][name] for name in solvers}
             problem = cfg.make_problem(horizon=n)
             rows.append(
                 _horizon_row(
@@ -322,11 +325,10 @@ def sweep_horizons(
         problems, _ = record_closed_loop(cfg, seeds, steps, progress, horizon=n)
         problem = experiment_config(cfg, horizon=n).make_problem()
         limits = {
-            name: max_time.get(name) if isinstance(max_time, dict) else max_time
-            for name in HORIZON_SOLVERS
+            name: max_time.get(name) if isinstance(max_time, dict) else max_time for name in solvers
         }
         built, info = build_solvers(
-            problem, [(name, name, {"max_time": limits[name]}) for name in HORIZON_SOLVERS]
+            problem, [(name, name, {"max_time": limits[name]}) for name in solvers]
         )
         records = run_interleaved(
             built, problem, problems, warmup=True, progress=progress, desc=f"horizon N={n}"
@@ -336,8 +338,8 @@ def sweep_horizons(
 
 
 def _compile_info(solver: Any) -> dict[str, Any]:
-    """What a fast solver says about its C library (read defensively)."""
-    model = getattr(solver, "model", None)
+    """What a fast solver says about its C library (read defensively): its condensed model's."""
+    model = getattr(solver, "condensed", None)
     info: dict[str, Any] = {"backend": getattr(solver, "backend", None)}
     for key in ("compile_time", "build_time"):
         value = getattr(model, key, None)

@@ -1,8 +1,8 @@
 """Command lines of the project: thin layers that parse arguments and call library functions.
 
 Each command is a ``<name>_main(argv=None) -> int`` function registered as a console
-script in ``pyproject.toml`` (``lfm-evaluate = "experiments.cli:evaluate_main"``) and
-wrapped by a one-line script in ``scripts/``. Bad arguments exit with code 2 and a
+script in ``pyproject.toml`` (``lfm-evaluate = "experiments.cli:evaluate_main"``). Bad
+arguments exit with code 2 and a
 one-line message (``argparse``'s ``parser.error``); so do operating-system errors (disk
 full, a read-only or impossible output path) and running out of memory
 (:func:`~experiments.cli.common.one_line_errors`). Ctrl-C prints one line and exits with

@@ -11,6 +11,14 @@ from pathlib import Path
 from typing import Any
 
 from controllers.solvers import SOLVERS
+from controllers.threads import limit_blas_threads
+from experiments.benchmark.checks import DEFAULT_THRESHOLDS, check_thresholds, failed_checks
+from experiments.benchmark.closed_loop import (
+    CLOSED_LOOP_AGENT,
+    CLOSED_LOOP_STEPS,
+    closed_loop_steps,
+    format_closed_loop,
+)
 from experiments.benchmark.predictions import (
     PREDICTION_STEPS,
     format_predictions,
@@ -19,7 +27,6 @@ from experiments.benchmark.predictions import (
 from experiments.benchmark.report import format_markdown, format_report, json_ready
 from experiments.benchmark.run import DEFAULT_MAX_STEPS, DEFAULT_SOLVERS, run_benchmark
 from experiments.benchmark.suites import DEFAULT_HORIZON_STEPS, DEFAULT_HORIZONS
-from experiments.benchmark.targets import DEFAULT_THRESHOLDS, check_thresholds, failed_targets
 from experiments.cli.common import (
     CACHE_NOTE,
     DEFAULT_PRESET,
@@ -31,11 +38,15 @@ from experiments.cli.common import (
 from experiments.evaluation import parse_seeds as parse_evaluation_seeds
 
 DEFAULT_OUT = "results/benchmark.json"
-# --quick: a smoke run of every part (a few problems, tiny sweeps and filter).
+# --quick: a smoke run of every part (a few problems, tiny sweeps and filter), about a
+# minute: the textbook IPOPT form and sqpmethod (its JIT build alone takes 15-50 s) are left
+# out unless named with --solvers, and IPOPT at the longer horizons (seconds per problem).
+QUICK_SOLVERS = ("fast", "fast_c", "ipopt")
 QUICK = {
     "seeds": "0",
     "max_steps": 3,
     "horizon_steps": 2,
+    "horizon_solvers": ("fast",),
     # [s] per solve at N = 15, 30: a smoke run, not a verdict (failed solves are listed)
     "horizon_max_time": 2.0,
     "sweep_ns": (10, 50),
@@ -111,7 +122,8 @@ def build_parser() -> argparse.ArgumentParser:
             f"Benchmark the scenario MPC solvers ({', '.join(SOLVERS)}) side by side on "
             "closed-loop problems, at several horizons and scenario counts, the particle "
             "filter and one episode; print the speed table, every failed solve and "
-            "PASS/FAIL per target, write JSON and the speed table as Markdown."
+            "PASS/FAIL/SKIP per check (named bounds on the figures, docs/benchmark.md), "
+            "write JSON and the speed table as Markdown."
         ),
         epilog=CACHE_NOTE,
     )
@@ -129,9 +141,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--solvers",
-        default=",".join(DEFAULT_SOLVERS),
-        help=f"solvers of the comparison, comma-separated (default: %(default)s; all: "
-        f"{','.join(SOLVERS)})",
+        default=None,
+        help=f"solvers of the comparison, comma-separated (default: {','.join(DEFAULT_SOLVERS)}; "
+        f"quick: {','.join(QUICK_SOLVERS)}; all: {','.join(SOLVERS)})",
     )
     parser.add_argument(
         "--skip",
@@ -160,17 +172,20 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         type=parse_threshold,
         metavar="KEY=VALUE",
-        help="change a target's threshold (repeatable); keys: " + ", ".join(DEFAULT_THRESHOLDS),
+        help="change a check's bound (repeatable), e.g. fast_c_median_ms=3; keys and "
+        "defaults: " + ", ".join(f"{k}={v:g}" for k, v in DEFAULT_THRESHOLDS.items()),
     )
     parser.add_argument(
         "--check",
         action="store_true",
-        help="exit with status 1 when any target FAILS (SKIP is no failure)",
+        help="exit with status 1 when any check FAILS (SKIP, a figure not measured, is no failure)",
     )
     parser.add_argument(
         "--quick",
         action="store_true",
-        help="a smoke run: few problems, tiny sweeps and filter (the figures mean little)",
+        help="a smoke run of every part in about a minute: few problems, tiny sweeps and "
+        f"filter, the solvers {','.join(QUICK_SOLVERS)}, the longer horizons without IPOPT "
+        "(the figures mean little)",
     )
     parser.add_argument(
         "--out",
@@ -190,25 +205,52 @@ def build_parser() -> argparse.ArgumentParser:
         "--predictions",
         default=None,
         metavar="HORIZONS",
-        help="run the prediction sweep alone, e.g. 7,15,30,50: the fast solver on the "
-        "open-loop and the feedback scenario problem (agents.prediction) at each horizon N, "
-        f"on the closed-loop problems of --seeds ({PREDICTION_STEPS} per seed, or "
-        "--horizon-steps); prints median/p95 solve times and every failed solve",
+        help="run the closed-loop sweep alone, e.g. 7,15,30,50: the scenario agent (the "
+        "config's solver) at each horizon N, with open-loop and feedback predictions "
+        "(agents.prediction) and each iteration mode (agents.iterations, where it exists), "
+        f"the first {CLOSED_LOOP_STEPS} steps (or --horizon-steps) of each of --seeds; "
+        "prints median/p95/max per-step times (estimator + solve) and every failed step",
+    )
+    parser.add_argument(
+        "--agent",
+        default=CLOSED_LOOP_AGENT,
+        help="the registered agent whose steps --predictions times (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--predictions-replay",
+        default=None,
+        metavar="HORIZONS",
+        help="run the solver sweep alone: the fast solver on the open-loop and the feedback "
+        "problem at each horizon N, drawn around the estimates of a closed loop at the "
+        f"config's horizon ({PREDICTION_STEPS} per seed, or --horizon-steps); median/p95 "
+        "solve times and every failed solve",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     return parser
 
 
 def _prediction_sweep(args: argparse.Namespace, seeds: list[int], out: Path) -> int:
-    """``--predictions``: the prediction sweep alone, printed and written to ``out``."""
-    result = sweep_predictions(
-        parse_ints(args.predictions, "predictions"),
-        config=args.config or DEFAULT_PRESET,
-        seeds=seeds,
-        steps_per_seed=args.horizon_steps or PREDICTION_STEPS,
-        progress=not args.no_progress,
-    )
-    table = format_predictions(result)
+    """``--predictions`` (the closed-loop sweep) or ``--predictions-replay`` (the solver
+    sweep) alone, printed and written to ``out``."""
+    if args.predictions is not None:
+        result = closed_loop_steps(
+            parse_ints(args.predictions, "predictions"),
+            config=args.config or DEFAULT_PRESET,
+            seeds=seeds,
+            steps=args.horizon_steps or CLOSED_LOOP_STEPS,
+            agent=args.agent,
+            progress=not args.no_progress,
+        )
+        table = format_closed_loop(result)
+    else:
+        result = sweep_predictions(
+            parse_ints(args.predictions_replay, "predictions-replay"),
+            config=args.config or DEFAULT_PRESET,
+            seeds=seeds,
+            steps_per_seed=args.horizon_steps or PREDICTION_STEPS,
+            progress=not args.no_progress,
+        )
+        table = format_predictions(result)
     print(table, flush=True)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(json_ready(result), indent=1, allow_nan=False) + "\n")
@@ -234,12 +276,16 @@ def benchmark_main(argv: Sequence[str] | None = None) -> int:
     """
     parser = build_parser()
     args = parser.parse_args(argv)
+    limit_blas_threads()  # the filter and the IPOPT references too, not only make_solver's
     try:
         seeds = parse_seeds(args.seeds or (QUICK["seeds"] if args.quick else "0:6"))
-        solvers = _solver_list(args.solvers, args.skip)
+        default_solvers = QUICK_SOLVERS if args.quick else DEFAULT_SOLVERS
+        solvers = _solver_list(args.solvers or ",".join(default_solvers), args.skip)
         horizons = parse_ints(args.horizons, "horizons")
         if args.predictions is not None:
             parse_ints(args.predictions, "predictions")
+        if args.predictions_replay is not None:
+            parse_ints(args.predictions_replay, "predictions-replay")
     except ValueError as exc:
         parser.error(str(exc))
     config_argument_path(parser, args.config)  # a preset's name or a file: exits 2 otherwise
@@ -248,7 +294,7 @@ def benchmark_main(argv: Sequence[str] | None = None) -> int:
         problem = check_writable(path, "--out")
         if problem is not None:
             parser.error(problem)
-    if args.predictions is not None:
+    if args.predictions is not None or args.predictions_replay is not None:
         return _prediction_sweep(args, seeds, out)
     options: dict[str, Any] = {}
     if args.quick:
@@ -275,15 +321,16 @@ def benchmark_main(argv: Sequence[str] | None = None) -> int:
     markdown = out.with_suffix(".md")
     markdown.write_text(format_markdown(results))
     print(f"\nwrote {out} and {markdown}; {results['meta']['total_time_s']:.0f} s in all")
-    failed = failed_targets(results["targets"])
+    failed = failed_checks(results["checks"])
     if args.check and failed:
-        print(f"--check: {len(failed)} target(s) FAIL: " + "; ".join(t["key"] for t in failed))
+        print(f"--check: {len(failed)} check(s) FAIL: " + "; ".join(c["key"] for c in failed))
         return 1
     return 0
 
 
 __all__ = [
     "QUICK",
+    "QUICK_SOLVERS",
     "benchmark_main",
     "build_parser",
     "parse_ints",

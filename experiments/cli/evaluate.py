@@ -118,6 +118,15 @@ def _evaluate_parser() -> argparse.ArgumentParser:
         help="do not write the report after the run (default: experiments.report.write_report)",
     )
     parser.add_argument(
+        "--baseline",
+        metavar="NAME",
+        default=None,
+        help=(
+            "the agent of --agents that every paired table of the report compares the "
+            "others with (default: robust if run, else scenario, else the first agent)"
+        ),
+    )
+    parser.add_argument(
         "--quiet", action="store_true", help="no progress bar and no per-agent summary"
     )
     return parser
@@ -152,6 +161,8 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
 
     seeds = seeds_and_executor(parser, args)
     agents = [a.strip() for a in args.agents.split(",")]
+    if args.baseline is not None and args.baseline not in agents:
+        parser.error(f"--baseline {args.baseline!r}: not among --agents ({', '.join(agents)})")
     if any(":" in a for a in agents) and os.getcwd() not in sys.path:
         # As `python -m` does: `module:attribute` agents import from the current folder.
         sys.path.insert(0, os.getcwd())
@@ -188,7 +199,7 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
             print(f"report: skipped, experiments.report is not available ({exc})")
         else:
             try:
-                where = write_report(out)
+                where = write_report(out, baseline=args.baseline)
             except Exception as exc:  # the results are safe; only the report failed
                 print(f"report: failed ({type(exc).__name__}: {exc}); results are kept")
                 return 1

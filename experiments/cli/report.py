@@ -49,8 +49,8 @@ def _report_parser() -> argparse.ArgumentParser:
             "drawn from the system (path in the plane of the first two states with the\n"
             "feasible region, latent force, inputs with bounds, other states, constraint\n"
             "excess), across-seed plots, a GIF of the episode and, for the sine track, a\n"
-            "'paper vs measured' table. The oracle agent is an upper bound (it reads the\n"
-            "hidden truth) and is labelled so."
+            "'paper vs measured' table. The oracle agent is certainty-equivalent MPC that\n"
+            "reads the hidden truth (labelled so); it is no upper bound."
         ),
         epilog=_REPORT_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -72,8 +72,8 @@ def _report_parser() -> argparse.ArgumentParser:
         metavar="NAME",
         default=None,
         help=(
-            "the agent the paired differences compare every other agent with (default: "
-            "scenario if DIR holds it, else the first agent)"
+            "the agent that every paired table of the report compares the other agents with "
+            "(default: robust if DIR holds it, else scenario, else the first agent)"
         ),
     )
     parser.add_argument(

@@ -32,9 +32,18 @@ TAIL_COLUMNS: tuple[str, ...] = (
     "solve_time_median",  # [s]
     "solve_time_p95",  # [s]
     "solve_time_max",  # [s]
+    # [s] a step's compute, the wall time of the agent's act() (estimator + solve)
+    "step_time_median",
+    "step_time_max",  # [s]
+    "deadline_misses",  # steps whose compute exceeded the control period dt
     "solver_failures",  # steps whose solve returned no usable plan (the agent fell back)
     "unconverged_solves",  # steps whose solve did not converge but gave a usable plan
     "fallback_steps",  # steps that applied a fallback action (previous plan or brake)
+    # Steps whose solve agents.deadline stopped, by what the agent applied: the best usable
+    # plan reached, its previous plan shifted, the system's fallback input (0 without one).
+    "deadline_plans",
+    "deadline_shifted",
+    "deadline_fallbacks",
     "filter_resets",  # particle-filter restarts after divergence (filter agents)
     "slack_total",  # sum of the per-step constraint slack
     "wall_time",  # [s] whole episode, including building the agent
@@ -46,6 +55,9 @@ TIMING_COLUMNS: tuple[str, ...] = (
     "solve_time_median",
     "solve_time_p95",
     "solve_time_max",
+    "step_time_median",
+    "step_time_max",
+    "deadline_misses",
     "wall_time",
 )
 
@@ -56,6 +68,10 @@ _INT_COLUMNS = (
     "solver_failures",
     "unconverged_solves",
     "fallback_steps",
+    "deadline_misses",
+    "deadline_plans",
+    "deadline_shifted",
+    "deadline_fallbacks",
     "filter_resets",
 )
 _BOOL_COLUMNS = ("success", "failure")

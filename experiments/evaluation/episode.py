@@ -160,6 +160,9 @@ class _EpisodeRecorder:
     def __init__(self, config: ExperimentConfig) -> None:
         system = config.make_system()
         self.horizon = config.agents.horizon
+        # [s] the control period (deadline misses; NaN for a config without a model)
+        make_model = getattr(config, "make_model", None)
+        self.dt = float(make_model().dt) if make_model is not None else math.nan
         self.nx, self.nu, self.nw = system.nx, system.nu, system.nw
         self.system = system
         self.groups = tuple(system.constraint_groups)
@@ -180,6 +183,8 @@ class _EpisodeRecorder:
                 "predicted",
                 "predicted_scenarios",
                 "solve_time",
+                "step_time",
+                "deadline_stop",
                 "slack",
                 "solver_success",
                 "solver_usable",
@@ -221,7 +226,12 @@ class _EpisodeRecorder:
         return np.full(shape, np.nan)
 
     def step(
-        self, agent_info: dict[str, Any], obs: np.ndarray, reward: float, info: dict[str, Any]
+        self,
+        agent_info: dict[str, Any],
+        obs: np.ndarray,
+        reward: float,
+        info: dict[str, Any],
+        step_time: float = math.nan,
     ) -> None:
         self.has_filter = self.has_filter or agent_info.get("latent_force") is not None
         values = {
@@ -232,6 +242,7 @@ class _EpisodeRecorder:
             # w acting during this step: the quantity the agent estimated before it.
             "latent_force": self._force(info["latent_force"]),
             "reward": float(reward),
+            "step_time": float(step_time),
             **self._agent_values(agent_info),
         }
         # The largest excess of each constraint group after the step, in its unit.
@@ -289,6 +300,7 @@ class _EpisodeRecorder:
             # (an agent that does not say: usable exactly when it succeeded)
             "solver_usable": bool(get(agent_info, "usable", get(agent_info, "success"))),
             "fallback": str(get(agent_info, "fallback")),
+            "deadline_stop": str(get(agent_info, "deadline_stop")),
             "filter_reset": bool(get(agent_info, "filter_reset")),
             # The estimator's name, from agents that say which one they run (it may differ
             # from agents.estimator: the robust agent has its own).
@@ -372,6 +384,8 @@ class _EpisodeRecorder:
             "predicted": stack("predicted", (0, self.horizon + 1, self.nx)),
             "predicted_scenarios": self._fan(),
             "solve_time": stack("solve_time", (0,)),
+            "step_time": stack("step_time", (0,)),
+            "deadline_stop": stack("deadline_stop", (0,), str),
             "slack": stack("slack", (0,)),
             "solver_success": stack("solver_success", (0,), bool),
             "solver_usable": stack("solver_usable", (0,), bool),
@@ -409,10 +423,12 @@ def _simulate(spec: AgentSpec, config: ExperimentConfig, seed: int, rec: _Episod
             raise_if_interrupted()  # a Ctrl-C that a library swallowed
             check_deadline()  # the episode's time limit, if a library swallowed it
             # The agent's estimate made with obs k is compared with the w of step k.
+            t_act = time.perf_counter()
             action = agent.act(obs)
+            step_time = time.perf_counter() - t_act  # the step's compute, whatever the agent
             agent_info = last_info(agent)
             obs, reward, terminated, truncated, info = env.step(action)
-            rec.step(agent_info, obs, reward, info)
+            rec.step(agent_info, obs, reward, info, step_time)
     finally:
         env.close()
 
@@ -424,6 +440,9 @@ def _episode_metrics(rec: _EpisodeRecorder, arrays: dict[str, np.ndarray]) -> di
     success = bool(info.get("is_success", False))
     solve = arrays["solve_time"]
     solve = solve[np.isfinite(solve)]  # steps without a solve time are not counted
+    step = arrays.get("step_time", np.zeros(0))
+    step = step[np.isfinite(step)]
+    stops = arrays.get("deadline_stop", np.zeros(0, dtype=str))
     slack = arrays["slack"][np.asarray(rec.slack_reported[:T], dtype=bool)]
     if rec.has_filter and T:
         err = arrays["latent_force_est"] - arrays["latent_force"]
@@ -455,9 +474,15 @@ def _episode_metrics(rec: _EpisodeRecorder, arrays: dict[str, np.ndarray]) -> di
         "solve_time_median": stat(np.median, solve),
         "solve_time_p95": stat(lambda x: np.percentile(x, 95), solve),
         "solve_time_max": stat(np.max, solve),
+        "step_time_median": stat(np.median, step),
+        "step_time_max": stat(np.max, step),
+        "deadline_misses": int(np.sum(step > rec.dt)),
         "solver_failures": int(np.sum(~usable)),
         "unconverged_solves": int(np.sum(usable & ~arrays["solver_success"])),
         "fallback_steps": int(np.sum(arrays["fallback"] != "")),
+        "deadline_plans": int(np.sum(stops == "plan")),
+        "deadline_shifted": int(np.sum(stops == "previous_plan")),
+        "deadline_fallbacks": int(np.sum(stops == "fallback")),
         "filter_resets": int(np.sum(arrays["filter_reset"])) if rec.has_filter else 0,
         "slack_total": float(np.sum(slack)) if len(slack) else math.nan,
     }
@@ -480,7 +505,7 @@ def run_episode(
 
     The env is the config's world, ``gym.make(cfg.env_id, config=cfg.env)``, reset with
     ``seed``; the agent's own randomness is seeded with :func:`agent_seed` (paired
-    design). The oracle (an upper bound that reads the hidden truth) is given the env.
+    design). The oracle (certainty-equivalent MPC that reads the hidden truth) is given the env.
 
     Args:
         agent: a registered name (``"nominal"``, ``"pf"``, ``"scenario"``, ``"oracle"``,

@@ -166,7 +166,7 @@ def _connect_dask(scheduler: str | None, dask_workers: int | None, stack: Any):
 def evaluate(
     agents: Sequence[Any] | str,
     seeds: Iterable[int] | str,
-    config: Any = None,
+    config: ExperimentConfig | str | os.PathLike | dict | None = None,
     out: str | os.PathLike | None = None,
     jobs: int = 1,
     scheduler: str | None = None,
@@ -181,7 +181,7 @@ def evaluate(
 
     Args:
         agents: the agents, each a registered name (``"nominal"``, ``"pf"``,
-            ``"scenario"``, ``"oracle"``; the oracle is an upper bound that reads the
+            ``"scenario"``, ``"oracle"``; the oracle is certainty-equivalent MPC that reads the
             hidden truth), an agent factory called as ``factory(config)`` with the
             resolved :class:`~controllers.config.ExperimentConfig`, an agent object, or
             ``"module:attribute"`` of a factory (:mod:`controllers.agents.registry`: how
@@ -190,7 +190,9 @@ def evaluate(
             :class:`controllers.agents.protocol.Agent`; it is built once before any episode,
             so a bad factory fails early.
         seeds: env seeds (integers >= 0), or a text for :func:`parse_seeds`.
-        config: a YAML path, a dict (whole file) or ``None`` (paper defaults).
+        config: an :class:`~controllers.config.ExperimentConfig`; a preset's name, a YAML
+            path, a dict (whole file) or ``None`` (paper defaults) is resolved once
+            (:func:`~controllers.config.load_config`).
         out: results folder (see the module docstring); ``None`` keeps nothing on disk.
             Episodes already saved there are not re-run.
         jobs: local worker processes (``spawn`` context, safe with CasADi); 1 is serial.

@@ -17,6 +17,7 @@ from typing import Any
 
 from controllers.agents.registry import AgentSpec, AgentSpecError
 from controllers.config import ExperimentConfig
+from controllers.threads import limit_blas_threads
 from experiments.evaluation.episode import (
     _episode_metrics,
     _EpisodeRecorder,
@@ -59,6 +60,7 @@ def _episode_task(
     run's ``token``, and the worker ends; the task, run again elsewhere, returns that row)
     or ``""`` (a pool worker: its parent stops it).
     """
+    limit_blas_threads()  # every executor's worker (serial, pool, Dask) runs this first
     name = agent.name
     if token and out is not None:
         saved = stuck_row(out, name, seed, token)

@@ -38,7 +38,7 @@ def fmt_estimate(e: Estimate, n_total: int | None = None) -> str:
 
 def agent_label(name: str, wrap: bool = False) -> str:
     """Short display label of an agent (a registered agent's ``short_label``, else its
-    name; the oracle is marked as an upper bound).
+    name; the oracle's says that it reads the truth).
 
     ``wrap`` puts a parenthesised remark on its own line, for axis tick labels.
     """

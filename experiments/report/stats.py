@@ -142,9 +142,14 @@ def summary_metrics(system: ControlSystem) -> tuple[Metric, ...]:
         Metric("latent_coverage", "latent-force 2-sigma coverage", lower_is_better=False),
         Metric("solve_time_median", "solve time, episode median", "s"),
         Metric("solve_time_p95", "solve time, episode p95", "s"),
+        Metric("step_time_median", "step compute (estimator + solve), episode median", "s"),
+        Metric("deadline_misses", "deadline misses (compute over the control period)", "steps"),
         Metric("solver_failures", "solver failures (no usable plan)", "steps"),
         Metric("unconverged_solves", "unconverged solves (usable plan applied)", "steps"),
         Metric("fallback_steps", "fallback steps", "steps"),
+        Metric("deadline_plans", "deadline stops, best usable plan applied", "steps"),
+        Metric("deadline_shifted", "deadline stops, previous plan applied", "steps"),
+        Metric("deadline_fallbacks", "deadline stops, fallback input applied", "steps"),
         Metric("filter_resets", "particle-filter restarts", "per episode"),
     )
 

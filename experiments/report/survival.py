@@ -18,8 +18,8 @@ from the rows of ``episodes.csv`` (``steps``, ``failure`` and the constraint gro
 
 Failures stay a metric of their own (the failure rate). A constraint group's headline count
 is its smallest tolerance (``track`` steps more than 1 cm outside the band on the sine track,
-:func:`headline_counts`), else its raw count. Paired differences are against
-:data:`HEADLINE_REFERENCE` (the ``robust`` agent) when the results hold it.
+:func:`headline_counts`), else its raw count. Paired differences are against the report's
+baseline (:func:`experiments.report.write.choose_baseline`), as in every paired table.
 """
 
 from __future__ import annotations
@@ -45,8 +45,6 @@ from experiments.report.stats import (
     pooled_ratio_ci,
 )
 
-#: The agent the headline's paired differences are taken against, when the results hold it.
-HEADLINE_REFERENCE = "robust"
 #: Violation rates are shown per this many steps survived.
 PER_STEPS = 100
 
@@ -192,11 +190,6 @@ def survivor_difference(
     return paired_rows_difference(rows, ref, metric, agent, reference)
 
 
-def headline_reference(results: Results, baseline: str) -> str:
-    """:data:`HEADLINE_REFERENCE` when the results hold it, else ``baseline``."""
-    return HEADLINE_REFERENCE if HEADLINE_REFERENCE in results.agents else baseline
-
-
 # --------------------------------------------------------------------------- the section
 
 
@@ -215,10 +208,20 @@ def _difference(d: PairedDifference, scale: float = 1.0, unit_n: bool = True) ->
     return text + (f" (n={len(d.seeds)})" if unit_n else "")
 
 
-def _median_solve_ms(rows: Sequence[dict[str, Any]]) -> str:
-    values = np.array([_number(r, "solve_time_median") for r in rows])
+def _median_solve_ms(rows: Sequence[dict[str, Any]], column: str = "solve_time_median") -> str:
+    values = np.array([_number(r, column) for r in rows])
     values = values[np.isfinite(values)]
     return fmt(1e3 * float(np.median(values))) if len(values) else "n/a"
+
+
+def _deadline_misses(rows: Sequence[dict[str, Any]]) -> str:
+    """``misses of steps`` over the episodes that counted them (``n/a`` for rows written
+    before the column existed)."""
+    pairs = [(_number(r, "deadline_misses"), _number(r, "steps")) for r in rows]
+    pairs = [(m, s) for m, s in pairs if np.isfinite(m) and np.isfinite(s)]
+    if not pairs:
+        return "n/a"
+    return f"{int(sum(m for m, _ in pairs))} of {int(sum(s for _, s in pairs))}"
 
 
 def _overview_table(doc: Document, results: Results, reference: str, kept: Survivors) -> None:
@@ -244,6 +247,8 @@ def _overview_table(doc: Document, results: Results, reference: str, kept: Survi
                 time_diff,
                 cost_diff,
                 _median_solve_ms(mine),
+                _median_solve_ms(mine, "step_time_median"),
+                _deadline_misses(mine),
             ]
         )
     doc.table(
@@ -255,6 +260,8 @@ def _overview_table(doc: Document, results: Results, reference: str, kept: Survi
             f"time to goal vs `{reference}` [s] (seeds both reach it)",
             f"cost vs `{reference}` (survivor seeds)",
             "median solve [ms]",
+            "median step [ms]",
+            f"steps over dt = {results.config.dt:g} s",
         ],
         rows,
     )
@@ -316,12 +323,12 @@ def _group_table(
 
 def headline_section(doc: Document, results: Results, baseline: str) -> Survivors:
     """The report's headline: every agent's constraint metrics in forms that do not reward
-    failing, with paired differences against :func:`headline_reference`.
+    failing, with paired differences against ``baseline``.
 
     Returns:
         The survivor seeds of every agent of the results (which the tables used).
     """
-    reference = headline_reference(results, baseline)
+    reference = baseline
     kept = survivors(results)
     n_seeds = len(kept.seeds) + len(kept.dropped)
     doc.heading("Headline: metrics that do not reward failing")
@@ -353,14 +360,12 @@ def headline_section(doc: Document, results: Results, baseline: str) -> Survivor
 
 
 __all__ = [
-    "HEADLINE_REFERENCE",
     "PER_STEPS",
     "HeadlineCount",
     "PerStepRate",
     "Survivors",
     "ViolationOrFailure",
     "headline_counts",
-    "headline_reference",
     "headline_section",
     "step_rate",
     "survivor_difference",

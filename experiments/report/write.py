@@ -75,11 +75,16 @@ from experiments.report.stats import (
     tolerance_metrics,
     zero_violation_metrics,
 )
-from experiments.report.survival import headline_section
+from experiments.report.survival import headline_counts, headline_section
 from experiments.report.sweep_section import check_sweep_config, load_report_sweep, sweep_section
 from lfm_env.system import split_unit
 
 PAPER_ENV_ID = "lfm_env/SineTrack-v0"  # the paper's world: "paper vs measured" only there
+#: The default baseline of the paired tables: the first of these the results hold (the
+#: agent with the fewest violations we measured, then the paper's), else the first agent.
+DEFAULT_BASELINES = ("robust", REFERENCE_AGENT)
+#: "In plain words" names at most this many agents, one sentence each.
+PLAIN_WORDS_AGENTS = 9
 PAPER_SPEED_EXCESS = 0.35  # [m/s] largest speed excess over the bound reported in the paper
 
 
@@ -131,6 +136,19 @@ def _settings_text(results: Results) -> str:
     return ", ".join(parts)
 
 
+def _cost_text(results: Results) -> str:
+    """The MPC agents' cost as resolved (config.yaml's agents section), and whether it is the
+    world's own."""
+    a, env = results.agent_settings, results.config
+    if not all(a.get(k) is not None for k in ("Q", "Qf", "R", "goal_state")):
+        return "The agents' cost: the world's own (config.yaml names none)."
+    values = {k: tuple(a[k]) for k in ("Q", "Qf", "R", "goal_state")}
+    own = values == {"Q": env.Q, "Qf": env.Q, "R": env.R, "goal_state": env.goal_state}
+    shown = ", ".join(f"`{k}` {list(v)}" for k, v in values.items())
+    origin = "the world's own" if own else "set in the config's agents section"
+    return f"The MPC agents' cost: {shown} ({origin}; the reward is the world's)."
+
+
 def _model_section(doc: Document, results: Results) -> None:
     """The hidden force's kernel beside the agents' belief (learned or given), when some
     agent models the force; the hidden force alone otherwise."""
@@ -179,9 +197,10 @@ def _summary_section(doc: Document, results: Results, stats: dict) -> None:
         "where every value is equal), in brackets. "
         "Episodes that ended with an error are counted in the last row and listed below, "
         "but left out of the statistics; `(n=k)` marks a metric defined on fewer episodes "
-        "(e.g. time to goal only where the goal was reached). The oracle reads the hidden "
-        "true state and future latent force: it is an upper bound, not a controller one "
-        "could build. Violation steps `> t` count only the steps whose excess over the "
+        "(e.g. time to goal only where the goal was reached). The oracle is "
+        "certainty-equivalent MPC that reads the hidden true state and future latent force: "
+        "no controller one could build, and no upper bound either. Violation steps `> t` "
+        "count only the steps whose excess over the "
         "group's bounds is above the tolerance t (a millimetre over a bound is not a crash); "
         "zero-violation episodes are the fraction of episodes with no such step."
         + _caveat(min(n_ok.values(), default=0))
@@ -199,11 +218,10 @@ def _summary_section(doc: Document, results: Results, stats: dict) -> None:
 
 
 def _errors_section(doc: Document, results: Results) -> None:
-    doc.heading("Episodes with errors")
     errors = results.error_rows
-    if not errors:
-        doc.paragraph("None: every episode ran to its end.")
+    if not errors:  # (the per-agent table says 0 in its last row)
         return
+    doc.heading("Episodes with errors")
     doc.paragraph(
         f"{len(errors)} episode(s) ended with an error; they are left out of the statistics."
     )
@@ -243,14 +261,16 @@ def _reported(results: Results, metrics: Sequence[Metric]) -> list[Metric]:
 
 
 def choose_baseline(results: Results, baseline: str | None = None) -> str:
-    """The agent of the paired differences: ``baseline``, else the paper's scenario agent
-    when the results hold it, else the first agent.
+    """The report's one baseline, which every paired table compares the other agents with:
+    ``baseline``, else the first of :data:`DEFAULT_BASELINES` that the results hold, else
+    the first agent.
 
     Raises:
         ValueError: naming ``baseline`` and the results' agents, if it is not among them.
     """
     if baseline is None:
-        return REFERENCE_AGENT if REFERENCE_AGENT in results.agents else results.agents[0]
+        held = [a for a in DEFAULT_BASELINES if a in results.agents]
+        return held[0] if held else results.agents[0]
     if baseline not in results.agents:
         raise ValueError(
             f"baseline {baseline!r} is not an agent of {results.directory}; choose one of "
@@ -259,16 +279,13 @@ def choose_baseline(results: Results, baseline: str | None = None) -> str:
     return baseline
 
 
-def _paired_section(
-    doc: Document, results: Results, baseline: str = REFERENCE_AGENT
-) -> list[PairedDifference]:
-    doc.heading(f"Paired differences against {agent_label(baseline)}")
+def _paired_section(doc: Document, results: Results, baseline: str) -> list[PairedDifference]:
+    """Every paired metric of every other agent against ``baseline``; nothing when the
+    results hold one agent."""
     others = [a for a in results.agents if a != baseline]
-    if baseline not in results.agents or not others:
-        doc.paragraph(
-            f"Not available: the results need the `{baseline}` agent and at least one other agent."
-        )
+    if not others:
         return []
+    doc.heading(f"Paired differences against {agent_label(baseline)}")
     metrics = _reported(results, paired_metrics(results.system))
     found = {
         (a, m.column): paired_differences(results, m, a, baseline) for a in others for m in metrics
@@ -279,8 +296,9 @@ def _paired_section(
         "noise), mean with a 95% paired BCa bootstrap interval over seeds (the two episodes "
         f"of a seed resampled together). Negative: the agent's value is lower than "
         f"{baseline}'s. Only seeds where both episodes are error-free "
-        "and the metric is defined count. The baseline is chosen with "
-        "`lfm-report --baseline NAME`." + _caveat(paired_seeds)
+        "and the metric is defined count. The baseline, the same in every paired table of "
+        "this report, is chosen with `--baseline NAME` (`lfm-report`, `lfm-evaluate`)."
+        + _caveat(paired_seeds)
     )
     rows = []
     for m in metrics:
@@ -291,32 +309,51 @@ def _paired_section(
             cells.append(fmt_estimate(d.estimate) + (f" ({_seeds(n)})" if n else ""))
         rows.append([m.title, *cells])
     doc.table(["metric"] + [agent_label(a) for a in others], rows)
-    reading = []
-    for agent in others:
-        for m in metrics:
-            d = found[(agent, m.column)]
-            n = len(d.seeds)
-            if n == 0:
-                reading.append(f"{m.label}: no common seeds of {baseline} and {agent}.")
-                continue
-            reading.append(
-                f"{baseline} has {m.fewer} than {agent_label(agent)} in "
-                f"{d.reference_lower} of {_seeds(n)} (the opposite in {d.agent_lower}, "
-                f"equal in {d.ties})."
-            )
     doc.paragraph("In plain words:")
-    doc.bullets(reading)
+    doc.bullets(_plain_words(results, found, others, metrics, baseline))
     return list(found.values())
+
+
+def _plain_words(
+    results: Results,
+    found: dict[tuple[str, str], PairedDifference],
+    others: Sequence[str],
+    metrics: Sequence[Metric],
+    baseline: str,
+) -> list[str]:
+    """One sentence per agent (at most :data:`PLAIN_WORDS_AGENTS`): on how many seeds the
+    baseline does better in the first group's headline count and in time to goal; the
+    rest is in the table."""
+    columns = [m.column for m in metrics]
+    head = headline_counts(results.system)
+    first = head[0].column if head and head[0].column in columns else "cost"
+    chosen = [m for m in metrics if m.column in (first, "time_to_goal")]
+    out = []
+    for agent in others[:PLAIN_WORDS_AGENTS]:
+        parts = []
+        for m in chosen:
+            d = found[(agent, m.column)]
+            if d.seeds:
+                parts.append(
+                    f"{m.fewer} on {d.reference_lower} of {_seeds(len(d.seeds))} (the opposite "
+                    f"on {d.agent_lower}, equal on {d.ties})"
+                )
+        if parts:
+            out.append(f"`{baseline}` has " + ", and ".join(parts) + f" than `{agent}`.")
+        else:
+            out.append(f"`{baseline}` and `{agent}` have no error-free seed in common.")
+    if len(others) > PLAIN_WORDS_AGENTS:
+        out.append("The other agents are compared in the table above.")
+    return out
 
 
 def _paper_vs_measured_section(doc: Document, results: Results, solve_times: np.ndarray) -> None:
     """The paper's reported results beside the measured distribution (sine track only)."""
-    doc.heading("Paper vs measured")
     agent = REFERENCE_AGENT
     rows = results.rows_of(agent)
-    if not rows:
-        doc.paragraph(f"Not available: no error-free episodes of the `{agent}` agent.")
+    if not rows:  # the paper's agent not run (or every episode of it raised)
         return
+    doc.heading("Paper vs measured")
     n = len(rows)
     dt = results.config.dt
     track_steps = np.array([r.get("track_violation_steps", math.nan) for r in rows])
@@ -373,11 +410,10 @@ def _paper_vs_measured_section(doc: Document, results: Results, solve_times: np.
 
 def _coverage_section(doc: Document, results: Results) -> None:
     """The estimators' 2-sigma coverage and RMSE per state and force, table and figure."""
-    doc.heading("Estimator coverage")
     cals = estimator_coverage(results)
-    if not cals:
-        doc.paragraph("No agent with a filter has saved trajectories: no coverage to measure.")
+    if not cals:  # no agent with a filter, or none saved its trajectories
         return
+    doc.heading("Estimator coverage")
     doc.paragraph(
         "How well each filtering agent's estimator knows the state and the latent force it "
         "does not see: the fraction of steps with the truth inside the estimate's 2-sigma "
@@ -475,8 +511,9 @@ def write_report(
         sweep_dir: a folder of the risk sweep (:mod:`experiments.sweep`) whose table and
             Pareto figure the report includes; by default ``results_dir`` itself when it
             holds a ``sweep.md``.
-        baseline: the agent every other one is compared with in the paired differences;
-            ``None`` for the scenario agent when the results hold it, else the first agent.
+        baseline: the agent every other one is compared with, in every paired table;
+            ``None`` for :func:`choose_baseline`'s default (``robust``, else ``scenario``,
+            else the first agent).
         allow_other_config: include a sweep whose base config differs from the results'
             (the report lists the differing fields); by default such a sweep is refused.
 
@@ -527,12 +564,13 @@ def _write_report(
         "faces the same hidden latent force and noise." + _caveat(len(seeds)) + " Agents:"
     )
     doc.bullets([f"`{a}`: {long_label(a)}" for a in results.agents])
+    doc.paragraph(_cost_text(results))
     _model_section(doc, results)
-    headline_section(doc, results, baseline)  # survival-unbiased metrics, against robust
+    headline_section(doc, results, baseline)  # survival-unbiased metrics
     _summary_section(doc, results, stats)
     _errors_section(doc, results)
     _paired_section(doc, results, baseline)
-    if results.config.ENV_ID == PAPER_ENV_ID:
+    if results.config.ENV_ID == PAPER_ENV_ID and REFERENCE_AGENT in results.agents:
         _paper_vs_measured_section(doc, results, _pooled_solve_times(results, REFERENCE_AGENT))
     _coverage_section(doc, results)
     chance_section(doc, results)  # the chance constraint against its design

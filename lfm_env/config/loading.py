@@ -219,11 +219,21 @@ def _convert(value: Any, tp: Any, key: str) -> Any:
 
 
 def _convert_optional(value: Any, args: tuple, key: str) -> Any:
-    """``None`` where the type allows it, else the value as the union's first other type."""
+    """``None`` where the type allows it, else the value as the first of the union's other
+    types that takes it (``float | str``: a number, else a text), else the first type's
+    error."""
     if value is None and type(None) in args:
         return None
     inner = [a for a in args if a is not type(None)]
-    return _convert(value, inner[0], key)
+    try:
+        return _convert(value, inner[0], key)
+    except ConfigError:
+        for tp in inner[1:]:  # (a plain X | None has no other type to try)
+            try:
+                return _convert(value, tp, key)
+            except ConfigError:
+                pass
+        raise
 
 
 def _convert_section(value: Any, tp: type, key: str) -> Any:

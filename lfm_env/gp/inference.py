@@ -22,8 +22,6 @@ from lfm_env.gp.likelihood import (
     _kalman_log_likelihood,
     _log_likelihood_and_grad,
     driven_log_likelihood,
-    log_marginal_likelihood,
-    log_marginal_likelihood_and_grad,
 )
 
 #: Objective value :func:`fit` reports where the model cannot be built (e.g. a periodic
@@ -304,14 +302,4 @@ def fit_driven(
     return fitted
 
 
-# The likelihood (lfm_env.gp.likelihood) is re-exported: it was defined here before.
-__all__ = [
-    "DrivenFitInfo",
-    "FitInfo",
-    "driven_log_likelihood",
-    "fit",
-    "fit_driven",
-    "log_marginal_likelihood",
-    "log_marginal_likelihood_and_grad",
-    "log_space_std_errors",
-]
+__all__ = ["DrivenFitInfo", "FitInfo", "fit", "fit_driven", "log_space_std_errors"]

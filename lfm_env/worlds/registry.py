@@ -274,7 +274,7 @@ def _env_section(config: Any) -> tuple[Any, dict]:
     if section is None:
         section = {}
     if not isinstance(section, dict):
-        raise ConfigError(f"env={show_value(section)}: the env section must be a mapping")
+        raise ConfigError(f"config section 'env' must be a mapping, got {show_value(section)}")
     return config.get("env_id"), section
 
 

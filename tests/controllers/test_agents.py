@@ -23,6 +23,10 @@ from lfm_env.xp import xp
 QUICK = "configs/quick.yaml"
 
 
+# sqpmethod's JIT build takes 15-50 s: its case runs with the slow tests (CI runs them).
+SOLVER_CASES = [pytest.param(s, marks=pytest.mark.slow) if s == "sqpmethod" else s for s in SOLVERS]
+
+
 def run(agent_name: str, config, seed: int = 0, max_steps: int | None = None):
     env = gym.make("lfm_env/SineTrack-v0", config=config)
     agent = make_agent(agent_name, config, env=env if agent_name == "oracle" else None)
@@ -282,7 +286,7 @@ def test_a_filtering_agent_needs_measurement_noise():
 # --------------------------------------------------------------------------- solve time limit
 
 
-@pytest.mark.parametrize("solver", SOLVERS)
+@pytest.mark.parametrize("solver", SOLVER_CASES)
 def test_a_solve_that_reaches_max_solve_time_fails_and_the_agent_falls_back(solver):
     """Issue 15, case 5: a solve has a wall-clock limit (agents.max_solve_time); one that
     reaches it is a failed solve (IPOPT's status Maximum_WallTime_Exceeded) and the agent
@@ -312,7 +316,7 @@ def test_max_solve_time_out_of_range_is_refused(value):
 def test_agents_solver_threads_reach_the_fast_solver_with_the_same_actions():
     """agents.solver_threads gives the fast solver's C library that many threads; the closed
     loop acts as with one (plans equal to rounding)."""
-    cfg = {"env": {"max_steps": 4}, "agents": {"n_scenarios": 300}}
+    cfg = {"env": {"max_steps": 4}, "agents": {"n_scenarios": 300, "solver": "fast"}}
     one, _, _ = run("scenario", cfg, max_steps=4)
     cfg["agents"]["solver_threads"] = 2
     agent = make_agent("scenario", cfg)

@@ -16,6 +16,10 @@ OBS = np.array([0.0, 0.0, 1.0, np.pi / 4])  # the first observation of the agent
 UKF_AGENT = {"estimator": "ukf", "n_scenarios": 5}
 
 
+# sqpmethod's JIT build takes 15-50 s: its case runs with the slow tests (CI runs them).
+SOLVER_CASES = [pytest.param(s, marks=pytest.mark.slow) if s == "sqpmethod" else s for s in SOLVERS]
+
+
 @pytest.fixture(scope="module")
 def problem_and_data():
     problem = load_config("configs/paper.yaml").make_problem(n_scenarios=20, horizon=7)
@@ -23,7 +27,7 @@ def problem_and_data():
     return problem, W
 
 
-@pytest.mark.parametrize("name", SOLVERS)
+@pytest.mark.parametrize("name", SOLVER_CASES)
 def test_every_solver_meets_the_tightened_constraints_at_the_same_optimum(name, problem_and_data):
     pytest.importorskip("csnlp") if name == "csnlp" else None
     problem, W = problem_and_data

@@ -24,10 +24,10 @@ def test_presets_are_found_by_name_from_any_folder(tmp_path, monkeypatch):
     for name in preset_names():
         assert config_path(name).read_bytes() == (REPO / "configs" / f"{name}.yaml").read_bytes()
         assert config_path(f"{name}.yaml") == config_path(name)
-    assert load_env_config("quadrotor").ENV_ID == "lfm_env/QuadrotorGust-v0"
+    assert load_env_config("quadrotor").ENV_ID == "lfm_env/QuadrotorGust-v1"
     assert load_env_config("paper") == load_env_config(REPO / "configs" / "paper.yaml")
     # gym.make(..., config=NAME) reads the same file.
-    env = gym.make("lfm_env/QuadrotorGust-v0", config="quadrotor")
+    env = gym.make("lfm_env/QuadrotorGust-v1", config="quadrotor")
     assert env.unwrapped.config == load_env_config("quadrotor")
 
 
@@ -70,9 +70,9 @@ def test_base_paths_are_relative_to_the_file_and_chain(tmp_path):
     (tmp_path / "sub" / "a.yaml").write_text("base: quadrotor\nenv:\n  max_steps: 50\n")
     (tmp_path / "b.yaml").write_text("base: sub/a.yaml\nenv:\n  dt: 0.05\n")
     cfg = load_config(tmp_path / "b.yaml").env
-    assert (cfg.ENV_ID, cfg.max_steps, cfg.dt) == ("lfm_env/QuadrotorGust-v0", 50, 0.05)
+    assert (cfg.ENV_ID, cfg.max_steps, cfg.dt) == ("lfm_env/QuadrotorGust-v1", 50, 0.05)
     # A dict may inherit too (a relative base path is then relative to the working folder).
-    assert load_config({"base": "quadrotor"}).env.ENV_ID == "lfm_env/QuadrotorGust-v0"
+    assert load_config({"base": "quadrotor"}).env.ENV_ID == "lfm_env/QuadrotorGust-v1"
 
 
 def test_bad_bases_are_one_line_errors(tmp_path):
@@ -106,7 +106,7 @@ def test_overrides_are_read_by_their_fields_type():
     assert (cfg.dt, cfg.max_steps, cfg.latent_force.variance) == (0.2, 20, 1e-3)
     assert cfg.measurement_noise_std == (0.1, 0.1, 0.1, 1.0)
     # env_id first: the env keys are the fields of the world it names.
-    quad = apply_overrides({}, ["env.pitch_max=0.3", "env_id=lfm_env/QuadrotorGust-v0"])
+    quad = apply_overrides({}, ["env.pitch_max=0.3", "env_id=lfm_env/QuadrotorGust-v1"])
     assert load_env_config(quad).pitch_max == 0.3
 
 

@@ -16,7 +16,7 @@ REPO = Path(__file__).resolve().parents[2]
 def test_load_config_and_make_agent_take_a_preset_by_name(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # not the repository: no configs/ folder here
     assert load_config("paper") == load_config(REPO / "configs" / "paper.yaml")
-    assert load_config("quadrotor").env_id == "lfm_env/QuadrotorGust-v0"
+    assert load_config("quadrotor").env_id == "lfm_env/QuadrotorGust-v1"
     agent = make_agent("pf", "quick")
     assert agent.settings == load_config(REPO / "configs" / "quick.yaml").agents
 

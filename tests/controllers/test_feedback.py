@@ -24,6 +24,7 @@ from controllers.feedback_law import (
 )
 from controllers.problem import EulerModel, MPCSolution, ScenarioProblem
 from controllers.solvers import make_solver, solver_spec
+from controllers.solvers.fast.compiled import CompiledScenarioSolver
 from controllers.solvers.fast.solver import FastScenarioSolver
 from controllers.solvers.feedback import (
     FeedbackScenarioSolver,
@@ -378,7 +379,8 @@ def test_the_config_gives_every_scenario_agent_the_feedback_prediction(config, a
     cfg = dataclasses.replace(cfg, agents=agents)
     built = make_agent(agent, cfg)
     assert built.problem.prediction == "feedback"
-    assert isinstance(built.solver, FastScenarioSolver) and built.solver.condensed.feedback
+    # the agents' default solver, fast_c, solves the feedback problem natively
+    assert isinstance(built.solver, CompiledScenarioSolver) and built.solver.feedback
     env = gym.make(cfg.env_id, config=cfg.env)
     try:
         infos = _check_feedback_steps(built, env, steps=6)

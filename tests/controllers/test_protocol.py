@@ -151,7 +151,7 @@ def test_sb3_evaluate_policy_runs_the_scenario_agent_as_our_evaluation_does():
 def test_every_agent_with_an_estimator_refuses_zero_measurement_noise():
     from controllers.agents import check_agent_config, needs_measurement_noise
 
-    config = {"env": {"measurement_noise_std": [0.15, 0.0, 0.15, 0.5]}}
+    config = load_config({"env": {"measurement_noise_std": [0.15, 0.0, 0.15, 0.5]}})
     needing = sorted(n for n in AGENT_REGISTRY if needs_measurement_noise(n))
     assert {"pf", "scenario", "scenario_particles", "robust"} <= set(needing)
     for name in needing:

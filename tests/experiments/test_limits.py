@@ -194,7 +194,7 @@ def test_float_hint_names_the_exponent_sign(tmp_path):
 # --------------------------------------------------------------------------- case 5: settings
 
 
-@pytest.mark.parametrize("env_id", ["lfm_env/SineTrack-v0", "lfm_env/QuadrotorGust-v0"])
+@pytest.mark.parametrize("env_id", ["lfm_env/SineTrack-v0", "lfm_env/QuadrotorGust-v1"])
 def test_max_steps_has_an_upper_bound(env_id):
     """Case 5: max_steps had no upper bound."""
     with pytest.raises(ConfigError, match=r"env\.max_steps=1000000000: .*\[1, 100000\]"):

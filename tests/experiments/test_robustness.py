@@ -58,6 +58,8 @@ from lfm_env.worlds.sine_track.config import SineTrackConfig
 from tests.experiments.evaluation.tiny_runs import comparable
 
 REPO = Path(__file__).resolve().parents[2]
+#: lfm-evaluate through this interpreter (as the installed command runs it).
+EVALUATE_MAIN = "import sys; from experiments.cli import evaluate_main; sys.exit(evaluate_main())"
 TINY_AGENTS = {"horizon": 5, "n_scenarios": 5, "n_particles": 300}
 TINY = {"env": {"max_steps": 15}, "agents": TINY_AGENTS}
 NAN, INF = math.nan, math.inf
@@ -129,7 +131,10 @@ def no_scenarios(**kwargs: Any) -> dict:
 BAD_CONFIGS = [
     # --- env section: unknown keys, wrong types
     env_case("unknown-key", {"dtt": 0.2}, "env.dtt", "allowed keys"),
-    BadConfig("env-unknown-section", {"env": {}, "environment": {}}, ("environment", "allowed")),
+    # (a whole config's top level: read by the agents' builders, not by the world alone)
+    BadConfig(
+        "env-unknown-section", {"env": {}, "environment": {}}, ("environment", "allowed"), "agents"
+    ),
     BadConfig("env-not-a-mapping", {"env": [0.2]}, ("'env'", "mapping")),
     env_case("dt-text", {"dt": "fast"}, "env.dt", "expected a number"),
     env_case("dt-bool", {"dt": True}, "env.dt", "expected a number"),
@@ -1059,6 +1064,7 @@ def episode_of_key(key: str) -> tuple[str, int]:
     return agent_name, int(seed)
 
 
+@pytest.mark.slow  # a Dask cluster and a killed worker (about a minute)
 def test_dask_worker_killed_mid_run_the_table_ends_complete(tmp_path):
     distributed = pytest.importorskip("distributed")
     config = {"agents": TINY_AGENTS}
@@ -1172,11 +1178,11 @@ def test_pool_worker_killed_mid_run_the_table_ends_complete(tmp_path):
 def test_a_worker_killed_mid_write_leaves_no_temporary_file(tmp_path, monkeypatch):
     task = evaluation._episode_task
 
-    def task_after_a_torn_write(agent_name, config, seed, out, record, *rest):
+    def task_after_a_torn_write(agent, config, seed, out, record, *rest):
         # What a worker killed inside an atomic write (its episode rerun elsewhere) leaves.
-        torn = Path(out) / "episodes" / f".{agent_name}__seed{seed}.npz.4242.dead.tmp"
+        torn = Path(out) / "episodes" / f".{agent.name}__seed{seed}.npz.4242.dead.tmp"
         torn.write_bytes(b"torn")
-        return task(agent_name, config, seed, out, record, *rest)
+        return task(agent, config, seed, out, record, *rest)
 
     monkeypatch.setattr(evaluation, "_episode_task", task_after_a_torn_write)
     rows = evaluate(["nominal"], [0, 1], TINY, out=tmp_path, progress=False)
@@ -1205,6 +1211,7 @@ def assert_folder_consistent(out: Path) -> None:
             list(csv.DictReader(fh))
 
 
+@pytest.mark.slow  # a soak: many killed runs (1-2 minutes)
 @pytest.mark.parametrize("jobs", [1, 2])
 def test_run_killed_at_random_moments_resumes_to_every_episode_once(
     jobs, tmp_path, undisturbed_rows
@@ -1214,7 +1221,8 @@ def test_run_killed_at_random_moments_resumes_to_every_episode_once(
     out = tmp_path / "out"
     cmd = [
         sys.executable,
-        str(REPO / "scripts" / "evaluate.py"),
+        "-c",
+        EVALUATE_MAIN,
         *("--config", str(config), "--agents", ",".join(KILL_AGENTS), "--seeds", "0:12"),
         *("--jobs", str(jobs), "--out", str(out), "--no-report", "--quiet"),
     ]

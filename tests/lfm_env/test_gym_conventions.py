@@ -18,14 +18,14 @@ from gymnasium.wrappers import RecordVideo, TimeAwareObservation, TimeLimit
 import lfm_env  # noqa: F401  (registers the envs)
 from lfm_env.wrappers import ConfigTimeLimit, inner_time_limit
 
-ENV_IDS = ("lfm_env/SineTrack-v0", "lfm_env/QuadrotorGust-v0")
+ENV_IDS = ("lfm_env/SineTrack-v0", "lfm_env/QuadrotorGust-v1")
 # Far from the goal, slow and with a generous safety box: no success, no failure for
 # hundreds of steps with the coasting input (the car rolls on at 1 m/s, the quadrotor hovers).
 NEVER_ENDS = {
     "lfm_env/SineTrack-v0": {
         "env": {"max_steps": 20, "safety_margin": 1000.0, "latent_force": {"variance": 1e-6}}
     },
-    "lfm_env/QuadrotorGust-v0": {
+    "lfm_env/QuadrotorGust-v1": {
         "env": {"max_steps": 20, "safety_margin": 1000.0, "latent_force": {"variance": 1e-6}}
     },
 }
@@ -179,7 +179,7 @@ def test_check_env_headless_prints_no_sdl_error_and_offers_no_human_mode():
     code = (
         "import warnings, gymnasium as gym, lfm_env\n"
         "from gymnasium.utils.env_checker import check_env\n"
-        "for env_id in ('lfm_env/SineTrack-v0', 'lfm_env/QuadrotorGust-v0'):\n"
+        "for env_id in ('lfm_env/SineTrack-v0', 'lfm_env/QuadrotorGust-v1'):\n"
         "    env = gym.make(env_id)\n"
         "    assert 'human' not in env.unwrapped.metadata['render_modes']\n"
         "    with warnings.catch_warnings():\n"

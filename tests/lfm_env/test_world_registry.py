@@ -27,7 +27,7 @@ def own_world(monkeypatch):
 
 
 def test_the_built_in_worlds_need_no_module():
-    for env_id in ("lfm_env/SineTrack-v0", "lfm_env/QuadrotorGust-v0"):
+    for env_id in ("lfm_env/SineTrack-v0", "lfm_env/QuadrotorGust-v1"):
         assert WORLDS[env_id].module is None and qualified_env_id(env_id) == env_id
     assert load_config("paper").to_dict()["env_id"] == "lfm_env/SineTrack-v0"
 

@@ -19,6 +19,7 @@ import numpy as np
 from controllers.problem import MPCSolution, ScenarioProblem
 from controllers.solvers.casadi.ipopt import IpoptScenarioSolver, check_max_time
 from controllers.solvers.casadi.nlp import build_condensed
+from controllers.solvers.quiet import silenced_output
 
 # CasADi's sqpmethod with qpOASES: the compiled SQP anchor of the benchmark.
 DEFAULT_SQP_OPTIONS: dict[str, Any] = {
@@ -92,7 +93,8 @@ class SqpMethodScenarioSolver(IpoptScenarioSolver):
         opts = {**options, "print_time": False, "error_on_fail": False}
         if self.jit:
             opts.update(JIT_OPTIONS)
-        return ca.nlpsol(f"scenario_mpc_sqpmethod_{name}", "sqpmethod", self._nlp.nlp, opts)
+        with silenced_output():  # qpOASES's banner, printed as its memories are created
+            return ca.nlpsol(f"scenario_mpc_sqpmethod_{name}", "sqpmethod", self._nlp.nlp, opts)
 
     def solve(
         self,

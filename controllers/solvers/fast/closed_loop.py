@@ -102,14 +102,16 @@ class FeedbackMixin:
         return np.clip(np.asarray(guess, dtype=float).ravel(), self._lower, self._upper)
 
     def _reference_solve(
-        self, x0: np.ndarray, W: np.ndarray, b: np.ndarray | None
+        self, x0: np.ndarray, W: np.ndarray, b: np.ndarray | None, t_start: float
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """The open-loop plan of the problem (the zero law, every ``v_k`` bounded), warm-started
-        from the last one shifted: ``(plan (N, nu), {status, iterations, solve_time})``."""
+        from the last one shifted, within the time limit of the solve that began at
+        ``t_start``: ``(plan (N, nu), {status, iterations, solve_time})``."""
         p = self.problem
         t0 = time.perf_counter()
         self._use_law(np.zeros((p.horizon, p.nu, p.nx)), np.zeros((p.horizon, p.nx)), "all")
-        ro, status, _, iterations, _ = self._run(x0, W, self._start(None, self._last_open), b, t0)
+        start = self._start(None, self._last_open)
+        ro, status, _, iterations, _ = self._run(x0, W, start, b, t_start)
         plan = ro.u.reshape(p.horizon, p.nu).copy()
         self._last_open = plan
         info = {"status": status, "iterations": iterations}
@@ -137,14 +139,15 @@ class FeedbackMixin:
             ref, source = shifted(self._reference), "previous_plan"
         if law is None:
             if ref is None:
-                ref, reference = self._reference_solve(x0, W, b)
+                ref, reference = self._reference_solve(x0, W, b, t0)
                 source = "open_loop_solve"
             t1 = time.perf_counter()
             law = feedback_law(p, x0, W, ref)
             gain_time = time.perf_counter() - t1
         self._use_law(law.K, law.r, self.options.feedback_bounds)
         guess = None if ref is None else p.system.clip_input(ref)
-        run = self._run(x0, W, self._start(guess, self._last_v), b, time.perf_counter())
+        # (one time limit for the whole solve, the reference solve included)
+        run = self._run(x0, W, self._start(guess, self._last_v), b, t0)
         info = {"reference": source, "open_loop": reference, "gain_time": gain_time}
         return self._feedback_result(run, x0, W, law, t0, info)
 

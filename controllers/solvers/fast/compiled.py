@@ -20,6 +20,7 @@ Python loop with the same options, after a one-line warning (:data:`FALLBACK_NOT
 from __future__ import annotations
 
 import ctypes
+import dataclasses
 import functools
 import math
 import time
@@ -122,6 +123,8 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.lfm_sqp_free.restype = None
     lib.lfm_sqp_reset.argtypes = [P]
     lib.lfm_sqp_reset.restype = None
+    lib.lfm_sqp_set_max_time.argtypes = [P, ctypes.c_double]
+    lib.lfm_sqp_set_max_time.restype = None
     lib.lfm_sqp_solve.argtypes = [P, P, P, P, P, P, P, P]
     lib.lfm_sqp_solve.restype = ctypes.c_int
     lib.lfm_sqp_set_option.argtypes = [P, ctypes.c_char_p, ctypes.c_double]
@@ -251,6 +254,17 @@ class CompiledScenarioSolver:
     def backend(self) -> str:
         """``"compiled-c"`` (the whole loop in C), or the fallback's backend."""
         return "compiled-c" if self._python is None else self._python.backend
+
+    def set_max_time(self, seconds: float) -> None:
+        """The wall-clock limit of the next solves [s] (``FastSolverOptions.max_time``)."""
+        if seconds == self.options.max_time:
+            return
+        self.options = dataclasses.replace(self.options, max_time=float(seconds))
+        self._raw_options["max_time"] = float(seconds)
+        if self._python is not None:
+            self._python.set_max_time(seconds)
+        elif self._handle is not None:
+            self._lib.lfm_sqp_set_max_time(self._handle.ptr, float(seconds))
 
     def reset(self) -> None:
         """Forget the warm start: the next solve starts from zero inputs."""

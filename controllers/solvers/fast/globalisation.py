@@ -147,7 +147,7 @@ class GlobalisationMixin(SolverAttributes):
         a_pos, _ = self.condensed.rows(lin, pos)
         g_try = trial.G[pos[:, 0], pos[:, 1], pos[:, 2]]
         qp_step.qp.set_position_bounds(qp_step.row, g_try - a_pos @ d)
-        z_soc, _, ok_soc = qp_step.qp.solve()
+        z_soc, _, ok_soc = qp_step.qp.solve(self._deadline)
         self._count(stats, qp_step.qp)
         if not ok_soc:
             return None

@@ -66,6 +66,7 @@ the extra starts here.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import time
 from collections.abc import Iterator
@@ -152,6 +153,12 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin, Feed
         self._hard_first = True
         if self.condensed.feedback:
             self._reset_feedback()
+
+    def set_max_time(self, seconds: float) -> None:
+        """The wall-clock limit of the next solves [s] (``FastSolverOptions.max_time``;
+        an agent with a deadline sets it at every step)."""
+        if seconds != self.options.max_time:
+            self.options = dataclasses.replace(self.options, max_time=float(seconds))
 
     def __getstate__(self) -> dict[str, Any]:
         # The QP objects hold raw buffers of a CasADi function, the model generated code:

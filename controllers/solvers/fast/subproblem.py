@@ -58,6 +58,7 @@ class SolverAttributes:
     _upper: np.ndarray
     _range: np.ndarray  # (N nu,) each input's range (inf: none)
     _radius: float  # current trust radius (fraction of the range; 0: none)
+    _deadline: float  # time.perf_counter() value ending the current solve (QP budgets)
 
     def _check_time(self) -> None:  # the solver's deadline check
         raise NotImplementedError
@@ -247,7 +248,7 @@ class SubproblemMixin(SolverAttributes):
             if hard:
                 qp = self._qp(max(pos.shape[0], 1), 1, elastic=False)
                 row, _ = self._load(qp, *this_round, a_pos, g_pos)
-                d, lam_all, ok = qp.solve()
+                d, lam_all, ok = qp.solve(self._deadline)
                 self._count(stats, qp)
                 rho = p.slack_penalty
                 ok = (
@@ -265,7 +266,7 @@ class SubproblemMixin(SolverAttributes):
                 qp = self._qp(max(pos.shape[0], 1), max(n_groups, 1))
                 row, column = self._load(qp, *this_round, a_pos, g_pos)
                 retried = qp.failures
-                z, lam_all, ok = qp.solve()
+                z, lam_all, ok = qp.solve(self._deadline)
                 self._count(stats, qp)
                 stats["qp_retries"] += qp.failures - retried
                 if not ok:

@@ -23,7 +23,7 @@ class QuadrotorGustEnv(GoalReachingEnv):
     through a tunnel whose centre line ``z_c(x) = 1 + 0.5 sin(2 pi x / 4 m)`` bends,
     with floor ``z_c - 0.35 m`` and ceiling ``z_c + 0.35 m``, to the goal ``[8, 1] m``.
     An unmeasured gust ``w(t)``, a Gaussian process with a Matern 3/2 covariance
-    (std 2.5 m/s^2, lengthscale 2.5 s), acts on the horizontal acceleration:
+    (std 2.0 m/s^2, lengthscale 2.5 s), acts on the horizontal acceleration:
     ``dv_x/dt = T sin(theta) / m + w``. Where the tunnel slopes, a horizontal push turns
     into an altitude error with respect to the tunnel. The GP is simulated exactly through
     its state-space form.
@@ -85,7 +85,7 @@ class QuadrotorGustEnv(GoalReachingEnv):
     ``is_success``, ``failure``, ``applied_action``, ``time`` [s].
 
     ## Arguments
-    ``gym.make("lfm_env/QuadrotorGust-v0", config=None, render_mode=None,
+    ``gym.make("lfm_env/QuadrotorGust-v1", config=None, render_mode=None,
     screen_size=(600, 300), scaling=None)``: ``config`` is a YAML path, a dict (whole file
     or its ``env`` section) or a :class:`~lfm_env.worlds.quadrotor.config.QuadrotorGustConfig`;
     ``scaling`` is pixels per metre with the view centred on the vehicle, or ``None`` to
@@ -97,6 +97,10 @@ class QuadrotorGustEnv(GoalReachingEnv):
     * v0: initial version; then Gymnasium's conventions: a float32 action space, an
       unbounded observation space, ``info["violated_groups"]`` and the time limit as a ``TimeLimit``
       wrapper (same episodes); then finite observation bounds that hold (same episodes).
+    * v1: the gust's std 2.0 m/s^2 instead of 2.5 (variance 4 instead of 6.25), half the
+      hovering vehicle's horizontal authority: at 2.5 a gust held beyond that authority blew
+      even the oracle out of the back of the safety box on 5 of seeds 0..199; at 2.0 it
+      survives all 200. Everything else as v0.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}

@@ -27,10 +27,10 @@ The mass and ``g`` are safe-control-gym's (``quadrotor_2D``); the thrust bound
 low-order filtered noise), estimated and predicted by the scenario MPC of "Model
 Predictive Control of Nonlinear Latent Force Models: A Scenario-Based Approach" (ICRA
 2021; this project's paper). The defaults of :class:`lfm_env.config.QuadrotorLatentForceConfig` (std
-2.5 m/s^2, lengthscale 2.5 s) make it matter against the available thrust: at the pitch
+2.0 m/s^2, lengthscale 2.5 s) make it matter against the available thrust: at the pitch
 bound ``theta_max = 0.4 rad`` a hovering vehicle can push ``g tan(0.4) = 4.1 m/s^2``
-sideways, so a one-sigma gust takes 60% of the horizontal authority and one in ten
-exceeds it for a while.
+sideways, so a one-sigma gust takes half the horizontal authority and the gust exceeds it
+4% of the time, for about a second at a time.
 
 **The task**: a tunnel along x whose centre line ``z_c(x) = z_0 + A sin(2 pi x / lambda +
 phase)`` bends; floor ``z_c - h`` and ceiling ``z_c + h``. Where the tunnel slopes, the

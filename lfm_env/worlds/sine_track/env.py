@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from lfm_env.worlds.goal import GoalReachingEnv, segment_point_distance
+from lfm_env.worlds.goal import GoalReachingEnv
 from lfm_env.worlds.sine_track.config import SineTrackConfig
 
 
@@ -139,4 +139,4 @@ class SineTrackEnv(GoalReachingEnv):
         )
 
 
-__all__ = ["SineTrackEnv", "segment_point_distance"]  # the latter re-exported
+__all__ = ["SineTrackEnv"]

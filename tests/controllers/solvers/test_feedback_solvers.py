@@ -149,7 +149,10 @@ def small_quadrotor() -> tuple[ScenarioProblem, tuple, float]:
     return problem, data, ref.objective
 
 
-@pytest.mark.parametrize("name", ["fast", "ipopt_multiple_shooting", "sqpmethod", "csnlp"])
+@pytest.mark.parametrize(
+    "name",
+    ["fast", "ipopt_multiple_shooting", pytest.param("sqpmethod", marks=pytest.mark.slow), "csnlp"],
+)
 def test_every_solver_reaches_ipopts_optimum_on_a_small_particle_problem(
     name, small_quadrotor
 ) -> None:

@@ -1,6 +1,7 @@
 """The benchmark's compiled-loop part (``experiments.benchmark.compiled``) at tiny sizes: the
 compiled loop's plans against the Python loop's (closed-loop problems and problems drawn at
-another scenario count), the issue-37 targets judged from them, and the printed table's rows.
+another scenario count), the checks of the part skipped without its figures, and the printed
+rows.
 The part with the exports (make, example, ldd) runs in the quick benchmark
 (``test_benchmark_run``). No timing is asserted."""
 
@@ -11,20 +12,19 @@ import math
 import pytest
 
 from experiments.benchmark import compiled as benchmark_compiled
+from experiments.benchmark.checks import run_checks
 from experiments.benchmark.problems import (
     DEFAULT_CONFIG,
     anchors_per_seed,
     experiment_config,
     record_closed_loop,
 )
-from experiments.benchmark.targets import DEFAULT_THRESHOLDS
 
-ISSUE_37_KEYS = (
+COMPILED_KEYS = (  # the checks of the compiled loop and the export
     "fast_c_median_ms",
     "fast_c_p95_ms",
     "anchor_over_fast_c",
     "textbook_over_fast_c",
-    "fast_c_ns1000_median_ms",
     "fast_c_ns5000_median_ms",
     "robust_step_ms",
     "export_plan_diff",
@@ -62,29 +62,16 @@ def test_the_compiled_loop_gives_the_python_loops_plans(tiny) -> None:
             assert row[side]["median"] > 0 and math.isfinite(row[side]["p95"])
 
 
-def test_the_targets_without_the_solvers_and_export_are_skipped(tiny) -> None:
+def test_the_checks_without_the_solvers_and_export_are_skipped(tiny) -> None:
     out, _, _ = tiny
-    targets = [
-        t
-        for t in benchmark_compiled.compiled_targets({"compiled": out}, DEFAULT_THRESHOLDS)
-        if t["key"] in set(ISSUE_37_KEYS)
-    ]
-    assert [t["key"] for t in targets] == list(ISSUE_37_KEYS)
-    for t in targets:
-        assert t["passed"] is None and t["value"] is None, t["key"]
-        assert t["threshold"] == DEFAULT_THRESHOLDS[t["key"]]
-    by_key = {t["key"]: t for t in targets}
-    assert "export not run" in by_key["robust_step_ms"]["note"]
-    assert "export not run" in by_key["export_dependencies"]["note"]
+    checks = {c["key"]: c for c in run_checks({"compiled": out})}
+    for key in COMPILED_KEYS:
+        assert checks[key]["passed"] is None and checks[key]["value"] is None, key
 
 
-def test_the_printed_part_has_a_row_per_agreement_and_target(tiny) -> None:
+def test_the_printed_part_has_a_row_per_agreement(tiny) -> None:
     out, _, _ = tiny
-    results = {
-        "compiled": out,
-        "targets": benchmark_compiled.compiled_targets({"compiled": out}, DEFAULT_THRESHOLDS),
-    }
-    lines = benchmark_compiled.compiled_lines(results)
+    lines = benchmark_compiled.compiled_lines({"compiled": out})
     assert lines[0].startswith("Compiled loop (fast_c) against the Python loop")
     rows = [line for line in lines if line.startswith("  N=7, Ns=")]
     assert [row.split(",")[1].strip().split()[0] for row in rows] == ["Ns=150", f"Ns={DRAWN_NS}"]
@@ -92,10 +79,4 @@ def test_the_printed_part_has_a_row_per_agreement_and_target(tiny) -> None:
         assert f"{agreement['n_problems']} problems, loop c" in row
         assert f"plans max abs difference {agreement['max_abs_diff']:.2e}" in row
     assert not any(line.startswith("Exported controllers") for line in lines)
-    head = lines.index("Targets of issue 37 (the compiled loop and the export)")
-    table = lines[head + 2 :]
-    assert lines[head + 1].split() == ["figure", "measured", "target", "verdict"]
-    assert [line.split()[0] for line in table] == list(ISSUE_37_KEYS)
-    assert all(line.split()[1] == "-" for line in table)  # measured: nothing
-    assert all(" SKIP " in line for line in table)
     assert benchmark_compiled.compiled_lines({}) == []

@@ -40,10 +40,14 @@ def test_the_sweep_solves_the_same_problems_in_both_predictions() -> None:
 def test_the_command_runs_the_sweep_alone_and_refuses_bad_horizons(tmp_path, capsys) -> None:
     out = tmp_path / "p.json"
     argv = ["--config", "quick", "--seeds", "0", "--horizon-steps", "1", "--no-progress"]
-    assert benchmark_main([*argv, "--predictions", "3", "--out", str(out)]) == 0
+    assert benchmark_main([*argv, "--predictions-replay", "3", "--out", str(out)]) == 0
     saved = json.loads(out.read_text())
     assert [r["prediction"] for r in saved["results"]] == ["open_loop", "feedback"]
     assert "prediction sweep" in out.with_suffix(".md").read_text()
+    assert benchmark_main([*argv, "--predictions", "3", "--out", str(out)]) == 0
+    saved = json.loads(out.read_text())
+    assert {r["prediction"] for r in saved["results"]} == {"open_loop", "feedback"}
+    assert "closed-loop steps" in out.with_suffix(".md").read_text()
     with pytest.raises(SystemExit) as exc:
         benchmark_main([*argv, "--predictions", "0,7", "--out", str(out)])
     assert exc.value.code == 2

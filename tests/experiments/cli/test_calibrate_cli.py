@@ -37,9 +37,9 @@ def test_cli_calibrates_the_quadrotor_preset(tmp_path, capsys):
     out = tmp_path / "learned.yaml"
     assert main(["--config", "quadrotor", "--seeds", "1000:1003", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "samples of v_x [m/s] on lfm_env/QuadrotorGust-v0" in printed
+    assert "samples of v_x [m/s] on lfm_env/QuadrotorGust-v1" in printed
     cfg = load_config(str(out))
-    assert cfg.env_id == "lfm_env/QuadrotorGust-v0" and cfg.env == load_config("quadrotor").env
+    assert cfg.env_id == "lfm_env/QuadrotorGust-v1" and cfg.env == load_config("quadrotor").env
     learned = cfg.agents.latent_force
-    # Three short episodes: the gust's std 2.5 m/s^2 and lengthscale 2.5 s, within a factor 3.
-    assert 6.25 / 9 < learned.variance < 6.25 * 9 and 2.5 / 3 < learned.lengthscale < 2.5 * 3
+    # Three short episodes: the gust's std 2.0 m/s^2 and lengthscale 2.5 s, within a factor 3.
+    assert 4.0 / 9 < learned.variance < 4.0 * 9 and 2.5 / 3 < learned.lengthscale < 2.5 * 3

@@ -42,6 +42,7 @@ def test_cli_help(capsys):
         (["--jobs", "0"], "--jobs"),
         (["--config", "no/such.yaml"], "no/such.yaml"),
         (["--scheduler", "tcp://127.0.0.1:1", "--dask-workers", "2"], "exclude"),
+        (["--agents", "nominal,pf", "--baseline", "robust"], "--baseline 'robust'"),
     ],
 )
 def test_cli_bad_arguments_exit_2(tmp_path, capsys, argv, message):
@@ -65,8 +66,8 @@ def test_cli_runs_and_calls_the_report(tmp_path, capsys, monkeypatch):
     reported = []
     import experiments.report
 
-    def write_report(directory):
-        reported.append(Path(directory))
+    def write_report(directory, baseline=None):
+        reported.append((Path(directory), baseline))
         return Path(directory) / "report.md"
 
     monkeypatch.setattr(experiments.report, "write_report", write_report)
@@ -74,7 +75,9 @@ def test_cli_runs_and_calls_the_report(tmp_path, capsys, monkeypatch):
     assert evaluate_main([*argv, "--quiet"]) == 0
     text = capsys.readouterr().out
     assert str(out / "episodes.csv") in text and str(out / "report.md") in text
-    assert reported == [out]
+    assert reported == [(out, None)]
+    assert evaluate_main([*argv, "--quiet", "--baseline", "nominal"]) == 0  # (resumed: no run)
+    assert reported[-1] == (out, "nominal")
     assert [(r["agent"], r["seed"]) for r in saved_rows(out)] == [("nominal", 0), ("nominal", 1)]
 
     # Without the report module the run still succeeds, saying why there is no report.
@@ -95,7 +98,11 @@ def _command_line() -> list[str]:
     script = Path(sys.executable).with_name("lfm-evaluate")
     if script.is_file():
         return [str(script)]
-    return [sys.executable, str(REPO / "scripts" / "evaluate.py")]
+    return [
+        sys.executable,
+        "-c",
+        "import sys; from experiments.cli import evaluate_main; sys.exit(evaluate_main())",
+    ]
 
 
 def _run_cli(tmp_path: Path, agents: str) -> subprocess.CompletedProcess:

@@ -3,13 +3,9 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import pytest
 
 from experiments.cli import render_main, report_main
-from tests.experiments.saved_results import REPO
 
 
 @pytest.mark.parametrize("main", [report_main, render_main])
@@ -23,18 +19,6 @@ def test_cli_help(main, capsys):
         assert "--no-gif" in text and "--seed" in text
     else:
         assert all(opt in text for opt in ("--config", "--agent", "--seed", "--out", "--steps"))
-
-
-@pytest.mark.parametrize("script", ["report.py", "render.py"])
-def test_scripts_help(script):
-    proc = subprocess.run(
-        [sys.executable, str(REPO / "scripts" / script), "--help"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert proc.returncode == 0, proc.stderr
-    assert "usage:" in proc.stdout
 
 
 def test_report_main_writes_report(results_copy, capsys):

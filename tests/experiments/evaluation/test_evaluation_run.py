@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from experiments.evaluation import episode
+from controllers.agents.registry import AgentSpec
 from experiments.evaluation import run as evaluation
 from experiments.evaluation.run import (
     ResultsFolderError,
@@ -30,6 +30,8 @@ from tests.experiments.evaluation.tiny_runs import (
 )
 
 REPO = Path(__file__).resolve().parents[3]
+#: lfm-evaluate through this interpreter (as the installed command runs it).
+EVALUATE_MAIN = "import sys; from experiments.cli import evaluate_main; sys.exit(evaluate_main())"
 
 
 def test_serial_processes_and_dask_give_identical_tables(tmp_path):
@@ -79,9 +81,9 @@ def test_rerun_skips_finished_episodes_and_redoes_lost_ones(tmp_path, monkeypatc
     calls = []
     task = evaluation._episode_task
 
-    def counting(agent_name, config, seed, out, record, *rest):
-        calls.append((agent_name, seed))
-        return task(agent_name, config, seed, out, record, *rest)
+    def counting(agent, config, seed, out, record, *rest):
+        calls.append((agent.name, seed))
+        return task(agent, config, seed, out, record, *rest)
 
     monkeypatch.setattr(evaluation, "_episode_task", counting)
     second = evaluate(["nominal"], range(3), TINY, out=tmp_path, progress=False)
@@ -105,11 +107,11 @@ def test_other_config_in_same_folder_is_refused(tmp_path, monkeypatch):
 
 
 def test_failing_episode_is_recorded_and_retried(tmp_path, monkeypatch):
-    real_make_agent = episode.make_agent
+    real_build = AgentSpec.build
 
-    def make_flaky_agent(name, config=None, env=None):
-        agent = real_make_agent(name, config, env=env)
-        if name == "pf":
+    def flaky_build(spec, config, env=None):
+        agent = real_build(spec, config, env=env)
+        if spec.name == "pf":
             act, n = agent.act, []
 
             def act_then_fail(obs):
@@ -121,7 +123,7 @@ def test_failing_episode_is_recorded_and_retried(tmp_path, monkeypatch):
             agent.act = act_then_fail
         return agent
 
-    monkeypatch.setattr(episode, "make_agent", make_flaky_agent)  # where episodes build agents
+    monkeypatch.setattr(AgentSpec, "build", flaky_build)  # where episodes build agents
     rows = evaluate(["nominal", "pf"], [0, 1], TINY, out=tmp_path, progress=False)
     by_agent = {a: [r for r in rows if r["agent"] == a] for a in ("nominal", "pf")}
     assert all(r["error"] == "" for r in by_agent["nominal"])
@@ -137,7 +139,7 @@ def test_failing_episode_is_recorded_and_retried(tmp_path, monkeypatch):
     # Without retries the failure stays; by default a rerun retries it.
     kept = evaluate(["pf"], [0], TINY, out=tmp_path, progress=False, retry_failed=False)
     assert kept[0]["error"].startswith("RuntimeError")
-    monkeypatch.setattr(episode, "make_agent", real_make_agent)
+    monkeypatch.setattr(AgentSpec, "build", real_build)
     retried = evaluate(["nominal", "pf"], [0, 1], TINY, out=tmp_path, progress=False)
     assert all(r["error"] == "" for r in retried)
     assert comparable([r for r in retried if r["agent"] == "nominal"]) == comparable(
@@ -170,7 +172,8 @@ def test_killed_run_resumes_to_a_complete_table(tmp_path):
     out = tmp_path / "out"
     cmd = [
         sys.executable,
-        str(REPO / "scripts" / "evaluate.py"),
+        "-c",
+        EVALUATE_MAIN,
         *("--config", str(config), "--agents", "nominal,pf", "--seeds", "0:6"),
         *("--jobs", "1", "--out", str(out), "--no-report", "--quiet"),
     ]

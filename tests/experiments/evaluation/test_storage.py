@@ -184,9 +184,9 @@ def counted_runs(monkeypatch):
     calls: list[tuple[str, int]] = []
     task = evaluation._episode_task
 
-    def counting(agent_name, config, seed, *args):
-        calls.append((agent_name, seed))
-        return task(agent_name, config, seed, *args)
+    def counting(agent, config, seed, *args):
+        calls.append((agent.name, seed))
+        return task(agent, config, seed, *args)
 
     monkeypatch.setattr(evaluation, "_episode_task", counting)
     return calls

@@ -19,7 +19,7 @@ TINY = {
     "env": {"max_steps": 15},
     "agents": {"horizon": 5, "n_scenarios": 5, "n_particles": 300},
 }
-TIMING_ARRAYS = ("solve_time",)
+TIMING_ARRAYS = ("solve_time", "step_time")
 #: The sine track's row: its constraint groups (track, x, speed), each with its raw
 #: violation steps and largest excess, then the steps beyond each of its tolerances
 #: (1 and 5 cm for track and x, 5 cm/s for the speed).
@@ -31,8 +31,11 @@ SINE_TRACK_COLUMNS = (
     *("x_violation_steps_over_0.01", "x_violation_steps_over_0.05"),
     *("speed_violation_steps", "max_speed_excess", "speed_violation_steps_over_0.05"),
     *("failure", "latent_rmse", "latent_coverage"),
-    *("solve_time_median", "solve_time_p95", "solve_time_max", "solver_failures"),
-    *("unconverged_solves", "fallback_steps", "filter_resets", "slack_total", "wall_time"),
+    *("solve_time_median", "solve_time_p95", "solve_time_max"),
+    *("step_time_median", "step_time_max", "deadline_misses", "solver_failures"),
+    *("unconverged_solves", "fallback_steps"),
+    *("deadline_plans", "deadline_shifted", "deadline_fallbacks"),
+    *("filter_resets", "slack_total", "wall_time"),
     "error",
 )
 #: The columns of the group names alone (no system, so no tolerances).

@@ -24,7 +24,7 @@ def test_an_estimate_is_its_mean_and_interval_with_the_count_when_fewer():
 
 
 def test_registered_agents_get_their_labels_and_others_their_name():
-    assert agent_label("oracle") == "oracle (upper bound)"
+    assert agent_label("oracle") == "oracle (reads the truth)"
     assert agent_label("rl") == "RL baseline"
     assert agent_label("my_agent") == "my_agent"
     assert agent_label("scenario_particles", wrap=True) == "scenario MPC,\nparticle starts"

@@ -94,7 +94,7 @@ def test_the_settings_paragraph_describes_only_the_agents_present(results_copy):
     _keep_agents(results_copy, {"nominal", "oracle"})
     md = write_report(results_copy, gif=False).read_text()
     intro = md.split("## Latent force")[0]
-    assert "horizon = 5" in intro and "solver = fast" in intro
+    assert "horizon = 5" in intro and "solver = fast_c" in intro
     assert "n_scenarios" not in intro and "n_particles" not in intro
     model = md.split("## Latent force: hidden truth and the agents' model")[1].split("\n## ")[0]
     assert "No agent here models it" in model and "know the hidden force" not in model
@@ -103,7 +103,7 @@ def test_the_settings_paragraph_describes_only_the_agents_present(results_copy):
 def test_the_full_settings_and_the_agents_that_model_the_force(report_path):
     md = report_path.read_text()
     intro = md.split("## Latent force")[0]
-    assert "horizon = 5, n_scenarios = 5, n_particles = 300, solver = fast" in intro
+    assert "horizon = 5, n_scenarios = 5, n_particles = 300, solver = fast_c" in intro
     model = md.split("## Latent force: hidden truth and the agents' model")[1].split("\n## ")[0]
     assert "The agents that model the force (`pf`, `scenario`) know the hidden force's" in model
 
@@ -116,7 +116,7 @@ def test_the_settings_name_a_feedback_prediction_and_only_that(results_copy, rep
     data["agents"]["prediction"] = "feedback"
     config.write_text(yaml.safe_dump(data))
     md = write_report(results_copy, gif=False).read_text()
-    assert "solver = fast, prediction = feedback" in md.split("## Latent force")[0]
+    assert "solver = fast_c, prediction = feedback" in md.split("## Latent force")[0]
 
 
 def test_config_differences_list_every_field():

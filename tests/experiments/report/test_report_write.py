@@ -42,7 +42,7 @@ def test_report_has_agent_table_and_existing_figures(report_path):
     assert report_path.name == "report.md" and html_path.is_file()
     for text in (md, html):
         assert "Results per agent" in text
-        assert "oracle (upper bound)" in text
+        assert "oracle (reads the truth)" in text
         for label in ("nominal MPC", "PF + CE MPC", "scenario MPC (paper)"):
             assert label in text
         for row in ("success rate", "max speed excess", "latent-force RMSE", "episodes"):
@@ -128,7 +128,7 @@ def test_report_of_a_folder_written_before_x_violation_steps(results_copy):
     assert "| max x excess [m] | 0 [0, 0] |" in md
 
 
-QUADROTOR_ID = "lfm_env/QuadrotorGust-v0"
+QUADROTOR_ID = "lfm_env/QuadrotorGust-v1"
 
 
 @pytest.mark.skipif(QUADROTOR_ID not in gym.registry, reason="no quadrotor world")
@@ -216,7 +216,7 @@ def test_old_folder_without_trajectories_leaves_tolerance_rows_out(results_copy)
     assert "violation steps >" not in md and "zero-violation episodes (>" not in md
     assert "| track violation steps [steps] |" in md  # the raw counts are still there
     assert "| track zero-violation episodes |" in md
-    assert "No agent with a filter has saved trajectories" in md
+    assert "## Estimator calibration" not in md  # no trajectory: nothing to calibrate
 
 
 def paired_section(md: str) -> str:
@@ -229,13 +229,17 @@ def test_paired_differences_against_the_chosen_baseline(results_copy, report_pat
     section = paired_section(path.read_text())
     assert section.startswith("PF + CE MPC")
     header = next(line for line in section.splitlines() if line.startswith("| metric"))
-    assert header == "| metric | nominal MPC | scenario MPC (paper) | oracle (upper bound) |"
+    assert header == "| metric | nominal MPC | scenario MPC (paper) | oracle (reads the truth) |"
     results = load_results(results_copy)
     cost = next(line for line in section.splitlines() if line.startswith("| cost |"))
     for cell, agent in zip(cost.split(" | ")[1:], ("nominal", "scenario", "oracle"), strict=True):
         d = paired_differences(results, "cost", agent, "pf")
         assert d.reference == "pf" and cell.startswith(fmt_estimate(d.estimate))
-    assert "- pf has a lower cost than scenario MPC (paper) in " in section
+    plain = section.split("In plain words:")[1].strip().splitlines()
+    assert plain[0].startswith("- `pf` has fewer track violation steps > 0.01 m on ")
+    assert plain[0].endswith(" than `nominal`.") and len(plain) == 3
+    headline = md_section(path.read_text(), "Headline: metrics that do not reward failing")
+    assert "time to goal vs `pf` [s]" in headline  # the same baseline in every paired table
 
 
 def test_unknown_baseline_names_the_agents(results_copy, capsys):
@@ -248,7 +252,7 @@ def test_unknown_baseline_names_the_agents(results_copy, capsys):
     assert "choose one of nominal, pf, scenario, oracle" in capsys.readouterr().err
     assert report_main([str(results_copy), "--baseline", "oracle", "--no-gif"]) == 0
     assert (
-        "## Paired differences against oracle (upper bound)"
+        "## Paired differences against oracle (reads the truth)"
         in (results_copy / "report.md").read_text()
     )
 
@@ -272,7 +276,7 @@ def test_default_baseline_without_the_scenario_agent_and_agents_of_any_name(resu
     md = write_report(results_copy, gif=False).read_text()
     section = paired_section(md)
     assert section.startswith("nominal MPC")
-    assert f"| metric | oracle (upper bound) | {own} |" in section  # the raw name as label
+    assert f"| metric | oracle (reads the truth) | {own} |" in section  # the raw name as label
 
 
 def test_a_damaged_episode_file_is_left_out_named_once_and_said_so(results_copy, capsys):
@@ -318,3 +322,74 @@ def test_a_report_of_a_folder_still_being_written_says_so(results_copy, capsys):
     assert f"still being written by process {owner.pid}" in (results_copy / "report.md").read_text()
     write_report(results_copy, gif=False)  # its owner gone: no warning
     assert "still being written" not in capsys.readouterr().err
+
+
+def md_section(md: str, title: str) -> str:
+    return md.split(f"## {title}")[1].split("\n## ")[0]
+
+
+def rename_agents(results_dir: Path, names: dict[str, str], copies: int = 0) -> None:
+    """Rename agents in ``episodes.csv`` (and their trajectory files); with ``copies``, add
+    that many more agents ``extra1``, ... holding the first agent's rows."""
+    table = results_dir / "episodes.csv"
+    with table.open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    first = rows[0]["agent"]
+    extra = [
+        dict(r, agent=f"extra{i}")
+        for i in range(1, copies + 1)
+        for r in rows
+        if r["agent"] == first
+    ]
+    for r in rows:
+        r["agent"] = names.get(r["agent"], r["agent"])
+    for old, new in names.items():
+        for path in (results_dir / "episodes").glob(f"{old}__seed*.npz"):
+            path.rename(path.with_name(path.name.replace(f"{old}__", f"{new}__", 1)))
+    with table.open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows + extra)
+
+
+def test_one_baseline_robust_by_default_in_every_paired_table(results_copy):
+    """The headline paired against robust while "Paired differences" paired against the
+    scenario agent; now the default baseline, robust when it ran, is in both."""
+    rename_agents(results_copy, {"pf": "robust"})
+    md = write_report(results_copy, gif=False).read_text()
+    assert "## Paired differences against robust MPC (back-off)" in md
+    headline = md_section(md, "Headline: metrics that do not reward failing")
+    assert "time to goal vs `robust` [s]" in headline and "`scenario`" not in headline
+    assert "violation-or-failure vs `robust`" in headline
+
+
+def test_sections_only_for_what_was_run(results_copy):
+    """No "Paper vs measured: not available" without the scenario agent, no calibration
+    section without a filtering agent, no error section without errors, no paired table
+    with one agent."""
+    table = results_copy / "episodes.csv"
+    with table.open(newline="") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["agent"] in ("nominal", "oracle")]
+    with table.open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    md = write_report(results_copy, gif=False).read_text()
+    for absent in ("Paper vs measured", "Estimator calibration", "Episodes with errors"):
+        assert f"## {absent}" not in md, absent
+    assert "not available" not in md.lower()
+    assert "## Paired differences against nominal MPC" in md
+    with table.open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, list(rows[0]))
+        writer.writeheader()
+        writer.writerows(r for r in rows if r["agent"] == "oracle")
+    md = write_report(results_copy, gif=False).read_text()
+    assert "## Paired differences" not in md
+
+
+def test_in_plain_words_is_at_most_ten_sentences(results_copy):
+    rename_agents(results_copy, {}, copies=10)  # 14 agents
+    md = write_report(results_copy, gif=False).read_text()
+    plain = md.split("In plain words:")[1].split("\n## ")[0].strip().splitlines()
+    assert len(plain) == 10 and plain[-1] == "- The other agents are compared in the table above."
+    assert all(line.count(". ") == 0 and line.endswith(".") for line in plain)

@@ -112,7 +112,7 @@ def test_the_section_says_which_seeds_were_dropped_and_why(results):
     md = doc.markdown()
     assert "Survivor seeds: 1 of 4; dropped: seed 0 (failure of `pf`)" in md
     assert "seed 3 (error of `oracle`)" in md
-    assert "time to goal vs `robust`" in md  # robust is the reference when present
+    assert "time to goal vs `pf`" in md  # the report's baseline, robust or not
     track = md.split("**track steps > 0.01 m**")[1]
     line = next(x for x in track.splitlines() if x.startswith("| PF + CE MPC |"))
     cells = [c.strip() for c in line.strip("|").split(" | ")]

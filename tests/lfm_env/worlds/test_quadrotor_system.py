@@ -38,7 +38,7 @@ from tests.lfm_env.worlds.system_checks import assert_batched_step_equals_row_by
 DT = 0.1  # [s] the default sampling time
 SYSTEM = quadrotor_gust_system()
 HOVER = MASS * GRAVITY  # [N]
-ENV_ID = "lfm_env/QuadrotorGust-v0"
+ENV_ID = "lfm_env/QuadrotorGust-v1"
 CONFIG_FILE = Path(__file__).resolve().parents[3] / "configs" / "quadrotor.yaml"
 
 

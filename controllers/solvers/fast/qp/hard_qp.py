@@ -13,10 +13,16 @@ closed loop (N = 7): 22 against 38 us per call, DAQP's own work included.
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 
-from controllers.solvers.fast.qp.slot_qp import DAQP_PRIMAL_TOL, INF_BOUND, _available
+from controllers.solvers.fast.qp.slot_qp import (
+    DAQP_PRIMAL_TOL,
+    INF_BOUND,
+    _available,
+    _daqp_time_limit,
+)
 
 
 class DaqpHardQP:
@@ -51,7 +57,6 @@ class DaqpHardQP:
         self._daqp = daqp
         self.n_u, self.n_speed = n_u, n_shared
         self.max_time = max_time
-        self._time_limit = max_time if math.isfinite(max_time) else 0
         empty = np.empty(0)
         self._H, self._grad, self._bu, self._bl = empty, empty, empty, empty
         self._a_speed, self._ub_speed = np.empty((0, n_u)), empty
@@ -91,11 +96,16 @@ class DaqpHardQP:
         """Change only the constant terms of the given rows (second-order correction)."""
         self._ub_pos[row - self.n_speed] = -g_pos
 
-    def solve(self) -> tuple[np.ndarray, np.ndarray, bool]:
+    def solve(self, deadline: float = math.inf) -> tuple[np.ndarray, np.ndarray, bool]:
         """Solve the QP: ``(d, row multipliers >= 0, success)``; the multipliers of the
         shared rows first, then the scenario rows'. Rows without a finite bound are left
-        out (multiplier 0); on failure ``d`` is NaN and the multipliers 0."""
+        out (multiplier 0); on failure ``d`` is NaN and the multipliers 0. ``deadline`` (a
+        ``time.perf_counter()`` value, the solve's end) limits DAQP's time; once it has
+        passed the QP fails at once."""
         nu = self.n_u
+        left = deadline - time.perf_counter() if math.isfinite(deadline) else math.inf
+        if left <= 0.0:
+            return np.full(nu, np.nan), np.zeros(self._ub_speed.size + self._ub_pos.size), False
         ub = np.concatenate([self._ub_speed, self._ub_pos])
         A = np.concatenate([self._a_speed, self._a_pos])
         kept = ub < np.inf
@@ -113,7 +123,7 @@ class DaqpHardQP:
             bu,
             bl,
             primal_tol=DAQP_PRIMAL_TOL,
-            time_limit=self._time_limit,
+            time_limit=_daqp_time_limit(left, self.max_time),
         )
         lam = np.zeros(ub.size)
         if flag not in (1, 2):  # 1, 2: optimal, soft-optimal; < 0: infeasible, cycling, limits

@@ -27,34 +27,36 @@ QP solvers (:data:`QP_SOLVERS`):
 A failed call is retried by the elastic interior point (unless it was the one that
 failed), then by a cold qpOASES, then by CasADi's qrqp (which solves some degenerate QPs on
 which qpOASES's factorisation breaks down), then both with a small proximal term on the
-step (:meth:`SlotQP.solve`).
+step (:meth:`SlotQP.solve`). Every call, retries included, gets an iteration or time limit
+from what is left of the solve (:mod:`~controllers.solvers.fast.qp.budget`), and none is
+made once nothing is left.
 """
 
 from __future__ import annotations
 
-import contextlib
 import math
-import os
-import sys
-from collections.abc import Iterator
+import time
 from typing import Any
 
 import casadi as ca
 import numpy as np
 
 from controllers.solvers.fast.qp import elastic_ipm
+from controllers.solvers.fast.qp.budget import QPBudget
+from controllers.solvers.fast.qp.cold import (  # (the constants also from here, as before)
+    DAQP_PRIMAL_TOL,
+    INF_BOUND,
+    PIQP_EPS_ABS,
+    PIQP_EPS_REL,
+    ColdSolvers,
+    _daqp_time_limit,
+)
+from controllers.solvers.quiet import silenced_output
 
 QP_SOLVERS = ("auto", "daqp", "elastic_ipm", "piqp", "qpoases")
 # Proximal terms on the step (relative to the largest Hessian diagonal entry) of the
 # retries of a failed QP: none first.
 PROXIMAL_STEPS = (0.0, 1e-8, 1e-4)
-# DAQP's and PIQP's infinity: a bound at or beyond it is none.
-INF_BOUND = 1e30
-# DAQP's primal feasibility tolerance [m, m/s]: below the SQP's check-and-add tolerance,
-# so that rows close to a QP row are not added round after round (DAQP's default is 1e-6).
-DAQP_PRIMAL_TOL = 1e-10
-PIQP_EPS_ABS = 1e-9  # PIQP's absolute tolerance on the KKT residuals
-PIQP_EPS_REL = 1e-12
 # "auto" without the compiled elastic interior point: QPs with at least this many variables
 # (inputs of the horizon, shared slacks, group slack columns) go to PIQP, smaller ones to
 # qpOASES. Measured per QP inside the SQP on the paper's closed-loop problems (median time
@@ -110,35 +112,7 @@ def _available(package: str) -> bool:
     return True
 
 
-@contextlib.contextmanager
-def silenced_stdout() -> Iterator[None]:
-    """Send the process' C-level stdout to /dev/null (for chatty native libraries)."""
-    sys.stdout.flush()
-    try:
-        fd = sys.stdout.fileno()
-    except (AttributeError, OSError, ValueError):  # no real stdout (e.g. some notebooks)
-        yield
-        return
-    saved = os.dup(fd)
-    try:
-        os.dup2(_devnull(), fd)
-        yield
-    finally:
-        os.dup2(saved, fd)
-        os.close(saved)
-
-
-_DEVNULL: list[int] = []  # the descriptor of /dev/null, opened once per process
-
-
-def _devnull() -> int:
-    """A write descriptor of ``os.devnull`` (opened at the first call, then reused)."""
-    if not _DEVNULL:
-        _DEVNULL.append(os.open(os.devnull, os.O_WRONLY))
-    return _DEVNULL[0]
-
-
-class SlotQP:
+class SlotQP(ColdSolvers):
     """The SQP's QP ``min 1/2 z'Hz + g'z  s.t.  A z <= uba, lbx <= z <= ubx`` in persistent slots.
 
     ``z = [d (n_u), s_shared (n_shared), s_pos (group_capacity)]``: the input step, one
@@ -194,7 +168,13 @@ class SlotQP:
         self.n_var = n_u + n_slack
         self.capacity = self.n_speed + row_capacity
         self.max_time = max_time
+        # Each call's iteration or time limit, from what is left of the solve (solve()).
+        self.budget = QPBudget()
         nv, cap, nu = self.n_var, self.capacity, self.n_u
+        # qpOASES's working-set recalculations per call: its own default, 5 (nv + rows),
+        # fewer when the time left allows fewer (the conic is rebuilt for that).
+        self._nwsr_default = 5 * (nv + cap)
+        self._nwsr = self._nwsr_default
         # Dense inputs are column-major nonzeros; H is symmetric, A is viewed transposed.
         self._h = np.zeros(nv * nv)
         self.H = self._h.reshape(nv, nv)
@@ -239,13 +219,15 @@ class SlotQP:
     def _build_conic(self) -> None:
         """A fresh qpOASES conic on this object's arrays (no hot-start information)."""
         nv, cap = self.n_var, self.capacity
-        opts: dict[str, Any] = {"error_on_fail": False, "printLevel": "none"}
-        if math.isfinite(self.max_time):
-            # One QP cannot be interrupted from Python: let qpOASES stop itself, so a
-            # solve overruns its wall-clock limit by at most one QP's limit [s].
-            opts["CPUtime"] = float(self.max_time)
+        # One QP cannot be interrupted from Python: qpOASES stops itself after nWSR
+        # working-set changes (its CPUtime option was not honoured through CasADi).
+        opts: dict[str, Any] = {
+            "error_on_fail": False,
+            "printLevel": "none",
+            "nWSR": int(self._nwsr),
+        }
         self._buffer, self._spent = None, []  # (dropping the old conic frees its memories)
-        with silenced_stdout():  # qpOASES prints a banner whenever a memory is created
+        with silenced_output():  # qpOASES prints a banner whenever a memory is created
             self._conic = ca.conic(
                 "fast_sqp_qp",
                 "qpoases",
@@ -279,7 +261,7 @@ class SlotQP:
                 self._build_conic()
                 return
             self._spent.append((self._buffer, self._evaluate))
-        with silenced_stdout():  # the banner again, for the new memory
+        with silenced_output():  # the banner again, for the new memory
             self._buffer, self._evaluate = self._conic.buffer()
         inputs = {
             "h": self._h,
@@ -413,38 +395,54 @@ class SlotQP:
         """Change only the constant terms of the given rows (second-order correction)."""
         self.uba[row] = -g_pos
 
-    def solve(self) -> tuple[np.ndarray, np.ndarray, bool]:
+    def solve(self, deadline: float = math.inf) -> tuple[np.ndarray, np.ndarray, bool]:
         """Solve the QP: ``(z, row multipliers >= 0, success)``.
+
+        ``deadline`` (a ``time.perf_counter()`` value, the solve's end): every call below
+        gets its iteration or time limit from the time left until then, and none is made
+        once it has passed (:class:`~controllers.solvers.fast.qp.budget.QPBudget`; the
+        calls refused are counted in ``budget.refused``).
 
         A failed attempt is retried by the elastic interior point (when it is not the
         solver that failed and a C compiler works: measured on the quadrotor's one
         ``QP_Failed`` solve, it solved the QP that qpOASES hot and cold and three qrqp
-        calls failed on, in milliseconds instead of 2.9-4.4 s), then by qpOASES cold (a
-        fresh memory), then by qrqp; then both again with a proximal term on the step of
-        ``1e-8``, then ``1e-4``, times the largest Hessian diagonal entry (degenerate QPs).
+        calls failed on, in milliseconds instead of 2.9-4.4 s), then by the same with a
+        proximal term on the step of ``1e-8``, then ``1e-4``, times the largest Hessian
+        diagonal entry (as the compiled loop retries), then by qpOASES cold (a fresh
+        memory) and by qrqp, each without and with those proximal terms (degenerate QPs).
         The arrays of the problem are left as they were.
         """
+        self.budget.deadline = deadline
         ok = self._attempt(self.solver)
         if ok or not self.elastic:  # (a hard QP may well be infeasible: no retries)
             return self.x.copy(), np.maximum(self.lam_a, 0.0), ok
         self.failures += 1
-        if self.solver != "elastic_ipm" and _available("elastic_ipm"):
+        ipm = _available("elastic_ipm")
+        if self.solver != "elastic_ipm" and ipm:
             self.retried_with_ipm += 1
-            if self._attempt("elastic_ipm"):
-                return self.x.copy(), np.maximum(self.lam_a, 0.0), True
-        nu = self.n_u
-        diag = self.H[np.arange(nu), np.arange(nu)].copy()
-        scale = max(float(np.max(np.abs(diag))), 1.0)
-        for prox in PROXIMAL_STEPS:
-            self.H[np.arange(nu), np.arange(nu)] = diag + prox * scale
-            try:
-                self._fresh_memory()
-                ok = self._attempt("qpoases") or self._attempt("qrqp")
-            finally:
-                self.H[np.arange(nu), np.arange(nu)] = diag
-            if ok:
+        retries = [("elastic_ipm", 0.0)] if self.solver != "elastic_ipm" and ipm else []
+        retries += [("elastic_ipm", p) for p in PROXIMAL_STEPS[1:] if ipm]
+        retries += [(solver, p) for p in PROXIMAL_STEPS for solver in ("qpoases", "qrqp")]
+        for solver, prox in retries:
+            if self.budget.remaining() <= 0.0:
                 break
-        return self.x.copy(), np.maximum(self.lam_a, 0.0), ok
+            if self._retry(solver, prox):
+                return self.x.copy(), np.maximum(self.lam_a, 0.0), True
+        return self.x.copy(), np.maximum(self.lam_a, 0.0), False
+
+    def _retry(self, solver: str, prox: float) -> bool:
+        """One retry of a failed QP by ``solver`` (qpOASES from a fresh memory) with
+        ``prox`` times the largest Hessian diagonal entry added to the step's diagonal."""
+        nu = self.n_u
+        idx = np.arange(nu)
+        diag = self.H[idx, idx].copy()
+        self.H[idx, idx] = diag + prox * max(float(np.max(np.abs(diag))), 1.0)
+        try:
+            if solver == "qpoases":
+                self._fresh_memory()
+            return self._attempt(solver)
+        finally:
+            self.H[idx, idx] = diag
 
     def _attempt(self, solver: str) -> bool:
         """One call of ``solver`` on the current arrays; True on success."""
@@ -456,126 +454,41 @@ class SlotQP:
             return self._solve_elastic_ipm()
         if solver == "qrqp":
             return self._solve_qrqp()
+        return self._solve_qpoases()
+
+    def _solve_qpoases(self) -> bool:
+        """qpOASES on every slot, hot-started when it can, with at most the working-set
+        changes the time left allows."""
+        nwsr = self.budget.iterations("qpoases", self.n_var, self.capacity, self._nwsr_default)
+        if nwsr < 1:
+            self._stale = True
+            self.x[:] = np.nan
+            self.lam_a[:] = 0.0
+            return False
+        if nwsr < self._nwsr or nwsr > 1.25 * self._nwsr:  # another limit: another conic
+            self._nwsr = nwsr
+            self._build_conic()
         if self._stale and self._hot:
             self._fresh_memory()
         self._stale, self._hot = False, True
+        t0 = time.perf_counter()
         self._evaluate()
         ok = self._buffer.ret() == 0 and bool(np.isfinite(self.x).all())
+        if not ok:  # (then it has usually spent its nWSR: learn their cost)
+            self.budget.record("qpoases", self.n_var, self.capacity, time.perf_counter() - t0, nwsr)
         # qpOASES cannot hot-start from a QP it failed on: the next call starts afresh.
         self._stale = not ok
         return ok
 
-    def _solve_qrqp(self) -> bool:
-        """CasADi's active-set QP solver qrqp on the rows in use (a fallback)."""
-        rows = np.flatnonzero(self.uba < np.inf)
-        nv, m = self.n_var, rows.size
-        conic = ca.conic(
-            "fast_sqp_qrqp",
-            "qrqp",
-            {"h": ca.Sparsity.dense(nv, nv), "a": ca.Sparsity.dense(m, nv)},
-            {"print_iter": False, "print_header": False, "error_on_fail": False},
-        )
-        a = self.A[rows]
-        res = conic(h=self.H, g=self.g, a=a, uba=self.uba[rows], lbx=self.lbx, ubx=self.ubx)
-        x = np.asarray(res["x"]).ravel()
-        self.lam_a[:] = 0.0
-        if not conic.stats()["success"] or not np.all(np.isfinite(x)):
-            self.x[:] = np.nan
-            return False
-        self.x[:] = x
-        self.lam_a[rows] = np.asarray(res["lam_a"]).ravel()
-        return True
 
-    def _solve_daqp(self) -> bool:
-        """DAQP on the rows in use (finite ``uba``), cold started."""
-        import daqp
-
-        rows = self._rows_and_bounds()
-        nv, m = self.n_var, rows.size
-        bu, bl = self._bu[: nv + m], self._bl[: nv + m]
-        bu[nv:] = self.uba[rows]
-        bl[nv:] = -INF_BOUND
-        x, _, flag, info = daqp.solve(
-            self.H,
-            self.g,
-            np.ascontiguousarray(self.A[rows]),
-            bu,
-            bl,
-            primal_tol=DAQP_PRIMAL_TOL,
-            time_limit=self.max_time if math.isfinite(self.max_time) else 0,
-        )
-        # flag 1, 2: optimal, soft-optimal; < 0: infeasible, cycling, limits
-        return self._store(flag in (1, 2), x, rows, info["lam"][nv:])
-
-    def _solve_piqp(self) -> bool:
-        """PIQP (proximal interior point, dense) on the rows in use, cold started."""
-        import piqp
-
-        rows = self._rows_and_bounds()
-        nv = self.n_var
-        qp = piqp.DenseSolver()
-        qp.settings.eps_abs = PIQP_EPS_ABS
-        qp.settings.eps_rel = PIQP_EPS_REL
-        qp.setup(
-            np.asfortranarray(self.H),
-            self.g,
-            None,
-            None,
-            np.asfortranarray(self.A[rows]),
-            None,
-            self.uba[rows],
-            self._bl[:nv],
-            self._bu[:nv],
-        )
-        solved = qp.solve() == piqp.PIQP_SOLVED
-        return self._store(solved, qp.result.x, rows, qp.result.z_u)
-
-    def _solve_elastic_ipm(self) -> bool:
-        """The project's structured interior point (:mod:`~controllers.solvers.fast.qp.elastic_ipm`)
-        on the rows in use, cold started: the slacks eliminated, an ``n_u x n_u`` system
-        per iteration. It has no time limit of its own (``max_time``): at most
-        :data:`~controllers.solvers.fast.qp.elastic_ipm.MAX_ITERATIONS` iterations (~0.1 ms each
-        at N = 30)."""
-        rows = np.flatnonzero(self.uba < np.inf)
-        nu = self.n_u
-        used, col = np.unique(self._slack_of_row[rows], return_inverse=True)
-        slack = nu + used
-        res = elastic_ipm.solve_elastic_qp(
-            self.H[:nu, :nu],
-            self.g[:nu],
-            self.lbx[:nu],
-            self.ubx[:nu],
-            self.A[rows, :nu],
-            self.uba[rows],
-            col,
-            self.g[slack],
-            self.H[slack, slack],
-            eps_abs=PIQP_EPS_ABS,
-            eps_rel=PIQP_EPS_REL,
-        )
-        x = np.zeros(self.n_var)
-        x[:nu] = res.d
-        x[slack] = res.s
-        return self._store(res.solved, x, rows, res.z)
-
-    def _rows_and_bounds(self) -> np.ndarray:
-        """The rows in use (finite ``uba``); the simple bounds, clipped to
-        ``+-INF_BOUND``, into the first ``n_var`` entries of ``_bl`` and ``_bu``."""
-        nv = self.n_var
-        np.minimum(self.ubx, INF_BOUND, out=self._bu[:nv])
-        np.maximum(self.lbx, -INF_BOUND, out=self._bl[:nv])
-        return np.flatnonzero(self.uba < np.inf)
-
-    def _store(self, solved: bool, x: np.ndarray, rows: np.ndarray, lam: np.ndarray) -> bool:
-        """Keep a cold-started solver's result (``x``, the multipliers ``lam`` of ``rows``);
-        True if it solved with a finite step."""
-        self.lam_a[:] = 0.0
-        if not solved:
-            self.x[:] = np.nan
-            return False
-        self.x[:] = x
-        self.lam_a[rows] = lam
-        return bool(np.all(np.isfinite(self.x)))
-
-
-__all__ = ["AUTO_PIQP_VARIABLES", "QP_SOLVERS", "SlotQP", "resolve_qp_solver", "silenced_stdout"]
+__all__ = [
+    "AUTO_PIQP_VARIABLES",
+    "DAQP_PRIMAL_TOL",
+    "INF_BOUND",
+    "PIQP_EPS_ABS",
+    "PIQP_EPS_REL",
+    "QP_SOLVERS",
+    "SlotQP",
+    "_daqp_time_limit",
+    "resolve_qp_solver",
+]

@@ -417,6 +417,7 @@ def recorded() -> dict[str, np.ndarray]:
     return dict(np.load(RECORDED))
 
 
+@pytest.mark.slow  # the JIT build: 15-50 s
 def test_sqpmethod_jit_reaches_ipopts_objective_on_recorded_problems(recorded) -> None:
     """The compiled sqpmethod + qpOASES anchor solves the condensed NLP to IPOPT's optimum,
     with and without slack (recorded closed-loop problems, Ns = 150)."""

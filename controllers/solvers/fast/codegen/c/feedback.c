@@ -232,6 +232,7 @@ static double fb_input_slack(const lfm_sqp* s, const ro_t* ro) {
 static int fb_solve(lfm_sqp* s, const double* x0, const double* W, const double* u_guess,
                     const double* backoff, double* u_out, double* X_out, double* stats_out) {
   const long n = s->n, nut = s->nut;
+  const double t0 = sq_now(); /* (one time limit for the whole solve, the reference's included) */
   sq_prepare(s, x0, W, backoff);
   double xbar[NX], *wbar = s->fb_work, ref[nut], u_start[nut];
   fb_means(s, xbar, wbar);
@@ -256,7 +257,7 @@ static int fb_solve(lfm_sqp* s, const double* x0, const double* W, const double*
         memset(u_start, 0, sizeof(u_start));
       ro_t* ro = NULL;
       long it = 0;
-      const int st = sq_run(s, t1, u_start, &ro, &it);
+      const int st = sq_run(s, t0, u_start, &ro, &it);
       if (!ro) return sq_finish(s, NULL, SQ_OUT_OF_MEMORY, 0, u_out, X_out, stats_out);
       memcpy(ref, ro->u, sizeof(ref));
       memcpy(s->last_open, ro->u, sizeof(ref));
@@ -282,7 +283,7 @@ static int fb_solve(lfm_sqp* s, const double* x0, const double* W, const double*
     memset(u_start, 0, sizeof(u_start));
   ro_t* ro = NULL;
   long iterations = 0;
-  const int status = sq_run(s, sq_now(), u_start, &ro, &iterations);
+  const int status = sq_run(s, t0, u_start, &ro, &iterations);
   s->stats[ST_LAW_SOURCE] = source;
   s->stats[ST_REFERENCE_STATUS] = ref_status;
   s->stats[ST_REFERENCE_ITERATIONS] = ref_iterations;

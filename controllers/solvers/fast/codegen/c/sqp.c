@@ -364,6 +364,11 @@ CASADI_SYMBOL_EXPORT void lfm_sqp_reset(lfm_sqp* s) {
   s->has_ref = s->has_last_v = s->has_last_open = s->law_given = 0;
 }
 
+/* The wall-clock limit [s] of the next solves (options.max_time; INFINITY: none). */
+CASADI_SYMBOL_EXPORT void lfm_sqp_set_max_time(lfm_sqp* s, double max_time) {
+  s->o.max_time = max_time;
+}
+
 /* ------------------------------------------------------------------ rollouts */
 
 static ro_t* ro_take(lfm_sqp* s) {

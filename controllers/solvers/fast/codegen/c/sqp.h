@@ -29,6 +29,8 @@ lfm_sqp* lfm_sqp_new(const lfm_sqp_problem* p, const lfm_sqp_options* o);
 void lfm_sqp_free(lfm_sqp* s);
 /* Forget the warm start: the next solve without a guess starts from zero inputs. */
 void lfm_sqp_reset(lfm_sqp* s);
+/* The wall-clock limit [s] of the next solves (options.max_time; INFINITY: none). */
+void lfm_sqp_set_max_time(lfm_sqp* s, double max_time);
 /* One solve: x0 (Ns, NX), W (Ns, N, NW), u_guess (N NU) or NULL (the last plan shifted by
    one step, zeros at first), backoff (N, NG) or NULL; out: the plan u_out (N NU), the
    predicted states X_out (N + 1, NX, Ns) or NULL, statistics stats_out (lfm_sqp_stats_count()

@@ -1,0 +1,112 @@
+"""Two lfm-evaluate folders of the same agents and seeds, one against the other.
+
+For every agent both folders ran, the headline metrics of the reference folder (mean and
+its 95% BCa bootstrap interval over episodes, as the report gives them), the other
+folder's mean, whether that mean lies inside the reference's interval, and the paired
+difference (same seeds) with its interval. Used to check that a changed default (e.g.
+``agents.solver``) leaves the closed loop where it was:
+
+    python -m experiments.report.compare_runs REFERENCE_DIR OTHER_DIR --group track --tolerance 0.01
+
+Headline metrics: ``G`` steps beyond the tolerance per episode, zero-violation episodes at
+that tolerance, time to goal [s] (episodes that reached it), the success rate; then the
+medians of the episodes' median solve times and the deadline misses where the rows hold
+them (timing, not judged).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+from experiments.report.stats import bootstrap_ci, paired_ci
+
+
+def load(folder: Path) -> dict[str, dict[int, dict]]:
+    """Rows of ``folder/episodes.csv`` by agent and seed (numbers as floats)."""
+    out: dict[str, dict[int, dict]] = {}
+    with (folder / "episodes.csv").open() as fh:
+        for row in csv.DictReader(fh):
+            r: dict = {}
+            for k, v in row.items():
+                if k in ("agent", "error"):
+                    r[k] = v
+                elif v in ("True", "False"):
+                    r[k] = float(v == "True")
+                else:
+                    try:
+                        r[k] = float(v)
+                    except (TypeError, ValueError):
+                        r[k] = math.nan
+            out.setdefault(r["agent"], {})[int(r["seed"])] = r
+    return out
+
+
+def metrics(group: str, tolerance: float) -> list[tuple[str, object]]:
+    """``(label, value of a row)`` of the judged metrics."""
+    over = f"{group}_violation_steps_over_{tolerance:g}"
+    return [
+        (f"{group} steps > {tolerance:g}", lambda r: r[over]),
+        (f"zero-violation episodes ({tolerance:g})", lambda r: float(r[over] == 0)),
+        ("time to goal [s]", lambda r: r["time_to_goal"] if r["success"] else math.nan),
+        ("success rate", lambda r: r["success"]),
+    ]
+
+
+def _fmt(e) -> str:
+    return f"{e.mean:.3g} [{e.low:.3g}, {e.high:.3g}]"
+
+
+def compare(ref_dir: Path, other_dir: Path, group: str, tolerance: float) -> list[str]:
+    """The table's lines (Markdown) and a closing verdict."""
+    ref, other = load(ref_dir), load(other_dir)
+    lines = [
+        f"| agent | metric | {ref_dir.name} mean [95% CI] | {other_dir.name} mean | inside | "
+        "paired difference [95% CI] |",
+        "|---|---|---|---|---|---|",
+    ]
+    outside = 0
+    for agent in [a for a in ref if a in other]:
+        seeds = sorted(set(ref[agent]) & set(other[agent]))
+        for label, get in metrics(group, tolerance):
+            a = np.array([get(ref[agent][s]) for s in seeds], dtype=float)
+            b = np.array([get(other[agent][s]) for s in seeds], dtype=float)
+            e = bootstrap_ci(a)
+            m = float(np.nanmean(b)) if np.isfinite(b).any() else math.nan
+            inside = e.low - 1e-12 <= m <= e.high + 1e-12
+            outside += not inside
+            both = np.isfinite(a) & np.isfinite(b)
+            d = paired_ci(b[both], a[both])
+            lines.append(
+                f"| {agent} | {label} | {_fmt(e)} | {m:.3g} | {'yes' if inside else 'NO'} | "
+                f"{_fmt(d)} |"
+            )
+        for column, label in (("solve_time_median", "median solve [ms]"),):
+            a = np.nanmedian([ref[agent][s][column] for s in seeds]) * 1e3
+            b = np.nanmedian([other[agent][s][column] for s in seeds]) * 1e3
+            lines.append(f"| {agent} | {label} (median of episodes) | {a:.3g} | {b:.3g} | | |")
+        if all("deadline_misses" in ref[agent][s] for s in seeds):
+            a = sum(ref[agent][s]["deadline_misses"] for s in seeds)
+            b = sum(other[agent][s]["deadline_misses"] for s in seeds)
+            lines.append(f"| {agent} | deadline misses (all episodes) | {a:g} | {b:g} | | |")
+    lines.append("")
+    lines.append(f"metrics outside the reference's interval: {outside}")
+    return lines
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("reference", type=Path)
+    parser.add_argument("other", type=Path)
+    parser.add_argument("--group", default="track", help="constraint group (default: track)")
+    parser.add_argument("--tolerance", type=float, default=0.01, help="[group unit] (0.01)")
+    args = parser.parse_args()
+    print("\n".join(compare(args.reference, args.other, args.group, args.tolerance)))
+
+
+if __name__ == "__main__":
+    main()
