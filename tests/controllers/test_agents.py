@@ -346,7 +346,8 @@ def test_a_fast_solver_horizon_beyond_its_practical_bound_is_refused_up_front():
 
     with pytest.raises(ConfigError, match=rf"agents.horizon=100: must be <= {FAST_MAX_HORIZON}"):
         load_config({"agents": {"horizon": 100, "solver": "fast"}})
-    assert load_config({"agents": {"horizon": FAST_MAX_HORIZON}}).agents.horizon == 40
+    assert FAST_MAX_HORIZON == 50  # (measured to work with real-time iterations: docs/solvers.md)
+    assert load_config({"agents": {"horizon": FAST_MAX_HORIZON}}).agents.horizon == 50
 
 
 @pytest.mark.slow

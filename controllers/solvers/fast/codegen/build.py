@@ -386,16 +386,18 @@ def _build_in_background(
     raise CodegenUnavailable(line.partition("error: ")[2] or line)
 
 
-def build_library(system, dt: float) -> CompiledLibrary:
-    """The C library of ``system`` at time step ``dt`` [s], from the cache if there.
+def build_library(system, dt: float, feedback: bool = False) -> CompiledLibrary:
+    """The C library of ``system`` at time step ``dt`` [s], from the cache if there (with
+    ``feedback``, the library of its feedback prediction: ``library_source``).
 
     Raises:
         CodegenUnavailable: no compiler found, compilation failed or the library did not load.
     """
     start = time.perf_counter()
     dims = (system.nx, system.nu, system.nw, system.ng)
+    stem = "lfm_feedback" if feedback else "lfm_codegen"
     library = load_library(
-        library_source(system, dt), "lfm_codegen", symbols=LIBRARY_SYMBOLS, dims=dims
+        library_source(system, dt, feedback), stem, symbols=LIBRARY_SYMBOLS, dims=dims
     )
     _declare(library.lib)
     library.build_time = time.perf_counter() - start
