@@ -230,7 +230,10 @@ def local_client(n_workers: int, stack: ExitStack) -> distributed.Client:
             "nthreads": 1,  # CasADi and the episode loop are single-threaded
             "worker_class": QuietWorker,
             "dashboard": False,
-            "silence_logs": logging.ERROR,
+            # CRITICAL: a task's error reaches the run through its future; what the workers
+            # log at ERROR is their lost connection when Ctrl-C closes the scheduler first
+            # (a heartbeat's traceback on the user's terminal).
+            "silence_logs": logging.CRITICAL,
         },
     }
     cluster = stack.enter_context(
@@ -238,7 +241,7 @@ def local_client(n_workers: int, stack: ExitStack) -> distributed.Client:
             scheduler=scheduler,
             workers={i: worker for i in range(n_workers)},
             security=security,
-            silence_logs=logging.ERROR,
+            silence_logs=logging.CRITICAL,  # the scheduler's "Couldn't gather keys" at Ctrl-C
             name="lfm-evaluate",
         )
     )
