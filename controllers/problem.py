@@ -36,10 +36,13 @@ terminal cost, plus ``slack_penalty`` times the state slacks (as above) and the 
 slacks*: the per-scenario input bounds ``lo <= u_{i,k} <= hi`` of ``k = 1..N-1`` are
 softened like the state constraints, one slack per (step, input, side) shared by the
 scenarios, ``s^u[k, i, +] = max(0, max_s u_{s,k,i} - hi_i)`` (``2 nu (N-1)`` slacks whatever
-``Ns`` is). ``v`` itself stays inside the input bounds (``v_0`` is applied). The reference
-methods take the law as ``law=``; without it (or for an open-loop problem) they are the
-open-loop functions, unchanged. With ``K = 0`` the feedback objective equals the open-loop
-one. The solvers solve it through an exact rewrite (:mod:`controllers.solvers.feedback`).
+``Ns`` is). ``v_0`` stays inside the input bounds (it is applied now); the fast SQP leaves ``v_k``
+(``k >= 1``) free by default, the other solvers bound it too
+(``FastSolverOptions.feedback_bounds``). The reference methods take the law as ``law=``;
+without it (or for an open-loop problem) they are the open-loop functions, unchanged. With
+``K = 0`` the feedback objective equals the open-loop one. The fast SQP solves it natively
+(:mod:`controllers.solvers.fast.closed_loop`), the other solvers through an exact rewrite
+(:mod:`controllers.solvers.feedback`).
 """
 
 from __future__ import annotations

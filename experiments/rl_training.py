@@ -13,7 +13,8 @@ The policy observes :func:`~controllers.agents.rl.policy_features` of the observ
 noisy state and the known system's signed constraint values), as the ``rl`` agent does.
 The run writes ``OUT/policy.zip`` (the SB3 model), ``OUT/policy.npz`` (the observation
 normalisation), ``OUT/policy.json`` (algorithm, world, steps, wall time, seed, the
-training reward's settings and the last episodes' statistics) and ``OUT/eval.yaml`` (the
+training reward's settings, the last episodes' statistics and the SHA-256 of the other two
+files) and ``OUT/eval.yaml`` (the
 resolved config of the training with ``agents.rl_policy`` set: ``lfm-evaluate --config
 OUT/eval.yaml --agents rl,...`` evaluates the policy). The ``rl`` agent
 (:class:`controllers.agents.rl.RLAgent`) loads them from ``agents.rl_policy: OUT/policy.zip``.
@@ -23,7 +24,10 @@ One run owns ``OUT`` at a time (the folder lock of the evaluation,
 :class:`~experiments.evaluation.storage.FolderLock`: a second run is refused naming the
 first). A folder that holds a policy already is refused too, unless the run resumes it
 (``resume=True``: the saved policy, its observation statistics and its step count are
-trained further) or replaces it (``force=True``).
+trained further) or replaces it (``force=True``). The three policy files are written as one
+set (temporary files renamed into place, ``policy.json`` last, holding the others' SHA-256):
+a run stopped while writing them leaves the previous set, or a mix that the ``rl`` agent and
+``resume`` refuse, naming the file.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import secrets
 import time
 from collections import deque
 from pathlib import Path
@@ -40,7 +45,7 @@ import gymnasium as gym
 import numpy as np
 
 import lfm_env  # noqa: F401  (registers the envs)
-from controllers.agents.rl import policy_features
+from controllers.agents.rl import file_digest, policy_features, policy_set_problem
 from controllers.config import ExperimentConfig, load_config
 from experiments.evaluation.storage import FolderLock, ResultsFolderError
 
@@ -268,6 +273,12 @@ def check_training_folder(
             f"training folder {str(out)!r} already holds {what} ({POLICY_FILE}); pass "
             "--resume to train it further or --force to replace it"
         )
+    problem = policy_set_problem(policy, summary)
+    if problem is not None:
+        raise ResultsFolderError(
+            f"training folder {str(out)!r}: cannot resume, {problem}; pass --force to train a "
+            "new policy in its place"
+        )
     if trained != algo:
         raise ResultsFolderError(
             f"training folder {str(out)!r} holds a {trained} policy: resume it with "
@@ -376,6 +387,25 @@ def check_training_arguments(
         raise ValueError(f"cost_weight={cost_weight!r}: must be >= 0")
 
 
+def _replace_set(out: Path, write: dict[str, Any], summary: dict[str, Any]) -> None:
+    """Write the policy's files as one set: each to a temporary file in ``out``, then
+    ``policy.json`` with the SHA-256 of the others (``summary["files"]``), then every file
+    renamed into place, ``policy.json`` last. A run stopped at any moment leaves the previous
+    set, or files the ``rl`` agent and ``--resume`` refuse by name, never a silent mix."""
+    token = secrets.token_hex(4)
+    temporary = {name: out / f".{name}.{token}.tmp" for name in (*write, "policy.json")}
+    try:
+        for name, writer in write.items():
+            writer(temporary[name])
+        summary["files"] = {name: file_digest(temporary[name]) for name in write}
+        temporary["policy.json"].write_text(json.dumps(summary, indent=2) + "\n")
+        for name, path in temporary.items():  # policy.json last (dicts keep order)
+            os.replace(path, out / name)
+    finally:
+        for path in temporary.values():
+            path.unlink(missing_ok=True)
+
+
 def _save(
     model: Any,
     venv: Any,
@@ -388,20 +418,28 @@ def _save(
     callback: Any,
     previous: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Write ``policy.zip``, ``policy.npz`` (observation normalisation) and ``policy.json``."""
-    model.save(out / POLICY_FILE)
+    """Write ``policy.zip``, ``policy.npz`` (observation normalisation) and ``policy.json``
+    (with the other two's SHA-256) as one set (:func:`_replace_set`)."""
     rms = venv.obs_rms
-    np.savez(
-        out / "policy.npz",
-        mean=rms.mean,
-        var=rms.var,
-        epsilon=np.float64(venv.epsilon),
-        clip_obs=np.float64(venv.clip_obs),
-        count=np.float64(rms.count),
-        ret_mean=np.asarray(venv.ret_rms.mean, dtype=float),
-        ret_var=np.asarray(venv.ret_rms.var, dtype=float),
-        ret_count=np.float64(venv.ret_rms.count),
-    )
+    statistics = {
+        "mean": rms.mean,
+        "var": rms.var,
+        "epsilon": np.float64(venv.epsilon),
+        "clip_obs": np.float64(venv.clip_obs),
+        "count": np.float64(rms.count),
+        "ret_mean": np.asarray(venv.ret_rms.mean, dtype=float),
+        "ret_var": np.asarray(venv.ret_rms.var, dtype=float),
+        "ret_count": np.float64(venv.ret_rms.count),
+    }
+
+    def save_npz(path: Path) -> None:
+        with open(path, "wb") as fh:
+            np.savez(fh, **statistics)
+
+    def save_zip(path: Path) -> None:
+        with open(path, "wb") as fh:  # (a file object: SB3 adds no suffix)
+            model.save(fh)
+
     earlier = 0.0 if previous is None else float(previous.get("wall_time_s") or 0.0)
     returns = list(getattr(callback, "returns", []))
     successes = list(getattr(callback, "successes", []))
@@ -421,7 +459,7 @@ def _save(
         "last_success_rate": float(np.mean(successes)) if successes else None,
         "n_features": int(rms.mean.shape[0]),
     }
-    (out / "policy.json").write_text(json.dumps(summary, indent=2) + "\n")
+    _replace_set(out, {POLICY_FILE: save_zip, "policy.npz": save_npz}, summary)
     return summary
 
 

@@ -184,6 +184,7 @@ class MPCAgent(PlanChoice, SB3Predict):
         self.rng = np.random.default_rng()
         self._u_prev: np.ndarray | None = None
         self._plan: np.ndarray | None = None  # remaining planned inputs (fallback)
+        self._rti_ready = False  # a usable plan to take real-time iterations from
 
     # ------------------------------------------------------------------ public face
 
@@ -194,6 +195,7 @@ class MPCAgent(PlanChoice, SB3Predict):
         self._overrun = 0.0
         self._u_prev = None
         self._plan = None
+        self._rti_ready = False
         self.last_info = {}
 
     def act(self, obs: Any) -> np.ndarray:
@@ -205,9 +207,7 @@ class MPCAgent(PlanChoice, SB3Predict):
         self._x_hat = np.asarray(info["estimate"][: self.system.nx], dtype=float)
         x0, W = self._scenarios()
         backoff = self._backoff()
-        limit = self._limit_solve(t0)
-        options = {} if backoff is None else {"backoff": backoff}
-        sol = self.solver.solve(x0, W, **options)
+        sol, iterations, limit = self._solve(x0, W, backoff, t0)
         u, fallback = self._choose_action(sol)
         # The budget stopped this solve: what the agent applied instead of a converged plan.
         stopped = limit is not None and sol.status == "Maximum_WallTime_Exceeded"
@@ -217,10 +217,40 @@ class MPCAgent(PlanChoice, SB3Predict):
         self._u_prev = u
         info.update(self._solve_info(sol, t_est, fallback, x0, W, backoff))
         info["deadline_stop"] = deadline_stop
+        info["sqp_iterations"] = iterations
         self.last_info = info
         return u
 
     # ------------------------------------------------------------------ internals
+
+    def _solve(
+        self, x0: np.ndarray, W: np.ndarray, backoff: np.ndarray | None, t0: float
+    ) -> tuple[MPCSolution, str, float | None]:
+        """The step's solve (the step started at ``t0``), how its iterations went
+        (``last_info["sqp_iterations"]``) and its time limit from the deadline
+        (:meth:`_limit_solve`): ``"converged"``; with ``settings.iterations == "rti"`` and a
+        usable plan from the last step, ``"rti"`` (``settings.rti_iterations`` SQP iterations
+        from that plan shifted), or ``"rti_fallback:<why>"`` when that step was bad
+        (:func:`rti_step_problem`) and the problem was solved again to convergence from it,
+        within what the step has left (the times and iterations of both solves counted)."""
+        kwargs = {} if backoff is None else {"backoff": backoff}
+        limit = self._limit_solve(t0)
+        if self.settings.iterations != "rti" or not self._rti_ready:
+            sol = self.solver.solve(x0, W, **kwargs)
+            self._rti_ready = bool(sol.usable)
+            return sol, "converged", limit
+        rti = self.solver.solve(x0, W, iterations=self.settings.rti_iterations, **kwargs)
+        why = rti_step_problem(rti)
+        if not why:
+            return rti, "rti", limit
+        if rti.law is not None:  # (a feedback plan: the same law, from the RTI iterate)
+            kwargs["law"] = rti.law
+        limit = self._limit_solve(t0)
+        sol = self.solver.solve(x0, W, u_guess=rti.u, **kwargs)
+        sol.solve_time += rti.solve_time
+        sol.iterations += rti.iterations
+        self._rti_ready = bool(sol.usable)
+        return sol, f"rti_fallback:{why}", limit
 
     def _limit_solve(self, t0: float) -> float | None:
         """With ``agents.deadline``: give the solve what the step has left of its budget, less
@@ -247,6 +277,19 @@ class MPCAgent(PlanChoice, SB3Predict):
 
     def _scenarios(self) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
+
+
+def rti_step_problem(sol: MPCSolution, slack_tol: float = 1e-6) -> str:
+    """Why a real-time iteration's plan is not to be applied, or ``""``: ``"not_usable"`` (its
+    merit did not fall below that of the plan shifted by one step, ``extra["start_merit"]``),
+    or ``"slack"`` (its slack grew beyond the shifted plan's, ``extra["start_slack"]``, by
+    more than ``slack_tol`` times ``1 + `` that slack, in the constraints' units)."""
+    if not sol.usable:
+        return "not_usable"
+    start = float(sol.extra.get("start_slack", np.inf))
+    if sol.slack > start + slack_tol * (1.0 + start):
+        return "slack"
+    return ""
 
 
 class NominalMPCAgent(MPCAgent):
@@ -462,6 +505,7 @@ class OracleMPCAgent(MPCAgent):
 
 
 __all__ = [
+    "rti_step_problem",
     "CertaintyEquivalentMPCAgent",
     "MPCAgent",
     "PlanChoice",

@@ -15,7 +15,9 @@ and joins the same records, in three ways (:func:`resolve_agent`):
   takes the config is such a factory. The env is not given: a user's agent never reads the
   hidden truth. An agent object (not a class) is used as it is, reset before every episode;
 * a text ``"module:attribute"`` (``"mypkg.agents:ProportionalAgent"``): the module is
-  imported and its attribute is a factory or an agent, as above;
+  imported as Python finds it or, if Python finds it nowhere, from the working folder, last
+  (:func:`lfm_env.working_folder.import_named`: a file there never shadows an installed or
+  standard module), and its attribute is a factory or an agent, as above;
 * registered by name with :func:`register_agent` (from the user's own module, as a world is
   registered), with its labels and colour: then its name works as a registered agent's.
 
@@ -29,7 +31,6 @@ take a registered agent's name.
 
 from __future__ import annotations
 
-import importlib
 import os
 import re
 from collections.abc import Callable, Iterable, Mapping
@@ -51,6 +52,7 @@ from controllers.agents.rl import RLAgent, check_rl_policy
 from controllers.config import ExperimentConfig, load_config
 from lfm_env.config import ConfigError
 from lfm_env.validation import one_line
+from lfm_env.working_folder import import_named
 
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._+-]{0,99}")
 _SPEC_TEXT = re.compile(r"[A-Za-z_][\w.]*:[A-Za-z_][\w.]*")
@@ -364,7 +366,7 @@ def _import(text: str) -> Any:
     """The attribute ``"module:attribute"`` names (a dotted attribute path is followed)."""
     module_name, _, attr = text.partition(":")
     try:
-        module = importlib.import_module(module_name)
+        module = import_named(module_name)  # (the working folder too: that module, last)
     except Exception as exc:  # ImportError, or an error while running the module
         raise AgentSpecError(
             f"agent {text!r}: cannot import module {module_name!r} ({one_line(exc)})"

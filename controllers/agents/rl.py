@@ -2,7 +2,8 @@
 
 :class:`RLAgent` (agent name ``"rl"``) loads the stable-baselines3 policy named by
 ``agents.rl_policy`` (``OUT/policy.zip`` of ``lfm-train``, with ``OUT/policy.npz``, the
-observation normalisation, and ``OUT/policy.json``, the algorithm, beside it) and acts
+observation normalisation, and ``OUT/policy.json``, the algorithm and the SHA-256 of the
+other two, beside it: a set of files of two trainings is refused) and acts
 like the MPC agents: ``reset(seed)``, ``act(obs)`` returning a float64 action in the
 inputs' units, and ``last_info``. It reads the observation only (no hidden truth): the
 policy sees :func:`policy_features` of it, the noisy state and the signed constraint values
@@ -15,6 +16,7 @@ policies you trained yourself.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from pathlib import Path
@@ -50,6 +52,40 @@ def _policy_error(path: Any, problem: str) -> ConfigError:
         f"agents.rl_policy={path!r}: {problem}; set it to the policy.zip written by lfm-train "
         "(e.g. lfm-train --out results/rl/ppo, then agents.rl_policy: results/rl/ppo/policy.zip)"
     )
+
+
+def file_digest(path: Path) -> str:
+    """The SHA-256 of a file's content (hex)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def policy_set_problem(policy: Path, summary: dict[str, Any]) -> str | None:
+    """Why the policy files of ``policy`` (its ``.zip`` and ``.npz``) are not the set its
+    summary ``.json`` records (``summary["files"]``: each file's SHA-256, written by
+    ``lfm-train`` with the set), else ``None``. A summary without ``files`` (written before
+    sets were recorded) cannot be checked and passes."""
+    files = summary.get("files")
+    if files is None:
+        return None
+    if not isinstance(files, dict):
+        return f"{policy.with_suffix('.json').name} holds no valid list of files"
+    for name, recorded in sorted(files.items()):
+        path = policy.with_suffix(Path(str(name)).suffix)
+        try:
+            actual = file_digest(path)
+        except OSError as exc:
+            return f"{path.name} cannot be read ({exc.strerror or exc})"
+        if actual != recorded:
+            return (
+                f"{path.name} does not match {policy.with_suffix('.json').name} (its SHA-256 is "
+                "not the one recorded with the set: the files of two trainings, as a training "
+                "stopped while writing them, or a file copied from another run, leaves)"
+            )
+    return None
 
 
 def check_rl_policy(path: str | None) -> tuple[Path, Path, Path]:
@@ -108,6 +144,9 @@ class RLAgent:
             self._clip = float(stats["clip_obs"])
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise _policy_error(path, f"unreadable files beside it ({exc})") from None
+        problem = policy_set_problem(policy, info)
+        if problem is not None:
+            raise _policy_error(path, f"{problem}; train it again (lfm-train --resume or --force)")
         if algo not in ALGOS:
             raise _policy_error(path, f"unknown algorithm {algo!r} in {summary.name}")
         trained_on = info.get("system", self.system.name)  # written by lfm-train
@@ -169,4 +208,4 @@ def _load(algo: str, policy: Path, path: Any) -> Any:
         raise _policy_error(path, f"cannot be loaded as {algo} ({type(exc).__name__})") from None
 
 
-__all__ = ["RLAgent", "check_rl_policy", "policy_features"]
+__all__ = ["RLAgent", "check_rl_policy", "file_digest", "policy_features", "policy_set_problem"]

@@ -20,6 +20,8 @@ from lfm_env.config import ConfigError, FieldChecker, LatentForceConfig
 
 RESAMPLING = ("systematic", "stratified", "residual", "multinomial")
 SCENARIO_INITIAL_STATES = ("estimate", "particles")
+#: How many SQP iterations an agent's control step spends (AgentConfig.iterations).
+ITERATIONS = ("converged", "rti")
 MAX_SCENARIOS = 100_000
 MAX_ITER = 2**31 - 1
 FAST_MAX_HORIZON = SOLVER_SPECS["fast"].max_horizon  # longest horizon of the fast solver
@@ -195,6 +197,13 @@ class AgentConfig:
     # "feedback" (u = v + K (x - r) per scenario, a TV-LQR law of the cost along the previous
     # plan; docs/feedback.md says when it pays).
     prediction: str = "open_loop"
+    # SQP iterations per control step: "converged" (every solve to its tolerances, max_iter
+    # per start) or "rti" (real-time iterations: after a converged first solve, each step
+    # takes rti_iterations SQP iterations from the plan shifted by one step, without extra
+    # starts; a step whose plan is not usable or has more slack than the shifted plan's is
+    # solved again to convergence). The fast solvers only; docs/solvers.md says what it gives up.
+    iterations: str = "converged"
+    rti_iterations: int = 1
     # Constraint back-off of the filtering agents: each state constraint g_j is tightened
     # by k * sqrt(dg_j' Sigma_x dg_j), k estimate stds along its gradient: one k for all,
     # or one per constraint group of the system (the sine track: track, x, speed).
@@ -279,6 +288,19 @@ class AgentConfig:
             f"one of {SCENARIO_INITIAL_STATES}",
         )
         c("prediction", self.prediction in PREDICTIONS, f"one of {PREDICTIONS}")
+        c("iterations", self.iterations in ITERATIONS, f"one of {ITERATIONS}")
+        c(
+            "iterations",
+            self.iterations == "converged" or (spec is not None and spec.real_time),
+            f"'converged' with solver {self.solver!r} (real-time iterations need a solver "
+            "that takes an iteration limit per solve: 'fast' or 'fast_c')",
+        )
+        ok = isinstance(self.rti_iterations, int) and not isinstance(self.rti_iterations, bool)
+        c(
+            "rti_iterations",
+            ok and 1 <= self.rti_iterations <= self.max_iter,
+            "an int in [1, max_iter]",
+        )
 
     def deadline_seconds(self, dt: float) -> float | None:
         """The step budget [s] of :attr:`deadline` for a world of control period ``dt`` [s];

@@ -130,6 +130,24 @@ def run_make(folder: str | Path, *targets: str, cc: str | None = None) -> float:
     return time.perf_counter() - t0
 
 
+def _array(
+    value: Any, shape: tuple[int, ...], name: str, finite: bool = True, also: Any = None
+) -> np.ndarray:
+    """``value`` as a C-contiguous float64 array of exactly ``shape`` (or ``also``), finite.
+
+    Raises:
+        ValueError: naming ``name`` and the expected shape, or the non-finite entry.
+    """
+    a = np.ascontiguousarray(value, dtype=float)
+    if a.shape != shape and (also is None or a.shape != tuple(also)):
+        other = "" if also is None else f" or {tuple(also)}"
+        raise ValueError(f"{name}: shape {a.shape}, expected {shape}{other}")
+    if finite and not np.all(np.isfinite(a)):
+        index = tuple(int(i) for i in np.argwhere(~np.isfinite(a))[0])
+        raise ValueError(f"{name}{list(index)} = {a[index]}: every entry must be finite")
+    return a
+
+
 class ExportedController:
     """The exported controller of ``folder`` (built with :func:`build_shared` if needed).
 
@@ -181,17 +199,29 @@ class ExportedController:
         self.lib.lfm_controller_reset(self._ptr, int(seed) & (2**64 - 1))
 
     def step(self, y: Any) -> tuple[np.ndarray, str]:
-        """The input for the measurement ``y`` ``(nx,)`` and the solve's status name."""
-        y = np.ascontiguousarray(y, dtype=float).reshape(self.nx)
+        """The input for the measurement ``y`` ``(nx,)`` and the solve's status name (a
+        NaN or infinite ``y`` is the controller's to handle: ``"Bad_Input"`` and the
+        fallback input, as on the robot).
+
+        Raises:
+            ValueError: for a ``y`` of another shape.
+        """
+        y = _array(y, (self.nx,), "y", finite=False)
         u = np.zeros(self.nu)
         code = self.lib.lfm_controller_step(self._ptr, y.ctypes.data, u.ctypes.data)
         return u, self.status_name(code)
 
     def solve(self, x0: Any, W: Any) -> tuple[np.ndarray, str]:
         """The plan ``(N, nu)`` for ``x0`` ``(nx,)`` and ``W`` ``(Ns, N, nw)`` (or
-        ``(Ns, N)``), and the status name."""
-        x0 = np.ascontiguousarray(x0, dtype=float).reshape(self.nx)
-        W = np.ascontiguousarray(W, dtype=float).reshape(self.n_scenarios, self.horizon, self.nw)
+        ``(Ns, N)`` when ``nw`` is 1), and the status name.
+
+        Raises:
+            ValueError: naming the expected shape, for ``x0`` or ``W`` of another shape (a
+                transposed ``W`` included), or a NaN or infinite number in them.
+        """
+        x0 = _array(x0, (self.nx,), "x0")
+        shape = (self.n_scenarios, self.horizon, self.nw)
+        W = _array(W, shape, "W", also=shape[:2] if self.nw == 1 else None).reshape(shape)
         plan = np.zeros((self.horizon, self.nu))
         code = self.lib.lfm_controller_solve(
             self._ptr, x0.ctypes.data, W.ctypes.data, plan.ctypes.data

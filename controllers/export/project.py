@@ -21,7 +21,6 @@ The exported step runs the agent's estimator in C where that is the UKF (or none
 
 from __future__ import annotations
 
-import ctypes
 import math
 import os
 import shutil
@@ -33,8 +32,9 @@ from typing import Any
 import numpy as np
 
 from controllers.config import ExperimentConfig, load_config
+from controllers.solvers.fast.codegen.interface import OPTIONS, c_options
 from controllers.solvers.fast.codegen.source import c_source
-from controllers.solvers.fast.compiled import SqpOptions, c_options, problem_arrays, sqp_source
+from controllers.solvers.fast.compiled import problem_arrays, sqp_source
 from controllers.solvers.fast.options import FastSolverOptions
 
 # The agents lfm-export writes (the oracle reads the hidden truth, the RL agent is a network).
@@ -154,6 +154,8 @@ def _config_header(agent: Any, name: str, program: dict[str, Any], dims: dict[st
         f"#define LFM_NS {dims['Ns']} /* scenarios */",
         f"#define LFM_DT {_c_number(agent.model.dt)} /* [s] sampling time */",
         f"#define LFM_STEP_AVAILABLE {int(program['estimator'] != 2)}",
+        "/* 1: the feedback prediction (the plan kept is the nominal inputs) */",
+        f"#define LFM_FEEDBACK_PREDICTION {int(agent.problem.prediction == 'feedback')}",
         "",
         "#endif",
         "",
@@ -199,10 +201,10 @@ def _config_source(agent: Any, problem: Any, options: FastSolverOptions, program
     if program["backoff"] is not None:
         parts.append(_array("backoff_k", program["backoff"]))
     fields = []
-    for name, kind in SqpOptions._fields_:
-        value = getattr(c_opts, name)
-        text = _c_number(value) if kind is ctypes.c_double else str(value)
-        fields.append(f"    .{name} = {text},")
+    for option in OPTIONS:
+        value = getattr(c_opts, option.name)
+        text = _c_number(value) if option.kind == "double" else str(value)
+        fields.append(f"    .{option.name} = {text},")
     divergence = getattr(agent, "_divergence_nis", math.inf)
     parts += [
         "",
@@ -286,11 +288,6 @@ def export_controller(
     resolved = load_config(config)
     agent = make_agent(agent_name, resolved)
     problem, settings = agent.problem, agent.settings
-    if getattr(problem, "prediction", "open_loop") != "open_loop":
-        raise ValueError(
-            f"lfm-export: agents.prediction {problem.prediction!r} is not exported; the C "
-            "controller plans open loop only (set agents.prediction: open_loop)"
-        )
     options = solver_options(settings)
     program, notes = _agent_program(agent)
     model = agent.model
@@ -309,7 +306,7 @@ def export_controller(
         )
     out.mkdir(parents=True, exist_ok=True)
     texts = {
-        "lfm_mpc.c": sqp_source(problem.system, problem.dt),
+        "lfm_mpc.c": sqp_source(problem.system, problem.dt, problem.prediction == "feedback"),
         "sqp.h": c_source("sqp.h"),
         "lfm_config.h": _config_header(agent, config_name, program, dims),
         "lfm_config.c": _config_source(agent, problem, options, program),

@@ -5,9 +5,10 @@ class lives, what it is, how the common options reach it and what it can do).
 ``make_solver(problem, name, **options)`` builds any of them; each is a
 :class:`ScenarioSolver` (``solve(x0, W, u_guess=None, backoff=None) -> MPCSolution`` and
 ``reset()``) and minimises the same :meth:`controllers.problem.ScenarioProblem.objective`.
-On a problem with ``prediction="feedback"`` every one of them runs through the exact rewrite
-of :mod:`controllers.solvers.feedback` (whose ``solve`` also takes the feedback law,
-``law=``).
+On a problem with ``prediction="feedback"`` the fast SQP (``"fast"``, ``"fast_c"``) solves it
+natively (:mod:`controllers.solvers.fast.closed_loop`); the others run through the exact
+rewrite of :mod:`controllers.solvers.feedback` (the fast SQP too where no C compiler works).
+Every one's ``solve`` then also takes the feedback law (``law=``).
 ``"fast"``, the project's condensed SQP (:mod:`controllers.solvers.fast`), is
 ``make_solver``'s default, and ``"fast_c"``, the same SQP with its loop compiled, the agents'
 (``agents.solver``); the others are built on CasADi's plugins
@@ -62,6 +63,9 @@ class SolverSpec:
         max_horizon: the longest horizon ``N`` it is practical at (the config refuses
             longer ones up front); ``None``: no such limit.
         threaded: it takes ``threads=T`` (its C library's threads; ``agents.solver_threads``).
+        native_feedback: it solves a feedback problem itself (else through the rewrite).
+        real_time: its ``solve`` takes ``iterations=`` (a per-call SQP iteration limit without
+            extra starts: real-time iterations, ``agents.iterations: rti``).
     """
 
     name: str
@@ -71,17 +75,33 @@ class SolverSpec:
     max_iter_option: str | None = None
     max_horizon: int | None = None
     threaded: bool = False
+    native_feedback: bool = False
+    real_time: bool = False
 
     def build(self, problem: ScenarioProblem, **options: Any) -> ScenarioSolver:
         """The solver for ``problem`` with ``options`` (see :func:`make_solver`); for a
-        feedback problem, this solver through the exact rewrite of
+        feedback problem, this solver itself if it solves those natively (and its C library
+        can be built), else through the exact rewrite of
         :class:`~controllers.solvers.feedback.FeedbackScenarioSolver`. Sets the process's
         BLAS threads first (:func:`controllers.threads.limit_blas_threads`)."""
         limit_blas_threads()
         if problem.prediction == "feedback":
+            from controllers.solvers.fast.codegen.build import CodegenUnavailable, notice
             from controllers.solvers.feedback import FeedbackScenarioSolver
 
+            if self.native_feedback:
+                try:
+                    return self._build(problem, **options)
+                except CodegenUnavailable as err:
+                    notice(
+                        f"{self.name}: a feedback problem without the C library ({err}); "
+                        "solving it through the exact open-loop rewrite"
+                    )
             return FeedbackScenarioSolver(problem, self, **options)
+        return self._build(problem, **options)
+
+    def _build(self, problem: ScenarioProblem, **options: Any) -> ScenarioSolver:
+        """The class of :attr:`entry_point` on ``problem``, with the options routed."""
         module, _, name = self.entry_point.partition(":")
         cls = getattr(importlib.import_module(module), name)
         key = self.max_iter_option
@@ -102,12 +122,14 @@ SOLVER_SPECS: dict[str, SolverSpec] = {
             "controllers.solvers.fast.solver:FastScenarioSolver",
             "the condensed exact-Hessian SQP whose derivatives CasADi generates from the "
             "system definition, its loop in Python (make_solver's default; every QP solver)",
-            # Its work per iteration grows steeply with N (measured with 150 scenarios: one
-            # step 1.2 s at N = 20, 11 s at N = 40 against the 10 s solve limit, 21 s at
-            # N = 60 and 84 s at N = 100): beyond this a single iteration overruns any solve
-            # limit.
-            max_horizon=40,
+            # Its work per iteration grows steeply with N. Measured with 150 scenarios (the
+            # paper's scenario agent, feedback prediction, the compiled loop, CPU time): at
+            # N = 50 a real-time iteration takes about 0.12 s per step and the agent reaches
+            # the goal; beyond, not measured (docs/solvers.md, "Real-time iterations").
+            max_horizon=50,
             threaded=True,
+            native_feedback=True,
+            real_time=True,
         ),
         SolverSpec(
             "fast_c",
@@ -115,8 +137,10 @@ SOLVER_SPECS: dict[str, SolverSpec] = {
             "the same SQP with its whole loop compiled (one C call per solve; the project's "
             "own QP solvers in C; the Python loop, with a notice, where no compiler works): "
             "the agents' default",
-            max_horizon=40,
+            max_horizon=50,
             threaded=True,
+            native_feedback=True,
+            real_time=True,
         ),
         SolverSpec(
             "ipopt",

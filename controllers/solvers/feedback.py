@@ -1,6 +1,8 @@
-"""Every registered solver on the feedback scenario problem, through an exact rewrite.
+"""The registered solvers on the feedback scenario problem, through an exact rewrite.
 
-``make_solver(problem, name)`` on a problem with ``prediction="feedback"`` returns a
+``make_solver(problem, name)`` on a problem with ``prediction="feedback"`` returns, for every
+solver but the fast SQP (which solves it natively: :mod:`controllers.solvers.fast.closed_loop`;
+this rewrite is its test oracle, and its fallback where no C compiler works), a
 :class:`FeedbackScenarioSolver`: it rewrites the feedback problem (the module docstring of
 :mod:`controllers.problem`) as an ordinary open-loop :class:`ScenarioProblem` on an
 augmented system (:func:`augmented_problem`), solves that with the registered solver

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from experiments.calibration import (
     LEARNABLE,
@@ -37,6 +38,7 @@ def _calibrate_parser() -> argparse.ArgumentParser:
         epilog=(
             "examples:\n"
             "  lfm-calibrate --config paper --seeds 1000:1005 --out results/learned.yaml\n"
+            "  lfm-calibrate --config paper --out results/learned.yaml --force   replace it\n"
             "  lfm-calibrate --config quadrotor --seeds 1000:1003\n"
             "  lfm-calibrate --config mine.yaml     a world of your own "
             "(env_id: mine:Mine/Unicycle-v0)"
@@ -51,7 +53,12 @@ def _calibrate_parser() -> argparse.ArgumentParser:
         help="env seeds of the calibration episodes (default 1000:1005, apart from "
         "evaluation seeds)",
     )
-    parser.add_argument("--out", default=None, help="write the learned config here (YAML)")
+    parser.add_argument(
+        "--out",
+        default=None,
+        help="write the learned config here (YAML); an existing file is refused unless --force",
+    )
+    parser.add_argument("--force", action="store_true", help="replace an existing --out file")
     return parser
 
 
@@ -59,7 +66,8 @@ def _calibrate_parser() -> argparse.ArgumentParser:
 def calibrate_main(argv: Sequence[str] | None = None) -> int:
     """``lfm-calibrate``: learn the latent force's hyperparameters from calibration episodes.
 
-    An unwritable ``--out`` is refused before the episodes run; operating-system errors
+    An unwritable ``--out``, or an existing one without ``--force``, is refused before the
+    episodes run; operating-system errors
     give one line and exit code 2 (:func:`experiments.cli.one_line_errors`).
     """
     parser = _calibrate_parser()
@@ -71,6 +79,11 @@ def calibrate_main(argv: Sequence[str] | None = None) -> int:
     _, config = config_argument(parser, args, ["nominal"])
     if args.out:  # before the episodes, not after them
         problem = check_writable(args.out, "--out")
+        if problem is None and Path(args.out).exists() and not args.force:
+            problem = (
+                f"--out {args.out}: the file exists (a learned config of an earlier run?); "
+                "choose another name or pass --force to replace it"
+            )
         if problem is not None:
             parser.error(problem)
     try:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import textwrap
 from collections.abc import Sequence
@@ -41,7 +40,8 @@ resuming with another config is refused; one run writes into a folder at a time.
 An episode that raises (SystemExit included), runs past --episode-timeout, or whose
 worker process dies (--jobs) is an error row naming why; the other episodes run on.
 Exit code 0 when every episode ran, 1 when some raised (they are in the table with
-their error), 2 on bad arguments, 130 when interrupted.
+their error), 2 on bad arguments or when the report failed (one line on stderr; the
+results are kept), 130 when interrupted.
 
 Metrics (columns of episodes.csv): success, steps, time_to_goal [s], cost (sum of
 the true stage cost), then per constraint group G of the world's system
@@ -152,7 +152,8 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
     """``lfm-evaluate``: evaluate agents over seeds and write the results (see ``--help``).
 
     Returns:
-        The exit code: 0 if every episode ran, 1 if some raised an error.
+        The exit code: 0 if every episode ran, 1 if some raised an error, 2 if the report
+        failed (the results are kept).
     """
     from experiments.evaluation import evaluate
 
@@ -160,12 +161,10 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     seeds = seeds_and_executor(parser, args)
+    # (a module:attribute agent's module is found in the working folder too, last: by name)
     agents = [a.strip() for a in args.agents.split(",")]
     if args.baseline is not None and args.baseline not in agents:
         parser.error(f"--baseline {args.baseline!r}: not among --agents ({', '.join(agents)})")
-    if any(":" in a for a in agents) and os.getcwd() not in sys.path:
-        # As `python -m` does: `module:attribute` agents import from the current folder.
-        sys.path.insert(0, os.getcwd())
     config_path, config = config_argument(parser, args)
     out = (
         Path(args.out)
@@ -201,8 +200,13 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
             try:
                 where = write_report(out, baseline=args.baseline)
             except Exception as exc:  # the results are safe; only the report failed
-                print(f"report: failed ({type(exc).__name__}: {exc}); results are kept")
-                return 1
+                reason = " ".join(f"{type(exc).__name__}: {exc}".split())
+                print(
+                    f"lfm-evaluate: error: the report failed ({reason}); the results are kept "
+                    f"in {out} (lfm-report {out} writes the report again)",
+                    file=sys.stderr,
+                )
+                return 2
             print(f"report: {where if where is not None else out}")
     return 1 if n_errors else 0
 

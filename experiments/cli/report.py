@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -26,7 +27,8 @@ so a results folder of any world (configs/paper.yaml, configs/quadrotor.yaml, ..
 is reported the same way.
 Claims about intervals over fewer than 20 seeds carry a caveat; the settings paragraph
 names only the settings of the agents DIR holds.
-Exit code 0 on success, 2 when DIR is missing, empty or the seed has no trajectory, or
+Exit code 0 on success (and, with one line and no report, on a folder whose run has
+finished no episode yet), 2 when DIR is missing, empty or the seed has no trajectory, or
 when the sweep ran on another config (without --allow-other-config).
 
 examples:
@@ -97,6 +99,22 @@ def _report_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _nothing_to_report_yet(folder: Path) -> str | None:
+    """What to say when ``folder`` is taken by a run that has finished no episode yet (its
+    first seconds: the lock held, no episode record); ``None`` otherwise."""
+    from experiments.evaluation.storage import folder_in_use
+
+    if not folder.is_dir():
+        return None
+    owner = folder_in_use(folder)
+    if owner is None or any((folder / "episodes").glob("*.json")):
+        return None
+    return (
+        f"results folder {str(folder)!r} is being written by {owner} and holds no finished "
+        "episode yet; nothing to report (run lfm-report again once episodes are finished)"
+    )
+
+
 @one_line_errors("lfm-report")
 def report_main(argv: Sequence[str] | None = None) -> int:
     """``lfm-report``: write the report of a results folder (see ``--help``).
@@ -116,6 +134,10 @@ def report_main(argv: Sequence[str] | None = None) -> int:
             problem = f"DIR {figures}: is a file, expected the report's figures folder"
         if problem is not None:
             parser.error(problem)
+    busy = _nothing_to_report_yet(folder)
+    if busy is not None:
+        print(f"lfm-report: {busy}", file=sys.stderr)
+        return 0
     try:
         path = write_report(
             args.results_dir,

@@ -12,16 +12,20 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import shutil
 import signal
+import stat
 import subprocess
 import tempfile
 import threading
+import time
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
 import distributed
+from distributed.diagnostics.plugin import WorkerPlugin
 from distributed.http.routing import RoutingApplication
 from tornado.httpserver import HTTPServer
 
@@ -54,6 +58,31 @@ class QuietWorker(_NoHttpServer, distributed.Worker):
         if threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGINT, signal.SIG_IGN)
         super().__init__(*args, **kwargs)
+
+
+class _NamedModules(WorkerPlugin):
+    """Each worker of the cluster (also one started later in place of a dead one) finds the
+    modules the run named in the working folder, and only those
+    (:func:`lfm_env.working_folder.install`), before it unpickles a task."""
+
+    name = "lfm-named-modules"
+
+    def __init__(self, named: tuple) -> None:
+        self.named = named
+
+    def setup(self, worker: Any) -> None:
+        from experiments.evaluation.pool import restore_environment
+        from lfm_env import working_folder
+
+        restore_environment()
+        working_folder.install(self.named)
+
+
+def find_named_modules(client: distributed.Client, named: tuple) -> None:
+    """Give every worker of ``client``'s cluster the run's named modules (``named``:
+    :func:`lfm_env.working_folder.state`)."""
+    register = getattr(client, "register_plugin", None) or client.register_worker_plugin
+    register(_NamedModules(named))
 
 
 def check_scheduler(
@@ -98,12 +127,60 @@ def check_scheduler(
         raise ConnectionError(f"{address!r} answers, but not as a Dask scheduler")
 
 
+_KEY_FOLDER = "lfm-dask-"  # the temporary certificate folders: lfm-dask-<pid>-<random>
+_KEY_FILES = {"key.pem", "cert.pem"}
+_KEY_FOLDER_DAYS = 7  # the certificate's validity (openssl -days)
+
+
+def remove_stale_key_folders() -> list[Path]:
+    """Remove the certificate folders (:func:`temporary_security`) of runs that ended without
+    removing them (a SIGKILL, the out-of-memory killer): folders of this user in the temporary
+    folder named ``lfm-dask-<pid>-...`` whose process no longer runs (or, named without a pid
+    by older versions, older than the certificate's 7 days), holding nothing but the
+    certificate and its key. Anything else is left alone.
+
+    Returns:
+        The folders removed.
+    """
+    removed = []
+    for folder in Path(tempfile.gettempdir()).glob(f"{_KEY_FOLDER}*"):
+        try:
+            st = folder.lstat()
+            if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.geteuid():
+                continue
+            if not {p.name for p in folder.iterdir()} <= _KEY_FILES:
+                continue
+            pid = folder.name[len(_KEY_FOLDER) :].partition("-")[0]
+            if pid.isdigit():
+                if _alive(int(pid)):
+                    continue
+            elif time.time() - st.st_mtime < _KEY_FOLDER_DAYS * 86400:
+                continue
+            shutil.rmtree(folder)
+            removed.append(folder)
+        except OSError:
+            continue  # (removed meanwhile, or not ours to read)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def temporary_security(stack: ExitStack) -> distributed.Security:
     """Dask TLS security from a new self-signed certificate in a private temporary folder.
 
     The certificate is its own CA, the key never leaves the folder (mode 0700, removed
-    when ``stack`` closes), and Dask requires it of both ends of every connection.
-    Uses the ``openssl`` command, or the ``cryptography`` package if installed.
+    when ``stack`` closes; the folder of a run killed before that is removed by the next
+    one, :func:`remove_stale_key_folders`), and Dask requires it of both ends of every
+    connection. Uses the ``openssl`` command, or the ``cryptography`` package if installed
+    (then nothing is written to disk).
     """
     try:
         return distributed.Security.temporary()  # needs the cryptography package
@@ -115,7 +192,9 @@ def temporary_security(stack: ExitStack) -> distributed.Security:
             "a local Dask cluster needs the 'openssl' command or the 'cryptography' package "
             "for its temporary TLS certificate"
         )
-    folder = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="lfm-dask-")))
+    remove_stale_key_folders()
+    prefix = f"{_KEY_FOLDER}{os.getpid()}-"
+    folder = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix=prefix)))
     key, cert = folder / "key.pem", folder / "cert.pem"
     subprocess.run(
         [openssl, "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1"]
@@ -151,7 +230,10 @@ def local_client(n_workers: int, stack: ExitStack) -> distributed.Client:
             "nthreads": 1,  # CasADi and the episode loop are single-threaded
             "worker_class": QuietWorker,
             "dashboard": False,
-            "silence_logs": logging.ERROR,
+            # CRITICAL: a task's error reaches the run through its future; what the workers
+            # log at ERROR is their lost connection when Ctrl-C closes the scheduler first
+            # (a heartbeat's traceback on the user's terminal).
+            "silence_logs": logging.CRITICAL,
         },
     }
     cluster = stack.enter_context(
@@ -159,7 +241,7 @@ def local_client(n_workers: int, stack: ExitStack) -> distributed.Client:
             scheduler=scheduler,
             workers={i: worker for i in range(n_workers)},
             security=security,
-            silence_logs=logging.ERROR,
+            silence_logs=logging.CRITICAL,  # the scheduler's "Couldn't gather keys" at Ctrl-C
             name="lfm-evaluate",
         )
     )

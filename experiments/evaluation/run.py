@@ -110,7 +110,7 @@ from experiments.evaluation.interrupts import raise_if_interrupted, remember_int
 from experiments.evaluation.limits import (
     check_limit,
 )
-from experiments.evaluation.pool import run_on_pool
+from experiments.evaluation.pool import run_on_pool, safe_child_path
 from experiments.evaluation.storage import (
     DamagedEpisodeError,
     FolderLock,
@@ -128,7 +128,8 @@ from experiments.evaluation.storage import (
     warnings_once,
     write_table,
 )
-from experiments.evaluation.task import _episode_task, check_picklable
+from experiments.evaluation.task import _episode_task, check_picklable, sendable_problem
+from lfm_env import working_folder
 from lfm_env.validation import one_line
 
 _SCHEDULER_TIMEOUT = 5.0  # [s] to connect to a Dask scheduler AND hear it answer as one
@@ -176,6 +177,7 @@ def evaluate(
     retry_failed: bool = True,
     progress_label: str | None = None,
     episode_timeout: float | None = None,
+    isolate: bool | None = None,
 ) -> list[dict[str, Any]]:
     """Run every (agent, env seed) episode and return one row of metrics per episode.
 
@@ -209,6 +211,11 @@ def evaluate(
             an error row naming the limit, in every executor
             (:mod:`experiments.evaluation.limits`); ``None`` for the config's
             ``evaluation.episode_timeout`` (600 s unless set), 0 for no limit.
+        isolate: for a serial run (``jobs=1``, no Dask), run the episodes in a child
+            process, one after the other, so that a crash in native code costs its own
+            episode only (as on a pool); ``None`` (the default) when every agent can be
+            sent to one (not a lambda, local function or object of the main script: those
+            run in this process), ``False`` in this process. Rows are the same either way.
 
     Returns:
         The rows (:func:`row_columns` of the config's system) of the requested episodes,
@@ -225,6 +232,7 @@ def evaluate(
     specs, seed_list, cfg, columns = _checked_arguments(
         agents, seeds, config, jobs, scheduler, dask_workers
     )
+    in_process = _in_process(specs, cfg, isolate)
     limit = check_limit(
         cfg.evaluation.episode_timeout if episode_timeout is None else episode_timeout
     )
@@ -236,6 +244,7 @@ def evaluate(
     with ExitStack() as stack:
         stack.enter_context(remember_interrupts())
         stack.enter_context(warnings_once())  # (the folder is read more than once)
+        stack.enter_context(safe_child_path())  # (workers: no working folder on the path)
         # Closed after the executor below (last in, first out): the folder is finished
         # and unlocked only once no worker writes into it any more.
         folder_stack = stack.enter_context(ExitStack())
@@ -250,14 +259,63 @@ def evaluate(
             run.load_finished()
         todo = run.todo()
         run.bar = stack.enter_context(_progress_bar(run, progress, progress_label))
+        if todo:
+            _compile_ahead(specs, cfg)  # (before the first episode's clock starts)
         if client is not None and todo:
             _run_on_dask(run, client, todo)
         elif jobs > 1 and len(todo) > 1:
             _run_on_pool(run, jobs, todo)
-        else:
+        elif in_process or not todo:
             _run_serially(run, todo)
+        else:  # serial, in one child process (replaced if it dies)
+            run_on_pool(
+                todo, 1, lambda pair: run.task_args(*pair), run.done, run.lost, limit, "exec"
+            )
 
     return run.sorted_rows()
+
+
+def _compile_ahead(specs: Sequence[AgentSpec], cfg: ExperimentConfig) -> None:
+    """Compile the C libraries of the fast solvers before any episode runs, when a
+    registered agent will solve with one (they are then found in the cache by every
+    worker): a compile never counts against an episode's time limit."""
+    solver = cfg.agents.solver
+    solving = any(s.agent_class is not None and "solver" in s.uses for s in specs)
+    if not solving or solver not in ("fast", "fast_c"):
+        return
+    from controllers.solvers.fast.codegen.build import CodegenUnavailable
+    from controllers.solvers.fast.prepare import compile_ahead
+
+    try:
+        model = cfg.make_model()
+        compile_ahead(model.system, model.dt, compiled_loop=solver == "fast_c")
+    except CodegenUnavailable:  # (no compiler at all: the agents say so themselves)
+        pass
+
+
+def _in_process(specs: Sequence[AgentSpec], cfg: ExperimentConfig, isolate: Any) -> bool:
+    """Whether a serial run runs its episodes in this process (``evaluate``'s ``isolate``).
+
+    Raises:
+        ValueError: ``isolate=True`` with an agent or a world that cannot be sent to a
+            child process (naming it).
+    """
+    if isolate is not None and not isinstance(isolate, bool):
+        raise ValueError(f"isolate={isolate!r}: must be True, False or None")
+    if isolate is False:
+        return True
+    problems = [p for p in map(sendable_problem, specs) if p is not None]
+    world = type(cfg.env).__module__
+    if world in ("__main__", "__mp_main__"):
+        problems.append(
+            f"the world's config {type(cfg.env).__name__} is defined in the main script"
+        )
+    if problems and isolate:
+        raise ValueError(
+            f"isolate=True: {problems[0]}; a child process cannot import it (define it in a "
+            "module, or pass isolate=False)"
+        )
+    return bool(problems)
 
 
 def _checked_arguments(
@@ -368,7 +426,7 @@ class _Run:
                 return stuck
         row = _error_row(pair[0], pair[1], error, math.nan, self.columns)
         if self.out is not None:
-            save_episode(self.out, row, None, tb, self.digest)
+            save_episode(self.out, row, None, tb, self.digest, config=self.cfg.to_dict())
         return row
 
     def sorted_rows(self) -> list[dict[str, Any]]:
@@ -404,6 +462,9 @@ def _run_on_dask(run: _Run, client: Any, todo: Sequence[tuple[str, int]]) -> Non
     """Every episode of ``todo`` as a task of the Dask cluster; cancelled on an interrupt."""
     import distributed
 
+    from experiments.evaluation import executors
+
+    executors.find_named_modules(client, working_folder.state())
     futures = {}
     for a, s in todo:
         args = run.task_args(a, s, stuck="worker")
@@ -425,11 +486,14 @@ def _run_on_dask(run: _Run, client: Any, todo: Sequence[tuple[str, int]]) -> Non
         raise
 
 
-def _run_on_pool(run: _Run, jobs: int, todo: Sequence[tuple[str, int]]) -> None:
-    """Every episode of ``todo`` on ``jobs`` spawned worker processes, one episode per
-    worker at a time (:mod:`experiments.evaluation.pool`): a worker that dies, or is
-    stopped past the limit, costs its own episode only."""
-    run_on_pool(todo, jobs, lambda pair: run.task_args(*pair), run.done, run.lost, run.limit)
+def _run_on_pool(
+    run: _Run, jobs: int, todo: Sequence[tuple[str, int]], kind: str = "spawn"
+) -> None:
+    """Every episode of ``todo`` on ``jobs`` worker processes, one episode per worker at a
+    time (:mod:`experiments.evaluation.pool`; ``kind="exec"``: a serial run's worker): a
+    worker that dies, or is stopped past the limit, costs its own episode only."""
+    args_of = lambda pair: run.task_args(*pair)  # noqa: E731
+    run_on_pool(todo, jobs, args_of, run.done, run.lost, run.limit, kind)
 
 
 def _run_serially(run: _Run, todo: Sequence[tuple[str, int]]) -> None:

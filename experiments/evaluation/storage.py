@@ -13,16 +13,13 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import fcntl
 import hashlib
 import io
 import json
 import math
 import os
 import secrets
-import socket
 import sys
-import time
 import zipfile
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -44,17 +41,13 @@ from experiments.evaluation.episode import (
     agent_seed,
     resolve_config,
 )
+from experiments.evaluation.lock import FolderLock, ResultsFolderError, folder_in_use
 from lfm_env.config import load_yaml
 from lfm_env.validation import one_line
 
 _EPISODES = "episodes"
 _TABLE = "episodes.csv"
 _CONFIG = "config.yaml"
-_LOCK = ".lock"  # the owner's pid and host while a run writes into the folder
-
-
-class ResultsFolderError(ValueError):
-    """The results folder cannot be used (e.g. it holds results of another config)."""
 
 
 # --------------------------------------------------------------------------- storage
@@ -101,7 +94,13 @@ def config_hash(config: ExperimentConfig) -> str:
     Stored with every episode (``config_hash`` in its json), so a folder's episodes stay
     bound to their config even if ``config.yaml`` is deleted or replaced.
     """
-    text = yaml.safe_dump(config.to_dict(), sort_keys=True)
+    return data_hash(config.to_dict())
+
+
+def data_hash(data: dict) -> str:
+    """:func:`config_hash` of a config as plain data (a ``config.yaml`` as read, or the
+    ``config`` of an episode's record): equal exactly when the data are."""
+    text = yaml.safe_dump(data, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -112,6 +111,7 @@ def save_episode(
     traceback_text: str = "",
     config_digest: str = "",
     run_token: str = "",
+    config: dict | None = None,
 ) -> Path:
     """Save an episode as ``episodes/<agent>__seed<seed>.npz`` then ``.json``, atomically.
 
@@ -123,20 +123,33 @@ def save_episode(
         config_digest: :func:`config_hash` of the episode's config, kept in the json.
         run_token: the run's token, for the row of an episode that got stuck past its
             limit and ended its process (:func:`stuck_row`); kept in the json as ``run``.
+        config: the episode's config as plain data (``ExperimentConfig.to_dict()``), kept
+            in the json as ``config`` (a report then reads the config the episode ran with
+            even if ``config.yaml`` was edited).
 
     Returns:
-        The json's path (its presence marks the episode finished).
+        The json's path (its presence marks the episode finished). The json also holds the
+        SHA-256 of the npz (``npz_sha256``), checked by :func:`load_trajectory`.
     """
     folder = Path(out) / _EPISODES
     stem = episode_stem(row["agent"], row["seed"])
+    digest = None
     if trajectory is not None:
-        _atomic_write(folder / f"{stem}.npz", lambda fh: np.savez_compressed(fh, **trajectory))
+        buffer = io.BytesIO()
+        np.savez_compressed(buffer, **trajectory)
+        data = buffer.getvalue()
+        digest = hashlib.sha256(data).hexdigest()
+        _atomic_write(folder / f"{stem}.npz", lambda fh: fh.write(data))
     record = {c: _json_value(v) for c, v in row.items()}
     record["agent_seed"] = agent_seed(row["seed"], row["agent"])
     record["traceback"] = traceback_text
     record["config_hash"] = config_digest
     if run_token:
         record["run"] = run_token
+    if digest is not None:
+        record["npz_sha256"] = digest
+    if config is not None:
+        record["config"] = config
     text = json.dumps(record, indent=1, allow_nan=False) + "\n"
     json_path = folder / f"{stem}.json"
     _atomic_write(json_path, lambda fh: fh.write(text.encode()))
@@ -148,6 +161,8 @@ _JSON_EXTRAS = (
     "traceback",
     "config_hash",
     "run",
+    "npz_sha256",
+    "config",
 )  # keys of an episode json that are not columns
 
 
@@ -254,21 +269,55 @@ def saved_rows(out: str | os.PathLike) -> list[dict[str, Any]]:
     return sorted(rows, key=lambda r: (r["agent"], r["seed"]))
 
 
+def saved_records(out: str | os.PathLike) -> list[dict[str, Any]]:
+    """Every checked episode record of a folder (its row and the json's other keys: the
+    config hash, the config, the trajectory's SHA-256, ...), sorted by (agent, seed);
+    damaged ones are left out, named in a warning (as :func:`saved_rows`)."""
+    records = []
+    for p in sorted((Path(out) / _EPISODES).glob("*.json")):
+        try:
+            records.append(_read_record(p))
+        except DamagedEpisodeError as exc:
+            _warn(f"{exc}; left out")
+    return sorted(records, key=lambda r: (r["agent"], r["seed"]))
+
+
+def _recorded_digest(json_path: Path) -> str | None:
+    """The trajectory's SHA-256 an episode's record names (``None``: no record, or one
+    written before records held it)."""
+    try:
+        value = json.loads(json_path.read_text()).get("npz_sha256")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return value if isinstance(value, str) else None
+
+
 def load_trajectory(out: str | os.PathLike, agent_name: str, seed: int) -> dict[str, np.ndarray]:
     """The saved trajectory of one episode (see :func:`run_episode` for its arrays).
 
     Raises:
         FileNotFoundError: the episode has no npz.
-        DamagedEpisodeError: naming the file, if it does not load (e.g. truncated).
+        DamagedEpisodeError: naming the file, if it does not load (e.g. truncated) or is not
+            the file its record names (its SHA-256 differs: another episode's file).
     """
     path = Path(out) / _EPISODES / f"{episode_stem(agent_name, seed)}.npz"
     if not path.is_file():
         raise FileNotFoundError(f"episode file {str(path)!r} does not exist")
     try:
-        with np.load(path, allow_pickle=False) as data:
+        content = path.read_bytes()
+    except OSError as exc:
+        raise DamagedEpisodeError(f"episode file {str(path)!r}: {one_line(exc)}") from exc
+    try:
+        with np.load(io.BytesIO(content), allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise DamagedEpisodeError(f"episode file {str(path)!r}: {one_line(exc)}") from exc
+    recorded = _recorded_digest(path.with_suffix(".json"))
+    if recorded is not None and hashlib.sha256(content).hexdigest() != recorded:
+        raise DamagedEpisodeError(
+            f"episode file {str(path)!r} is not the trajectory its record names (its SHA-256 "
+            f"differs from the one in {path.with_suffix('.json').name}: another episode's file?)"
+        )
     # Episodes saved before 0.2 call the true force "disturbance".
     if "disturbance" in arrays and "latent_force" not in arrays:
         arrays["latent_force"] = arrays.pop("disturbance")
@@ -323,6 +372,16 @@ def stuck_row(out: str | os.PathLike, agent_name: str, seed: int, token: str) ->
     return {k: v for k, v in record.items() if k not in _JSON_EXTRAS}
 
 
+def _quiet_records(out: Path) -> list[dict[str, Any]]:
+    """The records of a folder that can be read, without warnings (a damaged one is named
+    and run again later)."""
+    records = []
+    for p in sorted((out / _EPISODES).glob("*.json")):
+        with contextlib.suppress(DamagedEpisodeError):
+            records.append(_read_record(p))
+    return records
+
+
 def _csv_value(v: Any) -> str:
     if isinstance(v, float):
         return repr(v)  # shortest exact text; NaN as "nan"
@@ -340,6 +399,19 @@ def _folder_columns(out: Path) -> tuple[str, ...] | None:
         return None
 
 
+def table_text(out: str | os.PathLike, columns: Sequence[str] | None = None) -> str:
+    """The text of ``episodes.csv`` as :func:`write_table` writes it from the records."""
+    rows = saved_rows(out)
+    if columns is None:
+        columns = _folder_columns(Path(out)) or _table_columns(rows)
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(columns)
+    for row in rows:
+        writer.writerow([_csv_value(row.get(c, math.nan)) for c in columns])
+    return buf.getvalue()
+
+
 def write_table(out: str | os.PathLike, columns: Sequence[str] | None = None) -> Path:
     """Rebuild ``out/episodes.csv`` from every episode json (sorted by agent, seed).
 
@@ -350,16 +422,9 @@ def write_table(out: str | os.PathLike, columns: Sequence[str] | None = None) ->
             rows hold). A column a row lacks (e.g. a group added since it was saved) is
             written as ``nan``.
     """
-    rows = saved_rows(out)
-    if columns is None:
-        columns = _folder_columns(Path(out)) or _table_columns(rows)
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(columns)
-    for row in rows:
-        writer.writerow([_csv_value(row.get(c, math.nan)) for c in columns])
+    text = table_text(out, columns)
     path = Path(out) / _TABLE
-    _atomic_write(path, lambda fh: fh.write(buf.getvalue().encode()))
+    _atomic_write(path, lambda fh: fh.write(text.encode()))
     return path
 
 
@@ -370,27 +435,74 @@ def _remove_stale_temp_files(out: Path) -> None:
             tmp.unlink(missing_ok=True)
 
 
-def _config_differences(a: dict, b: dict, prefix: str = "") -> list[str]:
+def _config_differences(
+    a: dict, b: dict, labels: tuple[str, str] = ("in the folder", "now"), prefix: str = ""
+) -> list[str]:
+    """``key: A <labels[0]>, B <labels[1]>`` for each field (dotted) where ``a`` and ``b``
+    differ."""
     diffs = []
     for key in sorted(set(a) | set(b)):
         name = f"{prefix}{key}"
         va, vb = a.get(key), b.get(key)
         if isinstance(va, dict) and isinstance(vb, dict):
-            diffs += _config_differences(va, vb, f"{name}.")
+            diffs += _config_differences(va, vb, labels, f"{name}.")
         elif va != vb:
-            diffs.append(f"{name}: {va!r} in the folder, {vb!r} now")
+            diffs.append(f"{name}: {va!r} {labels[0]}, {vb!r} {labels[1]}")
     return diffs
+
+
+def edited_config(out: Path, records: Sequence[dict[str, Any]]) -> str | None:
+    """Why the folder's ``config.yaml`` is not the config its episodes ran with (their
+    records' config hash, and their config where they hold it: the fields that differ),
+    else ``None`` (also without a ``config.yaml`` or records to compare).
+
+    Raises:
+        ResultsFolderError: for episodes of more than one config.
+    """
+    hashes = sorted({r["config_hash"] for r in records if r.get("config_hash")})
+    path = out / _CONFIG
+    if not hashes or not path.is_file():
+        return None
+    if len(hashes) > 1:
+        raise ResultsFolderError(
+            f"results folder {str(out)!r} holds episodes of {len(hashes)} configs (config "
+            f"hashes {', '.join(hashes)}); choose another output folder or delete this one"
+        )
+    try:
+        written = load_yaml(path)
+    except ValueError as exc:
+        raise ResultsFolderError(f"results folder {str(out)!r}: bad {_CONFIG}: {exc}") from exc
+    if data_hash(written) == hashes[0]:
+        return None
+    ran = next((r["config"] for r in records if isinstance(r.get("config"), dict)), None)
+    if ran is None:
+        return (
+            f"its {_CONFIG} is not the config its episodes ran with (config hash "
+            f"{data_hash(written)}, the episodes' {hashes[0]}; their records, written by an "
+            "earlier version, do not hold the config itself)"
+        )
+    diffs = _config_differences(ran, written, ("in the episodes", f"in {_CONFIG}"))
+    shown = "; ".join(diffs[:5]) + ("; ..." if len(diffs) > 5 else "")
+    return f"its {_CONFIG} is not the config its episodes ran with ({shown})"
 
 
 def check_folder(out: Path, config: ExperimentConfig) -> None:
     """Refuse a folder of another config (reads only).
 
-    Its ``config.yaml`` must equal ``config``, and every episode json must carry
-    :func:`config_hash` of ``config`` (or none: folders of older versions).
+    Its ``config.yaml`` must be the config its episodes ran with (:func:`edited_config`) and
+    equal ``config``, and every episode json must carry :func:`config_hash` of ``config``
+    (or none: folders of older versions).
     """
     path = out / _CONFIG
     if out.exists() and not out.is_dir():
         raise ResultsFolderError(f"results folder {str(out)!r} is a file")
+    if out.is_dir():
+        edited = edited_config(out, _quiet_records(out))
+        if edited is not None:
+            raise ResultsFolderError(
+                f"results folder {str(out)!r}: {edited}; restore it (or choose another output "
+                "folder)"
+            )
     if path.exists():
         try:
             saved = resolve_config(load_yaml(path))
@@ -417,135 +529,6 @@ def check_folder(out: Path, config: ExperimentConfig) -> None:
             )
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True  # another user's live process
-    return True
-
-
-def _lock_owner(fd: int) -> tuple[bool, str]:
-    """Whether the lock file names a live owner (a live process of this host, or one of
-    another host), and a text naming it for a message."""
-    try:
-        parts = os.pread(fd, 200, 0).decode(errors="replace").split()
-    except OSError:
-        parts = []
-    if len(parts) == 2 and parts[0].isdigit():
-        alive = parts[1] != socket.gethostname() or _pid_alive(int(parts[0]))
-        return alive, f"process {parts[0]} on {parts[1]}"
-    return False, "another process"
-
-
-def folder_in_use(out: str | os.PathLike) -> str | None:
-    """Who holds the lock of the folder ``out`` (a text naming the process), or ``None``
-    when no run writes into it. Looks without taking the lock for more than a moment
-    (a run that starts meanwhile tries again: :meth:`FolderLock.acquire`)."""
-    try:
-        fd = os.open(Path(out) / _LOCK, os.O_RDONLY | os.O_NOFOLLOW)
-    except OSError:
-        return None  # no lock file: no owner
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-    except BlockingIOError:
-        return _lock_owner(fd)[1]
-    except OSError:
-        return None
-    finally:
-        os.close(fd)  # (releases a lock taken)
-    return None
-
-
-class FolderLock:
-    """Ownership of a folder by one process: an operating-system lock on ``out/.lock``.
-
-    The lock is ``flock`` (exclusive, not waiting) on the open lock file, which the kernel
-    releases when its owner ends, however it ends (SIGKILL, the OOM killer, a crash): no
-    stale lock is ever taken over, and of any number of processes trying at once exactly
-    one owns the folder. The file holds ``<pid> <host>`` of the owner, for the message
-    another process gets: a :class:`ResultsFolderError` naming it. The owner removes the
-    file when it releases the lock (a lock file left by a killed owner is free to take).
-    The lock is local to one machine's kernel (and NFS with its lock manager).
-
-    Args:
-        out: the folder (it must exist).
-        what: how the messages call the folder.
-        hint: what the message of a refusal advises.
-    """
-
-    def __init__(
-        self,
-        out: Path,
-        what: str = "results folder",
-        hint: str = "wait for that run to end or choose another output folder",
-    ) -> None:
-        self.path = Path(out) / _LOCK
-        self.what, self.hint = what, hint
-        self.text = f"{os.getpid()} {socket.gethostname()}\n"
-        self._fd: int | None = None
-
-    def acquire(self) -> FolderLock:
-        """Take the lock, or raise :class:`ResultsFolderError` naming its owner.
-
-        A lock held while the file names no live owner (an owner between taking the lock
-        and writing its name, or a reader's short look: :func:`folder_in_use`) is tried
-        again for a moment before the folder is refused.
-        """
-        folder = str(self.path.parent)
-        for attempt in range(40):
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                alive, owner = _lock_owner(fd)
-                os.close(fd)
-                if not alive and attempt < 39:
-                    time.sleep(0.01)
-                    continue
-                raise ResultsFolderError(
-                    f"{self.what} {folder!r} is in use by {owner} (lock file "
-                    f"{str(self.path)!r}); {self.hint}"
-                ) from None
-            except BaseException:
-                os.close(fd)
-                raise
-            # Its previous owner may have removed the file between our open and our lock:
-            # the lock then holds a file no other process can find. Try again.
-            try:
-                current = os.stat(self.path)
-                mine = os.fstat(fd)
-                same = (current.st_dev, current.st_ino) == (mine.st_dev, mine.st_ino)
-            except FileNotFoundError:
-                same = False
-            if not same:
-                os.close(fd)
-                continue
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, self.text.encode(), 0)
-            self._fd = fd
-            return self
-        raise ResultsFolderError(f"{self.what} {folder!r}: cannot take its lock {self.path}")
-
-    def release(self) -> None:
-        """Remove the lock file and release the lock (nothing if not held)."""
-        if self._fd is None:
-            return
-        try:
-            self.path.unlink(missing_ok=True)  # while still holding it
-        finally:
-            os.close(self._fd)
-            self._fd = None
-
-    def __enter__(self) -> FolderLock:
-        return self.acquire()
-
-    def __exit__(self, *exc: Any) -> None:
-        self.release()
-
-
 def _prepare_folder(out: Path, config: ExperimentConfig) -> None:
     """Create the folder and its ``config.yaml``; remove temp files of a killed run."""
     path = out / _CONFIG
@@ -569,9 +552,13 @@ __all__ = [
     "folder_in_use",
     "load_trajectory",
     "ResultsFolderError",
+    "data_hash",
+    "edited_config",
     "save_episode",
+    "saved_records",
     "saved_rows",
     "stuck_row",
+    "table_text",
     "warn",
     "warnings_once",
     "write_table",

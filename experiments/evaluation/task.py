@@ -15,6 +15,7 @@ import traceback
 from collections.abc import Sequence
 from typing import Any
 
+from controllers.agents.protocol import is_agent
 from controllers.agents.registry import AgentSpec, AgentSpecError
 from controllers.config import ExperimentConfig
 from controllers.threads import limit_blas_threads
@@ -88,7 +89,7 @@ def _episode_task(
         raise_if_interrupted()  # a Ctrl-C a library turned into another error: no error row
         row, arrays, tb = _failed_episode(name, seed, rec, limit, t0)
     if out is not None:
-        save_episode(out, row, arrays if record else None, tb, digest)
+        save_episode(out, row, arrays if record else None, tb, digest, config=config.to_dict())
     return row
 
 
@@ -190,3 +191,21 @@ def check_picklable(agent: AgentSpec, how: str) -> None:
             "workers cannot import; put it in a module and pass 'module:attribute', or "
             "run with jobs=1"
         )
+
+
+def sendable_problem(agent: AgentSpec) -> str | None:
+    """Why ``agent`` should not be sent to a fresh worker process that does not import the
+    main script (a serial run's worker), else ``None``: an agent object (used as it is, in
+    this process), a factory that does not pickle, or one that comes from ``__main__``."""
+    if agent.factory is None or isinstance(agent.factory, str):
+        return None
+    if is_agent(agent.factory):  # used as it is: its own state stays in this process
+        return f"agent {agent.text!r} is an agent object (run in this process, as it is)"
+    module = getattr(agent.factory, "__module__", None) or type(agent.factory).__module__
+    if module in ("__main__", "__mp_main__"):
+        return f"agent {agent.text!r} is defined in the main script"
+    try:
+        pickle.dumps(agent)
+    except Exception as exc:
+        return f"agent {agent.text!r} cannot be pickled ({one_line(exc)})"
+    return None

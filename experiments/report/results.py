@@ -11,6 +11,7 @@ reader of the episode records is :func:`experiments.evaluation.storage.saved_row
 from __future__ import annotations
 
 import csv
+import io
 import math
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -22,8 +23,8 @@ import numpy as np
 from controllers.agents.registry import AGENT_REGISTRY
 from controllers.config import ExperimentConfig, load_config
 from experiments.evaluation.columns import tolerance_columns, violation_counts
-from experiments.evaluation.storage import episode_stem
-from lfm_env.config import WorldConfig, to_dict
+from experiments.evaluation.storage import episode_stem, write_table
+from lfm_env.config import WorldConfig, load_yaml, to_dict
 from lfm_env.system import ControlSystem
 
 _TEXT_COLUMNS = ("agent", "error")
@@ -96,13 +97,23 @@ def read_episodes_csv(path: str | Path) -> list[dict[str, Any]]:
 
     Raises:
         FileNotFoundError: if the file does not exist.
-        ValueError: if it has no ``agent``/``seed`` columns or no rows.
+        ValueError: naming the file, if it is not text, has no ``agent``/``seed`` columns,
+            a row that does not parse, or no rows.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no episodes table at {path}")
-    with path.open(newline="") as fh:
-        reader = csv.DictReader(fh)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"episodes table {str(path)!r} is not UTF-8 text ({exc.reason})") from None
+    return _parse_table(text, path)
+
+
+def _parse_table(text: str, path: Path) -> list[dict[str, Any]]:
+    """The parsed rows of the text of an ``episodes.csv`` (``path`` names it in errors)."""
+    try:
+        reader = csv.DictReader(io.StringIO(text, newline=""))
         missing = {"agent", "seed"} - set(reader.fieldnames or ())
         if missing:
             raise ValueError(f"{path}: missing column(s) {sorted(missing)}")
@@ -111,33 +122,128 @@ def read_episodes_csv(path: str | Path) -> list[dict[str, Any]]:
             row = {k: _parse_value(k, v) for k, v in line.items() if k is not None}
             row.setdefault("error", "")
             rows.append(row)
+    except (csv.Error, ValueError) as exc:
+        if str(path) in str(exc):
+            raise
+        raise ValueError(f"episodes table {str(path)!r}: {exc}") from None
     if not rows:
         raise ValueError(f"{path} holds no episodes")
     return rows
 
 
-def load_results(results_dir: str | Path) -> Results:
-    """Load ``episodes.csv`` and ``config.yaml`` of a results folder.
+def _disagreement(found: list[dict[str, Any]], expected: list[dict[str, Any]]) -> str | None:
+    """How the table's rows differ from the records' (its rows, agents and seeds, then
+    each value of a column both have), or ``None``."""
 
-    A table written before the tolerance-aware columns existed
+    def key(r: dict[str, Any]) -> tuple[str, int]:
+        return r["agent"], r["seed"]
+
+    def describe(rows: list[dict[str, Any]]) -> str:
+        agents, seeds = {r["agent"] for r in rows}, {r["seed"] for r in rows}
+        return f"{len(rows)} rows of {len(agents)} agents and {len(seeds)} seeds"
+
+    if sorted(map(key, found)) != sorted(map(key, expected)):
+        return f"holds {describe(found)}, the episode records {describe(expected)}"
+    mine = {key(r): r for r in expected}
+    for row in found:
+        theirs = mine[key(row)]
+        for column, value in row.items():
+            other = theirs.get(column, value)
+            if value != other and not (_is_nan(value) and _is_nan(other)):
+                return f"differs from the records in {column} of {row['agent']}, seed {row['seed']}"
+    return None
+
+
+def _is_nan(value: Any) -> bool:
+    return isinstance(value, float) and math.isnan(value)
+
+
+def _trusted_rows(directory: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The rows of the folder's table, checked against its episode records, and the records.
+
+    Without records (a table alone) the table is read as it is. Where the table is missing,
+    not text, or disagrees with the records (rows, agents, seeds, values), its rows are
+    rebuilt from the records: with one warning naming it, and the file rewritten, unless a
+    run still writes the folder (whose table lags its records by design).
+    """
+    from experiments.evaluation.storage import folder_in_use, saved_records, table_text, warn
+
+    table = directory / "episodes.csv"
+    records = saved_records(directory)
+    if not records:
+        return read_episodes_csv(table), records
+    expected = _parse_table(table_text(directory), table)
+    try:
+        problem = _disagreement(read_episodes_csv(table), expected)
+    except (OSError, ValueError) as exc:  # missing, not text, not a table
+        problem = " ".join(str(exc).split())
+    if problem is None or folder_in_use(directory) is not None:
+        return expected if problem else read_episodes_csv(table), records
+    warn(
+        f"episodes table {str(table)!r} {problem}; rebuilt from the {len(records)} episode "
+        f"records in {str(directory / 'episodes')!r}"
+    )
+    try:
+        write_table(directory)
+    except OSError as exc:
+        warn(f"episodes table {str(table)!r} cannot be rewritten ({exc.strerror or exc})")
+    return expected, records
+
+
+def _checked_config(directory: Path, records: list[dict[str, Any]]) -> dict[str, Any]:
+    """The config the folder's episodes ran with, as plain data: its ``config.yaml``, or,
+    when that was edited after the run, the config the records hold (with one warning
+    naming the fields).
+
+    Raises:
+        ValueError: ``config.yaml`` is not the episodes' config and their records (written
+            by an earlier version) do not hold it.
+    """
+    from experiments.evaluation.storage import edited_config, warn
+
+    config_path = directory / "config.yaml"
+    problem = edited_config(directory, records)
+    if problem is None:
+        return load_yaml(config_path)
+    ran = next((r["config"] for r in records if isinstance(r.get("config"), dict)), None)
+    if ran is None:
+        raise ValueError(
+            f"results folder {str(directory)!r}: {problem}; restore config.yaml to report it"
+        )
+    warn(f"results folder {str(directory)!r}: {problem}; the report uses the episodes' config")
+    return ran
+
+
+def load_results(results_dir: str | Path) -> Results:
+    """Load ``episodes.csv`` and ``config.yaml`` of a results folder, checked against its
+    episode records (``episodes/*.json``).
+
+    The table must hold the records' rows (agents, seeds, values); one that is missing, cut
+    short, not text or of other rows is rebuilt from them, with one warning naming it. The
+    config is ``config.yaml`` if it is the config the records ran with; if it was edited
+    after the run, the config the records hold (one warning names the fields). A table
+    written before the tolerance-aware columns existed
     (``{g}_violation_steps_over_{t:g}``, see :func:`~experiments.evaluation.columns.row_columns`)
     gets them from the saved trajectories where those exist; episodes without one keep
     them missing (NaN), and the report leaves such metrics out.
 
     Raises:
-        FileNotFoundError: if the folder, its ``episodes.csv`` or its ``config.yaml`` is
-            missing (the message names the path).
-        ValueError: if the table holds no episodes.
+        FileNotFoundError: if the folder, its ``config.yaml`` or (without records) its
+            ``episodes.csv`` is missing (the message names the path).
+        ValueError: if the table holds no episodes or cannot be read (naming it), or
+            ``config.yaml`` was edited and the records (of an earlier version) do not hold
+            the config they ran with.
     """
     directory = Path(results_dir)
     if not directory.is_dir():
         problem = "is a file, not a folder" if directory.exists() else "does not exist"
         raise FileNotFoundError(f"results folder {directory} {problem}")
-    rows = read_episodes_csv(directory / "episodes.csv")
     config_path = directory / "config.yaml"
     if not config_path.is_file():
+        read_episodes_csv(directory / "episodes.csv")  # (a missing or empty table first)
         raise FileNotFoundError(f"no config.yaml in {directory} (needed for dt and the system)")
-    experiment = load_config(config_path)  # the folder's config, read once
+    rows, records = _trusted_rows(directory)
+    experiment = load_config(_checked_config(directory, records))  # read once
     agents_section = to_dict(experiment.agents)
     results = Results(directory, rows, experiment.env, agents_section, experiment=experiment)
     _complete_tolerance_columns(results)

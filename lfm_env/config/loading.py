@@ -218,6 +218,54 @@ def _convert(value: Any, tp: Any, key: str) -> Any:
     raise TypeError(f"unsupported config type {tp!r} for {key}")  # a bug, not user input
 
 
+#: What :func:`from_dict` reads a config field's value into, for the message of a refused one.
+SUPPORTED_ANNOTATIONS = (
+    "bool, int, float, str, tuple[float, ...] (any length) or tuple[float, float] (fixed; of "
+    "any of these), a nested config dataclass, and any of them | None"
+)
+
+
+def _annotation_supported(tp: Any) -> bool:
+    """Whether :func:`_convert` reads a plain value into the annotation ``tp``."""
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        return all(a is type(None) or _annotation_supported(a) for a in typing.get_args(tp))
+    if dataclasses.is_dataclass(tp):
+        return True
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if len(args) == 2 and args[1] is Ellipsis:
+            args = args[:1]
+        return bool(args) and all(_annotation_supported(a) for a in args)
+    return tp in _SCALARS
+
+
+def annotation_problem(cls: type, seen: tuple[type, ...] = ()) -> str | None:
+    """Why a config file cannot be read into the dataclass ``cls`` (a field whose
+    annotation :func:`from_dict` does not read, named ``Class.field``, nested sections
+    included), else ``None``."""
+    try:
+        hints = typing.get_type_hints(cls)
+    except Exception as exc:  # an annotation that does not resolve
+        return f"{cls.__name__}: its annotations do not resolve ({type(exc).__name__}: {exc})"
+    for f in dataclasses.fields(cls):
+        if not f.init:
+            continue
+        tp = hints.get(f.name)
+        if not _annotation_supported(tp):
+            shown = getattr(tp, "__name__", None) if typing.get_origin(tp) is None else None
+            return (
+                f"{cls.__name__}.{f.name} is annotated {shown or tp!s}, which a config file "
+                f"cannot be read into; annotate it with one of: {SUPPORTED_ANNOTATIONS}"
+            )
+        inner = [tp, *typing.get_args(tp)]
+        for section in (a for a in inner if dataclasses.is_dataclass(a) and a not in seen):
+            problem = annotation_problem(section, (*seen, cls))
+            if problem is not None:
+                return problem
+    return None
+
+
 def _convert_optional(value: Any, args: tuple, key: str) -> Any:
     """``None`` where the type allows it, else the value as the first of the union's other
     types that takes it (``float | str``: a number, else a text), else the first type's
@@ -457,6 +505,8 @@ class FieldChecker:
 show_value = _show
 
 __all__ = [
+    "SUPPORTED_ANNOTATIONS",
+    "annotation_problem",
     "MAX_CONFIG_BYTES",
     "MAX_CONFIG_DEPTH",
     "MAX_CONFIG_VALUES",

@@ -30,9 +30,16 @@ from typing import Any
 import gymnasium as gym
 from gymnasium.envs.registration import WrapperSpec
 
-from lfm_env.config.loading import ConfigError, from_dict, load_yaml, show_value
+from lfm_env.config.loading import (
+    ConfigError,
+    annotation_problem,
+    from_dict,
+    load_yaml,
+    show_value,
+)
 from lfm_env.config.presets import config_path
 from lfm_env.validation import one_line
+from lfm_env.working_folder import import_named
 
 #: The world a config means when it names none: the paper's case study.
 DEFAULT_ENV_ID = "lfm_env/SineTrack-v0"
@@ -73,8 +80,12 @@ class WorldSpec:
 
     @property
     def config_class(self) -> type:
-        """The config dataclass (imported on first use)."""
-        return _load(self.config)
+        """The config dataclass (imported on first use, and then checked as
+        :func:`register_world` checks a class)."""
+        cls = _load(self.config)
+        if isinstance(self.config, str):
+            _check_config_class(cls, self.env_id)
+        return cls
 
     @property
     def env_class(self) -> type:
@@ -117,7 +128,9 @@ def register_world(env_id: str, config: Any, env: Any, module: str | None = None
 
     Raises:
         ValueError: for an id that is not a non-empty string, holds a ``:``, or is
-            registered already to other classes.
+            registered already to other classes; for a config class with a field that a
+            config file cannot be read into (named ``Class.field``, e.g. one annotated with a
+            bare ``tuple``: write ``tuple[float, ...]``).
     """
     if not isinstance(env_id, str) or not env_id.strip():
         raise ValueError(f"register_world: env_id={env_id!r} must be a non-empty string")
@@ -130,6 +143,8 @@ def register_world(env_id: str, config: Any, env: Any, module: str | None = None
         module = _caller_module()
     if module is not None and (module == "lfm_env" or module.startswith("lfm_env.")):
         module = None  # the built-in worlds: import lfm_env registers them
+    if not isinstance(config, str):
+        _check_config_class(config, env_id)
     spec = WorldSpec(env_id, config, env, module)
     known = WORLDS.get(env_id)
     if known is not None and replace(known, module=None) != replace(spec, module=None):
@@ -146,27 +161,40 @@ def register_world(env_id: str, config: Any, env: Any, module: str | None = None
     return spec
 
 
+def _check_config_class(cls: Any, env_id: str) -> None:
+    """Refuse a world's config class that a config file cannot be read into, naming the
+    field (a bare ``tuple`` would run its episodes and then fail every reader of the folder's
+    ``config.yaml``)."""
+    if cls in _CHECKED:
+        return
+    if not (isinstance(cls, type) and dataclasses.is_dataclass(cls)):
+        raise ValueError(
+            f"register_world({env_id!r}): config={cls!r} must be a WorldConfig dataclass "
+            "(or 'module:Class')"
+        )
+    problem = annotation_problem(cls)
+    if problem is not None:
+        raise ValueError(f"register_world({env_id!r}): {problem}")
+    _CHECKED.add(cls)
+
+
+_CHECKED: set[type] = set()  # config classes checked already
+
+
 def import_world_module(module: str, env_id: str = "") -> None:
     """Import the module that registers a world (the ``module`` of ``module:EnvId``).
 
     As ``gym.make`` does, the module is imported as Python finds it; a module that Python
-    does not find is looked for in the working folder too (as ``python -m`` would), so a
-    ``mine.py`` beside the config works from a console script.
+    does not find is looked for in the working folder too, by its name and last
+    (:func:`lfm_env.working_folder.import_named`), so a ``mine.py`` beside the config works
+    from a console script while a ``random.py`` there never shadows the real one.
 
     Raises:
         ConfigError: naming the env id and the module, when it cannot be imported.
     """
     what = f"env_id={show_value(f'{module}:{env_id}' if env_id else module)}"
     try:
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError as exc:
-            top = module.partition(".")[0]
-            cwd = os.getcwd()
-            if exc.name not in (module, top) or cwd in sys.path or "" in sys.path:
-                raise
-            sys.path.append(cwd)  # last: never shadows an installed module
-            importlib.import_module(module)
+        import_named(module)  # (the working folder too, last, and that module alone)
     except ConfigError:
         raise
     except Exception as exc:

@@ -346,18 +346,22 @@ def test_a_fast_solver_horizon_beyond_its_practical_bound_is_refused_up_front():
 
     with pytest.raises(ConfigError, match=rf"agents.horizon=100: must be <= {FAST_MAX_HORIZON}"):
         load_config({"agents": {"horizon": 100, "solver": "fast"}})
-    assert load_config({"agents": {"horizon": FAST_MAX_HORIZON}}).agents.horizon == 40
+    assert FAST_MAX_HORIZON == 50  # (measured to work with real-time iterations: docs/solvers.md)
+    assert load_config({"agents": {"horizon": FAST_MAX_HORIZON}}).agents.horizon == 50
 
 
 @pytest.mark.slow
 def test_horizon_60_ipopt_step_ends_within_the_solve_time_limit():
     """Issue 15, case 5: long horizons took minutes for one MPC step; now one step ends after
-    agents.max_solve_time (plus one iteration), with a failed solve and a fallback."""
+    agents.max_solve_time (plus one iteration), with an unconverged solve whose plan is applied
+    only when usable (else the fallback)."""
     cfg = {
         "env": {"max_steps": 2},
         "agents": {"horizon": 60, "max_solve_time": 0.05, "solver": "ipopt"},
     }
     _, _, est = run("nominal", cfg, max_steps=1)
     assert est[0]["status"] == "Maximum_WallTime_Exceeded"
-    assert est[0]["fallback"] == "fallback"
+    assert not est[0]["success"]
+    # A stopped solve below its warm start is applied (usable); anything else falls back.
+    assert est[0]["fallback"] == ("" if est[0]["usable"] else "fallback")
     assert est[0]["solve_time"] < 60.0  # generous: 2 s plus one iteration

@@ -301,10 +301,61 @@ def test_the_command_line(tmp_path, capsys):
         export_main(["--agent", "oracle", "--out", str(tmp_path / "x")])
 
 
-def test_a_feedback_agent_is_not_exported(tmp_path):
-    """The C controller plans open loop only: an agent with agents.prediction feedback is
-    refused by name, and nothing is written."""
+FEEDBACK = dict(np.load(REPO / "tests" / "data" / "feedback_problems.npz"))
+
+
+def _feedback_python(agent_name: str):
     config = load_config("paper", ["agents.prediction=feedback"])
-    with pytest.raises(ValueError, match="agents.prediction 'feedback' is not exported"):
-        export_controller(config, "robust", tmp_path / "out")
-    assert not (tmp_path / "out").exists()
+    agent = make_agent(agent_name, config)
+    options = dataclasses.asdict(solver_options(agent.settings))
+    return config, agent, make_solver(agent.problem, "fast", **options)
+
+
+def test_a_feedback_scenario_agents_export_plans_as_the_python_loop(tmp_path):
+    """The paper's scenario agent with agents.prediction feedback: the export's solve (the
+    open-loop reference, the TV-LQR law and the feedback SQP, all in C) gives the nominal
+    plan of the Python loop's native feedback solve, on the recorded feedback problems of
+    N = 7 (the same x0 for every scenario)."""
+    config, agent, solver = _feedback_python("scenario")
+    out = tmp_path / "scenario_feedback"
+    result = export_controller(config, "scenario", out, config_name="paper_feedback")
+    assert result.dimensions["N"] == FEEDBACK["paper_n7_horizon"]
+    _make(out)
+    assert "#define LFM_FEEDBACK_PREDICTION 1" in (out / "lfm_config.h").read_text()
+    problem = agent.problem
+    for i, (x0, W) in enumerate(zip(FEEDBACK["paper_n7_x0"], FEEDBACK["paper_n7_W"], strict=True)):
+        path = tmp_path / f"problem{i}.txt"
+        write_problem(path, x0[0], W)
+        done = _example(out, str(path))
+        solver.reset()
+        sol = solver.solve(x0[0], W)
+        assert sol.extra["reference"] == "open_loop_solve"
+        assert done.returncode == (0 if sol.success else 1), done.stderr
+        plan = read_plan(done.stdout, problem.horizon, problem.nu)
+        tol = PLAN_TOL if sol.slack <= 1e-6 else PLAN_TOL_SLACK
+        np.testing.assert_allclose(plan, sol.nominal_u, rtol=0, atol=tol)
+
+
+def test_the_exported_feedback_robust_step_is_the_python_agents_step(tmp_path):
+    """The robust agent with agents.prediction feedback, its whole step exported (UKF, mean
+    forecast, back-off, the law and the solve in C), against the Python agent with the same
+    QP solver over a paper episode: the same inputs."""
+    config, agent, solver = _feedback_python("robust")
+    out = tmp_path / "robust_feedback"
+    assert export_controller(config, "robust", out, config_name="paper_feedback").step_available
+    _make(out)
+    agent.solver = solver
+    env = gym.make(config.env_id, config=config.env)
+    controller = ExportedController(out)
+    obs, _ = env.reset(seed=1)
+    agent.reset(seed=1)
+    controller.reset(1)
+    for _ in range(30):
+        u = agent.act(obs)
+        u_c, status = controller.step(obs)
+        assert status == agent.last_info["status"]
+        np.testing.assert_allclose(u_c, u, rtol=0, atol=PLAN_TOL)
+        assert controller.info()["action"] == "plan"
+        obs, _, terminated, truncated, _ = env.step(u)
+        if terminated or truncated:
+            break

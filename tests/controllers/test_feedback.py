@@ -23,7 +23,9 @@ from controllers.feedback_law import (
     tvlqr_gains,
 )
 from controllers.problem import EulerModel, MPCSolution, ScenarioProblem
-from controllers.solvers import make_solver
+from controllers.solvers import make_solver, solver_spec
+from controllers.solvers.fast.compiled import CompiledScenarioSolver
+from controllers.solvers.fast.solver import FastScenarioSolver
 from controllers.solvers.feedback import (
     FeedbackScenarioSolver,
     augmented_data,
@@ -247,13 +249,18 @@ def test_the_rewrite_has_the_feedback_objective(quadrotor_feedback) -> None:
 # ----------------------------------------------------------------------------- solvers
 
 
-def test_every_registered_solver_builds_the_rewrite_and_keeps_its_protocol() -> None:
+@pytest.mark.parametrize("native", [True, False])
+def test_the_fast_solver_and_the_rewrite_keep_the_solvers_protocol(native) -> None:
     problem = cart_problem(n=5, ns=4)
-    solver = make_solver(problem, "fast")
-    assert isinstance(solver, FeedbackScenarioSolver)
-    assert solver.augmented.prediction == "open_loop"
-    assert isinstance(solver.augmented.model, EulerModel)
-    assert solver.augmented.nx == 3 and solver.augmented.ng == 3
+    if native:  # make_solver's: the fast SQP on the feedback problem itself
+        solver = make_solver(problem, "fast")
+        assert isinstance(solver, FastScenarioSolver) and solver.condensed.feedback
+    else:  # the exact rewrite every other solver runs through
+        solver = FeedbackScenarioSolver(problem, solver_spec("fast"))
+        assert solver.augmented.prediction == "open_loop"
+        assert isinstance(solver.augmented.model, EulerModel)
+        assert solver.augmented.nx == 3 and solver.augmented.ng == 3
+        assert isinstance(make_solver(problem, "ipopt"), FeedbackScenarioSolver)
     rng = np.random.default_rng(0)
     x0, W = np.array([0.0, 0.0]), rng.normal(0.0, 0.5, (4, 5))
     first = solver.solve(x0, W)
@@ -372,7 +379,8 @@ def test_the_config_gives_every_scenario_agent_the_feedback_prediction(config, a
     cfg = dataclasses.replace(cfg, agents=agents)
     built = make_agent(agent, cfg)
     assert built.problem.prediction == "feedback"
-    assert isinstance(built.solver, FeedbackScenarioSolver)
+    # the agents' default solver, fast_c, solves the feedback problem natively
+    assert isinstance(built.solver, CompiledScenarioSolver) and built.solver.feedback
     env = gym.make(cfg.env_id, config=cfg.env)
     try:
         infos = _check_feedback_steps(built, env, steps=6)

@@ -4,6 +4,7 @@ agents.rl_policy, and runs in the same evaluation as the MPC agents."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import gymnasium as gym
@@ -123,6 +124,13 @@ def test_damaged_policy_names_the_field(policy, tmp_path):
     for suffix in (".npz", ".json"):
         shutil.copy(policy.replace(".zip", suffix), tmp_path / f"policy{suffix}")
     (tmp_path / "policy.zip").write_bytes(b"not a zip")
+    # Not the archive its set recorded: refused before it is opened.
+    with pytest.raises(ConfigError, match=r"agents\.rl_policy=.*policy\.zip does not match"):
+        make_agent("rl", config_with(str(tmp_path / "policy.zip")))
+    # A set written before the files' SHA-256 were recorded: the archive itself is refused.
+    summary = json.loads((tmp_path / "policy.json").read_text())
+    del summary["files"]
+    (tmp_path / "policy.json").write_text(json.dumps(summary))
     with pytest.raises(ConfigError, match=r"agents\.rl_policy=.*cannot be loaded as ppo"):
         make_agent("rl", config_with(str(tmp_path / "policy.zip")))
 

@@ -95,3 +95,21 @@ class InterruptedAgent(_OnOneSeed):
 
     def misbehave(self) -> None:
         raise KeyboardInterrupt
+
+
+class AbortingAgent(_OnOneSeed):
+    """Dies of SIGABRT (``abort()`` in a native library, e.g. a failed assertion)."""
+
+    name = "aborting"
+
+    def misbehave(self) -> None:
+        os.abort()
+
+
+class QuittingAgent(_OnOneSeed):
+    """Ends its process with exit code 3 (``os._exit`` in a library, no cleanup)."""
+
+    name = "quitting"
+
+    def misbehave(self) -> None:
+        os._exit(3)

@@ -1384,7 +1384,8 @@ def test_library_code_loads_nothing_unsafely():
     sources = {p.relative_to(REPO).as_posix(): p.read_text() for p in LIBRARY_FILES}
     config_source = sources["lfm_env/config/loading.py"]
     assert "yaml.safe_load(fh)" in config_source or "yaml.SafeLoader(" in config_source
-    assert "np.load(path, allow_pickle=False)" in sources["experiments/evaluation/storage.py"]
+    storage = sources["experiments/evaluation/storage.py"]
+    assert "np.load(io.BytesIO(content), allow_pickle=False)" in storage
     # The report reads episodes (experiments.report.results) through the evaluation's checked
     # loader.
     assert (

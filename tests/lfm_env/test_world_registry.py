@@ -53,10 +53,17 @@ def test_a_module_is_found_in_the_working_folder_too(own_world, tmp_path, monkey
         "class Env(UnicycleEnv):\n    CONFIG = Config\n"
         "register_world('Mine/Fallback-v0', Config, Env)\n"
     )
+    (tmp_path / "json.py").write_text("raise ImportError('the working folder json.py')\n")
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", str(tmp_path))])
     assert world_spec("fallback_world:Mine/Fallback-v0").module == "fallback_world"
-    assert sys.path[-1] == str(tmp_path)  # appended last: never shadows an installed module
+    # That module alone, last: the folder is not on sys.path, and its json.py (a standard
+    # module's name) is never imported.
+    assert str(tmp_path) not in sys.path
+    assert sys.modules["fallback_world"].__file__ == str(tmp_path / "fallback_world.py")
+    with pytest.raises(ConfigError, match="registered no world"):
+        world_spec("json:Mine/Other-v0")
+    sys.modules.pop("fallback_world", None)
 
 
 @pytest.mark.parametrize(
@@ -78,3 +85,29 @@ def test_register_world_refuses_a_bad_id(env_id):
 
     with pytest.raises(ValueError, match="register_world: env_id="):
         register_world(env_id, SineTrackConfig, "lfm_env.worlds.sine_track.env:SineTrackEnv")
+
+
+@pytest.mark.parametrize("annotation", ["tuple", "list", "list[float]", "dict", "object"])
+def test_a_config_field_no_file_can_be_read_into_is_refused_at_registration(annotation):
+    """A world config with a bare ``tuple`` annotation registered and ran its episodes, then
+    crashed ``lfm-report`` reading its ``config.yaml`` (``TypeError: unsupported config type
+    <class 'tuple'> for env.initial_state``, a traceback calling itself a bug). Now
+    ``register_world`` refuses it, naming the class, the field and the annotations a file
+    can be read into."""
+    import dataclasses
+
+    from lfm_env.worlds.sine_track.config import SineTrackConfig
+
+    namespace: dict = {}
+    exec(f"kind = {annotation}", namespace)  # the annotation object itself
+    bare = dataclasses.make_dataclass(
+        "BareConfig",
+        [("extra_state", namespace["kind"], dataclasses.field(default=None))],
+        bases=(SineTrackConfig,),
+        frozen=True,
+    )
+    env_id = f"Bare/Annotation{len(WORLDS)}-v0"
+    with pytest.raises(ValueError, match=r"BareConfig\.extra_state") as exc:
+        register_world(env_id, bare, "lfm_env.worlds.sine_track.env:SineTrackEnv")
+    assert "tuple[float, ...]" in str(exc.value)
+    assert env_id not in WORLDS and env_id not in gym.registry

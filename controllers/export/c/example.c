@@ -8,16 +8,23 @@
                                      the controller's whole step on each measurement (rows of
                                      LFM_NX numbers), from a reset with seed 0; prints one line
                                      of LFM_NU numbers per step
-     --time K                        (either mode) repeats it K times and prints the median
-                                     and 95th percentile of one solve or step in microseconds
-                                     to stderr: "time_us median p95"
-   Exit status 0 on success, 1 when a solve did not succeed, 2 on bad arguments or input. */
+     --time K                        (either mode) repeats it K times (1 <= K <= 1000000)
+                                     and prints the median and 95th percentile of one solve
+                                     or step in microseconds to stderr: "time_us median p95"
+   A problem that is not solved prints nothing on stdout (its status on stderr); a step
+   prints the input it applies, the fallback input for a measurement with a NaN or infinite
+   number. Exit status 0 on success, 1 when a solve did not succeed, 2 on bad arguments or
+   input (a NaN or infinite number in a problem). */
+#include <errno.h>
+#include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 #include <time.h>
 
 #include "lfm_controller.h"
+
+#define MAX_REPEATS 1000000L /* --time K at most */
 
 static double now(void) {
   struct timespec t;
@@ -62,6 +69,10 @@ static int run_problem(lfm_controller* c, FILE* f, long repeats) {
     return 2;
   }
   double* t = malloc(sizeof(double) * (size_t)(repeats > 0 ? repeats : 1));
+  if (!t) {
+    fprintf(stderr, "example: out of memory\n");
+    return 2;
+  }
   int status = 0;
   for (long r = 0; r < (repeats > 0 ? repeats : 1); ++r) {
     lfm_controller_reset(c, 0);
@@ -71,11 +82,15 @@ static int run_problem(lfm_controller* c, FILE* f, long repeats) {
   }
   if (repeats > 0) report_time(t, repeats);
   free(t);
-  for (int k = 0; k < LFM_N; ++k) print_row(plan + k * LFM_NU, LFM_NU);
-  if (status != LFM_SOLVED && status != LFM_ACCEPTABLE) {
+  if (status == LFM_BAD_INPUT) {
+    fprintf(stderr, "example: %s: a NaN or infinite number in x0 or W\n", lfm_status_name(status));
+    return 2;
+  }
+  if (status != LFM_SOLVED && status != LFM_ACCEPTABLE) { /* no plan on stdout */
     fprintf(stderr, "example: %s\n", lfm_status_name(status));
     return 1;
   }
+  for (int k = 0; k < LFM_N; ++k) print_row(plan + k * LFM_NU, LFM_NU);
   return 0;
 }
 
@@ -96,8 +111,19 @@ static int run_steps(lfm_controller* c, FILE* f, long repeats) {
     return 2;
   }
   const long passes = repeats > 0 ? repeats : 1;
-  double* t = malloc(sizeof(double) * (size_t)(passes * rows));
+  /* (passes <= MAX_REPEATS: the product below fits; a size too large fails malloc) */
+  if ((size_t)rows > SIZE_MAX / sizeof(double) / (size_t)passes) {
+    fprintf(stderr, "example: --time %ld times %ld measurements is too many\n", passes, rows);
+    free(y);
+    return 2;
+  }
+  double* t = malloc(sizeof(double) * (size_t)passes * (size_t)rows);
   double* u = malloc(sizeof(double) * LFM_NU * (size_t)rows);
+  if (!t || !u) {
+    fprintf(stderr, "example: out of memory\n");
+    free(y), free(t), free(u);
+    return 2;
+  }
   int status = 0, failed = 0;
   for (long p = 0; p < passes; ++p) {
     lfm_controller_reset(c, 0);
@@ -124,16 +150,24 @@ int main(int argc, char** argv) {
   int steps = 0;
   const char* path = NULL;
   for (int a = 1; a < argc; ++a) {
-    if (!strcmp(argv[a], "--time") && a + 1 < argc)
-      repeats = strtol(argv[++a], NULL, 10);
-    else if (!strcmp(argv[a], "--steps"))
+    if (!strcmp(argv[a], "--time") && a + 1 < argc) {
+      const char* text = argv[++a];
+      char* end = NULL;
+      errno = 0;
+      repeats = strtol(text, &end, 10);
+      if (errno || end == text || *end || repeats < 1 || repeats > MAX_REPEATS) {
+        fprintf(stderr, "example: --time %s: must be a whole number from 1 to %ld\n", text,
+                MAX_REPEATS);
+        return 2;
+      }
+    } else if (!strcmp(argv[a], "--steps"))
       steps = 1;
     else if (argv[a][0] == '-' && argv[a][1])
       path = NULL, a = argc;
     else
       path = argv[a];
   }
-  if (!path || repeats < 0) {
+  if (!path) {
     fprintf(stderr, "usage: %s [--time K] PROBLEM.txt | %s [--time K] --steps MEASUREMENTS.txt\n",
             argv[0], argv[0]);
     return 2;

@@ -16,8 +16,6 @@
 #include "lfm_internal.h"
 
 #define CFG (&lfm_exported_config)
-#define N_STATS 32
-#define LFM_STAT_START_MERIT 16 /* sqp.c's ST_START_MERIT: the warm start's merit */
 
 struct lfm_controller {
   lfm_sqp* sqp;
@@ -31,7 +29,7 @@ struct lfm_controller {
   double plan[LFM_N * LFM_NU];
   long plan_at; /* the plan's next input; LFM_N: none left */
   double u_prev[LFM_NU];
-  double stats[N_STATS];
+  double stats[ST_COUNT]; /* sqp_interface.h */
   lfm_info info;
 };
 
@@ -90,7 +88,7 @@ lfm_controller* lfm_controller_new(void) {
   lfm_controller* c = calloc(1, sizeof(lfm_controller));
   if (!c) return NULL;
   c->sqp = lfm_sqp_new(&CFG->problem, &CFG->options);
-  if (!c->sqp || lfm_sqp_stats_count() > N_STATS) {
+  if (!c->sqp || lfm_sqp_stats_count() != ST_COUNT) {
     lfm_sqp_free(c->sqp);
     free(c);
     return NULL;
@@ -144,11 +142,10 @@ static void ukf_start(lfm_controller* c, const double* y) {
 
 /* The unscented prediction through one step with the input u (UnscentedKalmanFilter.predict):
    2 d + 1 sigma points mean +- sqrt(d) S_j, the physical step of each by the generated
-   library (lfm_rollout over the points) and z+ = A z; 0, or 1 if the factor failed. */
+   library (lfm_step_points) and z+ = A z; 0, or 1 if the factor failed. */
 static int ukf_predict(lfm_controller* c, const double* u) {
   enum { D = LFM_D, K = 2 * LFM_D + 1 };
   double S[D * D], pts[D * K], xT[LFM_NX * K], Wp[LFM_NW * K], X[2 * LFM_NX * K];
-  double G[LFM_NG * K + 1], cost;
   if (psd_factor(c->cov, S)) return 1;
   const double root = sqrt((double)D);
   for (int i = 0; i < K; ++i) {
@@ -163,7 +160,7 @@ static int ukf_predict(lfm_controller* c, const double* u) {
       Wp[a * K + i] = w;
     }
   }
-  if (lfm_rollout(1, K, xT, Wp, K, K, 1, u, CFG->goal, CFG->weights, X, G, &cost, 1)) return 1;
+  if (lfm_step_points(K, xT, Wp, u, X)) return 1;
   double moved[D * K];
   for (int i = 0; i < K; ++i) {
     for (int m = 0; m < LFM_NX; ++m) moved[m * K + i] = X[(LFM_NX + m) * K + i];
@@ -364,18 +361,26 @@ static int backoff(lfm_controller* c) {
 
 /* ------------------------------------------------------------------ solves and steps */
 
+/* The API's successes are the solver's (sqp_interface.h). */
+typedef char lfm_status_codes_agree[LFM_SOLVED == SQ_SUCCEEDED && LFM_ACCEPTABLE == SQ_ACCEPTABLE
+                                        ? 1 : -1];
+
 static int solve(lfm_controller* c, const double* bk) {
   const double t0 = now();
   const int status = lfm_sqp_solve(c->sqp, c->x0, c->W, NULL, bk, c->plan, NULL, c->stats);
+#if LFM_FEEDBACK_PREDICTION
+  /* a feedback plan: the agent keeps its nominal inputs (the first is v_0, the input applied) */
+  if (status != SQ_OUT_OF_MEMORY && isfinite(c->plan[0])) lfm_sqp_law(c->sqp, NULL, NULL, c->plan);
+#endif
   c->info.solve_time = now() - t0;
   c->info.status = status;
   c->info.success = status == LFM_SOLVED || status == LFM_ACCEPTABLE;
   /* usable (MPCSolution.usable): converged, or a finite merit below the warm start's */
   c->info.usable = c->info.success ||
-                   (isfinite(c->stats[0]) && c->stats[0] < c->stats[LFM_STAT_START_MERIT]);
-  c->info.objective = c->stats[0];
-  c->info.slack = c->stats[1];
-  c->info.iterations = (long)c->stats[2];
+                   (isfinite(c->stats[ST_MERIT]) && c->stats[ST_MERIT] < c->stats[ST_START_MERIT]);
+  c->info.objective = c->stats[ST_MERIT];
+  c->info.slack = c->stats[ST_SLACK];
+  c->info.iterations = (long)c->stats[ST_ITERATIONS];
   return status;
 }
 
@@ -385,8 +390,19 @@ static int all_finite(const double* a, long n) {
   return 1;
 }
 
+/* No plan (bad input, or no step exported): the fallback input, recorded as such. */
+static void no_plan(lfm_controller* c, int status, double* u) {
+  c->info.status = status, c->info.success = 0, c->info.usable = 0;
+  c->info.action = LFM_FROM_FALLBACK;
+  c->plan_at = LFM_N;
+  memcpy(u, CFG->fallback_input, sizeof(double) * LFM_NU);
+}
+
 int lfm_controller_solve(lfm_controller* c, const double* x0, const double* W, double* plan) {
-  if (!all_finite(x0, LFM_NX) || !all_finite(W, (long)LFM_NS * LFM_N * LFM_NW)) return LFM_BAD_INPUT;
+  if (!all_finite(x0, LFM_NX) || !all_finite(W, (long)LFM_NS * LFM_N * LFM_NW)) {
+    for (long k = 0; k < LFM_N; ++k) no_plan(c, LFM_BAD_INPUT, plan + k * LFM_NU);
+    return LFM_BAD_INPUT;
+  }
   for (long i = 0; i < LFM_NS; ++i) memcpy(c->x0 + i * LFM_NX, x0, sizeof(double) * LFM_NX);
   memcpy(c->W, W, sizeof(c->W));
   c->has_backoff = 0;
@@ -422,8 +438,17 @@ static void choose(lfm_controller* c, double* u, const double* last, long last_a
 }
 
 int lfm_controller_step(lfm_controller* c, const double* y, double* u) {
-  if (CFG->estimator == LFM_ESTIMATOR_OTHER) return LFM_NO_STEP;
-  if (!all_finite(y, LFM_NX)) return LFM_BAD_INPUT;
+  if (CFG->estimator == LFM_ESTIMATOR_OTHER) {
+    no_plan(c, LFM_NO_STEP, u);
+    return LFM_NO_STEP;
+  }
+  if (!all_finite(y, LFM_NX)) { /* the fallback input; the estimate moves one step on */
+    if (CFG->estimator != LFM_ESTIMATOR_NONE && c->started && ukf_predict(c, c->u_prev))
+      c->started = 0; /* (a failed factor: the next measurement starts it again) */
+    no_plan(c, LFM_BAD_INPUT, u);
+    memcpy(c->u_prev, u, sizeof(c->u_prev));
+    return LFM_BAD_INPUT;
+  }
   const double t0 = now();
   estimate(c, y);
   double last[LFM_N * LFM_NU];
@@ -461,11 +486,7 @@ void lfm_controller_estimate(const lfm_controller* c, double* mean, double* cov)
 lfm_info lfm_controller_info(const lfm_controller* c) { return c->info; }
 
 const char* lfm_status_name(int status) {
-  static const char* names[] = {
-      "Solve_Succeeded", "Solved_To_Acceptable_Level", "Maximum_Iterations_Exceeded",
-      "Maximum_WallTime_Exceeded", "Invalid_Initial_Point", "Invalid_Derivatives",
-      "Numerical_Error", "QP_Failed", "Line_Search_Failed", "Abandoned", "Duplicate",
-      "Out_Of_Memory"};
+  static const char* names[] = LFM_SQP_STATUS_NAMES; /* sqp_interface.h */
   if (status >= 0 && status < (int)(sizeof(names) / sizeof(names[0]))) return names[status];
   if (status == LFM_NO_STEP) return "No_Step_Exported";
   if (status == LFM_BAD_INPUT) return "Bad_Input";

@@ -13,11 +13,17 @@
      plan   (LFM_N, LFM_NU)            the input sequence
      y      (LFM_NX)                   a measurement of the state, y = x + e
 
-   A typical loop:
+   A typical loop (every call of lfm_controller_step writes u, whatever it returns):
      lfm_controller* c = lfm_controller_new();
      lfm_controller_reset(c, seed);
      for (;;) { read y; lfm_controller_step(c, y, u); apply u; }
-     lfm_controller_free(c);                                                             */
+     lfm_controller_free(c);
+
+   Bad input: a NaN or infinite number in y (a sensor fault), x0 or W gives LFM_BAD_INPUT,
+   and u (every stage of the plan, for lfm_controller_solve) is the system's fallback input
+   (fallback_input in lfm_config.c), with lfm_info.action LFM_FROM_FALLBACK; the UKF's
+   estimate is carried one step ahead without the measurement, and the last plan is dropped.
+   An agent whose step is not exported (LFM_NO_STEP) gets the fallback input the same way. */
 #ifndef LFM_CONTROLLER_H
 #define LFM_CONTROLLER_H
 
@@ -36,14 +42,14 @@ typedef struct lfm_controller lfm_controller;
 #define LFM_SOLVED 0
 #define LFM_ACCEPTABLE 1
 #define LFM_NO_STEP (-1)      /* the agent's estimator is not exported: use lfm_controller_solve */
-#define LFM_BAD_INPUT (-2)    /* a NaN or infinite number in the arguments */
+#define LFM_BAD_INPUT (-2)    /* a NaN or infinite number in the arguments: u is the fallback */
 #define LFM_OUT_OF_MEMORY (-3)
 
 /* Where the last step's input came from. */
 #define LFM_FROM_PLAN 0          /* the first input of the new plan (a usable solve) */
 #define LFM_FROM_PREVIOUS_PLAN 1 /* no usable plan: the next input of the last good plan */
 #define LFM_FROM_FALLBACK 2      /* the solve failed and no plan was left: the system's
-                                    fallback input (lfm_config.h LFM_FALLBACK_INPUT) */
+                                    fallback input (fallback_input in lfm_config.c) */
 
 typedef struct {
   int status;          /* of the last solve */
@@ -73,13 +79,16 @@ void lfm_controller_reset(lfm_controller* c, uint64_t seed);
 /* The input u (LFM_NU) for the measurement y (LFM_NX): the agent's whole step, the estimate
    updated with y (the first measurement after a reset starts it), the scenarios built from
    it, the scenario MPC solved, and the first planned input (or, if the solve failed, the
-   last plan's next input or the fallback: lfm_info.action). Returns the solve's status, or
-   LFM_NO_STEP when the agent's estimator is not exported (LFM_STEP_AVAILABLE is 0). */
+   last plan's next input or the fallback: lfm_info.action). Returns the solve's status,
+   LFM_BAD_INPUT for a non-finite y, or LFM_NO_STEP when the agent's estimator is not exported
+   (LFM_STEP_AVAILABLE is 0); u is written in every case (the fallback input for the last
+   two). */
 int lfm_controller_step(lfm_controller* c, const double* y, double* u);
 
 /* The plan (LFM_N, LFM_NU) for the initial state x0 (LFM_NX; every scenario starts there)
    and the latent forces W (LFM_NS, LFM_N, LFM_NW), warm-started from the last plan shifted
-   by one step (from zero inputs after a reset); no back-off. Returns the status. */
+   by one step (from zero inputs after a reset); no back-off. Returns the status
+   (LFM_BAD_INPUT, with the fallback input at every stage of plan, for a non-finite x0 or W). */
 int lfm_controller_solve(lfm_controller* c, const double* x0, const double* W, double* plan);
 
 /* What the last step solved: x0 (LFM_NS, LFM_NX), W (LFM_NS, LFM_N, LFM_NW) and the

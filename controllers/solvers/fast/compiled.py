@@ -29,8 +29,12 @@ from typing import Any
 
 import numpy as np
 
+from controllers.feedback_law import FeedbackLaw
 from controllers.problem import MPCSolution, ScenarioProblem, is_usable
+from controllers.solvers.fast.closed_loop import applied_inputs
+from controllers.solvers.fast.codegen import interface
 from controllers.solvers.fast.codegen.build import CodegenUnavailable, address, load_library
+from controllers.solvers.fast.codegen.interface import SqpOptions, c_options
 from controllers.solvers.fast.codegen.source import (
     c_source,
     constraint_jacobian_pattern,
@@ -39,88 +43,16 @@ from controllers.solvers.fast.codegen.source import (
 from controllers.solvers.fast.options import FastSolverOptions
 from controllers.solvers.fast.screening import shared_linear_constraints
 
-# The statuses of sqp.c (its enum), by code.
-STATUSES = (
-    "Solve_Succeeded",
-    "Solved_To_Acceptable_Level",
-    "Maximum_Iterations_Exceeded",
-    "Maximum_WallTime_Exceeded",
-    "Invalid_Initial_Point",
-    "Invalid_Derivatives",
-    "Numerical_Error",
-    "QP_Failed",
-    "Line_Search_Failed",
-    "Abandoned",
-    "Duplicate",
-    "Out_Of_Memory",
-)
+# The statuses of sqp.c by code, and the statistics lfm_sqp_solve writes, in order (the
+# tables of codegen/interface.py, which also writes the C enums).
+STATUSES = tuple(name for _, name in interface.STATUSES)
 SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
-# The statistics lfm_sqp_solve writes, in order (sqp.c's ST_ enum).
-STATS = (
-    "merit",
-    "slack",
-    "iterations",
-    "qp_solves",
-    "qp_hard",
-    "qp_hard_rejected",
-    "qp_rows",
-    "qp_retries",
-    "qp_rounds_exhausted",
-    "soc_steps",
-    "merit_evals",
-    "first_status",
-    "first_iterations",
-    "restart_mirror",
-    "restart_straight",
-    "qp_elastic",
-    "start_merit",
-)
+STATS = tuple(name for _, name, _ in interface.STATS)
 # The C loop's QP solvers: the only choices it has (the others are Python packages).
 C_QP_SOLVERS = ("auto", "elastic_ipm")
 FALLBACK_NOTICE = "fast_c: no C library ({reason}); using the Python SQP loop"
-
-
-class SqpOptions(ctypes.Structure):
-    """``lfm_sqp_options`` of sqp.c: :class:`FastSolverOptions` field by field."""
-
-    _fields_ = [
-        ("max_iter", ctypes.c_long),
-        ("tol", ctypes.c_double),
-        ("acceptable_tol", ctypes.c_double),
-        ("acceptable_iter", ctypes.c_long),
-        ("step_tol", ctypes.c_double),
-        ("final_step_tol", ctypes.c_double),
-        ("screen_margin", ctypes.c_double),
-        ("screen_rows", ctypes.c_long),
-        ("add_tol", ctypes.c_double),
-        ("max_qp_rounds", ctypes.c_long),
-        ("armijo", ctypes.c_double),
-        ("backtrack", ctypes.c_double),
-        ("min_step", ctypes.c_double),
-        ("hessian_floor", ctypes.c_double),
-        ("slack_regularisation", ctypes.c_double),
-        ("second_order_correction", ctypes.c_long),
-        ("soc_below_ratio", ctypes.c_double),
-        ("damping_init", ctypes.c_double),
-        ("damping_threshold", ctypes.c_double),
-        ("damping_decrease", ctypes.c_double),
-        ("hessian_modification", ctypes.c_long),
-        ("elastic_on_demand", ctypes.c_long),
-        ("max_expand", ctypes.c_long),
-        ("expand_ratio", ctypes.c_double),
-        ("restart_mirror", ctypes.c_long),
-        ("restart_straight", ctypes.c_long),
-        ("restart_threshold", ctypes.c_double),
-        ("restart_probe", ctypes.c_long),
-        ("restart_optimism", ctypes.c_double),
-        ("restart_margin", ctypes.c_double),
-        ("restart_same_tol", ctypes.c_double),
-        ("restart_near_tol", ctypes.c_double),
-        ("trust_radius", ctypes.c_double),
-        ("min_trust_radius", ctypes.c_double),
-        ("threads", ctypes.c_long),
-        ("max_time", ctypes.c_double),
-    ]
+# Where a feedback solve's law came from (the C loop's ST_LAW_SOURCE), by code.
+_SOURCES = ("law", "u_guess", "previous_plan", "open_loop_solve")
 
 
 class SqpProblem(ctypes.Structure):
@@ -147,32 +79,19 @@ class SqpProblem(ctypes.Structure):
     ]
 
 
-_MODIFICATIONS = {"floor": 0, "abs": 1, "augmented": 2}
-
-
-def c_options(options: FastSolverOptions) -> SqpOptions:
-    """The C loop's options from the Python loop's (``qp_solver`` and ``restarts`` mapped)."""
-    values: dict[str, Any] = {}
-    for name, kind in SqpOptions._fields_:
-        if name == "hessian_modification":
-            values[name] = _MODIFICATIONS[options.hessian_modification]
-        elif name == "elastic_on_demand":
-            values[name] = int(options.elastic_qp == "on_demand")
-        elif name in ("restart_mirror", "restart_straight"):
-            values[name] = int(name.removeprefix("restart_") in options.restarts)
-        elif name == "second_order_correction":
-            values[name] = int(options.second_order_correction)
-        else:
-            value = getattr(options, name)
-            values[name] = float(value) if kind is ctypes.c_double else int(value)
-    return SqpOptions(**values)
-
-
 def problem_arrays(problem: ScenarioProblem) -> dict[str, np.ndarray]:
-    """The numbers of ``lfm_sqp_problem`` as contiguous arrays (the export writes the same)."""
+    """The numbers of ``lfm_sqp_problem`` as contiguous arrays (the export writes the same).
+
+    A feedback problem has no shared rows, and every row type is screened: the state
+    constraints and each input's upper and lower row (which depend on no state)."""
     system, cost = problem.system, problem.cost
-    shared, shared_rows = shared_linear_constraints(problem)
-    screened = [j for j in range(problem.ng) if j not in set(shared.tolist())]
+    depends = constraint_jacobian_pattern(system)
+    if problem.prediction == "feedback":
+        shared, shared_rows = np.zeros(0, dtype=int), np.zeros((0, problem.horizon, 0))
+        depends = np.concatenate([depends, np.zeros((2 * problem.nu, problem.nx), bool)])
+    else:
+        shared, shared_rows = shared_linear_constraints(problem)
+    screened = [j for j in range(depends.shape[0]) if j not in set(shared.tolist())]
     return {
         "input_lower": np.ascontiguousarray(problem.input_lower, dtype=float),
         "input_upper": np.ascontiguousarray(problem.input_upper, dtype=float),
@@ -183,15 +102,16 @@ def problem_arrays(problem: ScenarioProblem) -> dict[str, np.ndarray]:
         "shared": np.ascontiguousarray(shared, dtype=np.int64),
         "shared_rows": np.ascontiguousarray(shared_rows, dtype=float),
         "screened": np.ascontiguousarray(screened, dtype=np.int64),
-        "depends": np.ascontiguousarray(constraint_jacobian_pattern(system), dtype=np.uint8),
+        "depends": np.ascontiguousarray(depends, dtype=np.uint8),
         "mirror": np.ascontiguousarray(system.mirror_inputs, dtype=np.int64),
     }
 
 
-def sqp_source(system, dt: float) -> str:
+def sqp_source(system, dt: float, feedback: bool = False) -> str:
     """The C source of the system's library with the compiled SQP loop (one translation
-    unit: the generated functions, the driver, then ``sqp.c`` with its QP solvers)."""
-    return library_source(system, dt) + "\n" + c_source("sqp.c")
+    unit: the generated functions, the driver, then ``sqp.c`` with its QP solvers); with
+    ``feedback`` that of the feedback prediction (``sqp.c`` includes ``feedback.c``)."""
+    return library_source(system, dt, feedback) + "\n" + c_source("sqp.c")
 
 
 @functools.cache
@@ -207,20 +127,40 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.lfm_sqp_set_max_time.restype = None
     lib.lfm_sqp_solve.argtypes = [P, P, P, P, P, P, P, P]
     lib.lfm_sqp_solve.restype = ctypes.c_int
-    lib.lfm_sqp_stats_count.restype = L
-    if lib.lfm_sqp_stats_count() != len(STATS):
-        raise CodegenUnavailable("the compiled SQP loop's statistics do not match STATS")
+    lib.lfm_sqp_set_option.argtypes = [P, ctypes.c_char_p, ctypes.c_double]
+    lib.lfm_sqp_set_option.restype = ctypes.c_int
+    for name in (
+        "lfm_sqp_stats_count",
+        "lfm_sqp_status_count",
+        "lfm_sqp_options_size",
+        "lfm_sqp_feedback",
+    ):
+        getattr(lib, name).restype = L
+    if lib.lfm_sqp_feedback():
+        lib.lfm_sqp_set_law.argtypes = [P, P, P]
+        lib.lfm_sqp_law.argtypes = [P, P, P, P]
+        lib.lfm_sqp_set_law.restype = lib.lfm_sqp_law.restype = ctypes.c_int
+    if (
+        lib.lfm_sqp_stats_count() != len(STATS)
+        or lib.lfm_sqp_status_count() != len(STATUSES)
+        or lib.lfm_sqp_options_size() != ctypes.sizeof(SqpOptions)
+    ):
+        raise CodegenUnavailable(
+            "the compiled SQP loop's options, statuses or statistics do not match "
+            "codegen/interface.py"
+        )
     return lib
 
 
-def sqp_library(system, dt: float) -> ctypes.CDLL:
+def sqp_library(system, dt: float, feedback: bool = False) -> ctypes.CDLL:
     """The loaded library with the SQP loop of ``system`` at time step ``dt`` (compiled once
-    and cached like the C library).
+    and cached like the C library; with ``feedback``, of its feedback prediction).
 
     Raises:
         CodegenUnavailable: no compiler, or the compilation failed.
     """
-    return _declare(load_library(sqp_source(system, dt), "lfm_sqp").lib)
+    stem = "lfm_sqp_feedback" if feedback else "lfm_sqp"
+    return _declare(load_library(sqp_source(system, dt, feedback), stem).lib)
 
 
 class _Handle:
@@ -260,13 +200,8 @@ class CompiledScenarioSolver:
         unknown = set(options) - set(FastSolverOptions.__dataclass_fields__)
         if unknown:
             raise ValueError(f"unknown {type(self).__name__} options: {sorted(unknown)}")
-        if getattr(problem, "prediction", "open_loop") != "open_loop":
-            raise ValueError(
-                f"fast_c: prediction={problem.prediction!r}: the C loop solves open-loop "
-                "problems only (make_solver(problem, 'fast_c') solves a feedback problem "
-                "through its open-loop rewrite)"
-            )
         self.problem = problem
+        self.feedback = problem.prediction == "feedback"
         self.options = FastSolverOptions(**options)
         if self.options.qp_solver not in C_QP_SOLVERS:
             raise ValueError(
@@ -279,7 +214,7 @@ class CompiledScenarioSolver:
         self._python = None
         self._handle: _Handle | None = None
         try:
-            self._lib = sqp_library(problem.system, problem.dt)
+            self._lib = sqp_library(problem.system, problem.dt, self.feedback)
         except CodegenUnavailable as err:
             self._fall_back(str(err))
         else:
@@ -311,6 +246,9 @@ class CompiledScenarioSolver:
         self._u = np.empty(n * nu)
         self._X = np.empty((n + 1, nx, ns))
         self._stats = np.empty(len(STATS))
+        if self.feedback:  # the last solve's law and nominal inputs
+            self._K, self._r = np.empty((n, nu, nx)), np.empty((n, nx))
+            self._nominal = np.empty((n, nu))
 
     @property
     def backend(self) -> str:
@@ -347,18 +285,62 @@ class CompiledScenarioSolver:
         W: np.ndarray,
         u_guess: np.ndarray | None = None,
         backoff: np.ndarray | None = None,
+        law: FeedbackLaw | None = None,
+        iterations: int | None = None,
     ) -> MPCSolution:
         """The plan for ``x0`` and ``W``: :meth:`FastScenarioSolver.solve`'s arguments and
         result (``extra["loop"]`` says ``"c"``; ``extra["qp_calls"]`` counts the elastic
-        interior point's calls and the dual active-set method's, ``"dense_qp"``)."""
+        interior point's calls and the dual active-set method's, ``"dense_qp"``). A feedback
+        problem's law (given, or from the reference plan) is computed in C as well."""
         if self._python is not None:
-            sol = self._python.solve(x0, W, u_guess=u_guess, backoff=backoff)
+            sol = self._python.solve(x0, W, u_guess, backoff, law=law, iterations=iterations)
             sol.extra["loop"] = "python"
             return sol
+        limited = self.options.limited(iterations)
+        if limited is self.options:
+            return self._solve(x0, W, u_guess, backoff, law)
+        self._set_options(limited)  # (by name, for this call)
+        try:
+            return self._solve(x0, W, u_guess, backoff, law)
+        finally:
+            self._set_options(self.options)
+
+    def _set_options(self, options: FastSolverOptions) -> None:
+        """The options of the C solver's next solves: the iteration limit, extra starts and
+        trust radius (what :meth:`FastSolverOptions.limited` changes)."""
+        values = c_options(options)
+        limited = (
+            "max_iter",
+            "restart_mirror",
+            "restart_straight",
+            "trust_radius",
+            "elastic_on_demand",
+            "screen_rows",
+        )
+        for name in limited:
+            code = self._lib.lfm_sqp_set_option(
+                self._handle.ptr, name.encode(), float(getattr(values, name))
+            )
+            if code:
+                raise RuntimeError(f"lfm_sqp_set_option: the C loop has no option {name!r}")
+
+    def _solve(
+        self,
+        x0: np.ndarray,
+        W: np.ndarray,
+        u_guess: np.ndarray | None,
+        backoff: np.ndarray | None,
+        law: FeedbackLaw | None,
+    ) -> MPCSolution:
+        """:meth:`solve` in C with the options set."""
         t_start = time.perf_counter()
         problem = self.problem
+        law = problem.check_law(law)
         x0, W = problem.check_data(x0, W)
         b = problem.check_backoff(backoff)
+        if law is not None:
+            K, r = np.ascontiguousarray(law.K), np.ascontiguousarray(law.r)
+            self._lib.lfm_sqp_set_law(self._handle.ptr, address(K), address(r))
         x0c = np.ascontiguousarray(x0, dtype=float)
         Wc = np.ascontiguousarray(W, dtype=float)
         guess = None
@@ -375,7 +357,36 @@ class CompiledScenarioSolver:
             address(self._X),
             address(self._stats),
         )
-        return self._solution(code, time.perf_counter() - t_start)
+        sol = self._solution(code, time.perf_counter() - t_start)
+        return self._feedback_solution(sol, law) if self.feedback else sol
+
+    def _feedback_solution(self, sol: MPCSolution, given: FeedbackLaw | None) -> MPCSolution:
+        """A feedback solve's result as the Python loop's (:mod:`.closed_loop`): its law
+        (``given``, or the one the C loop computed), nominal inputs and ``extra``."""
+        K, r, nominal = self._K, self._r, self._nominal
+        self._lib.lfm_sqp_law(self._handle.ptr, address(K), address(r), address(nominal))
+        law = given if given is not None else FeedbackLaw(K.copy(), r.copy())
+        stats = dict(zip(STATS, self._stats.tolist(), strict=True))
+        source = _SOURCES[int(stats["law_source"])]
+        reference = None
+        if source == "open_loop_solve":
+            reference = {
+                "status": STATUSES[int(stats["reference_status"])],
+                "iterations": int(stats["reference_iterations"]),
+                "solve_time": stats["reference_time"],
+            }
+        sol.law, sol.nominal_u = law, nominal.copy()
+        sol.extra.update(
+            inputs=applied_inputs(sol.predicted, sol.u, law),
+            state_slack=sol.slack - stats["input_slack"],
+            input_slack=stats["input_slack"],
+            reference=source,
+            open_loop=reference,
+            gain_time=stats["gain_time"],
+        )
+        if not np.all(np.isfinite(sol.u)):
+            sol.usable = False
+        return sol
 
     def _solution(self, code: int, elapsed: float) -> MPCSolution:
         p = self.problem
@@ -418,6 +429,13 @@ class CompiledScenarioSolver:
         )
         merit = stats["merit"]
         extra["start_merit"] = stats["start_merit"]  # the warm start's (MPCSolution.usable)
+        extra["start_slack"] = stats["start_slack"]
+        # [s] where the time went (the C loop's timers)
+        extra["time"] = {
+            key: stats[f"time_{key}"]
+            for key in ("rollout", "linearise", "hessian", "convexify", "qp", "rows")
+        }
+        extra["qp_ipm_iterations"] = int(stats["qp_ipm_iterations"])
         success = status in SUCCESS
         return MPCSolution(
             u=self._u.reshape(p.horizon, p.nu).copy(),

@@ -113,6 +113,15 @@ class CondensedModel:
         n, nx, nu, nw, ng = problem.horizon, problem.nx, problem.nu, problem.nw, problem.ng
         self.n, self.nx, self.nu, self.nw, self.ng = n, nx, nu, nw, ng
         self.n_u = n * nu
+        # A feedback prediction (ScenarioProblem.prediction): the inputs are the nominal
+        # inputs v, each scenario applies v_k + K_k (x_k - r_k) under the law of set_law, and
+        # the rows of G are the state constraints, then each input's upper and lower row
+        # (n_rows of them); S has nxs rows per scenario and step (the state's, then the
+        # applied input's). The C library of the closed-loop step (build_library's feedback)
+        # does the work; there is no NumPy path for it.
+        self.feedback = problem.prediction == "feedback"
+        self.n_rows = ng + 2 * nu if self.feedback else ng
+        self.nxs = nx + nu if self.feedback else nx
         self.lower = np.tile(problem.input_lower, n)
         self.upper = np.tile(problem.input_upper, n)
         choice = backend if backend is not None else (os.environ.get(BACKEND_ENV) or "auto")
@@ -130,7 +139,7 @@ class CondensedModel:
         self.compile_time, self.cache_hit, self.backend_error = 0.0, False, None
         if choice in ("auto", "c"):
             try:
-                built = build_library(system, problem.dt)
+                built = build_library(system, problem.dt, self.feedback)
             except CodegenUnavailable as err:
                 if choice == "c":
                     raise
@@ -145,6 +154,11 @@ class CondensedModel:
                     built.build_time,
                     built.cache_hit,
                 )
+        if self.feedback and self._lib is None:
+            raise CodegenUnavailable(
+                "a feedback prediction in the condensed SQP needs the C library"
+                + (f" ({self.backend_error})" if self.backend_error else f" (backend={choice!r})")
+            )
         # The C library runs its chunks in threads (compiled with OpenMP).
         self.openmp = self._lib is not None and bool(self._lib.lfm_openmp())
         # Its loops over scenarios (rollout, linearisation, Hessian): 2 vectorised with
@@ -181,11 +195,17 @@ class CondensedModel:
             self.backend = "casadi-vm"
 
         # --- structure: constraints that are one exact linear row per step ---
-        self.shared, self.shared_rows = shared_linear_constraints(problem)
-        self.screened = np.array([j for j in range(ng) if j not in set(self.shared)], dtype=int)
+        if self.feedback:  # (the law makes every row depend on the scenario: none)
+            self.shared, self.shared_rows = np.zeros(0, dtype=int), np.zeros((0, n, n * nu))
+            self._feedback_tables()
+        else:
+            self.shared, self.shared_rows = shared_linear_constraints(problem)
+        self.screened = np.array(
+            [j for j in range(self.n_rows) if j not in set(self.shared)], dtype=int
+        )
         self._screened_c = np.ascontiguousarray(self.screened, dtype=np.int64)
         self._depends_c = np.ascontiguousarray(self.depends, dtype=np.uint8)
-        self._screens_all = self.screened.size == ng
+        self._screens_all = self.screened.size == self.n_rows
 
         # --- cost weights ---
         self._goal = np.ascontiguousarray(cost.x_goal, dtype=float)
@@ -201,6 +221,43 @@ class CondensedModel:
         self._w_diag = np.stack([np.diag(m) for m in weights])  # (N, nx)
         self._R2 = 2.0 * cost.R
         self._r_diag = np.tile(np.diag(cost.R), n)
+        self._law_rows: np.ndarray | None = None  # (N, ND) the feedback law's data rows
+
+    def _feedback_tables(self) -> None:
+        """The row structure of a feedback prediction: which states each row depends on (an
+        input row none: the screening picks its scenarios by value) and where each stored
+        Jacobian entry sits in the ``(n_rows, nxs)`` Jacobian of a point (the state
+        constraints' entries, then one per input row, on its input)."""
+        nx, nu, ng, nxs = self.nx, self.nu, self.ng, self.nxs
+        pattern = constraint_jacobian_pattern(self.problem.system)
+        self.depends = np.zeros((self.n_rows, nx), dtype=bool)
+        self.depends[:ng] = pattern
+        rows, cols = np.nonzero(pattern)
+        inputs = [(ng + side * nu + q) * nxs + nx + q for side in (0, 1) for q in range(nu)]
+        self._jg_index = np.concatenate([rows * nxs + cols, inputs]).astype(int)
+
+    def set_law(self, K: np.ndarray, r: np.ndarray, active: np.ndarray) -> None:
+        """The law of the next evaluations (a feedback prediction): gains ``K`` ``(N, nu, nx)``,
+        reference states ``r`` ``(N, nx)``; ``active`` ``(N,)`` says whether each step's input
+        rows count (not where they repeat hard bounds of ``v_k``: ``K_k = 0``)."""
+        n, nu, nx = self.n, self.nu, self.nx
+        ndf = nu + nu * nx + nx
+        rows = np.zeros((n, ndf + nu * nu + 1))
+        rows[:, nu : nu + nu * nx] = np.asarray(K, dtype=float).reshape(n, nu * nx)
+        rows[:, nu + nu * nx : ndf] = r
+        rows[:, ndf : ndf + nu * nu] = np.asarray(self.problem.cost.R, dtype=float).ravel()
+        rows[:, -1] = np.asarray(active, dtype=float)
+        self._law_rows = rows
+
+    def _data(self, u: np.ndarray) -> np.ndarray:
+        """What the C library reads as the inputs: ``u`` itself, or with feedback the law's
+        data rows ``(N, ND)`` with ``u`` as the nominal inputs (one buffer, rewritten)."""
+        if not self.feedback:
+            return u
+        if self._law_rows is None:
+            raise ValueError("CondensedModel.set_law: a feedback prediction needs its law first")
+        self._law_rows[:, : self.nu] = u.reshape(self.n, self.nu)
+        return self._law_rows
 
     def __getstate__(self) -> dict:
         # The loaded library and the generated code are rebuilt (from the disk cache).
@@ -217,7 +274,7 @@ class CondensedModel:
         return tuple(W.strides[a] // W.itemsize for a in axes)
 
     def _rollout_arrays(self, ns: int) -> tuple[np.ndarray, np.ndarray]:
-        """``X`` ``(N + 1, nx, Ns)`` and ``G`` ``(ng, N, Ns)`` for a compiled rollout.
+        """``X`` ``(N + 1, nx, Ns)`` and ``G`` ``(n_rows, N, Ns)`` for a compiled rollout.
 
         A pair of the last few is reused once nothing else refers to either array any more
         (no rollout, view or caller holds them: CPython's reference count), so their pages
@@ -226,7 +283,7 @@ class CondensedModel:
         for pair in self._rollouts:
             if pair[0].shape[2] == ns and _references(pair) <= _POOLED:
                 return pair[0], pair[1]  # (a new tuple: holding it holds the arrays)
-        pair = (np.empty((self.n + 1, self.nx, ns)), np.empty((self.ng, self.n, ns)))
+        pair = (np.empty((self.n + 1, self.nx, ns)), np.empty((self.n_rows, self.n, ns)))
         self._rollouts.append(pair)
         return pair[0], pair[1]
 
@@ -290,7 +347,8 @@ class CondensedModel:
             c_sum = np.zeros(1)  # the state cost summed over scenarios
             out = (ptr(X), ptr(G), ptr(c_sum))
             x0p, Wp = self._held(x0c), self._held(W)
-            call = (n, ns, x0p, Wp, sa, sk, si, ptr(u), *self._weights_p, *out, self.threads)
+            data = ptr(self._data(u))
+            call = (n, ns, x0p, Wp, sa, sk, si, data, *self._weights_p, *out, self.threads)
             if self._lib.lfm_rollout(*call):
                 X[:], G[:], c_sum[:] = np.nan, np.nan, np.nan
         else:
@@ -303,9 +361,9 @@ class CondensedModel:
                 G = np.ascontiguousarray(
                     np.moveaxis(p.system.constraint_values(X[1:].transpose(0, 2, 1)), -1, 0)
                 )
-        if self.ng:
+        if self.n_rows:
             if backoff is not None:
-                G += backoff
+                G[: self.ng] += backoff
             slack = float(np.maximum(G.max(axis=2), 0.0).sum())
         else:
             G = np.zeros((0, n, ns))
@@ -318,7 +376,9 @@ class CondensedModel:
                 cost = float(np.einsum("km,kmi,kmi->", self._w_diag, e, e))
             else:
                 cost = float(np.einsum("kmi,kmn,kni->", e, self._w_state, e))
-        merit = cost0 + cost / ns + self.input_cost(u) + p.slack_penalty * slack
+        # (with feedback the rollout's cost has each scenario's input cost)
+        inputs = 0.0 if self.feedback else self.input_cost(u)
+        merit = cost0 + cost / ns + inputs + p.slack_penalty * slack
         merit = merit if math.isfinite(merit) else math.inf
         return Rollout(u=u, X=X, G=G, slack=slack, merit=merit)
 
@@ -434,11 +494,11 @@ class CondensedModel:
         self, ro: Rollout, W_lanes: np.ndarray, recycle: Linearisation | None
     ) -> Linearisation:
         """:meth:`linearise` by the C library."""
-        n, nx, nu, n_u = self.n, self.nx, self.nu, self.n_u
+        n, nu, n_u = self.n, self.nu, self.n_u
         X = np.ascontiguousarray(ro.X, dtype=float)
         u = np.ascontiguousarray(ro.u, dtype=float)
         ns = X.shape[2]
-        size = ns * nx * nu * n * (n + 1) // 2  # of S, causally packed
+        size = ns * self.nxs * nu * n * (n + 1) // 2  # of S, causally packed
         if recycle is not None and recycle.packed and recycle.S.size == size:
             S, Jg = recycle.S, recycle.Jg  # every entry is written below
         else:
@@ -449,23 +509,27 @@ class CondensedModel:
         args = (*self._weights_p, 2.0 / ns)
         out = (ptr(S), ptr(Jg), ptr(grad))
         Wp = self._held(W_lanes)
-        call = (n, ns, ptr(X), Wp, sa, sk, si, ptr(u), *args, *out, self.threads)
+        data = ptr(self._data(u))
+        call = (n, ns, ptr(X), Wp, sa, sk, si, data, *args, *out, self.threads)
         if self._lib.lfm_linearise(*call):
             grad[:] = np.nan
-        grad += (u.reshape(n, nu) @ self._R2).ravel()  # d(u' R u)/du, R symmetric
+        if not self.feedback:  # (with feedback the scenarios' input costs are in grad)
+            grad += (u.reshape(n, nu) @ self._R2).ravel()  # d(u' R u)/du, R symmetric
+        rows = self.nxs if self.feedback else 0
         return Linearisation(
-            ro=ro, A=None, S=S, Jg=Jg, grad=grad, packed=True, jg_index=self._jg_index
+            ro=ro, A=None, S=S, Jg=Jg, grad=grad, packed=True, jg_index=self._jg_index, rows=rows
         )
 
     def _hessian_c(self, lin: Linearisation, mu: np.ndarray, W_lanes: np.ndarray) -> np.ndarray:
         """:meth:`hessian` by the C library."""
         n, nu, n_u = self.n, self.nu, self.n_u
         X, ns = lin.ro.X, lin.ro.X.shape[2]
-        has_mu = self.ng > 0 and bool(mu.any())
+        has_mu = self.n_rows > 0 and bool(mu.any())
         mu_c = np.ascontiguousarray(mu, dtype=float) if has_mu else None
         H = np.empty((n_u, n_u))
         sa, sk, si = self._strides(W_lanes, (0, 1, 2))
-        data = (ptr(lin.ro.u), ptr(lin.S), ptr(lin.Jg), ptr(mu_c))
+        u = ptr(self._data(np.ascontiguousarray(lin.ro.u, dtype=float)))
+        data = (u, ptr(lin.S), ptr(lin.Jg), ptr(mu_c))
         weights = (*self._weights_p, 2.0 / ns)
         Wp = self._held(W_lanes)
         carry = self._hessian_scratch(ns)
@@ -559,9 +623,9 @@ class CondensedModel:
 
     def linearised_values(self, lin: Linearisation, d: np.ndarray) -> np.ndarray:
         """``g + (dg/du) d`` of every screened scenario row, ``(n_screened, N, Ns)``."""
-        if self._lib is not None and self.ng:
+        if self._lib is not None and self.n_rows:
             d = np.ascontiguousarray(d, dtype=float)
-            G = lin.ro.G  # (ng, N, Ns), C-contiguous (built by evaluate)
+            G = lin.ro.G  # (n_rows, N, Ns), C-contiguous (built by evaluate)
             values = np.empty(G.shape)
             data = (ptr(lin.S), ptr(lin.Jg), ptr(G), ptr(d))
             self._lib.lfm_linear_change(self.n, G.shape[2], *data, ptr(values))

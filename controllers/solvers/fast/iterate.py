@@ -38,28 +38,36 @@ class Linearisation:
     # (ng, nx) Jacobian read row-major (those that can be nonzero).
     packed: bool = False
     jg_index: np.ndarray | None = None
+    # Rows of S per scenario and step: nx, or with a feedback prediction nx + nu (below the
+    # state's sensitivities those of the input u_{s,k} the scenario applies at that step);
+    # 0: nx. The row types of G and Jg are then the state constraints and the input rows.
+    rows: int = 0
 
     def constraint_jacobians(self) -> np.ndarray:
-        """``Jg`` as ``(N, Ns, ng, nx)`` (a new array if it is packed)."""
+        """``Jg`` as ``(N, Ns, ng, nx)`` (a new array if it is packed; with feedback
+        ``(N, Ns, ng + 2 nu, nx + nu)``)."""
         if not self.packed:
             return self.Jg
         n, nx, ns = self.ro.X.shape
+        nxs = self.rows or nx
         ng = self.ro.G.shape[0]
-        full = np.zeros((n - 1, ns, ng * nx))
+        full = np.zeros((n - 1, ns, ng * nxs))
         full[:, :, self.jg_index] = self.Jg
-        return full.reshape(n - 1, ns, ng, nx)
+        return full.reshape(n - 1, ns, ng, nxs)
 
     def sensitivities(self) -> np.ndarray:
-        """``S`` as ``(N, Ns, nx, N nu)`` (a new array if it is packed)."""
+        """``S`` as ``(N, Ns, nx, N nu)`` (a new array if it is packed; with feedback
+        ``(N, Ns, nx + nu, N nu)``)."""
         if not self.packed:
             return self.S
         n, nx, ns = self.ro.X.shape
+        nxs = self.rows or nx
         n -= 1
         nu = self.grad.size // n
-        full = np.zeros((n, ns, nx, n * nu))
+        full = np.zeros((n, ns, nxs, n * nu))
         for k in range(n):
             width = (k + 1) * nu
-            full[k, :, :, :width] = packed_block(self.S, k, ns, nx, nu)
+            full[k, :, :, :width] = packed_block(self.S, k, ns, nxs, nu)
         return full
 
 

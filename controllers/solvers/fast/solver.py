@@ -65,15 +65,19 @@ the extra starts here.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from controllers.feedback_law import FeedbackLaw
 from controllers.problem import MPCSolution, ScenarioProblem, is_usable
+from controllers.solvers.fast.closed_loop import FeedbackMixin, Run
 from controllers.solvers.fast.condensed import CondensedModel
 from controllers.solvers.fast.globalisation import Evaluate, GlobalisationMixin, ModelStep
 from controllers.solvers.fast.iterate import Linearisation, Rollout
@@ -83,7 +87,7 @@ from controllers.solvers.fast.restarts import RestartMixin
 from controllers.solvers.fast.subproblem import QP, QPStep, SubproblemMixin
 
 
-class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin):
+class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin, FeedbackMixin):
     """Condensed exact-Hessian SQP solver of any :class:`ScenarioProblem`.
 
     Same interface and result semantics as
@@ -126,12 +130,14 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin):
         span = self._upper - self._lower
         self._range = np.where(np.isfinite(span) & (span > 0), span, np.inf)
         self._radius = 0.0  # current trust radius (fraction of the range; 0: none)
-        self._hard_first = False  # the next QP is tried without slacks first
+        self._hard_first = True  # the next QP is tried without slacks first
         # The last start's linearisation: its arrays (every entry rewritten) serve the next
         # start's first one, so large problems do not fault in fresh pages at every start.
         self._spare_lin: Linearisation | None = None
         # A list to record one dict per SQP iteration into (diagnostics), or None.
         self.trace: list[dict[str, Any]] | None = None
+        if m.feedback:  # (the decision's bounds then depend on the kind of solve)
+            self._init_feedback()
 
     @property
     def backend(self) -> str:
@@ -141,8 +147,12 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin):
     # ------------------------------------------------------------------ public API
 
     def reset(self) -> None:
-        """Forget the warm start: the next solve starts from zero inputs."""
+        """Forget the warm start: the next solve starts from zero inputs (with feedback,
+        also the reference plan)."""
         self._prev_u = None
+        self._hard_first = True
+        if self.condensed.feedback:
+            self._reset_feedback()
 
     def set_max_time(self, seconds: float) -> None:
         """The wall-clock limit of the next solves [s] (``FastSolverOptions.max_time``;
@@ -170,6 +180,8 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin):
         W: np.ndarray,
         u_guess: np.ndarray | None = None,
         backoff: np.ndarray | None = None,
+        law: FeedbackLaw | None = None,
+        iterations: int | None = None,
     ) -> MPCSolution:
         """Solve the scenario problem for initial state(s) ``x0`` and latent forces ``W``.
 
@@ -178,8 +190,15 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin):
             W: latent forces ``(Ns, N, nw)`` (or ``(Ns, N)`` for one component).
             u_guess: initial input sequence ``(N, nu)``; by default the previous solution
                 shifted by one step (zeros clipped into the bounds on the first solve).
+                With feedback: the reference plan (the law's linearisation and the
+                decision's warm start; :mod:`controllers.solvers.fast.closed_loop`).
             backoff: constraint tightening ``(N, ng)`` or ``(ng,)``, ``>= 0``
                 (:meth:`ScenarioProblem.check_backoff`); ``None`` for none.
+            law: a feedback problem's law (``None``: from the reference plan); an open-loop
+                problem takes none.
+            iterations: at most this many SQP iterations and no extra starts in this call
+                (a real-time iteration: ``iterations=1``; with feedback it bounds the
+                open-loop reference solve too); ``None``: the options' ``max_iter``.
 
         Returns:
             The solution: ``u`` inside the input bounds; ``objective``, ``slack`` and
@@ -217,11 +236,42 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin):
         comes within ``restart_same_tol`` of the best plan is stopped too, and so is one
         within ``restart_near_tol`` that is still worse than it and drawing closer.
 
+        With feedback the result is :meth:`FeedbackScenarioSolver.solve`'s (``u`` the
+        decision ``v``; ``law``, ``nominal_u``; ``extra["inputs"]``, ``"state_slack"``,
+        ``"input_slack"``, ``"reference"``, ``"open_loop"``, ``"gain_time"``).
+
         Raises:
-            ValueError: on wrongly shaped or non-finite ``x0``, ``W`` or ``u_guess``.
+            ValueError: on wrongly shaped or non-finite ``x0``, ``W`` or ``u_guess``, or a
+                law for an open-loop problem.
         """
+        with self._limited(iterations):
+            if self.condensed.feedback:
+                return self._feedback_solve(x0, W, u_guess, backoff, law)
+            return self._open_loop_solve(x0, W, u_guess, backoff, law)
+
+    @contextlib.contextmanager
+    def _limited(self, iterations: int | None) -> Iterator[None]:
+        """Within it, the options of a solve limited to ``iterations`` SQP iterations without
+        extra starts (``None``: the options as they are)."""
+        saved = self.options
+        self.options = saved.limited(iterations)
+        try:
+            yield
+        finally:
+            self.options = saved
+
+    def _open_loop_solve(
+        self,
+        x0: np.ndarray,
+        W: np.ndarray,
+        u_guess: np.ndarray | None,
+        backoff: np.ndarray | None,
+        law: FeedbackLaw | None,
+    ) -> MPCSolution:
+        """:meth:`solve` of an open-loop problem."""
         t_start = time.perf_counter()
         problem, n, nu = self.problem, self.problem.horizon, self.problem.nu
+        problem.check_law(law)  # (refuses a law: this problem is open loop)
         x0, W = problem.check_data(x0, W)
         b = problem.check_backoff(backoff)
         if u_guess is not None:
@@ -231,7 +281,29 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin):
         else:
             u0 = np.zeros(n * nu)
         u0 = np.clip(u0, self._lower, self._upper)
+        ro, status, success, iterations, extra = self._run(x0, W, u0, b, t_start)
 
+        u = ro.u.reshape(n, nu).copy()
+        self._prev_u = u.copy()
+        return MPCSolution(
+            u=u,
+            objective=ro.merit,
+            slack=ro.slack,
+            status=status,
+            success=success,
+            solve_time=time.perf_counter() - t_start,
+            iterations=iterations,
+            predicted=np.ascontiguousarray(ro.X.transpose(2, 0, 1)),
+            extra=extra,
+            usable=is_usable(success, ro.merit, extra["start_merit"]),
+        )
+
+    def _run(
+        self, x0: np.ndarray, W: np.ndarray, u0: np.ndarray, b: np.ndarray | None, t_start: float
+    ) -> Run:
+        """The SQP from ``u0`` (inside the bounds) and its extra starts on the checked data,
+        with the time limit counted from ``t_start``: the best start's ``(rollout, status,
+        success, iterations, extra)``."""
         data = _Data(
             x0T=np.ascontiguousarray(x0.T),
             W=np.ascontiguousarray(W.transpose(1, 0, 2)),
@@ -280,21 +352,7 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin):
         extra["vector_math"] = getattr(self.condensed, "vector_math", 0)
         extra["qp_solver"] = self.options.qp_solver
         extra["first_start"] = {"status": first_status, "iterations": first_iterations}
-
-        u = ro.u.reshape(n, nu).copy()
-        self._prev_u = u.copy()
-        return MPCSolution(
-            u=u,
-            objective=ro.merit,
-            slack=ro.slack,
-            status=status,
-            success=success,
-            solve_time=time.perf_counter() - t_start,
-            iterations=iterations,
-            predicted=np.ascontiguousarray(ro.X.transpose(2, 0, 1)),
-            extra=extra,
-            usable=is_usable(success, ro.merit, extra["start_merit"]),
-        )
+        return ro, status, success, iterations, extra
 
     # ------------------------------------------------------------------ SQP
 
@@ -342,19 +400,21 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin):
 
         ro = evaluate(u0)
         stats["start_merit"] = ro.merit  # the warm start's (MPCSolution.usable)
+        stats["start_slack"] = ro.slack
         if not math.isfinite(ro.merit):
             return ro, "Invalid_Initial_Point", False, 0, stats
         start = _Start(
             ro=ro,
             evaluate=evaluate,
             stats=stats,
-            mu=np.zeros((p.ng, p.horizon, data.x0T.shape[1])),
+            mu=np.zeros((condensed.n_rows, p.horizon, data.x0T.shape[1])),
             lin=self._spare_lin,  # the last linearisation (its arrays are reused)
         )
         status, success, iterations = "Maximum_Iterations_Exceeded", False, 0
         self._radius = opt.trust_radius
         self._deadline = deadline
-        self._hard_first = opt.elastic_qp == "on_demand"
+        if opt.elastic_qp != "carried":  # (carried: as the last QP of the last solve left it)
+            self._hard_first = opt.elastic_qp == "on_demand"
         self._spare_lin = None
         try:
             while iterations < opt.max_iter:
@@ -415,7 +475,8 @@ class FastScenarioSolver(SubproblemMixin, GlobalisationMixin, RestartMixin):
         pos, mu = qp_step.pos, start.mu
         # Slack needed now: likely next time too (e.g. a problem infeasible for every
         # input), so the next QP gets its slacks at once.
-        self._hard_first = opt.elastic_qp == "on_demand" and qp_step.slack_sum <= opt.add_tol
+        on_demand = opt.elastic_qp != "always"
+        self._hard_first = on_demand and qp_step.slack_sum <= opt.add_tol
         # Hard-active constraints of this QP: the prediction for the next convexification.
         hard = (mu[pos[:, 0], pos[:, 1], pos[:, 2]] > 1e-9) & (
             qp_step.s_pos[pos[:, 0], pos[:, 1]] <= 1e-9

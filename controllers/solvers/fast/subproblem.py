@@ -231,7 +231,7 @@ class SubproblemMixin(SolverAttributes):
         Otherwise this round and the rest of the iteration use the QP with slacks.
         """
         p, nu, n_sh = self.problem, self._n_u, self._n_shared
-        n, ng = p.horizon, p.ng
+        n, ng = p.horizon, self.condensed.n_rows  # (with feedback: the input rows too)
         n_scen = lin.ro.X.shape[2]
         hard = self._hard_first
         lo, hi = self._lower - u, self._upper - u
@@ -338,7 +338,7 @@ class SubproblemMixin(SolverAttributes):
         and the QP re-solved. ``damping`` (Levenberg-Marquardt) is added to the Hessian.
         """
         p = self.problem
-        mu = np.zeros((p.ng, p.horizon, lin.ro.X.shape[2]))
+        mu = np.zeros((self.condensed.n_rows, p.horizon, lin.ro.X.shape[2]))
         bounds = np.nonzero((u <= self._lower + 1e-12) | (u >= self._upper - 1e-12))[0]
         screened = self._screen(lin.ro)
         g_shared = lin.ro.G[self.condensed.shared].max(axis=2).T.ravel()

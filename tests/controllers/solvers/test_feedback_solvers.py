@@ -12,6 +12,10 @@ feasible: an exact-penalty landscape with several local optima), the fast SQP fr
 closed loop's warm start may stop at another optimum; there it must not end higher than
 the reference (measured: paper N = 15 seed 4, 1.5e-3 lower), and started at the reference
 it stays there. Elsewhere it reaches the reference's objective.
+
+The rewrite is the oracle of the fast SQP's native feedback prediction
+(``tests/controllers/solvers/fast/test_native_feedback.py``); here every solver, the fast SQP
+included, runs through it (:func:`rewritten`).
 """
 
 from __future__ import annotations
@@ -24,8 +28,9 @@ import pytest
 from controllers.config import load_config
 from controllers.feedback_law import FeedbackLaw
 from controllers.problem import ScenarioProblem
-from controllers.solvers import make_solver
+from controllers.solvers import make_solver, solver_spec
 from controllers.solvers.fast.condensed import BACKEND_ENV
+from controllers.solvers.feedback import FeedbackScenarioSolver
 
 ROOT = Path(__file__).resolve().parents[3]
 DATA = dict(np.load(ROOT / "tests" / "data" / "feedback_problems.npz"))
@@ -37,6 +42,12 @@ SLACK_TOL = 1e-6  # a reference with less slack is feasible
 
 def get(name: str, key: str) -> np.ndarray:
     return DATA[f"{name}_{key}"]
+
+
+def rewritten(problem: ScenarioProblem, name: str, **options) -> FeedbackScenarioSolver:
+    """The registered solver ``name`` on the feedback ``problem`` through the exact rewrite
+    (``make_solver`` gives the fast SQP's native path instead)."""
+    return FeedbackScenarioSolver(problem, solver_spec(name), **options)
 
 
 _PROBLEMS: dict[str, ScenarioProblem] = {}
@@ -86,7 +97,7 @@ def test_the_reference_objective_is_the_problems_objective(name, i) -> None:
 def test_the_fast_solver_reaches_the_reference(name, i) -> None:
     problem = problem_of(name)
     x0, W, law, guess, ref = case(name, i)
-    sol = make_solver(problem, "fast").solve(x0, W, u_guess=guess, law=law)
+    sol = rewritten(problem, "fast").solve(x0, W, u_guess=guess, law=law)
     assert sol.success, sol.status
     assert sol.objective == pytest.approx(problem.objective(x0, W, sol.u, law=law), rel=1e-9)
     if get(name, "slack")[i] <= SLACK_TOL:
@@ -94,7 +105,7 @@ def test_the_fast_solver_reaches_the_reference(name, i) -> None:
     else:
         assert sol.objective <= ref * (1 + RTOL)
     # Started at the reference (plain SQP, no extra starts), it stays there.
-    plain = make_solver(problem, "fast", restarts=())
+    plain = rewritten(problem, "fast", restarts=())
     stay = plain.solve(x0, W, u_guess=get(name, "reference_u")[i], law=law)
     assert stay.success, stay.status
     assert stay.objective == pytest.approx(ref, rel=RTOL)
@@ -153,7 +164,7 @@ def test_every_solver_reaches_ipopts_optimum_on_a_small_particle_problem(
         x0 = np.broadcast_to(x0.mean(axis=0), x0.shape)
         ipopt = make_solver(problem, "ipopt", ipopt_options={"tol": 1e-10})
         ref = ipopt.solve(x0, W, u_guess=guess, law=law).objective
-    sol = make_solver(problem, name).solve(x0, W, u_guess=guess, law=law)
+    sol = rewritten(problem, name).solve(x0, W, u_guess=guess, law=law)
     assert sol.success, sol.status
     assert sol.objective == pytest.approx(ref, rel=RTOL)
     assert sol.objective == pytest.approx(problem.objective(x0, W, sol.u, law=law), rel=1e-9)
@@ -169,7 +180,7 @@ def test_the_fast_solvers_c_library_and_numpy_paths_reach_the_reference(
     name = "quadrotor"
     problem = problem_of(name)
     x0, W, law, _, ref = case(name, 0)
-    solver = make_solver(problem, "fast", restarts=())
+    solver = rewritten(problem, "fast", restarts=())
     assert solver.inner.backend == {"c": "compiled-c", "numpy": "numpy-lanes"}[backend]
     sol = solver.solve(x0, W, u_guess=get(name, "reference_u")[0], law=law)
     assert sol.success, sol.status

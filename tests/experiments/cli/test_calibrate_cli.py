@@ -43,3 +43,21 @@ def test_cli_calibrates_the_quadrotor_preset(tmp_path, capsys):
     learned = cfg.agents.latent_force
     # Three short episodes: the gust's std 2.0 m/s^2 and lengthscale 2.5 s, within a factor 3.
     assert 4.0 / 9 < learned.variance < 4.0 * 9 and 2.5 / 3 < learned.lengthscale < 2.5 * 3
+
+
+def test_an_existing_out_is_refused_before_any_episode_unless_forced(tmp_path, capsys):
+    """``lfm-calibrate --out`` overwrote an existing file silently. Now it is refused
+    before any episode runs (exit 2, naming --force); --force replaces it."""
+    out = tmp_path / "learned.yaml"
+    out.write_text("# a learned config of yesterday\n")
+    cfg = tmp_path / "small.yaml"
+    cfg.write_text("env:\n  max_steps: 20\nagents:\n  n_particles: 200\n  n_scenarios: 5\n")
+    with pytest.raises(SystemExit) as exc:
+        main(["--config", str(cfg), "--seeds", "0:2", "--out", str(out)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("lfm-calibrate: error: --out") and "--force" in err
+    assert str(out) in err and "calibration:" not in capsys.readouterr().out
+    assert out.read_text() == "# a learned config of yesterday\n"
+    assert main(["--config", str(cfg), "--seeds", "0:2", "--out", str(out), "--force"]) == 0
+    assert "agents:" in out.read_text()

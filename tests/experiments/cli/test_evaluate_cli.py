@@ -136,3 +136,20 @@ def test_cli_exits_2_with_one_line_naming_a_bad_agent(tmp_path):
     assert last.startswith("lfm-evaluate: error: agent ")
     assert f"{OWN}:not_an_agent_factory" in last and "no reset(seed=None) and act(obs)" in last
     assert not (tmp_path / "out").exists()
+
+
+def test_a_failed_report_is_one_line_on_stderr_with_exit_2(tmp_path, capsys):
+    """The report's failure was printed on stdout with exit code 1 (the code of episodes
+    that raised); the command lines' errors are one line on stderr with exit code 2. The
+    results stay."""
+    config = write_tiny_yaml(tmp_path)
+    out = tmp_path / "res"
+    out.mkdir()
+    (out / "figures").write_text("a file where the report's figures folder goes")
+    argv = ["--config", str(config), "--agents", "nominal", "--seeds", "0", "--out", str(out)]
+    assert evaluate_main([*argv, "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert "report" not in captured.out.replace(str(out), "").replace("results:", "")
+    (line,) = [x for x in captured.err.splitlines() if "report" in x]
+    assert line.startswith("lfm-evaluate: error: the report failed") and str(out) in line
+    assert [r["seed"] for r in saved_rows(out)] == [0]

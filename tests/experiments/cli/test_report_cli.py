@@ -44,3 +44,23 @@ def test_report_main_checks_its_files_before_drawing(results_copy, capsys):
     assert exc.value.code == 2
     assert "is a file, expected the report's figures folder" in capsys.readouterr().err
     assert not (results_copy / "report.md").exists()
+
+
+def test_a_report_in_a_runs_first_seconds_says_one_thing_and_exits_cleanly(tmp_path, capsys):
+    """``lfm-report`` on a folder whose run has taken it but finished no episode yet warned
+    that the folder is still being written, then failed (no episodes table, exit 2). Now it
+    says in one line that there is nothing to report yet, and exits 0."""
+    from controllers.config import load_config
+    from experiments.evaluation.storage import FolderLock, _prepare_folder
+
+    out = tmp_path / "run"
+    out.mkdir()
+    with FolderLock(out):  # as the run holds it, with its config written
+        _prepare_folder(out, load_config("quick"))
+        assert report_main([str(out), "--no-gif"]) == 0
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1, captured.err
+    assert "is being written by process" in lines[0] and "no finished episode" in lines[0]
+    assert str(out) in lines[0]
+    assert not (out / "report.md").exists() and captured.out == ""

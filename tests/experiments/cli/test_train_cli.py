@@ -140,3 +140,40 @@ def test_two_runs_into_one_folder_cannot_both_train(tmp_path, capsys):
     finally:
         first.kill()
         first.wait()
+
+
+def test_a_policy_set_of_two_trainings_is_refused_by_name(tmp_path, capsys):
+    """Defect 7: ``lfm-train`` wrote policy.zip, policy.npz and policy.json in place one
+    after another; killed between the first two, a longer-trained zip sat beside the shorter
+    run's npz and json, ``--resume`` recorded the wrong ``resumed_from`` and the ``rl`` agent
+    loaded the mismatched set. Now the files are written to temporary files and renamed into
+    place, policy.json last with the SHA-256 of the other two: a set of two trainings (here
+    made as such a kill leaves it) is refused by the ``rl`` agent and by ``--resume``, naming
+    the file."""
+    import shutil
+
+    from controllers.agents import make_agent
+    from controllers.config import ConfigError, load_config
+
+    short, longer = tmp_path / "short", tmp_path / "longer"
+    assert _train(tmp_path, short) == 0
+    shutil.copytree(short, longer)
+    assert _train(tmp_path, longer, "--resume") == 0
+    assert _steps(longer) > _steps(short)
+    summary = json.loads((short / "policy.json").read_text())
+    assert set(summary["files"]) == {"policy.zip", "policy.npz"}
+    assert not list(short.glob("*.tmp")) and not list(short.glob(".*.tmp"))
+    config = load_config(short / "eval.yaml")
+    make_agent("rl", config)  # the set as written: loads
+    shutil.copyfile(longer / "policy.zip", short / "policy.zip")  # the zip of the longer run
+    with pytest.raises(ConfigError, match=r"policy\.zip.*policy\.json"):
+        make_agent("rl", config)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        _train(tmp_path, short, "--resume")
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "policy.zip" in err and "--force" in err, err
+    assert json.loads((short / "policy.json").read_text()) == summary  # nothing written
+    assert _train(tmp_path, short, "--force") == 0  # replaced: a set again
+    make_agent("rl", load_config(short / "eval.yaml"))

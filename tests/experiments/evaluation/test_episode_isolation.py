@@ -38,6 +38,7 @@ def agent(name: str) -> str:
 def reference() -> dict[tuple[str, int], dict]:
     """Every episode of the healthy agent, and the bad agents' good ones, run alone."""
     names = ["SegfaultAgent", "KilledAgent", "LoopingAgent", "StuckAgent", "ExitingAgent"]
+    names += ["AbortingAgent", "QuittingAgent"]
     good = [s for s in SEEDS if s != BAD_SEED]
     rows = evaluate([HEALTHY], SEEDS, TINY, progress=False)
     rows += evaluate([agent(n) for n in names], good, TINY, progress=False)
@@ -76,6 +77,39 @@ def test_a_worker_that_dies_costs_only_its_own_episode(
     assert all(signal_name in line for line in warnings)
 
 
+@pytest.mark.parametrize("name, bad, how", [
+    ("SegfaultAgent", "segfault", "killed by SIGSEGV"),
+    ("AbortingAgent", "aborting", "killed by SIGABRT"),
+    ("QuittingAgent", "quitting", "exited with code 3"),
+])  # fmt: skip
+def test_a_native_crash_in_a_serial_run_costs_only_its_own_episode(
+    name, bad, how, reference, tmp_path
+) -> None:
+    """A serial run (no --jobs) ended at an agent's segfault, abort or os._exit on one seed
+    with exit code 139, 134 or 3, nothing printed, no table, and the episodes after it never
+    run, on every rerun. Now its episodes run in a child process as on a pool: the crash is
+    one error row naming the agent, the seed and the signal, every other episode runs, and
+    a rerun retries only that one."""
+    out = tmp_path / "out"
+    cmd = [str(LFM_EVALUATE), "--config", str(write_tiny_yaml(tmp_path))]
+    cmd += ["--agents", f"{agent(name)},{HEALTHY}", "--seeds", f"0:{len(SEEDS)}"]
+    cmd += ["--out", str(out), "--no-report", "--quiet"]
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+    for attempt in range(2):
+        proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+        assert proc.returncode == 1, (proc.returncode, proc.stderr[-3000:])
+        warnings = [line for line in proc.stderr.splitlines() if line.startswith("warning:")]
+        assert warnings and all(f"'{bad}', seed {BAD_SEED}" in w and how in w for w in warnings)
+        with open(out / "episodes.csv", newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        assert len(rows) == 2 * len(SEEDS), attempt
+        assert errors_of(rows).keys() == {(bad, BAD_SEED)}
+        assert how in errors_of(rows)[(bad, BAD_SEED)]
+    saved = evaluate([agent(name), HEALTHY], SEEDS, TINY, out=out, retry_failed=False)
+    good = [r for r in saved if r["error"] == ""]
+    assert comparable(good) == comparable([reference[(r["agent"], r["seed"])] for r in good])
+
+
 def test_an_agents_system_exit_is_an_error_row(reference, tmp_path) -> None:
     """Case 8: an agent's SystemExit(5) ended the whole evaluation with exit code 5, no
     message and no rows. Now it is the episode's error row, serial and on a pool."""
@@ -85,15 +119,17 @@ def test_an_agents_system_exit_is_an_error_row(reference, tmp_path) -> None:
         assert_one_bad_row(rows, "exiting", reference, "SystemExit: 5")
 
 
-def test_ctrl_c_stays_ctrl_c_in_a_serial_run_and_is_a_row_in_a_worker(tmp_path) -> None:
+def test_ctrl_c_stays_ctrl_c_in_the_runs_own_process_and_is_a_row_in_a_worker(tmp_path):
     """A KeyboardInterrupt in the run's own process is Ctrl-C: the run stops (the episodes
-    before it are kept). Pool workers ignore Ctrl-C, so one raised there is the agent's."""
+    before it are kept): a serial run in this process (``isolate=False``). Workers, a serial
+    run's own child included, ignore Ctrl-C, so one raised there is the agent's: a row."""
     out = tmp_path / "serial"
     with pytest.raises(KeyboardInterrupt):
-        evaluate([agent("InterruptedAgent")], SEEDS, TINY, out=out, progress=False)
+        evaluate([agent("InterruptedAgent")], SEEDS, TINY, out=out, progress=False, isolate=False)
     assert len(list((out / "episodes").glob("*.json"))) == BAD_SEED
-    rows = evaluate([agent("InterruptedAgent")], SEEDS[:5], TINY, jobs=2, progress=False)
-    assert [r["seed"] for r in rows if r["error"]] == [BAD_SEED]
+    for jobs in (1, 2):
+        rows = evaluate([agent("InterruptedAgent")], SEEDS[:5], TINY, jobs=jobs, progress=False)
+        assert [r["seed"] for r in rows if r["error"]] == [BAD_SEED]
 
 
 # ----------------------------------------------------------------------------- time limits
@@ -146,21 +182,51 @@ def test_an_episode_past_its_limit_is_an_error_row_in_a_serial_run(tmp_path) -> 
     assert list(errors) == [("looping", BAD_SEED)] and LIMIT in errors[("looping", BAD_SEED)]
 
 
-def test_a_serial_episode_stuck_outside_python_ends_the_run_with_its_row_saved(tmp_path):
-    """Case 7, serial: an episode that never returns to Python cannot be stopped inside
-    the process; the run saves its error row and the table, says so in one line and ends
-    (exit 1). The rerun runs the other episodes first, so two runs leave every row."""
+def test_a_serial_episode_stuck_outside_python_is_stopped_and_the_run_goes_on(tmp_path):
+    """Case 7, serial: an episode that never returns to Python ran in the run's own process,
+    which had to end (exit 1) to stop it. Now a serial run's episodes run in a child
+    process: it is stopped past its limit, the episode is an error row naming the limit,
+    and every other episode runs."""
+    proc, rows = run_evaluate(tmp_path, tmp_path / "out", [agent("StuckAgent"), HEALTHY])
+    assert proc.returncode == 1, proc.stderr[-3000:]
+    assert not [x for x in proc.stderr.splitlines() if x.startswith("error:")]
+    assert len(rows) == 2 * len(SEEDS)
+    errors = errors_of(rows)
+    assert list(errors) == [("stuck", BAD_SEED)] and LIMIT in errors[("stuck", BAD_SEED)]
+    assert "did not return and was stopped" in errors[("stuck", BAD_SEED)]
+
+
+def test_an_in_process_episode_stuck_outside_python_ends_the_run_with_its_row_saved(tmp_path):
+    """Case 7, in the run's own process (``isolate=False``): an episode that never returns to
+    Python cannot be stopped inside the process; the run saves its error row and the table,
+    says so in one line and ends (exit 1). The rerun runs the other episodes first, so two
+    runs leave every row."""
     out = tmp_path / "out"
-    agents = [agent("StuckAgent"), HEALTHY]
-    proc, rows = run_evaluate(tmp_path, out, agents)
+    script = (
+        "import sys; from experiments.evaluation import evaluate; "
+        f"evaluate([{agent('StuckAgent')!r}, {HEALTHY!r}], range({len(SEEDS)}), "
+        f"{str(write_tiny_yaml(tmp_path))!r}, out={str(out)!r}, episode_timeout=1, "
+        "progress=False, isolate=False)"
+    )
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+
+    def run():
+        proc = subprocess.run(
+            [sys.executable, "-c", script], cwd=REPO, env=env, capture_output=True, text=True,
+            timeout=240,
+        )  # fmt: skip
+        with open(out / "episodes.csv", newline="") as fh:
+            return proc, list(csv.DictReader(fh))
+
+    proc, rows = run()
     assert proc.returncode == 1
     (line,) = [x for x in proc.stderr.splitlines() if x.startswith("error:")]
     assert f"agent 'stuck', seed {BAD_SEED}" in line and "limit of 1 s" in line
     assert "its error row is saved" in line and "rerun" in line
-    assert errors_of(rows) == {("stuck", BAD_SEED): errors_of(rows)[("stuck", BAD_SEED)]}
+    assert list(errors_of(rows)) == [("stuck", BAD_SEED)]
     assert LIMIT in errors_of(rows)[("stuck", BAD_SEED)]
     assert len(rows) < 2 * len(SEEDS)  # the episodes after it did not run
-    proc, rows = run_evaluate(tmp_path, out, agents)
+    proc, rows = run()
     assert proc.returncode == 1
     assert len(rows) == 2 * len(SEEDS)
     assert list(errors_of(rows)) == [("stuck", BAD_SEED)]

@@ -86,15 +86,15 @@ def test_rerun_skips_finished_episodes_and_redoes_lost_ones(tmp_path, monkeypatc
         return task(agent, config, seed, out, record, *rest)
 
     monkeypatch.setattr(evaluation, "_episode_task", counting)
-    second = evaluate(["nominal"], range(3), TINY, out=tmp_path, progress=False)
+    # (in this process: the counting function is this process's)
+    second = evaluate(["nominal"], range(3), TINY, out=tmp_path, progress=False, isolate=False)
     assert calls == [("nominal", 1)]
     assert comparable(second) == comparable(first)
     assert not list(tmp_path.rglob("*.tmp"))
 
     calls.clear()
-    assert comparable(evaluate(["nominal"], [2], TINY, out=tmp_path, progress=False)) == (
-        comparable(first[2:])
-    )
+    again = evaluate(["nominal"], [2], TINY, out=tmp_path, progress=False, isolate=False)
+    assert comparable(again) == (comparable(first[2:]))
     assert calls == []
 
 
@@ -124,7 +124,8 @@ def test_failing_episode_is_recorded_and_retried(tmp_path, monkeypatch):
         return agent
 
     monkeypatch.setattr(AgentSpec, "build", flaky_build)  # where episodes build agents
-    rows = evaluate(["nominal", "pf"], [0, 1], TINY, out=tmp_path, progress=False)
+    # (in this process: the flaky agent is this process's)
+    rows = evaluate(["nominal", "pf"], [0, 1], TINY, out=tmp_path, progress=False, isolate=False)
     by_agent = {a: [r for r in rows if r["agent"] == a] for a in ("nominal", "pf")}
     assert all(r["error"] == "" for r in by_agent["nominal"])
     for r in by_agent["pf"]:

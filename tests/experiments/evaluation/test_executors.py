@@ -105,3 +105,49 @@ def test_local_dask_cluster_refuses_foreign_clients_and_serves_no_http(tmp_path)
             for addr in (address, plain):
                 with pytest.raises(ConnectionError, match="Dask scheduler"):
                     executors.check_scheduler(addr, 10, security)
+
+
+def test_the_key_of_a_killed_dask_run_is_removed_at_the_next_start(tmp_path, monkeypatch):
+    """A SIGKILLed ``--dask-workers`` run left its temporary TLS key
+    (``lfm-dask-*/key.pem``) in the temporary folder for ever. Now the next local cluster
+    removes the folders of runs that no longer live (and only those, holding only the
+    certificate and key)."""
+    import signal
+    import tempfile
+    import time
+
+    from experiments.evaluation.executors import temporary_security
+    from tests.experiments.evaluation.live_runs import quick_yaml
+
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    out = tmp_path / "out"
+    config = quick_yaml(tmp_path, max_steps=60)
+    cmd = [str(LFM_EVALUATE), "--config", str(config), "--agents", "nominal", "--seeds", "0:4"]
+    cmd += ["--dask-workers", "1", "--out", str(out), "--no-report", "--quiet"]
+    proc = subprocess.Popen(
+        cmd, env={**ENV, "TMPDIR": str(temp)}, start_new_session=True,
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 120
+        while not list(temp.glob("lfm-dask-*/key.pem")):
+            assert proc.poll() is None, "the run ended before its cluster started"
+            assert time.monotonic() < deadline, "no certificate folder appeared"
+            time.sleep(0.05)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    (left,) = temp.glob("lfm-dask-*")
+    assert (left / "key.pem").is_file()  # what the killed run leaves
+    alive = temp / "lfm-dask-not-ours"
+    alive.mkdir()
+    (alive / "notes.txt").write_text("a folder of another program, left alone")
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))
+    with ExitStack() as stack:
+        temporary_security(stack)
+        (mine,) = [p for p in temp.glob("lfm-dask-*") if p != alive]
+        assert mine != left and (mine / "key.pem").is_file()
+    assert not left.exists()
+    assert (alive / "notes.txt").is_file()
+    assert not mine.exists()

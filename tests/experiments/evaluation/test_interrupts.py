@@ -152,7 +152,9 @@ class CtrlCConvertingAgent(CtrlCSwallowingAgent):
 
 @pytest.mark.parametrize("agent", [CtrlCSwallowingAgent, CtrlCConvertingAgent])
 def test_a_ctrl_c_that_a_library_swallows_still_stops_the_run(agent, tmp_path):
-    """Case 1: the serial run stops at the next step and saves no error row for it.
+    """Case 1: a run whose episodes run in its own process (``isolate=False``) stops at the
+    next step and saves no error row for it. (A serial run's child process and pool workers
+    ignore Ctrl-C: there the run's process, which runs no agent code, gets it.)
 
     (Found under load: ``lfm-evaluate`` went on after Ctrl-C when the signal landed in
     a CasADi expression being built, e.g. in an agent's constructor.)
@@ -167,6 +169,7 @@ def test_a_ctrl_c_that_a_library_swallows_still_stops_the_run(agent, tmp_path):
                 config=quick_yaml(tmp_path, max_steps=10),
                 out=out,
                 progress=False,
+                isolate=False,
             )
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
     finally:

@@ -33,10 +33,11 @@ import pytest
 import yaml
 
 from controllers.agents.mpc import MPCAgent
+from controllers.config import load_config
 from controllers.estimators.particle_filter import ParticleFilter
 from controllers.solvers.casadi.ipopt import IpoptScenarioSolver
 from controllers.solvers.fast.solver import FastScenarioSolver
-from experiments.evaluation.run import TIMING_COLUMNS, evaluate, resolve_config, run_episode
+from experiments.evaluation.run import TIMING_COLUMNS, evaluate, run_episode
 from lfm_env.worlds import SineTrackEnv
 
 REPO = Path(__file__).resolve().parents[3]
@@ -89,8 +90,8 @@ def without_timing(row: dict) -> dict:
 @pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc (Linux)")
 def test_300_consecutive_episodes_stay_healthy(record_property):
-    quick = resolve_config(REPO / "configs" / "quick.yaml")
-    configs = [{**quick, "agents": {**quick["agents"], "solver": s}} for s in ("ipopt", "fast")]
+    quick = REPO / "configs" / "quick.yaml"
+    configs = [load_config(quick, [f"agents.solver={s}"]) for s in ("ipopt", "fast")]
     first_row = None
     rss_after = []
     successes = 0

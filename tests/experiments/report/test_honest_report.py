@@ -4,13 +4,11 @@ settings of the agents present only; a sweep of another config refused or listed
 
 from __future__ import annotations
 
-import csv
 import shutil
 import warnings
 
 import numpy as np
 import pytest
-import yaml
 from scipy import stats as scipy_stats
 
 from experiments.report.stats import (
@@ -24,6 +22,7 @@ from experiments.report.stats import (
 )
 from experiments.report.sweep_section import config_differences
 from experiments.report.write import write_report
+from tests.experiments.saved_results import as_if_run_with, rewrite_episodes
 
 
 def scipy_bca(*data, statistic, paired=False):
@@ -77,15 +76,7 @@ def test_the_report_names_the_method_and_warns_about_few_seeds(report_path):
 
 
 def _keep_agents(folder, agents):
-    path = folder / "episodes.csv"
-    with path.open(newline="") as fh:
-        reader = csv.DictReader(fh)
-        rows = [r for r in reader if r["agent"] in agents]
-        fields = reader.fieldnames
-    with path.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fields)
-        writer.writeheader()
-        writer.writerows(rows)
+    rewrite_episodes(folder, {a: a for a in agents})
 
 
 def test_the_settings_paragraph_describes_only_the_agents_present(results_copy):
@@ -111,10 +102,7 @@ def test_the_full_settings_and_the_agents_that_model_the_force(report_path):
 def test_the_settings_name_a_feedback_prediction_and_only_that(results_copy, report_path):
     # The open-loop default is not mentioned (the paper's formulation); feedback is.
     assert "prediction" not in report_path.read_text().split("## Latent force")[0]
-    config = results_copy / "config.yaml"
-    data = yaml.safe_load(config.read_text())
-    data["agents"]["prediction"] = "feedback"
-    config.write_text(yaml.safe_dump(data))
+    as_if_run_with(results_copy, lambda data: data["agents"].update(prediction="feedback"))
     md = write_report(results_copy, gif=False).read_text()
     assert "solver = fast_c, prediction = feedback" in md.split("## Latent force")[0]
 

@@ -29,8 +29,11 @@ from tests.experiments.saved_results import (
     AGENTS,
     PNG_MAGIC,
     REPO,
+    add_error_row,
+    copy_episodes,
     csv_values,
     referenced_files,
+    rewrite_episodes,
     table_line,
 )
 
@@ -82,12 +85,7 @@ def test_report_has_agent_table_and_existing_figures(report_path):
 
 
 def test_errors_are_listed_not_dropped(results_copy):
-    table = results_copy / "episodes.csv"
-    with table.open(newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    bad = dict(rows[0], agent="pf", seed="7", success="False", error="RuntimeError: boom")
-    with table.open("a", newline="") as fh:
-        csv.DictWriter(fh, list(rows[0])).writerow(bad)
+    add_error_row(results_copy, "pf", 7, "RuntimeError: boom")
     md = write_report(results_copy, gif=False).read_text()
     section = md.split("## Episodes with errors")[1].split("##")[0]
     assert "RuntimeError: boom" in section and "| PF + CE MPC | 7 |" in section
@@ -260,16 +258,8 @@ def test_unknown_baseline_names_the_agents(results_copy, capsys):
 def test_default_baseline_without_the_scenario_agent_and_agents_of_any_name(results_copy):
     from experiments.report import choose_baseline
 
-    table = results_copy / "episodes.csv"
-    with table.open(newline="") as fh:
-        rows = [r for r in csv.DictReader(fh) if r["agent"] != "scenario"]
-    own = "tests.experiments.own_agents:Factory"  # a user's agent, named by its import path
-    for r in rows:
-        r["agent"] = own if r["agent"] == "pf" else r["agent"]
-    with table.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    own = "tests.experiments.own_agents.Factory"  # a user's agent, named by its import path
+    rewrite_episodes(results_copy, {"nominal": "nominal", "pf": own, "oracle": "oracle"})
     results = load_results(results_copy)
     assert results.agents == ["nominal", "oracle", own]
     assert choose_baseline(results) == "nominal"
@@ -329,27 +319,13 @@ def md_section(md: str, title: str) -> str:
 
 
 def rename_agents(results_dir: Path, names: dict[str, str], copies: int = 0) -> None:
-    """Rename agents in ``episodes.csv`` (and their trajectory files); with ``copies``, add
-    that many more agents ``extra1``, ... holding the first agent's rows."""
-    table = results_dir / "episodes.csv"
-    with table.open(newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    first = rows[0]["agent"]
-    extra = [
-        dict(r, agent=f"extra{i}")
-        for i in range(1, copies + 1)
-        for r in rows
-        if r["agent"] == first
-    ]
-    for r in rows:
-        r["agent"] = names.get(r["agent"], r["agent"])
-    for old, new in names.items():
-        for path in (results_dir / "episodes").glob(f"{old}__seed*.npz"):
-            path.rename(path.with_name(path.name.replace(f"{old}__", f"{new}__", 1)))
-    with table.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows + extra)
+    """Rename agents in the episode records (their trajectory files too, and the table);
+    with ``copies``, add that many more agents ``extra1``, ... holding the first agent's
+    episodes (the report checks the table against the records: both change)."""
+    agents = sorted({r["agent"] for r in load_results(results_dir).rows})
+    rewrite_episodes(results_dir, {a: names.get(a, a) for a in agents})
+    for i in range(1, copies + 1):
+        copy_episodes(results_dir, names.get(agents[0], agents[0]), f"extra{i}")
 
 
 def test_one_baseline_robust_by_default_in_every_paired_table(results_copy):
@@ -367,22 +343,13 @@ def test_sections_only_for_what_was_run(results_copy):
     """No "Paper vs measured: not available" without the scenario agent, no calibration
     section without a filtering agent, no error section without errors, no paired table
     with one agent."""
-    table = results_copy / "episodes.csv"
-    with table.open(newline="") as fh:
-        rows = [r for r in csv.DictReader(fh) if r["agent"] in ("nominal", "oracle")]
-    with table.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    rewrite_episodes(results_copy, {"nominal": "nominal", "oracle": "oracle"})
     md = write_report(results_copy, gif=False).read_text()
     for absent in ("Paper vs measured", "Estimator calibration", "Episodes with errors"):
         assert f"## {absent}" not in md, absent
     assert "not available" not in md.lower()
     assert "## Paired differences against nominal MPC" in md
-    with table.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, list(rows[0]))
-        writer.writeheader()
-        writer.writerows(r for r in rows if r["agent"] == "oracle")
+    rewrite_episodes(results_copy, {"oracle": "oracle"})
     md = write_report(results_copy, gif=False).read_text()
     assert "## Paired differences" not in md
 

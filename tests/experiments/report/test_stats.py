@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from experiments.report.format import fmt_estimate
 from experiments.report.write import (
@@ -20,7 +19,12 @@ from experiments.report.write import (
     write_report,
 )
 from lfm_env.worlds.registry import load_env_config
-from tests.experiments.saved_results import csv_values, table_line
+from tests.experiments.saved_results import (
+    as_if_run_with,
+    csv_values,
+    resave_trajectory,
+    table_line,
+)
 
 
 def test_bootstrap_ci_contains_mean_and_is_deterministic():
@@ -112,10 +116,9 @@ def test_calibration_names_the_configs_estimator_when_none_was_recorded(results_
     for path in (results_copy / "episodes").glob("pf__seed*.npz"):
         with np.load(path, allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files if k != "estimator"}
-        np.savez_compressed(path, **arrays)
-    config = yaml.safe_load((results_copy / "config.yaml").read_text())
-    config["agents"]["estimator"] = "ukf"  # as if the run had used it
-    (results_copy / "config.yaml").write_text(yaml.safe_dump(config))
+        resave_trajectory(path, arrays)
+    # as if the run had used it
+    as_if_run_with(results_copy, lambda config: config["agents"].update(estimator="ukf"))
     cals = {c.agent: c for c in estimator_coverage(load_results(results_copy))}
     assert (cals["pf"].estimator, cals["pf"].estimator_source) == ("ukf", "config.yaml")
     assert (cals["scenario"].estimator, cals["scenario"].estimator_source) == (

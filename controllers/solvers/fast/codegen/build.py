@@ -43,6 +43,15 @@ A library failing a check is rebuilt, with a one-line notice naming it. Builds a
 of one key take a lock on ``<stem>_<key>.lock`` (exclusive to build, shared to load), so a
 library and its record are replaced together and two processes compiling the same library
 at once compile it once.
+
+A build runs in a process of its own (:mod:`.builder_process`, in its own session), so it
+goes on to its end and its library is installed in the cache, atomically, even when the
+process that asked for it stops waiting: its episode ran past its time limit, the run was
+interrupted, or the compiler is slower than :func:`compile_wait` (120 s,
+``$LFM_COMPILE_TIMEOUT``), after which the asking process (and any other that needs the
+library while that build runs) gets :class:`CodegenUnavailable`, and the fast solver its
+NumPy backend, with one notice. The evaluation compiles the libraries its agents need before
+the first episode's clock starts (:func:`controllers.solvers.fast.prepare.compile_ahead`).
 """
 
 from __future__ import annotations
@@ -53,11 +62,10 @@ import ctypes
 import fcntl
 import hashlib
 import json
+import math
 import os
-import re
 import shlex
 import shutil
-import signal
 import stat
 import subprocess
 import sys
@@ -69,10 +77,11 @@ from pathlib import Path
 
 import numpy as np
 
+from controllers.solvers.fast.codegen.builder_process import identity
 from controllers.solvers.fast.codegen.source import (
     library_source,
 )
-from controllers.solvers.fast.codegen.trust import file_problem, folder_problem, sha256_of
+from controllers.solvers.fast.codegen.trust import folder_problem, library_problem
 
 CACHE_ENV = "LFM_CACHE_DIR"
 FLAGS = ("-O3", "-fPIC", "-shared")
@@ -93,8 +102,11 @@ BUILDS = (
     ((*FLAGS, SIMD_FLAG), ()),
     (FLAGS, ()),
 )
-COMPILE_TIMEOUT = 120.0  # [s] a compile taking longer is abandoned (fallback)
-CHECK_TIMEOUT = 60.0  # [s] for the child process that checks a library before it is loaded
+COMPILE_TIMEOUT = 120.0  # [s] one compiler run taking longer is abandoned (fallback)
+#: [s] a process waits this long for a library's build (``$LFM_COMPILE_TIMEOUT`` changes it),
+#: then runs its NumPy backend with one notice; the build goes on and is cached.
+COMPILE_WAIT = 120.0
+COMPILE_WAIT_ENV = "LFM_COMPILE_TIMEOUT"
 
 # Loaded libraries of this process, by key (a second build is free).
 _LOADED: dict[str, ctypes.CDLL] = {}
@@ -113,11 +125,20 @@ class CodegenUnavailable(RuntimeError):
     """No C library: no compiler found, compilation failed or the library did not load."""
 
 
+#: The notices shown by this process or the one that started it (hashes; inherited by the
+#: processes it starts after a notice): a run's workers do not repeat the run's notice.
+NOTICES_ENV = "LFM_NOTICES_SHOWN"
+
+
 def notice(message: str) -> None:
-    """Print ``warning: <message>`` on stderr, once per process for each message."""
-    if message in _NOTICED:
+    """Print ``warning: <message>`` on stderr, once per process for each message, and not
+    in a process started after its parent printed it (:data:`NOTICES_ENV`)."""
+    tag = hashlib.sha256(message.encode()).hexdigest()[:12]
+    shown = [t for t in os.environ.get(NOTICES_ENV, "").split(",") if t]
+    if message in _NOTICED or tag in shown:
         return
     _NOTICED.add(message)
+    os.environ[NOTICES_ENV] = ",".join([*shown, tag])
     print(f"warning: {message}", file=sys.stderr, flush=True)
 
 
@@ -200,30 +221,6 @@ LIBRARY_SYMBOLS = (
 _KEY_FUNCTION = 'const char *lfm_cache_key(void) {{ return "{key}"; }}\n'
 _DIMS_FUNCTION = "void lfm_dims(long *d) { d[0] = NX; d[1] = NU; d[2] = NW; d[3] = NG; }\n"
 
-# The check of a library in a child process: loads it (its constructors run there, and a
-# damaged file crashes the child only), then checks its symbols, its key and its sizes.
-_CHECK = """
-import ctypes, sys
-path, key, symbols, dims = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4]
-lib = ctypes.CDLL(path)
-missing = [s for s in symbols.split(",") if s and not hasattr(lib, s)]
-if missing:
-    print("it lacks the symbol(s) " + ", ".join(missing)); sys.exit(3)
-if not hasattr(lib, "lfm_cache_key"):
-    print("it records no key (built by another version)"); sys.exit(3)
-lib.lfm_cache_key.restype = ctypes.c_char_p
-found = lib.lfm_cache_key().decode("ascii", "replace")
-if found != key:
-    print("it was built for the key " + found[:40]); sys.exit(3)
-if dims:
-    d = (ctypes.c_long * 4)()
-    lib.lfm_dims(d)
-    if ",".join(map(str, d)) != dims:
-        print("it is of a system of sizes " + ",".join(map(str, d)) + ", not " + dims)
-        sys.exit(3)
-print("ok")
-"""
-
 
 def _compiler_identity(compiler: list[str]) -> list[str]:
     """The compiler as part of the cache key: its command, and its resolved executable with
@@ -273,139 +270,134 @@ def _cache_folder() -> Path:
 
 
 @contextlib.contextmanager
-def _key_lock(folder: Path, name: str, exclusive: bool) -> Iterator[None]:
-    """Hold the lock ``folder/name`` (shared or exclusive) for the duration; without one
-    when it cannot be created or taken (a folder this process cannot write, which no other
-    process of the user's can write either; a file system without locks)."""
+def _key_lock(folder: Path, name: str) -> Iterator[None]:
+    """Hold the lock ``folder/name`` shared for the duration (no build replaces the library
+    meanwhile); without one when it cannot be created or taken (a folder this process cannot
+    write, which no other process of the user's can write either; a file system without
+    locks).
+
+    Raises:
+        CodegenUnavailable: a build holds the lock for longer than :func:`compile_wait`
+            since it started (it names its start in the lock file).
+    """
     try:
         fd = os.open(folder / name, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
     except OSError:
         yield
         return
     try:
-        with contextlib.suppress(OSError):  # (a file system without locks: none)
-            fcntl.flock(fd, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH)
+        _wait_for_builds(fd)
         yield
     finally:
         os.close(fd)  # (releases the lock)
 
 
-def _check_in_child(path: Path, key: str, symbols: tuple[str, ...], dims: str) -> str | None:
-    """Load ``path`` in a short-lived child process and check its symbols, key and sizes:
-    why it fails (a crash named by its signal), else ``None``."""
-    cmd = [sys.executable, "-I", "-S", "-c", _CHECK, str(path), key, ",".join(symbols), dims]
-    try:
-        out = subprocess.run(
-            cmd, capture_output=True, text=True, timeout=CHECK_TIMEOUT, check=False
-        )
-    except subprocess.TimeoutExpired:
-        return f"its check did not end within {CHECK_TIMEOUT:g} s"
-    except OSError as err:
-        return f"its check could not run ({err})"
-    if out.returncode == 0 and out.stdout.strip() == "ok":
-        return None
-    if out.returncode < 0:
+def _wait_for_builds(fd: int) -> None:
+    """Take the shared lock on ``fd``, waiting for the build that holds it at most until
+    :func:`compile_wait` after its start."""
+    wait, first = compile_wait(), time.time()
+    while True:
         try:
-            name = signal.Signals(-out.returncode).name
-        except ValueError:
-            name = f"signal {-out.returncode}"
-        return f"it crashed the process that loaded it ({name})"
-    lines = (out.stdout.strip() or out.stderr.strip() or "it does not load").splitlines()
-    return lines[-1][:300]
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            return
+        except BlockingIOError:
+            pass
+        except OSError:
+            return  # (a file system without locks: none)
+        try:
+            started = float(os.pread(fd, 100, 0).split()[1])
+        except (OSError, ValueError, IndexError):
+            started = first  # (the build has not written its start yet)
+        if time.time() - started > wait:
+            raise CodegenUnavailable(_too_slow(wait))
+        time.sleep(0.05)
 
 
-def _library_problem(
-    path: Path, record: Path, key: str, symbols: tuple[str, ...], dims: str
-) -> str | None:
-    """Why the cached library ``path`` must not be loaded, else ``None`` (see the module
-    docstring: owner and mode, the record's key and content hash, the check in a child)."""
+def compile_wait() -> float:
+    """[s] a process waits for the build of a library it needs (:data:`COMPILE_WAIT`, or
+    ``$LFM_COMPILE_TIMEOUT``) before it gives it up for its NumPy backend."""
+    text = os.environ.get(COMPILE_WAIT_ENV, "")
     try:
-        problem = file_problem(path)
-        if problem is not None:
-            return problem
-        if not os.path.lexists(record):
-            return "has no record of its build"
-        problem = file_problem(record)
-    except OSError as err:
-        return f"cannot be read ({err.strerror or err})"
-    if problem is not None:
-        return f"has a record that {problem}"
-    try:
-        saved = json.loads(record.read_text())
-        recorded_key, digest = saved["key"], saved["sha256"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return "has a damaged record"
-    if recorded_key != key:
-        return "has the record of another library"
-    try:
-        actual = sha256_of(path)
-    except OSError as err:
-        return f"cannot be read ({err.strerror or err})"
-    if actual != digest:
-        return "is damaged (its content differs from the SHA-256 recorded when it was built)"
-    problem = _check_in_child(path, key, symbols, dims)
-    return None if problem is None else f"fails its check in a child process: {problem}"
+        value = float(text)
+    except ValueError:
+        return COMPILE_WAIT
+    return value if math.isfinite(value) and value > 0 else COMPILE_WAIT
 
 
-def _compile(source: str, target: Path, compiler: list[str]) -> None:
-    """Compile ``source`` to the shared library ``target`` with its record (the key and
-    the content's SHA-256), both replaced at once (the caller holds the key's lock)."""
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tag = f"{os.getpid()}-{os.urandom(4).hex()}"
-    c_file = target.with_name(f"{target.stem}.{tag}.c")
-    tmp = target.with_name(f"{target.stem}.{tag}.so.tmp")
-    record_tmp = target.with_name(f"{target.stem}.{tag}.json.tmp")
+def _too_slow(wait: float) -> str:
+    """Why a library is not available when its build takes longer than ``wait`` [s] (the
+    same text in every process of a run, so the fallback's notice is shown once)."""
+    return (
+        f"the C compiler did not finish within {wait:g} s (${COMPILE_WAIT_ENV}); the build "
+        "goes on in the background and its library is cached for the next run"
+    )
+
+
+# Builds this process stopped waiting for: they go on (kept here, reaped when they end).
+_ABANDONED: list[subprocess.Popen] = []
+
+
+def _build_in_background(
+    folder: Path, name: str, source: str, compiler: list[str], stale: str
+) -> bool:
+    """Build ``folder/name.so`` in a process of its own (:mod:`.builder_process`), which
+    goes on to its end whatever happens to this one; wait for it at most
+    :func:`compile_wait`. ``True`` if it compiled, ``False`` if another process had built
+    the library meanwhile.
+
+    Raises:
+        CodegenUnavailable: the compilation failed, or took longer than the wait.
+        OSError: ``folder`` cannot be written.
+    """
+    _ABANDONED[:] = [p for p in _ABANDONED if p.poll() is None]
+    c_file = folder / f"{name}.{os.getpid()}-{os.urandom(4).hex()}.c"
     try:
         c_file.write_text(source)
-        for flags, libs in BUILDS:  # (without what the compiler or system does not have)
-            cmd = [*compiler, *flags, str(c_file), "-o", str(tmp), *libs, "-lm"]
-            try:
-                out = subprocess.run(
-                    cmd, capture_output=True, text=True, timeout=COMPILE_TIMEOUT, check=False
-                )
-            except (OSError, subprocess.TimeoutExpired) as err:
-                raise CodegenUnavailable(f"compiler {compiler[0]!r} failed to run: {err}") from err
-            if out.returncode == 0:
-                break
-        if out.returncode != 0:
-            why = _compiler_error(out.stderr or out.stdout)
-            raise CodegenUnavailable(f"compilation with {compiler[0]!r} failed: {why}")
-        os.chmod(tmp, 0o755)  # (whatever the umask: writable by this user only)
-        record = {
-            "key": target.stem.rpartition("_")[2],
-            "sha256": sha256_of(tmp),
-            "compiler": compiler,
-            "flags": [*flags, *libs],
-        }
-        fd = os.open(record_tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-        with os.fdopen(fd, "w") as fh:
-            os.fchmod(fd, 0o644)
-            fh.write(json.dumps(record, indent=1) + "\n")
-        os.replace(record_tmp, target.with_suffix(".json"))
-        os.replace(tmp, target)
-        os.replace(c_file, target.with_suffix(".c"))
-    finally:
-        for leftover in (c_file, tmp, record_tmp):
-            leftover.unlink(missing_ok=True)
+    except OSError:
+        c_file.unlink(missing_ok=True)  # (a part written to a full disk)
+        raise
+    request = {"compiler": compiler, "builds": BUILDS, "timeout": COMPILE_TIMEOUT}
+    script = Path(__file__).with_name("builder_process.py")
+    cmd = [sys.executable, "-I", "-S", str(script), str(folder), name, str(c_file), stale]
+    try:
+        proc = subprocess.Popen(
+            [*cmd, json.dumps(request)],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,  # Ctrl-C of the run does not reach it
+        )
+    except OSError:
+        c_file.unlink(missing_ok=True)
+        raise
+    _ABANDONED.append(proc)  # (until it has answered below)
+    wait = compile_wait()
+    try:
+        out, err = proc.communicate(timeout=wait)
+    except subprocess.TimeoutExpired:
+        raise CodegenUnavailable(_too_slow(wait)) from None
+    _ABANDONED.remove(proc)
+    line = (out.strip().splitlines() or [err.strip()[-300:] or "no answer"])[-1]
+    if line.startswith("ok"):
+        return line == "ok built"
+    if line.startswith("oserror: "):
+        raise OSError(line.partition(": ")[2])
+    raise CodegenUnavailable(line.partition("error: ")[2] or line)
 
 
-def _compiler_error(output: str) -> str:
-    """The first error line of a compiler's output, without its ``file:line:col:`` start."""
-    lines = [line.strip() for line in output.strip().splitlines() if line.strip()]
-    line = next((x for x in lines if "error" in x.lower()), lines[0] if lines else "no output")
-    return re.sub(r"^\S+:\d+:(\d+:)?\s*", "", line)[:300]
-
-
-def build_library(system, dt: float) -> CompiledLibrary:
-    """The C library of ``system`` at time step ``dt`` [s], from the cache if there.
+def build_library(system, dt: float, feedback: bool = False) -> CompiledLibrary:
+    """The C library of ``system`` at time step ``dt`` [s], from the cache if there (with
+    ``feedback``, the library of its feedback prediction: ``library_source``).
 
     Raises:
         CodegenUnavailable: no compiler found, compilation failed or the library did not load.
     """
     start = time.perf_counter()
     dims = (system.nx, system.nu, system.nw, system.ng)
+    stem = "lfm_feedback" if feedback else "lfm_codegen"
     library = load_library(
-        library_source(system, dt), "lfm_codegen", symbols=LIBRARY_SYMBOLS, dims=dims
+        library_source(system, dt, feedback), stem, symbols=LIBRARY_SYMBOLS, dims=dims
     )
     _declare(library.lib)
     library.build_time = time.perf_counter() - start
@@ -457,34 +449,34 @@ def _load_or_build(
     folder: Path, name: str, source: str, compiler: list[str], check: tuple
 ) -> tuple[ctypes.CDLL, Path, bool]:
     """The checked library ``folder/name.so``: loaded if a valid one is there, else built
-    (in this process's private folder if ``folder`` cannot be written); with the cache
-    hit flag."""
+    (in a process of its own: :func:`_build_in_background`; in this process's private
+    folder if ``folder`` cannot be written); with the cache hit flag."""
     path, record = folder / f"{name}.so", folder / f"{name}.json"
     key = name.rpartition("_")[2]
-    with _key_lock(folder, f"{name}.lock", exclusive=False):
+    with _key_lock(folder, f"{name}.lock"):
         if os.path.lexists(path):
-            problem = _library_problem(path, record, key, *check)
+            problem = library_problem(path, record, key, *check)
             if problem is None:
                 return _dlopen(path), path, True
             notice(f"cached C library {str(path)!r} {problem}; building it again")
+        stale = identity(str(path))
     try:
-        with _key_lock(folder, f"{name}.lock", exclusive=True):
-            if os.path.lexists(path) and _library_problem(path, record, key, *check) is None:
-                return _dlopen(path), path, True  # built by another process meanwhile
-            _compile(source, path, compiler)
-            problem = _library_problem(path, record, key, *check)
-            if problem is not None:
-                raise CodegenUnavailable(f"the C library just built {problem}")
-            return _dlopen(path), path, False
+        compiled = _build_in_background(folder, name, source, compiler, stale)
     except OSError as err:  # the folder cannot be written (full, read-only, ...)
         private = _private_folder()
         if folder == private:
             raise CodegenUnavailable(f"cannot build the C library: {err}") from err
+        why = getattr(err, "strerror", None) or err
         notice(
-            f"cache folder {str(folder)!r} cannot be written ({err.strerror or err}); "
-            "C libraries are built in a private temporary folder"
+            f"cache folder {str(folder)!r} cannot be written ({why}); C libraries are built "
+            "in a private temporary folder"
         )
         return _load_or_build(private, name, source, compiler, check)
+    with _key_lock(folder, f"{name}.lock"):
+        problem = library_problem(path, record, key, *check)
+        if problem is not None:
+            raise CodegenUnavailable(f"the C library just built {problem}")
+        return _dlopen(path), path, not compiled
 
 
 def _dlopen(path: Path) -> ctypes.CDLL:
@@ -553,6 +545,8 @@ def address(a: np.ndarray) -> int:
 
 __all__ = [
     "CACHE_ENV",
+    "COMPILE_WAIT",
+    "compile_wait",
     "CodegenUnavailable",
     "CompiledLibrary",
     "address",

@@ -17,6 +17,7 @@ from importlib import resources
 import casadi as ca
 import numpy as np
 
+from controllers.solvers.fast.codegen import interface
 from controllers.solvers.fast.codegen.inline import (
     VECTOR_MATH_DECLARATIONS,
     NotInlinable,
@@ -27,18 +28,36 @@ from controllers.solvers.fast.codegen.inline import (
 )
 
 # A line of a C file of c/ that stands for another file of that folder (c_source).
-_INCLUDE = re.compile(r'^#include "([\w.]+)"\n', re.MULTILINE)
+_INCLUDE = re.compile(r'^#include "([\w.]+)"[^\n]*\n', re.MULTILINE)
+# The C files written from Python tables rather than kept in c/ (c_source inserts them).
+GENERATED = {"sqp_interface.h": interface.header}
 
 
 def c_source(name: str) -> str:
-    """The text of the C file ``c/<name>`` beside this module, each of its ``#include "..."``
-    lines replaced by the text of that file of the folder (a whole translation unit)."""
-    text = (resources.files(__package__) / "c" / name).read_text(encoding="utf-8")
+    """The text of the C file ``c/<name>`` beside this module (or of a generated one,
+    :data:`GENERATED`), each of its ``#include "..."`` lines replaced by the text of that file
+    (a whole translation unit)."""
+    if name in GENERATED:
+        text = GENERATED[name]()
+    else:
+        text = (resources.files(__package__) / "c" / name).read_text(encoding="utf-8")
     return _INCLUDE.sub(lambda m: c_source(m.group(1)), text)
 
 
-def pointwise_functions(system, dt: float) -> list[ca.Function]:
+def feedback_data_size(system) -> int:
+    """The values of a feedback library's data row per step that its generated functions
+    read: ``v`` (``nu``), ``K`` (``nu nx``, row-major) and ``r`` (``nx``)."""
+    return system.nu + system.nu * system.nx + system.nx
+
+
+def pointwise_functions(system, dt: float, feedback: bool = False) -> list[ca.Function]:
     """The pointwise CasADi functions of ``system`` the driver calls (dense outputs).
+
+    With ``feedback`` the functions of the closed-loop step of a feedback prediction: their
+    ``u`` is the step's data row ``[v, K (nu, nx) row-major, r]``, the scenario applies
+    ``v + K (x - r)``, and the Jacobians and Hessians are taken with respect to ``(x, v)``
+    (so ``A`` is the closed loop's ``A + B K``); the driver is compiled with
+    ``LFM_FEEDBACK``.
 
     ``lfm_step(x, u, w, p)`` (the next state ``F`` and, with constraints, ``g(F)`` after
     it), ``lfm_step_jac(x, u, w, p)`` (``A`` then ``B``, each flattened row-major) and
@@ -56,7 +75,13 @@ def pointwise_functions(system, dt: float) -> list[ca.Function]:
     nx, nu, nw, ng = system.nx, system.nu, system.nw, system.ng
     x, u, w = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("w", nw)
     lam, v = ca.SX.sym("lam", nx), ca.SX.sym("v", nx * nx)
-    F = system.casadi_step(dt)(x, u, w)
+    if feedback:  # u: the nominal input v; the data row [v, K, r]
+        gains, ref = ca.SX.sym("K", nu * nx), ca.SX.sym("r", nx)
+        data = ca.vertcat(u, gains, ref)
+        applied = u + ca.mtimes(ca.reshape(gains, nx, nu).T, x - ref)
+    else:
+        data, applied = u, u
+    F = system.casadi_step(dt)(x, applied, w)
     constraints = system.casadi_constraints() if ng else None
     z = ca.vertcat(x, u)
     d = ca.densify
@@ -83,11 +108,11 @@ def pointwise_functions(system, dt: float) -> list[ca.Function]:
     ):
         # (cse: the derivatives repeat subexpressions; it shortens the generated code, with no
         # measured change in speed: gcc already merged the repeated sines and cosines)
-        expr, symbols, values = ca.extract_parametric(ca.cse(d(expr)), u)
+        expr, symbols, values = ca.extract_parametric(ca.cse(d(expr)), data)
         p = ca.vertcat(*symbols) if symbols else ca.SX(0, 1)
         pre = ca.vertcat(*values) if values else ca.SX(0, 1)
-        fns.append(ca.Function(f"{name}_pre", [u], [pre]))
-        fns.append(ca.Function(name, [x, u, w, p, *extra], [d(expr)]))
+        fns.append(ca.Function(f"{name}_pre", [data], [pre]))
+        fns.append(ca.Function(name, [x, data, w, p, *extra], [d(expr)]))
     if ng:
         mu = ca.SX.sym("mu", ng)
         g = constraints(x)
@@ -98,16 +123,20 @@ def pointwise_functions(system, dt: float) -> list[ca.Function]:
     return fns
 
 
-def step_jacobian_pattern(system, dt: float) -> str:
+def step_jacobian_pattern(system, dt: float, feedback: bool = False) -> str:
     """C table ``A_NZ`` (``nx * nx``, row-major): 1 where the step's Jacobian ``dF/dx`` can be
     nonzero (CasADi's structural sparsity), 0 where it is zero for every point.
 
     The linearisation skips the zeros in ``A_k S_k`` (the bicycle's ``A`` has 9 of 16
     nonzeros); the table is a compile-time constant the compiler can fold where it unrolls.
+    With ``feedback``, of the closed loop's ``A + B K`` (any ``K``: the pattern of
+    :func:`pointwise_functions`'s step).
     """
     nx = system.nx
-    x, u, w = ca.SX.sym("x", nx), ca.SX.sym("u", system.nu), ca.SX.sym("w", system.nw)
-    sp = ca.jacobian(system.casadi_step(dt)(x, u, w), x).sparsity()
+    step = pointwise_functions(system, dt, feedback)[1]  # lfm_step(x, u or data, w, p)
+    x = ca.SX.sym("x", nx)
+    args = [ca.SX.sym(f"a{i}", step.size1_in(i)) for i in range(1, step.n_in())]
+    sp = ca.jacobian(step(x, *args)[:nx], x).sparsity()
     flags = [0] * (nx * nx)
     for r, c in zip(*sp.get_triplet(), strict=True):
         flags[r * nx + c] = 1
@@ -151,12 +180,64 @@ def constraint_jacobian_table(system) -> str:
     return "\n".join(lines)
 
 
-def library_source(system, dt: float) -> str:
-    """The complete C source of ``system``'s C library at time step ``dt`` [s]."""
+def feedback_defines(system) -> str:
+    """The sizes and tables of a feedback library (``LFM_FEEDBACK``): the data row's size
+    ``ND`` (:func:`feedback_data_size` plus the input weight ``R`` and the rows' flag, see
+    ``codegen/c/driver.c``), the row types ``NGR`` (the state constraints, then each input's
+    upper and lower row), the rows of the sensitivities ``NXS`` (the state's, then the
+    input's), the rows' Jacobian tables ``GR_*`` (an input row has one entry, on its input)
+    and the input bounds."""
+    nx, nu = system.nx, system.nu
+    nnz = int(constraint_jacobian_pattern(system).sum())
+    ptr = [0, *np.cumsum(constraint_jacobian_pattern(system).sum(axis=1))]
+    ptr += [nnz + q + 1 for q in range(2 * nu)]
+    cols = [*(np.flatnonzero(constraint_jacobian_pattern(system)) % nx)]
+    cols += [nx + q for q in range(nu)] * 2
+
+    def table(name: str, kind: str, values) -> str:
+        return f"static const {kind} {name}[{len(values)}] = {{{', '.join(values)}}};"
+
+    lines = [
+        "#define LFM_FEEDBACK 1",
+        f"#define NDF {feedback_data_size(system)}",
+        f"#define ND (NDF + {nu * nu} + 1)",
+        f"#define NGR (NG + {2 * nu})",
+        f"#define NXS (NX + {nu})",
+        f"#define GR_NNZ (G_NNZ + {2 * nu})",
+        table("GR_PTR", "int", [str(int(v)) for v in ptr]),
+        table("GR_COL", "int", [str(int(v)) for v in cols]),
+        table("U_LO", "double", [_c_double(v) for v in system.input_lower]),
+        table("U_HI", "double", [_c_double(v) for v in system.input_upper]),
+    ]
+    return "\n".join(lines)
+
+
+OPEN_LOOP_DEFINES = "\n".join(
+    [
+        "#define ND NU",
+        "#define NGR NG",
+        "#define NXS NX",
+        "#define GR_NNZ G_NNZ",
+        "#define GR_PTR G_PTR",
+        "#define GR_COL G_COL",
+    ]
+)
+
+
+def _c_double(value: float) -> str:
+    value = float(value)
+    if np.isinf(value):
+        return "INFINITY" if value > 0 else "-INFINITY"
+    return repr(value)
+
+
+def library_source(system, dt: float, feedback: bool = False) -> str:
+    """The complete C source of ``system``'s C library at time step ``dt`` [s] (with
+    ``feedback``, of its feedback prediction: :func:`pointwise_functions`)."""
     # (The generator's name prefixes the generated symbols: part of the source, so of the
     # cache key; kept as it was.)
     cg = ca.CodeGenerator("lfm_kernel.c", {"with_header": False, "casadi_real": "double"})
-    fns = pointwise_functions(system, dt)
+    fns = pointwise_functions(system, dt, feedback)
     for f in fns:
         cg.add(f)
     sizes = {"NX": system.nx, "NU": system.nu, "NW": system.nw, "NG": system.ng}
@@ -164,8 +245,9 @@ def library_source(system, dt: float) -> str:
         if f.name().endswith("_pre"):
             sizes["NP_" + f.name()[4:-4].upper()] = f.nnz_out(0)
     defines = "\n".join(f"#define {k} {v}" for k, v in sizes.items())
-    defines += "\n" + step_jacobian_pattern(system, dt)
+    defines += "\n" + step_jacobian_pattern(system, dt, feedback)
     defines += "\n" + constraint_jacobian_table(system)
+    defines += "\n" + (feedback_defines(system) if feedback else OPEN_LOOP_DEFINES)
     work = " ".join(f"W({f.name()});" for f in fns)
     code = cg.dump()
     by_name = {f.name(): f for f in fns}

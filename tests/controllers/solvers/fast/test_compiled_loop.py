@@ -314,14 +314,16 @@ def test_the_eigen_decomposition_matches_lapack() -> None:
             np.testing.assert_allclose(V.T @ V, np.eye(n), rtol=0, atol=1e-13)
 
 
-def test_the_c_loop_refuses_a_feedback_problem_which_make_solver_rewrites():
-    """The C loop plans open loop only: built directly on a feedback problem it refuses;
-    make_solver runs it through the feedback problem's open-loop rewrite."""
-    from controllers.solvers.feedback import FeedbackScenarioSolver
-
+def test_the_c_loop_solves_a_feedback_problem_itself():
+    """make_solver gives the C loop of the feedback library (no rewrite); a law for an
+    open-loop problem is refused by name."""
     problem = load_config("paper").make_problem(n_scenarios=10, prediction="feedback")
-    with pytest.raises(ValueError, match="open-loop problems only"):
-        CompiledScenarioSolver(problem, qp_solver="elastic_ipm")
     solver = make_solver(problem, "fast_c", qp_solver="elastic_ipm")
-    assert isinstance(solver, FeedbackScenarioSolver)
-    assert isinstance(solver.inner, CompiledScenarioSolver)
+    assert isinstance(solver, CompiledScenarioSolver) and solver.loop == "c" and solver.feedback
+    x0 = np.array([0.0, 0.0, 1.0, np.pi / 4])
+    W = np.zeros((10, problem.horizon))
+    sol = solver.solve(x0, W)
+    assert sol.success and sol.law is not None and sol.extra["reference"] == "open_loop_solve"
+    open_loop = make_solver(load_config("paper").make_problem(n_scenarios=10), "fast_c")
+    with pytest.raises(ValueError, match="law given for a problem with prediction='open_loop'"):
+        open_loop.solve(x0, W, law=sol.law)

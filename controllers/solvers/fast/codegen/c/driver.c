@@ -34,7 +34,9 @@ CASADI_SYMBOL_EXPORT int lfm_openmp(void) {
   return 0;
 #endif
 }
-#define S_OFF(k, ns) ((ns) * NX * NU * (k) * ((k) + 1) / 2)
+/* S at step k from 0 (the sensitivities of x_{k+1}, and with feedback of u_{s,k} below them:
+   NXS rows per scenario). */
+#define S_OFF(k, ns) ((ns) * NXS * NU * (k) * ((k) + 1) / 2)
 
 #include "clones.h"
 
@@ -70,7 +72,7 @@ static double* parametric(work_t* wk, cfun f, long np, long n, const double* u) 
   double* P = malloc((n * np + 1) * sizeof(double));
   if (!P) return NULL;
   for (long k = 0; k < n; ++k) {
-    wk->arg[0] = u + k * NU;
+    wk->arg[0] = u + k * ND;
     wk->res[0] = P + k * np;
     if (f(wk->arg, wk->res, wk->iw, wk->w, 0)) { free(P); return NULL; }
   }
@@ -134,6 +136,45 @@ static double dot(const double* a, const double* b, long len) {
   return (s0 + s1) + (s2 + s3);
 }
 
+#ifdef LFM_FEEDBACK
+/* Feedback problems (the library of a feedback prediction: LFM_FEEDBACK). The data row of
+   step k (the "u" of the generated functions, ND values) is [v_k (NU), K_k (NU, NX) row-major,
+   r_k (NX), R (NU, NU) row-major, active]: the nominal input, the law, the input weight and
+   whether the step's input rows count (0 where they are redundant with v_k's hard bounds,
+   K_k = 0). A scenario applies u = v_k + K_k (x - r_k). */
+#define D_K NU
+#define D_R (NU + NU * NX)
+#define D_RW NDF
+#define D_ACTIVE (NDF + NU * NU)
+
+/* The input u (NU) of the state x[m xs] under the data row d. */
+static inline __attribute__((always_inline)) void fb_applied(const double* x, long xs,
+                                                             const double* d, double* u) {
+  for (int q = 0; q < NU; ++q) {
+    double s = d[q];
+    for (int m = 0; m < NX; ++m) s += d[D_K + q * NX + m] * (x[m * xs] - d[D_R + m]);
+    u[q] = s;
+  }
+}
+
+/* A scenario's input at the state x[m xs]: its rows u - hi at g[(NG + q) gs] and lo - u at
+   g[(NG + NU + q) gs] (-inf where the step's rows do not count), u into uo; returns u' R u. */
+static inline __attribute__((always_inline)) double fb_input(const double* x, long xs,
+    const double* d, double* g, long gs, double* uo) {
+  const int active = d[D_ACTIVE] != 0.0;
+  double c = 0.0;
+  fb_applied(x, xs, d, uo);
+  for (int q = 0; q < NU; ++q) {
+    g[(NG + q) * gs] = active ? uo[q] - U_HI[q] : -INFINITY;
+    g[(NG + NU + q) * gs] = active ? U_LO[q] - uo[q] : -INFINITY;
+    double t = 0.0;
+    for (int p = 0; p < NU; ++p) t += d[D_RW + q * NU + p] * uo[p];
+    c += uo[q] * t;
+  }
+  return c;
+}
+#endif
+
 #ifdef LFM_STEP_INLINE
 /* Scenarios i0 <= i < i1 of lfm_rollout; their state cost into *cost. Step by step, each
    step's scenarios in one vectorisable loop over the step's inlined body (lfm_step_inline);
@@ -150,7 +191,7 @@ LFM_CLONES static int rollout_chunk(work_t* wkp, long n, long ns, long i0, long 
     const double* xk = X + k * NX * ns;
     double* xn = X + (k + 1) * NX * ns;
     double* gk = G + k * ns; /* (G is unused without constraints) */
-    const double* uk = u + k * NU;
+    const double* uk = u + k * ND;
     const double* pk = P + k * NP_STEP;
     const double* Wk = Wq + k * NX * NX;
     const double* wk = W + k * sk;
@@ -161,12 +202,20 @@ LFM_CLONES static int rollout_chunk(work_t* wkp, long n, long ns, long i0, long 
       for (long i = i0; i < i1; ++i) {
         lfm_step_inline(xk + i, ns, uk, wk + i * si, sa, pk, xn + i, gk + i, n * ns);
         ci[i - i0] += weighted_at(xn + i, ns, goal, Wk, 1, 1.0, NULL);
+#ifdef LFM_FEEDBACK
+        double ui[NU];
+        ci[i - i0] += fb_input(xk + i, ns, uk, gk + i, n * ns, ui);
+#endif
       }
     } else {
 #pragma omp simd
       for (long i = i0; i < i1; ++i) {
         lfm_step_inline(xk + i, ns, uk, wk + i * si, sa, pk, xn + i, gk + i, n * ns);
         ci[i - i0] += weighted_at(xn + i, ns, goal, Wk, 0, 1.0, NULL);
+#ifdef LFM_FEEDBACK
+        double ui[NU];
+        ci[i - i0] += fb_input(xk + i, ns, uk, gk + i, n * ns, ui);
+#endif
       }
     }
   }
@@ -188,7 +237,11 @@ static int rollout_chunk(work_t* wkp, long n, long ns, long i0, long i1, const d
     for (int m = 0; m < NX; ++m) X[m * ns + i] = x[m] = x0T[m * ns + i];
     for (long k = 0; k < n && !status; ++k) {
       gather(W, sa, sk, si, k, i, wv);
-      status = CALL4(lfm_step, x, u + k * NU, wv, P + k * NP_STEP, xn);
+      status = CALL4(lfm_step, x, u + k * ND, wv, P + k * NP_STEP, xn);
+#ifdef LFM_FEEDBACK
+      double ui[NU];
+      c += fb_input(x, 1, u + k * ND, G + k * ns + i, n * ns, ui);
+#endif
       for (int m = 0; m < NX; ++m) X[((k + 1) * NX + m) * ns + i] = x[m] = xn[m];
       c += weighted(x, goal, Wq + k * NX * NX, diag, 1.0, NULL);
 #if NG > 0
@@ -207,7 +260,9 @@ CASADI_SYMBOL_EXPORT int lfm_rollout(long n, long ns, const double* x0T, const d
     long sa, long sk, long si, const double* u, const double* goal, const double* Wq,
     double* X, double* G, double* cost, long nthreads) {
   /* The states X (N+1, NX, Ns), constraint values G (NG, N, Ns) of every scenario and the
-     state cost summed over them, sum_i sum_k (x_k - goal)' Wq_k (x_k - goal). */
+     state cost summed over them, sum_i sum_k (x_k - goal)' Wq_k (x_k - goal). With feedback
+     (LFM_FEEDBACK): u is the data rows (N, ND); G (NGR, N, Ns) holds the input rows of
+     each step's input after the state constraints, and the cost each scenario's u' R u. */
   work_t wk;
   if (work_alloc(&wk)) return 1;
   double* P = parametric(&wk, lfm_step_pre, NP_STEP, n, u);
@@ -287,17 +342,17 @@ static int linearise_chunk(work_t* wkp, long n, long ns, long i0, long i1, const
 #ifdef LFM_STEP_JAC_INLINE
       const long b = (i - i0) % JAC_BLOCK;
       if (b == 0)
-        jac_block(i1 - i < JAC_BLOCK ? i1 - i : JAC_BLOCK, X + k * NX * ns + i, ns, u + k * NU,
+        jac_block(i1 - i < JAC_BLOCK ? i1 - i : JAC_BLOCK, X + k * NX * ns + i, ns, u + k * ND,
                   W + k * sk + i * si, sa, si, P + k * NP_STEP_JAC, Jb, Cb);
       const double* Jp = Jb + b;
 #else
       load_state(X, k, ns, i, x);
       gather(W, sa, sk, si, k, i, wv);
-      status = CALL4(lfm_step_jac, x, u + k * NU, wv, P + k * NP_STEP_JAC, J);
+      status = CALL4(lfm_step_jac, x, u + k * ND, wv, P + k * NP_STEP_JAC, J);
 #endif
       const long cols = k * NU, width = cols + NU; /* S_{k+1} = [A_k S_k, B_k] */
-      double* Sk = S + S_OFF(k, ns) + i * NX * width;
-      const double* Sp = k ? S + S_OFF(k - 1, ns) + i * NX * cols : NULL;
+      double* Sk = S + S_OFF(k, ns) + i * NXS * width;
+      const double* Sp = k ? S + S_OFF(k - 1, ns) + i * NXS * cols : NULL;
       for (int r = 0; r < NX; ++r) {
         double* row = Sk + r * width;
         double a[NX];
@@ -310,9 +365,36 @@ static int linearise_chunk(work_t* wkp, long n, long ns, long i0, long i1, const
         }
         for (int q = 0; q < NU; ++q) row[cols + q] = Jp[(NX * NX + r * NU + q) * js];
       }
+#ifdef LFM_FEEDBACK
+      /* the input's sensitivities below x_{k+1}'s: du/dv = K_k S_k + [0, I] */
+      const double* dk = u + k * ND;
+      double gu[NU]; /* scale R u: the input cost's gradient */
+      {
+        double uk[NU];
+        load_state(X, k, ns, i, x);
+        fb_applied(x, 1, dk, uk);
+        for (int q = 0; q < NU; ++q) {
+          double t = 0.0;
+          for (int p = 0; p < NU; ++p) t += dk[D_RW + q * NU + p] * uk[p];
+          gu[q] = scale * t;
+          double* row = Sk + (NX + q) * width;
+          for (long c = 0; c < cols; ++c) {
+            double t2 = 0.0;
+            for (int m = 0; m < NX; ++m) t2 += dk[D_K + q * NX + m] * Sp[m * cols + c];
+            row[c] = t2;
+          }
+          for (int p = 0; p < NU; ++p) row[cols + p] = p == q ? 1.0 : 0.0;
+        }
+      }
+#endif
       load_state(X, k + 1, ns, i, x);
+#if NGR > 0
+      double* Jgi = Jg + (k * ns + i) * GR_NNZ; /* its entries that can be nonzero */
+#endif
+#ifdef LFM_FEEDBACK
+      for (int q = 0; q < NU; ++q) Jgi[G_NNZ + q] = 1.0, Jgi[G_NNZ + NU + q] = -1.0;
+#endif
 #if NG > 0
-      double* Jgi = Jg + (k * ns + i) * G_NNZ; /* its entries that can be nonzero */
 #if defined(LFM_STEP_JAC_INLINE) && defined(LFM_CON_JAC_INLINE)
       for (int e = 0; e < G_NNZ; ++e) Jgi[e] = Cb[G_IDX[e] * JAC_BLOCK + b];
 #else
@@ -329,6 +411,9 @@ static int linearise_chunk(work_t* wkp, long n, long ns, long i0, long i1, const
       for (long c = 0; c < width; ++c) {
         double t = 0.0;
         for (int r = 0; r < NX; ++r) t += gx[r] * Sk[r * width + c];
+#ifdef LFM_FEEDBACK
+        for (int q = 0; q < NU; ++q) t += gu[q] * Sk[(NX + q) * width + c];
+#endif
         grad[c] += t;
       }
     }
@@ -384,17 +469,17 @@ CASADI_SYMBOL_EXPORT int lfm_linearise(long n, long ns, const double* X, const d
 static inline void step_change(const double* S, long k, long ns, long i, const double* d,
                                double* sd) {
   const long width = (k + 1) * NU;
-  const double* Sk = S + S_OFF(k, ns) + i * NX * width;
-  for (int m = 0; m < NX; ++m) sd[m] = dot(Sk + m * width, d, width);
+  const double* Sk = S + S_OFF(k, ns) + i * NXS * width;
+  for (int m = 0; m < NXS; ++m) sd[m] = dot(Sk + m * width, d, width);
 }
 
 /* G + Jg_k[j] sd: the value of constraint j at step k of scenario i, changed to first
    order by the state change sd. */
 static inline double linear_value(long n, long ns, const double* Jg, const double* G, long j,
                                   long k, long i, const double* sd) {
-  const double* jg = Jg + (k * ns + i) * G_NNZ;
+  const double* jg = Jg + (k * ns + i) * GR_NNZ;
   double s = 0.0;
-  for (int e = G_PTR[j]; e < G_PTR[j + 1]; ++e) s += jg[e] * sd[G_COL[e]];
+  for (int e = GR_PTR[j]; e < GR_PTR[j + 1]; ++e) s += jg[e] * sd[GR_COL[e]];
   return G[(j * n + k) * ns + i] + s;
 }
 
@@ -404,9 +489,9 @@ CASADI_SYMBOL_EXPORT int lfm_linear_change(long n, long ns, const double* S,
      the input step d, in G's layout. */
   for (long k = 0; k < n; ++k)
     for (long i = 0; i < ns; ++i) {
-      double sd[NX];
+      double sd[NXS];
       step_change(S, k, ns, i, d, sd);
-      for (int j = 0; j < NG; ++j)
+      for (int j = 0; j < NGR; ++j)
         out[(j * n + k) * ns + i] = linear_value(n, ns, Jg, G, j, k, i, sd);
     }
   return 0;
@@ -419,12 +504,12 @@ CASADI_SYMBOL_EXPORT int lfm_rows(long n, long ns, const double* S, const double
   const long nut = n * NU;
   for (long q = 0; q < r; ++q) {
     const long j = pos[3 * q], k = pos[3 * q + 1], i = pos[3 * q + 2], width = (k + 1) * NU;
-    const double* Sk = S + S_OFF(k, ns) + i * NX * width;
-    const double* jg = Jg + (k * ns + i) * G_NNZ;
+    const double* Sk = S + S_OFF(k, ns) + i * NXS * width;
+    const double* jg = Jg + (k * ns + i) * GR_NNZ;
     double* row = out + q * nut;
     for (long c = 0; c < width; ++c) {
       double s = 0.0;
-      for (int e = G_PTR[j]; e < G_PTR[j + 1]; ++e) s += jg[e] * Sk[G_COL[e] * width + c];
+      for (int e = GR_PTR[j]; e < GR_PTR[j + 1]; ++e) s += jg[e] * Sk[GR_COL[e] * width + c];
       row[c] = s;
     }
     for (long c = width; c < nut; ++c) row[c] = 0.0;

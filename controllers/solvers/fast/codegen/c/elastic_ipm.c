@@ -18,13 +18,20 @@ static inline double amax(long n, const double* a) {
 }
 
 /* The lower triangle of M (n, n) += sum over the rows y of Y (rows, n) of y y', four rows
-   of Y at a time, two rows of M at a time (they share the loads of y[q]). */
-static void add_gram(long n, long rows, const double* Y, double* M) {
+   of Y at a time, two rows of M at a time (they share the loads of y[q]). Row i of Y is zero
+   from wy[i] on (the rows of the QP's early steps: the inputs' sensitivities are causal),
+   so four rows touch only the block of M up to their widest: the same sums (without the
+   zeros' terms), in O(w^2) instead of O(n^2). */
+static void add_gram(long n, long rows, const double* Y, const long* wy, double* M) {
   long i = 0;
   for (; i + 4 <= rows; i += 4) {
     const double *y0 = Y + i * n, *y1 = y0 + n, *y2 = y1 + n, *y3 = y2 + n;
+    const long w = wy[i] > wy[i + 1] ? wy[i] : wy[i + 1];
+    const long w2 = wy[i + 2] > wy[i + 3] ? wy[i + 2] : wy[i + 3];
+    /* (even, so that the rows of M pair as over the whole width: the same sums) */
+    const long wide = w > w2 ? w : w2, wb = wide + (wide & 1) < n ? wide + (wide & 1) : n;
     long p = 0;
-    for (; p + 2 <= n; p += 2) {
+    for (; p + 2 <= wb; p += 2) {
       const double a0 = y0[p], a1 = y1[p], a2 = y2[p], a3 = y3[p];
       const double b0 = y0[p + 1], b1 = y1[p + 1], b2 = y2[p + 1], b3 = y3[p + 1];
       double *Mp = M + p * n, *Mq = Mp + n;
@@ -35,7 +42,7 @@ static void add_gram(long n, long rows, const double* Y, double* M) {
       }
       Mq[p + 1] += b0 * b0 + b1 * b1 + b2 * b2 + b3 * b3;
     }
-    for (; p < n; ++p) {
+    for (; p < wb; ++p) {
       const double a0 = y0[p], a1 = y1[p], a2 = y2[p], a3 = y3[p];
       double* Mp = M + p * n;
       for (long q = 0; q <= p; ++q) Mp[q] += a0 * y0[q] + a1 * y1[q] + a2 * y2[q] + a3 * y3[q];
@@ -43,7 +50,7 @@ static void add_gram(long n, long rows, const double* Y, double* M) {
   }
   for (; i < rows; ++i) {
     const double* y0 = Y + i * n;
-    for (long p = 0; p < n; ++p) {
+    for (long p = 0; p < wy[i]; ++p) {
       double* Mp = M + p * n;
       for (long q = 0; q <= p; ++q) Mp[q] += y0[p] * y0[q];
     }
@@ -82,6 +89,8 @@ typedef struct {
   const long* col;
   const double* D; /* row scalings: rows (m), slack bounds (G), upper (n), lower (n) */
   double *T, *k, *abar, *M, *Y;
+  const long *w, *wg; /* each row's width (its entries from there on are zero), each group's */
+  long* wy;           /* (m + G) the widths of the rows of Y */
 } reduced_t;
 
 /* The reduced matrix M of the scalings D (module docstring), factorised; -1 on failure. */
@@ -95,32 +104,37 @@ static int reduce(reduced_t* q) {
     const double* a = q->A + i * n;
     double* ac = q->abar + c * n;
     q->T[c] += D[i];
-    for (long p = 0; p < n; ++p) ac[p] += D[i] * a[p];
+    for (long p = 0; p < q->w[i]; ++p) ac[p] += D[i] * a[p];
   }
   for (long c = 0; c < G; ++c) {
     q->k[c] = q->reg[c] + DS[c] + q->T[c];
     if (q->T[c] > 0.0)
-      for (long p = 0; p < n; ++p) q->abar[c * n + p] /= q->T[c];
+      for (long p = 0; p < q->wg[c]; ++p) q->abar[c * n + p] /= q->T[c];
   }
-  for (long i = 0; i < m; ++i) { /* rows sqrt(D_i) (a_i - abar_c) */
+  for (long i = 0; i < m; ++i) { /* rows sqrt(D_i) (a_i - abar_c), zero from the group's width */
     const double r = sqrt(D[i]);
+    const long wc = q->wg[q->col[i]];
     const double *a = q->A + i * n, *ac = q->abar + q->col[i] * n;
     double* y = q->Y + i * n;
-    for (long p = 0; p < n; ++p) y[p] = r * (a[p] - ac[p]);
+    for (long p = 0; p < wc; ++p) y[p] = r * (a[p] - ac[p]);
+    memset(y + wc, 0, sizeof(double) * (n - wc));
+    q->wy[i] = wc;
   }
   long rows = m;
   for (long c = 0; c < G; ++c) { /* then sqrt(T_c e_c / k_c) abar_c */
     if (q->T[c] <= 0.0) continue;
     const double r = sqrt(q->T[c] * (q->reg[c] + DS[c]) / q->k[c]);
     double* y = q->Y + rows * n;
-    for (long p = 0; p < n; ++p) y[p] = r * q->abar[c * n + p];
+    for (long p = 0; p < q->wg[c]; ++p) y[p] = r * q->abar[c * n + p];
+    memset(y + q->wg[c], 0, sizeof(double) * (n - q->wg[c]));
+    q->wy[rows] = q->wg[c];
     ++rows;
   }
   for (long p = 0; p < n; ++p) {
     for (long r = 0; r <= p; ++r) q->M[p * n + r] = q->H[p * n + r];
     q->M[p * n + p] += DU[p] + DL[p];
   }
-  add_gram(n, rows, q->Y, q->M);
+  add_gram(n, rows, q->Y, q->wy, q->M);
   return cholesky(n, q->M);
 }
 
@@ -165,16 +179,29 @@ LFM_CLONES __attribute__((flatten)) int lfm_elastic_qp(long n, long m, long G,
   double* buf = calloc((size_t)(10 * K + 2 * G + G * n + n * n + (m + G) * n + 12 * (n + G) + 1),
                        sizeof(double));
   char* has = calloc((size_t)(2 * n + 1), 1);
-  if (!buf || !has) {
+  long* widths = malloc(sizeof(long) * (size_t)(2 * m + 2 * G + 1));
+  if (!buf || !has || !widths) {
     free(buf);
     free(has);
+    free(widths);
     return -3;
+  }
+  /* each row's width (its last nonzero entry + 1), each group's (its rows' widest): the
+     reduced matrix skips the zeros beyond (the same sums); the O(m n) loops keep the whole
+     rows, whose vectorised bodies and scalar remainders round differently */
+  long *w = widths, *wg = widths + m, *wy = widths + m + G;
+  for (long c = 0; c < G; ++c) wg[c] = 0;
+  for (long i = 0; i < m; ++i) {
+    long len = n;
+    while (len > 0 && A[i * n + len - 1] == 0.0) --len;
+    w[i] = len;
+    if (len > wg[col[i]]) wg[col[i]] = len;
   }
   double* p = buf;
   double *v = p, *z = p + K, *D = p + 2 * K, *rp = p + 3 * K, *dv = p + 4 * K;
   double *dz = p + 5 * K, *rc = p + 6 * K, *dva = p + 7 * K, *dza = p + 8 * K, *u = p + 9 * K;
   p += 10 * K;
-  reduced_t q = {n, m, G, H, A, reg, col, D, p, p + G, p + 2 * G, NULL, NULL};
+  reduced_t q = {n, m, G, H, A, reg, col, D, p, p + G, p + 2 * G, NULL, NULL, w, wg, wy};
   p += 2 * G + G * n;
   q.M = p;
   p += n * n;
@@ -357,5 +384,6 @@ LFM_CLONES __attribute__((flatten)) int lfm_elastic_qp(long n, long m, long G,
   *iterations = it;
   free(buf);
   free(has);
+  free(widths);
   return status;
 }

@@ -9,7 +9,7 @@ static inline void step_adjoint(long n, long ns, long k, long i, const double* X
   weighted(x, goal, Wq + k * NX * NX, diag, scale, lam);
 #if NG > 0
   if (mu) {
-    const double* Jk = Jg + (k * ns + i) * G_NNZ;
+    const double* Jk = Jg + (k * ns + i) * GR_NNZ;
     for (int j = 0; j < NG; ++j) {
       const double mj = mu[(j * n + k) * ns + i];
       if (mj != 0.0)
@@ -91,16 +91,62 @@ static inline int hessian_point_in(work_t* wkp, long n, long ns, long k, long i,
   return state_curvature(wkp, n, ns, k + 1, i, X, P_next, mu, Wq, scale, V, vs);
 }
 
+#ifdef LFM_FEEDBACK
+/* The input's terms at step k (the data row d; its cost (1/Ns) u' R u with scale = 2/Ns and
+   its rows' multipliers mu) that the closed-loop step's function leaves out: u = v + K (x - r)
+   is linear in (x, v), so they add scale K' R K to the curvature carried to x_k (mine + NX),
+   scale K' R to the cross terms (xu) and K' (scale R u + mu_upper - mu_lower) to the
+   adjoint carried (mine); the input block's scale R is added once per block by the caller of
+   lfm_hessian (as the open-loop input cost's 2 R). */
+static inline void fb_point_terms(long n, long ns, long k, long i, const double* X,
+    const double* d, const double* mu, double scale, double* mine, double* xu) {
+  double x[NX], u[NU], g[NU], KR[NX * NU];
+  load_state(X, k, ns, i, x);
+  fb_applied(x, 1, d, u);
+  for (int q = 0; q < NU; ++q) {
+    double t = 0.0;
+    for (int p = 0; p < NU; ++p) t += d[D_RW + q * NU + p] * u[p];
+    g[q] = scale * t;
+    if (mu && d[D_ACTIVE] != 0.0)
+      g[q] += mu[((NG + q) * n + k) * ns + i] - mu[((NG + NU + q) * n + k) * ns + i];
+  }
+  for (int m = 0; m < NX; ++m) {
+    double t = 0.0;
+    for (int q = 0; q < NU; ++q) t += d[D_K + q * NX + m] * g[q];
+    mine[m] += t;
+    for (int q = 0; q < NU; ++q) {
+      double c = 0.0; /* (K' R)[m, q] */
+      for (int p = 0; p < NU; ++p) c += d[D_K + p * NX + m] * d[D_RW + p * NU + q];
+      KR[m * NU + q] = scale * c;
+      xu[m * NU + q] += KR[m * NU + q];
+    }
+  }
+  for (int a = 0; a < NX; ++a)
+    for (int b = 0; b < NX; ++b) {
+      double c = 0.0;
+      for (int q = 0; q < NU; ++q) c += KR[a * NU + q] * d[D_K + q * NX + b];
+      mine[NX + a * NX + b] += c;
+    }
+}
+#endif
+
 /* Scenario i at step k, given lfm_step_curv's values (entry e at o[e os]): what it carries
-   to step k - 1 (into now) and its terms of H. */
+   to step k - 1 (into now) and its terms of H. With feedback, also the input's terms
+   (fb_point_terms: X, the data row d, the multipliers mu and scale). */
 static inline void hessian_point_out(long n, long ns, long k, long i, const double* S,
-    const double* o, long os, double* now, double* H) {
+    const double* o, long os, double* now, double* H, const double* X, const double* d,
+    const double* mu, double scale) {
   const long nut = n * NU;
   double* mine = now + i * CARRY;
   double xu[NX * NU];
   for (int e = 0; e < NX; ++e) mine[e] = o[(CURV_ATL + e) * os];
   for (int e = 0; e < NX * NX; ++e) mine[NX + e] = o[e * os];
   for (int e = 0; e < NX * NU; ++e) xu[e] = o[(CURV_XU + e) * os];
+#ifdef LFM_FEEDBACK
+  fb_point_terms(n, ns, k, i, X, d, mu, scale, mine, xu);
+#else
+  (void)X, (void)d, (void)mu, (void)scale;
+#endif
   /* diagonal block: B_k' V_{k+1} B_k + M_k[u, u] */
   for (int p = 0; p < NU; ++p)
     for (int q = 0; q < NU; ++q)
@@ -108,7 +154,7 @@ static inline void hessian_point_out(long n, long ns, long k, long i, const doub
   /* blocks (a, k), a < k: S_k' (A_k' V_{k+1} B_k + M_k[x, u]), S_k = dx_k/du_0..k-1
      (column block a: A_{k-1} ... A_{a+1} B_a) */
   if (k > 0)
-    add_columns(H, nut, k, k * NU, S + S_OFF(k - 1, ns) + i * NX * k * NU, k * NU, xu);
+    add_columns(H, nut, k, k * NU, S + S_OFF(k - 1, ns) + i * NXS * k * NU, k * NU, xu);
 }
 
 #ifdef LFM_STEP_CURV_INLINE
@@ -143,10 +189,11 @@ static int hessian_chunk(work_t* wkp, long n, long ns, long i0, long i1, const d
         for (int e = 0; e < NX; ++e) Lb[e * CURV_BLOCK + b] = lam[e];
       }
       if (status) break;
-      curv_block(nb, X + k * NX * ns + b0, ns, u + k * NU, W + k * sk + b0 * si, sa, si,
+      curv_block(nb, X + k * NX * ns + b0, ns, u + k * ND, W + k * sk + b0 * si, sa, si,
                  P + k * NP_STEP_CURV, Lb, Vb, Ob);
       for (long b = 0; b < nb; ++b)
-        hessian_point_out(n, ns, k, b0 + b, S, Ob + b, CURV_BLOCK, now, H);
+        hessian_point_out(n, ns, k, b0 + b, S, Ob + b, CURV_BLOCK, now, H, X, u + k * ND, mu,
+                          scale);
     }
     double* t = now; now = next; next = t;
   }
@@ -169,9 +216,9 @@ static int hessian_chunk(work_t* wkp, long n, long ns, long i0, long i1, const d
       if (status) break;
       load_state(X, k, ns, i, x);
       gather(W, sa, sk, si, k, i, wv);
-      status = CALL6(lfm_step_curv, x, u + k * NU, wv, P + k * NP_STEP_CURV, lam, V, out);
+      status = CALL6(lfm_step_curv, x, u + k * ND, wv, P + k * NP_STEP_CURV, lam, V, out);
       if (status) break;
-      hessian_point_out(n, ns, k, i, S, out, 1, now, H);
+      hessian_point_out(n, ns, k, i, S, out, 1, now, H, X, u + k * ND, mu, scale);
     }
     double* t = now; now = next; next = t;
   }

@@ -116,13 +116,13 @@ CASADI_SYMBOL_EXPORT long lfm_violated(long n, long ns, long nsc, const long* sc
   long* first = calloc(groups + 1, sizeof(long));
   long* next = malloc((groups + 1) * sizeof(long));
   long* skip = malloc((q + 1) * sizeof(long));
-  long at[NG + 1], r = -1;
+  long at[NGR + 1], r = -1;
   if (nan && tv && ti && cnt && first && next && skip && keep > 0) {
-    for (int j = 0; j < NG; ++j) at[j] = -1;
+    for (int j = 0; j < NGR; ++j) at[j] = -1;
     for (long a = 0; a < nsc; ++a) at[screened[a]] = a;
     /* rows outside the arrays are not rows of the QP: ignored */
 #define POS_GROUP(p)                                                                       \
-  (pos[3 * (p)] >= 0 && pos[3 * (p)] < NG && at[pos[3 * (p)]] >= 0 && pos[3 * (p) + 1] >= 0 \
+  (pos[3 * (p)] >= 0 && pos[3 * (p)] < NGR && at[pos[3 * (p)]] >= 0 && pos[3 * (p) + 1] >= 0 \
            && pos[3 * (p) + 1] < n && pos[3 * (p) + 2] >= 0 && pos[3 * (p) + 2] < ns         \
        ? at[pos[3 * (p)]] * n + pos[3 * (p) + 1]                                            \
        : -1)
@@ -143,7 +143,7 @@ CASADI_SYMBOL_EXPORT long lfm_violated(long n, long ns, long nsc, const long* sc
     }
     for (long k = 0; k < n; ++k)
       for (long i = 0; i < ns; ++i) {
-        double sd[NX];
+        double sd[NXS];
         step_change(S, k, ns, i, d, sd);
         for (long a = 0; a < nsc; ++a) {
           const long j = screened[a], grp = a * n + k;

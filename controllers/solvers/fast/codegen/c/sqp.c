@@ -17,6 +17,7 @@
 
    Appended to the system's generated library (build.library_source); this file includes
    the QP solvers. Entry points: lfm_sqp_new, lfm_sqp_solve, lfm_sqp_reset, lfm_sqp_free. */
+#include <float.h>
 #include <time.h>
 
 #include "sqp.h"
@@ -25,25 +26,12 @@
 
 #include "dense.c"
 
-/* Statuses (the Python loop's names: sqp.py STATUSES). */
-enum {
-  SQ_SUCCEEDED, SQ_ACCEPTABLE, SQ_MAX_ITER, SQ_WALL_TIME, SQ_INVALID_START,
-  SQ_INVALID_DERIVATIVES, SQ_NUMERICAL_ERROR, SQ_QP_FAILED, SQ_LINE_SEARCH_FAILED,
-  SQ_ABANDONED, SQ_DUPLICATE, SQ_OUT_OF_MEMORY, SQ_NONE = -1
-};
+/* The statuses SQ_* and the statistics ST_* are sqp_interface.h's (codegen/interface.py). */
+#define SQ_NONE (-1) /* no status yet: the start goes on */
 #define SQ_OUT_OF_TIME (-2) /* inside an iteration (the Python loop's _OutOfTime) */
 
-/* The statistics lfm_sqp_solve writes (its out array; sqp.py STATS names them). */
-enum {
-  ST_MERIT, ST_SLACK, ST_ITERATIONS, ST_QP_SOLVES, ST_QP_HARD, ST_QP_HARD_REJECTED, ST_QP_ROWS,
-  ST_QP_RETRIES, ST_QP_ROUNDS_EXHAUSTED, ST_SOC_STEPS, ST_MERIT_EVALS, ST_FIRST_STATUS,
-  ST_FIRST_ITERATIONS, ST_RESTART_MIRROR, ST_RESTART_STRAIGHT, ST_QP_ELASTIC, ST_START_MERIT,
-  ST_COUNT
-};
-#define ST_STATS 11 /* the first entries summed over the starts (ST_QP_ROWS: the largest) */
-
 typedef struct {
-  double *u, *X, *G;   /* (N NU), (N + 1, NX, Ns), (NG, N, Ns) */
+  double *u, *X, *G;   /* (N NU), (N + 1, NX, Ns), (NGR, N, Ns) */
   double slack, merit; /* sum of the minimal slacks; exact-penalty merit (inf if not finite) */
   int used;
 } ro_t;
@@ -89,7 +77,38 @@ struct lfm_sqp {
   double *prev_u;
   int has_prev;
   double *u_try, *u_prev;
+  /* a feedback prediction (LFM_FEEDBACK; feedback.c): the data rows the driver reads as its
+     inputs (N, ND), the law (N, NU, NX), (N, NX), the bounds of v in the two kinds of solve
+     (every v_k, or v_0 only), the reference plan (the nominal inputs of the last usable
+     plan), the last decision and open-loop plan, the nominal inputs of the last solve */
+  double *D, *law_K, *law_r, *lower_all, *upper_all, *lower_first, *upper_first;
+  double *ref_plan, *last_v, *last_open, *nominal, *fb_work;
+  int law_given, has_ref, has_last_v, has_last_open;
 };
+
+#ifdef LFM_FEEDBACK
+static long fb_work_size(long n); /* (feedback.c) */
+#endif
+/* The timed parts (their definitions below, "where the time goes"). */
+static ro_t* sq_evaluate(lfm_sqp* s, const double* u);
+static int sq_linearise(lfm_sqp* s, const ro_t* ro);
+static void sq_hessian(lfm_sqp* s, const ro_t* ro);
+static void sq_rows(lfm_sqp* s, const ro_t* ro, rows_t* r, long from);
+static double sq_convexify(lfm_sqp* s, const ro_t* ro);
+static int sq_solve_elastic(lfm_sqp* s);
+static int sq_solve_hard(lfm_sqp* s);
+
+/* What the driver reads as the inputs u (N NU): u itself, or with feedback the law's data
+   rows with u as the nominal inputs. */
+static const double* sq_data(lfm_sqp* s, const double* u) {
+#ifdef LFM_FEEDBACK
+  for (long k = 0; k < s->n; ++k) memcpy(s->D + k * ND, u + k * NU, sizeof(double) * NU);
+  return s->D;
+#else
+  (void)s;
+  return u;
+#endif
+}
 
 static double sq_now(void) {
   struct timespec t;
@@ -160,7 +179,9 @@ static void rows_free(rows_t* r) {
 
 CASADI_SYMBOL_EXPORT void lfm_sqp_free(lfm_sqp* s) {
   if (!s) return;
-  void* own[] = {s->lower, s->upper, s->range, s->goal, s->Wq, s->Q0, s->R, s->R2, s->r_diag,
+  void* own[] = {s->D, s->law_K, s->law_r, s->lower_all, s->upper_all, s->lower_first,
+                 s->upper_first, s->ref_plan, s->last_v, s->last_open, s->nominal, s->fb_work,
+                 s->range, s->goal, s->Wq, s->Q0, s->R, s->R2, s->r_diag,
                  s->a_shared, s->shared, s->screened, s->mirror, s->depends, s->x0T, s->W,
                  s->backoff, s->S, s->Jg, s->grad, s->H, s->Hq, s->Hw, s->Hw2, s->Hw3, s->eig_w,
                  s->eig_V, s->scratch, s->mu, s->mu_next, s->act_shared, s->bounds, s->missing,
@@ -214,6 +235,7 @@ static int sq_reserve_qp(lfm_sqp* s, long r) {
 CASADI_SYMBOL_EXPORT lfm_sqp* lfm_sqp_new(const lfm_sqp_problem* p, const lfm_sqp_options* o) {
   lfm_sqp* s = calloc(1, sizeof(lfm_sqp));
   if (!s) return NULL;
+  s->hard_first = 1;
   int fail = 0;
   const long n = p->n, ns = p->ns, nut = n * NU, nL = p->n_shared;
   s->n = n, s->ns = ns, s->nut = nut, s->nL = nL, s->nsh = nL * n, s->nsc = p->n_screened;
@@ -222,14 +244,18 @@ CASADI_SYMBOL_EXPORT lfm_sqp* lfm_sqp_new(const lfm_sqp_problem* p, const lfm_sq
   s->o = *o;
   s->rho = p->slack_penalty;
 #define ALLOC(type, count) (type*)sq_alloc((size_t)(count), sizeof(type), &fail)
-  s->lower = ALLOC(double, nut);
-  s->upper = ALLOC(double, nut);
+  s->lower = s->lower_all = ALLOC(double, nut);
+  s->upper = s->upper_all = ALLOC(double, nut);
+  s->lower_first = ALLOC(double, nut);
+  s->upper_first = ALLOC(double, nut);
   s->range = ALLOC(double, nut);
   for (long k = 0; k < n && !fail; ++k)
     for (int q = 0; q < NU; ++q) {
       const long i = k * NU + q;
       s->lower[i] = p->input_lower[q];
       s->upper[i] = p->input_upper[q];
+      s->lower_first[i] = k ? -INFINITY : p->input_lower[q]; /* (feedback: v_0 bounded) */
+      s->upper_first[i] = k ? INFINITY : p->input_upper[q];
       const double span = s->upper[i] - s->lower[i];
       s->range[i] = isfinite(span) && span > 0.0 ? span : INFINITY;
     }
@@ -263,7 +289,7 @@ CASADI_SYMBOL_EXPORT lfm_sqp* lfm_sqp_new(const lfm_sqp_problem* p, const lfm_sq
   s->a_shared = ALLOC(double, s->nsh * nut + 1);
   s->screened = ALLOC(long, s->nsc + 1);
   s->mirror = ALLOC(long, s->nmirror + 1);
-  s->depends = ALLOC(unsigned char, NG * NX + 1);
+  s->depends = ALLOC(unsigned char, NGR * NX + 1);
   if (!fail) {
     memcpy(s->shared, p->shared, sizeof(long) * nL);
     for (long k = 0; k < n; ++k) /* ordered (step, shared constraint) */
@@ -272,7 +298,7 @@ CASADI_SYMBOL_EXPORT lfm_sqp* lfm_sqp_new(const lfm_sqp_problem* p, const lfm_sq
                sizeof(double) * nut);
     memcpy(s->screened, p->screened, sizeof(long) * s->nsc);
     memcpy(s->mirror, p->mirror, sizeof(long) * s->nmirror);
-    memcpy(s->depends, p->depends, NG * NX);
+    memcpy(s->depends, p->depends, NGR * NX);
   }
   s->x0T = ALLOC(double, NX * ns);
   s->W = ALLOC(double, NW * n * ns);
@@ -280,10 +306,23 @@ CASADI_SYMBOL_EXPORT lfm_sqp* lfm_sqp_new(const lfm_sqp_problem* p, const lfm_sq
   for (int i = 0; i < SQ_POOL; ++i) {
     s->pool[i].u = ALLOC(double, nut);
     s->pool[i].X = ALLOC(double, (n + 1) * NX * ns);
-    s->pool[i].G = ALLOC(double, NG * n * ns + 1);
+    s->pool[i].G = ALLOC(double, NGR * n * ns + 1);
   }
-  s->S = ALLOC(double, ns * NX * NU * n * (n + 1) / 2);
-  s->Jg = ALLOC(double, n * ns * G_NNZ + 1);
+  s->S = ALLOC(double, ns * NXS * NU * n * (n + 1) / 2);
+  s->Jg = ALLOC(double, n * ns * GR_NNZ + 1);
+#ifdef LFM_FEEDBACK
+  s->D = ALLOC(double, n * ND);
+  s->law_K = ALLOC(double, n * NU * NX);
+  s->law_r = ALLOC(double, n * NX);
+  s->ref_plan = ALLOC(double, nut);
+  s->last_v = ALLOC(double, nut);
+  s->last_open = ALLOC(double, nut);
+  s->nominal = ALLOC(double, nut);
+  s->fb_work = ALLOC(double, fb_work_size(n));
+  if (!fail)
+    for (long k = 0; k < n; ++k) /* the input weight of every data row */
+      memcpy(s->D + k * ND + NDF, p->R, sizeof(double) * NU * NU);
+#endif
   s->grad = ALLOC(double, nut);
   s->H = ALLOC(double, nut * nut);
   s->Hq = ALLOC(double, nut * nut);
@@ -293,8 +332,8 @@ CASADI_SYMBOL_EXPORT lfm_sqp* lfm_sqp_new(const lfm_sqp_problem* p, const lfm_sq
   s->eig_w = ALLOC(double, nut);
   s->eig_V = ALLOC(double, nut * nut);
   s->scratch = ALLOC(double, lfm_hessian_scratch(ns));
-  s->mu = ALLOC(double, NG * n * ns + 1);
-  s->mu_next = ALLOC(double, NG * n * ns + 1);
+  s->mu = ALLOC(double, NGR * n * ns + 1);
+  s->mu_next = ALLOC(double, NGR * n * ns + 1);
   s->act_shared = ALLOC(long, s->nsh + 1);
   s->bounds = ALLOC(long, nut);
   s->lo = ALLOC(double, nut);
@@ -302,7 +341,7 @@ CASADI_SYMBOL_EXPORT lfm_sqp* lfm_sqp_new(const lfm_sqp_problem* p, const lfm_sq
   s->gsh = ALLOC(double, s->nsh + 1);
   s->qd = ALLOC(double, nut);
   s->d = ALLOC(double, nut);
-  s->s_pos = ALLOC(double, NG * n + 1);
+  s->s_pos = ALLOC(double, NGR * n + 1);
   s->s_shared = ALLOC(double, s->nsh + 1);
   s->lam_shared = ALLOC(double, s->nsh + 1);
   s->prev_u = ALLOC(double, nut);
@@ -319,7 +358,11 @@ CASADI_SYMBOL_EXPORT lfm_sqp* lfm_sqp_new(const lfm_sqp_problem* p, const lfm_sq
   return s;
 }
 
-CASADI_SYMBOL_EXPORT void lfm_sqp_reset(lfm_sqp* s) { s->has_prev = 0; }
+CASADI_SYMBOL_EXPORT void lfm_sqp_reset(lfm_sqp* s) {
+  s->has_prev = 0;
+  s->hard_first = 1;
+  s->has_ref = s->has_last_v = s->has_last_open = s->law_given = 0;
+}
 
 /* The wall-clock limit [s] of the next solves (options.max_time; INFINITY: none). */
 CASADI_SYMBOL_EXPORT void lfm_sqp_set_max_time(lfm_sqp* s, double max_time) {
@@ -356,31 +399,37 @@ static double sq_input_cost(const lfm_sqp* s, const double* u) {
 
 /* The rollout of all scenarios under u and its merit (CondensedModel.evaluate) into a
    rollout of the pool; NULL if the pool is empty. */
-static ro_t* sq_evaluate(lfm_sqp* s, const double* u) {
+static ro_t* sq_evaluate_(lfm_sqp* s, const double* u) {
   ro_t* ro = ro_take(s);
   if (!ro) return NULL;
   const long n = s->n, ns = s->ns;
   memcpy(ro->u, u, sizeof(double) * s->nut);
   double csum = 0.0;
-  if (lfm_rollout(n, ns, s->x0T, s->W, n * ns, ns, 1, ro->u, s->goal, s->Wq, ro->X, ro->G,
+  if (lfm_rollout(n, ns, s->x0T, s->W, n * ns, ns, 1, sq_data(s, ro->u), s->goal, s->Wq, ro->X,
+                  ro->G,
                   &csum, s->o.threads)) {
     for (long e = 0; e < (n + 1) * NX * ns; ++e) ro->X[e] = NAN;
-    for (long e = 0; e < NG * n * ns; ++e) ro->G[e] = NAN;
+    for (long e = 0; e < NGR * n * ns; ++e) ro->G[e] = NAN;
     csum = NAN;
   }
   double slack = 0.0;
-  if (NG) {
-    double mx[NG * n + 1];
-    for (long jk = 0; jk < NG * n; ++jk) {
+  if (NGR) {
+    double mx[NGR * n + 1];
+    for (long jk = 0; jk < NGR * n; ++jk) {
       double* g = ro->G + jk * ns;
-      if (s->has_backoff)
+      if (s->has_backoff && jk < NG * n) /* (the state constraints') */
         for (long i = 0; i < ns; ++i) g[i] += s->backoff[jk];
       const double m = np_max(g, ns);
       mx[jk] = m != m ? NAN : (m > 0.0 ? m : 0.0);
     }
-    slack = np_sum(mx, NG * n);
+    slack = np_sum(mx, NGR * n);
   }
-  double merit = s->cost0 + csum / (double)ns + sq_input_cost(s, u) + s->rho * slack;
+#ifdef LFM_FEEDBACK
+  const double inputs = 0.0; /* (each scenario's input cost is in csum) */
+#else
+  const double inputs = sq_input_cost(s, u);
+#endif
+  double merit = s->cost0 + csum / (double)ns + inputs + s->rho * slack;
   ro->slack = slack;
   ro->merit = isfinite(merit) ? merit : INFINITY;
   return ro;
@@ -388,11 +437,14 @@ static ro_t* sq_evaluate(lfm_sqp* s, const double* u) {
 
 /* ------------------------------------------------------------------ linearisation */
 
-static int sq_linearise(lfm_sqp* s, const ro_t* ro) {
+static int sq_linearise_(lfm_sqp* s, const ro_t* ro) {
   const long n = s->n, ns = s->ns;
-  if (lfm_linearise(n, ns, ro->X, s->W, n * ns, ns, 1, ro->u, s->goal, s->Wq, 2.0 / ns, s->S,
-                    s->Jg, s->grad, s->o.threads))
+  if (lfm_linearise(n, ns, ro->X, s->W, n * ns, ns, 1, sq_data(s, ro->u), s->goal, s->Wq,
+                    2.0 / ns, s->S, s->Jg, s->grad, s->o.threads))
     for (long i = 0; i < s->nut; ++i) s->grad[i] = NAN;
+#ifdef LFM_FEEDBACK
+  return 0; /* (each scenario's input cost is in grad) */
+#endif
   for (long k = 0; k < n; ++k)
     for (int q = 0; q < NU; ++q) {
       double t = 0.0;
@@ -402,11 +454,12 @@ static int sq_linearise(lfm_sqp* s, const ro_t* ro) {
   return 0;
 }
 
-static void sq_hessian(lfm_sqp* s, const ro_t* ro) {
+static void sq_hessian_(lfm_sqp* s, const ro_t* ro) {
   const long n = s->n, ns = s->ns, nut = s->nut;
   int any = 0;
-  for (long e = 0; e < NG * n * ns && !any; ++e) any = s->mu[e] != 0.0;
-  if (lfm_hessian(n, ns, ro->X, s->W, n * ns, ns, 1, ro->u, s->S, s->Jg, any ? s->mu : NULL,
+  for (long e = 0; e < NGR * n * ns && !any; ++e) any = s->mu[e] != 0.0;
+  if (lfm_hessian(n, ns, ro->X, s->W, n * ns, ns, 1, sq_data(s, ro->u), s->S, s->Jg,
+                  any ? s->mu : NULL,
                   s->goal, s->Wq, 2.0 / ns, s->H, s->scratch, s->o.threads))
     for (long e = 0; e < nut * nut; ++e) s->H[e] = NAN;
   for (long k = 0; k < n; ++k)
@@ -415,7 +468,7 @@ static void sq_hessian(lfm_sqp* s, const ro_t* ro) {
 }
 
 /* The Jacobian rows and values of rows r->pos[from..r->r) (CondensedModel.rows). */
-static void sq_rows(lfm_sqp* s, const ro_t* ro, rows_t* r, long from) {
+static void sq_rows_(lfm_sqp* s, const ro_t* ro, rows_t* r, long from) {
   const long q = r->r - from;
   if (q <= 0) return;
   lfm_rows(s->n, s->ns, s->S, s->Jg, q, r->pos + 3 * from, r->a + from * s->nut);
@@ -431,7 +484,7 @@ static void sq_rows(lfm_sqp* s, const ro_t* ro, rows_t* r, long from) {
    s->Hq; returns sigma (0: no augmentation), -1 when the eigen-decomposition failed. The
    Jacobian rows of the predicted active scenario rows (s->act) are filled when there are
    any. */
-static double sq_convexify(lfm_sqp* s, const ro_t* ro) {
+static double sq_convexify_(lfm_sqp* s, const ro_t* ro) {
   const long nut = s->nut;
   const double floor = s->o.hessian_floor;
   double *H = s->H, *w = s->eig_w, *V = s->eig_V, *M = s->Hw, *work = s->Hw2;
@@ -515,7 +568,7 @@ static void sq_load(lfm_sqp* s, const double* bpos) {
 /* The elastic QP of the loaded rows (SlotQP._solve_elastic_ipm; a failure retried with a
    proximal term on the step, as SlotQP.solve retries, but by the same interior point):
    the step into qd, the slacks into qs (qG), the multipliers into qlam; 1 if solved. */
-static int sq_solve_elastic(lfm_sqp* s) {
+static int sq_solve_elastic_(lfm_sqp* s) {
   const long nut = s->nut, nsh = s->nsh, r = s->rows.r, n = s->n;
   long ng = 0;
   for (long e = 0; e < r; ++e) s->groups[e] = s->rows.pos[3 * e] * n + s->rows.pos[3 * e + 1];
@@ -534,6 +587,7 @@ static int sq_solve_elastic(lfm_sqp* s) {
                             s->col, s->qrho, s->qreg, 1e-9, 1e-12, 1e-12, 0.995, 100, s->qd,
                             s->qs, s->qlam, &it);
   s->stats[ST_QP_ELASTIC] += 1;
+  s->stats[ST_QP_IPM_ITERATIONS] += (double)it;
   if (code == 0) return 1;
   s->stats[ST_QP_RETRIES] += 1;
   double scale = 1.0;
@@ -550,7 +604,7 @@ static int sq_solve_elastic(lfm_sqp* s) {
 }
 
 /* The QP without slacks of the loaded rows: the step into qd, multipliers into qlam. */
-static int sq_solve_hard(lfm_sqp* s) {
+static int sq_solve_hard_(lfm_sqp* s) {
   long steps = 0;
   const int code = lfm_dense_qp(s->nut, s->qm, s->Hq, s->grad, s->lo, s->hi, s->qA, s->qb,
                                 1e-10, 50 * (s->nut + s->qm) + 100, s->qd, s->qlam, &steps);
@@ -593,19 +647,19 @@ static int sq_solve_qp(lfm_sqp* s, const ro_t* ro) {
   for (long round = 0; round < s->o.max_qp_rounds; ++round) {
     if (sq_now() >= s->deadline) return SQ_OUT_OF_TIME;
     const long r = s->rows.r;
-    memset(s->s_pos, 0, sizeof(double) * NG * n);
+    memset(s->s_pos, 0, sizeof(double) * NGR * n);
     sq_load(s, NULL);
     if (hard) {
       int ok = sq_solve_hard(s);
       s->stats[ST_QP_SOLVES] += 1, s->stats[ST_QP_HARD] += 1;
       for (long i = 0; i < nsh && ok; ++i) ok = s->qlam[i] <= s->rho;
       if (ok && r) { /* each group's multipliers summed (np.bincount), the largest <= rho */
-        double sums[NG * n + 1];
-        memset(sums, 0, sizeof(double) * (NG * n + 1));
+        double sums[NGR * n + 1];
+        memset(sums, 0, sizeof(double) * (NGR * n + 1));
         for (long e = 0; e < r; ++e)
           sums[s->rows.pos[3 * e] * n + s->rows.pos[3 * e + 1]] += s->qlam[nsh + e];
         double mx = 0.0;
-        for (long g = 0; g < NG * n; ++g) mx = fmax(mx, sums[g]);
+        for (long g = 0; g < NGR * n; ++g) mx = fmax(mx, sums[g]);
         ok = mx <= s->rho;
       }
       if (ok) {
@@ -626,9 +680,11 @@ static int sq_solve_qp(lfm_sqp* s, const ro_t* ro) {
       memcpy(s->s_shared, s->qs, sizeof(double) * nsh);
       s->slack_sum = sq_slack_sum(s, s->qG - nsh);
     }
+    const double t_rows = sq_now();
     const long got = lfm_violated(n, s->ns, s->nsc, s->screened, s->S, s->Jg, ro->G, s->qd,
                                   s->s_pos, r, s->rows.pos, s->o.add_tol, s->o.screen_rows,
                                   s->missing, s->missing_cap);
+    s->stats[ST_TIME_ROWS] += sq_now() - t_rows;
     if (got < 0) return 0;
     if (got == 0) break;
     if (round == s->o.max_qp_rounds - 1) {
@@ -666,8 +722,10 @@ static int sq_newton_step(lfm_sqp* s, const ro_t* ro, double damping) {
     const long keep = s->o.screen_rows, most = keep + 1 + 2 * NX;
     const long cap = s->nsc * n * (ns < most ? ns : most);
     if (rows_reserve(&s->scr, cap, nut)) return -SQ_OUT_OF_MEMORY;
+    const double t_rows = sq_now();
     const long got = lfm_screen(n, ns, s->nsc, s->screened, ro->G, ro->X, s->depends,
                                 s->o.screen_margin, keep, s->scr.pos, cap);
+    s->stats[ST_TIME_ROWS] += sq_now() - t_rows;
     if (got < 0) return -SQ_OUT_OF_MEMORY;
     s->scr.r = got;
   }
@@ -676,7 +734,7 @@ static int sq_newton_step(lfm_sqp* s, const ro_t* ro, double damping) {
       const double* g = ro->G + (s->shared[l] * n + k) * ns;
       s->gsh[k * s->nL + l] = np_max(g, ns);
     }
-  const long size_mu = NG * n * ns;
+  const long size_mu = NGR * n * ns;
   for (int attempt = 0; attempt < 4; ++attempt) {
     if (attempt == 3) s->act.r = 0, s->n_act_shared = 0, s->n_bounds = 0;
     const double sigma = sq_convexify(s, ro);
@@ -744,6 +802,38 @@ static int sq_newton_step(lfm_sqp* s, const ro_t* ro, double damping) {
   (void)nsh;
   return 1;
 }
+
+/* ------------------------------------------------------------------ where the time goes */
+
+/* The parts above, each timed into its statistic (ST_TIME_*; sq_now costs ~25 ns). */
+#define SQ_TIMED(stat, type, call)      \
+  const double t_ = sq_now();           \
+  type r_ = call;                       \
+  s->stats[stat] += sq_now() - t_;      \
+  return r_;
+
+static ro_t* sq_evaluate(lfm_sqp* s, const double* u) {
+  SQ_TIMED(ST_TIME_ROLLOUT, ro_t*, sq_evaluate_(s, u))
+}
+static int sq_linearise(lfm_sqp* s, const ro_t* ro) {
+  SQ_TIMED(ST_TIME_LINEARISE, int, sq_linearise_(s, ro))
+}
+static void sq_hessian(lfm_sqp* s, const ro_t* ro) {
+  const double t_ = sq_now();
+  sq_hessian_(s, ro);
+  s->stats[ST_TIME_HESSIAN] += sq_now() - t_;
+}
+static void sq_rows(lfm_sqp* s, const ro_t* ro, rows_t* r, long from) {
+  const double t_ = sq_now();
+  sq_rows_(s, ro, r, from);
+  s->stats[ST_TIME_ROWS] += sq_now() - t_;
+}
+static double sq_convexify(lfm_sqp* s, const ro_t* ro) {
+  SQ_TIMED(ST_TIME_CONVEXIFY, double, sq_convexify_(s, ro))
+}
+static int sq_solve_elastic(lfm_sqp* s) { SQ_TIMED(ST_TIME_QP, int, sq_solve_elastic_(s)) }
+static int sq_solve_hard(lfm_sqp* s) { SQ_TIMED(ST_TIME_QP, int, sq_solve_hard_(s)) }
+#undef SQ_TIMED
 
 /* ------------------------------------------------------------------ one start */
 
@@ -1008,14 +1098,15 @@ static int sq_sqp(lfm_sqp* s, const double* u0, double abandon_above, const doub
   *out = ro;
   if (!ro) return SQ_OUT_OF_MEMORY;
   /* the first start's is the warm start's merit (MPCSolution.usable; extra starts have a rival) */
-  if (!rival) s->stats[ST_START_MERIT] = ro->merit;
+  if (!rival) s->stats[ST_START_MERIT] = ro->merit, s->stats[ST_START_SLACK] = ro->slack;
   if (!isfinite(ro->merit)) return SQ_INVALID_START;
-  memset(s->mu, 0, sizeof(double) * (NG * s->n * s->ns + 1));
+  memset(s->mu, 0, sizeof(double) * (NGR * s->n * s->ns + 1));
   s->act.r = 0, s->n_act_shared = 0;
   start_t st = {ro, INFINITY, 0, 0.0};
   int status = SQ_MAX_ITER;
   s->radius = o->trust_radius;
-  s->hard_first = o->elastic_on_demand != 0;
+  if (o->elastic_on_demand != 2) /* (2, carried: as the last QP of the last solve left it) */
+    s->hard_first = o->elastic_on_demand != 0;
   while (*iterations < o->max_iter) {
     if (sq_now() >= s->deadline) {
       status = SQ_WALL_TIME;
@@ -1050,18 +1141,10 @@ static int sq_hard_mirror(const lfm_sqp* s, const double* u) {
   return 0;
 }
 
-CASADI_SYMBOL_EXPORT int lfm_sqp_solve(lfm_sqp* s, const double* x0, const double* W,
-    const double* u_guess, const double* backoff, double* u_out, double* X_out,
-    double* stats_out) {
-  /* x0 (Ns, NX), W (Ns, N, NW), u_guess (N NU) or NULL (the last plan shifted by one step,
-     zeros at first), backoff (N, NG) or NULL; out: the plan u_out (N NU), the predicted states
-     X_out (N + 1, NX, Ns) or NULL, stats_out (ST_COUNT). Returns the status. */
-  const double t_start = sq_now();
-  const long n = s->n, ns = s->ns, nut = s->nut;
-  s->deadline = isfinite(s->o.max_time) ? t_start + s->o.max_time : INFINITY;
-  memset(s->stats, 0, sizeof(s->stats));
-  s->stats[ST_START_MERIT] = INFINITY; /* (no start evaluated) */
-  for (int i = 0; i < SQ_POOL; ++i) s->pool[i].used = 0;
+/* The data of a solve into s: x0 (Ns, NX) as x0T (NX, Ns) and its averaged stage cost, W
+   (Ns, N, NW) as (NW, N, Ns), backoff (N, NG) or NULL. */
+static void sq_prepare(lfm_sqp* s, const double* x0, const double* W, const double* backoff) {
+  const long n = s->n, ns = s->ns;
   double c0[ns + 1];
   for (long i = 0; i < ns; ++i) {
     const double* x = x0 + i * NX;
@@ -1085,23 +1168,25 @@ CASADI_SYMBOL_EXPORT int lfm_sqp_solve(lfm_sqp* s, const double* x0, const doubl
   if (backoff)
     for (int j = 0; j < NG; ++j)
       for (long k = 0; k < n; ++k) s->backoff[j * n + k] = backoff[k * NG + j];
-  double* u0 = s->u_try;
-  double u_start[nut];
-  if (u_guess)
-    memcpy(u_start, u_guess, sizeof(double) * nut);
-  else if (s->has_prev)
-    for (long k = 0; k < n; ++k)
-      memcpy(u_start + k * NU, s->prev_u + (k + 1 < n ? k + 1 : n - 1) * NU, sizeof(double) * NU);
-  else
-    memset(u_start, 0, sizeof(double) * nut);
+}
+
+/* The SQP from u_start (clipped into s->lower, s->upper here) and its extra starts on the
+   prepared data (FastScenarioSolver._run), within max_time of t_start: the best start's
+   rollout in *out (NULL: out of memory), its status returned, the iterations of every start
+   in *iterations. The statistics are reset first. */
+static int sq_run(lfm_sqp* s, double t_start, double* u_start, ro_t** out, long* iterations) {
+  const long n = s->n, nut = s->nut;
+  s->deadline = isfinite(s->o.max_time) ? t_start + s->o.max_time : INFINITY;
+  memset(s->stats, 0, sizeof(s->stats));
+  s->stats[ST_START_MERIT] = s->stats[ST_START_SLACK] = INFINITY; /* (no start evaluated) */
+  for (int i = 0; i < SQ_POOL; ++i) s->pool[i].used = 0;
   for (long i = 0; i < nut; ++i)
     u_start[i] = fmin(fmax(u_start[i], s->lower[i]), s->upper[i]);
-  (void)u0;
   ro_t* ro = NULL;
-  long iterations = 0;
-  int status = sq_sqp(s, u_start, INFINITY, NULL, &ro, &iterations);
+  *iterations = 0;
+  int status = sq_sqp(s, u_start, INFINITY, NULL, &ro, iterations);
   s->stats[ST_FIRST_STATUS] = status;
-  s->stats[ST_FIRST_ITERATIONS] = (double)iterations;
+  s->stats[ST_FIRST_ITERATIONS] = (double)*iterations;
   s->stats[ST_RESTART_MIRROR] = s->stats[ST_RESTART_STRAIGHT] = -1.0; /* not tried */
   if (ro && status != SQ_OUT_OF_MEMORY) {
     /* the extra starts are chosen from the first plan (RestartMixin._restart_names) */
@@ -1129,7 +1214,7 @@ CASADI_SYMBOL_EXPORT int lfm_sqp_solve(lfm_sqp* s, const double* x0, const doubl
       ro_t* ro2 = NULL;
       long it2 = 0;
       const int status2 = sq_sqp(s, guess, bar, rival, &ro2, &it2);
-      iterations += it2;
+      *iterations += it2;
       const int better = ro2 && ro2->merit < ro->merit - 1e-12 * (1.0 + fabs(ro->merit));
       const int keep = better && (sq_success(status2) || !sq_success(status));
       s->stats[slot] = keep ? 99.0 : (double)status2; /* 99: "kept" */
@@ -1142,10 +1227,20 @@ CASADI_SYMBOL_EXPORT int lfm_sqp_solve(lfm_sqp* s, const double* x0, const doubl
       if (status2 == SQ_OUT_OF_MEMORY) break;
     }
   }
+  *out = ro;
+  return ro ? status : SQ_OUT_OF_MEMORY;
+}
+
+/* The outputs of a solve that ended with the rollout ro (NULL: none) and status: the plan
+   (also kept for the next warm start), the states, the statistics; returns the status. */
+static int sq_finish(lfm_sqp* s, const ro_t* ro, int status, long iterations, double* u_out,
+                     double* X_out, double* stats_out) {
+  const long n = s->n, ns = s->ns, nut = s->nut;
   if (!ro) {
     for (long i = 0; i < nut; ++i) u_out[i] = NAN;
-    stats_out[ST_MERIT] = INFINITY;
-    return SQ_OUT_OF_MEMORY;
+    s->stats[ST_MERIT] = INFINITY;
+    memcpy(stats_out, s->stats, sizeof(s->stats));
+    return status;
   }
   memcpy(u_out, ro->u, sizeof(double) * nut);
   memcpy(s->prev_u, ro->u, sizeof(double) * nut);
@@ -1158,7 +1253,76 @@ CASADI_SYMBOL_EXPORT int lfm_sqp_solve(lfm_sqp* s, const double* x0, const doubl
   return status;
 }
 
+#ifdef LFM_FEEDBACK
+#include "feedback.c"
+#endif
+
+CASADI_SYMBOL_EXPORT int lfm_sqp_solve(lfm_sqp* s, const double* x0, const double* W,
+    const double* u_guess, const double* backoff, double* u_out, double* X_out,
+    double* stats_out) {
+  /* x0 (Ns, NX), W (Ns, N, NW), u_guess (N NU) or NULL (the last plan shifted by one step,
+     zeros at first), backoff (N, NG) or NULL; out: the plan u_out (N NU), the predicted states
+     X_out (N + 1, NX, Ns) or NULL, stats_out (ST_COUNT). Returns the status. With a feedback
+     prediction (feedback.c) u_guess is the reference plan and u_out the decision v. */
+#ifdef LFM_FEEDBACK
+  return fb_solve(s, x0, W, u_guess, backoff, u_out, X_out, stats_out);
+#else
+  const double t_start = sq_now();
+  const long n = s->n, nut = s->nut;
+  sq_prepare(s, x0, W, backoff);
+  double u_start[nut];
+  if (u_guess)
+    memcpy(u_start, u_guess, sizeof(double) * nut);
+  else if (s->has_prev)
+    for (long k = 0; k < n; ++k)
+      memcpy(u_start + k * NU, s->prev_u + (k + 1 < n ? k + 1 : n - 1) * NU, sizeof(double) * NU);
+  else
+    memset(u_start, 0, sizeof(double) * nut);
+  ro_t* ro = NULL;
+  long iterations = 0;
+  const int status = sq_run(s, t_start, u_start, &ro, &iterations);
+  return sq_finish(s, ro, status, iterations, u_out, X_out, stats_out);
+#endif
+}
+
+/* Option name of the solver s to value from its next solve on (lfm_sqp_options_set, as
+   acados' options_set): 0, or -1 for an unknown name. */
+CASADI_SYMBOL_EXPORT int lfm_sqp_set_option(lfm_sqp* s, const char* name, double value) {
+  return lfm_sqp_options_set(&s->o, name, value);
+}
+
+/* The Euler step x + dt f(x, u, w) of ns points under one input u (NU): states xT (NX, ns),
+   forces W (NW, ns); X (2, NX, ns) gets the points, then their next states (a rollout of one
+   step; with a feedback library, under the zero law). 0, or 1 if a generated function failed
+   or out of memory. (The exported UKF's prediction.) */
+CASADI_SYMBOL_EXPORT int lfm_step_points(long ns, const double* xT, const double* W,
+                                         const double* u, double* X) {
+  double row[ND], goal[NX], Wq[NX * NX], cost = 0.0;
+  memset(row, 0, sizeof(row)); /* (feedback: K = 0, r = 0, R = 0, the rows inactive) */
+  memcpy(row, u, sizeof(double) * NU);
+  memset(goal, 0, sizeof(goal));
+  memset(Wq, 0, sizeof(Wq));
+  double* G = malloc(sizeof(double) * (NGR * ns + 1));
+  if (!G) return 1;
+  const int status = lfm_rollout(1, ns, xT, W, ns, ns, 1, row, goal, Wq, X, G, &cost, 1);
+  free(G);
+  return status != 0;
+}
+
+/* 1 if the library is that of a feedback prediction (lfm_sqp_set_law, lfm_sqp_law). */
+CASADI_SYMBOL_EXPORT long lfm_sqp_feedback(void) {
+#ifdef LFM_FEEDBACK
+  return 1;
+#else
+  return 0;
+#endif
+}
+
 CASADI_SYMBOL_EXPORT long lfm_sqp_stats_count(void) { return ST_COUNT; }
+
+/* What the library was compiled with (the Python side checks its tables against these). */
+CASADI_SYMBOL_EXPORT long lfm_sqp_status_count(void) { return SQ_COUNT; }
+CASADI_SYMBOL_EXPORT long lfm_sqp_options_size(void) { return (long)sizeof(lfm_sqp_options); }
 
 /* The constraints' Jacobian dg/dx at the state x into J (NG, NX) row-major (the exported
    controller's back-off); 0, or 1 if the generated function failed. */

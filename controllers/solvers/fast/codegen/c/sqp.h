@@ -4,30 +4,7 @@
 #ifndef LFM_SQP_H
 #define LFM_SQP_H
 
-/* FastSolverOptions, one field each (bools and choices as longs). */
-typedef struct {
-  long max_iter;
-  double tol, acceptable_tol;
-  long acceptable_iter;
-  double step_tol, final_step_tol, screen_margin;
-  long screen_rows;
-  double add_tol;
-  long max_qp_rounds;
-  double armijo, backtrack, min_step, hessian_floor, slack_regularisation;
-  long second_order_correction;
-  double soc_below_ratio, damping_init, damping_threshold, damping_decrease;
-  long hessian_modification; /* 0 "floor", 1 "abs", 2 "augmented" */
-  long elastic_on_demand;    /* elastic_qp == "on_demand" */
-  long max_expand;
-  double expand_ratio;
-  long restart_mirror, restart_straight; /* "mirror", "straight" in restarts */
-  double restart_threshold;
-  long restart_probe;
-  double restart_optimism, restart_margin, restart_same_tol, restart_near_tol;
-  double trust_radius, min_trust_radius;
-  long threads;
-  double max_time; /* [s] per solve; INFINITY: none */
-} lfm_sqp_options;
+#include "sqp_interface.h" /* lfm_sqp_options, the statuses SQ_*, the statistics ST_* */
 
 /* The scenario problem (controllers/problem.py) and what the solver finds in it. */
 typedef struct {
@@ -40,7 +17,7 @@ typedef struct {
   const double* shared_rows;                  /* (n_shared, N, N NU) their rows */
   long n_screened;                            /* the others */
   const long* screened;                       /* (n_screened) ascending */
-  const unsigned char* depends;               /* (NG, NX) constraint j depends on state m */
+  const unsigned char* depends;               /* (NG, NX) row type j depends on state m */
   long n_mirror;                              /* system.mirror_inputs */
   const long* mirror;
 } lfm_sqp_problem;
@@ -62,5 +39,22 @@ void lfm_sqp_set_max_time(lfm_sqp* s, double max_time);
 int lfm_sqp_solve(lfm_sqp* s, const double* x0, const double* W, const double* u_guess,
                   const double* backoff, double* u_out, double* X_out, double* stats_out);
 long lfm_sqp_stats_count(void);
+/* Option name (a field of lfm_sqp_options) to value from the next solve on: 0, or -1 for an
+   unknown name. */
+int lfm_sqp_set_option(lfm_sqp* s, const char* name, double value);
+/* A library of a feedback prediction (lfm_sqp_feedback() == 1; controllers/problem.py): the
+   decision u is the nominal inputs v, each scenario applies v_k + K_k (x_k - r_k), u_guess is
+   the reference plan of the law (see feedback.c). lfm_sqp_set_law gives the next solve's law
+   (K (N, NU, NX) with K_0 = 0, r (N, NX)); lfm_sqp_law returns the last solve's law and its
+   plan's nominal inputs (N NU; any pointer may be NULL). The problem's depends then has
+   NG + 2 NU rows (the input rows depend on no state), its screened rows all of them. */
+long lfm_sqp_feedback(void);
+/* The model's Euler step of ns points (states xT (NX, ns), forces W (NW, ns)) under the input
+   u (NU): X (2, NX, ns) the points, then their next states. 0, or 1. */
+int lfm_step_points(long ns, const double* xT, const double* W, const double* u, double* X);
+int lfm_sqp_set_law(lfm_sqp* s, const double* K, const double* r);
+int lfm_sqp_law(const lfm_sqp* s, double* K, double* r, double* nominal);
+long lfm_sqp_status_count(void);
+long lfm_sqp_options_size(void); /* sizeof(lfm_sqp_options) */
 
 #endif
