@@ -295,6 +295,10 @@ def relative_links(page: Path) -> list[str]:
     return [t for t in targets if not re.match(r"[a-z][a-z0-9+.-]*:", t)]
 
 
+def anchors_of(page: Path) -> set[str]:
+    return heading_anchors(page.read_text())
+
+
 def test_every_relative_link_resolves():
     """Each link of the README and of docs/ to a file names an existing file, and each
     ``#anchor`` a heading of its page."""
@@ -305,7 +309,7 @@ def test_every_relative_link_resolves():
             goal = (page.parent / path).resolve() if path else page
             if not goal.exists():
                 broken.append(f"{page_id(page)}: {target} (no such file)")
-            elif anchor and goal.suffix == ".md" and anchor not in heading_anchors(goal.read_text()):
+            elif anchor and goal.suffix == ".md" and anchor not in anchors_of(goal):
                 broken.append(f"{page_id(page)}: {target} (no such heading)")
     assert broken == []
 
