@@ -368,3 +368,106 @@ def test_the_record_patterns_find_a_record():
     assert not RECORD.search("an issue of the solver, phase [rad]")
     assert COMMIT.search("the run at 632d6c2") and COMMIT.search("44133a1")
     assert not COMMIT.search("1000000 steps, 9007199254740992, deadbeefed, decade")
+
+
+# --- the README's figures: stated once, and the same wherever a page repeats a table ---
+
+
+def markdown_tables(text: str) -> list[list[list[str]]]:
+    """The page's tables outside code blocks, each as rows of cells (header first, the
+    separator row dropped)."""
+    text = re.sub(r"^```.*?^```", "", text, flags=re.S | re.M)
+    tables, rows = [], []
+    for line in [*text.splitlines(), ""]:
+        if line.startswith("|"):
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if not all(re.fullmatch(r":?-+:?", c) for c in cells):
+                rows.append(cells)
+        elif rows:
+            tables.append(rows)
+            rows = []
+    return tables
+
+
+def _plain(cell: str) -> str:
+    """A cell without emphasis, code marks, a trailing count of seeds ``(99)`` and, for a
+    header, its numbers (``48 survivor seeds`` is ``survivor seeds``)."""
+    cell = re.sub(r"\s*\(\d+\)$", "", cell.replace("**", "").replace("`", ""))
+    return " ".join(cell.split())
+
+
+def _header(cell: str) -> str:
+    return " ".join(re.sub(r"\d+", "", _plain(cell)).split())
+
+
+def agent_tables(page: Path) -> list[dict[str, dict[str, str]]]:
+    """The page's tables of agents (first column an agent), as agent -> header -> cell."""
+    found = []
+    for header, *rows in markdown_tables(page.read_text()):
+        if header[0] != "agent" or not rows:
+            continue
+        heads = [_header(h) for h in header]
+        cells = [dict(zip(heads, map(_plain, r), strict=True)) for r in rows]
+        found.append({row["agent"].split()[0]: row for row in cells})
+    return found
+
+
+def readme_prose_figures() -> list[str]:
+    """The measured figures of the README's prose (not its tables or code): numbers with a
+    unit of time or a ratio, and numbers with decimals."""
+    text = re.sub(r"^```.*?^```", "", (REPO / "README.md").read_text(), flags=re.S | re.M)
+    prose = "\n".join(line for line in text.splitlines() if not line.startswith("|"))
+    prose = re.sub(r"`[^`\n]*`|\(https?://[^)]*\)|>= \d+\.\d+", "", prose)
+    unit = r"\d+(?:\.\d+)?\s?(?:ms|s|min|x)(?![\w])"
+    return re.findall(rf"(?<![\w.])(?:{unit}|\d+\.\d+(?![\w.]))", prose)
+
+
+def test_the_readme_states_each_figure_once():
+    """A figure of the README's prose appears once in the README (a second statement of it,
+    in prose or in a table, is what drifts apart when the figures are measured again)."""
+    text = (REPO / "README.md").read_text()
+    figures = readme_prose_figures()
+    assert figures, "the prose states the durations of the main commands"
+    counts = {f: len(re.findall(rf"(?<![\w.]){re.escape(f)}(?![\w.])", text)) for f in figures}
+    assert {f: n for f, n in counts.items() if n != 1} == {}
+
+
+def test_the_pages_repeat_the_readme_tables_as_they_are():
+    """docs/evidence.md shows the README's agent tables with more columns, from the same
+    runs: every column the two share holds the same cells, agent by agent."""
+    readme = agent_tables(REPO / "README.md")
+    evidence = agent_tables(REPO / "docs" / "evidence.md")
+    assert len(readme) == 2
+    for table in readme:
+        heads = set(next(iter(table.values()))) - {"agent"}
+        twins = [t for t in evidence if set(t) == set(table)]
+        assert twins, f"evidence.md has no table of the agents {sorted(table)}"
+        twin = max(twins, key=lambda t: len(heads & set(next(iter(t.values())))))
+        shared = heads & set(next(iter(twin.values())))
+        assert len(shared) >= 4, shared
+        differ = [
+            (agent, h, table[agent][h], twin[agent][h])
+            for agent in table
+            for h in sorted(shared)
+            if table[agent][h] != twin[agent][h]
+        ]
+        assert differ == []
+
+
+def test_the_solver_speed_table_is_the_readmes_alone():
+    """The speed table's figures are stated in the README and nowhere else in the manual
+    (docs/history.md, the record, excepted): the pages link to it."""
+    speed = (REPO / "README.md").read_text().split("\n### Solver speed\n", 1)[1]
+    table = markdown_tables(speed.split("\n## ", 1)[0])[0]
+    figures = {c for row in table[1:] for c in row[1:] if re.fullmatch(r"\d+\.\d+x?", c)}
+    assert len(figures) >= 8
+    pages = [p for p in PAGES if p.name not in ("README.md", "history.md")]
+    repeated = [
+        (page_id(p), f)
+        for p in pages
+        for f in figures
+        if re.search(
+            rf"(?<![\w.\[]){re.escape(f)}{'' if f.endswith('x') else ' ?(?:ms|/)'}", p.read_text()
+        )
+    ]
+    assert repeated == []
