@@ -471,3 +471,24 @@ def test_the_solver_speed_table_is_the_readmes_alone():
         )
     ]
     assert repeated == []
+
+
+def test_the_layout_table_covers_the_tree():
+    """Every module and folder at the top of the three packages is in the layout table (by its
+    path, or by its name in a row that names its package), and so are configs/ and scripts/."""
+    rows = "\n".join(layout_rows())
+    tops = {
+        "/".join(p.relative_to(REPO).parts[:2])
+        for package in ("lfm_env", "controllers", "experiments")
+        for p in (REPO / package).rglob("*")
+        if p.is_file() and p.suffix in (".py", ".c", ".h") and "__pycache__" not in p.parts
+    }
+    tops -= {f"{package}/__init__.py" for package in ("lfm_env", "controllers", "experiments")}
+    missing = [
+        top
+        for top in sorted(tops)
+        if f"`{top}" not in rows
+        and not re.search(rf"`{top.split('/')[0]}/[^`]*`[^|]*`{top.split('/')[1]}", rows)
+    ]
+    assert missing == []
+    assert "`configs/`" in rows and "`scripts/`" in rows
