@@ -492,3 +492,37 @@ def test_the_layout_table_covers_the_tree():
     ]
     assert missing == []
     assert "`configs/`" in rows and "`scripts/`" in rows
+
+
+def _resolves(dotted: str) -> bool:
+    """``package.module.attribute...`` imports and its attributes exist."""
+    import importlib
+
+    parts = dotted.split(".")
+    for i in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ImportError:
+            continue
+        for name in parts[i:]:
+            if not hasattr(obj, name):
+                return False
+            obj = getattr(obj, name)
+        return True
+    return False
+
+
+def test_the_names_in_the_manual_exist():
+    """Every dotted name of the packages (`controllers.solvers.make_solver`) the manual shows
+    in code marks imports, and every path of the repository it shows exists."""
+    missing = []
+    for page in PAGES:
+        text = page.read_text()
+        for name in set(re.findall(r"`((?:lfm_env|controllers|experiments)(?:\.\w+)+)", text)):
+            if not _resolves(name):
+                missing.append(f"{page_id(page)}: {name}")
+        folders = r"(?:lfm_env|controllers|experiments|tests|scripts|configs)"
+        for path in set(re.findall(rf"`({folders}/[\w/.-]*)`", text)):
+            if not re.search(r"-v\d$", path) and not (REPO / path.rstrip("/")).exists():
+                missing.append(f"{page_id(page)}: {path}")
+    assert sorted(missing) == []
