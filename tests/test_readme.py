@@ -526,3 +526,17 @@ def test_the_names_in_the_manual_exist():
             if not re.search(r"-v\d$", path) and not (REPO / path.rstrip("/")).exists():
                 missing.append(f"{page_id(page)}: {path}")
     assert sorted(missing) == []
+
+
+def test_every_agents_key_is_in_the_configuration_manual():
+    """The key-by-key table of docs/configuration.md names every field of the ``agents:``
+    section, and no field that does not exist."""
+    import dataclasses
+
+    from controllers.config import AgentConfig
+
+    page = (REPO / "docs" / "configuration.md").read_text()
+    section = page.split("## The `agents:` section, key by key\n", 1)[1].split("\n## ", 1)[0]
+    table = markdown_tables(section)[0]
+    named = {k for row in table[1:] for k in re.findall(r"`(\w+)`", row[0])}
+    assert named == {f.name for f in dataclasses.fields(AgentConfig)}
