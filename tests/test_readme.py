@@ -540,3 +540,13 @@ def test_every_agents_key_is_in_the_configuration_manual():
     table = markdown_tables(section)[0]
     named = {k for row in table[1:] for k in re.findall(r"`(\w+)`", row[0])}
     assert named == {f.name for f in dataclasses.fields(AgentConfig)}
+
+
+def test_every_registered_agent_is_described():
+    """docs/agents.md's list of the registered agents names every agent of the registry."""
+    from controllers.agents import AGENT_REGISTRY
+
+    page = (REPO / "docs" / "agents.md").read_text()
+    section = page.split("## The registered agents\n", 1)[1].split("\n## ", 1)[0]
+    listed = set(re.findall(r"^\* `(\w+)`", section, flags=re.M))
+    assert listed == set(AGENT_REGISTRY)
