@@ -6,7 +6,7 @@ folder's mean, whether that mean lies inside the reference's interval, and the p
 difference (same seeds) with its interval. Used to check that a changed default (e.g.
 ``agents.solver``) leaves the closed loop where it was:
 
-    python -m experiments.report.compare_runs REFERENCE_DIR OTHER_DIR [--group track] [--tolerance 0.01]
+    python -m experiments.report.compare_runs REFERENCE OTHER [--group G] [--tolerance 0.01]
 
 Headline metrics: ``G`` steps beyond the tolerance per episode, zero-violation episodes at
 that tolerance, time to goal [s] (episodes that reached it), the success rate; then the
