@@ -22,7 +22,33 @@
 
 /* 1 if the symmetric M (n, n) has a Cholesky factor (every pivot > 0, as LAPACK's dpotrf on
    its lower triangle decides), else 0. M is read only; work: n * n doubles. */
-static int dq_positive_definite(long n, const double* M, double* work) {
+/* Column j of the Cholesky factor below the diagonal (l = L[j, j]): L[i, j] = (M[i, j] -
+   sum_k<j L[i, k] L[j, k]) / l for i > j, four rows' sums side by side (each in k order). */
+DQ_INLINE void dq_cholesky_column(long n, long j, double l, const double* M, double* L) {
+  const double* Lj = L + j * n;
+  long i = j + 1;
+  for (; i + 4 <= n; i += 4) {
+    double *L0 = L + i * n, *L1 = L0 + n, *L2 = L1 + n, *L3 = L2 + n;
+    double t0 = M[i * n + j], t1 = M[(i + 1) * n + j], t2 = M[(i + 2) * n + j];
+    double t3 = M[(i + 3) * n + j];
+    for (long k = 0; k < j; ++k) {
+      const double c = Lj[k];
+      t0 -= L0[k] * c;
+      t1 -= L1[k] * c;
+      t2 -= L2[k] * c;
+      t3 -= L3[k] * c;
+    }
+    L0[j] = t0 / l, L1[j] = t1 / l, L2[j] = t2 / l, L3[j] = t3 / l;
+  }
+  for (; i < n; ++i) {
+    double* Li = L + i * n;
+    double t = M[i * n + j];
+    for (long k = 0; k < j; ++k) t -= Li[k] * Lj[k];
+    Li[j] = t / l;
+  }
+}
+
+DQ_CLONES static int dq_positive_definite(long n, const double* M, double* work) {
   for (long j = 0; j < n; ++j) {
     double* Lj = work + j * n;
     double s = M[j * n + j];
@@ -30,19 +56,14 @@ static int dq_positive_definite(long n, const double* M, double* work) {
     if (!(s > 0.0)) return 0;
     const double l = sqrt(s);
     Lj[j] = l;
-    for (long i = j + 1; i < n; ++i) {
-      double* Li = work + i * n;
-      double t = M[i * n + j];
-      for (long k = 0; k < j; ++k) t -= Li[k] * Lj[k];
-      Li[j] = t / l;
-    }
+    dq_cholesky_column(n, j, l, M, work);
   }
   return 1;
 }
 
 /* Lower Cholesky factor L of M (n, n) into L (rows; the upper part zero); -1 if M is not
    positive definite. */
-static int dq_cholesky(long n, const double* M, double* L) {
+DQ_INLINE int dq_cholesky(long n, const double* M, double* L) {
   memset(L, 0, sizeof(double) * n * n);
   for (long j = 0; j < n; ++j) {
     double* Lj = L + j * n;
@@ -51,12 +72,7 @@ static int dq_cholesky(long n, const double* M, double* L) {
     if (!(s > 0.0)) return -1;
     const double l = sqrt(s);
     Lj[j] = l;
-    for (long i = j + 1; i < n; ++i) {
-      double* Li = L + i * n;
-      double t = M[i * n + j];
-      for (long k = 0; k < j; ++k) t -= Li[k] * Lj[k];
-      Li[j] = t / l;
-    }
+    dq_cholesky_column(n, j, l, M, L);
   }
   return 0;
 }
@@ -96,14 +112,28 @@ DQ_CLONES static int dq_eigh(long n, const double* M, double* w, double* V, doub
     for (long j = 0; j < L; ++j) vv += v[j] * v[j];
     const double beta = 2.0 / vv;
     /* A22 <- H A22 H = A22 - v w' - w v', p = beta A22 v, w = p - (beta v'p / 2) v */
-    double vp = 0.0;
-    for (long i = 0; i < L; ++i) {
-      const double* ai = a + (k + 1 + i) * n + k + 1;
+    long i4 = 0;
+    for (; i4 + 4 <= L; i4 += 4) { /* four rows' sums side by side, each in j order */
+      const double* a0 = a + (k + 1 + i4) * n + k + 1;
+      const double *a1 = a0 + n, *a2 = a1 + n, *a3 = a2 + n;
+      double t0 = 0.0, t1 = 0.0, t2 = 0.0, t3 = 0.0;
+      for (long j = 0; j < L; ++j) {
+        const double vj = v[j];
+        t0 += a0[j] * vj;
+        t1 += a1[j] * vj;
+        t2 += a2[j] * vj;
+        t3 += a3[j] * vj;
+      }
+      p[i4] = beta * t0, p[i4 + 1] = beta * t1, p[i4 + 2] = beta * t2, p[i4 + 3] = beta * t3;
+    }
+    for (; i4 < L; ++i4) {
+      const double* ai = a + (k + 1 + i4) * n + k + 1;
       double t = 0.0;
       for (long j = 0; j < L; ++j) t += ai[j] * v[j];
-      p[i] = beta * t;
-      vp += v[i] * p[i];
+      p[i4] = beta * t;
     }
+    double vp = 0.0;
+    for (long i = 0; i < L; ++i) vp += v[i] * p[i];
     const double K = 0.5 * beta * vp;
     for (long i = 0; i < L; ++i) p[i] -= K * v[i];
     for (long i = 0; i < L; ++i) {
@@ -206,17 +236,54 @@ CASADI_SYMBOL_EXPORT int lfm_dense_eigh(long n, const double* M, double* w, doub
 }
 
 /* out (n, n) = V diag(f(w)) V' with f(w) = max(w, floor), or max(|w|, floor) if absolute. */
-static void dq_rebuild(long n, const double* w, const double* V, double floor, int absolute,
-                       double* out) {
-  for (long r = 0; r < n; ++r)
-    for (long c = 0; c <= r; ++c) {
-      double s = 0.0;
-      for (long k = 0; k < n; ++k) {
-        const double wk = absolute ? fabs(w[k]) : w[k];
-        s += V[r * n + k] * (wk > floor ? wk : floor) * V[c * n + k];
+DQ_CLONES static void dq_rebuild(long n, const double* w, const double* V, double floor,
+                                 int absolute, double* out) {
+  double* f = malloc(sizeof(double) * (size_t)(n * n + n + 1));
+  if (!f) { /* (out of memory: the plain loops) */
+    for (long r = 0; r < n; ++r)
+      for (long c = 0; c <= r; ++c) {
+        double s = 0.0;
+        for (long k = 0; k < n; ++k) {
+          const double wk = absolute ? fabs(w[k]) : w[k];
+          s += V[r * n + k] * (wk > floor ? wk : floor) * V[c * n + k];
+        }
+        out[r * n + c] = out[c * n + r] = s;
       }
+    return;
+  }
+  double* VF = f + n; /* VF[r, k] = V[r, k] f(w_k): the same first product */
+  for (long k = 0; k < n; ++k) {
+    const double wk = absolute ? fabs(w[k]) : w[k];
+    f[k] = wk > floor ? wk : floor;
+  }
+  for (long r = 0; r < n; ++r)
+    for (long k = 0; k < n; ++k) VF[r * n + k] = V[r * n + k] * f[k];
+  for (long r = 0; r < n; ++r) {
+    const double* vf = VF + r * n;
+    long c = 0;
+    for (; c + 4 <= r + 1; c += 4) { /* four sums side by side, each in k order */
+      const double *v0 = V + c * n, *v1 = v0 + n, *v2 = v1 + n, *v3 = v2 + n;
+      double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
+      for (long k = 0; k < n; ++k) {
+        const double x = vf[k];
+        s0 += x * v0[k];
+        s1 += x * v1[k];
+        s2 += x * v2[k];
+        s3 += x * v3[k];
+      }
+      out[r * n + c] = out[c * n + r] = s0;
+      out[r * n + c + 1] = out[(c + 1) * n + r] = s1;
+      out[r * n + c + 2] = out[(c + 2) * n + r] = s2;
+      out[r * n + c + 3] = out[(c + 3) * n + r] = s3;
+    }
+    for (; c <= r; ++c) {
+      const double* vc = V + c * n;
+      double s = 0.0;
+      for (long k = 0; k < n; ++k) s += vf[k] * vc[k];
       out[r * n + c] = out[c * n + r] = s;
     }
+  }
+  free(f);
 }
 
 /* ------------------------------------------------------------------ the QP without slacks
