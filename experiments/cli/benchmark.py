@@ -272,7 +272,7 @@ def benchmark_main(argv: Sequence[str] | None = None) -> int:
     """Command line: run the benchmark, print the report, write JSON and Markdown.
 
     Returns:
-        0, or 1 with ``--check`` when a target fails.
+        0, or 1 with ``--check`` when a check fails.
     """
     parser = build_parser()
     args = parser.parse_args(argv)
