@@ -7,9 +7,48 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "clones.h"
+
+/* The eigen-decomposition and the QP solver in the clones of clones.h, without contracting
+   a product and a sum into one fused multiply-add: every clone rounds as the baseline (their
+   loops vectorise only element by element; no sum is reordered). */
+#if defined(__GNUC__) && !defined(__clang__)
+#define DQ_CLONES LFM_CLONES __attribute__((optimize("fp-contract=off")))
+#define DQ_INLINE static inline __attribute__((always_inline, optimize("fp-contract=off")))
+#else
+#define DQ_CLONES LFM_CLONES
+#define DQ_INLINE static inline
+#endif
+
 /* 1 if the symmetric M (n, n) has a Cholesky factor (every pivot > 0, as LAPACK's dpotrf on
    its lower triangle decides), else 0. M is read only; work: n * n doubles. */
-static int dq_positive_definite(long n, const double* M, double* work) {
+/* Column j of the Cholesky factor below the diagonal (l = L[j, j]): L[i, j] = (M[i, j] -
+   sum_k<j L[i, k] L[j, k]) / l for i > j, four rows' sums side by side (each in k order). */
+DQ_INLINE void dq_cholesky_column(long n, long j, double l, const double* M, double* L) {
+  const double* Lj = L + j * n;
+  long i = j + 1;
+  for (; i + 4 <= n; i += 4) {
+    double *L0 = L + i * n, *L1 = L0 + n, *L2 = L1 + n, *L3 = L2 + n;
+    double t0 = M[i * n + j], t1 = M[(i + 1) * n + j], t2 = M[(i + 2) * n + j];
+    double t3 = M[(i + 3) * n + j];
+    for (long k = 0; k < j; ++k) {
+      const double c = Lj[k];
+      t0 -= L0[k] * c;
+      t1 -= L1[k] * c;
+      t2 -= L2[k] * c;
+      t3 -= L3[k] * c;
+    }
+    L0[j] = t0 / l, L1[j] = t1 / l, L2[j] = t2 / l, L3[j] = t3 / l;
+  }
+  for (; i < n; ++i) {
+    double* Li = L + i * n;
+    double t = M[i * n + j];
+    for (long k = 0; k < j; ++k) t -= Li[k] * Lj[k];
+    Li[j] = t / l;
+  }
+}
+
+DQ_CLONES static int dq_positive_definite(long n, const double* M, double* work) {
   for (long j = 0; j < n; ++j) {
     double* Lj = work + j * n;
     double s = M[j * n + j];
@@ -17,19 +56,14 @@ static int dq_positive_definite(long n, const double* M, double* work) {
     if (!(s > 0.0)) return 0;
     const double l = sqrt(s);
     Lj[j] = l;
-    for (long i = j + 1; i < n; ++i) {
-      double* Li = work + i * n;
-      double t = M[i * n + j];
-      for (long k = 0; k < j; ++k) t -= Li[k] * Lj[k];
-      Li[j] = t / l;
-    }
+    dq_cholesky_column(n, j, l, M, work);
   }
   return 1;
 }
 
 /* Lower Cholesky factor L of M (n, n) into L (rows; the upper part zero); -1 if M is not
    positive definite. */
-static int dq_cholesky(long n, const double* M, double* L) {
+DQ_INLINE int dq_cholesky(long n, const double* M, double* L) {
   memset(L, 0, sizeof(double) * n * n);
   for (long j = 0; j < n; ++j) {
     double* Lj = L + j * n;
@@ -38,12 +72,7 @@ static int dq_cholesky(long n, const double* M, double* L) {
     if (!(s > 0.0)) return -1;
     const double l = sqrt(s);
     Lj[j] = l;
-    for (long i = j + 1; i < n; ++i) {
-      double* Li = L + i * n;
-      double t = M[i * n + j];
-      for (long k = 0; k < j; ++k) t -= Li[k] * Lj[k];
-      Li[j] = t / l;
-    }
+    dq_cholesky_column(n, j, l, M, L);
   }
   return 0;
 }
@@ -53,10 +82,12 @@ static int dq_cholesky(long n, const double* M, double* L) {
    (Golub and Van Loan, Matrix Computations, 8.3), their rotations accumulated into Q. w
    ascending, V's columns the eigenvectors (row-major, V[r n + c]). work: n * n + 3 n
    doubles. Returns 0, or -1 if M is not finite or the QR steps did not converge. */
-static int dq_eigh(long n, const double* M, double* w, double* V, double* work) {
+DQ_CLONES static int dq_eigh(long n, const double* M, double* w, double* V, double* work) {
   double* a = work;
   double *e = work + n * n, *v = e + n, *p = v + n;
   memcpy(a, M, sizeof(double) * n * n);
+  /* V holds Q' while the rotations accumulate (row c of V: column c of Q, contiguous), and
+     is transposed at the end: the same products and sums as on Q itself */
   memset(V, 0, sizeof(double) * n * n);
   double norm = 0.0;
   for (long i = 0; i < n; ++i) {
@@ -81,14 +112,28 @@ static int dq_eigh(long n, const double* M, double* w, double* V, double* work) 
     for (long j = 0; j < L; ++j) vv += v[j] * v[j];
     const double beta = 2.0 / vv;
     /* A22 <- H A22 H = A22 - v w' - w v', p = beta A22 v, w = p - (beta v'p / 2) v */
-    double vp = 0.0;
-    for (long i = 0; i < L; ++i) {
-      const double* ai = a + (k + 1 + i) * n + k + 1;
+    long i4 = 0;
+    for (; i4 + 4 <= L; i4 += 4) { /* four rows' sums side by side, each in j order */
+      const double* a0 = a + (k + 1 + i4) * n + k + 1;
+      const double *a1 = a0 + n, *a2 = a1 + n, *a3 = a2 + n;
+      double t0 = 0.0, t1 = 0.0, t2 = 0.0, t3 = 0.0;
+      for (long j = 0; j < L; ++j) {
+        const double vj = v[j];
+        t0 += a0[j] * vj;
+        t1 += a1[j] * vj;
+        t2 += a2[j] * vj;
+        t3 += a3[j] * vj;
+      }
+      p[i4] = beta * t0, p[i4 + 1] = beta * t1, p[i4 + 2] = beta * t2, p[i4 + 3] = beta * t3;
+    }
+    for (; i4 < L; ++i4) {
+      const double* ai = a + (k + 1 + i4) * n + k + 1;
       double t = 0.0;
       for (long j = 0; j < L; ++j) t += ai[j] * v[j];
-      p[i] = beta * t;
-      vp += v[i] * p[i];
+      p[i4] = beta * t;
     }
+    double vp = 0.0;
+    for (long i = 0; i < L; ++i) vp += v[i] * p[i];
     const double K = 0.5 * beta * vp;
     for (long i = 0; i < L; ++i) p[i] -= K * v[i];
     for (long i = 0; i < L; ++i) {
@@ -97,12 +142,20 @@ static int dq_eigh(long n, const double* M, double* w, double* V, double* work) 
     }
     a[(k + 1) * n + k] = a[k * n + k + 1] = alpha;
     for (long j = 1; j < L; ++j) a[(k + 1 + j) * n + k] = a[k * n + k + 1 + j] = 0.0;
-    for (long r = 0; r < n; ++r) { /* Q <- Q H */
-      double* qr = V + r * n + k + 1;
-      double t = 0.0;
-      for (long j = 0; j < L; ++j) t += qr[j] * v[j];
-      t *= beta;
-      for (long j = 0; j < L; ++j) qr[j] -= t * v[j];
+    /* Q <- Q H: t_r = beta sum_j Q[r, k + 1 + j] v_j (j ascending), then Q[r, k + 1 + j] -=
+       t_r v_j; on Q' (V) row by row of Q', every r at once */
+    double* t = e; /* (n scratch: e is filled after the reduction) */
+    for (long r = 0; r < n; ++r) t[r] = 0.0;
+    for (long j = 0; j < L; ++j) {
+      const double* qj = V + (k + 1 + j) * n;
+      const double vj = v[j];
+      for (long r = 0; r < n; ++r) t[r] += qj[r] * vj;
+    }
+    for (long r = 0; r < n; ++r) t[r] *= beta;
+    for (long j = 0; j < L; ++j) {
+      double* qj = V + (k + 1 + j) * n;
+      const double vj = v[j];
+      for (long r = 0; r < n; ++r) qj[r] -= t[r] * vj;
     }
   }
   for (long i = 0; i < n; ++i) {
@@ -139,11 +192,11 @@ static int dq_eigh(long n, const double* M, double* w, double* V, double* work) 
         bulge = s * e[k + 1];
         e[k + 1] *= c;
       }
-      for (long rr = 0; rr < n; ++rr) { /* Q <- Q P' on columns k, k + 1 */
-        double* q = V + rr * n + k;
-        const double qa = q[0], qb = q[1];
-        q[0] = c * qa + s * qb;
-        q[1] = -s * qa + c * qb;
+      double *q0 = V + k * n, *q1 = q0 + n; /* Q <- Q P' on columns k, k + 1 (rows of Q') */
+      for (long rr = 0; rr < n; ++rr) {
+        const double qa = q0[rr], qb = q1[rr];
+        q0[rr] = c * qa + s * qb;
+        q1[rr] = -s * qa + c * qb;
       }
     }
   }
@@ -156,13 +209,20 @@ static int dq_eigh(long n, const double* M, double* w, double* V, double* work) 
       const double t = w[i];
       w[i] = w[best];
       w[best] = t;
+      double *qi = V + i * n, *qb = V + best * n;
       for (long r = 0; r < n; ++r) {
-        const double q = V[r * n + i];
-        V[r * n + i] = V[r * n + best];
-        V[r * n + best] = q;
+        const double q = qi[r];
+        qi[r] = qb[r];
+        qb[r] = q;
       }
     }
   }
+  for (long r = 0; r < n; ++r) /* Q' to Q */
+    for (long c = r + 1; c < n; ++c) {
+      const double q = V[r * n + c];
+      V[r * n + c] = V[c * n + r];
+      V[c * n + r] = q;
+    }
   return 0;
 }
 
@@ -176,17 +236,54 @@ CASADI_SYMBOL_EXPORT int lfm_dense_eigh(long n, const double* M, double* w, doub
 }
 
 /* out (n, n) = V diag(f(w)) V' with f(w) = max(w, floor), or max(|w|, floor) if absolute. */
-static void dq_rebuild(long n, const double* w, const double* V, double floor, int absolute,
-                       double* out) {
-  for (long r = 0; r < n; ++r)
-    for (long c = 0; c <= r; ++c) {
-      double s = 0.0;
-      for (long k = 0; k < n; ++k) {
-        const double wk = absolute ? fabs(w[k]) : w[k];
-        s += V[r * n + k] * (wk > floor ? wk : floor) * V[c * n + k];
+DQ_CLONES static void dq_rebuild(long n, const double* w, const double* V, double floor,
+                                 int absolute, double* out) {
+  double* f = malloc(sizeof(double) * (size_t)(n * n + n + 1));
+  if (!f) { /* (out of memory: the plain loops) */
+    for (long r = 0; r < n; ++r)
+      for (long c = 0; c <= r; ++c) {
+        double s = 0.0;
+        for (long k = 0; k < n; ++k) {
+          const double wk = absolute ? fabs(w[k]) : w[k];
+          s += V[r * n + k] * (wk > floor ? wk : floor) * V[c * n + k];
+        }
+        out[r * n + c] = out[c * n + r] = s;
       }
+    return;
+  }
+  double* VF = f + n; /* VF[r, k] = V[r, k] f(w_k): the same first product */
+  for (long k = 0; k < n; ++k) {
+    const double wk = absolute ? fabs(w[k]) : w[k];
+    f[k] = wk > floor ? wk : floor;
+  }
+  for (long r = 0; r < n; ++r)
+    for (long k = 0; k < n; ++k) VF[r * n + k] = V[r * n + k] * f[k];
+  for (long r = 0; r < n; ++r) {
+    const double* vf = VF + r * n;
+    long c = 0;
+    for (; c + 4 <= r + 1; c += 4) { /* four sums side by side, each in k order */
+      const double *v0 = V + c * n, *v1 = v0 + n, *v2 = v1 + n, *v3 = v2 + n;
+      double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
+      for (long k = 0; k < n; ++k) {
+        const double x = vf[k];
+        s0 += x * v0[k];
+        s1 += x * v1[k];
+        s2 += x * v2[k];
+        s3 += x * v3[k];
+      }
+      out[r * n + c] = out[c * n + r] = s0;
+      out[r * n + c + 1] = out[(c + 1) * n + r] = s1;
+      out[r * n + c + 2] = out[(c + 2) * n + r] = s2;
+      out[r * n + c + 3] = out[(c + 3) * n + r] = s3;
+    }
+    for (; c <= r; ++c) {
+      const double* vc = V + c * n;
+      double s = 0.0;
+      for (long k = 0; k < n; ++k) s += vf[k] * vc[k];
       out[r * n + c] = out[c * n + r] = s;
     }
+  }
+  free(f);
 }
 
 /* ------------------------------------------------------------------ the QP without slacks
@@ -196,6 +293,8 @@ static void dq_rebuild(long n, const double* w, const double* V, double floor, i
    unconstrained minimum, add the most violated constraint, step in the primal and dual
    space until it is active, dropping the constraints whose multiplier reaches zero on the
    way. The factorisation J = L^-T Q, R of the active normals is updated by Givens rotations.
+   J is kept transposed (JT, row i: column i of J), so that a rotation of two columns and the
+   projections run along contiguous memory (the same products and sums as on J itself).
    Each constraint k is written c_k'x >= e_k: a row (k < m) as -a_k'x >= -b_k, an upper
    bound (m <= k < m + n) as -x_j >= -hi_j, a lower bound as x_j >= lo_j. */
 
@@ -205,7 +304,7 @@ typedef struct {
 } dq_cons_t;
 
 /* The value c_k'x - e_k (>= 0: satisfied) of constraint k at x. */
-static double dq_slack(const dq_cons_t* c, long k, const double* x) {
+DQ_INLINE double dq_slack(const dq_cons_t* c, long k, const double* x) {
   const long n = c->n;
   if (k < c->m) {
     const double* a = c->A + k * n;
@@ -217,41 +316,88 @@ static double dq_slack(const dq_cons_t* c, long k, const double* x) {
   return x[k - c->m - n] - c->lo[k - c->m - n];
 }
 
-/* d = J' c_k (J (n, n) row-major). */
-static void dq_project(const dq_cons_t* c, long k, const double* J, double* d) {
+/* out[k] = dq_slack(c, k, x) of the rows k < m neither skipped nor active, four rows at a
+   time (their sums side by side, each in dq_slack's order); rows: m longs of scratch. */
+DQ_INLINE void dq_row_slacks(const dq_cons_t* c, const unsigned char* skip,
+                          const unsigned char* is_active, const double* x, long* rows,
+                          double* out) {
+  const long n = c->n;
+  long cnt = 0;
+  for (long k = 0; k < c->m; ++k)
+    if (!skip[k] && !is_active[k]) rows[cnt++] = k;
+  long e = 0;
+  for (; e + 4 <= cnt; e += 4) {
+    const long k0 = rows[e], k1 = rows[e + 1], k2 = rows[e + 2], k3 = rows[e + 3];
+    const double *a0 = c->A + k0 * n, *a1 = c->A + k1 * n, *a2 = c->A + k2 * n;
+    const double* a3 = c->A + k3 * n;
+    double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
+    for (long j = 0; j < n; ++j) {
+      const double xj = x[j];
+      s0 += a0[j] * xj;
+      s1 += a1[j] * xj;
+      s2 += a2[j] * xj;
+      s3 += a3[j] * xj;
+    }
+    out[k0] = c->b[k0] - s0, out[k1] = c->b[k1] - s1;
+    out[k2] = c->b[k2] - s2, out[k3] = c->b[k3] - s3;
+  }
+  for (; e < cnt; ++e) out[rows[e]] = dq_slack(c, rows[e], x);
+}
+
+/* d = J' c_k (JT = J' (n, n) row-major); nz: n longs of scratch. Each d[i] sums its terms
+   over r ascending, the zeros of the row skipped. */
+DQ_INLINE void dq_project(const dq_cons_t* c, long k, const double* JT, double* d, long* nz) {
   const long n = c->n;
   if (k < c->m) {
     const double* a = c->A + k * n;
-    for (long i = 0; i < n; ++i) d[i] = 0.0;
-    for (long r = 0; r < n; ++r) {
-      const double ar = a[r];
-      if (ar == 0.0) continue;
-      const double* Jr = J + r * n;
-      for (long i = 0; i < n; ++i) d[i] -= ar * Jr[i];
+    long cnt = 0;
+    for (long r = 0; r < n; ++r)
+      if (a[r] != 0.0) nz[cnt++] = r;
+    long i = 0;
+    for (; i + 4 <= n; i += 4) { /* four independent sums at a time */
+      const double *J0 = JT + i * n, *J1 = J0 + n, *J2 = J1 + n, *J3 = J2 + n;
+      double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
+      for (long e = 0; e < cnt; ++e) {
+        const long r = nz[e];
+        const double ar = a[r];
+        s0 -= ar * J0[r];
+        s1 -= ar * J1[r];
+        s2 -= ar * J2[r];
+        s3 -= ar * J3[r];
+      }
+      d[i] = s0, d[i + 1] = s1, d[i + 2] = s2, d[i + 3] = s3;
+    }
+    for (; i < n; ++i) {
+      const double* Ji = JT + i * n;
+      double s0 = 0.0;
+      for (long e = 0; e < cnt; ++e) s0 -= a[nz[e]] * Ji[nz[e]];
+      d[i] = s0;
     }
   } else if (k < c->m + n) {
-    const double* Jr = J + (k - c->m) * n;
-    for (long i = 0; i < n; ++i) d[i] = -Jr[i];
+    const long r = k - c->m;
+    for (long i = 0; i < n; ++i) d[i] = -JT[i * n + r];
   } else {
-    const double* Jr = J + (k - c->m - n) * n;
-    for (long i = 0; i < n; ++i) d[i] = Jr[i];
+    const long r = k - c->m - n;
+    for (long i = 0; i < n; ++i) d[i] = JT[i * n + r];
   }
 }
 
-/* A Givens rotation of columns i and i + 1 of J: (J_i, J_i+1) <- (c J_i + s J_i+1,
-   -s J_i + c J_i+1). */
-static void dq_rotate_columns(long n, double* J, long i, double c, double s) {
+/* A Givens rotation of columns i and i + 1 of J (rows of JT): (J_i, J_i+1) <- (c J_i + s
+   J_i+1, -s J_i + c J_i+1). */
+DQ_INLINE void dq_rotate_columns(long n, double* JT, long i, double c, double s) {
+  double *Ji = JT + i * n, *Jj = Ji + n;
   for (long r = 0; r < n; ++r) {
-    double* Jr = J + r * n;
-    const double a = Jr[i], b = Jr[i + 1];
-    Jr[i] = c * a + s * b;
-    Jr[i + 1] = -s * a + c * b;
+    const double a = Ji[r], b = Jj[r];
+    Ji[r] = c * a + s * b;
+    Jj[r] = -s * a + c * b;
   }
 }
 
 /* Drop active constraint l of q: R (n, n) row-major loses column l and is made upper
    triangular again by rotations, applied to J's columns too. */
-static void dq_drop(long n, long q, long l, double* R, double* J, long* act, double* u) {
+DQ_INLINE void dq_drop(long n, long q, long l, double* R, double* J, long* act, double* u,
+                    unsigned char* is_active) {
+  is_active[act[l]] = 0;
   for (long c = l; c + 1 < q; ++c) {
     for (long r = 0; r < n; ++r) R[r * n + c] = R[r * n + c + 1];
     act[c] = act[c + 1];
@@ -276,7 +422,7 @@ static void dq_drop(long n, long q, long l, double* R, double* J, long* act, dou
 
 /* Add constraint p with d = J' c_p: rotations zero d[q + 1 ..], applied to J's columns; d[0..q]
    becomes column q of R. */
-static void dq_add(long n, long q, double* d, double* R, double* J) {
+DQ_INLINE void dq_add(long n, long q, double* d, double* R, double* J) {
   for (long j = n - 1; j > q; --j) {
     const double a = d[j - 1], b = d[j];
     if (b == 0.0) continue;
@@ -294,15 +440,15 @@ enum { DQ_SOLVED = 0, DQ_INFEASIBLE = 1, DQ_ITERATIONS = 2, DQ_NOT_CONVEX = 3, D
 /* One full or partial step towards the violated constraint p (Goldfarb-Idnani step 2, until p
    is added or the problem is found infeasible); returns -1 (infeasible), else the
    constraints added (0 or 1), and counts the rotations' steps in *steps. */
-static int dq_step_to(const dq_cons_t* cons, long p, double* x, double* J, double* R,
-                      long* act, double* u, long* q_io, double* d, double* z, double* r,
-                      long max_steps, long* steps) {
+DQ_INLINE int dq_step_to(const dq_cons_t* cons, long p, double* x, double* J, double* R,
+                      long* act, unsigned char* is_active, double* u, long* q_io, double* d,
+                      double* z, double* r, long* nz, long max_steps, long* steps) {
   const long n = cons->n;
   long q = *q_io;
   double uq = 0.0; /* the multiplier of p */
   for (;;) {
     if (++*steps > max_steps) return -2;
-    dq_project(cons, p, J, d);
+    dq_project(cons, p, J, d, nz);
     double d2 = 0.0, dn = 0.0;
     for (long i = 0; i < n; ++i) {
       dn += d[i] * d[i];
@@ -320,10 +466,11 @@ static int dq_step_to(const dq_cons_t* cons, long p, double* x, double* J, doubl
       if (r[j] > 0.0 && u[j] / r[j] < t1) t1 = u[j] / r[j], l = j;
     double t2 = INFINITY;
     if (primal) {
-      for (long i = 0; i < n; ++i) {
-        double s = 0.0;
-        for (long k = q; k < n; ++k) s += J[i * n + k] * d[k];
-        z[i] = s;
+      for (long i = 0; i < n; ++i) z[i] = 0.0; /* z = J[:, q:] d[q:], k ascending */
+      for (long k = q; k < n; ++k) {
+        const double* Jk = J + k * n;
+        const double dk = d[k];
+        for (long i = 0; i < n; ++i) z[i] += Jk[i] * dk;
       }
       t2 = -dq_slack(cons, p, x) / d2;
       if (t2 < 0.0) t2 = 0.0;
@@ -337,11 +484,12 @@ static int dq_step_to(const dq_cons_t* cons, long p, double* x, double* J, doubl
     if (primal && t2 <= t1) { /* full step: p becomes active */
       dq_add(n, q, d, R, J);
       act[q] = p;
+      is_active[p] = 1;
       u[q] = uq;
       *q_io = q + 1;
       return 1;
     }
-    dq_drop(n, q, l, R, J, act, u); /* partial step: constraint l leaves */
+    dq_drop(n, q, l, R, J, act, u, is_active); /* partial step: constraint l leaves */
     --q;
     *q_io = q;
   }
@@ -351,22 +499,30 @@ static int dq_step_to(const dq_cons_t* cons, long p, double* x, double* J, doubl
    skipped): x (n), the rows' multipliers lam (m, >= 0; zero where inactive); tol: the
    violation a constraint may keep. Returns DQ_SOLVED, DQ_INFEASIBLE, DQ_ITERATIONS,
    DQ_NOT_CONVEX or DQ_MEMORY. */
-CASADI_SYMBOL_EXPORT int lfm_dense_qp(long n, long m, const double* H, const double* g,
+DQ_CLONES CASADI_SYMBOL_EXPORT int lfm_dense_qp(long n, long m, const double* H, const double* g,
     const double* lo, const double* hi, const double* A, const double* b, double tol,
     long max_steps, double* x, double* lam, long* steps_out) {
   const long K = m + 2 * n;
   double* buf = malloc(sizeof(double) * (size_t)(3 * n * n + 4 * n + K + 1));
-  long* act = malloc(sizeof(long) * (size_t)(n + 1));
-  unsigned char* skip = calloc((size_t)K + 1, 1);
+  long* act = malloc(sizeof(long) * (size_t)(2 * n + 1));
+  unsigned char* skip = calloc((size_t)(2 * K + 1), 1);
   if (!buf || !act || !skip) {
     free(buf);
     free(act);
     free(skip);
     return DQ_MEMORY;
   }
+  long* nz = act + n;                  /* (n) scratch of dq_project */
+  unsigned char* is_active = skip + K; /* (K) constraint k is in act[0..q) */
   double *L = buf, *J = buf + n * n, *R = buf + 2 * n * n, *d = buf + 3 * n * n;
-  double *z = d + n, *r = z + n, *u = r + n, *tmp = u + n;
-  (void)tmp;
+  double *z = d + n, *r = z + n, *u = r + n, *row_slack = u + n;
+  long* rows = malloc(sizeof(long) * (size_t)(m + 1));
+  if (!rows) {
+    free(buf);
+    free(act);
+    free(skip);
+    return DQ_MEMORY;
+  }
   int status = DQ_SOLVED;
   long q = 0, steps = 0;
   dq_cons_t cons = {n, m, A, b, lo, hi};
@@ -378,35 +534,40 @@ CASADI_SYMBOL_EXPORT int lfm_dense_qp(long n, long m, const double* H, const dou
   if (dq_cholesky(n, H, L)) {
     status = DQ_NOT_CONVEX;
   } else {
-    /* J = L^-T: column i of L^-1 solves L y = e_i; J[r, i] = (L^-1)[i, r] */
-    memset(J, 0, sizeof(double) * n * n);
-    for (long i = 0; i < n; ++i) {
-      for (long rr = 0; rr < n; ++rr) {
+    /* J = L^-T: column i of L^-1 solves L y = e_i, into row i of Y (in R's room), so
+       Y[i, rr] = (L^-1)[rr, i] = J[i, rr]; then JT (in J's room) its transpose */
+    double* Y = R;
+    memset(Y, 0, sizeof(double) * n * n);
+    for (long i = 0; i < n; ++i) { /* (y_k = 0 for k < i: those terms change no sum) */
+      for (long rr = i; rr < n; ++rr) {
         double s = rr == i ? 1.0 : 0.0;
-        for (long k = 0; k < rr; ++k) s -= L[rr * n + k] * J[i * n + k];
-        J[i * n + rr] = s / L[rr * n + rr]; /* row i of J' = (L^-1)' ... stored transposed */
+        for (long k = i; k < rr; ++k) s -= L[rr * n + k] * Y[i * n + k];
+        Y[i * n + rr] = s / L[rr * n + rr];
       }
     }
-    /* J above holds (L^-1)' rows as J[i, rr] = (L^-1)[rr, i]: i.e. J = L^-T. */
-    for (long i = 0; i < n; ++i) { /* x = -J J' g */
+    for (long i = 0; i < n; ++i)
+      for (long k = 0; k < n; ++k) J[k * n + i] = Y[i * n + k];
+    for (long i = 0; i < n; ++i) { /* x = -J J' g (each sum over k, then i, ascending) */
+      const double* Ji = J + i * n;
       double s = 0.0;
-      for (long k = 0; k < n; ++k) s += J[k * n + i] * g[k];
+      for (long k = 0; k < n; ++k) s += Ji[k] * g[k];
       d[i] = s;
     }
-    for (long k = 0; k < n; ++k) {
-      double s = 0.0;
-      for (long i = 0; i < n; ++i) s += J[k * n + i] * d[i];
-      x[k] = -s;
+    for (long k = 0; k < n; ++k) x[k] = 0.0;
+    for (long i = 0; i < n; ++i) {
+      const double* Ji = J + i * n;
+      const double di = d[i];
+      for (long k = 0; k < n; ++k) x[k] += Ji[k] * di;
     }
+    for (long k = 0; k < n; ++k) x[k] = -x[k];
+    memset(R, 0, sizeof(double) * n * n);
     for (;;) {
+      dq_row_slacks(&cons, skip, is_active, x, rows, row_slack);
       long p = -1;
       double worst = -tol;
       for (long k = 0; k < K; ++k) {
-        if (skip[k]) continue;
-        int active = 0;
-        for (long a = 0; a < q && !active; ++a) active = act[a] == k;
-        if (active) continue;
-        const double s = dq_slack(&cons, k, x);
+        if (skip[k] || is_active[k]) continue;
+        const double s = k < m ? row_slack[k] : dq_slack(&cons, k, x);
         if (s < worst || s != s) worst = s, p = k;
         if (s != s) break;
       }
@@ -415,7 +576,8 @@ CASADI_SYMBOL_EXPORT int lfm_dense_qp(long n, long m, const double* H, const dou
         status = DQ_INFEASIBLE;
         break;
       }
-      const int added = dq_step_to(&cons, p, x, J, R, act, u, &q, d, z, r, max_steps, &steps);
+      const int added =
+          dq_step_to(&cons, p, x, J, R, act, is_active, u, &q, d, z, r, nz, max_steps, &steps);
       if (added == -1) {
         status = DQ_INFEASIBLE;
         break;
@@ -431,6 +593,7 @@ CASADI_SYMBOL_EXPORT int lfm_dense_qp(long n, long m, const double* H, const dou
     for (long a = 0; a < q; ++a)
       if (act[a] < m) lam[act[a]] = u[a] > 0.0 ? u[a] : 0.0;
   if (steps_out) *steps_out = steps;
+  free(rows);
   free(buf);
   free(act);
   free(skip);
