@@ -1,16 +1,6 @@
-"""Per-step times of the scenario agent in closed loop, horizon by horizon.
-
-For each horizon ``N``, each prediction (``agents.prediction``) and each iteration mode
-(``agents.iterations``: ``converged``, and ``rti`` where the config has that setting), the
-scenario agent (``agents.solver`` of the config: the compiled loop by default) runs the
-first ``steps`` steps of each seed's episode on the config's world, and every step is timed
-whole: the agent's ``act`` (estimator + scenarios + solve), with its solve time, status and
-iterations beside it. The problems are the ones the agent meets at that horizon along its own
-closed loop, warm-started from its own past, as an agent runs.
-
-A combination the config refuses (e.g. a horizon beyond the solver's ``max_horizon``, or
-``agents.iterations`` before it exists) is a row that says why; a step that raises is a
-failed step with the error, and the run goes on.
+"""Per-step times of the scenario agent in closed loop, by horizon, prediction and iteration
+mode: each step's whole ``act`` timed, with its solve time, status and iterations. A
+combination the config refuses is a row saying why; a step that raises is a failed step.
 """
 
 from __future__ import annotations
@@ -153,15 +143,14 @@ def closed_loop_steps(
         horizons: prediction steps ``N``.
         config: a preset's name, a YAML path, a dict or an ExperimentConfig.
         seeds: env seeds (one episode start each).
-        steps: steps per seed from the episode's start (fewer where an episode ends).
+        steps: steps per seed from the episode's start.
         predictions: ``agents.prediction`` values.
         agent: the registered agent timed.
         progress: show progress bars.
 
     Returns:
         ``{"config", "agent", "seeds", "steps", "results": [{"horizon", "prediction",
-        "iterations", "refused", "summary", "records", "failures"}]}``, times in
-        milliseconds; ``refused`` is ``""`` or the config's reason.
+        "iterations", "refused", "summary", "records", "failures"}]}``, times in ms.
     """
     base = load_config(config_path(config))
     rows = []

@@ -1,21 +1,7 @@
-"""The prediction sweep: the fast solver on open-loop and feedback scenario problems, N by N.
-
-The scenario agent runs the config's episodes at the config's horizon, and its state
-estimates at steps ``first_step .. first_step + steps_per_seed - 1`` of each seed are the
-anchors (:func:`experiments.benchmark.problems.record_closed_loop`). At each horizon ``N``
-the ``Ns`` latent-force scenarios of each anchor are drawn as the agent draws them
-(:func:`~experiments.benchmark.problems.scenario_draws`, one generator seeded 0 per ``N``),
-so an ``N`` beyond the fast solver's practical horizon for agents (40) is measured too. The
-fast solver solves each problem twice, consecutive anchors in closed-loop order and
-warm-started from its own past, reset at each seed: as the open-loop problem
-(``prediction="open_loop"``, the paper's) and as the feedback one (``"feedback"``,
-:mod:`controllers.solvers.feedback`; its law along its previous plan shifted, at a seed's
-first problem along an open-loop solve whose time counts). Both see the same problems.
-Every figure is the solver's own: ``objective`` and ``slack`` of each problem's formulation,
-the feedback slack including the input slacks.
-
-A failed solve is one that did not converge (``success`` false); ``usable`` says whether it
-still returned a plan an agent applies (:attr:`controllers.problem.MPCSolution.usable`).
+"""The prediction sweep: the fast solver on the open-loop and the feedback scenario problem at
+each horizon, on the same problems (scenarios drawn as the agent draws them around a closed
+loop's estimates), consecutive anchors warm-started, reset at each seed. Figures are the
+solver's own; a failed solve did not converge, ``usable`` says whether it gave a plan.
 """
 
 from __future__ import annotations
@@ -107,7 +93,7 @@ def sweep_predictions(
     progress: bool = False,
     first_step: int = PREDICTION_FIRST_STEP,
 ) -> dict[str, Any]:
-    """The fast solver on both predictions at each horizon (module docstring).
+    """The fast solver on both predictions at each horizon.
 
     Args:
         horizons: prediction steps ``N``.
@@ -116,14 +102,11 @@ def sweep_predictions(
         steps_per_seed: problems per seed at each ``N`` (consecutive steps).
         max_time: wall-clock limit of one solve [s].
         progress: show progress bars.
-        first_step: the first anchored step of each seed (an episode that ends earlier
-            gives fewer).
+        first_step: the first anchored step of each seed.
 
     Returns:
-        ``{"config", "seeds", "steps_per_seed", "first_step", "results": [{"horizon", "prediction",
-        "n_scenarios", "summary", "records", "failures"}]}``: one row per ``(N,
-        prediction)``, times in milliseconds; ``failures`` lists every solve that did not
-        converge (``seed``, ``step``, ``kind``, ``status``, ``usable``).
+        ``{"config", "seeds", "steps_per_seed", "first_step", "results": [{"horizon",
+        "prediction", "n_scenarios", "summary", "records", "failures"}]}``, times in ms.
     """
     cfg = experiment_config(config)
     last = first_step + steps_per_seed

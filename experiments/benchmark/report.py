@@ -1,9 +1,5 @@
-"""The benchmark's report: text, Markdown and JSON (the checks: :mod:`.checks`).
-
-:func:`format_report` prints the speed table, the detailed tables (closed loop, horizons,
-scenario sweep, first solve, filter, episode), every failed solve and the checks;
-:func:`format_markdown` gives the speed table and the checks as Markdown (for
-docs/benchmark.md); :func:`json_ready` makes a result strict JSON.
+"""The benchmark's report: :func:`format_report` (every table, failure and check),
+:func:`format_markdown` (speed table and checks) and :func:`json_ready` (strict JSON).
 """
 
 from __future__ import annotations
