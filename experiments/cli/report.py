@@ -117,11 +117,7 @@ def _nothing_to_report_yet(folder: Path) -> str | None:
 
 @one_line_errors("lfm-report")
 def report_main(argv: Sequence[str] | None = None) -> int:
-    """``lfm-report``: write the report of a results folder (see ``--help``).
-
-    Returns:
-        The exit code: 0 when the report was written.
-    """
+    """``lfm-report``: write the report of a results folder; 0 when written."""
     from experiments.report import write_report
 
     parser = _report_parser()
