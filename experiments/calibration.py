@@ -189,8 +189,7 @@ def fit_latent_force(
 
 
 def calibrate(
-    config: ExperimentConfig | str | os.PathLike | None = None,
-    seeds: range | list[int] = range(5),
+    config: ExperimentConfig | str | os.PathLike | None = None, seeds: range | list[int] = range(5)
 ) -> CalibrationResult:
     """Calibration episodes (env ``seeds``) under the nominal MPC, then a maximum-likelihood fit;
     ``config`` as for :func:`~controllers.config.load_config`.
@@ -223,17 +222,3 @@ def write_learned_config(
     except BaseException:  # disk full, Ctrl-C: leave no temporary file behind
         Path(tmp).unlink(missing_ok=True)
         raise
-
-
-__all__ = [
-    "BOUNDS",
-    "LEARNABLE",
-    "CalibrationRecord",
-    "CalibrationResult",
-    "calibrate",
-    "fit_latent_force",
-    "force_observations",
-    "forced_states",
-    "record_calibration_episodes",
-    "write_learned_config",
-]

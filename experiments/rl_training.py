@@ -421,18 +421,3 @@ def _save(
     }
     _replace_set(out, {POLICY_FILE: save_zip, "policy.npz": save_npz}, summary)
     return summary
-
-
-__all__ = [
-    "ALGOS",
-    "DEFAULT_N_ENVS",
-    "EVAL_CONFIG_FILE",
-    "POLICY_FILE",
-    "TrainingReward",
-    "check_training_arguments",
-    "check_training_folder",
-    "make_training_env",
-    "reward_scale",
-    "train",
-    "write_eval_config",
-]

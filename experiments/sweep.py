@@ -30,9 +30,6 @@ from experiments.report.sweep_summary import (
 SECTION = "agents"  # the sweep varies agent settings only: the episodes stay the same
 
 
-# --------------------------------------------------------------------------- the setting
-
-
 def config_with(config: ExperimentConfig, key: str, text: str) -> ExperimentConfig:
     """The config with one dotted key of ``agents`` (``"agents.robust.backoff"``) set to ``text``,
     read by the field's type (``"2"`` for a list field is ``[2.0]``; ``"null"`` None).
@@ -74,9 +71,6 @@ def parse_setting(
     if len(set(texts)) != len(texts):
         raise ConfigError(f"--set {text!r}: the values of {key} repeat")
     return key, texts, [config_with(config, key, t) for t in texts]
-
-
-# --------------------------------------------------------------------------- running
 
 
 def _registered_agents(agents: Any) -> list[str]:
@@ -179,6 +173,3 @@ def run_sweep(
     summary = load_sweep(out_path)
     write_sweep(summary)
     return summary
-
-
-__all__ = ["config_with", "parse_setting", "run_sweep"]

@@ -320,18 +320,3 @@ def check_lines(checks: list[dict[str, Any]]) -> list[str]:
             f"{bound:<12}  {c['check']}"
         )
     return lines
-
-
-__all__ = [
-    "ANCHOR",
-    "CHECKS",
-    "DEFAULT_THRESHOLDS",
-    "LARGE_NS",
-    "TEXTBOOK",
-    "Check",
-    "check_lines",
-    "check_thresholds",
-    "failed_checks",
-    "large_ns_median",
-    "run_checks",
-]

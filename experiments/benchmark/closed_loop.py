@@ -227,14 +227,3 @@ def format_closed_loop(result: dict[str, Any]) -> str:
             f"{'usable plan' if f['usable'] else 'no usable plan'})"
         )
     return "\n".join(lines)
-
-
-__all__ = [
-    "CLOSED_LOOP_AGENT",
-    "CLOSED_LOOP_HORIZONS",
-    "CLOSED_LOOP_STEPS",
-    "ITERATION_MODES",
-    "closed_loop_steps",
-    "format_closed_loop",
-    "iteration_modes",
-]

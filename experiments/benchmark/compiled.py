@@ -20,14 +20,9 @@ import numpy as np
 
 from controllers.solvers.fast.compiled import CompiledScenarioSolver
 from controllers.solvers.fast.solver import FastScenarioSolver
-from experiments.benchmark.problems import (
-    ENV_ID,
-    anchors_per_seed,
-    scenario_draws,
-)
+from experiments.benchmark.problems import ENV_ID, anchors_per_seed, scenario_draws
 from experiments.evaluation.interrupts import raise_if_interrupted
 
-COMPILED = "fast_c"
 SAME_QP = {"qp_solver": "elastic_ipm"}  # the Python loop's choice closest to the C loop's
 PLAN_TOL = 1e-9  # [input units] plan agreement of the two loops counted as equal
 EXPORT_PLAN_TOL = 1e-8  # [input units] the exported example's plans against Python's
@@ -279,12 +274,3 @@ def compiled_lines(results: Mapping[str, Any]) -> list[str]:
     elif export is not None:
         lines.append(f"Exported controllers: not run ({export.get('reason')})")
     return lines
-
-
-__all__ = [
-    "COMPILED",
-    "compiled_lines",
-    "plan_agreement",
-    "time_compiled",
-    "time_export",
-]

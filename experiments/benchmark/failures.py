@@ -53,6 +53,3 @@ def failures_of(
                 }
             )
     return out
-
-
-__all__ = ["FAILURE_KINDS", "classify_failure", "failures_of"]

@@ -184,13 +184,3 @@ def format_predictions(result: dict[str, Any]) -> str:
             f"{f['status']} ({f['kind']}; {'usable plan' if f['usable'] else 'no usable plan'})"
         )
     return "\n".join(lines)
-
-
-__all__ = [
-    "PREDICTION_FIRST_STEP",
-    "PREDICTION_HORIZONS",
-    "PREDICTION_MAX_TIME_S",
-    "PREDICTION_STEPS",
-    "format_predictions",
-    "sweep_predictions",
-]

@@ -41,9 +41,6 @@ class SweepAnchor(NamedTuple):
     z: np.ndarray  # (p,) estimated latent state of the GP
 
 
-# --------------------------------------------------------------------------- configuration
-
-
 def config_path(config: Any) -> Any:
     """A config as :func:`~controllers.config.load_config` takes it (a preset's name, a path,
     ...); a relative ``configs/NAME.yaml`` that is missing here (the repository's presets
@@ -81,9 +78,6 @@ def problem_from_config(
 ) -> ScenarioProblem:
     """The scenario problem the agents of ``config`` solve, with ``Ns`` or ``N`` changed."""
     return experiment_config(config).make_problem(n_scenarios=n_scenarios, horizon=horizon)
-
-
-# --------------------------------------------------------------------------- recording
 
 
 def env_start(config: Any = DEFAULT_CONFIG, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -196,20 +190,3 @@ def scenario_draws(
         W = model.sample_latent_forecasts(z0, problem.horizon, rng)
         out.append(RecordedProblem(a.seed, a.step, a.x0, W))
     return out
-
-
-__all__ = [
-    "DEFAULT_CONFIG",
-    "DEFAULT_SEEDS",
-    "ENV_ID",
-    "RecordedProblem",
-    "SweepAnchor",
-    "anchors_per_seed",
-    "config_path",
-    "env_start",
-    "experiment_config",
-    "problem_from_config",
-    "record_closed_loop",
-    "record_problems",
-    "scenario_draws",
-]

@@ -15,9 +15,6 @@ from experiments.benchmark.solvers import GAP_TOL, NO_SLACK_TOL, SOLVER_VARIANTS
 SPEED_TABLE_SOLVERS = ("fast", "fast_c", ANCHOR, "ipopt", TEXTBOOK, "csnlp")
 
 
-# --------------------------------------------------------------------------- text
-
-
 def _fmt(x: Any, spec: str = ".1f") -> str:
     if x is None or (isinstance(x, float) and not math.isfinite(x)):
         return "-"
@@ -400,9 +397,6 @@ def format_report(results: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-# --------------------------------------------------------------------------- JSON
-
-
 def json_ready(obj: Any) -> Any:
     """Plain JSON data: NumPy scalars and arrays converted, NaN and inf written as null."""
     if isinstance(obj, dict):
@@ -418,6 +412,3 @@ def json_ready(obj: Any) -> Any:
     if isinstance(obj, (float, np.floating)):
         return float(obj) if math.isfinite(obj) else None
     return obj
-
-
-__all__ = ["format_markdown", "format_report", "format_speed_table", "json_ready"]

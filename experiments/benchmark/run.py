@@ -196,6 +196,3 @@ def run_benchmark(
     meta["load_average_end"] = _load()
     meta["total_time_s"] = time.perf_counter() - t0
     return results
-
-
-__all__ = ["DEFAULT_MAX_STEPS", "DEFAULT_SOLVERS", "all_failures", "run_benchmark"]

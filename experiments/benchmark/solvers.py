@@ -36,9 +36,7 @@ FAST_SOLVERS = ("fast", "fast_c")  # timed again alone, without IPOPT in between
 # Variants of a registered solver with options, by the name the tables give them: the fast
 # solver with its C library on two threads (FastSolverOptions.threads), timed in the
 # scenario sweep (experiments.benchmark.suites.sweep_scenarios).
-SOLVER_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
-    "fast_2threads": ("fast", {"threads": 2}),
-}
+SOLVER_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {"fast_2threads": ("fast", {"threads": 2})}
 # The objective reference: the first of these that is available.
 REFERENCES = ("ipopt_multiple_shooting", "ipopt", "csnlp")
 
@@ -47,9 +45,6 @@ GAP_TOL = 1e-4  # relative objective gap of the accuracy checks
 LOCAL_OPTIMUM_RTOL = 1e-9  # a probed descent above -this * |J| certifies a local optimum
 
 Problem = tuple[int, int, np.ndarray, np.ndarray]  # (seed, step, x0, W)
-
-
-# --------------------------------------------------------------------------- solving
 
 
 def build_solver(
@@ -176,9 +171,6 @@ def run_interleaved(
             rec = solve_record(solvers[name], problem, x0, W)
             records[name].append({"seed": int(seed), "step": int(step), "warm_start": warm, **rec})
     return records
-
-
-# --------------------------------------------------------------------------- statistics
 
 
 def _finite(values: Iterable[float]) -> np.ndarray:
@@ -381,9 +373,6 @@ def speedups(
     return out
 
 
-# --------------------------------------------------------------------------- comparison
-
-
 def _alone(
     built: dict[str, Any],
     problem: ScenarioProblem,
@@ -479,25 +468,3 @@ def time_solvers(
         "alone": alone,
         "failures": failed + alone_failures,
     }
-
-
-__all__ = [
-    "FAST_SOLVERS",
-    "SOLVER_VARIANTS",
-    "GAP_TOL",
-    "NO_SLACK_TOL",
-    "REFERENCES",
-    "SOLVER_LABELS",
-    "accuracy_summary",
-    "build_solver",
-    "build_solvers",
-    "certify_lower_plans",
-    "relative_gap",
-    "restart_check",
-    "run_interleaved",
-    "solve_record",
-    "speedups",
-    "time_solvers",
-    "timing_summary",
-    "worse_problems",
-]

@@ -521,20 +521,3 @@ def time_episode(
         **_milliseconds("solve", solve, "median", "p95", "max"),
         **_milliseconds("estimate", estimate, "median"),
     }
-
-
-__all__ = [
-    "DEFAULT_HORIZONS",
-    "DEFAULT_HORIZON_STEPS",
-    "DEFAULT_PF_SIZES",
-    "HORIZON_MAX_TIME_S",
-    "DEFAULT_SWEEP_NS",
-    "DEFAULT_SWEEP_STEPS",
-    "feasibility_summary",
-    "first_solve",
-    "objective_agreement",
-    "sweep_horizons",
-    "sweep_scenarios",
-    "time_episode",
-    "time_particle_filter",
-]

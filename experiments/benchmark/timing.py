@@ -41,6 +41,3 @@ def latent_force_scenarios(
     steps = walk_std * rng.standard_normal((n_scenarios, horizon - 1, nw))
     W = np.concatenate([w0[:, None], w0[:, None] + np.cumsum(steps, axis=1)], axis=1)
     return W[:, :, 0] if n_forces is None else W
-
-
-__all__ = ["latent_force_scenarios"]

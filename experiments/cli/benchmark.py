@@ -117,9 +117,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_config_argument(parser)
     parser.add_argument(
-        "--seeds",
-        default=None,
-        help="episode seeds, e.g. '0:6' or '0,5' (default: 0:6; quick: 0)",
+        "--seeds", default=None, help="episode seeds, e.g. '0:6' or '0,5' (default: 0:6; quick: 0)"
     )
     parser.add_argument(
         "--max-steps",
@@ -313,16 +311,6 @@ def benchmark_main(argv: Sequence[str] | None = None) -> int:
         return 1
     return 0
 
-
-__all__ = [
-    "QUICK",
-    "QUICK_SOLVERS",
-    "benchmark_main",
-    "build_parser",
-    "parse_ints",
-    "parse_seeds",
-    "parse_threshold",
-]
 
 if __name__ == "__main__":
     raise SystemExit(benchmark_main())

@@ -103,6 +103,3 @@ def calibrate_main(argv: Sequence[str] | None = None) -> int:
         write_learned_config(config, result, args.out)
         print(f"learned config: {args.out}")
     return 0
-
-
-__all__ = ["calibrate_main"]

@@ -168,13 +168,7 @@ def config_argument(
 def add_executor_arguments(parser: argparse.ArgumentParser, jobs_help: str) -> None:
     """``--jobs``, ``--scheduler`` and ``--dask-workers``: where the episodes run (checked
     together by :func:`seeds_and_executor`)."""
-    parser.add_argument(
-        "--jobs",
-        type=positive_int,
-        default=1,
-        metavar="N",
-        help=jobs_help,
-    )
+    parser.add_argument("--jobs", type=positive_int, default=1, metavar="N", help=jobs_help)
     parser.add_argument(
         "--scheduler",
         metavar="ADDRESS",

@@ -206,9 +206,3 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
                 return 2
             print(f"report: {where if where is not None else out}")
     return 1 if n_errors else 0
-
-
-# --------------------------------------------------------------------------- lfm-report
-
-
-__all__ = ["evaluate_main"]

@@ -189,6 +189,3 @@ def render_main(argv: Sequence[str] | None = None) -> int:
         iio.imwrite(out, frames[-1] if args.frame == "last" else frames[0])
     print(f"{out}: {len(frames)} frame(s), {len(frames) - 1} step(s) of {args.agent}")
     return 0
-
-
-__all__ = ["MAX_RENDER_SIDE", "RENDER_MEMORY_BUDGET", "render_main"]

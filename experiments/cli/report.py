@@ -147,9 +147,3 @@ def report_main(argv: Sequence[str] | None = None) -> int:
         parser.error(" ".join(str(exc).split()))
     print(f"report: {path} and {path.with_suffix('.html')}")
     return 0
-
-
-# --------------------------------------------------------------------------- lfm-sweep
-
-
-__all__ = ["report_main"]

@@ -118,9 +118,3 @@ def sweep_main(argv: Sequence[str] | None = None) -> int:
     if n_errors:
         print(f"{n_errors} episodes raised an error; rerun the same command to retry them")
     return 1 if n_errors else 0
-
-
-# --------------------------------------------------------------------------- lfm-render
-
-
-__all__ = ["sweep_main"]

@@ -184,15 +184,3 @@ def violation_counts(trajectory: dict[str, np.ndarray], system: Any) -> dict[str
 
 def _metric_columns(columns: Sequence[str]) -> tuple[str, ...]:
     return tuple(c for c in columns if c not in ("agent", "seed", "wall_time", "error"))
-
-
-__all__ = [
-    "group_columns",
-    "HEAD_COLUMNS",
-    "row_columns",
-    "TAIL_COLUMNS",
-    "TIMING_COLUMNS",
-    "tolerance_column",
-    "tolerance_columns",
-    "violation_counts",
-]

@@ -9,6 +9,7 @@ import math
 import os
 import re
 import time
+from collections import defaultdict
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
@@ -29,8 +30,6 @@ from experiments.evaluation.interrupts import raise_if_interrupted
 from experiments.evaluation.limits import check_deadline
 from lfm_env.config import show_value
 from lfm_env.validation import one_line, real_vector
-
-# --------------------------------------------------------------------------- small helpers
 
 
 def agent_seed(seed: int, agent_name: str) -> int:
@@ -121,9 +120,6 @@ def check_seeds(seeds: int | str | Iterable[int]) -> list[int]:
     return out
 
 
-# --------------------------------------------------------------------------- one episode
-
-
 #: Scenarios of the plan kept per step in ``predicted_scenarios`` (the first ones: the
 #: scenarios are independent draws, so these are a random subset of the fan).
 SAVED_SCENARIOS = 20
@@ -144,35 +140,7 @@ class _EpisodeRecorder:
         self.system = system
         self.groups = tuple(system.constraint_groups)
         self.columns = row_columns(system)
-        self.lists: dict[str, list] = {
-            k: []
-            for k in (
-                "true_state",
-                "obs",
-                "time",
-                "action",
-                "latent_force",
-                "reward",
-                "estimate",
-                "estimate_std",
-                "latent_force_est",
-                "latent_force_std",
-                "predicted",
-                "predicted_scenarios",
-                "solve_time",
-                "step_time",
-                "deadline_stop",
-                "slack",
-                "solver_success",
-                "solver_usable",
-                "fallback",
-                "filter_reset",
-                "estimator",
-                "plan",
-                "latent_state",
-                *self._excess_keys(),
-            )
-        }
+        self.lists: dict[str, list] = defaultdict(list)  # per array key, its steps
         self.has_filter = False
         self.latent_width = 0  # entries of the env's latent state (info["latent_state"])
         self.slack_reported: list[bool] = []  # per step: the agent gave its slack
@@ -512,14 +480,3 @@ def run_episode(
     row = {"agent": spec.name, "seed": seed, **_episode_metrics(rec, arrays)}
     row.update(wall_time=time.perf_counter() - t0, error="")
     return {c: row[c] for c in rec.columns}, (arrays if record else {})
-
-
-__all__ = [
-    "agent_seed",
-    "check_seeds",
-    "MAX_SEEDS",
-    "parse_seeds",
-    "resolve_config",
-    "run_episode",
-    "SAVED_SCENARIOS",
-]

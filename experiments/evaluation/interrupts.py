@@ -52,6 +52,3 @@ class remember_interrupts:  # noqa: N801 (a context manager used like a function
 def _record_and_raise(signum: int, frame: Any) -> None:
     _RECEIVED.append(signum)
     raise KeyboardInterrupt(f"signal {signum}")
-
-
-__all__ = ["raise_if_interrupted", "remember_interrupts"]

@@ -146,14 +146,3 @@ class EpisodeLimit:
             previous = self._previous if self._previous is not None else signal.SIG_DFL
             signal.signal(signal.SIGALRM, previous)
         _CURRENT.limit = None
-
-
-__all__ = [
-    "EpisodeLimit",
-    "EpisodeTimeout",
-    "LIMIT_SETTINGS",
-    "check_deadline",
-    "check_limit",
-    "grace_time",
-    "timeout_text",
-]

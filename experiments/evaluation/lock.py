@@ -132,6 +132,3 @@ class FolderLock:
 
     def __exit__(self, *exc: Any) -> None:
         self.release()
-
-
-__all__ = ["FolderLock", "ResultsFolderError", "folder_in_use"]

@@ -395,6 +395,3 @@ def _collect(
         return
     print(f"warning: {text.partition(': ')[2]}", file=sys.stderr, flush=True)
     done(pair, lost(pair, text))
-
-
-__all__ = ["death_text", "restore_environment", "run_on_pool", "safe_child_path"]

@@ -46,9 +46,7 @@ from experiments.evaluation.episode import (
     run_episode,
 )
 from experiments.evaluation.interrupts import raise_if_interrupted, remember_interrupts
-from experiments.evaluation.limits import (
-    check_limit,
-)
+from experiments.evaluation.limits import check_limit
 from experiments.evaluation.pool import run_on_pool, safe_child_path
 from experiments.evaluation.storage import (
     DamagedEpisodeError,
@@ -239,12 +237,7 @@ def _in_process(specs: Sequence[AgentSpec], cfg: ExperimentConfig, isolate: Any)
 
 
 def _checked_arguments(
-    agents: Any,
-    seeds: Any,
-    config: Any,
-    jobs: int,
-    scheduler: str | None,
-    dask_workers: int | None,
+    agents: Any, seeds: Any, config: Any, jobs: int, scheduler: str | None, dask_workers: int | None
 ) -> tuple[list[AgentSpec], list[int], ExperimentConfig, tuple[str, ...]]:
     """The run's agents, seeds, config and table columns, every argument checked (and
     every user agent built once) before any episode runs."""

@@ -32,10 +32,7 @@ from experiments.evaluation.columns import (
     _table_columns,
     row_columns,
 )
-from experiments.evaluation.episode import (
-    agent_seed,
-    resolve_config,
-)
+from experiments.evaluation.episode import agent_seed, resolve_config
 from experiments.evaluation.lock import FolderLock, ResultsFolderError, folder_in_use
 from lfm_env.config import load_yaml
 from lfm_env.validation import one_line
@@ -43,9 +40,6 @@ from lfm_env.validation import one_line
 _EPISODES = "episodes"
 _TABLE = "episodes.csv"
 _CONFIG = "config.yaml"
-
-
-# --------------------------------------------------------------------------- storage
 
 
 def episode_stem(agent_name: str, seed: int) -> str:

@@ -14,12 +14,7 @@ from controllers.agents.protocol import is_agent
 from controllers.agents.registry import AgentSpec, AgentSpecError
 from controllers.config import ExperimentConfig
 from controllers.threads import limit_blas_threads
-from experiments.evaluation.episode import (
-    _episode_metrics,
-    _EpisodeRecorder,
-    _error_row,
-    _simulate,
-)
+from experiments.evaluation.episode import _episode_metrics, _EpisodeRecorder, _error_row, _simulate
 from experiments.evaluation.interrupts import raise_if_interrupted
 from experiments.evaluation.limits import EpisodeLimit, EpisodeTimeout, timeout_text
 from experiments.evaluation.storage import save_episode, stuck_row, write_table

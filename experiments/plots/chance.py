@@ -70,6 +70,3 @@ def chance_figure(
         fontsize=9,
     )
     return fig
-
-
-__all__ = ["chance_figure"]

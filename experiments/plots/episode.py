@@ -25,13 +25,7 @@ from experiments.plots.feasible_region import (
     _plane_figure,
     constraint_dependencies,
 )
-from experiments.plots.style import (
-    _step_plot,
-    group_unit,
-    new_figure,
-    sample_times,
-    unit_of,
-)
+from experiments.plots.style import _step_plot, group_unit, new_figure, sample_times, unit_of
 from lfm_env.system import ControlSystem, split_unit
 
 
@@ -411,15 +405,3 @@ def episode_figures(
         ),
     }
     return {k: f for k, f in figures.items() if f is not None}
-
-
-__all__ = [
-    "constraint_excess_figure",
-    "episode_figures",
-    "group_excess_of",
-    "inputs_figure",
-    "latent_force_figure",
-    "paths_figure",
-    "states_figure",
-    "trajectory_figure",
-]

@@ -127,9 +127,6 @@ def _components(values: Any, n: int, name: str) -> np.ndarray:
     return a
 
 
-# --------------------------------------------------------------------------- episode plots
-
-
 def _draw_feasible_region(
     ax,
     system: ControlSystem,

@@ -115,9 +115,7 @@ def solve_time_figure(
     axes = fig.subplots(1, 2, sharey=True)
     colours = [agent_colour(a) for a in agent_names]
     for ax, (title, values) in zip(
-        axes,
-        (("median per episode", median), ("95th percentile per episode", p95)),
-        strict=True,
+        axes, (("median per episode", median), ("95th percentile per episode", p95)), strict=True
     ):
         distribution_axes(ax, values, colours, log=True)
         ax.axhline(dt, color="red", ls="--", lw=1.0, label=f"sampling time {dt:g} s")
@@ -220,6 +218,3 @@ def pareto_figure(
     if title:
         ax.set_title(title, fontsize=10)
     return fig
-
-
-# --------------------------------------------------------------------------- frames

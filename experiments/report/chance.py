@@ -43,9 +43,6 @@ SLACK_TOLERANCE = 1.0e-6
 SEED = 0
 
 
-# --------------------------------------------------------------------------- the design
-
-
 def design_epsilon(n_scenarios: int, n_decision: int, beta: float) -> float:
     """The smallest ``epsilon`` whose Campi-Garatti bound ``Ns`` scenarios meet at ``beta``
     (:mod:`controllers.scenario_count`); 1 when ``Ns < d``.
@@ -107,9 +104,6 @@ def agent_design(agent: str, config: ExperimentConfig) -> Design:
     return Design(ns, d, design_epsilon(ns, d, beta), beta, source)
 
 
-# --------------------------------------------------------------------------- the draws
-
-
 def plan_violations(
     model: LatentForceModel,
     plans: np.ndarray,
@@ -152,9 +146,6 @@ def plan_violations(
         seen |= hit.any(axis=1)
         joint[:, k] = seen.reshape(T, n_draws).mean(axis=1)
     return per_group, joint
-
-
-# --------------------------------------------------------------------------- the check
 
 
 @dataclass(frozen=True)
@@ -270,8 +261,6 @@ def chance_check(results: Results, n_draws: int = DRAWS) -> list[ChanceCheck]:
         )
     return out
 
-
-# --------------------------------------------------------------------------- the section
 
 FIGURE = "figures/chance_constraint.png"
 
@@ -434,21 +423,3 @@ def chance_section(doc: Document, results: Results, n_draws: int = DRAWS) -> lis
             )
     _figure(doc, results, cals)
     return cals
-
-
-__all__ = [
-    "DEFAULT_CONFIDENCE",
-    "DRAWS",
-    "SEED",
-    "SLACK_TOLERANCE",
-    "ChanceCheck",
-    "Design",
-    "agent_design",
-    "chance_check",
-    "chance_section",
-    "closed_loop_first_step",
-    "design_epsilon",
-    "offline_violations",
-    "plan_violations",
-    "scenario_count",
-]

@@ -159,6 +159,3 @@ def _inline_html(text: str) -> str:
     escaped = html.escape(str(text))
     escaped = re.sub(r"`([^`]+)`", r"<code>\1</code>", escaped)
     return re.sub(r"\*\*([^*]+)\*\*", r"<strong>\1</strong>", escaped)
-
-
-__all__ = ["GIF_EMBED_LIMIT", "Document", "embedded_image"]

@@ -349,6 +349,3 @@ def _fan_figure(
         "line their mean; the true path so far (grey) and over the next horizon (green "
         "dashed) with the infeasible region shaded. Equal axes: lengths to scale.",
     )
-
-
-__all__ = ["check_figure_seed", "figures_section", "world_goal"]

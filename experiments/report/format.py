@@ -42,6 +42,3 @@ def agent_label(name: str, wrap: bool = False) -> str:
 def long_label(name: str) -> str:
     """The one-line label of an agent (a registered agent's ``label``, else its name)."""
     return AGENT_REGISTRY[name].label if name in AGENT_REGISTRY else name
-
-
-__all__ = ["agent_label", "fmt", "fmt_estimate", "long_label"]

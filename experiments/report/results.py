@@ -260,11 +260,3 @@ def load_trajectory(results: Results, agent: str, seed: int) -> dict[str, np.nda
         results.damaged[path] = str(exc)
         warn(f"{exc}; left out")
         return None
-
-
-__all__ = [
-    "Results",
-    "load_results",
-    "load_trajectory",
-    "read_episodes_csv",
-]

@@ -150,9 +150,6 @@ def paired_metrics(system: ControlSystem) -> tuple[Metric, ...]:
     )
 
 
-# --------------------------------------------------------------------------- statistics
-
-
 #: How the intervals are computed, as the report names it.
 BOOTSTRAP_METHOD = (
     "BCa bootstrap (bias-corrected and accelerated, scipy.stats.bootstrap; paired "
@@ -497,30 +494,3 @@ def estimator_coverage(results: Results) -> list[EstimatorCoverage]:
             )
         )
     return out
-
-
-__all__ = [
-    "BOOTSTRAP_METHOD",
-    "FEW_SEEDS",
-    "BOOTSTRAP_RESAMPLES",
-    "BOOTSTRAP_SEED",
-    "REFERENCE_AGENT",
-    "TWO_SIGMA_COVERAGE",
-    "EstimatorCoverage",
-    "Estimate",
-    "Metric",
-    "PairedDifference",
-    "bootstrap_ci",
-    "estimator_coverage",
-    "few_seeds_caveat",
-    "group_metrics",
-    "paired_ci",
-    "paired_differences",
-    "paired_metrics",
-    "paired_rows_difference",
-    "pooled_ratio_ci",
-    "summarize",
-    "summary_metrics",
-    "tolerance_metrics",
-    "zero_violation_metrics",
-]

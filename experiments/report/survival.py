@@ -161,20 +161,13 @@ def survivors(results: Results, agents: Sequence[str] | None = None) -> Survivor
 
 
 def survivor_difference(
-    results: Results,
-    kept: Survivors,
-    metric: str | Metric,
-    agent: str,
-    reference: str,
+    results: Results, kept: Survivors, metric: str | Metric, agent: str, reference: str
 ) -> PairedDifference:
     """``agent - reference`` of ``metric`` on the survivor seeds of ``kept`` only."""
     seeds = set(kept.seeds)
     rows = [r for r in results.rows_of(agent) if r["seed"] in seeds]
     ref = [r for r in results.rows_of(reference) if r["seed"] in seeds]
     return paired_rows_difference(rows, ref, metric, agent, reference)
-
-
-# --------------------------------------------------------------------------- the section
 
 
 def _rate(e: Estimate) -> str:
@@ -338,18 +331,3 @@ def headline_section(doc: Document, results: Results, baseline: str) -> Survivor
         doc.paragraph(f"**{count.label}** (group `{count.group}`):")
         _group_table(doc, results, count, reference, kept)
     return kept
-
-
-__all__ = [
-    "PER_STEPS",
-    "HeadlineCount",
-    "PerStepRate",
-    "Survivors",
-    "ViolationOrFailure",
-    "headline_counts",
-    "headline_section",
-    "step_rate",
-    "survivor_difference",
-    "survivors",
-    "violation_or_failure",
-]

@@ -205,9 +205,6 @@ def load_sweep(directory: str | os.PathLike) -> SweepSummary:
     )
 
 
-# --------------------------------------------------------------------------- table, figure
-
-
 def _episodes_text(rows: Sequence[dict[str, Any]]) -> str:
     errors = sum(1 for r in rows if r["error"])
     return f"{len(rows) - errors}" + (f" ({errors} with errors)" if errors else "")
@@ -327,24 +324,3 @@ def sweep_errors(summary: SweepSummary) -> int:
     """Episodes of the sweep (baseline and values) that ended with an error."""
     rows = list(summary.baseline_rows) + [r for v in summary.values for r in v.rows]
     return sum(1 for r in rows if r["error"])
-
-
-__all__ = [
-    "BASELINE_FOLDER",
-    "FIGURE_CAPTION",
-    "MANIFEST",
-    "SWEEP_FIGURE",
-    "SWEEP_TABLE",
-    "SweepSummary",
-    "SweepValue",
-    "load_sweep",
-    "metric_key",
-    "read_manifest",
-    "sweep_description",
-    "sweep_errors",
-    "sweep_figure",
-    "sweep_metrics",
-    "sweep_table",
-    "value_folder",
-    "write_sweep",
-]

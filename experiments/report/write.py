@@ -21,12 +21,7 @@ from experiments.report.chance import chance_section
 from experiments.report.document import GIF_EMBED_LIMIT, Document, embedded_image
 from experiments.report.figures import check_figure_seed, figures_section
 from experiments.report.format import agent_label, fmt, fmt_estimate, long_label
-from experiments.report.results import (
-    Results,
-    load_results,
-    load_trajectory,
-    read_episodes_csv,
-)
+from experiments.report.results import Results, load_results, load_trajectory, read_episodes_csv
 from experiments.report.stats import (
     BOOTSTRAP_RESAMPLES,
     BOOTSTRAP_SEED,
@@ -74,9 +69,6 @@ def _quantiles(values: Iterable[float], qs: Sequence[float]) -> list[float]:
     if len(x) == 0:
         return [math.nan] * len(qs)
     return [float(v) for v in np.quantile(x, qs)]
-
-
-# --------------------------------------------------------------------------- sections
 
 
 def _used_settings(results: Results) -> set[str]:
@@ -219,8 +211,7 @@ def _damaged_section(doc: Document, results: Results) -> None:
         "evaluation into this folder runs those episodes again."
     )
     doc.table(
-        ["file", "why"],
-        [[path.name, why[-300:]] for path, why in sorted(results.damaged.items())],
+        ["file", "why"], [[path.name, why[-300:]] for path, why in sorted(results.damaged.items())]
     )
 
 
@@ -463,9 +454,6 @@ def _pooled_solve_times(results: Results, agent: str) -> np.ndarray:
         chunks.append(np.asarray(traj["solve_time"], dtype=float))
     st = np.concatenate(chunks) if chunks else np.zeros(0)
     return st[np.isfinite(st)]
-
-
-# --------------------------------------------------------------------------- entry point
 
 
 def write_report(
