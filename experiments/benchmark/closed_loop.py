@@ -17,6 +17,7 @@ from controllers.config import AgentConfig, ConfigError, load_config
 from controllers.problem import PREDICTIONS
 from experiments.benchmark.failures import classify_failure
 from experiments.benchmark.problems import DEFAULT_CONFIG, DEFAULT_SEEDS, config_path
+from experiments.benchmark.solvers import p95, stat
 
 #: The horizons of the closed-loop sweep.
 CLOSED_LOOP_HORIZONS = (7, 15, 30, 50)
@@ -104,25 +105,17 @@ def _failed_step(seed: int, step: int, seconds: float, exc: Exception) -> dict[s
 
 def _summary(records: list[dict[str, Any]]) -> dict[str, Any]:
     """Per-step figures [ms] over every recorded step."""
-    step = np.array([r["step_time_ms"] for r in records], dtype=float)
-    solve = np.array([r["solve_time_ms"] for r in records], dtype=float)
-
-    def stat(fn: Any, x: np.ndarray) -> float:
-        x = x[np.isfinite(x)]
-        return float(fn(x)) if x.size else math.nan
-
+    step = [r["step_time_ms"] for r in records]
     return {
         "n_steps": len(records),
-        "step_ms_median": stat(np.median, step),
-        "step_ms_p95": stat(lambda x: np.percentile(x, 95), step),
-        "step_ms_max": stat(np.max, step),
+        "step_ms_median": stat(step, np.median),
+        "step_ms_p95": stat(step, p95),
+        "step_ms_max": stat(step, np.max),
         # the step's CPU time in its thread (BLAS and the C library at one thread): what the
         # step costs without the waiting a loaded machine adds to its wall time
-        "step_cpu_ms_median": stat(
-            np.median, np.array([r["step_cpu_ms"] for r in records], dtype=float)
-        ),
-        "solve_ms_median": stat(np.median, solve),
-        "iterations_median": stat(np.median, np.array([r["iterations"] for r in records])),
+        "step_cpu_ms_median": stat([r["step_cpu_ms"] for r in records], np.median),
+        "solve_ms_median": stat([r["solve_time_ms"] for r in records], np.median),
+        "iterations_median": stat([r["iterations"] for r in records], np.median),
         "failed": int(sum(not r["success"] for r in records)),
         "not_usable": int(sum(not r["usable"] for r in records)),
     }

@@ -24,6 +24,7 @@ from experiments.benchmark.problems import (
     record_closed_loop,
     scenario_draws,
 )
+from experiments.benchmark.solvers import p95, stat
 
 #: The horizons of the prediction sweep.
 PREDICTION_HORIZONS = (7, 15, 30, 50)
@@ -64,23 +65,18 @@ def _record(solver: Any, x0: np.ndarray, W: np.ndarray) -> dict[str, Any]:
 
 def _summary(records: list[dict[str, Any]]) -> dict[str, Any]:
     """Times [ms] and iterations of every solve (the first of a seed included)."""
-    solve = np.array([r["solve_time_ms"] for r in records], dtype=float)
-    solve = solve[np.isfinite(solve)]
+    solve = [r["solve_time_ms"] for r in records]
     slack = np.array([r["slack"] for r in records], dtype=float)
-
-    def stat(fn: Any, x: np.ndarray) -> float:
-        return float(fn(x)) if x.size else math.nan
-
     return {
         "n_problems": len(records),
-        "solve_ms_median": stat(np.median, solve),
-        "solve_ms_p95": stat(lambda x: np.percentile(x, 95), solve),
-        "solve_ms_max": stat(np.max, solve),
-        "iterations_median": stat(np.median, np.array([r["iterations"] for r in records])),
+        "solve_ms_median": stat(solve, np.median),
+        "solve_ms_p95": stat(solve, p95),
+        "solve_ms_max": stat(solve, np.max),
+        "iterations_median": stat([r["iterations"] for r in records], np.median),
         "failed": int(sum(not r["success"] for r in records)),
         "not_usable": int(sum(not r["usable"] for r in records)),
         "infeasible": int(np.sum(slack > 1e-6)),
-        "slack_median": stat(np.median, slack[np.isfinite(slack)]),
+        "slack_median": stat(slack, np.median),
     }
 
 
