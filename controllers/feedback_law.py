@@ -18,7 +18,7 @@ nominal inputs, shifted by one step), and ``K`` the finite-horizon time-varying 
 (:func:`tvlqr_gains`) of the cost's ``Q``, ``R``, ``Qf`` on the Jacobians of the model's
 Euler step (:meth:`~lfm_env.system.ControlSystem.casadi_step`) along that rollout.
 
-Why these choices (measured in ``docs/feedback-design.md``): ``r`` does not change the optimum for a
+Why these choices (measured; docs/history.md): ``r`` does not change the optimum for a
 given ``K`` (``u_{s,k} = (v_k - K_k r_k) + K_k x_{s,k}``: ``r`` only re-parametrises ``v``),
 but it sets where ``K`` is linearised, and there it matters: gains along a poor plan (zero
 inputs) gave *more* slack than open loop on 12 of 30 paper problems at N = 15, gains along

@@ -267,3 +267,286 @@ def test_the_layout_table_matches_the_tree():
         folders = [f if f.is_dir() else f.parent for f in folders]
         missing += [f"{n} ({row[:60]}...)" for n in paths if not _existing(n, folders)]
     assert missing == []
+
+
+# --- the links between the pages, and no development record in the manual or the code ---
+
+
+def heading_anchors(text: str) -> set[str]:
+    """The anchors GitHub gives a page's headings: lower case, punctuation dropped, spaces
+    as hyphens, a repeated anchor numbered (``-1``, ``-2``)."""
+    text = re.sub(r"^```.*?^```", "", text, flags=re.S | re.M)  # not in code blocks
+    anchors: set[str] = set()
+    for title in re.findall(r"^#{1,6} +(.+?) *#*$", text, flags=re.M):
+        slug = re.sub(r"[^\w\- ]", "", title.strip().lower()).replace(" ", "-")
+        n, anchor = 0, slug
+        while anchor in anchors:
+            n += 1
+            anchor = f"{slug}-{n}"
+        anchors.add(anchor)
+    return anchors
+
+
+def relative_links(page: Path) -> list[str]:
+    """The targets of the page's Markdown links and images that are not web addresses."""
+    text = re.sub(r"^```.*?^```", "", page.read_text(), flags=re.S | re.M)
+    text = re.sub(r"`[^`\n]*`", "", text)  # code spans are not links
+    targets = re.findall(r"\]\(([^)\s]+)\)", text)
+    return [t for t in targets if not re.match(r"[a-z][a-z0-9+.-]*:", t)]
+
+
+def anchors_of(page: Path) -> set[str]:
+    return heading_anchors(page.read_text())
+
+
+def test_every_relative_link_resolves():
+    """Each link of the README and of docs/ to a file names an existing file, and each
+    ``#anchor`` a heading of its page."""
+    broken = []
+    for page in PAGES:
+        for target in relative_links(page):
+            path, _, anchor = target.partition("#")
+            goal = (page.parent / path).resolve() if path else page
+            if not goal.exists():
+                broken.append(f"{page_id(page)}: {target} (no such file)")
+            elif anchor and goal.suffix == ".md" and anchor not in anchors_of(goal):
+                broken.append(f"{page_id(page)}: {target} (no such heading)")
+    assert broken == []
+
+
+def test_heading_anchors_follow_github():
+    text = "# A page\n## Real time: `agents.deadline`\n```\n# not a heading\n```\n"
+    assert heading_anchors(text + "## Real time: `agents.deadline`\n") == {
+        "a-page",
+        "real-time-agentsdeadline",
+        "real-time-agentsdeadline-1",
+    }
+
+
+# What the manual and the code must not hold: tracker issues, development phases and branches,
+# machine paths; and in the manual, commit hashes (the history of a figure goes to
+# docs/history.md or CHANGELOG.md, told by change and version).
+RECORD = re.compile(r"\bissue #?[0-9]+|ISSUE_[0-9]|\bphase [12]\b|development branch|/work/", re.I)
+COMMIT = re.compile(r"\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,40}\b")
+CODE_FOLDERS = ("lfm_env", "controllers", "experiments", "configs", "scripts", "docs")
+CODE_SUFFIXES = (".py", ".md", ".c", ".h", ".yaml", ".sh")
+
+
+def project_files() -> list[Path]:
+    """The project's own source, config and documentation files (not the tests, not the
+    changelog, which is the record)."""
+    files = [p for p in REPO.glob("*.md") if p.name != "CHANGELOG.md"]
+    for folder in CODE_FOLDERS:
+        files += [p for p in (REPO / folder).rglob("*") if p.suffix in CODE_SUFFIXES]
+    return sorted(p for p in files if p.is_file() and "__pycache__" not in p.parts)
+
+
+def test_no_development_record_in_code_or_docs():
+    hits = [
+        f"{p.relative_to(REPO)}:{n}: {line.strip()[:100]}"
+        for p in project_files()
+        for n, line in enumerate(p.read_text(errors="replace").splitlines(), start=1)
+        if RECORD.search(line)
+    ]
+    assert hits == []
+
+
+def test_no_commit_hash_in_the_manual():
+    hits = [
+        f"{page_id(p)}:{n}: {m.group()}"
+        for p in PAGES
+        for n, line in enumerate(p.read_text().splitlines(), start=1)
+        for m in COMMIT.finditer(line)
+    ]
+    assert hits == []
+
+
+def test_the_record_patterns_find_a_record():
+    """The two patterns catch what they are for, and leave numbers and words alone."""
+    assert RECORD.search("tuned for issue 13") and RECORD.search("ISSUE_37_KEYS")
+    assert RECORD.search("Phase 2 must explain") and RECORD.search("at /work/main/configs")
+    assert not RECORD.search("an issue of the solver, phase [rad]")
+    assert COMMIT.search("the run at 632d6c2") and COMMIT.search("44133a1")
+    assert not COMMIT.search("1000000 steps, 9007199254740992, deadbeefed, decade")
+
+
+# --- the README's figures: stated once, and the same wherever a page repeats a table ---
+
+
+def markdown_tables(text: str) -> list[list[list[str]]]:
+    """The page's tables outside code blocks, each as rows of cells (header first, the
+    separator row dropped)."""
+    text = re.sub(r"^```.*?^```", "", text, flags=re.S | re.M)
+    tables, rows = [], []
+    for line in [*text.splitlines(), ""]:
+        if line.startswith("|"):
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if not all(re.fullmatch(r":?-+:?", c) for c in cells):
+                rows.append(cells)
+        elif rows:
+            tables.append(rows)
+            rows = []
+    return tables
+
+
+def _plain(cell: str) -> str:
+    """A cell without emphasis, code marks, a trailing count of seeds ``(99)`` and, for a
+    header, its numbers (``48 survivor seeds`` is ``survivor seeds``)."""
+    cell = re.sub(r"\s*\(\d+\)$", "", cell.replace("**", "").replace("`", ""))
+    return " ".join(cell.split())
+
+
+def _header(cell: str) -> str:
+    return " ".join(re.sub(r"\d+", "", _plain(cell)).split())
+
+
+def agent_tables(page: Path) -> list[dict[str, dict[str, str]]]:
+    """The page's tables of agents (first column an agent), as agent -> header -> cell."""
+    found = []
+    for header, *rows in markdown_tables(page.read_text()):
+        if header[0] != "agent" or not rows:
+            continue
+        heads = [_header(h) for h in header]
+        cells = [dict(zip(heads, map(_plain, r), strict=True)) for r in rows]
+        found.append({row["agent"].split()[0]: row for row in cells})
+    return found
+
+
+def readme_prose_figures() -> list[str]:
+    """The measured figures of the README's prose (not its tables or code): numbers with a
+    unit of time or a ratio, and numbers with decimals."""
+    text = re.sub(r"^```.*?^```", "", (REPO / "README.md").read_text(), flags=re.S | re.M)
+    prose = "\n".join(line for line in text.splitlines() if not line.startswith("|"))
+    prose = re.sub(r"`[^`\n]*`|\(https?://[^)]*\)|>= \d+\.\d+", "", prose)
+    unit = r"\d+(?:\.\d+)?\s?(?:ms|s|min|x)(?![\w])"
+    return re.findall(rf"(?<![\w.])(?:{unit}|\d+\.\d+(?![\w.]))", prose)
+
+
+def test_the_readme_states_each_figure_once():
+    """A figure of the README's prose appears once in the README (a second statement of it,
+    in prose or in a table, is what drifts apart when the figures are measured again)."""
+    text = (REPO / "README.md").read_text()
+    figures = readme_prose_figures()
+    assert figures, "the prose states the durations of the main commands"
+    counts = {f: len(re.findall(rf"(?<![\w.]){re.escape(f)}(?![\w.])", text)) for f in figures}
+    assert {f: n for f, n in counts.items() if n != 1} == {}
+
+
+def test_the_pages_repeat_the_readme_tables_as_they_are():
+    """docs/evidence.md shows the README's agent tables with more columns, from the same
+    runs: every column the two share holds the same cells, agent by agent."""
+    readme = agent_tables(REPO / "README.md")
+    evidence = agent_tables(REPO / "docs" / "evidence.md")
+    assert len(readme) == 2
+    for table in readme:
+        heads = set(next(iter(table.values()))) - {"agent"}
+        twins = [t for t in evidence if set(t) == set(table)]
+        assert twins, f"evidence.md has no table of the agents {sorted(table)}"
+        twin = max(twins, key=lambda t: len(heads & set(next(iter(t.values())))))
+        shared = heads & set(next(iter(twin.values())))
+        assert len(shared) >= 4, shared
+        differ = [
+            (agent, h, table[agent][h], twin[agent][h])
+            for agent in table
+            for h in sorted(shared)
+            if table[agent][h] != twin[agent][h]
+        ]
+        assert differ == []
+
+
+def test_the_solver_speed_table_is_the_readmes_alone():
+    """The speed table's figures are stated in the README and nowhere else in the manual
+    (docs/history.md, the record, excepted): the pages link to it."""
+    speed = (REPO / "README.md").read_text().split("\n### Solver speed\n", 1)[1]
+    table = markdown_tables(speed.split("\n## ", 1)[0])[0]
+    figures = {c for row in table[1:] for c in row[1:] if re.fullmatch(r"\d+\.\d+x?", c)}
+    assert len(figures) >= 8
+    pages = [p for p in PAGES if p.name not in ("README.md", "history.md")]
+    repeated = [
+        (page_id(p), f)
+        for p in pages
+        for f in figures
+        if re.search(
+            rf"(?<![\w.\[]){re.escape(f)}{'' if f.endswith('x') else ' ?(?:ms|/)'}", p.read_text()
+        )
+    ]
+    assert repeated == []
+
+
+def test_the_layout_table_covers_the_tree():
+    """Every module and folder at the top of the three packages is in the layout table (by its
+    path, or by its name in a row that names its package), and so are configs/ and scripts/."""
+    rows = "\n".join(layout_rows())
+    tops = {
+        "/".join(p.relative_to(REPO).parts[:2])
+        for package in ("lfm_env", "controllers", "experiments")
+        for p in (REPO / package).rglob("*")
+        if p.is_file() and p.suffix in (".py", ".c", ".h") and "__pycache__" not in p.parts
+    }
+    tops -= {f"{package}/__init__.py" for package in ("lfm_env", "controllers", "experiments")}
+    missing = [
+        top
+        for top in sorted(tops)
+        if f"`{top}" not in rows
+        and not re.search(rf"`{top.split('/')[0]}/[^`]*`[^|]*`{top.split('/')[1]}", rows)
+    ]
+    assert missing == []
+    assert "`configs/`" in rows and "`scripts/`" in rows
+
+
+def _resolves(dotted: str) -> bool:
+    """``package.module.attribute...`` imports and its attributes exist."""
+    import importlib
+
+    parts = dotted.split(".")
+    for i in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ImportError:
+            continue
+        for name in parts[i:]:
+            if not hasattr(obj, name):
+                return False
+            obj = getattr(obj, name)
+        return True
+    return False
+
+
+def test_the_names_in_the_manual_exist():
+    """Every dotted name of the packages (`controllers.solvers.make_solver`) the manual shows
+    in code marks imports, and every path of the repository it shows exists."""
+    missing = []
+    for page in PAGES:
+        text = page.read_text()
+        for name in set(re.findall(r"`((?:lfm_env|controllers|experiments)(?:\.\w+)+)", text)):
+            if not _resolves(name):
+                missing.append(f"{page_id(page)}: {name}")
+        folders = r"(?:lfm_env|controllers|experiments|tests|scripts|configs)"
+        for path in set(re.findall(rf"`({folders}/[\w/.-]*)`", text)):
+            if not re.search(r"-v\d$", path) and not (REPO / path.rstrip("/")).exists():
+                missing.append(f"{page_id(page)}: {path}")
+    assert sorted(missing) == []
+
+
+def test_every_agents_key_is_in_the_configuration_manual():
+    """The key-by-key table of docs/configuration.md names every field of the ``agents:``
+    section, and no field that does not exist."""
+    import dataclasses
+
+    from controllers.config import AgentConfig
+
+    page = (REPO / "docs" / "configuration.md").read_text()
+    section = page.split("## The `agents:` section, key by key\n", 1)[1].split("\n## ", 1)[0]
+    table = markdown_tables(section)[0]
+    named = {k for row in table[1:] for k in re.findall(r"`(\w+)`", row[0])}
+    assert named == {f.name for f in dataclasses.fields(AgentConfig)}
+
+
+def test_every_registered_agent_is_described():
+    """docs/agents.md's list of the registered agents names every agent of the registry."""
+    from controllers.agents import AGENT_REGISTRY
+
+    page = (REPO / "docs" / "agents.md").read_text()
+    section = page.split("## The registered agents\n", 1)[1].split("\n## ", 1)[0]
+    listed = set(re.findall(r"^\* `(\w+)`", section, flags=re.M))
+    assert listed == set(AGENT_REGISTRY)

@@ -2,7 +2,7 @@
 reference's headline means with their BCa intervals, the other's mean, whether it lies
 inside, and the paired difference with its interval::
 
-    python -m experiments.report.compare_runs REFERENCE_DIR OTHER_DIR --group track --tolerance 0.01
+    python -m experiments.report.compare_runs REFERENCE OTHER [--group G] [--tolerance 0.01]
 """
 
 from __future__ import annotations
@@ -52,9 +52,35 @@ def _fmt(e) -> str:
     return f"{e.mean:.3g} [{e.low:.3g}, {e.high:.3g}]"
 
 
-def compare(ref_dir: Path, other_dir: Path, group: str, tolerance: float) -> list[str]:
-    """The table's lines (Markdown) and a closing verdict."""
+def _groups(runs: dict, tolerance: float) -> list[str]:
+    """The constraint groups whose ``<group>_violation_steps_over_<tolerance>`` column every
+    episode of ``runs`` has, in column order."""
+    suffix = f"_violation_steps_over_{tolerance:g}"
+    rows = [row for agent in runs.values() for row in agent.values()]
+    if not rows:
+        return []
+    return [k[: -len(suffix)] for k in rows[0] if k.endswith(suffix) and all(k in r for r in rows)]
+
+
+def _check_group(group: str | None, ref: dict, other: dict, tolerance: float) -> str:
+    """``group``, or the first constraint group of both runs; an unknown one is an error
+    naming those the runs have."""
+    both = [g for g in _groups(ref, tolerance) if g in _groups(other, tolerance)]
+    if group is None and both:
+        return both[0]
+    if group not in both:
+        raise SystemExit(
+            f"compare_runs: --group {group!r} with --tolerance {tolerance:g}: the runs' "
+            f"constraint groups are {both} (a tolerance of the world's report columns)"
+        )
+    return group
+
+
+def compare(ref_dir: Path, other_dir: Path, group: str | None, tolerance: float) -> list[str]:
+    """The table's lines (Markdown) and a closing verdict; ``group`` None for the runs'
+    first constraint group (``track`` on the sine track, ``corridor`` for the quadrotor)."""
     ref, other = load(ref_dir), load(other_dir)
+    group = _check_group(group, ref, other, tolerance)
     lines = [
         f"| agent | metric | {ref_dir.name} mean [95% CI] | {other_dir.name} mean | inside | "
         "paired difference [95% CI] |",
@@ -93,7 +119,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("reference", type=Path)
     parser.add_argument("other", type=Path)
-    parser.add_argument("--group", default="track", help="constraint group (default: track)")
+    parser.add_argument(
+        "--group", default=None, help="constraint group (default: the world's first, e.g. track)"
+    )
     parser.add_argument("--tolerance", type=float, default=0.01, help="[group unit] (0.01)")
     args = parser.parse_args()
     print("\n".join(compare(args.reference, args.other, args.group, args.tolerance)))

@@ -12,7 +12,6 @@ from controllers.agents import make_agent
 from controllers.config import AgentConfig, load_config
 from controllers.solvers.fast.codegen import build
 from controllers.solvers.fast.compiled import FALLBACK_NOTICE, CompiledScenarioSolver
-from controllers.solvers.feedback import FeedbackScenarioSolver
 
 
 def test_the_agents_default_is_the_compiled_loop():
@@ -20,9 +19,8 @@ def test_the_agents_default_is_the_compiled_loop():
     agent = make_agent("scenario", load_config("quick"))
     assert isinstance(agent.solver, CompiledScenarioSolver) and agent.solver.loop == "c"
     cfg = load_config("quick", ["agents.prediction=feedback"])
-    agent = make_agent("scenario", cfg)  # feedback: the compiled loop through the rewrite
-    assert isinstance(agent.solver, FeedbackScenarioSolver)
-    assert isinstance(agent.solver.inner, CompiledScenarioSolver) and agent.solver.inner.loop == "c"
+    agent = make_agent("scenario", cfg)  # feedback: natively in the compiled loop
+    assert isinstance(agent.solver, CompiledScenarioSolver) and agent.solver.loop == "c"
 
 
 def test_without_a_compiler_the_default_agent_runs_the_python_loop_after_one_notice(

@@ -5,21 +5,24 @@ from __future__ import annotations
 
 import numpy as np
 
-from controllers.config import AgentConfig
+from controllers.config import FAST_MAX_HORIZON, AgentConfig
 from experiments.benchmark.closed_loop import closed_loop_steps, format_closed_loop, iteration_modes
 
 
 def test_every_step_is_timed_whole_and_a_refused_horizon_is_a_row_that_says_why():
-    out = closed_loop_steps((3, 41), config="quick", seeds=(0, 1), steps=2)
+    out = closed_loop_steps((3, FAST_MAX_HORIZON + 1), config="quick", seeds=(0, 1), steps=2)
     modes = iteration_modes()
     assert modes[0] == "converged"
     assert ("rti" in modes) == ("iterations" in AgentConfig.__dataclass_fields__)
     rows = out["results"]
     assert [(r["horizon"], r["prediction"], r["iterations"]) for r in rows] == [
-        (n, p, m) for n in (3, 41) for p in ("open_loop", "feedback") for m in modes
+        (n, p, m)
+        for n in (3, FAST_MAX_HORIZON + 1)
+        for p in ("open_loop", "feedback")
+        for m in modes
     ]
     for row in rows:
-        if row["horizon"] == 41:  # beyond the compiled loop's max_horizon (40): refused
+        if row["horizon"] > FAST_MAX_HORIZON:  # beyond the compiled loop's bound: refused
             assert "agents.horizon" in row["refused"] and row["records"] == []
             continue
         recs = row["records"]
