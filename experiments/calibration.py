@@ -1,28 +1,16 @@
-"""Learning the latent force's hyperparameters from calibration episodes, on any world.
+"""Learning the latent force's hyperparameters from calibration episodes, on any world
+(``docs/evaluation.md``).
 
-The paper gives the controller the GP's hyperparameters a priori and notes that, with
-full-state feedback, they can be learned from measurements. Here a calibration run drives
-the world with a simple controller (the nominal MPC, which needs no latent force model),
-records the measured states and the applied inputs, and maximises the exact likelihood of
-the measurements of the states the force drives under the world's own model.
-
-The model is the world's system (:class:`~lfm_env.model.LatentForceModel`), whose force
-enters ``f(x, u, w) = f0(x, u) + G(x, u) w`` affinely: the force gain ``G``
-(:meth:`~lfm_env.model.LatentForceModel.force_gain`) picks the states ``S`` the force moves
-(the sine track's speed, the quadrotor's horizontal velocity) and how much. Their Euler
-step, linearised in ``x_S`` about each measurement, is the linear-Gaussian model ::
+The nominal MPC drives the world; the force moves the states ``S`` through its gain ``G``
+(:meth:`~lfm_env.model.LatentForceModel.force_gain`). Their Euler step, linearised about
+each measurement, is a linear-Gaussian model ::
 
     x_S[k+1] = x_S[k] + dt (f0_S(y_k, u_k) + J_SS (x_S[k] - y_S[k])) + dt G_S w_k + e_k
     y_S[k]   = x_S[k] + n_k
 
-with ``J = df0/dx`` at the measurement; the measurement noise of the other states enters
-``f0_S`` and is added to the process noise (``dt^2 J_SO R_O J_SO'``). The force is the
-GP's state-space form, so a Kalman filter on ``[x_S, z]`` gives the likelihood
-(:func:`lfm_env.gp.likelihood.driven_log_likelihood`), maximised over the force's
-``variance`` and ``lengthscale`` by :func:`lfm_env.gp.inference.fit_driven`: one
-likelihood in the package. Keeping the measurement noise in the model avoids the
-correlated (moving-average) noise of differenced measurements ("w ~ dv/dt - a"). On the
-sine track (``dv/dt = a + w``) the model is exact.
+(the other states' measurement noise added to the process noise), whose Kalman likelihood
+(:func:`lfm_env.gp.likelihood.driven_log_likelihood`) is maximised over the force's
+``variance`` and ``lengthscale`` (:func:`lfm_env.gp.inference.fit_driven`).
 """
 
 from __future__ import annotations
@@ -72,12 +60,8 @@ class CalibrationResult:
 def record_calibration_episodes(
     config: ExperimentConfig, seeds: range | list[int] = range(5), agent: str = "nominal"
 ) -> list[CalibrationRecord]:
-    """Run calibration episodes with a simple controller and record states and inputs.
-
-    Args:
-        config: the world and the controller's settings (any registered world).
-        seeds: env seeds of the calibration episodes.
-        agent: the controller; ``"nominal"`` needs no latent force model.
+    """Run calibration episodes with ``agent`` (``"nominal"`` needs no force model) on ``seeds``
+    and record states and inputs.
     """
     import gymnasium as gym
 
@@ -174,16 +158,9 @@ def fit_latent_force(
     env_config: WorldConfig,
     initial: LatentForceConfig | None = None,
 ) -> CalibrationResult:
-    """Maximum-likelihood ``variance`` and ``lengthscale`` of the latent force of any world.
-
-    The kernel family and its fixed settings (``nu``, ``order``, ``period``...) come from
-    ``initial`` (default: the world's ``latent_force`` section, with a deliberately wrong
-    start of variance 1 and lengthscale 1 s so nothing is borrowed from the truth).
-
-    Args:
-        records: calibration episodes (:func:`record_calibration_episodes`).
-        env_config: the world's config (its system, step, noise levels).
-        initial: the starting latent force.
+    """Maximum-likelihood ``variance`` and ``lengthscale`` of the latent force of any world,
+    from ``records`` of the world ``env_config``; the kernel family from ``initial`` (default:
+    the world's, started at variance 1 and lengthscale 1 s).
     """
     from lfm_env.gp.inference import fit_driven
 
@@ -212,15 +189,10 @@ def fit_latent_force(
 
 
 def calibrate(
-    config: ExperimentConfig | str | os.PathLike | None = None,
-    seeds: range | list[int] = range(5),
+    config: ExperimentConfig | str | os.PathLike | None = None, seeds: range | list[int] = range(5)
 ) -> CalibrationResult:
-    """Calibration episodes under the nominal MPC, then a maximum-likelihood fit.
-
-    Args:
-        config: an :class:`~controllers.config.ExperimentConfig`, or a preset's name, a path,
-            a dict or ``None`` (resolved once by :func:`~controllers.config.load_config`).
-        seeds: env seeds of the calibration episodes.
+    """Calibration episodes (env ``seeds``) under the nominal MPC, then a maximum-likelihood fit;
+    ``config`` as for :func:`~controllers.config.load_config`.
     """
     config = load_config(config)
     return fit_latent_force(record_calibration_episodes(config, seeds), config.env)
@@ -229,11 +201,7 @@ def calibrate(
 def write_learned_config(
     config: ExperimentConfig, result: CalibrationResult, path: str | os.PathLike
 ) -> None:
-    """Write the resolved ``config`` with ``agents.latent_force`` set to the learned values.
-
-    The file holds the whole config (``env_id``, ``env``, ``agents``), so it evaluates the
-    same world on any machine, whatever the presets or the base files become.
-    """
+    """Write the resolved ``config`` with ``agents.latent_force`` set to the learned values."""
     import yaml
 
     data = config.to_dict()
@@ -254,17 +222,3 @@ def write_learned_config(
     except BaseException:  # disk full, Ctrl-C: leave no temporary file behind
         Path(tmp).unlink(missing_ok=True)
         raise
-
-
-__all__ = [
-    "BOUNDS",
-    "LEARNABLE",
-    "CalibrationRecord",
-    "CalibrationResult",
-    "calibrate",
-    "fit_latent_force",
-    "force_observations",
-    "forced_states",
-    "record_calibration_episodes",
-    "write_learned_config",
-]

@@ -1,33 +1,9 @@
-"""RL baseline: train PPO or SAC (stable-baselines3) on the config's world, through the
-same ``gym.make`` step API as the MPC agents.
-
-``lfm-train`` builds ``n_envs`` copies of ``gym.make(config.env_id, config=config.env)``
-(the config's time limit), rescales the actions to ``[-1, 1]`` (``RescaleAction``), and
-trains on a *training* reward (:class:`TrainingReward`): the env's reward divided by the
-stage cost at the start state, minus ``cost_weight`` times ``info["violated_groups"]`` (the
-number of violated constraint groups), and on a failure the current step's penalty once for every
-step the time limit had left, so that leaving the safety box never pays. Observations are
-normalised by running statistics (``VecNormalize``), which are saved with the policy.
-
-The policy observes :func:`~controllers.agents.rl.policy_features` of the observation (the
-noisy state and the known system's signed constraint values), as the ``rl`` agent does.
-The run writes ``OUT/policy.zip`` (the SB3 model), ``OUT/policy.npz`` (the observation
-normalisation), ``OUT/policy.json`` (algorithm, world, steps, wall time, seed, the
-training reward's settings, the last episodes' statistics and the SHA-256 of the other two
-files) and ``OUT/eval.yaml`` (the
-resolved config of the training with ``agents.rl_policy`` set: ``lfm-evaluate --config
-OUT/eval.yaml --agents rl,...`` evaluates the policy). The ``rl`` agent
-(:class:`controllers.agents.rl.RLAgent`) loads them from ``agents.rl_policy: OUT/policy.zip``.
-The evaluation tables use the env's own reward, not the training reward.
-
-One run owns ``OUT`` at a time (the folder lock of the evaluation,
-:class:`~experiments.evaluation.storage.FolderLock`: a second run is refused naming the
-first). A folder that holds a policy already is refused too, unless the run resumes it
-(``resume=True``: the saved policy, its observation statistics and its step count are
-trained further) or replaces it (``force=True``). The three policy files are written as one
-set (temporary files renamed into place, ``policy.json`` last, holding the others' SHA-256):
-a run stopped while writing them leaves the previous set, or a mix that the ``rl`` agent and
-``resume`` refuse, naming the file.
+"""RL baseline: train PPO or SAC (stable-baselines3) on the config's world through ``gym.make``
+(``lfm-train``; ``docs/agents.md``): actions rescaled to ``[-1, 1]``, observations
+:func:`~controllers.agents.rl.policy_features` normalised by ``VecNormalize``, the
+:class:`TrainingReward`. Writes ``OUT/policy.zip``, ``policy.npz``, ``policy.json`` (as one
+set, ``policy.json`` last with the others' SHA-256) and ``eval.yaml``; one run owns ``OUT``
+at a time (:class:`~experiments.evaluation.storage.FolderLock`).
 """
 
 from __future__ import annotations
@@ -57,17 +33,13 @@ DEFAULT_N_ENVS = 8  # envs stepped in lockstep (the README's measured run)
 
 
 class TrainingReward(gym.Wrapper):
-    """The reward RL trains on (the evaluation keeps the env's own reward).
-
-    ``r = reward / scale - cost_weight * info["violated_groups"]``; when the env ends the episode as
-    a failure, ``r`` is added once more for each step the time limit had left
-    (``max_steps - t``), so that ending an episode early by leaving the safety box costs at
-    least as much as staying there.
+    """The reward RL trains on: ``reward / scale - cost_weight * info["violated_groups"]``, and on a
+    failure that once more for each step the time limit had left (``max_steps - t``).
 
     Args:
-        env: the env (rewards are minus stage costs, ``info`` has ``cost`` and ``failure``).
+        env: the env (rewards are minus stage costs).
         scale: divisor of the env's reward, > 0 (the stage cost at the start state).
-        cost_weight: weight of ``info["violated_groups"]`` [per violated constraint group], >= 0.
+        cost_weight: weight per violated constraint group, >= 0.
         max_steps: the episode's time limit [steps], >= 1.
     """
 
@@ -199,29 +171,22 @@ def train(
     """Train a policy and save it under ``out``; returns the run's summary (``policy.json``).
 
     Args:
-        config: an :class:`~controllers.config.ExperimentConfig`, YAML path, dict or ``None``
-            (the paper's values); its ``env_id`` and ``env`` are the world.
+        config: an :class:`~controllers.config.ExperimentConfig`, YAML path, dict or ``None``.
         algo: ``"ppo"`` or ``"sac"``.
-        timesteps: env steps to train at most, >= 1 (summed over the ``n_envs`` envs).
+        timesteps: env steps to train at most, >= 1 (summed over the envs).
         minutes: wall-clock budget [min] (> 0) that stops training earlier; ``None``: none.
-        out: folder of ``policy.zip``, ``policy.npz``, ``policy.json`` and ``eval.yaml``
-            (created; :func:`write_eval_config`).
+        out: folder of ``policy.zip``, ``policy.npz``, ``policy.json`` and ``eval.yaml``.
         seed: seed of the networks, the sampling and the envs (env ``i`` gets ``seed + i``).
         n_envs: envs stepped in lockstep in this process, >= 1.
         cost_weight: training penalty per violated constraint group and step, >= 0.
         progress: show a tqdm progress bar.
-        resume: train the policy saved in ``out`` further, for ``timesteps`` more steps (its
-            observation statistics too; ``policy.json`` then counts every step and the wall
-            time of every run). Its algorithm and world must be ``algo`` and the config's.
-            SAC starts with an empty replay buffer; a resumed run is not bit-identical to one
-            run of the whole length.
+        resume: train the policy in ``out`` ``timesteps`` more steps (same algorithm, world).
         force: replace a policy saved in ``out``.
 
     Raises:
         ValueError: naming the bad argument and its allowed range.
-        ResultsFolderError: (a ``ValueError``) ``out`` is in use by another run (named),
-            holds a policy and neither ``resume`` nor ``force`` is given, or ``resume``
-            finds no policy there or one of another algorithm or world.
+        ResultsFolderError: (a ``ValueError``) ``out`` in use (named), holding a policy
+            without ``resume`` or ``force``, or ``resume`` without a matching policy.
     """
     check_training_arguments(algo, timesteps, minutes, n_envs, cost_weight)
     if resume and force:
@@ -243,8 +208,8 @@ def check_training_folder(
     """The summary of the policy in ``out`` to resume (``None`` to start anew).
 
     Raises:
-        ResultsFolderError: ``out`` holds a policy and neither ``resume`` nor ``force``;
-            ``resume`` without a policy there, or with one of another algorithm or world.
+        ResultsFolderError: a policy without ``resume``/``force``, or ``resume`` without a
+            matching one.
     """
     policy = out / POLICY_FILE
     if not policy.exists():
@@ -333,13 +298,8 @@ def _train(
 
 
 def write_eval_config(config: ExperimentConfig, out: str | Path) -> Path:
-    """Write ``OUT/eval.yaml``: the training's config, resolved, whose ``rl`` agent runs the
-    policy of ``OUT`` (``agents.rl_policy``, an absolute path), so that
-    ``lfm-evaluate --config OUT/eval.yaml --agents rl,nominal,...`` evaluates it on the world
-    and with the settings it was trained on, from any folder.
-
-    Returns:
-        The path of the file.
+    """Write ``OUT/eval.yaml`` (the training's resolved config, ``agents.rl_policy`` the absolute
+    policy path, for ``lfm-evaluate --config OUT/eval.yaml --agents rl,...``); returns its path.
     """
     import yaml
 
@@ -461,18 +421,3 @@ def _save(
     }
     _replace_set(out, {POLICY_FILE: save_zip, "policy.npz": save_npz}, summary)
     return summary
-
-
-__all__ = [
-    "ALGOS",
-    "DEFAULT_N_ENVS",
-    "EVAL_CONFIG_FILE",
-    "POLICY_FILE",
-    "TrainingReward",
-    "check_training_arguments",
-    "check_training_folder",
-    "make_training_env",
-    "reward_scale",
-    "train",
-    "write_eval_config",
-]

@@ -1,19 +1,6 @@
-"""The risk trade-off: one agent setting swept over values, each against a baseline agent.
-
-A sweep answers "what does this knob buy, and what does it cost?": for each value of one
-setting of the ``agents`` section (the back-off ``agents.backoff``, ``agents.n_scenarios``,
-``agents.estimator``, ``agents.n_particles``, ``agents.robust.backoff``, ...), it runs the
-evaluation of one agent over env seeds (:func:`experiments.evaluation.run.evaluate`) and
-compares it with a baseline agent on the same seeds (same hidden latent force and noise):
-violation steps beyond each tolerance of the system, zero-violation episodes and time to
-goal, each with the paired bootstrap interval of the difference to the baseline.
-
-The sweep folder (``out``; its layout: :mod:`experiments.report.sweep_summary`, which reads
-it back) holds the manifest, one evaluation folder for the baseline and one per value, and
-the table and figure. Every evaluation folder resumes as the evaluation does (finished
-episodes are kept, so an interrupted sweep loses at most the episodes in flight); rerunning
-the same sweep resumes it. The sweep folder may be a results folder of ``lfm-evaluate`` too:
-``lfm-report`` then includes the sweep's table and figure (or give ``--sweep DIR``).
+"""The risk trade-off: one ``agents`` setting swept over values, each evaluated against a
+baseline agent on the same seeds (paired bootstrap differences). The folder's layout is
+:mod:`experiments.report.sweep_summary`'s; every evaluation folder resumes as usual.
 """
 
 from __future__ import annotations
@@ -43,22 +30,12 @@ from experiments.report.sweep_summary import (
 SECTION = "agents"  # the sweep varies agent settings only: the episodes stay the same
 
 
-# --------------------------------------------------------------------------- the setting
-
-
 def config_with(config: ExperimentConfig, key: str, text: str) -> ExperimentConfig:
-    """The config with one dotted key of the ``agents`` section set to a value.
-
-    Args:
-        config: the base config.
-        key: a dotted key under ``agents``, e.g. ``"agents.backoff"`` or
-            ``"agents.robust.backoff"``.
-        text: the value as written, read by the field's type (``"2"`` for a list field
-            is ``[2.0]``; ``"[1, 2, 0]"`` a list; ``"null"`` None where allowed).
+    """The config with one dotted key of ``agents`` (``"agents.robust.backoff"``) set to ``text``,
+    read by the field's type (``"2"`` for a list field is ``[2.0]``; ``"null"`` None).
 
     Raises:
-        ConfigError: naming the key, for a key outside ``agents``, an unknown key, a
-            section given as the key, or a value the config refuses.
+        ConfigError: naming the key: outside ``agents``, unknown, a section, or a bad value.
     """
     parts = key.split(".")
     if len(parts) < 2 or parts[0] != SECTION or not all(parts):
@@ -82,8 +59,7 @@ def parse_setting(
     """``"agents.backoff=0,1,2"`` -> the key, the value texts and the config of each value.
 
     Raises:
-        ConfigError: naming the key, for a malformed text, repeated values, or a key or
-            value the config refuses (:func:`config_with`).
+        ConfigError: naming the key: malformed, repeated values, or refused by the config.
     """
     key, sep, values = str(text).partition("=")
     key = key.strip()
@@ -95,9 +71,6 @@ def parse_setting(
     if len(set(texts)) != len(texts):
         raise ConfigError(f"--set {text!r}: the values of {key} repeat")
     return key, texts, [config_with(config, key, t) for t in texts]
-
-
-# --------------------------------------------------------------------------- running
 
 
 def _registered_agents(agents: Any) -> list[str]:
@@ -129,26 +102,22 @@ def run_sweep(
 
     Args:
         agent: the agent whose setting is swept (e.g. ``"robust"``).
-        setting: ``"KEY=V1,V2,..."`` with a dotted key of the agents section
-            (:func:`parse_setting`).
+        setting: ``"KEY=V1,V2,..."`` with a dotted key of the agents section.
         seeds: env seeds (integers >= 0) or a text such as ``"0:100"``.
         config: the base config (a path, a dict, an ``ExperimentConfig`` or ``None``).
-        out: the sweep folder (see the module docstring).
+        out: the sweep folder.
         baseline: the agent every value is compared with, run once on the base config.
-        jobs, scheduler, dask_workers: how each evaluation runs
-            (:func:`experiments.evaluation.run.evaluate`).
+        jobs, scheduler, dask_workers: how each evaluation runs (:func:`evaluate`).
         progress: progress bars (one per evaluation, labelled with its value).
         retry_failed: re-run saved episodes that raised an error.
-        episode_timeout: wall-clock limit of one episode [s]; ``None`` for the base
-            config's ``evaluation.episode_timeout``, 0 for none (as
-            :func:`experiments.evaluation.run.evaluate`).
+        episode_timeout: wall-clock limit of one episode [s] (as :func:`evaluate`).
 
     Returns:
         The summary read back from the folder (:func:`load_sweep`).
 
     Raises:
-        ValueError: unknown agents, bad seeds, a bad setting (naming the key) or a folder
-            that holds another sweep or another config, before any episode runs.
+        ValueError: bad agents, seeds or setting, or a folder of another sweep or config,
+            before any episode runs.
     """
     (agent_name,) = _registered_agents([agent])
     (baseline_name,) = _registered_agents([baseline])
@@ -204,6 +173,3 @@ def run_sweep(
     summary = load_sweep(out_path)
     write_sweep(summary)
     return summary
-
-
-__all__ = ["config_with", "parse_setting", "run_sweep"]

@@ -1,16 +1,8 @@
-"""A solve's time with and without ``OPENBLAS_NUM_THREADS`` exported, side by side.
+"""A solve's time with and without ``OPENBLAS_NUM_THREADS`` exported, side by side: each case
+in a fresh Python, the fast solver on ``tests/data/long_horizon_problems.npz``, the median
+per problem printed with the BLAS thread count it ran with::
 
-Each case runs in a fresh Python (the BLAS thread count is fixed when NumPy loads): the
-fast solver (the Python loop, whose convexification calls LAPACK on the ``N nu x N nu``
-Hessian) solves the recorded long-horizon problems of ``tests/data/long_horizon_problems.npz``
-(N = 30 by default, Ns = 50) from their first guesses, ``--repeats`` times in alternation, and
-the median per problem is printed with the BLAS thread count the solve ran with
-(threadpoolctl). The cases: ``OPENBLAS_NUM_THREADS=1`` exported, nothing exported, and (with
-``--python OTHER``) the same with another environment's Python, e.g. a checkout from before
-the solvers set their threads:
-
-    python -m experiments.benchmark.blas_threads --horizon 30 --repeats 3
-    python -m experiments.benchmark.blas_threads --python /path/to/old/.venv/bin/python
+    python -m experiments.benchmark.blas_threads --horizon 30 --repeats 3 [--python OTHER]
 """
 
 from __future__ import annotations

@@ -1,14 +1,8 @@
 """The benchmark's checks: named bounds on a run's figures, judged by ``lfm-benchmark --check``.
 
-Each check of :data:`CHECKS` names one figure of a run (:func:`run_checks` reads it from the
-result), how it is compared and its default bound. The speed bounds are about twice the
-figures of the documented run on a quiet 2-core machine (``docs/benchmark.md``), so a slower
-or busier machine still passes and a real regression fails; the accuracy bounds (agreement
-with IPOPT, failed solves, the exported plans) hold on any machine. ``--threshold
-KEY=VALUE`` changes a bound (:func:`check_thresholds`). A check whose figure was not
-measured (a part or a solver left out, a quick run's smaller sweep) is SKIP, never a
-failure. Unless said otherwise the figures are of the closed-loop problems at the config's
-size (``N = 7``, ``Ns = 150``), warm-started, every solver side by side.
+Speed bounds are about twice the documented run's figures (``docs/benchmark.md``); accuracy
+bounds hold on any machine. ``--threshold KEY=VALUE`` changes a bound; a figure not measured
+is SKIP. Figures are of the closed-loop problems at the config's size unless said otherwise.
 """
 
 from __future__ import annotations
@@ -31,15 +25,9 @@ Figure = Callable[[Mapping[str, Any]], "float | None"]
 
 @dataclass(frozen=True)
 class Check:
-    """One named bound on a figure of a benchmark run.
-
-    Attributes:
-        key: its name (``--threshold KEY=VALUE``).
-        text: the figure, as printed.
-        op: ``"<="`` or ``">="``: ``figure op bound`` passes.
-        default: the default bound.
-        unit: the figure's unit (``"x"`` for a ratio, ``"%"``, or ``""``).
-        figure: reads the figure from a run's result; ``None`` when it was not measured.
+    """One named bound: ``key`` (``--threshold KEY=VALUE``), ``text``, ``op`` (``"<="`` or
+    ``">="``), ``default``, ``unit`` (``"x"``, ``"%"``, ...) and ``figure`` (reads it from a
+    result; ``None``: not measured).
     """
 
     key: str
@@ -287,11 +275,8 @@ def check_thresholds(overrides: Mapping[str, Any] | None) -> dict[str, float]:
 def run_checks(
     results: Mapping[str, Any], thresholds: Mapping[str, Any] | None = None
 ) -> list[dict[str, Any]]:
-    """Every check of :data:`CHECKS` judged on a run's result.
-
-    Returns:
-        One dict per check: ``key``, ``check`` (its text), ``value`` (``None``: not
-        measured), ``threshold``, ``op``, ``unit`` and ``passed`` (``None``: SKIP).
+    """Every check of :data:`CHECKS` judged on a run's result: ``key``, ``check``, ``value``
+    (``None``: not measured), ``threshold``, ``op``, ``unit``, ``passed`` (``None``: SKIP).
     """
     th = check_thresholds(thresholds)
     out = []
@@ -335,18 +320,3 @@ def check_lines(checks: list[dict[str, Any]]) -> list[str]:
             f"{bound:<12}  {c['check']}"
         )
     return lines
-
-
-__all__ = [
-    "ANCHOR",
-    "CHECKS",
-    "DEFAULT_THRESHOLDS",
-    "LARGE_NS",
-    "TEXTBOOK",
-    "Check",
-    "check_lines",
-    "check_thresholds",
-    "failed_checks",
-    "large_ns_median",
-    "run_checks",
-]

@@ -1,16 +1,6 @@
-"""Per-step times of the scenario agent in closed loop, horizon by horizon.
-
-For each horizon ``N``, each prediction (``agents.prediction``) and each iteration mode
-(``agents.iterations``: ``converged``, and ``rti`` where the config has that setting), the
-scenario agent (``agents.solver`` of the config: the compiled loop by default) runs the
-first ``steps`` steps of each seed's episode on the config's world, and every step is timed
-whole: the agent's ``act`` (estimator + scenarios + solve), with its solve time, status and
-iterations beside it. The problems are the ones the agent meets at that horizon along its own
-closed loop, warm-started from its own past, as an agent runs.
-
-A combination the config refuses (e.g. a horizon beyond the solver's ``max_horizon``, or
-``agents.iterations`` before it exists) is a row that says why; a step that raises is a
-failed step with the error, and the run goes on.
+"""Per-step times of the scenario agent in closed loop, by horizon, prediction and iteration
+mode: each step's whole ``act`` timed, with its solve time, status and iterations. A
+combination the config refuses is a row saying why; a step that raises is a failed step.
 """
 
 from __future__ import annotations
@@ -27,6 +17,7 @@ from controllers.config import AgentConfig, ConfigError, load_config
 from controllers.problem import PREDICTIONS
 from experiments.benchmark.failures import classify_failure
 from experiments.benchmark.problems import DEFAULT_CONFIG, DEFAULT_SEEDS, config_path
+from experiments.benchmark.solvers import p95, stat
 
 #: The horizons of the closed-loop sweep.
 CLOSED_LOOP_HORIZONS = (7, 15, 30, 50)
@@ -114,25 +105,17 @@ def _failed_step(seed: int, step: int, seconds: float, exc: Exception) -> dict[s
 
 def _summary(records: list[dict[str, Any]]) -> dict[str, Any]:
     """Per-step figures [ms] over every recorded step."""
-    step = np.array([r["step_time_ms"] for r in records], dtype=float)
-    solve = np.array([r["solve_time_ms"] for r in records], dtype=float)
-
-    def stat(fn: Any, x: np.ndarray) -> float:
-        x = x[np.isfinite(x)]
-        return float(fn(x)) if x.size else math.nan
-
+    step = [r["step_time_ms"] for r in records]
     return {
         "n_steps": len(records),
-        "step_ms_median": stat(np.median, step),
-        "step_ms_p95": stat(lambda x: np.percentile(x, 95), step),
-        "step_ms_max": stat(np.max, step),
+        "step_ms_median": stat(step, np.median),
+        "step_ms_p95": stat(step, p95),
+        "step_ms_max": stat(step, np.max),
         # the step's CPU time in its thread (BLAS and the C library at one thread): what the
         # step costs without the waiting a loaded machine adds to its wall time
-        "step_cpu_ms_median": stat(
-            np.median, np.array([r["step_cpu_ms"] for r in records], dtype=float)
-        ),
-        "solve_ms_median": stat(np.median, solve),
-        "iterations_median": stat(np.median, np.array([r["iterations"] for r in records])),
+        "step_cpu_ms_median": stat([r["step_cpu_ms"] for r in records], np.median),
+        "solve_ms_median": stat([r["solve_time_ms"] for r in records], np.median),
+        "iterations_median": stat([r["iterations"] for r in records], np.median),
         "failed": int(sum(not r["success"] for r in records)),
         "not_usable": int(sum(not r["usable"] for r in records)),
     }
@@ -153,15 +136,14 @@ def closed_loop_steps(
         horizons: prediction steps ``N``.
         config: a preset's name, a YAML path, a dict or an ExperimentConfig.
         seeds: env seeds (one episode start each).
-        steps: steps per seed from the episode's start (fewer where an episode ends).
+        steps: steps per seed from the episode's start.
         predictions: ``agents.prediction`` values.
         agent: the registered agent timed.
         progress: show progress bars.
 
     Returns:
         ``{"config", "agent", "seeds", "steps", "results": [{"horizon", "prediction",
-        "iterations", "refused", "summary", "records", "failures"}]}``, times in
-        milliseconds; ``refused`` is ``""`` or the config's reason.
+        "iterations", "refused", "summary", "records", "failures"}]}``, times in ms.
     """
     base = load_config(config_path(config))
     rows = []
@@ -238,14 +220,3 @@ def format_closed_loop(result: dict[str, Any]) -> str:
             f"{'usable plan' if f['usable'] else 'no usable plan'})"
         )
     return "\n".join(lines)
-
-
-__all__ = [
-    "CLOSED_LOOP_AGENT",
-    "CLOSED_LOOP_HORIZONS",
-    "CLOSED_LOOP_STEPS",
-    "ITERATION_MODES",
-    "closed_loop_steps",
-    "format_closed_loop",
-    "iteration_modes",
-]

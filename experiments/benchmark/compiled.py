@@ -1,17 +1,7 @@
-"""The compiled SQP loop and the exported controller in the benchmark.
-
-The compiled loop (``fast_c``) is timed beside the Python loop and the anchors in the main
-closed-loop comparison and the scenario sweep (:mod:`~experiments.benchmark.solvers`,
-:mod:`~experiments.benchmark.suites`); this part adds what those do not measure:
-
-* :func:`plan_agreement`: the compiled loop's plans against the Python loop's with the same
-  QP solvers (``qp_solver="elastic_ipm"``), every problem from scratch: the largest plan
-  difference and where it is, the objective gaps, the iterations;
-* :func:`time_export`: the exported C projects of the config's ``scenario`` and ``robust``
-  agents, built with ``make``: their ``example`` timed from C (``--time``) on the closed-loop
-  problems, its plans against the Python loop's, the robust agent's whole step timed from C
-  on an episode's measurements and compared with the Python agent, and the libraries'
-  run-time dependencies (``ldd``, ``nm``);
+"""The compiled SQP loop and the exported controller in the benchmark: :func:`plan_agreement`
+(``fast_c``'s plans against the Python loop's with the same QP solver, from scratch) and
+:func:`time_export` (the exported C projects built with ``make``, timed from C, their plans
+and the robust agent's step against Python, and their run-time dependencies).
 """
 
 from __future__ import annotations
@@ -30,14 +20,9 @@ import numpy as np
 
 from controllers.solvers.fast.compiled import CompiledScenarioSolver
 from controllers.solvers.fast.solver import FastScenarioSolver
-from experiments.benchmark.problems import (
-    ENV_ID,
-    anchors_per_seed,
-    scenario_draws,
-)
+from experiments.benchmark.problems import ENV_ID, anchors_per_seed, scenario_draws
 from experiments.evaluation.interrupts import raise_if_interrupted
 
-COMPILED = "fast_c"
 SAME_QP = {"qp_solver": "elastic_ipm"}  # the Python loop's choice closest to the C loop's
 PLAN_TOL = 1e-9  # [input units] plan agreement of the two loops counted as equal
 EXPORT_PLAN_TOL = 1e-8  # [input units] the exported example's plans against Python's
@@ -289,12 +274,3 @@ def compiled_lines(results: Mapping[str, Any]) -> list[str]:
     elif export is not None:
         lines.append(f"Exported controllers: not run ({export.get('reason')})")
     return lines
-
-
-__all__ = [
-    "COMPILED",
-    "compiled_lines",
-    "plan_agreement",
-    "time_compiled",
-    "time_export",
-]

@@ -1,9 +1,4 @@
-"""The benchmark's failed solves: what kind each is, and the list of every one with its problem.
-
-Every part of :mod:`experiments.benchmark` (the side-by-side comparison, the horizon and
-scenario sweeps) lists its failed solves through :func:`failures_of`, so the report names each
-by its part, solver, seed, step and size.
-"""
+"""The benchmark's failed solves: what kind each is, and every one with its problem's id."""
 
 from __future__ import annotations
 
@@ -37,11 +32,8 @@ def classify_failure(status: str) -> str:
 def failures_of(
     records: dict[str, list[dict[str, Any]]], part: str, horizon: int, n_scenarios: int
 ) -> list[dict[str, Any]]:
-    """Every failed solve of ``records``, with the problem's id and the failure's kind.
-
-    Returns:
-        ``[{"part", "solver", "seed", "step", "N", "Ns", "kind", "status"}]``, solver by
-        solver in problem order.
+    """Every failed solve of ``records``: ``[{"part", "solver", "seed", "step", "N", "Ns", "kind",
+    "status"}]``, solver by solver in problem order.
     """
     out = []
     for name, recs in records.items():
@@ -61,6 +53,3 @@ def failures_of(
                 }
             )
     return out
-
-
-__all__ = ["FAILURE_KINDS", "classify_failure", "failures_of"]

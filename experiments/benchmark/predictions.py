@@ -1,21 +1,7 @@
-"""The prediction sweep: the fast solver on open-loop and feedback scenario problems, N by N.
-
-The scenario agent runs the config's episodes at the config's horizon, and its state
-estimates at steps ``first_step .. first_step + steps_per_seed - 1`` of each seed are the
-anchors (:func:`experiments.benchmark.problems.record_closed_loop`). At each horizon ``N``
-the ``Ns`` latent-force scenarios of each anchor are drawn as the agent draws them
-(:func:`~experiments.benchmark.problems.scenario_draws`, one generator seeded 0 per ``N``),
-so an ``N`` beyond the fast solver's practical horizon for agents (40) is measured too. The
-fast solver solves each problem twice, consecutive anchors in closed-loop order and
-warm-started from its own past, reset at each seed: as the open-loop problem
-(``prediction="open_loop"``, the paper's) and as the feedback one (``"feedback"``,
-:mod:`controllers.solvers.feedback`; its law along its previous plan shifted, at a seed's
-first problem along an open-loop solve whose time counts). Both see the same problems.
-Every figure is the solver's own: ``objective`` and ``slack`` of each problem's formulation,
-the feedback slack including the input slacks.
-
-A failed solve is one that did not converge (``success`` false); ``usable`` says whether it
-still returned a plan an agent applies (:attr:`controllers.problem.MPCSolution.usable`).
+"""The prediction sweep: the fast solver on the open-loop and the feedback scenario problem at
+each horizon, on the same problems (scenarios drawn as the agent draws them around a closed
+loop's estimates), consecutive anchors warm-started, reset at each seed. Figures are the
+solver's own; a failed solve did not converge, ``usable`` says whether it gave a plan.
 """
 
 from __future__ import annotations
@@ -38,6 +24,7 @@ from experiments.benchmark.problems import (
     record_closed_loop,
     scenario_draws,
 )
+from experiments.benchmark.solvers import p95, stat
 
 #: The horizons of the prediction sweep.
 PREDICTION_HORIZONS = (7, 15, 30, 50)
@@ -78,23 +65,18 @@ def _record(solver: Any, x0: np.ndarray, W: np.ndarray) -> dict[str, Any]:
 
 def _summary(records: list[dict[str, Any]]) -> dict[str, Any]:
     """Times [ms] and iterations of every solve (the first of a seed included)."""
-    solve = np.array([r["solve_time_ms"] for r in records], dtype=float)
-    solve = solve[np.isfinite(solve)]
+    solve = [r["solve_time_ms"] for r in records]
     slack = np.array([r["slack"] for r in records], dtype=float)
-
-    def stat(fn: Any, x: np.ndarray) -> float:
-        return float(fn(x)) if x.size else math.nan
-
     return {
         "n_problems": len(records),
-        "solve_ms_median": stat(np.median, solve),
-        "solve_ms_p95": stat(lambda x: np.percentile(x, 95), solve),
-        "solve_ms_max": stat(np.max, solve),
-        "iterations_median": stat(np.median, np.array([r["iterations"] for r in records])),
+        "solve_ms_median": stat(solve, np.median),
+        "solve_ms_p95": stat(solve, p95),
+        "solve_ms_max": stat(solve, np.max),
+        "iterations_median": stat([r["iterations"] for r in records], np.median),
         "failed": int(sum(not r["success"] for r in records)),
         "not_usable": int(sum(not r["usable"] for r in records)),
         "infeasible": int(np.sum(slack > 1e-6)),
-        "slack_median": stat(np.median, slack[np.isfinite(slack)]),
+        "slack_median": stat(slack, np.median),
     }
 
 
@@ -107,7 +89,7 @@ def sweep_predictions(
     progress: bool = False,
     first_step: int = PREDICTION_FIRST_STEP,
 ) -> dict[str, Any]:
-    """The fast solver on both predictions at each horizon (module docstring).
+    """The fast solver on both predictions at each horizon.
 
     Args:
         horizons: prediction steps ``N``.
@@ -116,14 +98,11 @@ def sweep_predictions(
         steps_per_seed: problems per seed at each ``N`` (consecutive steps).
         max_time: wall-clock limit of one solve [s].
         progress: show progress bars.
-        first_step: the first anchored step of each seed (an episode that ends earlier
-            gives fewer).
+        first_step: the first anchored step of each seed.
 
     Returns:
-        ``{"config", "seeds", "steps_per_seed", "first_step", "results": [{"horizon", "prediction",
-        "n_scenarios", "summary", "records", "failures"}]}``: one row per ``(N,
-        prediction)``, times in milliseconds; ``failures`` lists every solve that did not
-        converge (``seed``, ``step``, ``kind``, ``status``, ``usable``).
+        ``{"config", "seeds", "steps_per_seed", "first_step", "results": [{"horizon",
+        "prediction", "n_scenarios", "summary", "records", "failures"}]}``, times in ms.
     """
     cfg = experiment_config(config)
     last = first_step + steps_per_seed
@@ -201,13 +180,3 @@ def format_predictions(result: dict[str, Any]) -> str:
             f"{f['status']} ({f['kind']}; {'usable plan' if f['usable'] else 'no usable plan'})"
         )
     return "\n".join(lines)
-
-
-__all__ = [
-    "PREDICTION_FIRST_STEP",
-    "PREDICTION_HORIZONS",
-    "PREDICTION_MAX_TIME_S",
-    "PREDICTION_STEPS",
-    "format_predictions",
-    "sweep_predictions",
-]

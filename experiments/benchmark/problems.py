@@ -1,11 +1,6 @@
-"""The problems the benchmark solves: closed-loop scenario problems recorded from an agent.
-
-:func:`record_closed_loop` runs episodes of the config's env with the scenario agent and
-keeps, at every step, the scenario problem the agent met (its ``last_info["x0"]`` and
-``["W"]``) and its estimate (physical and latent state), from which
-:func:`scenario_draws` makes problems of other scenario counts. Everything is read from
-the config (:func:`experiment_config`): the model, the cost, the problem
-(:meth:`~controllers.config.ExperimentConfig.make_problem`); nothing here knows the system.
+"""The problems the benchmark solves: closed-loop scenario problems recorded from the scenario
+agent (:func:`record_closed_loop`: its ``x0``, ``W`` and estimate at every step), and
+problems of other scenario counts drawn around them (:func:`scenario_draws`).
 """
 
 from __future__ import annotations
@@ -46,9 +41,6 @@ class SweepAnchor(NamedTuple):
     z: np.ndarray  # (p,) estimated latent state of the GP
 
 
-# --------------------------------------------------------------------------- configuration
-
-
 def config_path(config: Any) -> Any:
     """A config as :func:`~controllers.config.load_config` takes it (a preset's name, a path,
     ...); a relative ``configs/NAME.yaml`` that is missing here (the repository's presets
@@ -66,16 +58,8 @@ def config_path(config: Any) -> Any:
 def experiment_config(
     config: Any = DEFAULT_CONFIG, solver: str | None = None, horizon: int | None = None
 ) -> ExperimentConfig:
-    """The resolved, validated config, optionally with another ``agents.solver`` or horizon.
-
-    Args:
-        config: a preset's name, a YAML path (``configs/NAME.yaml`` also from another
-            folder), a dict (whole file), an :class:`~controllers.config.ExperimentConfig` or
-            ``None`` (paper values).
-        solver: if given, replaces ``agents.solver`` (one of ``controllers.solvers.SOLVERS``;
-            checked like a config value).
-        horizon: if given, replaces ``agents.horizon`` (prediction steps ``N``; checked like
-            a config value).
+    """The resolved config (a preset's name, a YAML path, a dict, an ExperimentConfig or
+    ``None``), with ``agents.solver`` or ``agents.horizon`` replaced when given (checked).
     """
     cfg = load_config(config_path(config))
     changes: dict[str, Any] = {}
@@ -92,17 +76,8 @@ def experiment_config(
 def problem_from_config(
     config: Any = DEFAULT_CONFIG, n_scenarios: int | None = None, horizon: int | None = None
 ) -> ScenarioProblem:
-    """The scenario problem the agents of ``config`` solve, with ``Ns`` or ``N`` changed.
-
-    Args:
-        config: as for :func:`experiment_config`.
-        n_scenarios: scenario count ``Ns``; by default the config's.
-        horizon: prediction steps ``N``; by default the config's.
-    """
+    """The scenario problem the agents of ``config`` solve, with ``Ns`` or ``N`` changed."""
     return experiment_config(config).make_problem(n_scenarios=n_scenarios, horizon=horizon)
-
-
-# --------------------------------------------------------------------------- recording
 
 
 def env_start(config: Any = DEFAULT_CONFIG, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -132,23 +107,19 @@ def record_closed_loop(
     solver: str = RECORDING_SOLVER,
     horizon: int | None = None,
 ) -> tuple[list[RecordedProblem], list[SweepAnchor]]:
-    """Scenario-agent episodes: every step's scenario problem and state estimate.
-
-    The agent's own randomness is seeded with the env seed, so a recording is repeatable.
+    """Scenario-agent episodes (agent seeded with the env seed): every step's problem and estimate.
 
     Args:
         config: as for :func:`experiment_config`.
         seeds: env seeds, one episode each.
-        max_steps: record (and run) at most this many steps per episode; ``None``: whole
-            episodes.
+        max_steps: at most this many steps per episode; ``None``: whole episodes.
         progress: show a progress bar.
         solver: the agent's solver while recording.
-        horizon: the agent's horizon ``N`` (``agents.horizon``); by default the config's.
+        horizon: the agent's horizon ``N``; by default the config's.
 
     Returns:
-        ``(problems, anchors)``, seed by seed in closed-loop order: the problems the agent
-        solved (``last_info["x0"]``, ``["W"]``) and its estimates split into physical and
-        latent state (``last_info["estimate"]``).
+        ``(problems, anchors)`` in closed-loop order: ``last_info["x0"]``, ``["W"]``, and the
+        estimates split into physical and latent state.
     """
     import gymnasium as gym
 
@@ -209,12 +180,8 @@ def anchors_per_seed(anchors: Sequence[SweepAnchor], steps_per_seed: int | None)
 def scenario_draws(
     problem: ScenarioProblem, anchors: Sequence[SweepAnchor], rng: np.random.Generator
 ) -> list[RecordedProblem]:
-    """Problems of ``problem``'s size around recorded estimates, drawn as the agent draws.
-
-    For each anchor the ``Ns`` latent-force scenarios are
-    :meth:`~lfm_env.model.LatentForceModel.sample_latent_forecasts` of the problem's model,
-    all started from the anchor's latent estimate ``z``; the initial state is the anchor's
-    physical estimate.
+    """Problems of ``problem``'s size around recorded estimates, drawn as the agent draws
+    (:meth:`~lfm_env.model.LatentForceModel.sample_latent_forecasts` from each anchor's ``z``).
     """
     model, ns = problem.model, problem.n_scenarios
     out = []
@@ -223,20 +190,3 @@ def scenario_draws(
         W = model.sample_latent_forecasts(z0, problem.horizon, rng)
         out.append(RecordedProblem(a.seed, a.step, a.x0, W))
     return out
-
-
-__all__ = [
-    "DEFAULT_CONFIG",
-    "DEFAULT_SEEDS",
-    "ENV_ID",
-    "RecordedProblem",
-    "SweepAnchor",
-    "anchors_per_seed",
-    "config_path",
-    "env_start",
-    "experiment_config",
-    "problem_from_config",
-    "record_closed_loop",
-    "record_problems",
-    "scenario_draws",
-]

@@ -1,9 +1,5 @@
-"""The benchmark's report: text, Markdown and JSON (the checks: :mod:`.checks`).
-
-:func:`format_report` prints the speed table, the detailed tables (closed loop, horizons,
-scenario sweep, first solve, filter, episode), every failed solve and the checks;
-:func:`format_markdown` gives the speed table and the checks as Markdown (for
-docs/benchmark.md); :func:`json_ready` makes a result strict JSON.
+"""The benchmark's report: :func:`format_report` (every table, failure and check),
+:func:`format_markdown` (speed table and checks) and :func:`json_ready` (strict JSON).
 """
 
 from __future__ import annotations
@@ -17,9 +13,6 @@ from experiments.benchmark.checks import ANCHOR, LARGE_NS, TEXTBOOK, check_lines
 from experiments.benchmark.solvers import GAP_TOL, NO_SLACK_TOL, SOLVER_VARIANTS
 
 SPEED_TABLE_SOLVERS = ("fast", "fast_c", ANCHOR, "ipopt", TEXTBOOK, "csnlp")
-
-
-# --------------------------------------------------------------------------- text
 
 
 def _fmt(x: Any, spec: str = ".1f") -> str:
@@ -404,9 +397,6 @@ def format_report(results: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-# --------------------------------------------------------------------------- JSON
-
-
 def json_ready(obj: Any) -> Any:
     """Plain JSON data: NumPy scalars and arrays converted, NaN and inf written as null."""
     if isinstance(obj, dict):
@@ -422,6 +412,3 @@ def json_ready(obj: Any) -> Any:
     if isinstance(obj, (float, np.floating)):
         return float(obj) if math.isfinite(obj) else None
     return obj
-
-
-__all__ = ["format_markdown", "format_report", "format_speed_table", "json_ready"]

@@ -1,34 +1,12 @@
-"""Speed and accuracy benchmark of the scenario MPC solvers, the particle filter and an episode.
+"""Speed and accuracy benchmark of the scenario MPC solvers, the particle filter and an episode
+(:func:`run_benchmark`; the command line is :mod:`experiments.cli.benchmark`).
 
-The benchmark answers questions of speed and accuracy with measurements, never with asserts
-(:func:`run_benchmark`; the command line ``lfm-benchmark`` is :mod:`experiments.cli.benchmark`):
-
-* **Closed-loop problems** (:mod:`experiments.benchmark.problems`): paper episodes with the
-  scenario agent (seeds 0..5), recording the ``(x0, W)`` it met at every step.
-* **Solvers side by side** (:mod:`experiments.benchmark.solvers`): the solvers of the registry
-  (:data:`controllers.solvers.SOLVERS`; by default all but ``csnlp``: ``fast``,
-  ``fast_c`` (its whole loop compiled), ``ipopt``, ``ipopt_multiple_shooting`` (the textbook
-  reference), ``sqpmethod`` (CasADi's SQP + qpOASES, JIT-compiled: the anchor)) solve
-  these problems in closed-loop order, warm-started from their own past, interleaved problem
-  by problem;
-  times, iterations, objectives (:meth:`~controllers.problem.ScenarioProblem.objective` of
-  the returned inputs) and violations; then the fast solver again alone.
-* **Horizons, scenario counts, first solve, particle filter, whole episode**
-  (:mod:`experiments.benchmark.suites`): fast and IPOPT at ``N`` = 7, 15, 30; ``Ns`` up to
-  5000; a fresh fast solver's build and first solve (compilation included); the filter
-  with 7000 particles; one episode.
-* **The compiled loop and the export** (:mod:`experiments.benchmark.compiled`): ``fast_c``
-  against the Python loop with the same QP solvers, plan by plan; the exported C projects
-  built with ``make`` and timed from C, their plans and run-time dependencies.
-* **Failures**: every failed solve of every solver and part, with its problem's id.
-* **Checks and report** (:mod:`experiments.benchmark.checks`,
-  :mod:`experiments.benchmark.report`): PASS/FAIL/SKIP of each named check with the measured
-  figure, JSON (``--out``) and the speed table and checks as Markdown (beside it, ``.md``).
-  ``--check`` exits 1 when a check fails.
-
-Timing is noisy on a shared machine: the figures are medians and percentiles of one run.
-A solver that cannot be built (an optional package missing) is listed as unavailable with
-the reason, and its checks are SKIP.
+Its parts: closed-loop problems recorded from the scenario agent (:mod:`.problems`), the
+solvers side by side on them (:mod:`.solvers`), the horizon and scenario sweeps, first solve,
+filter and episode (:mod:`.suites`), the compiled loop and the export (:mod:`.compiled`),
+every failed solve, and the named checks and report (:mod:`.checks`, :mod:`.report`).
+Figures are medians and percentiles of one run; a solver that cannot be built is listed as
+unavailable with the reason and its checks are SKIP. See ``docs/benchmark.md``.
 """
 
 from __future__ import annotations
@@ -122,29 +100,22 @@ def run_benchmark(
         config: a YAML path, a dict (whole file), an ExperimentConfig or ``None``.
         seeds: episode seeds for the recorded problems.
         max_steps: recorded steps per seed.
-        solvers: solvers of the closed-loop comparison (names from
-            :data:`controllers.solvers.SOLVERS`).
+        solvers: solvers of the closed-loop comparison (:data:`controllers.solvers.SOLVERS`).
         horizons: horizons ``N`` of the horizon sweep (empty: none).
-        horizon_steps: problems per seed at each horizon (an int, or a dict by ``N``;
-            default :data:`experiments.benchmark.suites.DEFAULT_HORIZON_STEPS`).
-        horizon_max_time: wall-clock limit of one solve in the horizon sweep [s], one for
-            both solvers or a dict by name (default
-            :data:`experiments.benchmark.suites.HORIZON_MAX_TIME_S`).
-        horizon_solvers: the solvers of the horizon sweep (default ``fast`` and ``ipopt``,
-            the objective reference; ``("fast",)`` for a smoke run).
+        horizon_steps: problems per seed at each horizon (an int, or a dict by ``N``).
+        horizon_max_time: wall-clock limit of one solve in the horizon sweep [s], one or a
+            dict by solver name.
+        horizon_solvers: the solvers of the horizon sweep (``("fast",)`` for a smoke run).
         sweep_ns: scenario counts of the sweep (empty: no sweep).
         sweep_steps_per_seed: anchors per seed in the sweep.
         pf_sizes: particle-filter sizes (empty: no filter timing).
         pf_steps: timed filter steps per size.
-        thresholds: check bounds to change, by key
-            (:data:`experiments.benchmark.checks.DEFAULT_THRESHOLDS`).
+        thresholds: check bounds to change, by key (:data:`.checks.DEFAULT_THRESHOLDS`).
         progress: show progress bars.
-        compiled: the compiled loop's plan agreement and the exported controllers
-            (:func:`experiments.benchmark.compiled.time_compiled`; ``fast_c`` itself is timed
-            with the solvers when it is among them).
+        compiled: the compiled loop's plan agreement and the exported controllers.
 
     Returns:
-        All figures: ``meta``, ``closed_loop``, ``horizons``, ``sweep``, ``first_solve``,
+        ``meta``, ``closed_loop``, ``horizons``, ``sweep``, ``first_solve``,
         ``particle_filter``, ``episode``, ``compiled``, ``failures`` and ``checks``.
 
     Raises:
@@ -225,6 +196,3 @@ def run_benchmark(
     meta["load_average_end"] = _load()
     meta["total_time_s"] = time.perf_counter() - t0
     return results
-
-
-__all__ = ["DEFAULT_MAX_STEPS", "DEFAULT_SOLVERS", "all_failures", "run_benchmark"]

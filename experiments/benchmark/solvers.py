@@ -1,14 +1,10 @@
 """Solvers side by side on the same closed-loop problems: times, iterations, objectives.
 
-:func:`time_solvers` builds solvers through the registry
-(:func:`controllers.solvers.make_solver`, names :data:`~controllers.solvers.SOLVERS`), has
-each solve a list of problems in closed-loop order, warm-started from its own previous
-solution, interleaved problem by problem in a rotating order (so that load changes on a
-shared machine hit all solvers alike), and summarises times, iterations and accuracy.
-Every objective is :meth:`~controllers.problem.ScenarioProblem.objective` of the returned
-inputs, the same exact-penalty function for every solver, so objectives compare across
-formulations. The reference of the accuracy figures is the textbook multiple-shooting
-IPOPT formulation (:data:`REFERENCES` gives the fallbacks).
+:func:`time_solvers` builds solvers through the registry, has each solve the problems in
+closed-loop order, warm-started from its own past, interleaved in a rotating order (load
+changes hit all alike). Every objective is :meth:`~controllers.problem.ScenarioProblem.objective`
+of the returned inputs, so objectives compare across formulations; the reference is the
+textbook multiple-shooting IPOPT (:data:`REFERENCES` gives the fallbacks).
 """
 
 from __future__ import annotations
@@ -40,9 +36,7 @@ FAST_SOLVERS = ("fast", "fast_c")  # timed again alone, without IPOPT in between
 # Variants of a registered solver with options, by the name the tables give them: the fast
 # solver with its C library on two threads (FastSolverOptions.threads), timed in the
 # scenario sweep (experiments.benchmark.suites.sweep_scenarios).
-SOLVER_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
-    "fast_2threads": ("fast", {"threads": 2}),
-}
+SOLVER_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {"fast_2threads": ("fast", {"threads": 2})}
 # The objective reference: the first of these that is available.
 REFERENCES = ("ipopt_multiple_shooting", "ipopt", "csnlp")
 
@@ -53,18 +47,13 @@ LOCAL_OPTIMUM_RTOL = 1e-9  # a probed descent above -this * |J| certifies a loca
 Problem = tuple[int, int, np.ndarray, np.ndarray]  # (seed, step, x0, W)
 
 
-# --------------------------------------------------------------------------- solving
-
-
 def build_solver(
     name: str, problem: ScenarioProblem, **options: Any
 ) -> tuple[Any | None, float, str]:
     """Build solver ``name`` through the registry.
 
     Returns:
-        ``(solver, build_time [s], reason)``: ``solver`` is ``None`` when it cannot be
-        built (an optional package missing, a solver that does not fit the system, ...),
-        and ``reason`` says why.
+        ``(solver, build_time [s], reason)``: ``solver`` ``None`` when it cannot be built.
 
     Raises:
         ValueError: for a name not in :data:`controllers.solvers.SOLVERS`.
@@ -83,11 +72,8 @@ def build_solver(
 def build_solvers(
     problem: ScenarioProblem, solvers: Iterable[tuple[str, str, Mapping[str, Any]]]
 ) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
-    """Build every ``(label, registry name, options)`` of ``solvers`` (:func:`build_solver`).
-
-    Returns:
-        ``(built, info)``: the solvers that could be built, by label, and for every label
-        ``{"available", "reason", "build_time_s"}``.
+    """Build every ``(label, registry name, options)`` of ``solvers`` (:func:`build_solver`):
+    ``(built by label, {label: {"available", "reason", "build_time_s"}})``.
     """
     built, info = {}, {}
     for label, name, options in solvers:
@@ -112,11 +98,9 @@ def solve_record(
     """Solve once and measure; every accuracy figure is recomputed from the returned ``u``.
 
     Returns:
-        ``solve_time_ms`` (the solver's own ``solve_time``), ``wall_time_ms`` (the whole
-        call), ``iterations``, ``success``, ``status``, ``objective`` and ``slack`` (of
-        :class:`ScenarioProblem` for ``u``), ``max_violation`` (largest scenario constraint
-        value, in the constraints' units) and ``u`` ``(N, nu)`` as a list. A solve that
-        raises is a failed record with NaN figures.
+        ``solve_time_ms`` (the solver's own), ``wall_time_ms``, ``iterations``, ``success``,
+        ``status``, ``objective``, ``slack``, ``max_violation`` (constraint units) and ``u``;
+        a solve that raises is a failed record with NaN figures.
     """
     raise_if_interrupted()
     t0 = time.perf_counter()
@@ -159,15 +143,11 @@ def run_interleaved(
     progress: bool = False,
     desc: str = "solves",
 ) -> dict[str, list[dict[str, Any]]]:
-    """Every solver solves every problem of ``sequence`` in order, interleaved per problem.
-
-    Solvers are reset whenever the seed changes (a new closed loop starts) and otherwise
-    warm-start from their own previous solution. The calling order rotates from problem to
-    problem, so no solver always runs first (after an idle pause) or last.
+    """Every solver solves every problem of ``sequence`` in order, interleaved per problem in a
+    rotating order, reset at each new seed, else warm-started from its own past.
 
     Returns:
-        name -> one :func:`solve_record` per problem, with ``seed``, ``step`` and
-        ``warm_start`` added.
+        name -> one :func:`solve_record` per problem, with ``seed``, ``step``, ``warm_start``.
     """
     names = list(solvers)
     records: dict[str, list[dict[str, Any]]] = {name: [] for name in names}
@@ -193,9 +173,6 @@ def run_interleaved(
     return records
 
 
-# --------------------------------------------------------------------------- statistics
-
-
 def _finite(values: Iterable[float]) -> np.ndarray:
     a = np.asarray(list(values), dtype=float)
     return a[np.isfinite(a)]
@@ -213,12 +190,8 @@ def p95(a: np.ndarray) -> float:
 
 
 def timing_summary(records: list[dict[str, Any]]) -> dict[str, Any]:
-    """Medians, percentiles and counts of one solver's records (times in ms).
-
-    Times and iterations are those of the warm-started solves (the checks are of
-    closed-loop warm-started problems); the first problem of each closed loop starts from
-    the solver's default guess and is summarised apart (``n_cold``, ``cold_solve_ms_max``).
-    Counts and accuracy figures cover every problem.
+    """Medians, percentiles and counts of one solver's records (times in ms): times of the
+    warm-started solves, the first of each loop apart (``n_cold``, ``cold_solve_ms_max``).
     """
     warm = [r for r in records if r.get("warm_start", True)]
     cold = [r["solve_time_ms"] for r in records if not r.get("warm_start", True)]
@@ -253,13 +226,8 @@ def relative_gap(rec: dict[str, Any], ref: dict[str, Any]) -> float:
 def worse_problems(
     records: list[dict[str, Any]], reference: list[dict[str, Any]], tol: float = GAP_TOL
 ) -> list[dict[str, Any]]:
-    """The problems where a solver ends more than ``tol`` (relative) above the reference.
-
-    Every problem the reference solved successfully counts, whether or not the solver
-    reports success; a solve that raised (no objective) is listed with ``rel_gap`` NaN.
-
-    Returns:
-        ``[{"seed", "step", "rel_gap", "success"}]`` in problem order.
+    """The problems where a solver ends more than ``tol`` (relative) above the reference, among
+    those the reference solved: ``[{"seed", "step", "rel_gap" (NaN if raised), "success"}]``.
     """
     out = []
     for rec, ref in zip(records, reference, strict=True):
@@ -281,11 +249,8 @@ def worse_problems(
 def accuracy_summary(
     records: list[dict[str, Any]], reference: list[dict[str, Any]]
 ) -> dict[str, Any]:
-    """Objective gaps to the reference and violations where the reference needs no slack.
-
-    ``n_compared``, the ``|gap|`` statistics, ``n_worse`` and ``n_better`` are over the
-    problems both solved successfully; ``worse_than_reference`` (:func:`worse_problems`)
-    and ``n_reference_ok`` over every problem the reference solved.
+    """Objective gaps to the reference (where both solved) and violations where the reference
+    needs no slack; ``worse_than_reference`` and ``n_reference_ok`` over every reference solve.
     """
     gaps, abs_gaps, violations = [], [], []
     for rec, ref in zip(records, reference, strict=True):
@@ -322,15 +287,10 @@ def restart_check(
     reference: str,
     summary: dict[str, dict[str, Any]],
 ) -> None:
-    """Re-solve the problems whose objective gap exceeds :data:`GAP_TOL` from the reference.
-
-    The scenario problem is not convex, and each solver warm-starts from its own past, so
-    two solvers can settle in different local optima. Re-solving such a problem from the
-    reference's solution as initial guess tells the two cases apart: if the gap then
-    vanishes, the solver converges to the reference's point when started there (a different
-    local optimum before, not an inaccurate one). Runs after the timed loop; adds
-    ``restart_from_reference`` to the records concerned and ``n_restarted``,
-    ``restart_rel_gap_abs_max`` and the signed ``restart_rel_gap_max`` to ``summary``.
+    """Re-solve the problems whose objective gap exceeds :data:`GAP_TOL` from the reference's
+    solution (untimed): a vanishing gap means another local optimum, not an inaccurate one.
+    Adds ``restart_from_reference`` to the records and ``n_restarted``,
+    ``restart_rel_gap_abs_max``, ``restart_rel_gap_max`` to ``summary``.
     """
     for name, solver in solvers.items():
         if name == reference:
@@ -367,13 +327,9 @@ def certify_lower_plans(
     reference: str,
     summary: dict[str, dict[str, Any]],
 ) -> None:
-    """Probe the plans that end lower than the reference for local optimality.
-
-    Where a solver's objective is below the reference's by more than :data:`GAP_TOL`, its
-    plan is checked with :func:`controllers.problem.largest_local_descent` (the full
-    objective around the plan, independent of any solver): a certified plan is a lower
-    local optimum of the same problem, not an artefact. Adds ``local_descent`` to the
-    records concerned and ``n_better_certified`` to ``summary``.
+    """Probe plans below the reference by more than :data:`GAP_TOL` for local optimality
+    (:func:`controllers.problem.largest_local_descent`); adds ``local_descent`` to the records
+    and ``n_better_certified`` to ``summary``.
     """
     from controllers.problem import largest_local_descent
 
@@ -417,9 +373,6 @@ def speedups(
     return out
 
 
-# --------------------------------------------------------------------------- comparison
-
-
 def _alone(
     built: dict[str, Any],
     problem: ScenarioProblem,
@@ -428,15 +381,11 @@ def _alone(
     warmup: bool,
     progress: bool,
 ) -> tuple[dict[str, dict[str, Any]], list[dict[str, Any]]]:
-    """The fast solver's closed loop again, without IPOPT or csnlp solves in between.
-
-    Side by side, every fast solve follows an IPOPT or csnlp solve that has evicted its
-    data from the caches; this is the loop as a controller runs it. ``plan_difference_max``
-    compares the plans with the side-by-side ones: qpOASES hot-starts from each QP
-    object's last active set, so they agree to solver tolerance rather than bit for bit.
+    """The fast solver's closed loop again without other solves in between (their cache
+    evictions); ``plan_difference_max`` against the side-by-side plans.
 
     Returns:
-        ``(timing figures per fast solver, their failed solves (:func:`failures_of`))``.
+        ``(timing figures per fast solver, their failed solves)``.
     """
     fast = {name: built[name] for name in FAST_SOLVERS if name in built}
     if not fast or len(fast) == len(built):
@@ -465,32 +414,20 @@ def time_solvers(
     warmup: bool = True,
     progress: bool = False,
 ) -> dict[str, Any]:
-    """Time solvers side by side on closed-loop problems, each warm-started from its own past.
-
-    Every solver solves the problems in the given order; before each new seed every solver
-    is reset. Problems are interleaved: for each problem, all solvers run one after another
-    (in a rotating order). After the timed loop, problems whose objective differs from the
-    reference's by more than :data:`GAP_TOL` are re-solved from the reference's solution
-    (untimed) to tell a different local optimum from an inaccurate one, lower plans are
-    probed for local optimality, and the fast solver runs the closed loop again alone.
+    """Time solvers side by side on closed-loop problems, each warm-started from its own past,
+    then re-solve gaps from the reference, probe lower plans and run the fast solver alone.
 
     Args:
-        problems: ``(seed, step, x0, W)`` tuples, e.g. from
-            :func:`experiments.benchmark.problems.record_problems`.
+        problems: ``(seed, step, x0, W)`` tuples (:func:`.problems.record_problems`).
         solvers: names from :data:`controllers.solvers.SOLVERS`.
-        problem: the problem data; by default built from ``config`` with the scenario count
-            and horizon of the first ``W``.
+        problem: the problem data; by default from ``config`` at the first ``W``'s size.
         config: used only when ``problem`` is ``None``.
         warmup: one untimed solve per solver before timing.
         progress: show progress bars.
 
     Returns:
-        ``{"problem": {"horizon", "n_scenarios"}, "n_problems", "problems": [{"seed",
-        "step"}], "solvers": {name: {"available", "reason", "build_time_s", "label"}},
-        "reference": name or None, "records": {name: [per-problem dicts]},
-        "summary": {name: timing and accuracy figures}, "speedup": {name: ratios over
-        fast}, "alone": {fast solver: timing figures}, "failures": every failed solve
-        (:func:`failures_of`), side by side and alone}``. Times in ms, build times in s.
+        ``{"problem", "n_problems", "problems", "solvers", "reference", "records",
+        "summary", "speedup", "alone", "failures"}``; times in ms, build times in s.
 
     Raises:
         ValueError: for an unknown solver name, or no problems and no ``problem``.
@@ -531,25 +468,3 @@ def time_solvers(
         "alone": alone,
         "failures": failed + alone_failures,
     }
-
-
-__all__ = [
-    "FAST_SOLVERS",
-    "SOLVER_VARIANTS",
-    "GAP_TOL",
-    "NO_SLACK_TOL",
-    "REFERENCES",
-    "SOLVER_LABELS",
-    "accuracy_summary",
-    "build_solver",
-    "build_solvers",
-    "certify_lower_plans",
-    "relative_gap",
-    "restart_check",
-    "run_interleaved",
-    "solve_record",
-    "speedups",
-    "time_solvers",
-    "timing_summary",
-    "worse_problems",
-]

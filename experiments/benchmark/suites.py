@@ -1,17 +1,7 @@
-"""The benchmark's other parts: horizon and scenario-count sweeps, the filter, one episode.
-
-* :func:`sweep_horizons`: the fast solver and IPOPT (condensed) side by side on
-  closed-loop problems recorded at each horizon ``N``; times, failures, objective gaps.
-* :func:`sweep_scenarios`: solve time against the scenario count ``Ns`` on problems drawn
-  around recorded closed-loop estimates, as the scenario agent draws them.
-* :func:`first_solve`: building the fast solver and its first solve, twice: first in an
-  empty C library cache (the C library's cold compile included), then with it warm.
-* :func:`time_particle_filter`: one filter step (model transition + update) and the update
-  alone, for several particle counts.
-* :func:`time_episode`: the wall time of a whole scenario-agent episode.
-
-The closed-loop solver comparison is :func:`experiments.benchmark.solvers.time_solvers`.
-Everything is built from the config; nothing here knows the system.
+"""The benchmark's other parts: :func:`sweep_horizons` (fast and condensed IPOPT at several
+``N``), :func:`sweep_scenarios` (solve time against ``Ns``), :func:`first_solve` (build and
+first solve, in an empty C library cache then warm), :func:`time_particle_filter` and
+:func:`time_episode`. Everything is built from the config.
 """
 
 from __future__ import annotations
@@ -87,15 +77,10 @@ def sweep_scenarios(
     rng_seed: int = 0,
     progress: bool = False,
 ) -> dict[str, Any]:
-    """Solve time against the scenario count ``Ns`` on closed-loop-like problems.
-
-    For each anchor (a recorded estimate: physical state ``x0``, latent state ``z``) the
-    ``Ns`` scenarios are drawn by :func:`experiments.benchmark.problems.scenario_draws`. The
-    anchors of each seed are solved in closed-loop order with warm starts (reset at each
-    seed). The fast solver (:data:`SWEEP_SOLVERS`) runs at every ``Ns``, its variants
-    (:data:`experiments.benchmark.solvers.SOLVER_VARIANTS`: the C library on two threads) from
-    :data:`SWEEP_VARIANTS_MIN_NS` on and at the largest ``Ns`` of the list; IPOPT on the
-    condensed NLP, the objective reference, only for ``Ns <= ipopt_max_ns``.
+    """Solve time against the scenario count ``Ns`` on problems drawn around recorded estimates
+    (:func:`.problems.scenario_draws`), each seed's anchors in closed-loop order, warm-started.
+    The fast solver runs at every ``Ns``, its variants from :data:`SWEEP_VARIANTS_MIN_NS` and at
+    the largest, IPOPT (the objective reference) up to ``ipopt_max_ns``.
 
     Args:
         ns_list: scenario counts.
@@ -103,9 +88,9 @@ def sweep_scenarios(
         config: a YAML path, a dict (whole file), an ExperimentConfig or ``None``.
         anchors: recorded estimates; by default recorded here from ``seeds``.
         seeds: env seeds used when ``anchors`` is ``None``.
-        steps_per_seed: use at most this many anchors per seed (``None``: all).
+        steps_per_seed: at most this many anchors per seed (``None``: all).
         ipopt_max_ns: largest ``Ns`` at which IPOPT is timed.
-        rng_seed: seed of the scenario draws (the same draws for every solver).
+        rng_seed: seed of the scenario draws (the same for every solver).
         progress: show progress bars.
 
     Returns:
@@ -150,15 +135,11 @@ def sweep_scenarios(
 def objective_agreement(
     records: list[dict[str, Any]], reference: list[dict[str, Any]], tol: float = GAP_TOL
 ) -> dict[str, Any]:
-    """Per-problem relative objective gaps of a solver to a reference, and their shares.
-
-    A problem counts as *within* when the solver's objective is at most ``tol``
-    (relative) above the reference's (lower is at least as good); a failed or raised
-    solve never counts as within. The denominator is every problem the reference solved.
+    """Per-problem relative objective gaps to a reference: *within* means at most ``tol`` above
+    it (a failed solve never is), over every problem the reference solved.
 
     Returns:
-        ``{"n_compared", "n_within", "share_within_pct", "n_within_abs" (``|gap| <=
-        tol``), "gaps": [{"seed", "step", "rel_gap"}]}``.
+        ``{"n_compared", "n_within", "share_within_pct", "n_within_abs", "gaps"}``.
     """
     gaps, within, within_abs = [], 0, 0
     for rec, ref in zip(records, reference, strict=True):
@@ -186,16 +167,11 @@ def feasibility_summary(
     Args:
         problem: the scenario problem of these data.
         problems: ``(seed, step, x0, W)`` tuples.
-        records: a solver's :func:`solve_record` per problem (same order), to compare its
-            plans' slack with the bound.
+        records: a solver's :func:`solve_record` per problem, to compare its slack with the bound.
 
     Returns:
-        ``{"n_problems", "n_infeasible", "seeds_infeasible", "bound_median",
-        "bound_max", "slack_over_bound_median", "infeasible"}``: the bound is the least
-        total slack of the shared linear constraints over every input (constraint units;
-        the bicycle: m/s); ``slack_over_bound_median`` is the solver's total slack over the
-        bound, median over the infeasible problems (NaN without records or infeasible
-        problems); ``infeasible`` lists ``{"seed", "step", "least_slack"}`` of those.
+        ``{"n_problems", "n_infeasible", "seeds_infeasible", "bound_median", "bound_max",
+        "slack_over_bound_median", "infeasible"}`` (bounds in constraint units).
     """
     shared = SharedConstraints.of(problem)
     bounds = np.array(
@@ -270,37 +246,26 @@ def sweep_horizons(
     closed_loop_problems: Sequence[Any] | None = None,
     solvers: Sequence[str] = HORIZON_SOLVERS,
 ) -> dict[str, Any]:
-    """The fast solver and IPOPT (condensed) side by side at several horizons ``N``.
-
-    At each ``N`` the scenario agent runs the config's episodes with ``agents.horizon``
-    set to ``N`` (:func:`experiments.benchmark.problems.record_closed_loop`, the first
-    ``steps_per_seed`` steps of each seed), and both solvers solve the recorded problems
-    in closed-loop order, warm-started, interleaved. At the horizon of ``closed_loop``
-    (the main comparison's result) its records are reused instead, when both solvers are
-    in it.
+    """The fast solver and IPOPT (condensed) side by side at several horizons ``N``, on problems
+    recorded by the scenario agent at that ``N``, in closed-loop order, warm-started,
+    interleaved (at ``closed_loop``'s horizon its records are reused).
 
     Args:
         horizons: prediction steps ``N``.
         config: a YAML path, a dict (whole file), an ExperimentConfig or ``None``.
         seeds: env seeds.
-        steps_per_seed: problems per seed, one count for every ``N`` or a dict by ``N``
-            (default :data:`DEFAULT_HORIZON_STEPS`, 5 for an ``N`` not in it); ``None``
-            entries: whole episodes.
-        closed_loop: the result of :func:`experiments.benchmark.solvers.time_solvers`.
-        max_time: wall-clock limit of one solve [s] (the solvers' ``max_time``), one for
-            both or a dict by solver name (default :data:`HORIZON_MAX_TIME_S`); a solve
-            that reaches it fails (kind ``wall_time``).
+        steps_per_seed: problems per seed, one count or a dict by ``N``
+            (:data:`DEFAULT_HORIZON_STEPS`); ``None``: whole episodes.
+        closed_loop: the result of :func:`.solvers.time_solvers`.
+        max_time: wall-clock limit of one solve [s], one or a dict by solver
+            (:data:`HORIZON_MAX_TIME_S`); reaching it fails (kind ``wall_time``).
         progress: show progress bars.
-        closed_loop_problems: the problems of ``closed_loop`` (for its row's
-            feasibility figures).
-        solvers: the solvers timed (default :data:`HORIZON_SOLVERS`; ``("fast",)`` leaves
-            IPOPT out, and with it the objective agreement: ``lfm-benchmark --quick``).
+        closed_loop_problems: the problems of ``closed_loop`` (its feasibility figures).
+        solvers: the solvers timed (:data:`HORIZON_SOLVERS`; ``("fast",)``: no agreement).
 
     Returns:
         ``{"results": [{"horizon", "n_scenarios", "n_problems", "source", "solvers",
-        "summary", "agreement" (:func:`objective_agreement` of fast to IPOPT),
-        "feasibility" (:func:`feasibility_summary`, with the fast solver's slack; None
-        without the problems), "failures"}]}``, times in milliseconds.
+        "summary", "agreement", "feasibility", "failures"}]}``, times in milliseconds.
     """
     cfg = experiment_config(config)
     counts = DEFAULT_HORIZON_STEPS if steps_per_seed is None else steps_per_seed
@@ -361,20 +326,13 @@ def first_solve(
     builds: int = 2,
     cold: bool = True,
 ) -> dict[str, Any]:
-    """Build a solver and time its first solve, ``builds`` times in a row.
-
-    With ``cold`` the first build runs in an empty, temporary C library cache
-    (:func:`controllers.solvers.fast.codegen.build.fresh_cache`), so it pays the compilation of a
-    C library whatever was built before (the real cache is left alone); without it,
-    the first build finds whatever the cache holds. Later builds show the warm cache. Each
-    row reads the solver's ``backend`` and its model's ``compile_time`` and cache-hit flag
-    where they exist, and says which cache it used (``codegen_cache``: ``"fresh"`` or
+    """Build a solver and time its first solve, ``builds`` times in a row; with ``cold`` the
+    first build in an empty temporary C library cache (``codegen_cache``: ``"fresh"`` or
     ``"as found"``).
 
     Args:
         config: a YAML path, a dict (whole file), an ExperimentConfig or ``None``.
-        problem_data: ``(x0, W)`` of the first solve; by default the env's start with
-            scenarios drawn around a zero latent state.
+        problem_data: ``(x0, W)`` of the first solve; by default the env's start.
         solver: the registry name.
         builds: how many times to build and solve.
 
@@ -435,16 +393,9 @@ def time_particle_filter(
     n_steps: int = 200,
     seed: int = 0,
 ) -> dict[str, Any]:
-    """Time one particle-filter step (model transition + update) and the update alone.
-
-    Beside it, the same filter with NumPy's ziggurat normals (``fast_normals=False``, the
-    filter before the Box-Muller draws) is timed on the same measurements, interleaved.
-
-    The filter is the filtering agents' (their model's transition, the Gaussian likelihood
-    of the full-state measurement, the config's resampling rule, the prior around the
-    first measurement). It tracks a truth simulated with the env's model from the env's
-    start, driven by a constant input (:data:`PF_INPUT_OFFSET`), so every update sees a
-    plausible measurement.
+    """Time one particle-filter step (transition + update) and the update alone, beside the same
+    filter with NumPy's normals, tracking a truth simulated from the env's start under the
+    constant input :data:`PF_INPUT_OFFSET`.
 
     Args:
         n_particles: filter sizes.
@@ -453,9 +404,7 @@ def time_particle_filter(
         seed: seed of the env start, the simulation and the filter.
 
     Returns:
-        ``{"n_steps", "results": [{"n_particles", "step_ms_median", "step_ms_p95",
-        "step_ms_max", "update_ms_median", "update_ms_p95", "predict_ms_median",
-        "numpy_normals_step_ms_median"}]}``.
+        ``{"n_steps", "results": [{"n_particles", "step_ms_median", ...}]}``.
     """
     from controllers.estimators.particle_filter import ParticleFilter, gaussian_log_likelihood
     from lfm_env.model import psd_factor
@@ -528,15 +477,8 @@ def time_particle_filter(
 def time_episode(
     config: Any = DEFAULT_CONFIG, seed: int = 0, solver: str = RECORDING_SOLVER
 ) -> dict[str, Any]:
-    """Wall time of one whole scenario-agent episode.
-
-    ``setup_s`` (making the env and the agent, i.e. building the solver) is reported apart
-    from ``episode_s``, the wall time from ``env.reset`` to the end of the episode.
-
-    Args:
-        config: a YAML path, a dict (whole file), an ExperimentConfig or ``None``.
-        seed: env seed; the agent is seeded with it too.
-        solver: the agent's solver.
+    """Wall time of one whole scenario-agent episode: ``setup_s`` (env and agent) apart from
+    ``episode_s`` (``env.reset`` to the end), with env and agent seed ``seed``.
     """
     import gymnasium as gym
 
@@ -579,20 +521,3 @@ def time_episode(
         **_milliseconds("solve", solve, "median", "p95", "max"),
         **_milliseconds("estimate", estimate, "median"),
     }
-
-
-__all__ = [
-    "DEFAULT_HORIZONS",
-    "DEFAULT_HORIZON_STEPS",
-    "DEFAULT_PF_SIZES",
-    "HORIZON_MAX_TIME_S",
-    "DEFAULT_SWEEP_NS",
-    "DEFAULT_SWEEP_STEPS",
-    "feasibility_summary",
-    "first_solve",
-    "objective_agreement",
-    "sweep_horizons",
-    "sweep_scenarios",
-    "time_episode",
-    "time_particle_filter",
-]

@@ -1,21 +1,7 @@
-"""Command lines of the project: thin layers that parse arguments and call library functions.
-
-Each command is a ``<name>_main(argv=None) -> int`` function registered as a console
-script in ``pyproject.toml`` (``lfm-evaluate = "experiments.cli:evaluate_main"``). Bad
-arguments exit with code 2 and a
-one-line message (``argparse``'s ``parser.error``); so do operating-system errors (disk
-full, a read-only or impossible output path) and running out of memory
-(:func:`~experiments.cli.common.one_line_errors`). Ctrl-C prints one line and exits with
-code 130.
-
-One module per command: :mod:`~experiments.cli.evaluate` (``lfm-evaluate``),
-:mod:`~experiments.cli.report` (``lfm-report``), :mod:`~experiments.cli.sweep`
-(``lfm-sweep``), :mod:`~experiments.cli.render` (``lfm-render``),
-:mod:`~experiments.cli.benchmark` (``lfm-benchmark``), :mod:`~experiments.cli.calibrate`
-(``lfm-calibrate``), :mod:`~experiments.cli.train` (``lfm-train``),
-:mod:`~experiments.cli.export` (``lfm-export``); what they share in
-:mod:`~experiments.cli.common`. The work is done by library functions, which import nothing
-from here. This package gives the entry points and the shared helpers.
+"""Command lines: thin ``<name>_main(argv=None) -> int`` layers (console scripts in
+``pyproject.toml``) that parse arguments and call library functions. Bad arguments and
+operating-system errors exit 2 with one line (:func:`~experiments.cli.common.one_line_errors`),
+Ctrl-C exits 130.
 """
 
 import argparse

@@ -59,12 +59,8 @@ QUICK = {
 def parse_seeds(text: str) -> list[int]:
     """Seeds from ``"0:3"`` (end exclusive), ``"5"`` or ``"1,4,7"`` (ranges may be mixed in).
 
-    The syntax of :func:`experiments.evaluation.run.parse_seeds`, with the error worded for
-    this command line.
-
     Raises:
-        ValueError: naming ``text`` when it is not a list of non-negative integers and
-            non-empty ranges.
+        ValueError: naming ``text`` when it is not non-negative integers and ranges.
     """
     try:
         return parse_evaluation_seeds(text)
@@ -75,11 +71,7 @@ def parse_seeds(text: str) -> list[int]:
 
 
 def parse_ints(text: str, name: str) -> list[int]:
-    """Positive integers from ``"7,15,30"``.
-
-    Raises:
-        ValueError: naming ``name`` when an entry is not an integer >= 1.
-    """
+    """Positive integers from ``"7,15,30"``; ``ValueError`` naming ``name`` otherwise."""
     try:
         values = [int(x) for x in text.split(",") if x.strip()]
     except ValueError:
@@ -90,11 +82,7 @@ def parse_ints(text: str, name: str) -> list[int]:
 
 
 def parse_threshold(text: str) -> tuple[str, float]:
-    """``KEY=VALUE`` of ``--threshold``, checked against the known keys.
-
-    Raises:
-        argparse.ArgumentTypeError: naming the bad key or value and the known keys.
-    """
+    """``KEY=VALUE`` of ``--threshold``; ``ArgumentTypeError`` naming a bad key or value."""
     key, sep, value = text.partition("=")
     try:
         if not sep:
@@ -129,9 +117,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_config_argument(parser)
     parser.add_argument(
-        "--seeds",
-        default=None,
-        help="episode seeds, e.g. '0:6' or '0,5' (default: 0:6; quick: 0)",
+        "--seeds", default=None, help="episode seeds, e.g. '0:6' or '0,5' (default: 0:6; quick: 0)"
     )
     parser.add_argument(
         "--max-steps",
@@ -269,10 +255,8 @@ def _solver_list(text: str, skip: Sequence[str]) -> list[str]:
 
 @one_line_errors("lfm-benchmark")
 def benchmark_main(argv: Sequence[str] | None = None) -> int:
-    """Command line: run the benchmark, print the report, write JSON and Markdown.
-
-    Returns:
-        0, or 1 with ``--check`` when a check fails.
+    """Command line: run the benchmark, print the report, write JSON and Markdown; returns 0, or 1
+    with ``--check`` when a check fails.
     """
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -327,16 +311,6 @@ def benchmark_main(argv: Sequence[str] | None = None) -> int:
         return 1
     return 0
 
-
-__all__ = [
-    "QUICK",
-    "QUICK_SOLVERS",
-    "benchmark_main",
-    "build_parser",
-    "parse_ints",
-    "parse_seeds",
-    "parse_threshold",
-]
 
 if __name__ == "__main__":
     raise SystemExit(benchmark_main())

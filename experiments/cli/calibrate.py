@@ -64,11 +64,8 @@ def _calibrate_parser() -> argparse.ArgumentParser:
 
 @one_line_errors("lfm-calibrate")
 def calibrate_main(argv: Sequence[str] | None = None) -> int:
-    """``lfm-calibrate``: learn the latent force's hyperparameters from calibration episodes.
-
-    An unwritable ``--out``, or an existing one without ``--force``, is refused before the
-    episodes run; operating-system errors
-    give one line and exit code 2 (:func:`experiments.cli.one_line_errors`).
+    """``lfm-calibrate``: learn the latent force's hyperparameters from calibration episodes (an
+    unwritable ``--out``, or an existing one without ``--force``, is refused first).
     """
     parser = _calibrate_parser()
     args = parser.parse_args(argv)
@@ -106,6 +103,3 @@ def calibrate_main(argv: Sequence[str] | None = None) -> int:
         write_learned_config(config, result, args.out)
         print(f"learned config: {args.out}")
     return 0
-
-
-__all__ = ["calibrate_main"]

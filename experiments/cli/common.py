@@ -26,11 +26,10 @@ def os_error_text(exc: OSError) -> str:
 
 
 def one_line_errors(prog: str) -> Callable:
-    """Decorate a ``main(argv) -> int``: an ``OSError`` or ``MemoryError`` escaping it is
-    printed as one line ``<prog>: error: ...`` on stderr and gives exit code 2, and
-    Ctrl-C (``KeyboardInterrupt``) one line ``<prog>: interrupted`` and exit code 130,
-    instead of a traceback. ``main`` runs under
-    :func:`experiments.evaluation.interrupts.remember_interrupts` (SIGTERM ends it like Ctrl-C)."""
+    """Decorate a ``main(argv) -> int``: an escaping ``OSError`` or ``MemoryError`` prints
+    ``<prog>: error: ...`` and exits 2, Ctrl-C prints ``<prog>: interrupted`` and exits 130;
+    ``main`` runs under :func:`~experiments.evaluation.interrupts.remember_interrupts`.
+    """
 
     def decorate(main: Callable[..., int]) -> Callable[..., int]:
         @functools.wraps(main)
@@ -58,10 +57,8 @@ def one_line_errors(prog: str) -> Callable:
 
 
 def check_writable(path: str | os.PathLike, what: str) -> str | None:
-    """Why the file ``path`` cannot be written (one line naming ``what``), else ``None``.
-
-    Creates the missing parent folders and a temporary file beside ``path`` (removed at
-    once), so an unwritable, read-only or impossible path is found before any work.
+    """Why the file ``path`` cannot be written (one line naming ``what``), else ``None``; creates
+    its parent folders and tries a temporary file beside it.
     """
     target = Path(path)
     if target.is_dir():
@@ -87,15 +84,8 @@ def positive_int(text: str) -> int:
 
 
 def config_file(given: str | os.PathLike | None) -> Path:
-    """The config file of a ``--config`` value: a path to a YAML file, or a preset's name.
-
-    Every command with ``--config`` finds its file here, as every function that takes a
-    config does (:func:`lfm_env.config.presets.config_path`): a path that names an existing
-    file wins; otherwise ``given`` is looked up among the presets shipped in the package
-    (``paper``, ``quick``, ``quadrotor``, with or without ``.yaml``), from any folder.
-
-    Args:
-        given: the option's value; ``None`` for the default preset (``paper``).
+    """The config file of a ``--config`` value: an existing YAML path, else a preset's name
+    (``None``: ``paper``), as :func:`lfm_env.config.presets.config_path`.
 
     Raises:
         ValueError: naming ``given`` and the preset names, if it is neither.
@@ -178,13 +168,7 @@ def config_argument(
 def add_executor_arguments(parser: argparse.ArgumentParser, jobs_help: str) -> None:
     """``--jobs``, ``--scheduler`` and ``--dask-workers``: where the episodes run (checked
     together by :func:`seeds_and_executor`)."""
-    parser.add_argument(
-        "--jobs",
-        type=positive_int,
-        default=1,
-        metavar="N",
-        help=jobs_help,
-    )
+    parser.add_argument("--jobs", type=positive_int, default=1, metavar="N", help=jobs_help)
     parser.add_argument(
         "--scheduler",
         metavar="ADDRESS",

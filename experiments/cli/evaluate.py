@@ -149,11 +149,8 @@ def _print_summary(rows: list[dict]) -> None:
 
 @one_line_errors("lfm-evaluate")
 def evaluate_main(argv: Sequence[str] | None = None) -> int:
-    """``lfm-evaluate``: evaluate agents over seeds and write the results (see ``--help``).
-
-    Returns:
-        The exit code: 0 if every episode ran, 1 if some raised an error, 2 if the report
-        failed (the results are kept).
+    """``lfm-evaluate``: evaluate agents over seeds and write the results; exit code 0 if every
+    episode ran, 1 if some raised, 2 if the report failed (the results are kept).
     """
     from experiments.evaluation import evaluate
 
@@ -209,9 +206,3 @@ def evaluate_main(argv: Sequence[str] | None = None) -> int:
                 return 2
             print(f"report: {where if where is not None else out}")
     return 1 if n_errors else 0
-
-
-# --------------------------------------------------------------------------- lfm-report
-
-
-__all__ = ["evaluate_main"]

@@ -70,6 +70,3 @@ def export_main(argv: Sequence[str] | None = None) -> int:
         print(f"  note: {note}")
     print(f"  build: make -C {result.out}    then: {result.out}/example PROBLEM.txt")
     return 0
-
-
-__all__ = ["export_main"]

@@ -141,11 +141,7 @@ RENDER_MEMORY_BUDGET = 2 * 1024**3
 
 @one_line_errors("lfm-render")
 def render_main(argv: Sequence[str] | None = None) -> int:
-    """``lfm-render``: run one episode and write it as a GIF or PNG (see ``--help``).
-
-    Returns:
-        The exit code: 0 when the file was written.
-    """
+    """``lfm-render``: run one episode and write it as a GIF or PNG; 0 when written."""
     from controllers.agents import AGENT_REGISTRY
     from experiments.plots import write_gif
 
@@ -193,6 +189,3 @@ def render_main(argv: Sequence[str] | None = None) -> int:
         iio.imwrite(out, frames[-1] if args.frame == "last" else frames[0])
     print(f"{out}: {len(frames)} frame(s), {len(frames) - 1} step(s) of {args.agent}")
     return 0
-
-
-__all__ = ["MAX_RENDER_SIDE", "RENDER_MEMORY_BUDGET", "render_main"]

@@ -117,11 +117,7 @@ def _nothing_to_report_yet(folder: Path) -> str | None:
 
 @one_line_errors("lfm-report")
 def report_main(argv: Sequence[str] | None = None) -> int:
-    """``lfm-report``: write the report of a results folder (see ``--help``).
-
-    Returns:
-        The exit code: 0 when the report was written.
-    """
+    """``lfm-report``: write the report of a results folder; 0 when written."""
     from experiments.report import write_report
 
     parser = _report_parser()
@@ -151,9 +147,3 @@ def report_main(argv: Sequence[str] | None = None) -> int:
         parser.error(" ".join(str(exc).split()))
     print(f"report: {path} and {path.with_suffix('.html')}")
     return 0
-
-
-# --------------------------------------------------------------------------- lfm-sweep
-
-
-__all__ = ["report_main"]

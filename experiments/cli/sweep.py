@@ -90,11 +90,7 @@ def _sweep_parser() -> argparse.ArgumentParser:
 
 @one_line_errors("lfm-sweep")
 def sweep_main(argv: Sequence[str] | None = None) -> int:
-    """``lfm-sweep``: sweep one agent setting against a baseline (see ``--help``).
-
-    Returns:
-        The exit code: 0 if every episode ran, 1 if some raised an error.
-    """
+    """``lfm-sweep``: sweep one agent setting against a baseline; 0 if every episode ran, else 1."""
     from experiments.report.sweep_summary import sweep_errors
     from experiments.sweep import run_sweep
 
@@ -122,9 +118,3 @@ def sweep_main(argv: Sequence[str] | None = None) -> int:
     if n_errors:
         print(f"{n_errors} episodes raised an error; rerun the same command to retry them")
     return 1 if n_errors else 0
-
-
-# --------------------------------------------------------------------------- lfm-render
-
-
-__all__ = ["sweep_main"]

@@ -127,6 +127,3 @@ def train_main(argv: Sequence[str] | None = None) -> int:
         "--agents rl,nominal,scenario"
     )
     return 0
-
-
-__all__ = ["train_main"]

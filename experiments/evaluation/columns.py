@@ -1,10 +1,6 @@
-"""The columns of the evaluation's episode table (``episodes.csv``), and how rows fill them.
-
-A row is :data:`HEAD_COLUMNS`, then the columns of the system's constraint groups
-(:func:`group_columns`: per group its largest excess and the steps it was violated, and
-the steps beyond each tolerance, :func:`tolerance_columns`), then :data:`TAIL_COLUMNS`;
-:func:`row_columns` gives them in order for a system, :func:`violation_counts` the group
-counts of a trajectory. :data:`TIMING_COLUMNS` differ between otherwise identical runs.
+"""The columns of ``episodes.csv``: :data:`HEAD_COLUMNS`, the system's constraint-group columns
+(:func:`group_columns`), :data:`TAIL_COLUMNS` (:func:`row_columns`); :data:`TIMING_COLUMNS`
+differ between otherwise identical runs.
 """
 
 from __future__ import annotations
@@ -99,10 +95,8 @@ def tolerance_column(group: str, tolerance: float) -> str:
 
 
 def tolerance_columns(system: Any) -> tuple[tuple[str, float, str], ...]:
-    """``(group, tolerance, column)`` of every tolerance-aware violation count of a system.
-
-    From ``system.violation_tolerances`` (group -> excesses [group unit]), in the order
-    of the groups and of each group's tolerances; empty for a sequence of group names.
+    """``(group, tolerance, column)`` of every count beyond ``system.violation_tolerances`` [group
+    unit], in the groups' and tolerances' order; empty for a sequence of group names.
     """
     tolerances = getattr(system, "violation_tolerances", None) or {}
     return tuple(
@@ -113,20 +107,9 @@ def tolerance_columns(system: Any) -> tuple[tuple[str, float, str], ...]:
 
 
 def group_columns(system: Any) -> tuple[str, ...]:
-    """The metric columns of a system's constraint groups, in the groups' order.
-
-    Per group ``g`` (a key of ``system.constraint_groups``): ``{g}_violation_steps``
-    (steps ending with the group's excess above 0), ``max_{g}_excess`` (its largest
-    excess over the episode, in the group's constraint unit), then per tolerance ``t`` of
-    ``system.violation_tolerances[g]`` ``{g}_violation_steps_over_{t:g}`` (steps ending
-    with the excess above ``t``: a millimetre over a bound is not a crash). For the sine
-    track: ``track_violation_steps, max_track_excess, track_violation_steps_over_0.01,
-    track_violation_steps_over_0.05``, the same for ``x``, then ``speed_violation_steps,
-    max_speed_excess, speed_violation_steps_over_0.05``.
-
-    Args:
-        system: a :class:`~lfm_env.system.ControlSystem`, or its group names (then
-            without tolerance columns).
+    """Per constraint group ``g`` of ``system`` (or of a sequence of group names, then without
+    tolerances): ``{g}_violation_steps`` (excess above 0), ``max_{g}_excess`` (constraint unit),
+    then ``{g}_violation_steps_over_{t:g}`` per tolerance ``t``.
     """
     over: dict[str, list[str]] = {}
     for g, _, column in tolerance_columns(system):
@@ -139,15 +122,7 @@ def group_columns(system: Any) -> tuple[str, ...]:
 
 
 def row_columns(system: Any) -> tuple[str, ...]:
-    """Columns of a row of an episode on ``system``, in table order.
-
-    :data:`HEAD_COLUMNS`, then :func:`group_columns` of the system's constraint groups
-    (with their tolerance-aware counts), then :data:`TAIL_COLUMNS`.
-
-    Args:
-        system: a :class:`~lfm_env.system.ControlSystem` (e.g. ``config.make_system()``),
-            or its constraint-group names.
-    """
+    """Columns of a row of an episode on ``system`` (or its group names), in table order."""
     return HEAD_COLUMNS + group_columns(system) + TAIL_COLUMNS
 
 
@@ -158,11 +133,8 @@ _GROUP_COLUMN = re.compile(
 
 
 def _table_columns(rows: Iterable[dict[str, Any]]) -> tuple[str, ...]:
-    """The columns of saved rows: the fixed ones around the group columns they hold.
-
-    Groups come in first-seen order, each with the columns of it that some row holds
-    (``{g}_violation_steps``, ``max_{g}_excess``, then its tolerance counts by
-    increasing tolerance); other keys follow them.
+    """The columns of saved rows: the fixed ones around the group columns they hold (groups in
+    first-seen order, tolerances increasing), other keys after.
     """
     seen: dict[str, None] = {}
     for row in rows:
@@ -196,16 +168,8 @@ def _is_count_column(column: str) -> bool:
 
 
 def violation_counts(trajectory: dict[str, np.ndarray], system: Any) -> dict[str, int]:
-    """The raw and tolerance-aware violation steps of a trajectory's ``<group>_excess``.
-
-    ``{g}_violation_steps`` counts the steps whose group excess is above 0 and
-    ``{g}_violation_steps_over_{t:g}`` those above ``t`` (:func:`tolerance_columns`).
-    Groups whose ``<group>_excess`` array the trajectory lacks are left out, so an older
-    saved episode gives what it can.
-
-    Args:
-        trajectory: arrays of one episode (:func:`run_episode`), ``<group>_excess (T,)``.
-        system: the episode's :class:`~lfm_env.system.ControlSystem`.
+    """The raw and tolerance-aware violation steps of a trajectory's ``<group>_excess (T,)`` arrays
+    (groups without one left out).
     """
     counts: dict[str, int] = {}
     for g in _group_names(system):
@@ -220,15 +184,3 @@ def violation_counts(trajectory: dict[str, np.ndarray], system: Any) -> dict[str
 
 def _metric_columns(columns: Sequence[str]) -> tuple[str, ...]:
     return tuple(c for c in columns if c not in ("agent", "seed", "wall_time", "error"))
-
-
-__all__ = [
-    "group_columns",
-    "HEAD_COLUMNS",
-    "row_columns",
-    "TAIL_COLUMNS",
-    "TIMING_COLUMNS",
-    "tolerance_column",
-    "tolerance_columns",
-    "violation_counts",
-]

@@ -1,10 +1,5 @@
-"""One closed-loop episode of an agent, and the inputs every run checks first.
-
-:func:`run_episode` runs one (agent, env seed) episode on the config's world and returns its
-row of metrics (the columns of :mod:`experiments.evaluation.columns`) and its trajectory. The
-agent's own randomness is seeded by :func:`agent_seed` (paired design: see
-:mod:`experiments.evaluation.run`). :func:`resolve_config` reads and validates a config once,
-:func:`parse_seeds` reads seeds from text.
+"""One closed-loop episode of an agent (:func:`run_episode`), and the inputs every run checks
+first (:func:`resolve_config`, :func:`parse_seeds`, :func:`check_seeds`).
 """
 
 from __future__ import annotations
@@ -14,6 +9,7 @@ import math
 import os
 import re
 import time
+from collections import defaultdict
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
@@ -35,15 +31,10 @@ from experiments.evaluation.limits import check_deadline
 from lfm_env.config import show_value
 from lfm_env.validation import one_line, real_vector
 
-# --------------------------------------------------------------------------- small helpers
-
 
 def agent_seed(seed: int, agent_name: str) -> int:
-    """The seed of an agent's own randomness in the episode with env seed ``seed``.
-
-    Derived from the env seed and a stable hash of the agent's name (``hash()`` of a str
-    changes between processes), so it is the same in every worker and independent of the
-    env's streams and of the other agents'.
+    """The seed of an agent's own randomness in the episode with env seed ``seed``: from the env
+    seed and a stable hash of the agent's name, the same in every worker.
     """
     name_key = int.from_bytes(hashlib.sha256(agent_name.encode()).digest()[:8], "little")
     state = np.random.SeedSequence([int(seed), name_key]).generate_state(1, dtype=np.uint64)
@@ -53,17 +44,9 @@ def agent_seed(seed: int, agent_name: str) -> int:
 def resolve_config(
     config: ExperimentConfig | str | os.PathLike | dict | None = None, agents: Any = ()
 ) -> ExperimentConfig:
-    """The full config, resolved once (:func:`~controllers.config.load_config`) and checked
-    for the agents that will run on it: workers get this object, not a path.
-
-    Args:
-        config: an :class:`~controllers.config.ExperimentConfig`, a preset's name, a YAML
-            path, a dict (whole file), or ``None`` for the built-in defaults (the paper's
-            values). Missing keys take their defaults.
-        agents: the agents that will run on it (names or records,
-            :func:`~controllers.agents.registry.resolve_agents`); what each needs is checked
-            (:meth:`~controllers.agents.registry.AgentSpec.check_config`: a user's agent is
-            built once).
+    """The full config, resolved once (:func:`~controllers.config.load_config`: an
+    ``ExperimentConfig``, a preset's name, a YAML path, a dict or ``None``) and checked for
+    ``agents`` (:meth:`~controllers.agents.registry.AgentSpec.check_config`).
 
     Raises:
         ConfigError: (a ``ValueError``) for unknown keys or out-of-range values.
@@ -78,14 +61,12 @@ MAX_SEEDS = 1_000_000  # seeds of one run (a larger range is a typo, not a plan)
 
 
 def parse_seeds(text: str) -> list[int]:
-    """Seeds from text: ``"0:20"`` (end exclusive), ``"3"``, ``"1,5,9"``, ``"0:10,20:25"``.
-
-    Returns:
-        The seeds in the order given, duplicates removed.
+    """Seeds from text: ``"0:20"`` (end exclusive), ``"3"``, ``"1,5,9"``, ``"0:10,20:25"``, in the
+    order given, duplicates removed.
 
     Raises:
-        ValueError: naming ``text`` for empty or reversed ranges, negative numbers or
-            anything else that is not a list of non-negative integers and ranges.
+        ValueError: naming ``text`` for empty or reversed ranges or anything but
+            non-negative integers and ranges.
     """
     if not isinstance(text, str) or not text.strip():
         raise ValueError(f"seeds {text!r}: expected e.g. '0:20', '3', '1,5,9' or '0:10,20:25'")
@@ -116,8 +97,7 @@ def check_seeds(seeds: int | str | Iterable[int]) -> list[int]:
     """The env seeds of a run: integers >= 0, or a text for :func:`parse_seeds`.
 
     Raises:
-        ValueError: naming the bad seed, for an empty list, duplicates, more than
-            :data:`MAX_SEEDS`, or anything but non-negative integers.
+        ValueError: naming the bad seed: empty, duplicates, more than :data:`MAX_SEEDS`.
     """
     if isinstance(seeds, str):
         return parse_seeds(seeds)
@@ -140,21 +120,14 @@ def check_seeds(seeds: int | str | Iterable[int]) -> list[int]:
     return out
 
 
-# --------------------------------------------------------------------------- one episode
-
-
 #: Scenarios of the plan kept per step in ``predicted_scenarios`` (the first ones: the
 #: scenarios are independent draws, so these are a random subset of the fan).
 SAVED_SCENARIOS = 20
 
 
 class _EpisodeRecorder:
-    """Collects one episode step by step; a step is appended whole, so a partial record
-    (after an exception) is still consistent.
-
-    Every key of the agent's ``last_info`` is optional, read with the default of
-    :data:`controllers.agents.protocol.INFO_DEFAULTS`: an agent with only ``reset`` and ``act``
-    has no solver failures, no fallbacks and NaN estimates.
+    """Collects one episode step by step (a step appended whole, so a partial record is
+    consistent); ``last_info`` keys default to :data:`controllers.agents.protocol.INFO_DEFAULTS`.
     """
 
     def __init__(self, config: ExperimentConfig) -> None:
@@ -167,35 +140,7 @@ class _EpisodeRecorder:
         self.system = system
         self.groups = tuple(system.constraint_groups)
         self.columns = row_columns(system)
-        self.lists: dict[str, list] = {
-            k: []
-            for k in (
-                "true_state",
-                "obs",
-                "time",
-                "action",
-                "latent_force",
-                "reward",
-                "estimate",
-                "estimate_std",
-                "latent_force_est",
-                "latent_force_std",
-                "predicted",
-                "predicted_scenarios",
-                "solve_time",
-                "step_time",
-                "deadline_stop",
-                "slack",
-                "solver_success",
-                "solver_usable",
-                "fallback",
-                "filter_reset",
-                "estimator",
-                "plan",
-                "latent_state",
-                *self._excess_keys(),
-            )
-        }
+        self.lists: dict[str, list] = defaultdict(list)  # per array key, its steps
         self.has_filter = False
         self.latent_width = 0  # entries of the env's latent state (info["latent_state"])
         self.slack_reported: list[bool] = []  # per step: the agent gave its slack
@@ -501,48 +446,29 @@ def _error_row(
 def run_episode(
     agent: Any, config: Any, seed: int, record: bool = True
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """Run one closed-loop episode of ``agent`` on the env with seed ``seed``.
-
-    The env is the config's world, ``gym.make(cfg.env_id, config=cfg.env)``, reset with
-    ``seed``; the agent's own randomness is seeded with :func:`agent_seed` (paired
-    design). The oracle (certainty-equivalent MPC that reads the hidden truth) is given the env.
+    """Run one closed-loop episode of ``agent`` on the config's env with seed ``seed``.
 
     Args:
-        agent: a registered name (``"nominal"``, ``"pf"``, ``"scenario"``, ``"oracle"``,
-            ...), an agent factory called as ``factory(config)``, an agent, or
-            ``"module:attribute"`` (:mod:`controllers.agents.registry`; the row's ``agent``
-            is the agent's name there).
-        config: a YAML path, a dict (whole file), an ``ExperimentConfig`` or ``None``
-            (paper defaults).
-        seed: env seed, an integer >= 0.
+        agent: a registered name, a factory ``factory(config)``, an agent, or
+            ``"module:attribute"`` (:mod:`controllers.agents.registry`).
+        config: a YAML path, a dict, an ``ExperimentConfig`` or ``None`` (paper defaults).
+        seed: env seed, an integer >= 0 (the agent's own: :func:`agent_seed`).
         record: return the trajectory; ``False`` gives an empty dict.
 
     Returns:
-        ``(row, trajectory)``. ``row`` maps :func:`row_columns` of the config's system to
-        values. With ``T`` steps, ``nx`` states, ``nu`` inputs and ``nw`` force components
-        (in the units of the system's ``state_names``, ``input_names`` and
-        ``force_names``), the trajectory holds ``true_state (T+1, nx)``, ``obs (T+1, nx)``
-        (noisy measurement of ``true_state``), ``time (T+1,)`` [s], ``action (T, nu)``
-        (applied), ``latent_force`` (the force acting during step k: ``(T,)`` when
-        ``nw == 1``, else ``(T, nw)``), ``reward (T,)``, ``estimate (T, d)`` and
-        ``estimate_std (T, d)`` (the agent's state estimate from ``obs[k]``; ``d`` = nx,
-        or nx + latent states for filter agents), ``latent_force_est`` and
-        ``latent_force_std`` (its estimate of ``latent_force[k]``, shaped like it; NaN
-        without a filter), ``predicted (T, N+1, nx)`` (first scenario's predicted
-        states), ``solve_time (T,)`` [s], ``slack (T,)``, ``solver_success (T,)``
-        (converged), ``solver_usable (T,)`` (a plan to apply), ``fallback (T,)`` ('' or
-        the fallback used), ``estimator (T,)`` (the name the agent gives its estimator in
-        ``last_info["estimator"]``, '' when it gives none),
-        ``<group>_excess (T,)`` per constraint group of the system (its largest
-        excess after step k, in its unit; ``track_excess``, ``x_excess``, ``speed_excess``
-        on the sine track), ``plan (T, N, nu)`` (the inputs the agent planned at step k,
-        its ``last_info["plan"]``; NaN when it gives none) and ``latent_state (T+1, p)``
-        (the env's hidden latent state acting in step k, ``info["latent_state"]``: for the
-        evaluation layer's offline checks, never given to an agent).
+        ``(row, trajectory)``: ``row`` maps :func:`row_columns` to values. With ``T`` steps
+        the trajectory holds ``true_state``, ``obs`` (noisy) ``(T+1, nx)``, ``time (T+1,)``
+        [s], ``action (T, nu)``, ``latent_force`` (acting in step k; ``(T,)`` or ``(T, nw)``),
+        ``reward``, ``estimate`` and ``estimate_std (T, d)`` (from ``obs[k]``; ``d`` = nx plus
+        any latent states), ``latent_force_est``/``_std`` (NaN without a filter),
+        ``predicted (T, N+1, nx)`` (first scenario), ``solve_time`` [s], ``slack``,
+        ``solver_success``, ``solver_usable``, ``fallback`` ('' or its name), ``estimator``,
+        ``<group>_excess (T,)`` per constraint group (largest excess after step k),
+        ``plan (T, N, nu)`` (NaN when none) and ``latent_state (T+1, p)`` (the env's hidden
+        state, for offline checks only), in the units of the system's names.
 
     Raises:
-        ValueError: unknown agent or bad agent spec (naming it) or negative seed; any
-            error of the episode itself propagates (:func:`evaluate` records it instead).
+        ValueError: unknown agent or negative seed; the episode's own errors propagate.
     """
     (spec,) = resolve_agents([agent])
     (seed,) = check_seeds([seed])
@@ -554,14 +480,3 @@ def run_episode(
     row = {"agent": spec.name, "seed": seed, **_episode_metrics(rec, arrays)}
     row.update(wall_time=time.perf_counter() - t0, error="")
     return {c: row[c] for c in rec.columns}, (arrays if record else {})
-
-
-__all__ = [
-    "agent_seed",
-    "check_seeds",
-    "MAX_SEEDS",
-    "parse_seeds",
-    "resolve_config",
-    "run_episode",
-    "SAVED_SCENARIOS",
-]

@@ -1,11 +1,6 @@
 """Dask executors of :func:`experiments.evaluation.run.evaluate`: a checked connection to an
-existing scheduler, and a private local cluster.
-
-The local cluster listens on 127.0.0.1 only, speaks TLS with a temporary self-signed
-certificate that only this run holds (Dask's mutual TLS: a client without the certificate
-is refused), and starts no HTTP server (no dashboard, no ``/info`` or ``/health`` pages).
-This module imports ``distributed``; :mod:`experiments.evaluation.run` imports it only for a
-Dask run.
+existing scheduler, and a private local cluster (127.0.0.1 only, mutual TLS with a temporary
+self-signed certificate, no HTTP server).
 """
 
 from __future__ import annotations
@@ -47,12 +42,7 @@ class QuietScheduler(_NoHttpServer, distributed.Scheduler):
 
 
 class QuietWorker(_NoHttpServer, distributed.Worker):
-    """A Dask worker without any HTTP endpoint that leaves Ctrl-C to the run's main process.
-
-    Ctrl-C in a terminal reaches the whole process group; the main process then closes
-    the cluster, which ends this worker. Without this, every worker process would print
-    a ``KeyboardInterrupt`` traceback.
-    """
+    """A Dask worker without any HTTP endpoint that leaves Ctrl-C to the run's main process."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         if threading.current_thread() is threading.main_thread():
@@ -88,20 +78,11 @@ def find_named_modules(client: distributed.Client, named: tuple) -> None:
 def check_scheduler(
     address: str, timeout: float, security: distributed.Security | None = None
 ) -> None:
-    """Check that ``address`` answers as a Dask scheduler within ``timeout`` [s].
-
-    ``distributed.Client(timeout=...)`` bounds only the TCP connect; a listener that
-    accepts and never answers (or an HTTP server) would keep it waiting forever. This
-    sends Dask's ``identity`` request and waits at most ``timeout`` for the reply.
-
-    Args:
-        address: the scheduler's address, e.g. ``"tcp://10.0.0.5:8786"``.
-        timeout: [s] for connecting and for the answer together.
-        security: the client's Dask security (TLS certificates), if the scheduler needs it.
+    """Check that ``address`` answers Dask's ``identity`` request within ``timeout`` [s] (the
+    client's own timeout bounds only the TCP connect).
 
     Raises:
-        ConnectionError: one line naming the address, if nothing answers as a Dask
-            scheduler in time.
+        ConnectionError: one line naming the address, if nothing answers in time.
     """
 
     async def probe() -> Any:
@@ -133,14 +114,9 @@ _KEY_FOLDER_DAYS = 7  # the certificate's validity (openssl -days)
 
 
 def remove_stale_key_folders() -> list[Path]:
-    """Remove the certificate folders (:func:`temporary_security`) of runs that ended without
-    removing them (a SIGKILL, the out-of-memory killer): folders of this user in the temporary
-    folder named ``lfm-dask-<pid>-...`` whose process no longer runs (or, named without a pid
-    by older versions, older than the certificate's 7 days), holding nothing but the
-    certificate and its key. Anything else is left alone.
-
-    Returns:
-        The folders removed.
+    """Remove this user's certificate folders ``lfm-dask-<pid>-...`` of runs that ended without
+    removing them (their process gone, or without a pid and older than 7 days), holding only
+    the certificate and its key; returns them.
     """
     removed = []
     for folder in Path(tempfile.gettempdir()).glob(f"{_KEY_FOLDER}*"):
@@ -174,13 +150,8 @@ def _alive(pid: int) -> bool:
 
 
 def temporary_security(stack: ExitStack) -> distributed.Security:
-    """Dask TLS security from a new self-signed certificate in a private temporary folder.
-
-    The certificate is its own CA, the key never leaves the folder (mode 0700, removed
-    when ``stack`` closes; the folder of a run killed before that is removed by the next
-    one, :func:`remove_stale_key_folders`), and Dask requires it of both ends of every
-    connection. Uses the ``openssl`` command, or the ``cryptography`` package if installed
-    (then nothing is written to disk).
+    """Dask TLS security from a new self-signed certificate (its own CA) in a private temporary
+    folder (0700, removed when ``stack`` closes), by ``openssl`` or ``cryptography``.
     """
     try:
         return distributed.Security.temporary()  # needs the cryptography package
@@ -212,10 +183,8 @@ def temporary_security(stack: ExitStack) -> distributed.Security:
 
 
 def local_client(n_workers: int, stack: ExitStack) -> distributed.Client:
-    """A client of a new private Dask cluster of ``n_workers`` single-threaded processes.
-
-    On 127.0.0.1, TLS with :func:`temporary_security`, no HTTP endpoint; closed (workers
-    ended) when ``stack`` closes.
+    """A client of a new private Dask cluster of ``n_workers`` single-threaded processes, closed
+    when ``stack`` closes.
     """
     security = temporary_security(stack)
     common = {"host": "127.0.0.1", "protocol": "tls://", "security": security}

@@ -1,20 +1,9 @@
 """The time limit of one episode: it ends, as an error row naming the limit, in any executor.
 
-:class:`EpisodeLimit` arms a wall-clock limit around one episode, in the thread that runs it:
-
-* at the limit, :class:`EpisodeTimeout` is raised in that thread: by ``SIGALRM`` in the
-  main thread (serial runs, process-pool workers), which also interrupts a sleep or a
-  blocking read, and by an asynchronous exception otherwise (Dask's worker threads), which
-  interrupts Python code; :func:`check_deadline`, called between the episode's steps, raises
-  it again where a library swallowed it;
-* an episode that has not returned ``grace`` seconds after the limit is stuck where Python
-  cannot reach it (native code, a call that blocks the signal): ``on_stuck`` runs then, in
-  a watchdog thread (the executors save the error row and end the process: a pool's parent
-  kills the worker itself).
-
-It costs two timers per episode and changes nothing else: serial runs stay bit-for-bit the
-same. :class:`EpisodeTimeout` is a ``BaseException``, so an agent's ``except Exception`` does
-not swallow it.
+:class:`EpisodeLimit` raises :class:`EpisodeTimeout` (a ``BaseException``) at the limit in the
+episode's thread (``SIGALRM`` in the main thread, an asynchronous exception otherwise;
+:func:`check_deadline` raises it again where a library swallowed it), and runs ``on_stuck``
+in a watchdog thread ``grace`` seconds later if the episode is stuck in native code.
 """
 
 from __future__ import annotations
@@ -83,13 +72,8 @@ def _raise_in_thread(ident: int, exc: type[BaseException] | None) -> None:
 
 
 class EpisodeLimit:
-    """Context: a wall-clock limit of ``seconds`` on the code inside (module docstring).
-
-    Args:
-        seconds: the limit [s]; ``None`` arms nothing.
-        on_stuck: called in a watchdog thread if the code has not returned ``grace`` seconds
-            after the limit (``None``: nothing).
-        grace: [s]; ``None`` for :func:`grace_time`.
+    """Context: a wall-clock limit of ``seconds`` [s] (``None``: none) on the code inside;
+    ``on_stuck`` runs in a watchdog thread ``grace`` [s] (default :func:`grace_time`) after it.
     """
 
     def __init__(
@@ -162,14 +146,3 @@ class EpisodeLimit:
             previous = self._previous if self._previous is not None else signal.SIG_DFL
             signal.signal(signal.SIGALRM, previous)
         _CURRENT.limit = None
-
-
-__all__ = [
-    "EpisodeLimit",
-    "EpisodeTimeout",
-    "LIMIT_SETTINGS",
-    "check_deadline",
-    "check_limit",
-    "grace_time",
-    "timeout_text",
-]

@@ -62,20 +62,9 @@ def folder_in_use(out: str | os.PathLike) -> str | None:
 
 
 class FolderLock:
-    """Ownership of a folder by one process: an operating-system lock on ``out/.lock``.
-
-    The lock is ``flock`` (exclusive, not waiting) on the open lock file, which the kernel
-    releases when its owner ends, however it ends (SIGKILL, the OOM killer, a crash): no
-    stale lock is ever taken over, and of any number of processes trying at once exactly
-    one owns the folder. The file holds ``<pid> <host>`` of the owner, for the message
-    another process gets: a :class:`ResultsFolderError` naming it. The owner removes the
-    file when it releases the lock (a lock file left by a killed owner is free to take).
-    The lock is local to one machine's kernel (and NFS with its lock manager).
-
-    Args:
-        out: the folder (it must exist).
-        what: how the messages call the folder.
-        hint: what the message of a refusal advises.
+    """Ownership of a folder by one process: ``flock`` on ``out/.lock``, released by the kernel
+    however the owner ends; the file names ``<pid> <host>`` for the :class:`ResultsFolderError`
+    another process gets (``what`` names the folder, ``hint`` advises).
     """
 
     def __init__(
@@ -90,11 +79,8 @@ class FolderLock:
         self._fd: int | None = None
 
     def acquire(self) -> FolderLock:
-        """Take the lock, or raise :class:`ResultsFolderError` naming its owner.
-
-        A lock held while the file names no live owner (an owner between taking the lock
-        and writing its name, or a reader's short look: :func:`folder_in_use`) is tried
-        again for a moment before the folder is refused.
+        """Take the lock, or raise :class:`ResultsFolderError` naming its owner (a lock whose
+        file names no live owner yet is tried again for a moment).
         """
         folder = str(self.path.parent)
         for attempt in range(40):
@@ -146,6 +132,3 @@ class FolderLock:
 
     def __exit__(self, *exc: Any) -> None:
         self.release()
-
-
-__all__ = ["FolderLock", "ResultsFolderError", "folder_in_use"]

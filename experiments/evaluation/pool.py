@@ -1,32 +1,13 @@
 """The local process pool of :func:`experiments.evaluation.run.evaluate` (``jobs > 1``): one
 episode per worker at a time, so a worker that dies costs its own episode only.
 
-``concurrent.futures.ProcessPoolExecutor`` breaks as a whole when one of its workers dies:
-every unfinished episode fails with ``BrokenProcessPool``, none named. Here each worker is
-a spawned process with a pipe of its own that runs one episode at a time, and the parent
-knows which episode each worker runs and since when:
-
-* a worker that dies (a crash in native code, SIGKILL, the out-of-memory killer) costs
-  at most its own episode: a new worker takes its place and the other episodes run on; the
-  episode is run once more (:data:`DEATH_RETRIES`: a worker killed from outside, say by
-  the out-of-memory killer in a moment of need, costs nothing), and if its worker dies
-  again it is an error row naming the agent, the seed and the signal (a one-line warning
-  names each death);
-* a worker whose episode runs past its time limit and a grace time
-  (:func:`~experiments.evaluation.limits.grace_time`) is killed: an error row naming the
-  limit. (The worker ends an episode at the limit itself when Python can reach it, with the
-  steps done and a traceback: :mod:`experiments.evaluation.limits`.)
-
-Workers end when the parent ends, even by SIGKILL, and ignore Ctrl-C: the parent stops
-them (SIGTERM, then SIGKILL after a grace time) and raises ``KeyboardInterrupt``.
-
-Two kinds of worker: ``"spawn"`` (``multiprocessing``'s spawn start, which imports the
-parent's main script again: the ``--jobs`` pool, whose agents may be defined there) and
-``"exec"`` (a fresh ``python -c`` that imports nothing of the parent's script: a serial run's
-one worker, so that a script calling :func:`~experiments.evaluation.run.evaluate` at its top
-level is not run again). Either imports nothing from the working folder but the modules
-the run named (:mod:`lfm_env.working_folder`): the parent's ``sys.path`` without the ``""``
-of a ``python -c`` start. An episode's time limit runs from the moment its worker takes it.
+Unlike ``ProcessPoolExecutor`` (broken as a whole by one dead worker), each worker has its
+own pipe and the parent knows its episode and since when: a dead worker is replaced and its
+episode run once more (:data:`DEATH_RETRIES`), then an error row naming the signal; a worker
+past the limit plus :func:`~experiments.evaluation.limits.grace_time` is killed. Workers end
+with the parent and ignore Ctrl-C. ``"spawn"`` workers re-import the main script (the
+``--jobs`` pool); ``"exec"`` workers (``python -c``) do not (a serial run's one worker).
+Neither imports from the working folder but the modules the run named.
 """
 
 from __future__ import annotations
@@ -284,13 +265,10 @@ class _Slot:
             pass  # the worker died: seen as such below
 
     def row(self) -> dict | None:
-        """The row the worker sent, if one is there (never waits); the word that it took
-        its episode starts the episode's deadline.
+        """The row the worker sent, if any (never waits); its "took" word starts the deadline.
 
         Raises:
-            Exception: the error the worker's task raised outside its episode (the row
-                could not be saved: a full disk), so that the run stops with it as a run in
-                one process would.
+            Exception: the error the worker's task raised outside its episode.
         """
         while True:
             try:
@@ -333,18 +311,16 @@ def run_on_pool(
     limit: float | None,
     kind: str = "spawn",
 ) -> None:
-    """Run the episodes ``pairs`` on ``jobs`` worker processes (module docstring).
+    """Run the episodes ``pairs`` on ``jobs`` worker processes.
 
     Args:
         pairs: the (agent, seed) pairs, in order.
         jobs: worker processes at most.
         args_of: the arguments of ``_episode_task`` for a pair.
         done: called with each pair and its row, as they come.
-        lost: the row of a pair whose worker died or was stopped at its limit, given the
-            error's text (it saves it).
-        limit: the episodes' time limit [s] (``None``: none); a worker is killed at the
-            limit plus :func:`~experiments.evaluation.limits.grace_time`.
-        kind: ``"spawn"`` or ``"exec"`` workers (module docstring).
+        lost: the (saved) row of a pair whose worker died or was stopped, given the error.
+        limit: the episodes' time limit [s] (``None``: none).
+        kind: ``"spawn"`` or ``"exec"`` workers.
     """
     named = working_folder.state()
     hard_limit = None if limit is None else limit + grace_time(limit)
@@ -419,6 +395,3 @@ def _collect(
         return
     print(f"warning: {text.partition(': ')[2]}", file=sys.stderr, flush=True)
     done(pair, lost(pair, text))
-
-
-__all__ = ["death_text", "restore_environment", "run_on_pool", "safe_child_path"]

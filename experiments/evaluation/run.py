@@ -1,74 +1,13 @@
 """Evaluation of agents over env seeds, saved episode by episode so no result is lost.
 
-The shape follows stable-baselines3's ``evaluate_policy``: one library function,
-:func:`evaluate`, runs every (agent, seed) episode and returns one row of metrics per
-episode; command lines (:mod:`experiments.cli`) only parse arguments and call it.
-
-Paired design: for a given env seed every agent faces the same hidden latent force and
-the same measurement and process noise (the env draws them from its own seed), while
-each agent's own randomness (particle filter, scenario draws) comes from a seed derived
-from the env seed and the agent's name (:func:`agent_seed`). Differences between agents
-on one seed are therefore due to the agents alone.
-
-Results folder (``out``)::
-
-    out/config.yaml                         the resolved config (env and agents sections)
-    out/episodes/<agent>__seed<seed>.npz    the trajectory (np.savez_compressed)
-    out/episodes/<agent>__seed<seed>.json   the row, plus agent_seed and traceback
-    out/episodes.csv                        every json row, sorted by (agent, seed)
-
-Every file is written atomically (a temporary file in the same folder, then
-``os.replace``), the npz before the json: a json marks a finished episode, so a killed
-run loses at most the episodes in flight, and rerunning the same call resumes it. An
-episode that raises is saved as a row whose ``error`` holds the exception (its json also
-holds the traceback, its npz the steps done before the error); such rows are kept in the
-table but, with ``retry_failed=True`` (the default), re-run by the next call. A folder
-holds the results of one config only: :func:`evaluate` refuses to resume into a folder
-whose ``config.yaml`` differs or whose episodes carry another :func:`config_hash`. A
-folder is owned by one run at a time: an operating-system lock on ``out/.lock``
-(:class:`~experiments.evaluation.storage.FolderLock`), which the kernel releases when the
-run ends however it ends; a second run is refused naming the owner's pid and host. Every
-saved episode is verified before it is skipped on resume (its json names its own agent and
-seed, its npz loads with one step per row step); a damaged one is named on stderr and run
-again.
-
-An interrupt (Ctrl-C, or SIGTERM while :func:`evaluate` runs in the main thread) ends the
-workers at once, removes temporary files and rebuilds ``episodes.csv`` before
-``KeyboardInterrupt`` propagates; pool and Dask workers ignore Ctrl-C themselves. An
-interrupt is also remembered and checked at every step
-(:mod:`experiments.evaluation.interrupts`), so one that a library swallowed (CasADi clears
-errors raised inside its type conversions) still stops the run.
-
-Agents are registered names, or a user's own agents
-(:class:`controllers.agents.protocol.Agent`) given as factories, agent objects or
-``"module:attribute"`` (:mod:`controllers.agents.registry`); an agent's
-``last_info`` keys are all optional, read with their documented defaults.
-
-Runs are serial (``jobs=1``), on local processes (``jobs > 1``,
-:mod:`experiments.evaluation.pool`) or on a Dask cluster (``scheduler=`` an existing one,
-checked to answer as Dask within 5 s, or ``dask_workers=`` a private local one: loopback,
-TLS, no HTTP endpoint, :mod:`experiments.evaluation.executors`). Every worker writes its own
-episode files, so the folder must be visible to all workers (any single machine; a shared
-file system for a multi-machine cluster, whose workers must also have this package
-installed). Serial, parallel and distributed runs give identical rows apart from the
-timing columns :data:`TIMING_COLUMNS`.
-
-One bad episode costs one episode, in every executor: an exception of the agent
-(``SystemExit`` included; Ctrl-C stays Ctrl-C) is its error row; an episode that runs past
-its time limit (``episode_timeout``, the config's ``evaluation.episode_timeout``, 600 s by
-default: :mod:`experiments.evaluation.limits`) is an error row naming the limit; a pool
-worker that dies (a crash in native code, SIGKILL) costs its own episode only, which is run
-once more and is then an error row naming the agent, the seed and the signal (Dask retries
-a task whose worker died on other workers). An episode stuck past its limit where Python
-cannot reach it (native code) is stopped by killing its process: a pool worker (by the
-parent), a Dask worker (by itself, its row saved first), or in a serial run the run's own
-process, after saving the row and the table, with exit code :data:`EXIT_STUCK`; a rerun
-runs the episodes never run before those whose row is an error.
-
-This module runs the episodes (serially, on a process pool or on Dask) and keeps the folder
-up to date; one episode is :mod:`experiments.evaluation.episode`, the table's columns
-:mod:`experiments.evaluation.columns`, the folder's files and lock
-:mod:`experiments.evaluation.storage`. Their public names are also importable from here.
+:func:`evaluate` runs every (agent, seed) episode (paired design: on one env seed every agent
+meets the same latent force and noise; its own randomness comes from :func:`agent_seed`) and
+returns one row per episode, serially, on a process pool (:mod:`experiments.evaluation.pool`)
+or on Dask (:mod:`experiments.evaluation.executors`). The results folder, its atomic writes,
+lock and resume, time limits, interrupts and what each executor promises are described in
+``docs/evaluation.md``. One episode is :mod:`experiments.evaluation.episode`, the columns
+:mod:`experiments.evaluation.columns`, the folder :mod:`experiments.evaluation.storage`;
+their public names are also importable from here.
 """
 
 from __future__ import annotations
@@ -107,9 +46,7 @@ from experiments.evaluation.episode import (
     run_episode,
 )
 from experiments.evaluation.interrupts import raise_if_interrupted, remember_interrupts
-from experiments.evaluation.limits import (
-    check_limit,
-)
+from experiments.evaluation.limits import check_limit
 from experiments.evaluation.pool import run_on_pool, safe_child_path
 from experiments.evaluation.storage import (
     DamagedEpisodeError,
@@ -182,51 +119,32 @@ def evaluate(
     """Run every (agent, env seed) episode and return one row of metrics per episode.
 
     Args:
-        agents: the agents, each a registered name (``"nominal"``, ``"pf"``,
-            ``"scenario"``, ``"oracle"``; the oracle is certainty-equivalent MPC that reads the
-            hidden truth), an agent factory called as ``factory(config)`` with the
-            resolved :class:`~controllers.config.ExperimentConfig`, an agent object, or
-            ``"module:attribute"`` of a factory (:mod:`controllers.agents.registry`: how
-            they are named, and what ``jobs > 1`` and Dask need); or one comma list of
-            names and ``module:attribute`` texts. A user agent follows
-            :class:`controllers.agents.protocol.Agent`; it is built once before any episode,
-            so a bad factory fails early.
+        agents: registered names, factories ``factory(config)``, agent objects or
+            ``"module:attribute"`` texts (:mod:`controllers.agents.registry`), or one comma
+            list of names; each is built once before any episode.
         seeds: env seeds (integers >= 0), or a text for :func:`parse_seeds`.
-        config: an :class:`~controllers.config.ExperimentConfig`; a preset's name, a YAML
-            path, a dict (whole file) or ``None`` (paper defaults) is resolved once
-            (:func:`~controllers.config.load_config`).
-        out: results folder (see the module docstring); ``None`` keeps nothing on disk.
-            Episodes already saved there are not re-run.
-        jobs: local worker processes (``spawn`` context, safe with CasADi); 1 is serial.
-            A script that uses ``jobs > 1`` needs the ``if __name__ == "__main__":``
-            guard, as with any spawned process.
+        config: an :class:`~controllers.config.ExperimentConfig`, or a preset's name, YAML
+            path, dict or ``None`` (paper defaults), resolved once.
+        out: results folder; ``None`` keeps nothing on disk. Saved episodes are not re-run.
+        jobs: local worker processes (``spawn``; a script needs the ``__main__`` guard);
+            1 is serial.
         scheduler: address of an existing Dask scheduler (``"tcp://host:8786"``).
-        dask_workers: start a local Dask cluster of this many single-threaded worker
-            processes on 127.0.0.1 for this call.
+        dask_workers: start a private loopback Dask cluster of this many workers.
         progress: show a tqdm progress bar over episodes.
         record: save each episode's trajectory (npz) next to its row.
         retry_failed: re-run saved episodes whose ``error`` is not empty.
-        progress_label: text before the progress bar (e.g. the sweep's value).
-        episode_timeout: wall-clock limit of one episode [s]: one that runs longer ends as
-            an error row naming the limit, in every executor
-            (:mod:`experiments.evaluation.limits`); ``None`` for the config's
-            ``evaluation.episode_timeout`` (600 s unless set), 0 for no limit.
-        isolate: for a serial run (``jobs=1``, no Dask), run the episodes in a child
-            process, one after the other, so that a crash in native code costs its own
-            episode only (as on a pool); ``None`` (the default) when every agent can be
-            sent to one (not a lambda, local function or object of the main script: those
-            run in this process), ``False`` in this process. Rows are the same either way.
+        progress_label: text before the progress bar.
+        episode_timeout: wall-clock limit of one episode [s]; ``None`` for the config's
+            ``evaluation.episode_timeout``, 0 for no limit.
+        isolate: serial run in a child process (a native crash costs one episode);
+            ``None``: when every agent can be sent to one, ``False``: in this process.
 
     Returns:
-        The rows (:func:`row_columns` of the config's system) of the requested episodes,
-        sorted by (agent, seed), including those loaded from ``out``. Trajectories are not
-        kept in memory; read them with :func:`load_trajectory`, all rows with
-        :func:`saved_rows`.
+        The rows of the requested episodes sorted by (agent, seed), loaded ones included.
 
     Raises:
-        ValueError: unknown agents or a bad agent spec (naming it), empty or negative
-            seeds, a bad config, conflicting run modes or a results folder of another
-            config, before any episode runs.
+        ValueError: bad agents, seeds, config, run modes or a folder of another config,
+            before any episode runs.
         ConnectionError: the Dask scheduler cannot be reached.
     """
     specs, seed_list, cfg, columns = _checked_arguments(
@@ -319,12 +237,7 @@ def _in_process(specs: Sequence[AgentSpec], cfg: ExperimentConfig, isolate: Any)
 
 
 def _checked_arguments(
-    agents: Any,
-    seeds: Any,
-    config: Any,
-    jobs: int,
-    scheduler: str | None,
-    dask_workers: int | None,
+    agents: Any, seeds: Any, config: Any, jobs: int, scheduler: str | None, dask_workers: int | None
 ) -> tuple[list[AgentSpec], list[int], ExperimentConfig, tuple[str, ...]]:
     """The run's agents, seeds, config and table columns, every argument checked (and
     every user agent built once) before any episode runs."""

@@ -1,12 +1,7 @@
-"""The results folder of an evaluation, written: episode files, the table, the config, the lock.
-
-Layout and guarantees are those of :mod:`experiments.evaluation.run` (every file written
-atomically, the npz before the json; one config per folder; one run at a time).
-:func:`save_episode` writes an episode, :func:`saved_rows` and :func:`load_trajectory` read
-them back (verified), :func:`finished_row` tells a resumed run which episodes are done,
-:func:`write_table` rebuilds ``episodes.csv``, :class:`FolderLock` owns the folder while a
-run writes into it. Downstream readers use
-:func:`experiments.report.results.load_results`.
+"""The results folder of an evaluation: episode files (:func:`save_episode`, read back verified
+by :func:`saved_rows`, :func:`load_trajectory`, :func:`finished_row`), the table
+(:func:`write_table`), the config check and the lock (:class:`FolderLock`). Layout and
+guarantees: ``docs/evaluation.md``.
 """
 
 from __future__ import annotations
@@ -37,10 +32,7 @@ from experiments.evaluation.columns import (
     _table_columns,
     row_columns,
 )
-from experiments.evaluation.episode import (
-    agent_seed,
-    resolve_config,
-)
+from experiments.evaluation.episode import agent_seed, resolve_config
 from experiments.evaluation.lock import FolderLock, ResultsFolderError, folder_in_use
 from lfm_env.config import load_yaml
 from lfm_env.validation import one_line
@@ -48,9 +40,6 @@ from lfm_env.validation import one_line
 _EPISODES = "episodes"
 _TABLE = "episodes.csv"
 _CONFIG = "config.yaml"
-
-
-# --------------------------------------------------------------------------- storage
 
 
 def episode_stem(agent_name: str, seed: int) -> str:
@@ -121,15 +110,11 @@ def save_episode(
         trajectory: arrays for the npz; ``None`` writes the json only.
         traceback_text: the traceback of a failed episode, kept in the json.
         config_digest: :func:`config_hash` of the episode's config, kept in the json.
-        run_token: the run's token, for the row of an episode that got stuck past its
-            limit and ended its process (:func:`stuck_row`); kept in the json as ``run``.
-        config: the episode's config as plain data (``ExperimentConfig.to_dict()``), kept
-            in the json as ``config`` (a report then reads the config the episode ran with
-            even if ``config.yaml`` was edited).
+        run_token: the run's token (json ``run``), for :func:`stuck_row`.
+        config: the episode's config as plain data, kept in the json.
 
     Returns:
-        The json's path (its presence marks the episode finished). The json also holds the
-        SHA-256 of the npz (``npz_sha256``), checked by :func:`load_trajectory`.
+        The json's path (marks the episode finished; holds the npz's ``npz_sha256``).
     """
     folder = Path(out) / _EPISODES
     stem = episode_stem(row["agent"], row["seed"])
@@ -167,11 +152,8 @@ _JSON_EXTRAS = (
 
 
 def _normalise_row(record: dict[str, Any]) -> dict[str, Any]:
-    """A row with NaN for missing numbers and Python types per column.
-
-    The columns are the fixed ones (missing ones NaN) around whatever constraint-group
-    columns the record holds, in its order: a folder of any system, or of an older
-    version with other groups, reads as it was written.
+    """A row with NaN for missing numbers and Python types per column; the fixed columns around
+    the record's own constraint-group columns, in its order.
     """
     columns = _table_columns([{k: None for k in record if k not in _JSON_EXTRAS}])
     row: dict[str, Any] = {}
@@ -195,11 +177,10 @@ class DamagedEpisodeError(ValueError):
 
 
 def _read_record(path: Path) -> dict[str, Any]:
-    """The checked record of an episode json whose name is ``<agent>__seed<seed>.json``.
+    """The checked record of an episode json named ``<agent>__seed<seed>.json``.
 
     Raises:
-        DamagedEpisodeError: naming the file, if it cannot be read or parsed, is not an
-            episode record, or holds another (agent, seed) than its name.
+        DamagedEpisodeError: naming the file: unreadable, not a record, or another episode.
     """
     try:
         record = json.loads(path.read_text())
@@ -248,14 +229,8 @@ _warn = warn
 
 
 def saved_rows(out: str | os.PathLike) -> list[dict[str, Any]]:
-    """Every saved row of a results folder, sorted by (agent, seed): the storage layer's
-    reader of the episode records (:func:`experiments.report.results.load_results` reads a folder
-    for analysis: its table, config and trajectories).
-
-    Reads the episode json files (exact values; ``episodes.csv`` holds the same rows as
-    text). Metrics of failed episodes are NaN; filter on ``row["error"] == ""``. Files
-    that are damaged, or hold another episode than their name (a copy), are left out
-    with a warning on stderr naming them, so each (agent, seed) counts once.
+    """Every saved row of a results folder from its episode json files, sorted by (agent, seed).
+    Failed episodes have NaN metrics; damaged files or copies are left out with a warning.
     """
     folder = Path(out) / _EPISODES
     rows = []
@@ -293,12 +268,11 @@ def _recorded_digest(json_path: Path) -> str | None:
 
 
 def load_trajectory(out: str | os.PathLike, agent_name: str, seed: int) -> dict[str, np.ndarray]:
-    """The saved trajectory of one episode (see :func:`run_episode` for its arrays).
+    """The saved trajectory of one episode (its arrays: :func:`run_episode`).
 
     Raises:
         FileNotFoundError: the episode has no npz.
-        DamagedEpisodeError: naming the file, if it does not load (e.g. truncated) or is not
-            the file its record names (its SHA-256 differs: another episode's file).
+        DamagedEpisodeError: naming the file, if it does not load or its SHA-256 differs.
     """
     path = Path(out) / _EPISODES / f"{episode_stem(agent_name, seed)}.npz"
     if not path.is_file():
@@ -327,11 +301,8 @@ def load_trajectory(out: str | os.PathLike, agent_name: str, seed: int) -> dict[
 def finished_row(
     out: Path, agent_name: str, seed: int, record: bool, digest: str = ""
 ) -> dict | None:
-    """The saved and verified row of a finished episode, or ``None`` if it must (re-)run.
-
-    The json must be an episode record of this (agent, seed) and of this config (when
-    it carries a config hash); with ``record`` the npz must exist and, for an episode
-    that ran, load with one reward per step. A damaged file is named on stderr.
+    """The saved and verified row of a finished episode of this config, or ``None`` if it must
+    (re-)run; with ``record`` its npz must load with one reward per step.
     """
     stem = out / _EPISODES / episode_stem(agent_name, seed)
     json_path, npz_path = stem.with_name(stem.name + ".json"), stem.with_name(stem.name + ".npz")
@@ -413,14 +384,8 @@ def table_text(out: str | os.PathLike, columns: Sequence[str] | None = None) -> 
 
 
 def write_table(out: str | os.PathLike, columns: Sequence[str] | None = None) -> Path:
-    """Rebuild ``out/episodes.csv`` from every episode json (sorted by agent, seed).
-
-    Args:
-        out: the results folder.
-        columns: the table's columns in order; ``None`` for :func:`row_columns` of the
-            system in the folder's ``config.yaml`` (without one: the columns the saved
-            rows hold). A column a row lacks (e.g. a group added since it was saved) is
-            written as ``nan``.
+    """Rebuild ``out/episodes.csv`` from every episode json (sorted by agent, seed); ``columns``
+    ``None``: those of the folder's ``config.yaml`` (else of the rows); missing ones ``nan``.
     """
     text = table_text(out, columns)
     path = Path(out) / _TABLE
@@ -452,9 +417,8 @@ def _config_differences(
 
 
 def edited_config(out: Path, records: Sequence[dict[str, Any]]) -> str | None:
-    """Why the folder's ``config.yaml`` is not the config its episodes ran with (their
-    records' config hash, and their config where they hold it: the fields that differ),
-    else ``None`` (also without a ``config.yaml`` or records to compare).
+    """Why the folder's ``config.yaml`` is not the config its episodes ran with (the fields that
+    differ), else ``None``.
 
     Raises:
         ResultsFolderError: for episodes of more than one config.
@@ -487,11 +451,8 @@ def edited_config(out: Path, records: Sequence[dict[str, Any]]) -> str | None:
 
 
 def check_folder(out: Path, config: ExperimentConfig) -> None:
-    """Refuse a folder of another config (reads only).
-
-    Its ``config.yaml`` must be the config its episodes ran with (:func:`edited_config`) and
-    equal ``config``, and every episode json must carry :func:`config_hash` of ``config``
-    (or none: folders of older versions).
+    """Refuse a folder of another config (reads only): its ``config.yaml`` must be what its
+    episodes ran with and equal ``config``, and their config hashes match.
     """
     path = out / _CONFIG
     if out.exists() and not out.is_dir():

@@ -1,9 +1,4 @@
-"""One episode as a task of any executor (serial, the local pool's workers, Dask): run it,
-save its row and arrays, and turn whatever it raises into an error row.
-
-:func:`_episode_task` is top level (picklable by reference) so that every executor runs the
-same function; :mod:`experiments.evaluation.run` hands it out.
-"""
+"""One episode as a task of any executor: run it, save it, turn what it raises into an error row."""
 
 from __future__ import annotations
 
@@ -19,12 +14,7 @@ from controllers.agents.protocol import is_agent
 from controllers.agents.registry import AgentSpec, AgentSpecError
 from controllers.config import ExperimentConfig
 from controllers.threads import limit_blas_threads
-from experiments.evaluation.episode import (
-    _episode_metrics,
-    _EpisodeRecorder,
-    _error_row,
-    _simulate,
-)
+from experiments.evaluation.episode import _episode_metrics, _EpisodeRecorder, _error_row, _simulate
 from experiments.evaluation.interrupts import raise_if_interrupted
 from experiments.evaluation.limits import EpisodeLimit, EpisodeTimeout, timeout_text
 from experiments.evaluation.storage import save_episode, stuck_row, write_table
@@ -45,21 +35,12 @@ def _episode_task(
     stuck: str = "",
     token: str = "",
 ) -> dict[str, Any]:
-    """Run and save one episode; never raises for an error of the episode itself.
+    """Run and save one episode (top level: picklable); never raises for an error of the episode.
 
-    Top-level (picklable by reference) so process pools and Dask workers can run it; the
-    resolved config travels with the task, so workers parse nothing. ``agent`` is the agent's
-    record (:class:`~controllers.agents.registry.AgentSpec`, a registered agent's or a user's).
-
-    Any exception of the episode (``SystemExit`` and any other ``BaseException`` too) is
-    its error row; only Ctrl-C (``KeyboardInterrupt``) propagates, in a serial
-    run (workers ignore Ctrl-C: there an agent's own ``KeyboardInterrupt`` is a row). ``limit``
-    [s] ends an episode that runs longer (:mod:`experiments.evaluation.limits`); one that
-    does not return to Python by then is stuck, and ``stuck`` says what then ends:
-    ``"run"`` (a serial run: its row and the table are saved, then this process ends with
-    :data:`EXIT_STUCK`), ``"worker"`` (a Dask worker: its row is saved, marked with the
-    run's ``token``, and the worker ends; the task, run again elsewhere, returns that row)
-    or ``""`` (a pool worker: its parent stops it).
+    Any exception of the episode (``BaseException`` too) is its error row; only Ctrl-C propagates,
+    in a serial run. ``limit`` [s] ends an episode; one stuck past it ends what ``stuck`` says:
+    ``"run"`` (row and table saved, then exit :data:`EXIT_STUCK`), ``"worker"`` (a Dask worker:
+    row saved with ``token``, then the worker ends) or ``""`` (a pool worker: its parent stops it).
     """
     limit_blas_threads()  # every executor's worker (serial, pool, Dask) runs this first
     name = agent.name
@@ -157,12 +138,8 @@ class _StuckEpisode:
 
 
 def check_picklable(agent: AgentSpec, how: str) -> None:
-    """Refuse a user's agent that cannot travel to the workers of ``how``.
-
-    Args:
-        agent: a resolved agent.
-        how: ``"pool"`` (spawned processes: :mod:`pickle`, by reference) or ``"dask"``
-            (``cloudpickle``, which also sends lambdas and ``__main__`` code by value).
+    """Refuse a user's agent that cannot travel to the workers of ``how`` (``"pool"``: pickle by
+    reference, ``"dask"``: cloudpickle).
 
     Raises:
         AgentSpecError: naming the agent and why.

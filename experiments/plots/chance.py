@@ -21,14 +21,11 @@ def chance_figure(
     """One panel per constraint group (and the joint event): probability against step k.
 
     Args:
-        panels: ``P`` panel titles (the groups, then e.g. "joint: any group, steps 1..k").
+        panels: ``P`` panel titles.
         agents: ``label -> colour`` of the ``A`` agents.
-        offline: ``(A, P, N, 3)`` mean, low and high of the offline probability at steps
-            ``k = 1..N`` (NaN where an agent has none: a line is left out).
-        closed_loop: ``(A, P, 3)`` the closed-loop probability at ``k = 1`` (NaN: none),
-            drawn as a marker with its interval just left of ``k = 1``.
-        levels: ``label -> probability`` drawn as dashed horizontal lines (the designs'
-            epsilon).
+        offline: ``(A, P, N, 3)`` mean, low, high of the offline probability at ``k = 1..N``.
+        closed_loop: ``(A, P, 3)`` the closed-loop probability at ``k = 1`` (NaN: none).
+        levels: ``label -> probability`` drawn dashed (the designs' epsilon).
     """
     offline = np.asarray(offline, dtype=float)
     closed_loop = np.asarray(closed_loop, dtype=float)
@@ -73,6 +70,3 @@ def chance_figure(
         fontsize=9,
     )
     return fig
-
-
-__all__ = ["chance_figure"]

@@ -1,25 +1,8 @@
-"""Figures of one saved episode, drawn from the system definition (the figures across seeds
-are :mod:`experiments.plots.summary`'s; every figure under one name: :mod:`experiments.plots`).
-
-Every function takes arrays that were loaded from a results folder and returns a
-:class:`matplotlib.figure.Figure` built without pyplot, so no global figure state leaks
-and nothing opens a window; :func:`experiments.plots.style.save_figure` writes it with the
-Agg canvas.
-
-The episode figures know no particular world: they read the world's
-:class:`~lfm_env.system.ControlSystem` only. Axis labels and units come from its state,
-input, force and constraint names; input bounds from ``input_lower``/``input_upper``; the
-feasible region from the system's own ``constraint_values`` evaluated on a grid (the
-constraints that depend only on the plotted states, found from the structure of
-``casadi_constraints``). On the sine track this draws the paper's figures (the track band
-and x bounds around the path, the latent force, the acceleration against the latent force,
-the speed with its bounds); on the quadrotor the tunnel. Nothing here runs an episode: the
-GIF frames are a replay of saved true states through the world's own scene
-(:meth:`lfm_env.env.LatentForceEnv.make_scene`).
-
-Time axes are in seconds: sample ``k`` of a trajectory is at ``t = k dt``; actions and the
-latent force act during ``[k dt, (k+1) dt)`` and are drawn as steps; the constraint excess
-after step ``k`` is at ``t = (k+1) dt``.
+"""Figures of one saved episode, drawn from the world's :class:`~lfm_env.system.ControlSystem`
+only (labels, units, bounds, the feasible region from its own constraints); the figures
+across seeds are :mod:`experiments.plots.summary`'s. Each returns a pyplot-free
+:class:`matplotlib.figure.Figure`. Sample ``k`` is at ``t = k dt``; actions and the force act
+during ``[k dt, (k+1) dt)``; the excess after step ``k`` is at ``t = (k+1) dt``.
 """
 
 from __future__ import annotations
@@ -42,13 +25,7 @@ from experiments.plots.feasible_region import (
     _plane_figure,
     constraint_dependencies,
 )
-from experiments.plots.style import (
-    _step_plot,
-    group_unit,
-    new_figure,
-    sample_times,
-    unit_of,
-)
+from experiments.plots.style import _step_plot, group_unit, new_figure, sample_times, unit_of
 from lfm_env.system import ControlSystem, split_unit
 
 
@@ -62,18 +39,14 @@ def trajectory_figure(
     plane: tuple[int, int] = (0, 1),
     title: str = "",
 ) -> Figure:
-    """The path in the plane of two states with the estimate's 2-sigma band (paper Fig. 1).
-
-    The feasible region of the constraints that depend only on these two states is drawn
-    from the system's ``constraint_values`` on a grid: infeasible area shaded, ``g = 0``
-    dashed (the other states at ``goal_state``'s values).
+    """The path in the plane of two states with the estimate's 2-sigma band (paper Fig. 1), over
+    the feasible region of the constraints on these two states (the others at ``goal_state``).
 
     Args:
         system: the world's system (labels, units, constraints).
-        true_state: ``(T+1, nx)`` true states in the states' units; green dashed.
-        estimate: ``(T, d)`` state estimates (``d >= nx``; columns as the states), red.
-        estimate_std: ``(T, d)`` their standard deviations; a ``2 sigma`` ellipse is drawn
-            at every step, which reads as a shaded envelope.
+        true_state: ``(T+1, nx)`` true states in the states' units.
+        estimate: ``(T, d)`` state estimates (``d >= nx``; columns as the states).
+        estimate_std: ``(T, d)`` their standard deviations (a 2-sigma ellipse per step).
         goal_state: ``(nx,)`` goal state; its components in the plane are the goal.
         goal_radius: radius of a goal disc (the plane's unit); ``None`` marks a point.
         plane: the two state indices of the horizontal and vertical axes.
@@ -113,15 +86,8 @@ def paths_figure(
     plane: tuple[int, int] = (0, 1),
     title: str = "",
 ) -> Figure:
-    """True paths of several agents (same seed) in the plane of two states.
-
-    Args:
-        system: the world's system.
-        paths: ``label -> ((T+1, nx) true states, colour)``.
-        goal_state: ``(nx,)`` goal state; ``None`` draws no goal.
-        goal_radius: radius of a goal disc; ``None`` marks a point.
-        plane: the two state indices of the axes.
-        title: axes title.
+    """True paths of several agents (same seed, ``label -> ((T+1, nx) states, colour)``) in the
+    plane of two states, with the goal (disc of ``goal_radius``, or a point).
     """
     i, j = plane
     sets = [p for p, _ in paths.values()]
@@ -175,15 +141,13 @@ def latent_force_figure(
     estimate_std: np.ndarray | None = None,
     title: str = "",
 ) -> Figure:
-    """The true latent force (dashed) and its estimate with 2-sigma band (paper Fig. 2).
-
-    One panel per force component (``system.force_names``).
+    """The true latent force (dashed) and its estimate with 2-sigma band (paper Fig. 2), one panel
+    per force component.
 
     Args:
         system: the world's system.
         dt: sampling time [s].
-        latent_force: true force acting during step ``k``: ``(T,)`` for one component,
-            else ``(T, nw)``, in the force's units.
+        latent_force: true force in step ``k``, ``(T,)`` or ``(T, nw)``, in its units.
         estimate: the filter's estimate, shaped like ``latent_force`` (NaN: no filter).
         estimate_std: its standard deviation.
         title: title of the first panel.
@@ -222,18 +186,14 @@ def inputs_figure(
     latent_force: np.ndarray | None = None,
     title: str = "",
 ) -> Figure:
-    """The applied inputs with their bounds, one panel per input (paper Fig. 3 on the track).
-
-    A force component in the same unit as an input (the sine track's ``w`` and its
-    acceleration ``a``, both m/s^2) is drawn on that input's panel with its negative:
-    an input lying on ``-w`` would cancel the force exactly.
+    """The applied inputs with their bounds, one panel per input (paper Fig. 3 on the track); a
+    force component in an input's unit is drawn there as its negative (``-w``).
 
     Args:
         system: the world's system (input names, ``input_lower``/``input_upper``).
         dt: sampling time [s].
         action: ``(T, nu)`` applied inputs in the inputs' units.
-        latent_force: true force in the same steps, ``(T,)`` or ``(T, nw)``; ``None`` for
-            none.
+        latent_force: true force, ``(T,)`` or ``(T, nw)``; ``None`` for none.
         title: title of the first panel.
     """
     u = _components(action, system.nu, "action")
@@ -298,19 +258,16 @@ def states_figure(
     goal_state: Any = None,
     title: str = "",
 ) -> Figure | None:
-    """States over time, true (dashed) and estimated with 2-sigma band (paper Fig. 4).
-
-    Bounds on a state alone (a constraint that depends on it and no other state, e.g.
-    the sine track's speed bounds) are drawn dashed with the infeasible side shaded.
+    """States over time, true (dashed) and estimated with 2-sigma band (paper Fig. 4), with the
+    bounds on a state alone dashed and their infeasible side shaded.
 
     Args:
         system: the world's system.
         dt: sampling time [s].
         true_state: ``(T+1, nx)`` true states.
-        estimate: ``(T, d)`` estimates at the first ``T`` samples (``d >= nx``).
+        estimate: ``(T, d)`` estimates (``d >= nx``).
         estimate_std: ``(T, d)`` their standard deviations (zeros draw no band).
-        states: the state indices to draw; by default every state but the first two
-            (those are in :func:`trajectory_figure`).
+        states: the state indices to draw; by default all but the first two.
         goal_state: ``(nx,)`` values of the other states where a bound is evaluated.
         title: title of the first panel.
 
@@ -356,17 +313,8 @@ def constraint_excess_figure(
     runs: Mapping[str, tuple[Mapping[str, np.ndarray], str]],
     title: str = "",
 ) -> Figure | None:
-    """Each constraint group's excess over time, one panel per group.
-
-    Args:
-        system: the world's system (its ``constraint_groups`` and their units).
-        dt: sampling time [s]; the excess after step ``k`` is drawn at ``(k+1) dt``.
-        runs: ``label -> ({group: (T,) excess}, colour)``: one agent, or several on the
-            same seed. A group missing from a run is left out of its panel.
-        title: title of the first panel.
-
-    Returns:
-        The figure, or ``None`` when the system has no constraints.
+    """Each constraint group's excess over time (drawn at ``(k+1) dt``), one panel per group, for
+    ``runs``: ``label -> ({group: (T,) excess}, colour)``; ``None`` without constraints.
     """
     groups = list(system.constraint_groups)
     if not groups:
@@ -405,24 +353,19 @@ def episode_figures(
     goal_radius: float | None = None,
     label: str = "",
 ) -> dict[str, Figure]:
-    """The figures of one saved episode, drawn from the system definition.
+    """The figures of one saved episode (arrays of :func:`experiments.evaluation.run_episode`).
 
     Args:
-        trajectory: arrays of one episode (``true_state``, ``estimate``, ``estimate_std``,
-            ``action``, ``latent_force``, ``latent_force_est``, ``latent_force_std``,
-            ``<group>_excess``).
+        trajectory: arrays of one episode.
         system: the world's system.
         dt: sampling time [s].
         goal_state: ``(nx,)`` goal state (the task's), in the states' units.
-        goal_radius: radius of the goal disc in the plane of the first two states, if the
-            world has one.
+        goal_radius: radius of the goal disc in the plane of the first two states, if any.
         label: the agent's label, used in titles.
 
     Returns:
-        ``name -> Figure`` for ``"trajectory"`` (states 0 and 1 with the feasible region),
-        ``"latent_force"``, ``"inputs"``, ``"states"`` (the other states; left out when
-        ``nx <= 2``) and ``"constraints"`` (each group's excess; left out without
-        constraints).
+        ``name -> Figure``: ``"trajectory"``, ``"latent_force"``, ``"inputs"``, ``"states"``
+        (when ``nx > 2``) and ``"constraints"`` (when there are constraints).
     """
     x = np.asarray(trajectory["true_state"])
     est = np.asarray(trajectory["estimate"])
@@ -462,15 +405,3 @@ def episode_figures(
         ),
     }
     return {k: f for k, f in figures.items() if f is not None}
-
-
-__all__ = [
-    "constraint_excess_figure",
-    "episode_figures",
-    "group_excess_of",
-    "inputs_figure",
-    "latent_force_figure",
-    "paths_figure",
-    "states_figure",
-    "trajectory_figure",
-]

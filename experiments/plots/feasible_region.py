@@ -1,8 +1,5 @@
-"""The feasible region of a system in a plane of two states, from its own constraints.
-
-The constraints that depend only on the plotted states are found from the structure of the
-CasADi Jacobian ``dg/dx``; their values on a grid (the other states at a base state) shade
-the infeasible area and draw ``g = 0``. Also the axis limits and labels of such planes.
+"""The feasible region of a system in a plane of two states, from the constraints that depend
+only on them (structure of the CasADi Jacobian ``dg/dx``); axis limits and labels.
 """
 
 from __future__ import annotations
@@ -18,11 +15,7 @@ from lfm_env.system import ControlSystem, split_unit
 
 
 def constraint_dependencies(system: ControlSystem) -> tuple[frozenset[int], ...]:
-    """The states each constraint ``g_j(x)`` depends on (structurally), one set per constraint.
-
-    Read from the sparsity of the CasADi Jacobian ``dg/dx``: exact for the expression the
-    system writes (a term multiplied by a literal zero may still count).
-    """
+    """The states each constraint ``g_j(x)`` depends on, from the sparsity of CasADi's ``dg/dx``."""
     import casadi as ca
 
     if system.ng == 0:
@@ -80,11 +73,7 @@ def _crossings(s: np.ndarray, g: np.ndarray) -> list[float]:
 def state_bounds(
     system: ControlSystem, state: int, low: float, high: float, base_state: Any = None
 ) -> list[float]:
-    """Values of state ``state`` in ``[low, high]`` where a constraint on it alone is zero.
-
-    Only constraints that depend on this state and no other count (e.g. the sine track's
-    speed bounds for ``v``, its x bounds for ``p_x``).
-    """
+    """Values of ``state`` in ``[low, high]`` where a constraint on it alone is zero."""
     which = [j for j, d in enumerate(constraint_dependencies(system)) if d == {state}]
     if not which or not high > low:
         return []
@@ -136,9 +125,6 @@ def _components(values: Any, n: int, name: str) -> np.ndarray:
             f"{name} of shape {a.shape}: expected (T, {n}) (or (T,) for one component)"
         )
     return a
-
-
-# --------------------------------------------------------------------------- episode plots
 
 
 def _draw_feasible_region(
@@ -195,12 +181,8 @@ def _plane_limits(
     ys: Sequence[np.ndarray],
     resolution: int = 400,
 ) -> tuple[tuple[float, float], tuple[float, float]]:
-    """Axis limits of the plane: the data, grown to the feasible region near it.
-
-    The feasible set of the plane's constraints is found on a grid over the data's box
-    widened by its size on each side; where that set ends inside the widened box (the
-    track band, the x bounds, a tunnel), the limits take it in; where it reaches the box's
-    edge (an unbounded side) they stay with the data.
+    """Axis limits of the plane: the data, grown to take in the feasible region's ends found on a
+    grid over the data's box widened by its size (an unbounded side stays with the data).
     """
     box = []
     for values in (xs, ys):

@@ -1,7 +1,5 @@
-"""Replays of saved episodes: frames drawn by each world's own scene, captions, GIFs.
-
-Nothing here runs an episode: the frames are saved true states drawn through
-:meth:`lfm_env.env.LatentForceEnv.make_scene` of the config's world.
+"""Replays of saved episodes: saved true states drawn by each world's own scene
+(:meth:`lfm_env.env.LatentForceEnv.make_scene`), captions, GIFs.
 """
 
 from __future__ import annotations
@@ -15,10 +13,8 @@ import numpy as np
 
 
 def annotate_frame(frame: np.ndarray, text: str) -> np.ndarray:
-    """A copy of an RGB ``frame`` with ``text`` in its top-left corner.
-
-    Besides telling the time, the caption keeps consecutive frames distinct: a GIF writer
-    merges identical frames, and a stopped car would otherwise lose frames.
+    """A copy of an RGB ``frame`` with ``text`` in its top-left corner (which also keeps
+    consecutive frames distinct, so a GIF writer does not merge them).
     """
     from PIL import Image, ImageDraw
 
@@ -45,15 +41,9 @@ def _world(config: Any) -> tuple[str, Any]:
 
 
 def make_render_env(config: Any, render_mode: str = "rgb_array", **options: Any):
-    """``gym.make(env_id, config=world, render_mode=...)`` of the config's world.
-
-    Args:
-        config: an :class:`~controllers.config.ExperimentConfig` (its ``env_id`` and
-            ``env``) or a world config (its ``ENV_ID``).
-        render_mode: ``"rgb_array"`` (frames) or ``"human"``.
-        **options: drawing options such as ``screen_size`` [px] or ``scaling`` [px/m];
-            those the world's env does not take are left out (each world draws its own
-            way).
+    """``gym.make(env_id, config=world, render_mode=...)`` of an ``ExperimentConfig``'s or a world
+    config's world; ``options`` (``screen_size`` [px], ``scaling`` [px/m]) the env does not take
+    are left out.
     """
     import gymnasium as gym
 
@@ -98,21 +88,14 @@ def replay_frames(
     scaling: float | None = None,
     caption: str = "",
 ) -> list[np.ndarray]:
-    """Frames of a saved episode drawn by the world's own scene, one per saved true state.
-
-    This replays ``true_state`` through ``env.unwrapped.make_scene()`` of the config's
-    env (``scene.update(x)``, ``scene.draw()``); it does not simulate anything.
+    """``T+1`` RGB frames ``(height, width, 3)`` uint8: a saved episode in the world's scene.
 
     Args:
         true_state: ``(T+1, nx)`` true states in the states' units.
         config: an ``ExperimentConfig`` or the world config of the run.
         screen_size: frame ``(width, height)`` [px], if the world's env takes it.
-        scaling: [px/m], if the world's env takes it; ``None`` for the world's own default
-            (the sine track follows the car at 25 px/m, the quadrotor fits the tunnel).
+        scaling: [px/m], if the world's env takes it; ``None`` for the world's default.
         caption: text put before the time stamp on each frame.
-
-    Returns:
-        ``T+1`` RGB frames ``(height, width, 3)`` uint8.
     """
     options = {} if scaling is None else {"scaling": scaling}
     env = make_render_env(config, screen_size=screen_size, **options)

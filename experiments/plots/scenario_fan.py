@@ -1,16 +1,7 @@
-"""What scenario MPC plans: the predicted scenario trajectories of saved episodes.
-
-At every step the scenario MPC draws ``Ns`` latent force scenarios, plans one input
-sequence shared by all of them and predicts each scenario's states over the horizon
-(``predicted``, ``(Ns, N+1, nx)``). The evaluation keeps a compact fan per step in the
-episode file (``predicted_scenarios``, ``(T, S, N+1, nx)``, the first
-:data:`~experiments.evaluation.episode.SAVED_SCENARIOS` scenarios); older files keep only the
-first scenario (``predicted``, ``(T, N+1, nx)``), which is drawn as a fan of one.
-
-:func:`scenario_fan_figure` draws the fan at a few steps over the feasible region of the
-plane of two states; :func:`plan_panel_frames` draws, for every step, the estimate with
-its 2-sigma ellipse and the fan, for the episode's GIF (:func:`experiments.plots.replay.
-replay_frames`). Nothing here runs an episode.
+"""What scenario MPC plans: the saved scenario predictions of an episode (``predicted_scenarios``
+``(T, S, N+1, nx)``, or older files' first scenario ``predicted``, a fan of one), drawn at a
+few steps over the feasible region (:func:`scenario_fan_figure`) or at every step for the
+episode's GIF (:func:`plan_panel_frames`).
 """
 
 from __future__ import annotations
@@ -128,18 +119,13 @@ def scenario_fan_figure(
     plane: tuple[int, int] = (0, 1),
     title: str = "",
 ) -> Figure | None:
-    """The scenario fan of the plan at a few steps, one panel each, over the feasible region.
-
-    Each panel shows, at step ``k`` (time ``k dt``): the saved scenario predictions
-    (thin blue lines, one per scenario, a :class:`~matplotlib.collections.LineCollection`),
-    their mean (thick navy line), the estimate the plan started from with its 2-sigma
-    ellipse (red), the true path so far (grey) and over the next ``N`` steps (green
-    dashed), with the infeasible region shaded; lengths to scale (equal axes).
+    """The scenario fan of the plan at a few steps, one panel each, over the feasible region:
+    the predictions and their mean, the estimate with its 2-sigma ellipse, the true path so far
+    and over the next ``N`` steps, to scale.
 
     Args:
         system: the world's system (labels, constraints).
-        trajectory: the arrays of one saved episode (``true_state``, ``estimate``,
-            ``estimate_std`` and ``predicted_scenarios`` or ``predicted``).
+        trajectory: the arrays of one saved episode.
         dt: sampling time [s].
         steps: the steps drawn; ``None`` for four spread over the episode.
         goal_state: ``(nx,)`` goal state (the unplotted states of the region take it).
@@ -207,21 +193,8 @@ def plan_panel_frames(
     goal_radius: float | None = None,
     plane: tuple[int, int] = (0, 1),
 ) -> list[np.ndarray]:
-    """One RGB panel per saved state: the estimate with its 2-sigma ellipse and the fan.
-
-    A camera of fixed size follows the true state over the feasible region; panel ``k``
-    shows the true state ``k``, the estimate made at step ``k`` and the plan's scenario
-    predictions from it (the last panel, after the final step, only the path).
-
-    Args:
-        system: the world's system.
-        trajectory: one saved episode (see :func:`scenario_fan_figure`).
-        size: panel ``(width, height)`` [px].
-        goal_state: ``(nx,)`` goal state; goal_radius: the goal disc's radius.
-        plane: the two state indices drawn.
-
-    Returns:
-        ``T+1`` frames ``(height, width, 3)`` uint8.
+    """``T+1`` RGB panels ``(height, width, 3)`` uint8 of ``size`` [px]: a camera following the true
+    state, the estimate of step ``k`` with its 2-sigma ellipse and the plan's fan from it.
     """
     fans, _ = saved_fans(trajectory)
     i, j = plane

@@ -58,9 +58,6 @@ def _step_plot(ax, t: np.ndarray, values: np.ndarray, dt: float | None = None, *
     return ax.step(tt, vv, where="post", **kwargs)
 
 
-# --------------------------------------------------------------------------- the system
-
-
 def unit_of(label: str) -> str:
     """The unit of a label ``"p_x [m]"`` (``"m"``); ``""`` when it has none."""
     return split_unit(label)[1]

@@ -32,14 +32,8 @@ def distribution_axes(
     log: bool = False,
     seed: int = 0,
 ) -> None:
-    """Box plot per group with the individual values as a jittered strip on top.
-
-    Args:
-        ax: matplotlib axes.
-        values: ``label -> values``; NaNs are left out, an all-NaN group shows "n/a".
-        colours: one colour per group.
-        log: log-scale y axis (non-positive values are left out).
-        seed: seed of the horizontal jitter, so figures are reproducible.
+    """Box plot per group (``label -> values``, NaN left out) with the values as a jittered strip
+    (seeded), optionally on a log scale.
     """
     rng = np.random.default_rng(seed)
     labels = list(values)
@@ -91,13 +85,8 @@ def metric_distributions_figure(
     ncols: int = 3,
     log_scale: Sequence[str] = (),
 ) -> Figure:
-    """A grid of per-agent distributions over seeds, one panel per metric.
-
-    Args:
-        metrics: ``axis label (with unit) -> {agent label -> values over seeds}``.
-        agent_names: agent names in the same order as the labels (for the colours).
-        ncols: panels per row.
-        log_scale: axis labels of the panels drawn on a log scale (heavy-tailed metrics).
+    """A grid of per-agent distributions over seeds, one panel per metric
+    (``axis label -> {agent label -> values}``); ``log_scale``: the panels on a log axis.
     """
     n = len(metrics)
     nrows = int(np.ceil(n / ncols))
@@ -119,21 +108,14 @@ def solve_time_figure(
     agent_names: Sequence[str],
     dt: float,
 ) -> Figure:
-    """Per-episode solve-time median and 95th percentile per agent, log scale.
-
-    Args:
-        median: ``agent label -> per-episode median solve time [s]``.
-        p95: ``agent label -> per-episode 95th-percentile solve time [s]``.
-        agent_names: agent names in the same order as the labels (for the colours).
-        dt: sampling time [s], drawn as the real-time limit.
+    """Per-episode solve-time median and 95th percentile [s] per agent label, log scale, with the
+    sampling time ``dt`` [s] as the real-time limit.
     """
     fig = new_figure(10.0, 3.6)
     axes = fig.subplots(1, 2, sharey=True)
     colours = [agent_colour(a) for a in agent_names]
     for ax, (title, values) in zip(
-        axes,
-        (("median per episode", median), ("95th percentile per episode", p95)),
-        strict=True,
+        axes, (("median per episode", median), ("95th percentile per episode", p95)), strict=True
     ):
         distribution_axes(ax, values, colours, log=True)
         ax.axhline(dt, color="red", ls="--", lw=1.0, label=f"sampling time {dt:g} s")
@@ -160,7 +142,7 @@ def coverage_figure(
 
     Args:
         quantities: ``Q`` labels with units (the states, then the latent force).
-        agents: ``label -> colour`` of the ``A`` agents (with their estimator's name).
+        agents: ``label -> colour`` of the ``A`` agents.
         coverage: ``(A, Q, 3)`` mean, low and high of the 2-sigma coverage (a fraction).
         rmse: ``(A, Q, 3)`` mean, low and high of the RMSE [the quantity's unit].
         nominal: the coverage of a calibrated 2-sigma band, drawn dashed.
@@ -199,16 +181,8 @@ def pareto_figure(
     ylabel: str,
     title: str = "",
 ) -> Figure:
-    """The risk trade-off: paired differences to a baseline, one point per setting.
-
-    Args:
-        points: ``(label, x, y)`` per setting; ``x`` and ``y`` are ``(mean, low, high)``
-            of the paired difference to the baseline (x: e.g. time to goal [s]; y: e.g.
-            violation steps beyond a tolerance). NaN points are left out.
-        baseline: the baseline's label, drawn at the origin.
-        xlabel: x axis label (with its unit).
-        ylabel: y axis label.
-        title: figure title.
+    """The risk trade-off: paired differences to ``baseline`` (at the origin), one point per
+    setting: ``(label, x, y)``, each ``(mean, low, high)``; NaN points left out.
     """
     fig = new_figure(6.4, 4.8)
     ax = fig.subplots()
@@ -244,6 +218,3 @@ def pareto_figure(
     if title:
         ax.set_title(title, fontsize=10)
     return fig
-
-
-# --------------------------------------------------------------------------- frames

@@ -1,34 +1,12 @@
-"""The chance constraint checked against its design: how often the true state violates each
-constraint group, at the plan's first step in closed loop and at every step of the horizon
-offline, beside the design's violation level epsilon.
-
-**The design.** A scenario agent's count ``Ns`` of sampled force paths comes from
-``(epsilon, beta)`` by the Campi-Garatti bound (:mod:`controllers.scenario_count`): for a
-convex scenario program with ``d = nu N`` decision variables, the plan violates the
-constraints (any group, any step of the horizon) with probability above ``epsilon`` only with
-probability at most ``beta``; on average that probability is at most ``d / (Ns + 1)``. When a
-config sets ``agents.violation_level`` and ``agents.confidence`` they are the design; when it
-gives ``n_scenarios`` itself, the design's ``epsilon`` is the smallest one that ``Ns`` meets
-at ``beta =`` :data:`DEFAULT_CONFIDENCE` (:func:`design_epsilon`). The premise is the
-scenarios being independent draws of the true uncertainty given what the agent knows; the
-paper's agent draws only the force's future noise from the estimate's mean, not the
-estimate's own uncertainty, and the MPC is not convex (the paper's Remark 2).
-
-**Closed loop, step k = 1** (:func:`closed_loop_first_step`): the fraction of the steps an
-agent survived after which the true state violated the group (excess above 0), pooled over
-episodes with a bootstrap over whole episodes. It is the probability the chance
-constraint bounds at the plan's first step, averaged over the states met.
-
-**Offline, every k** (:func:`plan_violations`, :func:`offline_violations`): for each saved
-step with a plan that was applied (``plan[k]`` of the trajectory, no fallback), the plan is
-rolled out open loop from the true state under :data:`DRAWS` draws of the true force's
-conditional law given the env's hidden latent state (the truth the evaluation recorded in
-``latent_state``; agents never see it) and of the process noise; the fraction of draws that
-violate each group at step ``k`` of the horizon is averaged over the steps, with a bootstrap
-over episodes. "Joint" is the fraction that violate any group at any step ``1..k``: at
-``k = N`` the event of the Campi-Garatti statement. For agents whose inputs after the first
-step are feedback or branch on the outcome (do-mpc's recourse), steps ``k >= 2`` measure
-their nominal open-loop plan, not their policy.
+"""The chance constraint checked against its design (``docs/evidence.md``): how often the true
+state violates each constraint group, at the plan's first step in closed loop
+(:func:`closed_loop_first_step`, pooled over episodes with a bootstrap over episodes) and at
+every step of the horizon offline (:func:`plan_violations`, :func:`offline_violations`: each
+applied plan rolled out from the true state under :data:`DRAWS` draws of the true force's
+law given the env's hidden latent state and of the process noise), beside the design's
+epsilon (the config's, or :func:`design_epsilon` of ``Ns`` at :data:`DEFAULT_CONFIDENCE`).
+"Joint" is any group at any step ``1..k``. For feedback or branching agents, steps
+``k >= 2`` measure the nominal open-loop plan, not the policy.
 """
 
 from __future__ import annotations
@@ -65,14 +43,9 @@ SLACK_TOLERANCE = 1.0e-6
 SEED = 0
 
 
-# --------------------------------------------------------------------------- the design
-
-
 def design_epsilon(n_scenarios: int, n_decision: int, beta: float) -> float:
-    """The smallest ``epsilon`` whose Campi-Garatti bound ``Ns`` scenarios meet at ``beta``.
-
-    ``sum_{i<d} C(Ns, i) eps^i (1 - eps)^(Ns - i) <= beta`` (:mod:`controllers.scenario_count`);
-    1 when ``Ns < d`` (no guarantee at any level).
+    """The smallest ``epsilon`` whose Campi-Garatti bound ``Ns`` scenarios meet at ``beta``
+    (:mod:`controllers.scenario_count`); 1 when ``Ns < d``.
     """
     d, ns = int(n_decision), int(n_scenarios)
     if ns < d:
@@ -131,9 +104,6 @@ def agent_design(agent: str, config: ExperimentConfig) -> Design:
     return Design(ns, d, design_epsilon(ns, d, beta), beta, source)
 
 
-# --------------------------------------------------------------------------- the draws
-
-
 def plan_violations(
     model: LatentForceModel,
     plans: np.ndarray,
@@ -144,25 +114,17 @@ def plan_violations(
 ) -> tuple[np.ndarray, np.ndarray]:
     """How often open-loop plans violate each constraint group under the true law.
 
-    Each plan ``plans[t]`` ``(N, nu)`` is applied from the true state ``states[t]`` ``(nx,)``
-    while the force follows ``n_draws`` draws of its conditional law given the latent state
-    ``latents[t]`` ``(p,)`` (``w_k = H z_k``, ``z_{k+1} = A z_k + eta``: the model's
-    :meth:`~lfm_env.model.LatentForceModel.sample_latent_forecasts`) and the physical state
-    takes the model's process noise, as in the env.
-
     Args:
         model: the true model (the env's: its force and process noise).
         plans: ``(T, N, nu)`` input sequences, in the inputs' units (clipped to the bounds).
         states: ``(T, nx)`` true states the plans start from.
-        latents: ``(T, p)`` true latent states at those steps.
+        latents: ``(T, p)`` true latent states at those steps (the force's conditional law).
         n_draws: draws per plan.
         rng: the draws' generator.
 
     Returns:
-        ``(per_group, joint)``: ``per_group`` ``(T, N, G)`` the fraction of draws whose state
-        at step ``k + 1`` violates group ``g`` (excess above 0; the groups in
-        ``system.constraint_groups`` order), ``joint`` ``(T, N)`` the fraction that violate
-        any group at any step ``1..k+1``.
+        ``(per_group (T, N, G), joint (T, N))``: the fraction of draws whose state at step
+        ``k + 1`` violates group ``g``, and any group at any step ``1..k+1``.
     """
     system = model.system
     plans = system.clip_input(np.asarray(plans, dtype=float))
@@ -186,16 +148,10 @@ def plan_violations(
     return per_group, joint
 
 
-# --------------------------------------------------------------------------- the check
-
-
 @dataclass(frozen=True)
 class ChanceCheck:
-    """One agent's violation probabilities beside its design.
-
-    ``closed_loop[g]``: the closed-loop probability of group ``g`` at step 1 (all steps
-    survived). ``offline[g][k]``: the offline probability at step ``k + 1`` (``()`` when the
-    agent saved no plan); ``joint[k]``: any group at any step ``1..k+1``.
+    """One agent's violation probabilities beside its design: ``closed_loop[g]`` (step 1),
+    ``offline[g][k]`` (step ``k + 1``; ``()`` without plans) and ``joint[k]``.
     """
 
     agent: str
@@ -237,12 +193,9 @@ def _applied_plans(traj: dict[str, np.ndarray]) -> np.ndarray:
 def offline_violations(
     results: Results, agent: str, model: LatentForceModel, n_draws: int = DRAWS
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """The offline sums of one agent's error-free episodes with saved plans.
-
-    Returns:
-        ``(per_group, joint, used, slack)``: per episode the sums over its applied plans of
-        :func:`plan_violations`' fractions, ``(E, N, G)`` and ``(E, N)``, the plans used
-        ``(E,)``, and the steps with constraint slack (over all its saved steps).
+    """The offline sums of one agent's error-free episodes with saved plans: per episode
+    :func:`plan_violations`' fractions summed over its applied plans ``(E, N, G)`` and
+    ``(E, N)``, the plans used ``(E,)`` and the steps with constraint slack.
     """
     sums_g, sums_j, used, slack = [], [], [], 0
     for row in results.rows_of(agent):
@@ -308,8 +261,6 @@ def chance_check(results: Results, n_draws: int = DRAWS) -> list[ChanceCheck]:
         )
     return out
 
-
-# --------------------------------------------------------------------------- the section
 
 FIGURE = "figures/chance_constraint.png"
 
@@ -472,21 +423,3 @@ def chance_section(doc: Document, results: Results, n_draws: int = DRAWS) -> lis
             )
     _figure(doc, results, cals)
     return cals
-
-
-__all__ = [
-    "DEFAULT_CONFIDENCE",
-    "DRAWS",
-    "SEED",
-    "SLACK_TOLERANCE",
-    "ChanceCheck",
-    "Design",
-    "agent_design",
-    "chance_check",
-    "chance_section",
-    "closed_loop_first_step",
-    "design_epsilon",
-    "offline_violations",
-    "plan_violations",
-    "scenario_count",
-]

@@ -1,17 +1,8 @@
-"""Two lfm-evaluate folders of the same agents and seeds, one against the other.
-
-For every agent both folders ran, the headline metrics of the reference folder (mean and
-its 95% BCa bootstrap interval over episodes, as the report gives them), the other
-folder's mean, whether that mean lies inside the reference's interval, and the paired
-difference (same seeds) with its interval. Used to check that a changed default (e.g.
-``agents.solver``) leaves the closed loop where it was:
+"""Two lfm-evaluate folders of the same agents and seeds, one against the other: per agent the
+reference's headline means with their BCa intervals, the other's mean, whether it lies
+inside, and the paired difference with its interval::
 
     python -m experiments.report.compare_runs REFERENCE OTHER [--group G] [--tolerance 0.01]
-
-Headline metrics: ``G`` steps beyond the tolerance per episode, zero-violation episodes at
-that tolerance, time to goal [s] (episodes that reached it), the success rate; then the
-medians of the episodes' median solve times and the deadline misses where the rows hold
-them (timing, not judged).
 """
 
 from __future__ import annotations

@@ -1,10 +1,5 @@
-"""A small document model rendered to Markdown and to a self-contained HTML page.
-
-The report (:mod:`experiments.report.write`) and the risk sweep (:mod:`experiments.sweep`) build
-a :class:`Document` of headings, paragraphs, bullet lists, tables and images once, so the
-Markdown and the HTML say the same. The Markdown links its images by their relative
-paths; the HTML embeds each one as a base64 ``data:`` URI (:func:`embedded_image`), so the
-page shows every figure when it is copied or mailed alone.
+"""A small document model (headings, paragraphs, lists, tables, images) rendered to Markdown
+and to a self-contained HTML page (images embedded as ``data:`` URIs).
 """
 
 from __future__ import annotations
@@ -61,13 +56,8 @@ class Document:
     # ---- HTML
 
     def html(self, title: str, base_dir: str | Path | None = None) -> str:
-        """The document as one HTML page.
-
-        Args:
-            title: the page title.
-            base_dir: the folder the images' relative paths start from; each image is
-                embedded from there as a base64 ``data:`` URI (see :func:`embedded_image`),
-                so the page shows every figure alone. ``None`` links them instead.
+        """The document as one HTML page titled ``title``; images embedded from ``base_dir``
+        (:func:`embedded_image`), or linked when ``None``.
         """
         body = []
         for block in self.blocks:
@@ -105,10 +95,8 @@ _MIME = {".png": "image/png", ".gif": "image/gif", ".jpg": "image/jpeg", ".svg":
 
 
 def embedded_image(path: str | Path, caption: str) -> tuple[str, str]:
-    """A ``data:`` URI of an image file and its caption, for a self-contained page.
-
-    A GIF larger than :data:`GIF_EMBED_LIMIT` is replaced by a PNG still of its last
-    frame, and the caption says so (the GIF stays beside the report).
+    """A ``data:`` URI of an image file and its caption (a GIF over :data:`GIF_EMBED_LIMIT`:
+    a PNG of its last frame, said in the caption).
 
     Raises:
         FileNotFoundError: naming the image, if it does not exist.
@@ -171,6 +159,3 @@ def _inline_html(text: str) -> str:
     escaped = html.escape(str(text))
     escaped = re.sub(r"`([^`]+)`", r"<code>\1</code>", escaped)
     return re.sub(r"\*\*([^*]+)\*\*", r"<strong>\1</strong>", escaped)
-
-
-__all__ = ["GIF_EMBED_LIMIT", "Document", "embedded_image"]

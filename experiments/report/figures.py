@@ -1,9 +1,4 @@
-"""The report's figures: the metrics across seeds and one episode drawn from its saved
-arrays (its own figures, every agent on the same seed, the plan's scenario fan, a GIF).
-
-Everything is drawn by :mod:`experiments.plots` from the world's system; this module picks
-the episode, names the files in ``DIR/figures/`` and writes the captions.
-"""
+"""The report's figures (drawn by :mod:`experiments.plots`): files in ``figures/``, captions."""
 
 from __future__ import annotations
 
@@ -44,11 +39,8 @@ def _steps(row: dict) -> float:
 
 
 def _default_figure_seed(results: Results, agent: str) -> tuple[int | None, str]:
-    """The seed of the episode figures and why it was chosen (a sentence for the report).
-
-    The smallest seed whose ``agent`` episode ran without error for at least one step and
-    has a saved trajectory; a failed or 0-step episode draws empty figures, so it is
-    chosen only when no other has a trajectory, and the sentence says so.
+    """The smallest seed with a saved trajectory of an error-free ``agent`` episode of at least one
+    step (else any with a trajectory), and a sentence saying why.
     """
     rows = results.rows_of(agent, include_errors=True)
     saved = [
@@ -89,12 +81,7 @@ def _goal(results: Results) -> tuple[np.ndarray, float | None]:
 
 
 def world_goal(cfg: object) -> tuple[np.ndarray, float | None]:
-    """The task's goal state (SI units) and, if the world has one, its goal radius.
-
-    A world whose success is reaching a disc (a ``goal`` position in the plane of the
-    first two states and a ``goal_radius``, as both the sine track and the quadrotor
-    have) gets that disc drawn; otherwise the cost's goal state is marked.
-    """
+    """The task's goal state (SI units) and the world's goal radius, if it has one."""
     goal_state = np.array(cfg.goal_state_rad, dtype=float)
     goal, radius = getattr(cfg, "goal", None), getattr(cfg, "goal_radius", None)
     if goal is not None and np.shape(goal) == (2,) and radius is not None:
@@ -362,6 +349,3 @@ def _fan_figure(
         "line their mean; the true path so far (grey) and over the next horizon (green "
         "dashed) with the infeasible region shaded. Equal axes: lengths to scale.",
     )
-
-
-__all__ = ["check_figure_seed", "figures_section", "world_goal"]

@@ -1,9 +1,4 @@
-"""How the report writes numbers and agents: significant digits, estimates with their
-intervals, and the agents' labels (from :mod:`controllers.agents.registry`).
-
-A leaf of the experiment layer: the report and the risk sweep's table use it, and it
-imports none of them.
-"""
+"""How the report writes numbers (significant digits, estimates with intervals) and agents."""
 
 from __future__ import annotations
 
@@ -37,10 +32,8 @@ def fmt_estimate(e: Estimate, n_total: int | None = None) -> str:
 
 
 def agent_label(name: str, wrap: bool = False) -> str:
-    """Short display label of an agent (a registered agent's ``short_label``, else its
-    name; the oracle's says that it reads the truth).
-
-    ``wrap`` puts a parenthesised remark on its own line, for axis tick labels.
+    """Short display label of an agent (its ``short_label``, else its name); ``wrap`` puts a
+    parenthesised remark on its own line.
     """
     label = AGENT_REGISTRY[name].short_label if name in AGENT_REGISTRY else name
     return label.replace(" (", "\n(").replace(", ", ",\n") if wrap else label
@@ -49,6 +42,3 @@ def agent_label(name: str, wrap: bool = False) -> str:
 def long_label(name: str) -> str:
     """The one-line label of an agent (a registered agent's ``label``, else its name)."""
     return AGENT_REGISTRY[name].label if name in AGENT_REGISTRY else name
-
-
-__all__ = ["agent_label", "fmt", "fmt_estimate", "long_label"]

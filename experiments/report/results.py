@@ -1,11 +1,5 @@
-"""A results folder of the evaluation, read back: its table, its config and its episodes.
-
-:func:`load_results` is the one reader of a results folder for everything downstream of
-the evaluation (the report, the sweep's tables, a user's own analysis): it returns a
-:class:`Results` with the rows of ``episodes.csv`` (parsed: numbers as floats, ``agent``
-and ``error`` as text), the world's config and system from ``config.yaml``, and the
-episodes' saved arrays on demand (:func:`load_trajectory`). The storage layer's own
-reader of the episode records is :func:`experiments.evaluation.storage.saved_rows`.
+"""A results folder read back (:func:`load_results`: the table, the config and system, the
+saved arrays on demand): the one reader for everything downstream of the evaluation.
 """
 
 from __future__ import annotations
@@ -97,8 +91,7 @@ def read_episodes_csv(path: str | Path) -> list[dict[str, Any]]:
 
     Raises:
         FileNotFoundError: if the file does not exist.
-        ValueError: naming the file, if it is not text, has no ``agent``/``seed`` columns,
-            a row that does not parse, or no rows.
+        ValueError: naming the file, if it is unreadable, lacks ``agent``/``seed`` or rows.
     """
     path = Path(path)
     if not path.is_file():
@@ -159,12 +152,9 @@ def _is_nan(value: Any) -> bool:
 
 
 def _trusted_rows(directory: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """The rows of the folder's table, checked against its episode records, and the records.
-
-    Without records (a table alone) the table is read as it is. Where the table is missing,
-    not text, or disagrees with the records (rows, agents, seeds, values), its rows are
-    rebuilt from the records: with one warning naming it, and the file rewritten, unless a
-    run still writes the folder (whose table lags its records by design).
+    """The folder's table rows, checked against its episode records, and the records: a missing
+    or disagreeing table is rebuilt from the records (one warning; rewritten unless a run still
+    writes the folder).
     """
     from experiments.evaluation.storage import folder_in_use, saved_records, table_text, warn
 
@@ -191,13 +181,11 @@ def _trusted_rows(directory: Path) -> tuple[list[dict[str, Any]], list[dict[str,
 
 
 def _checked_config(directory: Path, records: list[dict[str, Any]]) -> dict[str, Any]:
-    """The config the folder's episodes ran with, as plain data: its ``config.yaml``, or,
-    when that was edited after the run, the config the records hold (with one warning
-    naming the fields).
+    """The config the folder's episodes ran with: ``config.yaml``, or the records' config when
+    it was edited (one warning naming the fields).
 
     Raises:
-        ValueError: ``config.yaml`` is not the episodes' config and their records (written
-            by an earlier version) do not hold it.
+        ValueError: ``config.yaml`` was edited and the records do not hold their config.
     """
     from experiments.evaluation.storage import edited_config, warn
 
@@ -216,23 +204,15 @@ def _checked_config(directory: Path, records: list[dict[str, Any]]) -> dict[str,
 
 def load_results(results_dir: str | Path) -> Results:
     """Load ``episodes.csv`` and ``config.yaml`` of a results folder, checked against its
-    episode records (``episodes/*.json``).
-
-    The table must hold the records' rows (agents, seeds, values); one that is missing, cut
-    short, not text or of other rows is rebuilt from them, with one warning naming it. The
-    config is ``config.yaml`` if it is the config the records ran with; if it was edited
-    after the run, the config the records hold (one warning names the fields). A table
-    written before the tolerance-aware columns existed
-    (``{g}_violation_steps_over_{t:g}``, see :func:`~experiments.evaluation.columns.row_columns`)
-    gets them from the saved trajectories where those exist; episodes without one keep
-    them missing (NaN), and the report leaves such metrics out.
+    episode records (a bad table is rebuilt from them, an edited config replaced by theirs,
+    each with one warning); tolerance columns missing from an older table are computed from
+    the saved trajectories.
 
     Raises:
-        FileNotFoundError: if the folder, its ``config.yaml`` or (without records) its
-            ``episodes.csv`` is missing (the message names the path).
-        ValueError: if the table holds no episodes or cannot be read (naming it), or
-            ``config.yaml`` was edited and the records (of an earlier version) do not hold
-            the config they ran with.
+        FileNotFoundError: the folder, its ``config.yaml`` or (without records) its
+            ``episodes.csv`` is missing (naming the path).
+        ValueError: no episodes, an unreadable table, or an edited config the records do
+            not hold.
     """
     directory = Path(results_dir)
     if not directory.is_dir():
@@ -280,11 +260,3 @@ def load_trajectory(results: Results, agent: str, seed: int) -> dict[str, np.nda
         results.damaged[path] = str(exc)
         warn(f"{exc}; left out")
         return None
-
-
-__all__ = [
-    "Results",
-    "load_results",
-    "load_trajectory",
-    "read_episodes_csv",
-]

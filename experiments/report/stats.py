@@ -1,12 +1,5 @@
-"""The numbers of a report: its metrics, bootstrap intervals, paired differences and
-the estimators' coverage, computed from a loaded results folder
-(:func:`experiments.report.results.load_results`); :mod:`experiments.report.write` writes them down.
-
-The metrics are the columns of ``episodes.csv``
-(:func:`~experiments.evaluation.columns.row_columns`) as the report names them, per
-constraint group of the world's system with its unit. Every interval is SciPy's BCa
-bootstrap (``scipy.stats.bootstrap``; paired where the values are paired) with a fixed
-resampling seed, so the same results give the same report.
+"""The numbers of a report: metrics, SciPy's BCa bootstrap intervals (seeded, paired where the
+values are), paired differences and the estimators' coverage, from a loaded results folder.
 """
 
 from __future__ import annotations
@@ -57,11 +50,7 @@ class Metric:
 
 
 def group_metrics(system: ControlSystem) -> tuple[Metric, ...]:
-    """Per constraint group ``g`` of the system: violation steps, then the largest excess.
-
-    The columns are the evaluation's (``{g}_violation_steps``, ``max_{g}_excess``); the
-    excess is in the unit of the group's constraints (``system.constraint_names``).
-    """
+    """Per constraint group ``g``: violation steps, then the largest excess (constraint units)."""
     out = []
     for g in system.constraint_groups:
         unit = group_unit(system, g)
@@ -77,14 +66,8 @@ def _beyond(system: ControlSystem, group: str, tolerance: float) -> str:
 
 
 def tolerance_metrics(system: ControlSystem, group: str | None = None) -> tuple[Metric, ...]:
-    """Violation steps beyond each tolerance of ``system.violation_tolerances``.
-
-    The evaluation's ``{g}_violation_steps_over_{t:g}`` columns, labelled with the
-    tolerance and its unit ("track violation steps > 0.01 m").
-
-    Args:
-        system: the world's system.
-        group: only this group's; ``None`` for every group's, in the groups' order.
+    """Violation steps beyond each tolerance of ``system.violation_tolerances`` ("track violation
+    steps > 0.01 m"), of ``group`` only or of every group.
     """
     return tuple(
         Metric(column, f"{g} violation steps {_beyond(system, g, t)}", "steps")
@@ -94,11 +77,7 @@ def tolerance_metrics(system: ControlSystem, group: str | None = None) -> tuple[
 
 
 def zero_violation_metrics(system: ControlSystem, group: str) -> tuple[Metric, ...]:
-    """The fraction of episodes without violation steps of ``group``: raw, then per tolerance.
-
-    Each is the mean over episodes of "this episode has 0 such steps", so its bootstrap
-    interval is that of a proportion.
-    """
+    """The fraction of episodes without violation steps of ``group``: raw, then per tolerance."""
     out = [
         Metric(
             f"{group}_violation_steps",
@@ -121,10 +100,8 @@ def zero_violation_metrics(system: ControlSystem, group: str) -> tuple[Metric, .
 
 
 def summary_metrics(system: ControlSystem) -> tuple[Metric, ...]:
-    """The rows of the per-agent table for a system: its group metrics among the fixed ones.
-
-    Per constraint group: violation steps, the largest excess, the violation steps beyond
-    each of its tolerances, then the zero-violation episodes (raw and per tolerance).
+    """The rows of the per-agent table: per group its violation steps, largest excess, steps
+    beyond each tolerance and zero-violation episodes, among the fixed metrics.
     """
     force = force_unit(system)
     groups = []
@@ -173,9 +150,6 @@ def paired_metrics(system: ControlSystem) -> tuple[Metric, ...]:
     )
 
 
-# --------------------------------------------------------------------------- statistics
-
-
 #: How the intervals are computed, as the report names it.
 BOOTSTRAP_METHOD = (
     "BCa bootstrap (bias-corrected and accelerated, scipy.stats.bootstrap; paired "
@@ -185,12 +159,8 @@ BOOTSTRAP_METHOD = (
 
 @dataclass(frozen=True)
 class Estimate:
-    """A mean (or pooled value) with its bootstrap confidence interval.
-
-    ``method`` says how the interval was found: ``"BCa"``; ``"percentile"`` where BCa is
-    undefined for the sample (e.g. a single differing value makes its acceleration
-    infinite); ``"exact"`` where every value is equal (or one value: a zero-width
-    interval); ``""`` without values.
+    """A mean (or pooled value) with its bootstrap confidence interval; ``method``: ``"BCa"``,
+    ``"percentile"`` (BCa undefined), ``"exact"`` (equal values) or ``""`` (none).
     """
 
     mean: float
@@ -275,11 +245,7 @@ def bootstrap_ci(
     level: float = 0.95,
     seed: int = BOOTSTRAP_SEED,
 ) -> Estimate:
-    """Mean and BCa bootstrap CI of the finite values (NaNs are left out).
-
-    The interval is ``scipy.stats.bootstrap``'s BCa interval of the mean (the percentile
-    interval where BCa is undefined for the sample); the resampling generator is seeded,
-    so the same values give the same interval.
+    """Mean and seeded BCa bootstrap CI (percentile where BCa is undefined) of the finite values.
 
     Args:
         values: the sample (e.g. one metric over seeds).
@@ -288,8 +254,7 @@ def bootstrap_ci(
         seed: seed of the resampling generator.
 
     Returns:
-        The mean and interval; all NaN for an empty sample, a zero-width interval for one
-        value or equal values.
+        The estimate; all NaN when empty, zero-width for equal values.
     """
     x = np.asarray(list(values), dtype=float)
     x = x[np.isfinite(x)]
@@ -309,8 +274,6 @@ def paired_ci(
 ) -> Estimate:
     """Mean of ``values - reference`` (pairs of one seed) and its paired BCa bootstrap CI.
 
-    The pairs are resampled together (``scipy.stats.bootstrap(..., paired=True)``).
-
     Raises:
         ValueError: if the two samples differ in length.
     """
@@ -325,15 +288,8 @@ def paired_ci(
 
 
 def summarize(results: Results, metrics: Sequence[Metric] | None = None) -> dict:
-    """Per agent and metric, the mean and bootstrap CI over error-free episodes.
-
-    Args:
-        results: the loaded results.
-        metrics: the metrics; ``None`` for :func:`summary_metrics` of the run's system.
-
-    Returns:
-        ``{agent: {column: Estimate}}`` (a zero-violation metric's key is
-        ``"zero:" + column``); a column missing from the table gives NaNs.
+    """Per agent and metric (default :func:`summary_metrics`), the mean and bootstrap CI over
+    error-free episodes: ``{agent: {column: Estimate}}`` (zero-violation keys ``"zero:" + column``).
     """
     if metrics is None:
         metrics = summary_metrics(results.system)
@@ -367,16 +323,8 @@ class PairedDifference:
 def paired_differences(
     results: Results, metric: str | Metric, agent: str, reference: str = REFERENCE_AGENT
 ) -> PairedDifference:
-    """Differences ``agent - reference`` of ``metric`` on matching seeds only.
-
-    A seed counts when both agents have an error-free episode on it and both values are
-    finite (e.g. time to goal only where both reached the goal).
-
-    Args:
-        results: the loaded results.
-        metric: a column, or a :class:`Metric` (e.g. a zero-violation fraction).
-        agent: the agent whose values come first.
-        reference: the agent subtracted.
+    """Differences ``agent - reference`` of ``metric`` (a column or :class:`Metric`) on the seeds
+    where both have an error-free episode and finite values.
     """
     return paired_rows_difference(
         results.rows_of(agent), results.rows_of(reference), metric, agent, reference
@@ -390,17 +338,9 @@ def paired_rows_difference(
     agent: str = "",
     reference: str = "",
 ) -> PairedDifference:
-    """Differences ``row - reference row`` of ``metric`` on the seeds both lists hold.
-
-    Rows with an error are left out; a seed counts when both values are finite. This is
-    :func:`paired_differences` for rows of two different folders (the risk sweep's).
-
-    Args:
-        rows: episode rows (``seed`` and the metric's column).
-        reference_rows: the rows subtracted.
-        metric: a column, or a :class:`Metric`.
-        agent: name of ``rows``' side, recorded in the result.
-        reference: name of the reference side.
+    """:func:`paired_differences` for rows of two folders (the risk sweep's): ``row - reference
+    row`` of ``metric`` on the seeds both hold, error rows left out; ``agent`` and
+    ``reference`` name the sides.
     """
     m = metric if isinstance(metric, Metric) else Metric(str(metric), str(metric))
     ref = {r["seed"]: m.value(r) for r in reference_rows if not r.get("error")}
@@ -438,15 +378,11 @@ def pooled_ratio_ci(
     level: float = 0.95,
     seed: int = BOOTSTRAP_SEED,
 ) -> Estimate:
-    """A ratio pooled over episodes, ``sum(num) / sum(den)``, with a bootstrap over episodes.
-
-    The episodes are resampled whole (a cluster bootstrap: numerator and denominator of
-    one episode paired, ``scipy.stats.bootstrap(..., paired=True)``, BCa), so the interval
-    accounts for the steps of one episode being correlated.
+    """A ratio pooled over episodes, ``sum(num) / sum(den)``, with a cluster bootstrap over
+    whole episodes (paired BCa).
 
     Args:
-        numerators: per episode, e.g. the steps inside the 2-sigma band, or the sum of
-            squared errors.
+        numerators: per episode, e.g. steps inside the 2-sigma band or squared errors summed.
         denominators: per episode, the steps counted.
         root: report the square root of the ratio (an RMSE from squared errors).
         n_resamples: bootstrap resamples.
@@ -454,8 +390,7 @@ def pooled_ratio_ci(
         seed: seed of the resampling generator.
 
     Returns:
-        The pooled value and interval, ``n`` the number of episodes with steps; all NaN
-        when no episode has any.
+        The pooled value and interval (``n`` episodes with steps); NaN when none has any.
     """
     num = np.asarray(numerators, dtype=float)
     den = np.asarray(denominators, dtype=float)
@@ -475,12 +410,8 @@ def pooled_ratio_ci(
 
 @dataclass(frozen=True)
 class EstimatorCoverage:
-    """How well one agent's estimator knows what it does not see, over its episodes.
-
-    ``quantities`` are the system's states then its latent-force components (labels with
-    units); ``coverage[i]`` is the fraction of steps with the truth inside the estimate's
-    2-sigma band and ``rmse[i]`` the root-mean-square estimate error [the quantity's
-    unit], both pooled over steps and episodes with a bootstrap interval over episodes.
+    """One agent's estimator over its episodes: per state, then force component (``quantities``),
+    the 2-sigma ``coverage`` and the ``rmse`` [its unit], pooled with a bootstrap over episodes.
     """
 
     agent: str
@@ -494,11 +425,8 @@ class EstimatorCoverage:
 
 
 def _estimate_errors(traj: dict[str, np.ndarray], system: ControlSystem) -> tuple:
-    """``(error, std)`` arrays ``(T, nx + nw)``: the states', then the force's.
-
-    The estimate made from ``obs[k]`` is compared with ``true_state[k]`` and the force
-    estimate with the force acting during step ``k``; errors of states in rad are
-    wrapped to ``[-pi, pi)``.
+    """``(error, std)`` arrays ``(T, nx + nw)``: estimate from ``obs[k]`` against
+    ``true_state[k]`` and the force of step ``k``; angles wrapped to ``[-pi, pi)``.
     """
     nx, nw = system.nx, system.nw
     est = np.asarray(traj["estimate"], dtype=float)
@@ -530,11 +458,8 @@ def _estimator_name(results: Results, recorded: Iterable[str], agent: str = "") 
 
 
 def estimator_coverage(results: Results) -> list[EstimatorCoverage]:
-    """The estimator coverage (2-sigma coverage and RMSE) of every agent with a filter (saved
-    trajectories only).
-
-    An agent counts when some error-free episode of it has a saved trajectory with a
-    finite latent-force estimate (the nominal MPC and the oracle have none).
+    """The estimator coverage of every agent with a filter (a saved trajectory with a finite
+    latent-force estimate).
     """
     system = results.system
     labels = tuple(system.state_names) + tuple(f"latent force {w}" for w in system.force_names)
@@ -569,30 +494,3 @@ def estimator_coverage(results: Results) -> list[EstimatorCoverage]:
             )
         )
     return out
-
-
-__all__ = [
-    "BOOTSTRAP_METHOD",
-    "FEW_SEEDS",
-    "BOOTSTRAP_RESAMPLES",
-    "BOOTSTRAP_SEED",
-    "REFERENCE_AGENT",
-    "TWO_SIGMA_COVERAGE",
-    "EstimatorCoverage",
-    "Estimate",
-    "Metric",
-    "PairedDifference",
-    "bootstrap_ci",
-    "estimator_coverage",
-    "few_seeds_caveat",
-    "group_metrics",
-    "paired_ci",
-    "paired_differences",
-    "paired_metrics",
-    "paired_rows_difference",
-    "pooled_ratio_ci",
-    "summarize",
-    "summary_metrics",
-    "tolerance_metrics",
-    "zero_violation_metrics",
-]

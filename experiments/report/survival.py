@@ -1,25 +1,11 @@
-"""Metrics that do not reward failing, and the report's headline section built from them.
+"""Metrics that do not reward failing (``docs/evidence.md``), and the report's headline section.
 
-An episode that ends in failure (the env leaves its safety box) stops counting violations, so
-an agent that fails early shows fewer violation steps than one that survives the same
-seed: its raw count is biased by survival. Three forms are free of that bias, all computed
-from the rows of ``episodes.csv`` (``steps``, ``failure`` and the constraint groups' counts):
-
-* **violations per step survived** (:class:`PerStepRate`, :func:`step_rate`): the violation
-  steps of a group over the steps the episode lasted; per agent pooled over episodes
-  (``sum(violation steps) / sum(steps)``, with a bootstrap over whole episodes), per seed
-  the episode's own rate (for paired differences);
-* **violation or failure** (:class:`ViolationOrFailure`): per episode 1 when the group was
-  violated at least once or the episode ended in failure, else 0; its mean is the fraction
-  of episodes that did not stay inside the group's bounds to their end;
-* **paired on the survivor seeds** (:func:`survivors`): paired differences on the seeds where
-  every compared agent ran without error and did not fail; the seeds dropped, and why, are
-  named.
-
-Failures stay a metric of their own (the failure rate). A constraint group's headline count
-is its smallest tolerance (``track`` steps more than 1 cm outside the band on the sine track,
-:func:`headline_counts`), else its raw count. Paired differences are against the report's
-baseline (:func:`experiments.report.write.choose_baseline`), as in every paired table.
+An episode that fails stops counting violations, so raw counts favour early failure. The
+unbiased forms, from ``episodes.csv``: violations per step survived (:class:`PerStepRate`,
+:func:`step_rate`; pooled with a bootstrap over episodes), violation or failure
+(:class:`ViolationOrFailure`) and paired differences on the survivor seeds
+(:func:`survivors`). A group's headline count is its smallest tolerance's
+(:func:`headline_counts`); paired differences are against the report's baseline.
 """
 
 from __future__ import annotations
@@ -150,10 +136,8 @@ _REASONS = {"failure": "failure", "error": "error", "missing": "no episode"}
 
 
 def survivors(results: Results, agents: Sequence[str] | None = None) -> Survivors:
-    """The seeds every one of ``agents`` (default: all of the results') survived.
-
-    A seed is dropped when some agent's episode on it ended in failure, raised an error or
-    is missing; :attr:`Survivors.dropped` says which and why.
+    """The seeds every one of ``agents`` (default: all) survived; :attr:`Survivors.dropped` names
+    the others (failure, error or missing) and why.
     """
     agents = tuple(results.agents if agents is None else agents)
     rows = {(r["agent"], r["seed"]): r for r in results.rows if r["agent"] in agents}
@@ -177,20 +161,13 @@ def survivors(results: Results, agents: Sequence[str] | None = None) -> Survivor
 
 
 def survivor_difference(
-    results: Results,
-    kept: Survivors,
-    metric: str | Metric,
-    agent: str,
-    reference: str,
+    results: Results, kept: Survivors, metric: str | Metric, agent: str, reference: str
 ) -> PairedDifference:
     """``agent - reference`` of ``metric`` on the survivor seeds of ``kept`` only."""
     seeds = set(kept.seeds)
     rows = [r for r in results.rows_of(agent) if r["seed"] in seeds]
     ref = [r for r in results.rows_of(reference) if r["seed"] in seeds]
     return paired_rows_difference(rows, ref, metric, agent, reference)
-
-
-# --------------------------------------------------------------------------- the section
 
 
 def _rate(e: Estimate) -> str:
@@ -323,10 +300,7 @@ def _group_table(
 
 def headline_section(doc: Document, results: Results, baseline: str) -> Survivors:
     """The report's headline: every agent's constraint metrics in forms that do not reward
-    failing, with paired differences against ``baseline``.
-
-    Returns:
-        The survivor seeds of every agent of the results (which the tables used).
+    failing, paired against ``baseline``; returns the survivor seeds used.
     """
     reference = baseline
     kept = survivors(results)
@@ -357,18 +331,3 @@ def headline_section(doc: Document, results: Results, baseline: str) -> Survivor
         doc.paragraph(f"**{count.label}** (group `{count.group}`):")
         _group_table(doc, results, count, reference, kept)
     return kept
-
-
-__all__ = [
-    "PER_STEPS",
-    "HeadlineCount",
-    "PerStepRate",
-    "Survivors",
-    "ViolationOrFailure",
-    "headline_counts",
-    "headline_section",
-    "step_rate",
-    "survivor_difference",
-    "survivors",
-    "violation_or_failure",
-]

@@ -1,15 +1,6 @@
-"""A risk sweep's folder read back, and its table, Pareto figure and ``sweep.md``.
-
-:func:`experiments.sweep.run_sweep` runs a sweep into a folder; :func:`load_sweep` reads it
-back as a :class:`SweepSummary` (the rows, statistics and paired differences of every
-value against the baseline), which :func:`sweep_table`, :func:`sweep_figure` and
-:func:`write_sweep` show, and which the evaluation report embeds
-(:func:`experiments.report.write.write_report` with ``sweep_dir``). The folder's layout::
-
-    out/sweep.json              what was swept: agent, key, values, baseline, seeds
-    out/baseline/               the baseline agent on the base config (an evaluation folder)
-    out/<key>=<value>/          the agent with the key set to the value (one per value)
-    out/sweep.md, out/sweep.png the table and the Pareto picture
+"""A risk sweep's folder read back (:func:`load_sweep`), its table, Pareto figure and
+``sweep.md``. Layout: ``sweep.json`` (the manifest), ``baseline/`` and ``<key>=<value>/``
+(evaluation folders), ``sweep.md`` and ``sweep.png``.
 """
 
 from __future__ import annotations
@@ -170,11 +161,9 @@ def read_manifest(out: Path) -> dict[str, Any] | None:
 def load_sweep(directory: str | os.PathLike) -> SweepSummary:
     """Read a sweep folder: its manifest, the baseline's and every value's rows.
 
-    Only the manifest's seeds count (a folder may hold more from an earlier, longer run).
-
     Raises:
-        FileNotFoundError: the folder, its ``sweep.json`` or its baseline's ``config.yaml``
-            is missing (the message names the path).
+        FileNotFoundError: the folder, ``sweep.json`` or the baseline's ``config.yaml`` is
+            missing (naming the path).
         ResultsFolderError: the manifest is unreadable.
     """
     out = Path(directory)
@@ -216,24 +205,15 @@ def load_sweep(directory: str | os.PathLike) -> SweepSummary:
     )
 
 
-# --------------------------------------------------------------------------- table, figure
-
-
 def _episodes_text(rows: Sequence[dict[str, Any]]) -> str:
     errors = sum(1 for r in rows if r["error"])
     return f"{len(rows) - errors}" + (f" ({errors} with errors)" if errors else "")
 
 
 def sweep_table(summary: SweepSummary) -> tuple[list[str], list[list[str]]]:
-    """The sweep's table: one row per metric, the baseline then one column per value.
-
-    The baseline's cells are its mean with a 95% bootstrap interval; a value's cells are
-    its mean, then ``Δ`` the paired difference to the baseline on the same seeds with its
-    95% bootstrap interval (``(n seeds)`` when fewer seeds than episodes pair, e.g. time
-    to goal only where both reached the goal).
-
-    Returns:
-        ``(header, rows)`` of text cells.
+    """The sweep's ``(header, rows)``: one row per metric, the baseline's mean [95% CI], then per
+    value its mean and ``Δ`` the paired difference on the same seeds [95% CI] (``(n seeds)``
+    when fewer pair).
     """
     header = [
         "metric",
@@ -325,11 +305,7 @@ def _reading(summary: SweepSummary) -> list[str]:
 
 
 def write_sweep(summary: SweepSummary) -> Path:
-    """Write ``sweep.md`` (the table) and ``sweep.png`` (the Pareto picture) into the folder.
-
-    Returns:
-        The path of ``sweep.md``.
-    """
+    """Write ``sweep.md`` and ``sweep.png`` into the folder; returns the path of ``sweep.md``."""
     plots.save_figure(sweep_figure(summary), summary.directory / SWEEP_FIGURE)
     doc = Document()
     doc.heading(f"Risk sweep: `{summary.key}` of `{summary.agent}` against `{summary.baseline}`", 1)
@@ -348,24 +324,3 @@ def sweep_errors(summary: SweepSummary) -> int:
     """Episodes of the sweep (baseline and values) that ended with an error."""
     rows = list(summary.baseline_rows) + [r for v in summary.values for r in v.rows]
     return sum(1 for r in rows if r["error"])
-
-
-__all__ = [
-    "BASELINE_FOLDER",
-    "FIGURE_CAPTION",
-    "MANIFEST",
-    "SWEEP_FIGURE",
-    "SWEEP_TABLE",
-    "SweepSummary",
-    "SweepValue",
-    "load_sweep",
-    "metric_key",
-    "read_manifest",
-    "sweep_description",
-    "sweep_errors",
-    "sweep_figure",
-    "sweep_metrics",
-    "sweep_table",
-    "value_folder",
-    "write_sweep",
-]

@@ -1,32 +1,8 @@
-"""A report of saved evaluation results: tables with bootstrap CIs, paired differences,
-one episode's figures, across-seed plots, an episode GIF and, for the paper's sine
-track, "paper vs measured".
-
-Reads a results folder written by the evaluation (it never re-runs an episode):
-
-* ``DIR/episodes.csv``: one row per (agent, seed) with the episode metrics;
-* ``DIR/episodes/<agent>__seed<seed>.npz``: the arrays of that episode;
-* ``DIR/config.yaml``: the config of the run (``env_id``, ``env`` and ``agents``).
-
-It opens with the metrics that do not reward failing (:mod:`experiments.report.survival`).
-Besides the per-agent and paired tables (with the tolerance-aware violation counts of
-:func:`~experiments.evaluation.columns.row_columns`), it holds the estimators' coverage (2-sigma
-coverage and RMSE per state and for the latent force, from the saved trajectories), the
-chance constraint against its design (:mod:`experiments.report.chance`) and,
-when given a sweep folder of :mod:`experiments.sweep` (or when ``DIR`` holds one), the
-risk sweep's table and Pareto figure.
-
-Everything world-specific comes from the config's system
-(:class:`~lfm_env.system.ControlSystem`): the constraint-group metrics and their units in
-the tables, and the figures (:mod:`experiments.plots.episode`). Only the "paper vs measured"
-section is the sine track's own, and it is left out for other worlds.
-
-:func:`write_report` writes ``report.md`` and ``report.html`` (the same content) into the
-folder and the figures into ``DIR/figures/``; ``report.html`` embeds every figure, so it can
-be sent alone. Its pieces: :mod:`experiments.report.results` reads the folder,
-:mod:`experiments.report.stats` computes the metrics and intervals,
-:mod:`experiments.report.document` renders Markdown and HTML,
-:mod:`experiments.plots.episode` draws.
+"""A report of a saved results folder (never re-running an episode): ``report.md`` and a
+self-contained ``report.html`` with the metrics that do not reward failing, per-agent and
+paired tables with bootstrap CIs, the estimators' coverage, the chance constraint against
+its design, a risk sweep's table, one episode's figures, across-seed plots, a GIF and, for
+the sine track, "paper vs measured". Everything world-specific comes from the system.
 """
 
 from __future__ import annotations
@@ -45,12 +21,7 @@ from experiments.report.chance import chance_section
 from experiments.report.document import GIF_EMBED_LIMIT, Document, embedded_image
 from experiments.report.figures import check_figure_seed, figures_section
 from experiments.report.format import agent_label, fmt, fmt_estimate, long_label
-from experiments.report.results import (
-    Results,
-    load_results,
-    load_trajectory,
-    read_episodes_csv,
-)
+from experiments.report.results import Results, load_results, load_trajectory, read_episodes_csv
 from experiments.report.stats import (
     BOOTSTRAP_RESAMPLES,
     BOOTSTRAP_SEED,
@@ -98,9 +69,6 @@ def _quantiles(values: Iterable[float], qs: Sequence[float]) -> list[float]:
     if len(x) == 0:
         return [math.nan] * len(qs)
     return [float(v) for v in np.quantile(x, qs)]
-
-
-# --------------------------------------------------------------------------- sections
 
 
 def _used_settings(results: Results) -> set[str]:
@@ -243,8 +211,7 @@ def _damaged_section(doc: Document, results: Results) -> None:
         "evaluation into this folder runs those episodes again."
     )
     doc.table(
-        ["file", "why"],
-        [[path.name, why[-300:]] for path, why in sorted(results.damaged.items())],
+        ["file", "why"], [[path.name, why[-300:]] for path, why in sorted(results.damaged.items())]
     )
 
 
@@ -261,9 +228,8 @@ def _reported(results: Results, metrics: Sequence[Metric]) -> list[Metric]:
 
 
 def choose_baseline(results: Results, baseline: str | None = None) -> str:
-    """The report's one baseline, which every paired table compares the other agents with:
-    ``baseline``, else the first of :data:`DEFAULT_BASELINES` that the results hold, else
-    the first agent.
+    """The report's one baseline for every paired table: ``baseline``, else the first of
+    :data:`DEFAULT_BASELINES` present, else the first agent.
 
     Raises:
         ValueError: naming ``baseline`` and the results' agents, if it is not among them.
@@ -490,9 +456,6 @@ def _pooled_solve_times(results: Results, agent: str) -> np.ndarray:
     return st[np.isfinite(st)]
 
 
-# --------------------------------------------------------------------------- entry point
-
-
 def write_report(
     results_dir: str | Path,
     figure_seed: int | None = None,
@@ -501,31 +464,25 @@ def write_report(
     baseline: str | None = None,
     allow_other_config: bool = False,
 ) -> Path:
-    """Write ``report.md`` and ``report.html`` (same content) for a results folder.
+    """Write ``report.md`` and ``report.html`` (figures embedded) of a results folder.
 
     Args:
         results_dir: folder with ``episodes.csv``, ``episodes/`` and ``config.yaml``.
         figure_seed: env seed of the episode figures and GIF; by default the smallest seed
             with a saved trajectory of the scenario agent.
-        gif: also write ``figures/episode.gif`` (a replay of the saved true states).
-        sweep_dir: a folder of the risk sweep (:mod:`experiments.sweep`) whose table and
-            Pareto figure the report includes; by default ``results_dir`` itself when it
-            holds a ``sweep.md``.
-        baseline: the agent every other one is compared with, in every paired table;
-            ``None`` for :func:`choose_baseline`'s default (``robust``, else ``scenario``,
-            else the first agent).
-        allow_other_config: include a sweep whose base config differs from the results'
-            (the report lists the differing fields); by default such a sweep is refused.
+        gif: also write ``figures/episode.gif``.
+        sweep_dir: a risk sweep folder to include; by default ``results_dir`` if it holds
+            a ``sweep.md``.
+        baseline: the agent every paired table compares with (:func:`choose_baseline`).
+        allow_other_config: include a sweep of another base config (listing the fields).
 
     Returns:
-        Path of ``report.md`` (figures linked from ``figures/``); ``report.html`` beside
-        it holds every figure embedded, so it can be sent alone.
+        Path of ``report.md`` (figures in ``figures/``).
 
     Raises:
         FileNotFoundError: if the folder, ``episodes.csv`` or ``config.yaml`` is missing.
-        ValueError: if there are no episodes, ``figure_seed`` has no saved trajectory,
-            ``baseline`` is not an agent of the results (the message lists them), or the
-            sweep ran on another config (the message lists the fields).
+        ValueError: no episodes, ``figure_seed`` without a trajectory, an unknown
+            ``baseline`` or a sweep of another config (listing them).
     """
     with warnings_once():  # (a damaged file is read by several sections)
         return _write_report(results_dir, figure_seed, gif, sweep_dir, baseline, allow_other_config)
