@@ -11,12 +11,10 @@ from controllers.config import ConfigError, load_config
 from controllers.solvers import (
     SOLVER_SPECS,
     SOLVERS,
-    ScenarioSolver,
     SolverSpec,
     make_solver,
     solver_spec,
 )
-from experiments.benchmark import timing
 from experiments.benchmark.problems import problem_from_config
 
 
@@ -38,7 +36,6 @@ def test_the_names_are_the_registrys_and_each_entry_point_is_a_solver_class():
         module, _, cls = spec.entry_point.partition(":")
         solver_class = getattr(importlib.import_module(module), cls)
         assert callable(solver_class.solve) and callable(solver_class.reset)
-    assert timing.ScenarioSolver is ScenarioSolver  # (the old import still works)
 
 
 @pytest.mark.parametrize("name", ["textbook", "", None, ["fast"]])

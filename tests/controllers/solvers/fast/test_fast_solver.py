@@ -14,8 +14,8 @@ from controllers.problem import MPCSolution, ScenarioProblem
 from controllers.solvers import make_solver
 from controllers.solvers.fast.condensed import CondensedModel
 from controllers.solvers.fast.solver import FastScenarioSolver
-from experiments.benchmark.timing import latent_force_scenarios
 from lfm_env.worlds.sine_track.config import SineTrackConfig
+from tests.random_walk_scenarios import latent_force_scenarios
 
 RTOL = 1e-4  # objective agreement with the reference
 VIOLATION_TOL = 1e-6  # [m or m/s] allowed constraint violation where the reference has none
@@ -574,3 +574,17 @@ def test_the_augmentation_is_tried_when_as_many_rows_as_negative_eigenvalues() -
     H_qp, sigma, _ = solver._convexify(H, None, none_pos, none_shared, np.array([0]))
     assert sigma == 0.0
     np.testing.assert_allclose(np.diag(H_qp), np.maximum(np.diag(H), floor), atol=1e-12)
+
+
+def test_latent_force_scenarios_start_and_walk() -> None:
+    rng = np.random.default_rng(0)
+    W = latent_force_scenarios(rng, 5, 7, mean=1.5, spread=0.0, walk_std=0.0)
+    assert W.shape == (5, 7)
+    np.testing.assert_array_equal(W, 1.5)  # no spread and no walk: the mean throughout
+    W = latent_force_scenarios(
+        np.random.default_rng(1), 4000, 3, mean=[1.0, -2.0], spread=0.5, walk_std=0.2, n_forces=2
+    )
+    assert W.shape == (4000, 3, 2)
+    np.testing.assert_allclose(W[:, 0].mean(axis=0), [1.0, -2.0], atol=0.05)
+    np.testing.assert_allclose(W[:, 0].std(axis=0), 0.5, rtol=0.05)
+    np.testing.assert_allclose(np.diff(W, axis=1).std(axis=(0, 1)), 0.2, rtol=0.05)

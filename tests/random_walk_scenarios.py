@@ -1,10 +1,8 @@
-"""Latent-force scenarios for solver tests and timings: a random start plus a random walk."""
+"""Latent-force scenarios for the solver tests: a random start plus a random walk."""
 
 from __future__ import annotations
 
 import numpy as np
-
-from controllers.solvers import ScenarioSolver  # noqa: F401  (importable from here)
 
 
 def latent_force_scenarios(
