@@ -35,3 +35,12 @@ def test_every_step_is_timed_whole_and_a_refused_horizon_is_a_row_that_says_why(
         assert row["summary"]["failed"] == len(row["failures"])
     table = format_closed_loop(out)
     assert "refused by the config" in table and "failed steps" in table
+
+
+def test_a_real_time_iteration_stopped_at_its_count_is_no_failed_step():
+    from experiments.benchmark.closed_loop import _failed
+
+    stopped = {"usable": True, "success": False}  # one SQP iteration, plan applied
+    assert not _failed(stopped, "rti") and _failed(stopped, "converged")
+    assert _failed({"usable": False, "success": False}, "rti")  # no usable plan (or raised)
+    assert not _failed({"usable": True, "success": True}, "converged")
