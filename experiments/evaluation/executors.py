@@ -205,6 +205,7 @@ def local_client(n_workers: int, stack: ExitStack) -> distributed.Client:
             "silence_logs": logging.CRITICAL,
         },
     }
+    stack.callback(logging.disable, logging.NOTSET)  # runs last: logging back as it was
     cluster = stack.enter_context(
         distributed.SpecCluster(
             scheduler=scheduler,
@@ -214,4 +215,15 @@ def local_client(n_workers: int, stack: ExitStack) -> distributed.Client:
             name="lfm-evaluate",
         )
     )
-    return stack.enter_context(distributed.Client(cluster, security=security))
+    client = stack.enter_context(distributed.Client(cluster, security=security))
+    stack.push(_quiet_when_interrupted)  # runs first, before the client and cluster close
+    return client
+
+
+def _quiet_when_interrupted(exc_type: type | None, *_: Any) -> bool:
+    """On Ctrl-C, the closing cluster's messages about cancelled tasks and closed connections
+    (logged with tracebacks by Dask) are not the user's business: logging is off until the
+    cluster has closed."""
+    if exc_type is not None and issubclass(exc_type, KeyboardInterrupt):
+        logging.disable(logging.CRITICAL)
+    return False
