@@ -225,4 +225,31 @@ def nominal_inputs(
     return U
 
 
-__all__ = ["FeedbackLaw", "feedback_law", "nominal_inputs", "nominal_rollout", "tvlqr_gains"]
+def shifted(u: np.ndarray) -> np.ndarray:
+    """The plan ``(N, nu)`` one step on: ``u_1 .. u_{N-1}, u_{N-1}``."""
+    return np.concatenate([u[1:], u[-1:]])
+
+
+def reference_plan(
+    problem: ScenarioProblem, u_guess: Any, previous: np.ndarray | None
+) -> tuple[np.ndarray | None, str]:
+    """The reference plan a feedback solve linearises its law along, and where it came from:
+    ``u_guess`` when given (``"u_guess"``), else the ``previous`` plan's nominal inputs
+    shifted by one step (``"previous_plan"``), else ``None`` (``"law"``: the law was given,
+    or the solver solves the open-loop problem first)."""
+    if u_guess is not None:
+        return problem.check_inputs(u_guess, "u_guess"), "u_guess"
+    if previous is not None:
+        return shifted(previous), "previous_plan"
+    return None, "law"
+
+
+__all__ = [
+    "FeedbackLaw",
+    "feedback_law",
+    "nominal_inputs",
+    "nominal_rollout",
+    "reference_plan",
+    "shifted",
+    "tvlqr_gains",
+]

@@ -48,7 +48,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from controllers.feedback_law import FeedbackLaw, feedback_law, nominal_inputs
+from controllers.feedback_law import (
+    FeedbackLaw,
+    feedback_law,
+    nominal_inputs,
+    reference_plan,
+    shifted,
+)
 from controllers.problem import EulerModel, MPCSolution, ScenarioProblem
 from lfm_env.cost import QuadraticCost
 from lfm_env.system import ControlSystem, split_unit
@@ -162,10 +168,6 @@ def augmented_backoff(problem: ScenarioProblem, backoff: np.ndarray | None) -> n
     return np.concatenate([b, np.zeros((problem.horizon, 2 * problem.nu))], axis=1)
 
 
-def _shifted(u: np.ndarray) -> np.ndarray:
-    return np.concatenate([u[1:], u[-1:]])
-
-
 class FeedbackScenarioSolver:
     """A registered solver on a feedback problem (``make_solver`` builds it; module docstring).
 
@@ -256,14 +258,11 @@ class FeedbackScenarioSolver:
         x0, W = p.check_data(x0, W)
         b = p.check_backoff(backoff)
         law = p.check_law(law)
-        ref, source, open_loop, gain_time = None, "law", None, 0.0
-        if u_guess is not None:
-            ref, source = p.check_inputs(u_guess, "u_guess"), "u_guess"
-        elif self._reference is not None:
-            ref, source = _shifted(self._reference), "previous_plan"
+        open_loop, gain_time = None, 0.0
+        ref, source = reference_plan(p, u_guess, self._reference)
         if law is None:
             if ref is None:
-                guess = None if self._last_v is None else _shifted(self._last_v)
+                guess = None if self._last_v is None else shifted(self._last_v)
                 ol = self.open_loop_solver().solve(x0, W, u_guess=guess, backoff=b)
                 open_loop = {
                     "status": ol.status,

@@ -32,7 +32,13 @@ from typing import Any
 
 import numpy as np
 
-from controllers.feedback_law import FeedbackLaw, feedback_law, nominal_inputs
+from controllers.feedback_law import (
+    FeedbackLaw,
+    feedback_law,
+    nominal_inputs,
+    reference_plan,
+    shifted,
+)
 from controllers.problem import MPCSolution, ScenarioProblem, is_usable
 from controllers.solvers.fast.condensed import CondensedModel
 from controllers.solvers.fast.iterate import Rollout
@@ -41,11 +47,6 @@ from controllers.solvers.fast.options import FastSolverOptions
 # The outcome of one run of the SQP with its extra starts:
 # (the plan's rollout, status, success, iterations, extra).
 Run = tuple[Rollout, str, bool, int, dict[str, Any]]
-
-
-def shifted(u: np.ndarray) -> np.ndarray:
-    """The plan ``(N, nu)`` one step on: ``u_1 .. u_{N-1}, u_{N-1}``."""
-    return np.concatenate([u[1:], u[-1:]])
 
 
 def applied_inputs(X: np.ndarray, v: np.ndarray, law: FeedbackLaw) -> np.ndarray:
@@ -132,11 +133,8 @@ class FeedbackMixin:
         x0, W = p.check_data(x0, W)
         b = p.check_backoff(backoff)
         law = p.check_law(law)
-        ref, source, reference, gain_time = None, "law", None, 0.0
-        if u_guess is not None:
-            ref, source = p.check_inputs(u_guess, "u_guess"), "u_guess"
-        elif self._reference is not None:
-            ref, source = shifted(self._reference), "previous_plan"
+        reference, gain_time = None, 0.0
+        ref, source = reference_plan(p, u_guess, self._reference)
         if law is None:
             if ref is None:
                 ref, reference = self._reference_solve(x0, W, b, t0)
@@ -193,4 +191,4 @@ class FeedbackMixin:
         )
 
 
-__all__ = ["FeedbackMixin", "applied_inputs", "shifted"]
+__all__ = ["FeedbackMixin", "applied_inputs"]
